@@ -1,0 +1,48 @@
+//! Command-line interface: argument parsing (clap), progress drawing and exit codes.
+//! Each subcommand lives in its own file and calls into the library; no logic here
+//! that the library lacks.
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+mod model;
+mod reconstruct;
+
+/// tactbench: test bench controller for vision-based tactile sensors.
+///
+/// Units everywhere: millimetres, newtons, N/mm² internally; sensor files give the
+/// Young's modulus in kPa. Sensor frame: x, y in the surface plane, z into the
+/// elastomer; fz > 0 presses into the sensor.
+#[derive(Parser)]
+#[command(name = "tactbench", version, about, long_about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    Reconstruct(reconstruct::Args),
+    #[command(subcommand)]
+    Model(model::ModelCommand),
+}
+
+/// Parses arguments, runs the command, prints the error chain on failure.
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Reconstruct(args) => reconstruct::run(args),
+        Command::Model(cmd) => model::run(cmd),
+    };
+    match result {
+        Ok(code) => code,
+        Err(err) => {
+            eprintln!("error: {err}");
+            for cause in err.chain().skip(1) {
+                eprintln!("  caused by: {cause}");
+            }
+            ExitCode::from(2)
+        }
+    }
+}

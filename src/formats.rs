@@ -1,0 +1,508 @@
+//! The CSV file formats shared by `track`, `reconstruct` and the runner (a public
+//! contract, see DESIGN.md and the README).
+//!
+//! **Displacements** (input of `reconstruct`, output of `track`):
+//! `layer,marker,x_mm,y_mm,ux_mm,uy_mm`, then optional extra columns. `x_mm, y_mm` is
+//! the marker's reference position in the sensor frame, `layer` a layer name of
+//! sensor.toml, `marker` an integer id unique within the layer. An empty or `NaN`
+//! displacement marks a lost marker: it is dropped from the system and counted. When
+//! an extra `frame` column is present, rows are grouped into frames by its value (in
+//! order of first appearance), as `track` writes them for a sequence.
+//!
+//! **Forces** (output of `reconstruct`): `ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n`, one row per
+//! force-grid node in row-major order; with several frames a trailing `frame` column is
+//! added.
+
+use std::collections::HashSet;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+use crate::model::MarkerSite;
+use crate::sensor::{Grid, Sensor};
+
+/// The displacement CSV's required leading columns.
+pub const DISPLACEMENT_COLUMNS: [&str; 6] = ["layer", "marker", "x_mm", "y_mm", "ux_mm", "uy_mm"];
+/// The forces CSV's columns.
+pub const FORCE_COLUMNS: [&str; 7] = ["ix", "iy", "x_mm", "y_mm", "fx_n", "fy_n", "fz_n"];
+
+/// An error reading or writing a CSV file. Data errors name file, line and column.
+#[derive(Debug, Error)]
+pub enum FormatError {
+    /// The file could not be opened, read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The CSV layer failed (malformed quoting, unequal row lengths).
+    #[error("{path}: {message}")]
+    Csv {
+        /// The file.
+        path: PathBuf,
+        /// What the CSV reader said.
+        message: String,
+    },
+    /// The header is not the expected one.
+    #[error("{path}: line 1: header must start with `{expected}`, found `{found}`")]
+    Header {
+        /// The file.
+        path: PathBuf,
+        /// The expected leading columns.
+        expected: String,
+        /// What was found.
+        found: String,
+    },
+    /// A field has a bad value.
+    #[error("{path}: line {line}, column `{column}`: {message} (value `{value}`)")]
+    Value {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line number.
+        line: u64,
+        /// Column name.
+        column: &'static str,
+        /// The raw value.
+        value: String,
+        /// What is wrong, with units.
+        message: String,
+    },
+    /// The file has a header but no data rows.
+    #[error("{path}: no data rows")]
+    Empty {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+/// One marker's row of a displacement file, after validation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisplacementRecord {
+    /// Index of the layer in the sensor.
+    pub layer: usize,
+    /// Marker id within the layer.
+    pub marker: u64,
+    /// Reference position, mm.
+    pub position_mm: [f64; 2],
+    /// Displacement, mm; `None` when the marker was lost.
+    pub u_mm: Option<[f64; 2]>,
+    /// 1-based line in the file.
+    pub line: u64,
+}
+
+/// One frame of displacements, ready for a solver.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DisplacementFrame {
+    /// The frame label (`""` when the file has no `frame` column).
+    pub frame: String,
+    /// Every row of the frame, lost markers included.
+    pub records: Vec<DisplacementRecord>,
+}
+
+impl DisplacementFrame {
+    /// The markers that carry data (lost ones dropped), in file order.
+    pub fn sites(&self, sensor: &Sensor) -> Vec<MarkerSite> {
+        self.records
+            .iter()
+            .filter(|r| r.u_mm.is_some())
+            .map(|r| MarkerSite {
+                layer: r.layer,
+                position_mm: r.position_mm,
+                depth_mm: sensor.layers[r.layer].depth_mm,
+            })
+            .collect()
+    }
+
+    /// Interleaved `ux, uy` (mm) of the markers that carry data, matching [`Self::sites`].
+    pub fn u_mm(&self) -> Vec<f64> {
+        self.records
+            .iter()
+            .filter_map(|r| r.u_mm)
+            .flat_map(|u| u.into_iter())
+            .collect()
+    }
+
+    /// The lost markers: `(layer index, marker id)`.
+    pub fn lost(&self) -> Vec<(usize, u64)> {
+        self.records
+            .iter()
+            .filter(|r| r.u_mm.is_none())
+            .map(|r| (r.layer, r.marker))
+            .collect()
+    }
+}
+
+fn csv_error(path: &Path, e: csv::Error) -> FormatError {
+    FormatError::Csv {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Reads a displacement file, validated against the sensor's layer names.
+///
+/// Rejected (with file, line, column and value): a wrong header, unknown layer names,
+/// non-integer marker ids, non-finite positions, infinite displacements, a displacement
+/// with one component given and the other empty, duplicate `(layer, marker)` pairs
+/// within a frame, and files without rows.
+pub fn read_displacements(
+    path: &Path,
+    sensor: &Sensor,
+) -> Result<Vec<DisplacementFrame>, FormatError> {
+    let file = std::fs::File::open(path).map_err(|source| FormatError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    read_displacements_from(file, path, sensor)
+}
+
+/// As [`read_displacements`], from any reader; `path` is used in messages only.
+pub fn read_displacements_from(
+    reader: impl std::io::Read,
+    path: &Path,
+    sensor: &Sensor,
+) -> Result<Vec<DisplacementFrame>, FormatError> {
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .from_reader(reader);
+    let headers = rdr.headers().map_err(|e| csv_error(path, e))?.clone();
+    let lead: Vec<&str> = headers.iter().take(6).collect();
+    if lead != DISPLACEMENT_COLUMNS {
+        return Err(FormatError::Header {
+            path: path.to_path_buf(),
+            expected: DISPLACEMENT_COLUMNS.join(","),
+            found: headers.iter().collect::<Vec<_>>().join(","),
+        });
+    }
+    let frame_col = headers.iter().position(|h| h == "frame");
+
+    let mut frames: Vec<DisplacementFrame> = Vec::new();
+    let mut seen: Vec<HashSet<(usize, u64)>> = Vec::new();
+    for result in rdr.records() {
+        let rec = result.map_err(|e| csv_error(path, e))?;
+        let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let bad = |column: &'static str, value: &str, message: String| FormatError::Value {
+            path: path.to_path_buf(),
+            line,
+            column,
+            value: value.to_string(),
+            message,
+        };
+        let layer_name = &rec[0];
+        let layer = sensor.layer_index(layer_name).ok_or_else(|| {
+            let names: Vec<&str> = sensor.layers.iter().map(|l| l.name.as_str()).collect();
+            bad(
+                "layer",
+                layer_name,
+                format!("unknown layer: the sensor has {}", names.join(", ")),
+            )
+        })?;
+        let marker: u64 = rec[1].parse().map_err(|_| {
+            bad(
+                "marker",
+                &rec[1],
+                "marker id must be a non-negative integer".into(),
+            )
+        })?;
+        let mut pos = [0.0; 2];
+        for (i, col) in [(2usize, "x_mm"), (3, "y_mm")] {
+            let v: f64 = rec[i]
+                .parse()
+                .map_err(|_| bad(col, &rec[i], "expected a number in mm".into()))?;
+            if !v.is_finite() {
+                return Err(bad(
+                    col,
+                    &rec[i],
+                    "reference position must be finite (mm)".into(),
+                ));
+            }
+            pos[if i == 2 { 0 } else { 1 }] = v;
+        }
+        let mut comp = [None; 2];
+        for (k, (i, col)) in [(4usize, "ux_mm"), (5, "uy_mm")].into_iter().enumerate() {
+            let raw = &rec[i];
+            if raw.is_empty() {
+                continue;
+            }
+            let v: f64 = raw.parse().map_err(|_| {
+                bad(
+                    col,
+                    raw,
+                    "expected a number in mm, or empty / NaN for a lost marker".into(),
+                )
+            })?;
+            if v.is_infinite() {
+                return Err(bad(
+                    col,
+                    raw,
+                    "displacement is infinite: use empty or NaN to mark a lost marker".into(),
+                ));
+            }
+            if !v.is_nan() {
+                comp[k] = Some(v);
+            }
+        }
+        let u_mm = match comp {
+            [Some(x), Some(y)] => Some([x, y]),
+            [None, None] => None,
+            _ => {
+                let (col, raw) = if comp[0].is_none() {
+                    ("ux_mm", &rec[4])
+                } else {
+                    ("uy_mm", &rec[5])
+                };
+                return Err(bad(
+                    col,
+                    raw,
+                    "one displacement component is missing: give both or neither".into(),
+                ));
+            }
+        };
+        let frame_label = frame_col.and_then(|c| rec.get(c)).unwrap_or("").to_string();
+        let fi = match frames.iter().position(|f| f.frame == frame_label) {
+            Some(i) => i,
+            None => {
+                frames.push(DisplacementFrame {
+                    frame: frame_label,
+                    records: Vec::new(),
+                });
+                seen.push(HashSet::new());
+                frames.len() - 1
+            }
+        };
+        if !seen[fi].insert((layer, marker)) {
+            return Err(bad(
+                "marker",
+                &rec[1],
+                format!("duplicate marker id in layer `{layer_name}`"),
+            ));
+        }
+        frames[fi].records.push(DisplacementRecord {
+            layer,
+            marker,
+            position_mm: pos,
+            u_mm,
+            line,
+        });
+    }
+    if frames.is_empty() {
+        return Err(FormatError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(frames)
+}
+
+/// Writes a displacement file (one frame) with the required columns only.
+pub fn write_displacements(
+    path: &Path,
+    sensor: &Sensor,
+    records: &[DisplacementRecord],
+) -> Result<(), FormatError> {
+    let io = |source| FormatError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
+    writeln!(w, "{}", DISPLACEMENT_COLUMNS.join(",")).map_err(io)?;
+    for r in records {
+        let name = &sensor.layers[r.layer].name;
+        match r.u_mm {
+            Some(u) => writeln!(
+                w,
+                "{name},{},{},{},{},{}",
+                r.marker, r.position_mm[0], r.position_mm[1], u[0], u[1]
+            ),
+            None => writeln!(
+                w,
+                "{name},{},{},{},,",
+                r.marker, r.position_mm[0], r.position_mm[1]
+            ),
+        }
+        .map_err(io)?;
+    }
+    w.flush().map_err(io)
+}
+
+/// Writes the forces of one or more frames. `frames` pairs a frame label with its force
+/// vector (interleaved `fx, fy, fz` per node, N); the `frame` column is written only
+/// when there is more than one frame.
+pub fn write_forces(
+    path: &Path,
+    grid: &Grid,
+    frames: &[(String, Vec<f64>)],
+) -> Result<(), FormatError> {
+    let io = |source| FormatError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
+    write_forces_to(&mut w, grid, frames).map_err(io)?;
+    w.flush().map_err(io)
+}
+
+/// As [`write_forces`], to any writer.
+pub fn write_forces_to(
+    w: &mut impl Write,
+    grid: &Grid,
+    frames: &[(String, Vec<f64>)],
+) -> std::io::Result<()> {
+    let multi = frames.len() > 1;
+    write!(w, "{}", FORCE_COLUMNS.join(","))?;
+    writeln!(w, "{}", if multi { ",frame" } else { "" })?;
+    for (label, f) in frames {
+        for iy in 0..grid.ny {
+            for ix in 0..grid.nx {
+                let j = iy * grid.nx + ix;
+                let p = grid.node_mm(ix, iy);
+                write!(
+                    w,
+                    "{ix},{iy},{},{},{},{},{}",
+                    p[0],
+                    p[1],
+                    f[3 * j],
+                    f[3 * j + 1],
+                    f[3 * j + 2]
+                )?;
+                if multi {
+                    write!(w, ",{label}")?;
+                }
+                writeln!(w)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// One row of a forces file.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ForceRecord {
+    /// Grid column.
+    pub ix: usize,
+    /// Grid row.
+    pub iy: usize,
+    /// Node position, mm.
+    pub position_mm: [f64; 2],
+    /// Force, N.
+    pub f_n: [f64; 3],
+}
+
+/// Reads a forces file (the first frame's rows when there are several).
+pub fn read_forces(path: &Path) -> Result<Vec<ForceRecord>, FormatError> {
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .map_err(|e| csv_error(path, e))?;
+    let headers = rdr.headers().map_err(|e| csv_error(path, e))?.clone();
+    if headers.iter().take(7).collect::<Vec<_>>() != FORCE_COLUMNS {
+        return Err(FormatError::Header {
+            path: path.to_path_buf(),
+            expected: FORCE_COLUMNS.join(","),
+            found: headers.iter().collect::<Vec<_>>().join(","),
+        });
+    }
+    let mut out = Vec::new();
+    for result in rdr.records() {
+        let rec = result.map_err(|e| csv_error(path, e))?;
+        let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let num = |i: usize| -> Result<f64, FormatError> {
+            rec[i].parse::<f64>().map_err(|_| FormatError::Value {
+                path: path.to_path_buf(),
+                line,
+                column: FORCE_COLUMNS[i],
+                value: rec[i].to_string(),
+                message: "expected a number".into(),
+            })
+        };
+        out.push(ForceRecord {
+            ix: num(0)? as usize,
+            iy: num(1)? as usize,
+            position_mm: [num(2)?, num(3)?],
+            f_n: [num(4)?, num(5)?, num(6)?],
+        });
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sensor::paper_sensor;
+
+    fn read(text: &str) -> Result<Vec<DisplacementFrame>, FormatError> {
+        read_displacements_from(text.as_bytes(), Path::new("d.csv"), &paper_sensor())
+    }
+
+    #[test]
+    fn reads_rows_and_drops_lost_markers() {
+        let f = read("layer,marker,x_mm,y_mm,ux_mm,uy_mm\nblue,0,0,0,0.01,-0.02\nred,3,0.75,0.75,,\nred,4,2.25,0.75,NaN,NaN\n").unwrap();
+        assert_eq!(f.len(), 1);
+        let s = paper_sensor();
+        assert_eq!(f[0].sites(&s).len(), 1);
+        assert_eq!(f[0].u_mm(), vec![0.01, -0.02]);
+        assert_eq!(f[0].lost(), vec![(1, 3), (1, 4)]);
+        assert_eq!(f[0].sites(&s)[0].depth_mm, 3.0);
+    }
+
+    #[test]
+    fn groups_frames_by_frame_column_and_accepts_extra_columns() {
+        let t = "layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,status\nblue,0,0,0,0.1,0,a.png,ok\nblue,0,0,0,0.2,0,b.png,ok\n";
+        let f = read(t).unwrap();
+        assert_eq!(f.len(), 2);
+        assert_eq!(f[1].frame, "b.png");
+    }
+
+    #[test]
+    fn rejects_bad_input_naming_line_column_and_value() {
+        let h = "layer,marker,x_mm,y_mm,ux_mm,uy_mm\n";
+        let e = read(&format!("{h}blue,0,0,0,0,0\ngreen,1,0,0,0,0\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("line 3")
+                && e.contains("`layer`")
+                && e.contains("green")
+                && e.contains("blue, red"),
+            "{e}"
+        );
+        let e = read(&format!("{h}blue,0,0,0,inf,0\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("line 2") && e.contains("ux_mm") && e.contains("infinite"),
+            "{e}"
+        );
+        let e = read(&format!("{h}blue,0,0,0,abc,0\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("abc") && e.contains("mm"), "{e}");
+        let e = read(&format!("{h}blue,0,0,0,0.1,\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("uy_mm") && e.contains("both or neither"), "{e}");
+        let e = read(&format!("{h}blue,0,0,0,0,0\nblue,0,1,0,0,0\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("duplicate"), "{e}");
+        let e = read("x,y\n1,2\n").unwrap_err().to_string();
+        assert!(e.contains("header"), "{e}");
+        assert!(matches!(read(h), Err(FormatError::Empty { .. })));
+    }
+
+    #[test]
+    fn forces_round_trip() {
+        let s = paper_sensor();
+        let f: Vec<f64> = (0..240).map(|i| i as f64 * 0.125 - 3.0).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("f.csv");
+        write_forces(&p, &s.force_grid, &[(String::new(), f.clone())]).unwrap();
+        let back = read_forces(&p).unwrap();
+        assert_eq!(back.len(), 80);
+        assert_eq!(back[11].ix, 1);
+        assert_eq!(back[11].iy, 1);
+        assert_eq!(back[11].f_n, [f[33], f[34], f[35]]);
+    }
+}

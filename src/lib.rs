@@ -1,0 +1,14 @@
+//! tactbench: a hardware-in-the-loop test bench controller for vision-based tactile
+//! sensors (two layers of coloured markers in a transparent elastomer, photographed
+//! from below; surface force vectors reconstructed with the elastic half-space model).
+//!
+//! The library holds all logic; the `tactbench` binary is a thin CLI over it. See
+//! `ARCHITECTURE.md` for the module map and `README.md` for commands and file formats.
+
+#![warn(missing_docs)]
+
+pub mod formats;
+pub mod model;
+pub mod sensor;
+pub mod solve;
+pub mod units;

@@ -1,0 +1,668 @@
+//! `sensor.toml`: the sensor's elastomer, marker layers, force grid and camera mapping.
+//!
+//! The file is parsed once into [`Sensor`], whose fields have all been checked
+//! (ranges, non-empty grids, unique layer names, known colours); everything downstream
+//! trusts it. The schema is a public contract (see DESIGN.md and the README):
+//!
+//! ```toml
+//! [elastomer]
+//! young_modulus_kpa = 1000.0   # > 0
+//! poisson_ratio = 0.5          # in [0, 0.5]
+//! thickness_mm = 40.0          # > 0, deeper than every layer
+//!
+//! [[layers]]                   # one per marker layer, at least one
+//! name = "blue"                # unique
+//! color = "blue"               # blue | red | green
+//! depth_mm = 3.0               # > 0
+//! [layers.markers]             # optional regular grid of this layer
+//! nx = 13
+//! ny = 10
+//! pitch_mm = 1.5
+//! origin_mm = [0.0, 0.0]
+//! diameter_mm = 0.6
+//!
+//! [force_grid]
+//! nx = 10
+//! ny = 8
+//! pitch_mm = 2.2
+//! origin_mm = [-0.9, -0.95]
+//!
+//! [camera]
+//! mm_per_px = 0.05
+//! origin_px = [25.0, 25.0]     # pixel position of the sensor-frame origin
+//! width_px = 430
+//! height_px = 340
+//! ```
+//!
+//! Grids are row-major: node `(ix, iy)` has index `iy * nx + ix` and sits at
+//! `origin + pitch * (ix, iy)`. The camera maps pixels to the sensor frame by
+//! `x_mm = (x_px - origin_px.x) * mm_per_px` (likewise for y): image columns grow
+//! with sensor x and image rows with sensor y.
+
+use std::collections::HashSet;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use thiserror::Error;
+
+use crate::units;
+
+/// An error reading or validating a sensor file. Every variant names the file.
+#[derive(Debug, Error)]
+pub enum SensorError {
+    /// The file could not be read.
+    #[error("cannot read sensor file {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML for the schema (syntax, unknown key, wrong type).
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message, with line and column.
+        message: String,
+    },
+    /// A value is out of its allowed range.
+    #[error("{path}: {key} = {value} is invalid: {allowed}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// The offending key, e.g. `elastomer.poisson_ratio` or `layers[1].depth_mm`.
+        key: String,
+        /// The offending value as written.
+        value: String,
+        /// What is allowed, with units.
+        allowed: String,
+    },
+}
+
+/// Colour of a marker layer, used by the tracker and the renderer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum MarkerColor {
+    /// Blue markers.
+    Blue,
+    /// Red markers.
+    Red,
+    /// Green markers.
+    Green,
+}
+
+impl MarkerColor {
+    /// All colours, in the order used by the tracker's channel separation.
+    pub const ALL: [MarkerColor; 3] = [MarkerColor::Blue, MarkerColor::Red, MarkerColor::Green];
+
+    /// The name used in sensor files.
+    pub fn name(self) -> &'static str {
+        match self {
+            MarkerColor::Blue => "blue",
+            MarkerColor::Red => "red",
+            MarkerColor::Green => "green",
+        }
+    }
+
+    /// Parses a colour name as written in sensor files.
+    pub fn parse(name: &str) -> Option<Self> {
+        MarkerColor::ALL.into_iter().find(|c| c.name() == name)
+    }
+}
+
+impl fmt::Display for MarkerColor {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// The elastomer's material and thickness.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Elastomer {
+    /// Young's modulus in kPa, as written in the file.
+    pub young_modulus_kpa: f64,
+    /// Poisson ratio, in [0, 0.5].
+    pub poisson_ratio: f64,
+    /// Thickness in mm (the half-space model ignores it; layers must lie within it).
+    pub thickness_mm: f64,
+}
+
+impl Elastomer {
+    /// Young's modulus in the internal unit, N/mm².
+    pub fn young_modulus_n_per_mm2(&self) -> f64 {
+        units::kpa_to_n_per_mm2(self.young_modulus_kpa)
+    }
+}
+
+/// A regular rectangular grid in the sensor plane (row-major node order).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Grid {
+    /// Nodes along x.
+    pub nx: usize,
+    /// Nodes along y.
+    pub ny: usize,
+    /// Spacing in mm (same along x and y).
+    pub pitch_mm: f64,
+    /// Position of node (0, 0) in the sensor frame, mm.
+    pub origin_mm: [f64; 2],
+}
+
+impl Grid {
+    /// Number of nodes.
+    pub fn len(&self) -> usize {
+        self.nx * self.ny
+    }
+
+    /// True when the grid has no nodes (never for a validated sensor).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Position of node `(ix, iy)` in mm.
+    pub fn node_mm(&self, ix: usize, iy: usize) -> [f64; 2] {
+        [
+            self.origin_mm[0] + self.pitch_mm * ix as f64,
+            self.origin_mm[1] + self.pitch_mm * iy as f64,
+        ]
+    }
+
+    /// Positions of all nodes, row-major (`index = iy * nx + ix`).
+    pub fn nodes_mm(&self) -> Vec<[f64; 2]> {
+        let mut out = Vec::with_capacity(self.len());
+        for iy in 0..self.ny {
+            for ix in 0..self.nx {
+                out.push(self.node_mm(ix, iy));
+            }
+        }
+        out
+    }
+
+    /// The node nearest to `p_mm` and its distance in mm, or `None` when the point
+    /// lies more than half a pitch outside the grid.
+    pub fn nearest_node(&self, p_mm: [f64; 2]) -> Option<((usize, usize), f64)> {
+        let fx = (p_mm[0] - self.origin_mm[0]) / self.pitch_mm;
+        let fy = (p_mm[1] - self.origin_mm[1]) / self.pitch_mm;
+        if !fx.is_finite() || !fy.is_finite() {
+            return None;
+        }
+        let ix = fx.round();
+        let iy = fy.round();
+        if ix < 0.0 || iy < 0.0 || ix >= self.nx as f64 || iy >= self.ny as f64 {
+            return None;
+        }
+        let (ix, iy) = (ix as usize, iy as usize);
+        let n = self.node_mm(ix, iy);
+        let d = ((p_mm[0] - n[0]).powi(2) + (p_mm[1] - n[1]).powi(2)).sqrt();
+        Some(((ix, iy), d))
+    }
+}
+
+/// A layer's regular marker grid.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarkerGrid {
+    /// Grid of marker centres.
+    pub grid: Grid,
+    /// Marker diameter in mm.
+    pub diameter_mm: f64,
+}
+
+/// One layer of markers at a fixed depth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Layer {
+    /// Unique name, used in displacement CSVs.
+    pub name: String,
+    /// Marker colour.
+    pub color: MarkerColor,
+    /// Depth below the surface in mm (> 0).
+    pub depth_mm: f64,
+    /// Regular marker grid, when the file gives one.
+    pub markers: Option<MarkerGrid>,
+}
+
+/// Pixel <-> sensor-frame mapping of the camera.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraMapping {
+    /// Size of one pixel in mm (square pixels).
+    pub mm_per_px: f64,
+    /// Pixel position of the sensor-frame origin.
+    pub origin_px: [f64; 2],
+    /// Image width in pixels.
+    pub width_px: u32,
+    /// Image height in pixels.
+    pub height_px: u32,
+}
+
+impl CameraMapping {
+    /// Pixel position to sensor-frame position in mm.
+    pub fn px_to_mm(&self, p_px: [f64; 2]) -> [f64; 2] {
+        [
+            (p_px[0] - self.origin_px[0]) * self.mm_per_px,
+            (p_px[1] - self.origin_px[1]) * self.mm_per_px,
+        ]
+    }
+
+    /// Sensor-frame position in mm to pixel position.
+    pub fn mm_to_px(&self, p_mm: [f64; 2]) -> [f64; 2] {
+        [
+            p_mm[0] / self.mm_per_px + self.origin_px[0],
+            p_mm[1] / self.mm_per_px + self.origin_px[1],
+        ]
+    }
+}
+
+/// A validated sensor description.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sensor {
+    /// Material and thickness.
+    pub elastomer: Elastomer,
+    /// Marker layers, at least one, unique names.
+    pub layers: Vec<Layer>,
+    /// Where surface forces are reconstructed.
+    pub force_grid: Grid,
+    /// Camera mapping.
+    pub camera: CameraMapping,
+}
+
+impl Sensor {
+    /// Reads and validates a sensor file.
+    pub fn from_path(path: impl AsRef<Path>) -> Result<Sensor, SensorError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| SensorError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Sensor::from_toml_str(&text, path)
+    }
+
+    /// Parses and validates sensor TOML; `path` is used in error messages only.
+    pub fn from_toml_str(text: &str, path: impl AsRef<Path>) -> Result<Sensor, SensorError> {
+        let path = path.as_ref();
+        let raw: RawSensor = toml::from_str(text).map_err(|e| SensorError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        raw.validate(path)
+    }
+
+    /// Index of the layer with this name.
+    pub fn layer_index(&self, name: &str) -> Option<usize> {
+        self.layers.iter().position(|l| l.name == name)
+    }
+
+    /// Force-grid node positions, row-major.
+    pub fn force_points_mm(&self) -> Vec<[f64; 2]> {
+        self.force_grid.nodes_mm()
+    }
+
+    /// Serialises back to TOML in the schema of the module docs.
+    pub fn to_toml_string(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        let e = &self.elastomer;
+        let _ = writeln!(
+            s,
+            "[elastomer]\nyoung_modulus_kpa = {:?}\npoisson_ratio = {:?}\nthickness_mm = {:?}\n",
+            e.young_modulus_kpa, e.poisson_ratio, e.thickness_mm
+        );
+        for l in &self.layers {
+            let _ = writeln!(
+                s,
+                "[[layers]]\nname = {:?}\ncolor = \"{}\"\ndepth_mm = {:?}",
+                l.name, l.color, l.depth_mm
+            );
+            if let Some(m) = &l.markers {
+                let _ = writeln!(
+                    s,
+                    "[layers.markers]\nnx = {}\nny = {}\npitch_mm = {:?}\norigin_mm = [{:?}, {:?}]\ndiameter_mm = {:?}",
+                    m.grid.nx, m.grid.ny, m.grid.pitch_mm, m.grid.origin_mm[0], m.grid.origin_mm[1], m.diameter_mm
+                );
+            }
+            s.push('\n');
+        }
+        let g = &self.force_grid;
+        let _ = writeln!(
+            s,
+            "[force_grid]\nnx = {}\nny = {}\npitch_mm = {:?}\norigin_mm = [{:?}, {:?}]\n",
+            g.nx, g.ny, g.pitch_mm, g.origin_mm[0], g.origin_mm[1]
+        );
+        let c = &self.camera;
+        let _ = writeln!(
+            s,
+            "[camera]\nmm_per_px = {:?}\norigin_px = [{:?}, {:?}]\nwidth_px = {}\nheight_px = {}",
+            c.mm_per_px, c.origin_px[0], c.origin_px[1], c.width_px, c.height_px
+        );
+        s
+    }
+}
+
+// ---- raw (unvalidated) schema -------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSensor {
+    elastomer: RawElastomer,
+    layers: Vec<RawLayer>,
+    force_grid: RawGrid,
+    camera: RawCamera,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawElastomer {
+    young_modulus_kpa: f64,
+    poisson_ratio: f64,
+    thickness_mm: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLayer {
+    name: String,
+    color: String,
+    depth_mm: f64,
+    markers: Option<RawMarkerGrid>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMarkerGrid {
+    nx: i64,
+    ny: i64,
+    pitch_mm: f64,
+    origin_mm: [f64; 2],
+    diameter_mm: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawGrid {
+    nx: i64,
+    ny: i64,
+    pitch_mm: f64,
+    origin_mm: [f64; 2],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCamera {
+    mm_per_px: f64,
+    origin_px: [f64; 2],
+    width_px: i64,
+    height_px: i64,
+}
+
+/// Collects the checks of one file so each error names the file and key.
+struct Checker<'a> {
+    path: &'a Path,
+}
+
+impl Checker<'_> {
+    fn invalid(&self, key: &str, value: impl fmt::Display, allowed: &str) -> SensorError {
+        SensorError::Invalid {
+            path: self.path.to_path_buf(),
+            key: key.to_string(),
+            value: value.to_string(),
+            allowed: allowed.to_string(),
+        }
+    }
+
+    fn positive(&self, key: &str, v: f64, unit: &str) -> Result<f64, SensorError> {
+        if v.is_finite() && v > 0.0 {
+            Ok(v)
+        } else {
+            Err(self.invalid(key, v, &format!("must be a finite number > 0 {unit}")))
+        }
+    }
+
+    fn finite(&self, key: &str, v: f64, unit: &str) -> Result<f64, SensorError> {
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(self.invalid(key, v, &format!("must be a finite number ({unit})")))
+        }
+    }
+
+    fn count(&self, key: &str, v: i64, max: i64) -> Result<usize, SensorError> {
+        if (1..=max).contains(&v) {
+            Ok(v as usize)
+        } else {
+            Err(self.invalid(key, v, &format!("must be an integer in [1, {max}]")))
+        }
+    }
+
+    fn grid(
+        &self,
+        key: &str,
+        nx: i64,
+        ny: i64,
+        pitch: f64,
+        origin: [f64; 2],
+    ) -> Result<Grid, SensorError> {
+        const MAX_NODES: i64 = 4096;
+        Ok(Grid {
+            nx: self.count(&format!("{key}.nx"), nx, MAX_NODES)?,
+            ny: self.count(&format!("{key}.ny"), ny, MAX_NODES)?,
+            pitch_mm: self.positive(&format!("{key}.pitch_mm"), pitch, "mm")?,
+            origin_mm: [
+                self.finite(&format!("{key}.origin_mm[0]"), origin[0], "mm")?,
+                self.finite(&format!("{key}.origin_mm[1]"), origin[1], "mm")?,
+            ],
+        })
+    }
+}
+
+impl RawSensor {
+    fn validate(self, path: &Path) -> Result<Sensor, SensorError> {
+        let c = Checker { path };
+        let e = &self.elastomer;
+        let young = c.positive("elastomer.young_modulus_kpa", e.young_modulus_kpa, "kPa")?;
+        let nu = e.poisson_ratio;
+        if !(nu.is_finite() && (0.0..=0.5).contains(&nu)) {
+            return Err(c.invalid(
+                "elastomer.poisson_ratio",
+                nu,
+                "must be in [0, 0.5] (0.5 = incompressible)",
+            ));
+        }
+        let thickness = c.positive("elastomer.thickness_mm", e.thickness_mm, "mm")?;
+        let elastomer = Elastomer {
+            young_modulus_kpa: young,
+            poisson_ratio: nu,
+            thickness_mm: thickness,
+        };
+
+        if self.layers.is_empty() {
+            return Err(c.invalid("layers", "[]", "at least one [[layers]] table is required"));
+        }
+        let mut names = HashSet::new();
+        let mut layers = Vec::with_capacity(self.layers.len());
+        for (i, l) in self.layers.into_iter().enumerate() {
+            let key = format!("layers[{i}]");
+            if l.name.trim().is_empty() || l.name.contains(',') {
+                return Err(c.invalid(
+                    &format!("{key}.name"),
+                    format!("{:?}", l.name),
+                    "must be a non-empty name without commas",
+                ));
+            }
+            if !names.insert(l.name.clone()) {
+                return Err(c.invalid(
+                    &format!("{key}.name"),
+                    format!("{:?}", l.name),
+                    "duplicate layer name: every layer needs a unique name",
+                ));
+            }
+            let color = MarkerColor::parse(&l.color).ok_or_else(|| {
+                c.invalid(
+                    &format!("{key}.color"),
+                    format!("{:?}", l.color),
+                    "unknown colour: expected one of blue, red, green",
+                )
+            })?;
+            let depth = c.positive(&format!("{key}.depth_mm"), l.depth_mm, "mm")?;
+            if depth >= thickness {
+                return Err(c.invalid(
+                    &format!("{key}.depth_mm"),
+                    depth,
+                    &format!("must be less than elastomer.thickness_mm = {thickness} mm"),
+                ));
+            }
+            let markers = match l.markers {
+                None => None,
+                Some(m) => {
+                    let mkey = format!("{key}.markers");
+                    let grid = c.grid(&mkey, m.nx, m.ny, m.pitch_mm, m.origin_mm)?;
+                    let d = c.positive(&format!("{mkey}.diameter_mm"), m.diameter_mm, "mm")?;
+                    Some(MarkerGrid {
+                        grid,
+                        diameter_mm: d,
+                    })
+                }
+            };
+            layers.push(Layer {
+                name: l.name,
+                color,
+                depth_mm: depth,
+                markers,
+            });
+        }
+
+        let g = &self.force_grid;
+        let force_grid = c.grid("force_grid", g.nx, g.ny, g.pitch_mm, g.origin_mm)?;
+
+        let cam = &self.camera;
+        let camera = CameraMapping {
+            mm_per_px: c.positive("camera.mm_per_px", cam.mm_per_px, "mm/px")?,
+            origin_px: [
+                c.finite("camera.origin_px[0]", cam.origin_px[0], "px")?,
+                c.finite("camera.origin_px[1]", cam.origin_px[1], "px")?,
+            ],
+            width_px: c.count("camera.width_px", cam.width_px, 65_535)? as u32,
+            height_px: c.count("camera.height_px", cam.height_px, 65_535)? as u32,
+        };
+
+        Ok(Sensor {
+            elastomer,
+            layers,
+            force_grid,
+            camera,
+        })
+    }
+}
+
+/// The paper's sensor (Section III, Fig. 6 set-up): markers every 1.5 mm at 3 mm
+/// (blue) and 6 mm (red), a 10×8 force grid every 2.2 mm, E = 1 MPa, ν = 0.5.
+/// Also shipped as `experiments/paper_sensor.toml`.
+pub const PAPER_SENSOR_TOML: &str = include_str!("../experiments/paper_sensor.toml");
+
+/// The paper's sensor, parsed (see [`PAPER_SENSOR_TOML`]).
+pub fn paper_sensor() -> Sensor {
+    // The file is part of the crate and covered by a test; failing here is a build defect.
+    Sensor::from_toml_str(PAPER_SENSOR_TOML, "experiments/paper_sensor.toml")
+        .expect("bundled paper sensor is valid")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<Sensor, SensorError> {
+        Sensor::from_toml_str(text, "s.toml")
+    }
+
+    fn err(text: &str) -> String {
+        parse(text).expect_err("should be rejected").to_string()
+    }
+
+    #[test]
+    fn bundled_paper_sensor_parses_with_design_values() {
+        let s = paper_sensor();
+        assert_eq!(s.layers.len(), 2);
+        assert_eq!(s.layers[0].name, "blue");
+        assert_eq!(s.layers[1].depth_mm, 6.0);
+        assert_eq!(s.force_grid.len(), 80);
+        assert_eq!(s.elastomer.young_modulus_n_per_mm2(), 1.0);
+        assert_eq!(s.camera.width_px, 430);
+        let m = s.layers[0].markers.unwrap();
+        assert_eq!((m.grid.nx, m.grid.ny), (13, 10));
+    }
+
+    #[test]
+    fn round_trips_through_toml() {
+        let s = paper_sensor();
+        let again = parse(&s.to_toml_string()).unwrap();
+        assert_eq!(s, again);
+    }
+
+    #[test]
+    fn rejects_poisson_ratio_outside_range_naming_key_and_range() {
+        let t = PAPER_SENSOR_TOML.replace("poisson_ratio = 0.5", "poisson_ratio = 0.7");
+        let e = err(&t);
+        assert!(e.contains("s.toml"), "{e}");
+        assert!(e.contains("elastomer.poisson_ratio = 0.7"), "{e}");
+        assert!(e.contains("[0, 0.5]"), "{e}");
+    }
+
+    #[test]
+    fn rejects_non_positive_depth_and_modulus() {
+        let t = PAPER_SENSOR_TOML.replacen("depth_mm = 3.0", "depth_mm = 0.0", 1);
+        assert!(err(&t).contains("layers[0].depth_mm = 0"));
+        let t = PAPER_SENSOR_TOML.replace("young_modulus_kpa = 1000.0", "young_modulus_kpa = -5.0");
+        let e = err(&t);
+        assert!(
+            e.contains("elastomer.young_modulus_kpa = -5") && e.contains("kPa"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn rejects_empty_grids() {
+        let t = PAPER_SENSOR_TOML.replace("nx = 10", "nx = 0");
+        let e = err(&t);
+        assert!(e.contains("force_grid.nx = 0"), "{e}");
+        let t = PAPER_SENSOR_TOML.replacen("ny = 10", "ny = 0", 1);
+        assert!(err(&t).contains("layers[0].markers.ny = 0"));
+    }
+
+    #[test]
+    fn rejects_unknown_colour_and_duplicate_names() {
+        let t = PAPER_SENSOR_TOML.replacen("color = \"red\"", "color = \"purple\"", 1);
+        let e = err(&t);
+        assert!(
+            e.contains("layers[1].color = \"purple\"") && e.contains("blue, red, green"),
+            "{e}"
+        );
+        let t = PAPER_SENSOR_TOML.replacen("name = \"red\"", "name = \"blue\"", 1);
+        assert!(err(&t).contains("duplicate layer name"));
+    }
+
+    #[test]
+    fn rejects_unknown_keys_with_location() {
+        let t =
+            PAPER_SENSOR_TOML.replace("thickness_mm = 40.0", "thickness_mm = 40.0\nstiffness = 3");
+        let e = err(&t);
+        assert!(e.contains("s.toml") && e.contains("stiffness"), "{e}");
+        assert!(e.contains("line"), "{e}");
+    }
+
+    #[test]
+    fn rejects_layer_deeper_than_elastomer() {
+        let t = PAPER_SENSOR_TOML.replace("thickness_mm = 40.0", "thickness_mm = 5.0");
+        assert!(err(&t).contains("layers[1].depth_mm = 6"));
+    }
+
+    #[test]
+    fn grid_nearest_node_and_camera_mapping_invert() {
+        let s = paper_sensor();
+        let g = s.layers[0].markers.unwrap().grid;
+        assert_eq!(
+            g.nearest_node([1.5 * 3.0 + 0.1, 1.5 * 2.0]).unwrap().0,
+            (3, 2)
+        );
+        assert!(g.nearest_node([-5.0, 0.0]).is_none());
+        let p = [3.3, -1.25];
+        let back = s.camera.px_to_mm(s.camera.mm_to_px(p));
+        assert!((back[0] - p[0]).abs() < 1e-12 && (back[1] - p[1]).abs() < 1e-12);
+    }
+}

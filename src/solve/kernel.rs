@@ -1,0 +1,1 @@
+//! Placeholder: matrix-vector kernels (issue 2).

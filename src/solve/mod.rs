@@ -1,0 +1,347 @@
+//! Inverse solvers: surface forces from marker displacements, `f ≈ H⁺ u`.
+//!
+//! Every solver is split in two (DESIGN.md): a **precompute** step per sensor and
+//! marker set (decompositions, regularisation choice, kernels), and a per-frame
+//! [`FrameSolver::apply`] that performs no heap allocation, so the same solver can run
+//! at camera rate. The methods:
+//!
+//! | method | precompute | per frame | when |
+//! |---|---|---|---|
+//! | `pinv` | SVD of `H`, singular values below `rcond·σ_max` dropped | dense `P u` | the paper's method; well-posed geometries |
+//! | `tikhonov` | SVD, filter `σ/(σ²+λ²)`, λ fixed or by GCV / L-curve | dense `P u` | noisy or ill-conditioned systems |
+//! | `tsvd` | SVD, first `k` singular triplets, `k` fixed or automatic | dense `P u` | ill-conditioned systems, sharp cut |
+//! | `fourier` | per-frequency regularised solves | FFTs, `O(N log N)` | regular grids, dense force grids (64×64 and up) |
+//!
+//! Units: displacements in mm (interleaved `ux, uy` per marker, the row order of `H`,
+//! see [`crate::model`]), forces in N (interleaved `fx, fy, fz` per force point,
+//! row-major over the force grid).
+
+pub mod dense;
+pub mod fourier;
+pub mod kernel;
+
+use std::fmt;
+use std::str::FromStr;
+
+use thiserror::Error;
+
+use crate::model::{HalfSpace, MarkerSite, ModelError};
+use crate::sensor::Sensor;
+
+/// An error from a solver.
+#[derive(Debug, Error)]
+pub enum SolveError {
+    /// An input vector has the wrong length.
+    #[error("{what} has {got} values, expected {expected}")]
+    DimensionMismatch {
+        /// Which vector.
+        what: &'static str,
+        /// Expected length.
+        expected: usize,
+        /// Actual length.
+        got: usize,
+    },
+    /// An input value is NaN or infinite.
+    #[error("displacement value {index} (marker {marker}, {axis}) is {value}: inputs must be finite (drop lost markers before solving)")]
+    NonFinite {
+        /// Index into the displacement vector.
+        index: usize,
+        /// Marker index (`index / 2`).
+        marker: usize,
+        /// `ux` or `uy`.
+        axis: &'static str,
+        /// The value.
+        value: f64,
+    },
+    /// The system has no equations or no unknowns.
+    #[error("empty system: {0}")]
+    Empty(String),
+    /// The forward model could not be built.
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// A decomposition did not converge or produced non-finite values.
+    #[error("decomposition failed: {0}")]
+    Decomposition(String),
+    /// An option is out of range for this problem.
+    #[error("invalid solver option: {0}")]
+    InvalidOption(String),
+    /// The Fourier solver cannot represent this geometry.
+    #[error("the fourier solver cannot handle this geometry: {0}")]
+    Incompatible(String),
+    /// Automatic λ or rank selection needs a displacement frame and none was given.
+    #[error("automatic {0} selection needs a displacement frame to choose from")]
+    NeedsFrame(&'static str),
+}
+
+/// Which inverse method to use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Method {
+    /// Moore–Penrose pseudo-inverse via SVD (the paper's method).
+    #[default]
+    Pinv,
+    /// Tikhonov regularisation.
+    Tikhonov,
+    /// Truncated SVD.
+    Tsvd,
+    /// Per-frequency solve on regular grids.
+    Fourier,
+}
+
+impl Method {
+    /// Name as used on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Pinv => "pinv",
+            Method::Tikhonov => "tikhonov",
+            Method::Tsvd => "tsvd",
+            Method::Fourier => "fourier",
+        }
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "pinv" => Ok(Method::Pinv),
+            "tikhonov" => Ok(Method::Tikhonov),
+            "tsvd" => Ok(Method::Tsvd),
+            "fourier" => Ok(Method::Fourier),
+            _ => Err(format!(
+                "unknown solver `{s}`: expected pinv, tikhonov, tsvd or fourier"
+            )),
+        }
+    }
+}
+
+/// How the Tikhonov (and Fourier) regularisation parameter λ is chosen.
+///
+/// λ has the units of a singular value of `H` (mm/N): the filter factor of singular
+/// value σ is `σ²/(σ²+λ²)`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum Lambda {
+    /// Generalised cross-validation on the given frame.
+    #[default]
+    Gcv,
+    /// Corner of the L-curve (maximum curvature) on the given frame.
+    LCurve,
+    /// A fixed value (mm/N), ≥ 0.
+    Fixed(f64),
+}
+
+impl FromStr for Lambda {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "gcv" => Ok(Lambda::Gcv),
+            "lcurve" | "l-curve" => Ok(Lambda::LCurve),
+            v => match v.parse::<f64>() {
+                Ok(x) if x.is_finite() && x >= 0.0 => Ok(Lambda::Fixed(x)),
+                _ => Err(format!(
+                    "invalid lambda `{v}`: expected gcv, lcurve or a number >= 0 (mm/N)"
+                )),
+            },
+        }
+    }
+}
+
+/// How the truncated-SVD rank is chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Rank {
+    /// Chosen automatically (GCV over the rank on the given frame).
+    #[default]
+    Auto,
+    /// Keep the first `k` singular triplets.
+    Fixed(usize),
+}
+
+impl FromStr for Rank {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Rank::Auto),
+            v => match v.parse::<usize>() {
+                Ok(k) if k > 0 => Ok(Rank::Fixed(k)),
+                _ => Err(format!(
+                    "invalid rank `{v}`: expected auto or an integer >= 1"
+                )),
+            },
+        }
+    }
+}
+
+/// Arithmetic used by the per-frame apply (precompute is always f64).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Precision {
+    /// Double precision: exact to ~1e-12 relative.
+    #[default]
+    F64,
+    /// Single precision: about twice as fast, ~1e-6 relative.
+    F32,
+}
+
+/// Everything that selects and tunes a solver.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SolverConfig {
+    /// The method.
+    pub method: Method,
+    /// λ choice (Tikhonov, Fourier).
+    pub lambda: Lambda,
+    /// Rank choice (TSVD).
+    pub rank: Rank,
+    /// Per-frame arithmetic (dense methods).
+    pub precision: Precision,
+    /// Relative singular-value cutoff of `pinv`; `None` = `max(rows, cols) · ε · σ_max`
+    /// (the LAPACK / NumPy default).
+    pub rcond: Option<f64>,
+    /// Fourier solver: zero padding added around the grids, as a fraction of the
+    /// larger grid extent (see [`fourier`]).
+    pub fourier_padding: f64,
+}
+
+impl Default for SolverConfig {
+    fn default() -> Self {
+        SolverConfig {
+            method: Method::Pinv,
+            lambda: Lambda::Gcv,
+            rank: Rank::Auto,
+            precision: Precision::F64,
+            rcond: None,
+            fourier_padding: 1.0,
+        }
+    }
+}
+
+/// The geometry of one reconstruction problem: material, sensor (force grid, layer
+/// grids) and the markers actually present in the data (lost markers already dropped).
+#[derive(Debug, Clone, Copy)]
+pub struct Problem<'a> {
+    /// Material.
+    pub model: HalfSpace,
+    /// The sensor; its force grid defines the unknowns.
+    pub sensor: &'a Sensor,
+    /// The markers that carry data, in the order of the displacement vector.
+    pub sites: &'a [MarkerSite],
+}
+
+impl<'a> Problem<'a> {
+    /// A problem on the sensor's own material and force grid.
+    pub fn new(sensor: &'a Sensor, sites: &'a [MarkerSite]) -> Self {
+        Problem {
+            model: HalfSpace::from_elastomer(&sensor.elastomer),
+            sensor,
+            sites,
+        }
+    }
+
+    /// Length of the displacement vector.
+    pub fn n_inputs(&self) -> usize {
+        2 * self.sites.len()
+    }
+
+    /// Length of the force vector.
+    pub fn n_outputs(&self) -> usize {
+        3 * self.sensor.force_grid.len()
+    }
+}
+
+/// What a precompute learned about the system. Fields that do not apply to a method
+/// are `None` / empty.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Diagnostics {
+    /// Method that produced this.
+    pub method: Method,
+    /// Rows × columns of the system (`2·markers`, `3·force points`).
+    pub shape: (usize, usize),
+    /// Singular values of `H`, descending, mm/N (dense methods; for `fourier` the
+    /// per-frequency singular values gathered and sorted).
+    pub singular_values: Vec<f64>,
+    /// `σ_max / σ_min` over the nonzero singular values (∞ when rank deficient).
+    pub condition_number: f64,
+    /// Number of singular values the solver actually uses (or the sum of filter
+    /// factors for Tikhonov).
+    pub effective_rank: f64,
+    /// ‖P‖₂: worst-case force error per unit displacement error, N/mm.
+    pub noise_gain: f64,
+    /// λ in use, mm/N.
+    pub lambda: Option<f64>,
+    /// Rank in use (TSVD).
+    pub rank: Option<usize>,
+    /// Free-text notes (why an automatic choice came out as it did, cut-offs used).
+    pub notes: Vec<String>,
+}
+
+/// A precomputed solver for one marker set: call [`FrameSolver::apply`] per frame.
+pub trait FrameSolver: Send {
+    /// Length of the displacement vector it takes.
+    fn n_inputs(&self) -> usize;
+    /// Length of the force vector it writes.
+    fn n_outputs(&self) -> usize;
+    /// Reconstructs forces (N) from displacements (mm); no heap allocation.
+    /// Errors on wrong lengths or non-finite input, never panics.
+    fn apply(&mut self, u_mm: &[f64], f_n: &mut [f64]) -> Result<(), SolveError>;
+    /// What the precompute found.
+    fn diagnostics(&self) -> &Diagnostics;
+}
+
+/// Precomputes the configured solver for a problem. `frame` (displacements, mm) is used
+/// by automatic λ / rank selection, which needs data; methods with fixed parameters
+/// ignore it.
+pub fn precompute(
+    problem: &Problem<'_>,
+    config: &SolverConfig,
+    frame: Option<&[f64]>,
+) -> Result<Box<dyn FrameSolver>, SolveError> {
+    if problem.sites.is_empty() {
+        return Err(SolveError::Empty("no markers carry data".into()));
+    }
+    if let Some(u) = frame {
+        check_input(u, problem.n_inputs())?;
+    }
+    match config.method {
+        Method::Fourier => Ok(Box::new(fourier::FourierSolver::precompute(
+            problem, config, frame,
+        )?)),
+        _ => Ok(Box::new(dense::DenseSolver::precompute(
+            problem, config, frame,
+        )?)),
+    }
+}
+
+/// Checks a displacement vector's length and finiteness (shared by every solver).
+pub fn check_input(u_mm: &[f64], expected: usize) -> Result<(), SolveError> {
+    if u_mm.len() != expected {
+        return Err(SolveError::DimensionMismatch {
+            what: "displacement vector",
+            expected,
+            got: u_mm.len(),
+        });
+    }
+    if let Some((index, &value)) = u_mm.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(SolveError::NonFinite {
+            index,
+            marker: index / 2,
+            axis: if index % 2 == 0 { "ux" } else { "uy" },
+            value,
+        });
+    }
+    Ok(())
+}
+
+/// Checks the output buffer's length (shared by every solver).
+pub fn check_output(f_n: &[f64], expected: usize) -> Result<(), SolveError> {
+    if f_n.len() != expected {
+        return Err(SolveError::DimensionMismatch {
+            what: "force vector",
+            expected,
+            got: f_n.len(),
+        });
+    }
+    Ok(())
+}
