@@ -563,6 +563,64 @@ pub fn paper_sensor() -> Sensor {
         .expect("bundled paper sensor is valid")
 }
 
+/// A synthetic sensor with regular, mutually compatible grids, used by benchmarks,
+/// tests and the accuracy-vs-time study: an `force_nx × force_ny` force grid every
+/// `force_pitch_mm` from the origin, and two marker layers (blue at 3 mm, red at 6 mm,
+/// the paper's depths) every `marker_pitch_mm` covering the same extent, the red grid
+/// offset by half a marker pitch. Material as the paper (E = 1000 kPa, ν = 0.5); the
+/// camera frames the marker area at 0.05 mm/px with a 1 mm margin.
+pub fn grid_sensor(
+    force_nx: usize,
+    force_ny: usize,
+    force_pitch_mm: f64,
+    marker_pitch_mm: f64,
+) -> Sensor {
+    let span = [
+        force_pitch_mm * (force_nx.max(1) - 1) as f64,
+        force_pitch_mm * (force_ny.max(1) - 1) as f64,
+    ];
+    let mnx = (span[0] / marker_pitch_mm).round() as usize + 1;
+    let mny = (span[1] / marker_pitch_mm).round() as usize + 1;
+    let layer = |name: &str, color, depth_mm, offset: f64| Layer {
+        name: name.to_string(),
+        color,
+        depth_mm,
+        markers: Some(MarkerGrid {
+            grid: Grid {
+                nx: mnx,
+                ny: mny,
+                pitch_mm: marker_pitch_mm,
+                origin_mm: [offset, offset],
+            },
+            diameter_mm: 0.4 * marker_pitch_mm,
+        }),
+    };
+    let mm_per_px = 0.05;
+    Sensor {
+        elastomer: Elastomer {
+            young_modulus_kpa: 1000.0,
+            poisson_ratio: 0.5,
+            thickness_mm: 40.0,
+        },
+        layers: vec![
+            layer("blue", MarkerColor::Blue, 3.0, 0.0),
+            layer("red", MarkerColor::Red, 6.0, 0.5 * marker_pitch_mm),
+        ],
+        force_grid: Grid {
+            nx: force_nx,
+            ny: force_ny,
+            pitch_mm: force_pitch_mm,
+            origin_mm: [0.0, 0.0],
+        },
+        camera: CameraMapping {
+            mm_per_px,
+            origin_px: [1.0 / mm_per_px, 1.0 / mm_per_px],
+            width_px: ((span[0] + marker_pitch_mm + 2.0) / mm_per_px).ceil() as u32,
+            height_px: ((span[1] + marker_pitch_mm + 2.0) / mm_per_px).ceil() as u32,
+        },
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -586,6 +644,18 @@ mod tests {
         assert_eq!(s.camera.width_px, 430);
         let m = s.layers[0].markers.unwrap();
         assert_eq!((m.grid.nx, m.grid.ny), (13, 10));
+    }
+
+    #[test]
+    fn grid_sensor_is_valid_and_covers_the_force_grid() {
+        let s = grid_sensor(32, 32, 1.1, 1.1);
+        let again = parse(&s.to_toml_string()).unwrap();
+        assert_eq!(s, again);
+        let m = s.layers[1].markers.unwrap().grid;
+        assert_eq!((m.nx, m.ny), (32, 32));
+        assert_eq!(m.origin_mm, [0.55, 0.55]);
+        let s = grid_sensor(10, 8, 2.2, 1.1);
+        assert_eq!(s.layers[0].markers.unwrap().grid.nx, 19);
     }
 
     #[test]
