@@ -8,6 +8,9 @@ use clap::{Parser, Subcommand};
 
 mod model;
 mod reconstruct;
+mod solver_args;
+
+pub use solver_args::SolverArgs;
 
 /// tactbench: test bench controller for vision-based tactile sensors.
 ///

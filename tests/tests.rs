@@ -1,0 +1,6 @@
+//! The integration-test harness: one binary, one module per area (ripgrep's layout).
+//! Shared helpers live in `util.rs`; golden data under `tests/fixtures/`.
+
+mod util;
+
+mod cli;
