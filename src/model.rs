@@ -296,7 +296,7 @@ mod tests {
                 (0.0, 1e-3, 13.0),
             ] {
                 let u = m.displacement(x, y, z, [0.0, 0.0, 2.5]);
-                let rho = (x * x + y * y as f64).sqrt();
+                let rho = (x * x + y * y).sqrt();
                 let ur = boussinesq_ur(2.5, rho, z, nu, 0.7);
                 assert!(
                     close(u[0], ur * x / rho, 1e-12),
@@ -337,7 +337,7 @@ mod tests {
         for nu in NUS {
             let m = HalfSpace::new(1.0, nu).unwrap();
             let (x, y, z) = (1.2, 0.9, 1e-9);
-            let rho = (x * x + y * y as f64).sqrt();
+            let rho = (x * x + y * y).sqrt();
             let u = m.displacement(x, y, z, [0.0, 0.0, 1.0]);
             let ur = -(1.0 - 2.0 * nu) * (1.0 + nu) / (2.0 * PI * rho);
             assert!((u[0] - ur * x / rho).abs() < 1e-8, "nu={nu}");
