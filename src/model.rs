@@ -337,7 +337,7 @@ mod tests {
         for nu in NUS {
             let m = HalfSpace::new(1.0, nu).unwrap();
             let (x, y, z) = (1.2, 0.9, 1e-9);
-            let rho = (x * x + y * y).sqrt();
+            let rho: f64 = (x * x + y * y).sqrt();
             let u = m.displacement(x, y, z, [0.0, 0.0, 1.0]);
             let ur = -(1.0 - 2.0 * nu) * (1.0 + nu) / (2.0 * PI * rho);
             assert!((u[0] - ur * x / rho).abs() < 1e-8, "nu={nu}");
