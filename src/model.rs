@@ -336,8 +336,8 @@ mod tests {
         // z -> 0: u_r = -(1-2ν)(1+ν)P/(2πE r) and Cerruti surface u_x = Q(1+ν)/(πE r)[(1-ν) + ν x²/r²].
         for nu in NUS {
             let m = HalfSpace::new(1.0, nu).unwrap();
-            let (x, y, z) = (1.2, 0.9, 1e-9);
-            let rho: f64 = (x * x + y * y).sqrt();
+            let (x, y, z): (f64, f64, f64) = (1.2, 0.9, 1e-9);
+            let rho = (x * x + y * y).sqrt();
             let u = m.displacement(x, y, z, [0.0, 0.0, 1.0]);
             let ur = -(1.0 - 2.0 * nu) * (1.0 + nu) / (2.0 * PI * rho);
             assert!((u[0] - ur * x / rho).abs() < 1e-8, "nu={nu}");
