@@ -1,0 +1,1026 @@
+//! Experiment plans (`experiments/*.toml`): what a bench run does, parsed once into
+//! validated types with errors that name the file, the key, the value and its unit.
+//!
+//! ```toml
+//! name = "paper-fig7-magnitude"     # free text, used in reports
+//! sensor = "paper_sensor.toml"      # relative to the plan file
+//! build_id = "elastomer-2026-11"    # optional; `tactbench run --build-id` overrides
+//! force_unit = "gf"                 # N | gf: the unit of every force value below
+//!
+//! [indenter]
+//! shape = "hemisphere"              # flat | hemisphere | point
+//! diameter_mm = 5.0                 # flat: cylinder diameter; hemisphere: 2 × radius
+//!
+//! [approach]
+//! position_mm = [9.0, 6.75]         # sensor-frame point the indenter is centred on
+//! speed_mm_s = 0.5                  # approach / force-control speed
+//! contact_force = 5.0               # force (force_unit) that counts as contact
+//!
+//! [control]
+//! force_tolerance = 5.0             # |measured − target| accepted (force_unit)
+//! max_steps = 40                    # force-control iterations per setpoint
+//!
+//! [settle]
+//! window_s = 0.5                    # force SD is computed over this window
+//! max_sd = 1.0                      # settled when SD < max_sd (force_unit)
+//! timeout_s = 10.0                  # give up settling (the row is flagged)
+//! dwell_s = 0.0                     # > 0: fixed dwell instead of the SD criterion
+//!
+//! [acquire]
+//! samples = 20                      # F/T samples averaged per setpoint
+//! frames = 1                        # camera frames per setpoint
+//!
+//! [safety]
+//! max_force = [300.0, 300.0, 1000.0]  # per component |F| limit (force_unit)
+//! travel_min_mm = [0.0, 0.0, -2.0]    # stage travel box
+//! travel_max_mm = [50.0, 50.0, 20.0]
+//! max_speed_mm_s = 5.0
+//!
+//! [sweep]                           # exactly one kind:
+//! kind = "magnitude"                # normal force from..to by step, `trials` times
+//! from = 0.0
+//! to = 750.0
+//! step = 50.0
+//! trials = 10
+//! # kind = "angle":        force, angle_from_deg, angle_to_deg, angle_step_deg,
+//! #                        direction_deg (azimuth of the tangential part), trials
+//! # kind = "spatial":      force, start_mm = [x, y], end_mm = [x, y], subdivisions
+//! #                        (the paper's sub-stepped point loads between two force nodes)
+//! # kind = "displacement": shift_mm = [dx, dy], trials (whole-sensor shift, no load)
+//! # kind = "setpoints":    [[sweep.points]] with position_mm, normal, tangential = [tx, ty]
+//! ```
+//!
+//! Every setpoint is expanded up front ([`Plan::setpoints`]) so `--dry-run`, the
+//! journal and resume all see the same numbered list.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use thiserror::Error;
+
+use crate::units::ForceUnit;
+
+/// An error reading or validating a plan. Every variant names the file.
+#[derive(Debug, Error)]
+pub enum PlanError {
+    /// The file could not be read.
+    #[error("cannot read plan {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// Not valid TOML for the schema (syntax, unknown key, wrong type), with line.
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message.
+        message: String,
+    },
+    /// A value is out of range.
+    #[error("{path}: {key} = {value} is invalid: {allowed}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// The key, e.g. `sweep.step`.
+        key: String,
+        /// The value as written, with its unit.
+        value: String,
+        /// What is allowed.
+        allowed: String,
+    },
+}
+
+/// The indenter mounted on the stage.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum IndenterShape {
+    /// Flat-ended cylinder of the given diameter.
+    Flat {
+        /// Diameter, mm.
+        diameter_mm: f64,
+    },
+    /// Hemispherical tip of the given diameter.
+    Hemisphere {
+        /// Diameter, mm.
+        diameter_mm: f64,
+    },
+    /// A (very small) point-like tip.
+    Point,
+}
+
+/// One target of the run, in internal units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Setpoint {
+    /// 0-based index in the plan's expanded list (the journal's key).
+    pub index: usize,
+    /// Trial number (0-based) for repeated sweeps.
+    pub trial: usize,
+    /// Where the indenter is centred, sensor frame, mm.
+    pub position_mm: [f64; 2],
+    /// Target normal force, N (≥ 0; 0 = no contact).
+    pub normal_n: f64,
+    /// Target tangential force, N (x, y).
+    pub tangential_n: [f64; 2],
+    /// Whole-sensor shift for displacement-accuracy runs, mm (no load).
+    pub shift_mm: [f64; 2],
+    /// The swept quantity in its display unit (force_unit, degrees, mm), for reports.
+    pub swept_value: f64,
+}
+
+/// Which sweep the plan runs (display units kept for reports).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Sweep {
+    /// Paper Fig. 7: normal force from..to by step.
+    Magnitude {
+        /// First force (force_unit).
+        from: f64,
+        /// Last force (force_unit), inclusive.
+        to: f64,
+        /// Step (force_unit), > 0.
+        step: f64,
+        /// Repetitions.
+        trials: usize,
+    },
+    /// Paper Fig. 8: fixed magnitude at angles from the normal.
+    Angle {
+        /// Force magnitude (force_unit).
+        force: f64,
+        /// First angle, degrees.
+        from_deg: f64,
+        /// Last angle, degrees, inclusive (< 90).
+        to_deg: f64,
+        /// Step, degrees, > 0.
+        step_deg: f64,
+        /// Azimuth of the tangential part in the sensor plane, degrees from +x.
+        direction_deg: f64,
+        /// Repetitions.
+        trials: usize,
+    },
+    /// Paper Fig. 9: point loads at sub-steps along a segment.
+    Spatial {
+        /// Normal force (force_unit).
+        force: f64,
+        /// Segment start, mm.
+        start_mm: [f64; 2],
+        /// Segment end, mm.
+        end_mm: [f64; 2],
+        /// Number of intervals (positions = subdivisions + 1).
+        subdivisions: usize,
+    },
+    /// Paper Table I: whole-sensor shift, no load.
+    Displacement {
+        /// Shift, mm.
+        shift_mm: [f64; 2],
+        /// Repetitions.
+        trials: usize,
+    },
+    /// An explicit list.
+    Setpoints(Vec<ExplicitPoint>),
+}
+
+/// One explicit setpoint as written (force_unit).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExplicitPoint {
+    /// Position, mm.
+    pub position_mm: [f64; 2],
+    /// Normal force (force_unit).
+    pub normal: f64,
+    /// Tangential force (force_unit).
+    pub tangential: [f64; 2],
+}
+
+/// Safety limits, internal units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Safety {
+    /// Per-component |F| limit, N.
+    pub max_force_n: [f64; 3],
+    /// Stage travel box minimum, mm.
+    pub travel_min_mm: [f64; 3],
+    /// Stage travel box maximum, mm.
+    pub travel_max_mm: [f64; 3],
+    /// Maximum stage speed, mm/s.
+    pub max_speed_mm_s: f64,
+}
+
+/// Settle criterion.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settle {
+    /// Window over which the force SD is computed, s.
+    pub window_s: f64,
+    /// Settled when the SD of |F| over the window is below this, N.
+    pub max_sd_n: f64,
+    /// Give up after this long, s.
+    pub timeout_s: f64,
+    /// When > 0: wait this fixed dwell instead of the SD criterion, s.
+    pub dwell_s: f64,
+}
+
+/// A validated plan.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plan {
+    /// The plan file.
+    pub path: PathBuf,
+    /// Name for reports.
+    pub name: String,
+    /// Sensor file, resolved relative to the plan.
+    pub sensor_path: PathBuf,
+    /// Elastomer build id, if given.
+    pub build_id: Option<String>,
+    /// Unit of the force values as written.
+    pub force_unit: ForceUnit,
+    /// The indenter.
+    pub indenter: IndenterShape,
+    /// Sensor-frame point the indenter is centred on, mm.
+    pub approach_position_mm: [f64; 2],
+    /// Approach speed, mm/s.
+    pub approach_speed_mm_s: f64,
+    /// Contact detection threshold, N.
+    pub contact_force_n: f64,
+    /// Force-control tolerance, N.
+    pub force_tolerance_n: f64,
+    /// Force-control iterations per setpoint.
+    pub max_control_steps: usize,
+    /// Settle criterion.
+    pub settle: Settle,
+    /// F/T samples averaged per setpoint.
+    pub samples: usize,
+    /// Camera frames per setpoint.
+    pub frames: usize,
+    /// Safety limits.
+    pub safety: Safety,
+    /// The sweep.
+    pub sweep: Sweep,
+}
+
+impl Plan {
+    /// Reads and validates a plan file.
+    pub fn from_path(path: impl AsRef<Path>) -> Result<Plan, PlanError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| PlanError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Plan::from_toml_str(&text, path)
+    }
+
+    /// Parses and validates plan TOML; `path` locates the sensor file and names errors.
+    pub fn from_toml_str(text: &str, path: impl AsRef<Path>) -> Result<Plan, PlanError> {
+        let path = path.as_ref();
+        let raw: RawPlan = toml::from_str(text).map_err(|e| PlanError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        raw.validate(path)
+    }
+
+    /// Every setpoint in run order, in internal units.
+    pub fn setpoints(&self) -> Vec<Setpoint> {
+        let u = self.force_unit;
+        let mut out = Vec::new();
+        let mut push = |trial: usize,
+                        position_mm: [f64; 2],
+                        normal_n: f64,
+                        tangential_n: [f64; 2],
+                        shift_mm: [f64; 2],
+                        swept: f64| {
+            out.push(Setpoint {
+                index: 0,
+                trial,
+                position_mm,
+                normal_n,
+                tangential_n,
+                shift_mm,
+                swept_value: swept,
+            })
+        };
+        let pos = self.approach_position_mm;
+        match &self.sweep {
+            Sweep::Magnitude {
+                from,
+                to,
+                step,
+                trials,
+            } => {
+                for t in 0..*trials {
+                    for v in steps(*from, *to, *step) {
+                        push(t, pos, u.to_newtons(v), [0.0; 2], [0.0; 2], v);
+                    }
+                }
+            }
+            Sweep::Angle {
+                force,
+                from_deg,
+                to_deg,
+                step_deg,
+                direction_deg,
+                trials,
+            } => {
+                let f = u.to_newtons(*force);
+                let dir = direction_deg.to_radians();
+                for t in 0..*trials {
+                    for a in steps(*from_deg, *to_deg, *step_deg) {
+                        let r = a.to_radians();
+                        let tan = f * r.sin();
+                        push(
+                            t,
+                            pos,
+                            f * r.cos(),
+                            [tan * dir.cos(), tan * dir.sin()],
+                            [0.0; 2],
+                            a,
+                        );
+                    }
+                }
+            }
+            Sweep::Spatial {
+                force,
+                start_mm,
+                end_mm,
+                subdivisions,
+            } => {
+                let f = u.to_newtons(*force);
+                let len =
+                    ((end_mm[0] - start_mm[0]).powi(2) + (end_mm[1] - start_mm[1]).powi(2)).sqrt();
+                for i in 0..=*subdivisions {
+                    let s = i as f64 / *subdivisions as f64;
+                    let p = [
+                        start_mm[0] + s * (end_mm[0] - start_mm[0]),
+                        start_mm[1] + s * (end_mm[1] - start_mm[1]),
+                    ];
+                    push(0, p, f, [0.0; 2], [0.0; 2], s * len);
+                }
+            }
+            Sweep::Displacement { shift_mm, trials } => {
+                for t in 0..*trials {
+                    push(
+                        t,
+                        pos,
+                        0.0,
+                        [0.0; 2],
+                        *shift_mm,
+                        shift_mm[0].hypot(shift_mm[1]),
+                    );
+                }
+            }
+            Sweep::Setpoints(points) => {
+                for p in points {
+                    push(
+                        0,
+                        p.position_mm,
+                        u.to_newtons(p.normal),
+                        [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
+                        [0.0; 2],
+                        p.normal,
+                    );
+                }
+            }
+        }
+        for (i, s) in out.iter_mut().enumerate() {
+            s.index = i;
+        }
+        out
+    }
+}
+
+/// Rounds away unit-conversion noise for messages (1000 gf, not 999.9999999999999 gf).
+fn round9(v: f64) -> f64 {
+    (v * 1e9).round() / 1e9
+}
+
+/// `from, from+step, …` up to `to` inclusive (within a small tolerance).
+fn steps(from: f64, to: f64, step: f64) -> Vec<f64> {
+    let n = ((to - from) / step + 1e-9).floor() as usize;
+    (0..=n).map(|i| from + step * i as f64).collect()
+}
+
+impl fmt::Display for IndenterShape {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            IndenterShape::Flat { diameter_mm } => write!(f, "flat cylinder {diameter_mm} mm"),
+            IndenterShape::Hemisphere { diameter_mm } => write!(f, "hemisphere {diameter_mm} mm"),
+            IndenterShape::Point => f.write_str("point"),
+        }
+    }
+}
+
+// ---- raw schema ---------------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPlan {
+    name: String,
+    sensor: String,
+    build_id: Option<String>,
+    #[serde(default = "default_unit")]
+    force_unit: String,
+    indenter: RawIndenter,
+    approach: RawApproach,
+    #[serde(default)]
+    control: RawControl,
+    #[serde(default)]
+    settle: RawSettle,
+    #[serde(default)]
+    acquire: RawAcquire,
+    safety: RawSafety,
+    sweep: RawSweep,
+}
+
+fn default_unit() -> String {
+    "N".into()
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawIndenter {
+    shape: String,
+    diameter_mm: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawApproach {
+    position_mm: [f64; 2],
+    speed_mm_s: f64,
+    contact_force: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawControl {
+    force_tolerance: Option<f64>,
+    #[serde(default = "default_max_steps")]
+    max_steps: i64,
+}
+
+impl Default for RawControl {
+    fn default() -> Self {
+        RawControl {
+            force_tolerance: None,
+            max_steps: default_max_steps(),
+        }
+    }
+}
+
+fn default_max_steps() -> i64 {
+    40
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSettle {
+    #[serde(default = "default_window")]
+    window_s: f64,
+    max_sd: Option<f64>,
+    #[serde(default = "default_timeout")]
+    timeout_s: f64,
+    #[serde(default)]
+    dwell_s: f64,
+}
+
+impl Default for RawSettle {
+    fn default() -> Self {
+        RawSettle {
+            window_s: default_window(),
+            max_sd: None,
+            timeout_s: default_timeout(),
+            dwell_s: 0.0,
+        }
+    }
+}
+
+fn default_window() -> f64 {
+    0.5
+}
+
+fn default_timeout() -> f64 {
+    10.0
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawAcquire {
+    #[serde(default = "default_samples")]
+    samples: i64,
+    #[serde(default = "default_frames")]
+    frames: i64,
+}
+
+impl Default for RawAcquire {
+    fn default() -> Self {
+        RawAcquire {
+            samples: default_samples(),
+            frames: default_frames(),
+        }
+    }
+}
+
+fn default_samples() -> i64 {
+    20
+}
+
+fn default_frames() -> i64 {
+    1
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSafety {
+    max_force: [f64; 3],
+    travel_min_mm: [f64; 3],
+    travel_max_mm: [f64; 3],
+    max_speed_mm_s: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSweep {
+    kind: String,
+    from: Option<f64>,
+    to: Option<f64>,
+    step: Option<f64>,
+    trials: Option<i64>,
+    force: Option<f64>,
+    angle_from_deg: Option<f64>,
+    angle_to_deg: Option<f64>,
+    angle_step_deg: Option<f64>,
+    direction_deg: Option<f64>,
+    start_mm: Option<[f64; 2]>,
+    end_mm: Option<[f64; 2]>,
+    subdivisions: Option<i64>,
+    shift_mm: Option<[f64; 2]>,
+    points: Option<Vec<RawPoint>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPoint {
+    position_mm: [f64; 2],
+    normal: f64,
+    #[serde(default)]
+    tangential: [f64; 2],
+}
+
+struct Check<'a> {
+    path: &'a Path,
+}
+
+impl Check<'_> {
+    fn invalid(
+        &self,
+        key: &str,
+        value: impl fmt::Display,
+        allowed: impl Into<String>,
+    ) -> PlanError {
+        PlanError::Invalid {
+            path: self.path.to_path_buf(),
+            key: key.into(),
+            value: value.to_string(),
+            allowed: allowed.into(),
+        }
+    }
+
+    fn positive(&self, key: &str, v: f64, unit: &str) -> Result<f64, PlanError> {
+        if v.is_finite() && v > 0.0 {
+            Ok(v)
+        } else {
+            Err(self.invalid(
+                key,
+                format!("{v} {unit}"),
+                format!("must be a finite number > 0 {unit}"),
+            ))
+        }
+    }
+
+    fn non_negative(&self, key: &str, v: f64, unit: &str) -> Result<f64, PlanError> {
+        if v.is_finite() && v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(self.invalid(
+                key,
+                format!("{v} {unit}"),
+                format!("must be a finite number >= 0 {unit}"),
+            ))
+        }
+    }
+
+    fn finite(&self, key: &str, v: f64, unit: &str) -> Result<f64, PlanError> {
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(self.invalid(key, format!("{v} {unit}"), "must be finite"))
+        }
+    }
+
+    fn count(&self, key: &str, v: i64, max: i64) -> Result<usize, PlanError> {
+        if (1..=max).contains(&v) {
+            Ok(v as usize)
+        } else {
+            Err(self.invalid(key, v, format!("must be an integer in [1, {max}]")))
+        }
+    }
+
+    fn need<T>(&self, key: &str, v: Option<T>, kind: &str) -> Result<T, PlanError> {
+        v.ok_or_else(|| {
+            self.invalid(
+                key,
+                "(missing)",
+                format!("required by sweep kind \"{kind}\""),
+            )
+        })
+    }
+}
+
+impl RawPlan {
+    fn validate(self, path: &Path) -> Result<Plan, PlanError> {
+        let c = Check { path };
+        let unit: ForceUnit = self
+            .force_unit
+            .parse()
+            .map_err(|e: String| c.invalid("force_unit", format!("{:?}", self.force_unit), e))?;
+        let fu = unit.symbol();
+        let n = |v: f64| unit.to_newtons(v);
+
+        let indenter = match self.indenter.shape.as_str() {
+            "flat" | "hemisphere" => {
+                let d = c.need(
+                    "indenter.diameter_mm",
+                    self.indenter.diameter_mm,
+                    &self.indenter.shape,
+                )?;
+                let diameter_mm = c.positive("indenter.diameter_mm", d, "mm")?;
+                if self.indenter.shape == "flat" {
+                    IndenterShape::Flat { diameter_mm }
+                } else {
+                    IndenterShape::Hemisphere { diameter_mm }
+                }
+            }
+            "point" => IndenterShape::Point,
+            other => {
+                return Err(c.invalid(
+                    "indenter.shape",
+                    format!("{other:?}"),
+                    "unknown shape: expected flat, hemisphere or point",
+                ))
+            }
+        };
+
+        let a = &self.approach;
+        let approach_position_mm = [
+            c.finite("approach.position_mm[0]", a.position_mm[0], "mm")?,
+            c.finite("approach.position_mm[1]", a.position_mm[1], "mm")?,
+        ];
+        let approach_speed_mm_s = c.positive("approach.speed_mm_s", a.speed_mm_s, "mm/s")?;
+        let contact_force_n = n(c.positive("approach.contact_force", a.contact_force, fu)?);
+
+        let s = &self.safety;
+        let mut max_force_n = [0.0; 3];
+        for (i, v) in s.max_force.iter().enumerate() {
+            max_force_n[i] = n(c.positive(&format!("safety.max_force[{i}]"), *v, fu)?);
+        }
+        for i in 0..3 {
+            c.finite(
+                &format!("safety.travel_min_mm[{i}]"),
+                s.travel_min_mm[i],
+                "mm",
+            )?;
+            c.finite(
+                &format!("safety.travel_max_mm[{i}]"),
+                s.travel_max_mm[i],
+                "mm",
+            )?;
+            if s.travel_min_mm[i] >= s.travel_max_mm[i] {
+                return Err(c.invalid(
+                    &format!("safety.travel_max_mm[{i}]"),
+                    format!("{} mm", s.travel_max_mm[i]),
+                    format!(
+                        "must exceed safety.travel_min_mm[{i}] = {} mm",
+                        s.travel_min_mm[i]
+                    ),
+                ));
+            }
+        }
+        let max_speed_mm_s = c.positive("safety.max_speed_mm_s", s.max_speed_mm_s, "mm/s")?;
+        if approach_speed_mm_s > max_speed_mm_s {
+            return Err(c.invalid(
+                "approach.speed_mm_s",
+                format!("{approach_speed_mm_s} mm/s"),
+                format!("must not exceed safety.max_speed_mm_s = {max_speed_mm_s} mm/s"),
+            ));
+        }
+        let safety = Safety {
+            max_force_n,
+            travel_min_mm: s.travel_min_mm,
+            travel_max_mm: s.travel_max_mm,
+            max_speed_mm_s,
+        };
+
+        let tol_default = unit.from_newtons(contact_force_n);
+        let force_tolerance_n = n(c.positive(
+            "control.force_tolerance",
+            self.control.force_tolerance.unwrap_or(tol_default),
+            fu,
+        )?);
+        let max_control_steps = c.count("control.max_steps", self.control.max_steps, 10_000)?;
+
+        let st = &self.settle;
+        let settle = Settle {
+            window_s: c.positive("settle.window_s", st.window_s, "s")?,
+            max_sd_n: n(c.positive(
+                "settle.max_sd",
+                st.max_sd
+                    .unwrap_or(unit.from_newtons(force_tolerance_n) / 2.0),
+                fu,
+            )?),
+            timeout_s: c.positive("settle.timeout_s", st.timeout_s, "s")?,
+            dwell_s: c.non_negative("settle.dwell_s", st.dwell_s, "s")?,
+        };
+        let samples = c.count("acquire.samples", self.acquire.samples, 100_000)?;
+        let frames = c.count("acquire.frames", self.acquire.frames, 1000)?;
+
+        let sw = self.sweep;
+        let kind = sw.kind.clone();
+        let trials = |c: &Check| c.count("sweep.trials", sw.trials.unwrap_or(1), 10_000);
+        let sweep = match kind.as_str() {
+            "magnitude" => {
+                let from =
+                    c.non_negative("sweep.from", c.need("sweep.from", sw.from, &kind)?, fu)?;
+                let to = c.non_negative("sweep.to", c.need("sweep.to", sw.to, &kind)?, fu)?;
+                let step = c.positive("sweep.step", c.need("sweep.step", sw.step, &kind)?, fu)?;
+                if to < from {
+                    return Err(c.invalid(
+                        "sweep.to",
+                        format!("{to} {fu}"),
+                        format!("must be >= sweep.from = {from} {fu}"),
+                    ));
+                }
+                Sweep::Magnitude {
+                    from,
+                    to,
+                    step,
+                    trials: trials(&c)?,
+                }
+            }
+            "angle" => {
+                let force =
+                    c.positive("sweep.force", c.need("sweep.force", sw.force, &kind)?, fu)?;
+                let from_deg = c.need("sweep.angle_from_deg", sw.angle_from_deg, &kind)?;
+                let to_deg = c.need("sweep.angle_to_deg", sw.angle_to_deg, &kind)?;
+                for (key, v) in [
+                    ("sweep.angle_from_deg", from_deg),
+                    ("sweep.angle_to_deg", to_deg),
+                ] {
+                    if !(v.is_finite() && (0.0..90.0).contains(&v)) {
+                        return Err(c.invalid(
+                            key,
+                            format!("{v} deg"),
+                            "must be in [0, 90) deg from the normal",
+                        ));
+                    }
+                }
+                if to_deg < from_deg {
+                    return Err(c.invalid(
+                        "sweep.angle_to_deg",
+                        format!("{to_deg} deg"),
+                        format!("must be >= sweep.angle_from_deg = {from_deg} deg"),
+                    ));
+                }
+                Sweep::Angle {
+                    force,
+                    from_deg,
+                    to_deg,
+                    step_deg: c.positive(
+                        "sweep.angle_step_deg",
+                        c.need("sweep.angle_step_deg", sw.angle_step_deg, &kind)?,
+                        "deg",
+                    )?,
+                    direction_deg: c.finite(
+                        "sweep.direction_deg",
+                        sw.direction_deg.unwrap_or(0.0),
+                        "deg",
+                    )?,
+                    trials: trials(&c)?,
+                }
+            }
+            "spatial" => {
+                let force =
+                    c.positive("sweep.force", c.need("sweep.force", sw.force, &kind)?, fu)?;
+                let start_mm = c.need("sweep.start_mm", sw.start_mm, &kind)?;
+                let end_mm = c.need("sweep.end_mm", sw.end_mm, &kind)?;
+                for (key, p) in [("sweep.start_mm", start_mm), ("sweep.end_mm", end_mm)] {
+                    c.finite(key, p[0], "mm")?;
+                    c.finite(key, p[1], "mm")?;
+                }
+                Sweep::Spatial {
+                    force,
+                    start_mm,
+                    end_mm,
+                    subdivisions: c.count(
+                        "sweep.subdivisions",
+                        c.need("sweep.subdivisions", sw.subdivisions, &kind)?,
+                        10_000,
+                    )?,
+                }
+            }
+            "displacement" => {
+                let shift_mm = c.need("sweep.shift_mm", sw.shift_mm, &kind)?;
+                c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
+                c.finite("sweep.shift_mm[1]", shift_mm[1], "mm")?;
+                Sweep::Displacement {
+                    shift_mm,
+                    trials: trials(&c)?,
+                }
+            }
+            "setpoints" => {
+                let points = c.need("sweep.points", sw.points, &kind)?;
+                if points.is_empty() {
+                    return Err(c.invalid(
+                        "sweep.points",
+                        "[]",
+                        "at least one [[sweep.points]] is required",
+                    ));
+                }
+                let mut out = Vec::with_capacity(points.len());
+                for (i, p) in points.into_iter().enumerate() {
+                    let key = format!("sweep.points[{i}]");
+                    c.finite(&format!("{key}.position_mm[0]"), p.position_mm[0], "mm")?;
+                    c.finite(&format!("{key}.position_mm[1]"), p.position_mm[1], "mm")?;
+                    out.push(ExplicitPoint {
+                        position_mm: p.position_mm,
+                        normal: c.non_negative(&format!("{key}.normal"), p.normal, fu)?,
+                        tangential: [
+                            c.finite(&format!("{key}.tangential[0]"), p.tangential[0], fu)?,
+                            c.finite(&format!("{key}.tangential[1]"), p.tangential[1], fu)?,
+                        ],
+                    });
+                }
+                Sweep::Setpoints(out)
+            }
+            other => {
+                return Err(c.invalid(
+                    "sweep.kind",
+                    format!("{other:?}"),
+                    "unknown sweep: expected magnitude, angle, spatial, displacement or setpoints",
+                ))
+            }
+        };
+
+        let plan = Plan {
+            path: path.to_path_buf(),
+            name: self.name,
+            sensor_path: path.parent().unwrap_or(Path::new(".")).join(&self.sensor),
+            build_id: self.build_id,
+            force_unit: unit,
+            indenter,
+            approach_position_mm,
+            approach_speed_mm_s,
+            contact_force_n,
+            force_tolerance_n,
+            max_control_steps,
+            settle,
+            samples,
+            frames,
+            safety,
+            sweep,
+        };
+        // Every target must stay within the force limits before anything moves.
+        for sp in plan.setpoints() {
+            let f = [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n];
+            for (i, axis) in ["x", "y", "z"].iter().enumerate() {
+                if f[i].abs() > plan.safety.max_force_n[i] {
+                    return Err(c.invalid(
+                        "sweep",
+                        format!(
+                            "setpoint {} with f{axis} = {} {fu}",
+                            sp.index,
+                            round9(unit.from_newtons(f[i]))
+                        ),
+                        format!(
+                            "exceeds safety.max_force[{i}] = {} {fu}",
+                            round9(unit.from_newtons(plan.safety.max_force_n[i]))
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(plan)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::units::gf_to_n;
+
+    const FIG7: &str = r#"
+name = "fig7"
+sensor = "paper_sensor.toml"
+force_unit = "gf"
+[indenter]
+shape = "hemisphere"
+diameter_mm = 5.0
+[approach]
+position_mm = [9.0, 6.75]
+speed_mm_s = 0.5
+contact_force = 5.0
+[safety]
+max_force = [300.0, 300.0, 1000.0]
+travel_min_mm = [0.0, 0.0, -2.0]
+travel_max_mm = [50.0, 50.0, 20.0]
+max_speed_mm_s = 5.0
+[sweep]
+kind = "magnitude"
+from = 0.0
+to = 750.0
+step = 50.0
+trials = 10
+"#;
+
+    fn parse(t: &str) -> Result<Plan, PlanError> {
+        Plan::from_toml_str(t, "experiments/p.toml")
+    }
+
+    #[test]
+    fn magnitude_sweep_expands_to_the_papers_sixteen_levels_times_ten_trials() {
+        let p = parse(FIG7).unwrap();
+        let s = p.setpoints();
+        assert_eq!(s.len(), 16 * 10);
+        assert_eq!(s[15].normal_n, gf_to_n(750.0));
+        assert_eq!(s[16].trial, 1);
+        assert_eq!(s[16].normal_n, 0.0);
+        assert_eq!(s[159].index, 159);
+        assert_eq!(p.sensor_path, Path::new("experiments/paper_sensor.toml"));
+        assert_eq!(p.force_tolerance_n, gf_to_n(5.0));
+    }
+
+    #[test]
+    fn angle_sweep_splits_the_force_into_normal_and_tangential_parts() {
+        let t = FIG7.replace(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 5.0\ndirection_deg = 90.0",
+        );
+        let s = parse(&t).unwrap().setpoints();
+        assert_eq!(s.len(), 10);
+        let last = s[9];
+        let f = gf_to_n(400.0);
+        assert!((last.normal_n - f * 45f64.to_radians().cos()).abs() < 1e-12);
+        assert!(last.tangential_n[0].abs() < 1e-12);
+        assert!((last.tangential_n[1] - f * 45f64.to_radians().sin()).abs() < 1e-12);
+        assert_eq!(last.swept_value, 45.0);
+    }
+
+    #[test]
+    fn spatial_sweep_steps_between_two_points() {
+        let t = FIG7.replace(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+            "kind = \"spatial\"\nforce = 200.0\nstart_mm = [8.9, 6.75]\nend_mm = [11.1, 6.75]\nsubdivisions = 6",
+        );
+        let s = parse(&t).unwrap().setpoints();
+        assert_eq!(s.len(), 7);
+        assert!((s[6].position_mm[0] - 11.1).abs() < 1e-12);
+        assert!((s[1].swept_value - 2.2 / 6.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn rejects_bad_values_naming_file_key_value_and_unit() {
+        let e = parse(&FIG7.replace("step = 50.0", "step = -50.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("experiments/p.toml")
+                && e.contains("sweep.step = -50 gf")
+                && e.contains("> 0 gf"),
+            "{e}"
+        );
+        let e = parse(&FIG7.replace("shape = \"hemisphere\"", "shape = \"cone\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("indenter.shape") && e.contains("cone"), "{e}");
+        let e = parse(&FIG7.replace("force_unit = \"gf\"", "force_unit = \"lbf\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("force_unit") && e.contains("lbf"), "{e}");
+        let e = parse(&FIG7.replace("trials = 10", "trials = 10\nbogus = 1"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bogus") && e.contains("line"), "{e}");
+        let e = parse(&FIG7.replace("speed_mm_s = 0.5", "speed_mm_s = 9.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("approach.speed_mm_s = 9 mm/s") && e.contains("max_speed_mm_s = 5"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn rejects_targets_beyond_the_force_limit_before_anything_moves() {
+        let e = parse(&FIG7.replace("to = 750.0", "to = 1200.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("fz = 1000") || e.contains("fz = 1050"), "{e}");
+        assert!(e.contains("safety.max_force[2] = 1000 gf"), "{e}");
+    }
+}
