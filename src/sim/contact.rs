@@ -97,6 +97,26 @@ pub enum Normal {
     DepthMm(f64),
 }
 
+/// The tangential part of a load.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Tangential {
+    /// A tangential force `[Qx, Qy]`, N.
+    ForceN([f64; 2]),
+    /// The force inclined by `angle_deg` from the normal towards the azimuth
+    /// `direction_deg` (from +x towards +y): `|Q| = P tan(angle)`.
+    Angle {
+        /// Inclination from the surface normal, degrees in [0, 90).
+        angle_deg: f64,
+        /// Azimuth of the tangential part, degrees.
+        direction_deg: f64,
+    },
+}
+
+impl Tangential {
+    /// No tangential load.
+    pub const NONE: Tangential = Tangential::ForceN([0.0, 0.0]);
+}
+
 /// A load case: where, how hard, and the tangential part.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LoadCase {
@@ -104,10 +124,28 @@ pub struct LoadCase {
     pub position_mm: [f64; 2],
     /// Normal load.
     pub normal: Normal,
-    /// Requested tangential force `[Qx, Qy]`, N.
-    pub tangential_n: [f64; 2],
+    /// Requested tangential load.
+    pub tangential: Tangential,
     /// Friction coefficient μ limiting `|Q| ≤ μ P`.
     pub friction: f64,
+}
+
+impl LoadCase {
+    /// This load scaled by `s` (a ramp step): the normal force or depth and a
+    /// tangential force are scaled, an inclination angle is kept.
+    pub fn scaled(&self, s: f64) -> LoadCase {
+        LoadCase {
+            normal: match self.normal {
+                Normal::ForceN(f) => Normal::ForceN(f * s),
+                Normal::DepthMm(d) => Normal::DepthMm(d * s),
+            },
+            tangential: match self.tangential {
+                Tangential::ForceN(q) => Tangential::ForceN([q[0] * s, q[1] * s]),
+                a @ Tangential::Angle { .. } => a,
+            },
+            ..*self
+        }
+    }
 }
 
 /// One discretised surface force.
@@ -207,18 +245,6 @@ impl Contact {
                 });
             }
         }
-        for (key, v) in [
-            ("tangential x", load.tangential_n[0]),
-            ("tangential y", load.tangential_n[1]),
-        ] {
-            if !v.is_finite() {
-                return Err(ContactError::Invalid {
-                    key,
-                    value: v,
-                    allowed: "must be finite (N)".into(),
-                });
-            }
-        }
         let mu = nonneg("friction_coefficient", load.friction, "")?;
         let es = reduced_modulus(model);
         let (p, a, delta, profile) = match (indenter, load.normal) {
@@ -279,16 +305,49 @@ impl Contact {
             (Indenter::Point, Normal::DepthMm(_)) => return Err(ContactError::PointDepth),
         };
 
+        let q_wanted = match load.tangential {
+            Tangential::ForceN(q) => {
+                for (key, v) in [("tangential force x", q[0]), ("tangential force y", q[1])] {
+                    if !v.is_finite() {
+                        return Err(ContactError::Invalid {
+                            key,
+                            value: v,
+                            allowed: "must be finite (N)".into(),
+                        });
+                    }
+                }
+                q
+            }
+            Tangential::Angle {
+                angle_deg,
+                direction_deg,
+            } => {
+                if !(angle_deg.is_finite() && (0.0..90.0).contains(&angle_deg)) {
+                    return Err(ContactError::Invalid {
+                        key: "angle_deg",
+                        value: angle_deg,
+                        allowed: "must be in [0, 90) degrees from the normal".into(),
+                    });
+                }
+                if !direction_deg.is_finite() {
+                    return Err(ContactError::Invalid {
+                        key: "direction_deg",
+                        value: direction_deg,
+                        allowed: "must be finite (degrees)".into(),
+                    });
+                }
+                let qm = p * angle_deg.to_radians().tan();
+                let d = direction_deg.to_radians();
+                [qm * d.cos(), qm * d.sin()]
+            }
+        };
         // Friction limit.
-        let q_req = load.tangential_n[0].hypot(load.tangential_n[1]);
+        let q_req = q_wanted[0].hypot(q_wanted[1]);
         let (q, clamped) = if q_req > mu * p {
             let s = if q_req > 0.0 { mu * p / q_req } else { 0.0 };
-            (
-                [load.tangential_n[0] * s, load.tangential_n[1] * s],
-                Some(q_req),
-            )
+            ([q_wanted[0] * s, q_wanted[1] * s], Some(q_req))
         } else {
-            (load.tangential_n, None)
+            (q_wanted, None)
         };
 
         let total = [q[0], q[1], p];
@@ -402,9 +461,23 @@ mod tests {
         LoadCase {
             position_mm: [4.0, 3.0],
             normal,
-            tangential_n: q,
+            tangential: Tangential::ForceN(q),
             friction: 1.0,
         }
+    }
+
+    #[test]
+    fn angle_gives_tangential_load_p_tan_angle_in_its_direction() {
+        let m = paper_model();
+        let mut l = load(Normal::ForceN(2.0), [0.0, 0.0]);
+        l.tangential = Tangential::Angle {
+            angle_deg: 30.0,
+            direction_deg: 90.0,
+        };
+        let c = Contact::solve(&m, Indenter::Flat { diameter_mm: 5.0 }, &l).unwrap();
+        let t = c.total_force_n();
+        assert!(t[0].abs() < 1e-12 && (t[1] - 2.0 * 30f64.to_radians().tan()).abs() < 1e-12);
+        assert!((t[1].atan2(t[2]).to_degrees() - 30.0).abs() < 1e-9);
     }
 
     #[test]

@@ -7,3 +7,5 @@ pub mod contact;
 pub mod effects;
 pub mod render;
 pub mod rng;
+pub mod scene;
+pub mod simulate;
