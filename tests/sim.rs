@@ -612,9 +612,9 @@ fn angled_scene_force_grid_truth_sums_to_the_applied_force() {
     let total = gf_to_n(400.0);
     let a = 30f64.to_radians();
     let want = [total * a.sin(), 0.0, total * a.cos()];
-    for b in 0..3 {
+    for (b, w) in want.iter().enumerate() {
         let s: f64 = t.forces_n.iter().skip(b).step_by(3).sum();
-        assert!((s - want[b]).abs() < 1e-12, "axis {b}: {s} vs {}", want[b]);
+        assert!((s - w).abs() < 1e-12, "axis {b}: {s} vs {w}");
     }
 }
 
