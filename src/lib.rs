@@ -12,5 +12,6 @@ pub mod device;
 pub mod formats;
 pub mod model;
 pub mod sensor;
+pub mod sim;
 pub mod solve;
 pub mod units;

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 mod model;
 mod reconstruct;
+mod sim;
 mod solver_args;
 
 pub use solver_args::SolverArgs;
@@ -29,6 +30,8 @@ enum Command {
     Reconstruct(reconstruct::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
+    #[command(subcommand)]
+    Sim(sim::SimCommand),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -37,6 +40,7 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Model(cmd) => model::run(cmd),
+        Command::Sim(cmd) => sim::run(cmd),
     };
     match result {
         Ok(code) => code,

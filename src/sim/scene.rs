@@ -1,0 +1,565 @@
+//! `scene.toml`: a simulated experiment (sensor, indenter, load, frames, effects),
+//! parsed once into a validated [`Scene`].
+//!
+//! Schema (every key is checked; unknown keys are rejected with their line):
+//!
+//! ```toml
+//! sensor = "../paper_sensor.toml"   # sensor file, relative to this scene file
+//!
+//! [indenter]
+//! kind = "flat"            # flat | hemisphere | point
+//! diameter_mm = 5.0        # flat: face diameter
+//! # radius_mm = 2.5        # hemisphere: radius
+//!
+//! [load]
+//! position_mm = [9.0, 7.0] # indenter centre in the sensor frame
+//! # exactly one of:
+//! normal_force_gf = 910.0  # or normal_force_n: the normal component P
+//! # total_force_n / total_force_gf: the force magnitude F, inclined by angle_deg
+//! #                                 (P = F cos θ, |Q| = F sin θ)
+//! # depth_mm = 0.5         # indentation depth (flat: P = 2aE*δ; hemisphere: Hertz)
+//! # at most one of:
+//! # tangential_force_n = 1.0 / tangential_force_gf = 100.0   # |Q|
+//! # angle_deg = 20.0       # inclination from the normal, [0, 90): |Q| = P tan θ
+//! direction_deg = 0.0      # azimuth of Q from +x towards +y (default 0)
+//! friction_coefficient = 1.0  # μ (default 1.0): |Q| is clamped to μP, with a warning
+//!
+//! [sequence]               # optional
+//! frames = 10              # load ramped linearly: loaded frame k = 1..N carries k/N
+//!                          # of the normal force or depth and of a tangential force
+//!                          # (an angle is kept); default 1
+//!
+//! [[effects]]              # optional, any number, applied in this order
+//! kind = "pixel_noise"
+//! sigma_8bit = 2.0
+//! seed = 1
+//! ```
+//!
+//! Effect kinds and their keys (see [`super::effects`] for the models):
+//!
+//! | kind | keys |
+//! |---|---|
+//! | `pixel_noise` | `sigma_8bit` (Gaussian σ in 8-bit levels), `seed` |
+//! | `shot_noise` | `full_scale_photons` (photons at value 1.0), `seed` |
+//! | `quantize8` | — (frames are then written as 8-bit PNG) |
+//! | `blur` | `sigma_px = { <layer name> = σ, … }` (px; unlisted layers stay sharp) |
+//! | `illumination` | `gradient = [g_x, g_y]` (relative gain change across the image) |
+//! | `vignetting` | `strength` (relative loss at the farthest corner), optional `center_px` |
+//! | `size_jitter` | `sigma_mm` (marker diameter σ), `seed` |
+//! | `placement_jitter` | `sigma_mm` (per-axis marker position σ), `seed` |
+//! | `shift` | `shift_px = [dx, dy]` (whole image, loaded frames only) |
+//! | `drift` | `px_per_frame = [dx, dy]`, optional `random_walk_px` (σ per frame) and `seed` |
+//!
+//! Marker-level effects (`size_jitter`, `placement_jitter`, `shift`, `drift`, `blur`)
+//! must come before image effects (`illumination`, `vignetting`, `shot_noise`,
+//! `pixel_noise`, `quantize8`).
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use thiserror::Error;
+
+use super::contact::{Indenter, LoadCase, Normal, Tangential};
+use super::effects::{Effect, EffectError, Pipeline};
+use crate::sensor::{Sensor, SensorError};
+use crate::units;
+
+/// Largest number of frames in a sequence.
+pub const MAX_FRAMES: usize = 100_000;
+
+/// An error reading or validating a scene file. Every variant names the file.
+#[derive(Debug, Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("cannot read scene file {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// Not valid TOML for the schema (syntax, unknown key, wrong type), with line.
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message.
+        message: String,
+    },
+    /// A value is invalid.
+    #[error("{path}: {key} = {value} is invalid: {allowed}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// The key, e.g. `load.normal_force_gf`.
+        key: String,
+        /// The value as given.
+        value: String,
+        /// What is allowed, with units.
+        allowed: String,
+    },
+    /// The referenced sensor file is invalid.
+    #[error("{path}: sensor file: {source}")]
+    Sensor {
+        /// The scene file.
+        path: PathBuf,
+        /// The sensor error.
+        source: SensorError,
+    },
+    /// An effect is invalid.
+    #[error("{path}: {source}")]
+    Effect {
+        /// The scene file.
+        path: PathBuf,
+        /// The effect error.
+        source: EffectError,
+    },
+}
+
+/// A validated scene.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The scene file (for messages).
+    pub path: PathBuf,
+    /// The sensor file, resolved against the scene's directory.
+    pub sensor_path: PathBuf,
+    /// The sensor.
+    pub sensor: Sensor,
+    /// The indenter.
+    pub indenter: Indenter,
+    /// The full load (the last frame of a sequence).
+    pub load: LoadCase,
+    /// Number of loaded frames (≥ 1).
+    pub frames: usize,
+    /// The effects.
+    pub pipeline: Pipeline,
+}
+
+impl Scene {
+    /// Reads and validates a scene file and the sensor file it references.
+    pub fn from_path(path: impl AsRef<Path>) -> Result<Scene, SceneError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let raw = parse_raw(&text, path)?;
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let sensor_path = dir.join(&raw.sensor);
+        let sensor = Sensor::from_path(&sensor_path).map_err(|source| SceneError::Sensor {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        raw.validate(path, sensor_path, sensor)
+    }
+
+    /// Parses scene TOML with an already loaded sensor (the `sensor` key is kept as
+    /// written, unresolved); `path` is used in messages only.
+    pub fn from_toml_str(
+        text: &str,
+        path: impl AsRef<Path>,
+        sensor: Sensor,
+    ) -> Result<Scene, SceneError> {
+        let path = path.as_ref();
+        let raw = parse_raw(text, path)?;
+        let sensor_path = PathBuf::from(&raw.sensor);
+        raw.validate(path, sensor_path, sensor)
+    }
+
+    /// The load of loaded frame `k` (1-based, `1..=frames`): the ramp step `k / frames`.
+    pub fn frame_load(&self, k: usize) -> LoadCase {
+        self.load.scaled(k as f64 / self.frames as f64)
+    }
+}
+
+fn parse_raw(text: &str, path: &Path) -> Result<RawScene, SceneError> {
+    toml::from_str(text).map_err(|e| SceneError::Parse {
+        path: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })
+}
+
+// ---- raw schema -----------------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawScene {
+    sensor: String,
+    indenter: RawIndenter,
+    load: RawLoad,
+    sequence: Option<RawSequence>,
+    #[serde(default)]
+    effects: Vec<RawEffect>,
+}
+
+#[derive(Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+enum RawIndenter {
+    Flat { diameter_mm: f64 },
+    Hemisphere { radius_mm: f64 },
+    Point {},
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLoad {
+    position_mm: [f64; 2],
+    normal_force_n: Option<f64>,
+    normal_force_gf: Option<f64>,
+    total_force_n: Option<f64>,
+    total_force_gf: Option<f64>,
+    depth_mm: Option<f64>,
+    tangential_force_n: Option<f64>,
+    tangential_force_gf: Option<f64>,
+    angle_deg: Option<f64>,
+    direction_deg: Option<f64>,
+    friction_coefficient: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSequence {
+    frames: i64,
+}
+
+#[derive(Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+enum RawEffect {
+    PixelNoise {
+        sigma_8bit: f64,
+        seed: u64,
+    },
+    ShotNoise {
+        full_scale_photons: f64,
+        seed: u64,
+    },
+    Quantize8 {},
+    Blur {
+        sigma_px: std::collections::BTreeMap<String, f64>,
+    },
+    Illumination {
+        gradient: [f64; 2],
+    },
+    Vignetting {
+        strength: f64,
+        center_px: Option<[f64; 2]>,
+    },
+    SizeJitter {
+        sigma_mm: f64,
+        seed: u64,
+    },
+    PlacementJitter {
+        sigma_mm: f64,
+        seed: u64,
+    },
+    Shift {
+        shift_px: [f64; 2],
+    },
+    Drift {
+        px_per_frame: [f64; 2],
+        random_walk_px: Option<f64>,
+        seed: Option<u64>,
+    },
+}
+
+impl RawScene {
+    fn validate(
+        self,
+        path: &Path,
+        sensor_path: PathBuf,
+        sensor: Sensor,
+    ) -> Result<Scene, SceneError> {
+        let invalid = |key: &str, value: &dyn fmt::Display, allowed: &str| SceneError::Invalid {
+            path: path.to_path_buf(),
+            key: key.to_string(),
+            value: value.to_string(),
+            allowed: allowed.to_string(),
+        };
+        let positive = |key: &str, v: f64, unit: &str| {
+            if v.is_finite() && v > 0.0 {
+                Ok(v)
+            } else {
+                Err(invalid(
+                    key,
+                    &v,
+                    &format!("must be a finite number > 0 {unit}"),
+                ))
+            }
+        };
+        let nonneg = |key: &str, v: f64, unit: &str| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(v)
+            } else {
+                Err(invalid(
+                    key,
+                    &v,
+                    &format!("must be a finite number >= 0 {unit}"),
+                ))
+            }
+        };
+
+        let indenter = match self.indenter {
+            RawIndenter::Flat { diameter_mm } => Indenter::Flat {
+                diameter_mm: positive("indenter.diameter_mm", diameter_mm, "mm")?,
+            },
+            RawIndenter::Hemisphere { radius_mm } => Indenter::Hemisphere {
+                radius_mm: positive("indenter.radius_mm", radius_mm, "mm")?,
+            },
+            RawIndenter::Point {} => Indenter::Point,
+        };
+
+        let l = self.load;
+        for (i, v) in l.position_mm.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(invalid(
+                    &format!("load.position_mm[{i}]"),
+                    v,
+                    "must be finite (mm)",
+                ));
+            }
+        }
+        let normals: Vec<(&str, f64)> = [
+            ("normal_force_n", l.normal_force_n),
+            ("normal_force_gf", l.normal_force_gf),
+            ("total_force_n", l.total_force_n),
+            ("total_force_gf", l.total_force_gf),
+            ("depth_mm", l.depth_mm),
+        ]
+        .into_iter()
+        .filter_map(|(k, v)| v.map(|v| (k, v)))
+        .collect();
+        let tangentials: Vec<(&str, f64)> = [
+            ("tangential_force_n", l.tangential_force_n),
+            ("tangential_force_gf", l.tangential_force_gf),
+            ("angle_deg", l.angle_deg),
+        ]
+        .into_iter()
+        .filter_map(|(k, v)| v.map(|v| (k, v)))
+        .collect();
+        let (nkey, nval) = match normals.as_slice() {
+            [one] => *one,
+            [] => {
+                return Err(invalid(
+                    "load",
+                    &"(none)",
+                    "give exactly one of normal_force_n, normal_force_gf, total_force_n, total_force_gf, depth_mm",
+                ))
+            }
+            many => {
+                let keys: Vec<&str> = many.iter().map(|(k, _)| *k).collect();
+                return Err(invalid(
+                    "load",
+                    &keys.join(" and "),
+                    "give exactly one of normal_force_n, normal_force_gf, total_force_n, total_force_gf, depth_mm",
+                ));
+            }
+        };
+        if tangentials.len() > 1 {
+            let keys: Vec<&str> = tangentials.iter().map(|(k, _)| *k).collect();
+            return Err(invalid(
+                "load",
+                &keys.join(" and "),
+                "give at most one of tangential_force_n, tangential_force_gf, angle_deg",
+            ));
+        }
+        let key = format!("load.{nkey}");
+        let unit = if nkey.ends_with("_gf") {
+            "gf"
+        } else if nkey == "depth_mm" {
+            "mm"
+        } else {
+            "N"
+        };
+        let nval = nonneg(&key, nval, unit)?;
+        let direction_deg = l.direction_deg.unwrap_or(0.0);
+        if !direction_deg.is_finite() {
+            return Err(invalid(
+                "load.direction_deg",
+                &direction_deg,
+                "must be finite (degrees)",
+            ));
+        }
+        let angle = |v: f64| {
+            if v.is_finite() && (0.0..90.0).contains(&v) {
+                Ok(v)
+            } else {
+                Err(invalid(
+                    "load.angle_deg",
+                    &v,
+                    "must be in [0, 90) degrees from the normal",
+                ))
+            }
+        };
+        let (normal, tangential) = match nkey {
+            "total_force_n" | "total_force_gf" => {
+                let f = if nkey == "total_force_gf" {
+                    units::gf_to_n(nval)
+                } else {
+                    nval
+                };
+                match tangentials.first() {
+                    Some((k, _)) if *k != "angle_deg" => {
+                        return Err(invalid(
+                            &format!("load.{k}"),
+                            &"(given)",
+                            "a total force takes angle_deg, not a tangential force: use normal_force_* with it",
+                        ))
+                    }
+                    Some((_, a)) => {
+                        let a = angle(*a)?;
+                        (
+                            Normal::ForceN(f * a.to_radians().cos()),
+                            Tangential::Angle { angle_deg: a, direction_deg },
+                        )
+                    }
+                    None => (Normal::ForceN(f), Tangential::NONE),
+                }
+            }
+            _ => {
+                let normal = match nkey {
+                    "normal_force_n" => Normal::ForceN(nval),
+                    "normal_force_gf" => Normal::ForceN(units::gf_to_n(nval)),
+                    _ => {
+                        if indenter == Indenter::Point {
+                            return Err(invalid(
+                                "load.depth_mm",
+                                &nval,
+                                "a point indenter has no indentation depth: give a normal force",
+                            ));
+                        }
+                        Normal::DepthMm(nval)
+                    }
+                };
+                let d = direction_deg.to_radians();
+                let tangential = match tangentials.first() {
+                    None => Tangential::NONE,
+                    Some(("angle_deg", a)) => Tangential::Angle {
+                        angle_deg: angle(*a)?,
+                        direction_deg,
+                    },
+                    Some((k, q)) => {
+                        let q = nonneg(
+                            &format!("load.{k}"),
+                            *q,
+                            if k.ends_with("_gf") { "gf" } else { "N" },
+                        )?;
+                        let q = if k.ends_with("_gf") {
+                            units::gf_to_n(q)
+                        } else {
+                            q
+                        };
+                        Tangential::ForceN([q * d.cos(), q * d.sin()])
+                    }
+                };
+                (normal, tangential)
+            }
+        };
+        let friction = nonneg(
+            "load.friction_coefficient",
+            l.friction_coefficient.unwrap_or(1.0),
+            "",
+        )?;
+        let load = LoadCase {
+            position_mm: l.position_mm,
+            normal,
+            tangential,
+            friction,
+        };
+
+        let frames = match self.sequence {
+            None => 1,
+            Some(s) => {
+                if (1..=MAX_FRAMES as i64).contains(&s.frames) {
+                    s.frames as usize
+                } else {
+                    return Err(invalid(
+                        "sequence.frames",
+                        &s.frames,
+                        &format!("must be an integer in [1, {MAX_FRAMES}]"),
+                    ));
+                }
+            }
+        };
+
+        let mut effects = Vec::with_capacity(self.effects.len());
+        for (i, e) in self.effects.into_iter().enumerate() {
+            effects.push(match e {
+                RawEffect::PixelNoise { sigma_8bit, seed } => {
+                    Effect::PixelNoise { sigma_8bit, seed }
+                }
+                RawEffect::ShotNoise {
+                    full_scale_photons,
+                    seed,
+                } => Effect::ShotNoise {
+                    full_scale_photons,
+                    seed,
+                },
+                RawEffect::Quantize8 {} => Effect::Quantize8,
+                RawEffect::Blur { sigma_px: by_name } => {
+                    let mut sigma_px = vec![0.0; sensor.layers.len()];
+                    for (name, s) in by_name {
+                        let li = sensor.layer_index(&name).ok_or_else(|| {
+                            let names: Vec<&str> =
+                                sensor.layers.iter().map(|l| l.name.as_str()).collect();
+                            invalid(
+                                &format!("effects[{i}].sigma_px.{name}"),
+                                &s,
+                                &format!("unknown layer: the sensor has {}", names.join(", ")),
+                            )
+                        })?;
+                        sigma_px[li] = s;
+                    }
+                    Effect::Blur { sigma_px }
+                }
+                RawEffect::Illumination { gradient } => Effect::Illumination { gradient },
+                RawEffect::Vignetting {
+                    strength,
+                    center_px,
+                } => Effect::Vignetting {
+                    strength,
+                    center_px,
+                },
+                RawEffect::SizeJitter { sigma_mm, seed } => Effect::SizeJitter { sigma_mm, seed },
+                RawEffect::PlacementJitter { sigma_mm, seed } => {
+                    Effect::PlacementJitter { sigma_mm, seed }
+                }
+                RawEffect::Shift { shift_px } => Effect::Shift { shift_px },
+                RawEffect::Drift {
+                    px_per_frame,
+                    random_walk_px,
+                    seed,
+                } => {
+                    let random_walk_px = random_walk_px.unwrap_or(0.0);
+                    if random_walk_px > 0.0 && seed.is_none() {
+                        return Err(invalid(
+                            &format!("effects[{i}].seed"),
+                            &"(missing)",
+                            "a drift with random_walk_px > 0 needs a seed",
+                        ));
+                    }
+                    Effect::Drift {
+                        px_per_frame,
+                        random_walk_px,
+                        seed: seed.unwrap_or(0),
+                    }
+                }
+            });
+        }
+        let pipeline =
+            Pipeline::new(effects, sensor.layers.len()).map_err(|source| SceneError::Effect {
+                path: path.to_path_buf(),
+                source,
+            })?;
+
+        Ok(Scene {
+            path: path.to_path_buf(),
+            sensor_path,
+            sensor,
+            indenter,
+            load,
+            frames,
+            pipeline,
+        })
+    }
+}

@@ -1,0 +1,187 @@
+//! The simulated sensor: a sensor, an indenter and an effect pipeline; renders the
+//! camera frame for any load, with the ground truth (marker displacements, force-grid
+//! forces). Used by `tactbench sim render` through [`Simulation::from_scene`], and
+//! meant for the simulated camera of the virtual bench through [`Simulation::new`] +
+//! [`Simulation::render_load`].
+//!
+//! Per frame: contact model → cell forces → half-space displacements at the (built)
+//! marker positions → image offset (shift, drift) → rasterisation → image effects.
+
+use image::Rgb32FImage;
+use thiserror::Error;
+
+use super::contact::{Contact, ContactError, Indenter, LoadCase};
+use super::effects::{Pipeline, Scratch};
+use super::render::{reference_markers, Marker, RenderError, Renderer};
+use super::scene::Scene;
+use crate::model::{HalfSpace, MarkerSite};
+use crate::sensor::Sensor;
+
+/// An error simulating a frame.
+#[derive(Debug, Error, PartialEq)]
+pub enum SimError {
+    /// The contact could not be solved.
+    #[error("contact: {0}")]
+    Contact(#[from] ContactError),
+    /// The frame could not be rendered.
+    #[error("render: {0}")]
+    Render(#[from] RenderError),
+}
+
+/// Ground truth of one rendered frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameTruth {
+    /// Pipeline frame index (0 = reference, loaded frames 1, 2, …).
+    pub frame: u64,
+    /// The solved contact (`None` for the unloaded reference).
+    pub contact: Option<Contact>,
+    /// Elastic marker displacements (interleaved `ux, uy`, mm), marker order of
+    /// [`Simulation::markers`].
+    pub elastic_u_mm: Vec<f64>,
+    /// Whole-image offset of this frame (shift + drift), px.
+    pub offset_px: [f64; 2],
+    /// Force-grid truth (interleaved `fx, fy, fz` per node, N; zeros for the reference).
+    pub forces_n: Vec<f64>,
+}
+
+impl FrameTruth {
+    /// Apparent displacement of marker `k` in the image, px: elastic displacement plus
+    /// the image offset (what an ideal tracker measures against the reference frame,
+    /// whose offset is subtracted).
+    pub fn apparent_u_px(
+        &self,
+        k: usize,
+        mm_per_px: f64,
+        reference_offset_px: [f64; 2],
+    ) -> [f64; 2] {
+        [
+            self.elastic_u_mm[2 * k] / mm_per_px + self.offset_px[0] - reference_offset_px[0],
+            self.elastic_u_mm[2 * k + 1] / mm_per_px + self.offset_px[1] - reference_offset_px[1],
+        ]
+    }
+}
+
+/// A simulated sensor under an indenter.
+#[derive(Debug)]
+pub struct Simulation {
+    sensor: Sensor,
+    model: HalfSpace,
+    indenter: Indenter,
+    pipeline: Pipeline,
+    renderer: Renderer,
+    markers: Vec<Marker>,
+    ids: Vec<(usize, usize)>,
+    sites: Vec<MarkerSite>,
+    scratch: Scratch,
+    moved: Vec<Marker>,
+}
+
+impl Simulation {
+    /// A simulation of `sensor`'s grid markers (build effects applied once here).
+    pub fn new(sensor: Sensor, indenter: Indenter, pipeline: Pipeline) -> Self {
+        let mut markers = reference_markers(&sensor);
+        let mut ids = Vec::with_capacity(markers.len());
+        for (li, l) in sensor.layers.iter().enumerate() {
+            if let Some(m) = &l.markers {
+                ids.extend((0..m.grid.len()).map(|k| (li, k)));
+            }
+        }
+        pipeline.build_markers(&mut markers);
+        let sites = markers
+            .iter()
+            .map(|m| MarkerSite {
+                layer: m.layer,
+                position_mm: m.position_mm,
+                depth_mm: sensor.layers[m.layer].depth_mm,
+            })
+            .collect();
+        Simulation {
+            model: HalfSpace::from_elastomer(&sensor.elastomer),
+            renderer: Renderer::new(&sensor),
+            sensor,
+            indenter,
+            pipeline,
+            markers,
+            ids,
+            sites,
+            scratch: Scratch::default(),
+            moved: Vec::new(),
+        }
+    }
+
+    /// The simulation of a scene.
+    pub fn from_scene(scene: &Scene) -> Self {
+        Self::new(scene.sensor.clone(), scene.indenter, scene.pipeline.clone())
+    }
+
+    /// The sensor.
+    pub fn sensor(&self) -> &Sensor {
+        &self.sensor
+    }
+
+    /// The effect pipeline.
+    pub fn pipeline(&self) -> &Pipeline {
+        &self.pipeline
+    }
+
+    /// The renderer (camera, palette, drawing order).
+    pub fn renderer(&self) -> &Renderer {
+        &self.renderer
+    }
+
+    /// The markers at their reference positions (after size and placement jitter).
+    pub fn markers(&self) -> &[Marker] {
+        &self.markers
+    }
+
+    /// `(layer index, marker id)` of each marker; the id is the row-major index in its
+    /// layer's grid.
+    pub fn marker_ids(&self) -> &[(usize, usize)] {
+        &self.ids
+    }
+
+    /// A frame buffer of the camera's size.
+    pub fn blank_frame(&self) -> Rgb32FImage {
+        self.renderer.blank()
+    }
+
+    /// Renders the unloaded reference frame (pipeline frame 0) into `out`.
+    pub fn render_reference(&mut self, out: &mut Rgb32FImage) -> Result<FrameTruth, SimError> {
+        self.pipeline
+            .render_frame(&self.renderer, &self.markers, 0, out, &mut self.scratch)?;
+        Ok(FrameTruth {
+            frame: 0,
+            contact: None,
+            elastic_u_mm: vec![0.0; 2 * self.markers.len()],
+            offset_px: self.pipeline.image_offset_px(0),
+            forces_n: vec![0.0; 3 * self.sensor.force_grid.len()],
+        })
+    }
+
+    /// Renders pipeline frame `frame` (≥ 1 for loaded frames) under `load` into `out`.
+    pub fn render_load(
+        &mut self,
+        load: &LoadCase,
+        frame: u64,
+        out: &mut Rgb32FImage,
+    ) -> Result<FrameTruth, SimError> {
+        let contact = Contact::solve(&self.model, self.indenter, load)?;
+        let u = contact.marker_displacements_mm(&self.model, &self.sites);
+        self.moved.clear();
+        self.moved
+            .extend(self.markers.iter().enumerate().map(|(k, m)| Marker {
+                position_mm: [m.position_mm[0] + u[2 * k], m.position_mm[1] + u[2 * k + 1]],
+                ..*m
+            }));
+        self.pipeline
+            .render_frame(&self.renderer, &self.moved, frame, out, &mut self.scratch)?;
+        let forces_n = contact.force_grid_n(&self.sensor.force_grid);
+        Ok(FrameTruth {
+            frame,
+            contact: Some(contact),
+            elastic_u_mm: u,
+            offset_px: self.pipeline.image_offset_px(frame),
+            forces_n,
+        })
+    }
+}
