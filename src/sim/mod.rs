@@ -9,3 +9,4 @@ pub mod render;
 pub mod rng;
 pub mod scene;
 pub mod simulate;
+pub mod world;

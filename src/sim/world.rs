@@ -1,0 +1,423 @@
+//! The virtual bench world shared by the simulated devices: one stage position, one
+//! indenter, one elastomer. The stage simulators publish where the stage is; the
+//! force-sensor simulators ask for the wrench that position produces; the simulated
+//! camera renders the marker image of the same contact (with the scene's effects
+//! only). Everything is a pure function of the stage position history, so a simulated
+//! run is reproducible.
+//!
+//! Geometry (stage machine coordinates, mm): the indenter tip is over sensor-frame
+//! point `xy_stage − sensor_origin_in_stage_mm`, and touches the elastomer surface at
+//! stage `z = surface_z_mm`; larger z presses deeper. Indentation `δ = z − surface_z`.
+//!
+//! Contact laws (Johnson, *Contact Mechanics*, §3.4, §5.2, §7.2; `E* = E/(1−ν²)`,
+//! `G = E/(2(1+ν))`):
+//! - flat cylinder of radius `a`: `P = 2 a E* δ` (contact radius `a` at any depth);
+//! - hemisphere of radius `R`: `P = 4/3 E* √R δ^{3/2}`, contact radius `a = √(Rδ)`;
+//! - point: modelled for the force law as a hemisphere of radius
+//!   [`POINT_TIP_RADIUS_MM`], its traction applied as a concentrated load.
+//!
+//! Tangential force comes from lateral stage motion while in contact (Mindlin):
+//! `Q = k_t · s`, `k_t = 8 G a / (2 − ν)`, `s` the lateral travel since the contact
+//! stuck, limited by friction `|Q| ≤ μ P`; beyond it the contact slides and the stick
+//! point follows. Leaving contact releases the stick point.
+//!
+//! The force/torque sensor sits `tool_length_mm` above the tip with its axes aligned to
+//! the sensor frame and reports the force the indenter applies to the elastomer
+//! (`fz > 0` pressing) and its moment about the F/T origin.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use image::Rgb32FImage;
+
+use super::contact::{Contact, Indenter, LoadCase, Normal, Tangential};
+use super::simulate::{FrameTruth, SimError, Simulation};
+use crate::device::Wrench;
+use crate::model::HalfSpace;
+
+/// Tip radius used for the force law of a point indenter, mm.
+pub const POINT_TIP_RADIUS_MM: f64 = 0.25;
+
+/// Where the sensor sits in stage coordinates, and the contact parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WorldGeometry {
+    /// Stage xy that puts the indenter tip over the sensor-frame origin, mm.
+    pub sensor_origin_in_stage_mm: [f64; 2],
+    /// Stage z at which the tip touches the surface, mm.
+    pub surface_z_mm: f64,
+    /// Friction coefficient μ between indenter and elastomer.
+    pub friction: f64,
+    /// Distance from the F/T sensor origin down to the tip, mm (for torques).
+    pub tool_length_mm: f64,
+}
+
+impl Default for WorldGeometry {
+    fn default() -> Self {
+        WorldGeometry {
+            sensor_origin_in_stage_mm: [0.0, 0.0],
+            surface_z_mm: 10.0,
+            friction: 1.0,
+            tool_length_mm: 50.0,
+        }
+    }
+}
+
+/// The state the devices share.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct State {
+    stage_mm: [f64; 3],
+    /// Sensor-frame point where the contact stuck, while in contact.
+    stick_mm: Option<[f64; 2]>,
+    /// Next camera frame index (the effects pipeline counts frames).
+    next_frame: u64,
+}
+
+/// The virtual world. Cheap to share: clone the [`Arc`] from [`World::new`].
+pub struct World {
+    geometry: WorldGeometry,
+    model: HalfSpace,
+    indenter: Indenter,
+    state: Mutex<State>,
+    camera: Mutex<Simulation>,
+}
+
+impl std::fmt::Debug for World {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("World")
+            .field("geometry", &self.geometry)
+            .field("indenter", &self.indenter)
+            .field("state", &*lock(&self.state))
+            .finish()
+    }
+}
+
+/// A lock that survives a panicked holder: the state is plain data, always valid.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// What the contact looks like at the current stage position.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContactState {
+    /// Tip position in the sensor frame, mm.
+    pub tip_in_sensor_mm: [f64; 2],
+    /// Indentation depth δ, mm (≤ 0: not in contact).
+    pub indentation_mm: f64,
+    /// Normal force P, N.
+    pub normal_n: f64,
+    /// Tangential force Q applied to the elastomer, N.
+    pub tangential_n: [f64; 2],
+    /// Contact radius a, mm.
+    pub contact_radius_mm: f64,
+    /// True when friction limits Q (sliding).
+    pub sliding: bool,
+}
+
+impl World {
+    /// A world around a simulation (sensor, indenter, effects) at stage position
+    /// `start_mm`.
+    pub fn new(
+        simulation: Simulation,
+        indenter: Indenter,
+        geometry: WorldGeometry,
+        start_mm: [f64; 3],
+    ) -> Arc<World> {
+        let model = HalfSpace::from_elastomer(&simulation.sensor().elastomer);
+        Arc::new(World {
+            geometry,
+            model,
+            indenter,
+            state: Mutex::new(State {
+                stage_mm: start_mm,
+                stick_mm: None,
+                next_frame: 1,
+            }),
+            camera: Mutex::new(simulation),
+        })
+    }
+
+    /// The geometry.
+    pub fn geometry(&self) -> &WorldGeometry {
+        &self.geometry
+    }
+
+    /// Stage position, mm.
+    pub fn stage_mm(&self) -> [f64; 3] {
+        lock(&self.state).stage_mm
+    }
+
+    /// The stage simulators call this whenever the stage moved. Updates the friction
+    /// stick point so tangential force follows the motion history.
+    pub fn set_stage_mm(&self, p: [f64; 3]) {
+        let mut s = lock(&self.state);
+        s.stage_mm = p;
+        let c = self.contact_of(p, s.stick_mm);
+        s.stick_mm = if c.indentation_mm <= 0.0 {
+            None
+        } else {
+            match s.stick_mm {
+                None => Some(c.tip_in_sensor_mm),
+                Some(stick) if c.sliding => {
+                    // Slide: move the stick point so |Q| sits exactly at μP.
+                    let k = self.tangential_stiffness(c.contact_radius_mm);
+                    if k > 0.0 {
+                        Some([
+                            c.tip_in_sensor_mm[0] - c.tangential_n[0] / k,
+                            c.tip_in_sensor_mm[1] - c.tangential_n[1] / k,
+                        ])
+                    } else {
+                        Some(stick)
+                    }
+                }
+                keep => keep,
+            }
+        };
+    }
+
+    /// The contact at the current stage position.
+    pub fn contact(&self) -> ContactState {
+        let s = lock(&self.state);
+        self.contact_of(s.stage_mm, s.stick_mm)
+    }
+
+    /// The wrench the F/T sensor feels now (force on the elastomer, N; moment about
+    /// the F/T origin, N·m).
+    pub fn wrench(&self) -> Wrench {
+        let c = self.contact();
+        let f = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
+        // r from the F/T origin to the tip: (0, 0, L) in the sensor frame (z is down
+        // into the elastomer), in metres; M = r × F.
+        let l_m = self.geometry.tool_length_mm * 1e-3;
+        Wrench {
+            force_n: f,
+            torque_nm: [-l_m * f[1], l_m * f[0], 0.0],
+        }
+    }
+
+    /// Renders the camera's next frame for the current contact into `out` (effects of
+    /// the simulation's pipeline included) and returns its ground truth.
+    pub fn render(&self, out: &mut Rgb32FImage) -> Result<FrameTruth, SimError> {
+        let (c, frame) = {
+            let mut s = lock(&self.state);
+            let frame = s.next_frame;
+            s.next_frame += 1;
+            (self.contact_of(s.stage_mm, s.stick_mm), frame)
+        };
+        let mut sim = lock(&self.camera);
+        if c.indentation_mm <= 0.0 || c.normal_n <= 0.0 {
+            let load = LoadCase {
+                position_mm: c.tip_in_sensor_mm,
+                normal: Normal::ForceN(0.0),
+                tangential: Tangential::NONE,
+                friction: self.geometry.friction,
+            };
+            return sim.render_load(&load, frame, out);
+        }
+        let q = c.tangential_n;
+        let load = LoadCase {
+            position_mm: c.tip_in_sensor_mm,
+            normal: Normal::ForceN(c.normal_n),
+            tangential: Tangential::ForceN(q),
+            // Q is already limited by friction here; let the traction model carry it.
+            friction: self
+                .geometry
+                .friction
+                .max(q[0].hypot(q[1]) / c.normal_n * (1.0 + 1e-9)),
+        };
+        sim.render_load(&load, frame, out)
+    }
+
+    /// The unloaded reference frame (pipeline frame 0).
+    pub fn render_reference(&self, out: &mut Rgb32FImage) -> Result<FrameTruth, SimError> {
+        lock(&self.camera).render_reference(out)
+    }
+
+    /// A blank frame buffer of the camera's size.
+    pub fn blank_frame(&self) -> Rgb32FImage {
+        lock(&self.camera).blank_frame()
+    }
+
+    /// The full traction solution for the current contact (for ground truth).
+    pub fn solve_contact(&self) -> Option<Contact> {
+        let c = self.contact();
+        if c.normal_n <= 0.0 {
+            return None;
+        }
+        let load = LoadCase {
+            position_mm: c.tip_in_sensor_mm,
+            normal: Normal::ForceN(c.normal_n),
+            tangential: Tangential::ForceN(c.tangential_n),
+            friction: self
+                .geometry
+                .friction
+                .max(c.tangential_n[0].hypot(c.tangential_n[1]) / c.normal_n * (1.0 + 1e-9)),
+        };
+        Contact::solve(&self.model, self.indenter, &load).ok()
+    }
+
+    fn reduced_modulus(&self) -> f64 {
+        self.model.young_n_per_mm2 / (1.0 - self.model.poisson * self.model.poisson)
+    }
+
+    fn tangential_stiffness(&self, a_mm: f64) -> f64 {
+        let nu = self.model.poisson;
+        let g = self.model.young_n_per_mm2 / (2.0 * (1.0 + nu));
+        8.0 * g * a_mm / (2.0 - nu)
+    }
+
+    /// Normal force and contact radius at indentation `d` (mm).
+    fn normal_law(&self, d: f64) -> (f64, f64) {
+        if d <= 0.0 {
+            return (0.0, 0.0);
+        }
+        let e_star = self.reduced_modulus();
+        match self.indenter {
+            Indenter::Flat { diameter_mm } => {
+                let a = diameter_mm / 2.0;
+                (2.0 * a * e_star * d, a)
+            }
+            Indenter::Hemisphere { radius_mm } => {
+                // Beyond the hemisphere's equator Hertz no longer applies; keep the
+                // contact radius at R (the flank then presses like a flat punch).
+                let d_eq = radius_mm;
+                if d <= d_eq {
+                    (
+                        4.0 / 3.0 * e_star * radius_mm.sqrt() * d.powf(1.5),
+                        (radius_mm * d).sqrt(),
+                    )
+                } else {
+                    let p_eq = 4.0 / 3.0 * e_star * radius_mm.sqrt() * d_eq.powf(1.5);
+                    (p_eq + 2.0 * radius_mm * e_star * (d - d_eq), radius_mm)
+                }
+            }
+            Indenter::Point => {
+                let r = POINT_TIP_RADIUS_MM;
+                (
+                    4.0 / 3.0 * e_star * r.sqrt() * d.powf(1.5),
+                    (r * d).sqrt().min(r),
+                )
+            }
+        }
+    }
+
+    fn contact_of(&self, stage: [f64; 3], stick: Option<[f64; 2]>) -> ContactState {
+        let g = &self.geometry;
+        let tip = [
+            stage[0] - g.sensor_origin_in_stage_mm[0],
+            stage[1] - g.sensor_origin_in_stage_mm[1],
+        ];
+        let d = stage[2] - g.surface_z_mm;
+        let (p, a) = self.normal_law(d);
+        let mut q = [0.0; 2];
+        let mut sliding = false;
+        if p > 0.0 {
+            if let Some(st) = stick {
+                let k = self.tangential_stiffness(a);
+                q = [k * (tip[0] - st[0]), k * (tip[1] - st[1])];
+                let limit = g.friction * p;
+                let mag = q[0].hypot(q[1]);
+                if mag > limit && mag > 0.0 {
+                    q = [q[0] * limit / mag, q[1] * limit / mag];
+                }
+                // At the limit (after a slide moved the stick point) counts as sliding.
+                sliding = mag > 0.0 && mag >= limit * (1.0 - 1e-9);
+            }
+        }
+        ContactState {
+            tip_in_sensor_mm: tip,
+            indentation_mm: d,
+            normal_n: p,
+            tangential_n: q,
+            contact_radius_mm: a,
+            sliding,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sensor::paper_sensor;
+    use crate::sim::effects::Pipeline;
+
+    fn world(indenter: Indenter) -> Arc<World> {
+        let sim = Simulation::new(paper_sensor(), indenter, Pipeline::ideal());
+        let g = WorldGeometry {
+            sensor_origin_in_stage_mm: [20.0, 30.0],
+            surface_z_mm: 5.0,
+            friction: 0.5,
+            tool_length_mm: 40.0,
+        };
+        World::new(sim, indenter, g, [29.0, 36.75, 0.0])
+    }
+
+    #[test]
+    fn no_force_out_of_contact() {
+        let w = world(Indenter::Flat { diameter_mm: 5.0 });
+        assert_eq!(w.wrench(), Wrench::default());
+        w.set_stage_mm([29.0, 36.75, 4.99]);
+        assert_eq!(w.contact().normal_n, 0.0);
+        assert_eq!(w.contact().tip_in_sensor_mm, [9.0, 6.75]);
+    }
+
+    #[test]
+    fn normal_force_follows_the_closed_form_laws() {
+        // E = 1 N/mm², ν = 0.5: E* = 4/3 N/mm².
+        let e_star = 4.0 / 3.0;
+        let w = world(Indenter::Flat { diameter_mm: 5.0 });
+        w.set_stage_mm([29.0, 36.75, 5.2]);
+        assert!((w.wrench().force_n[2] - 2.0 * 2.5 * e_star * 0.2).abs() < 1e-12);
+        let w = world(Indenter::Hemisphere { radius_mm: 2.5 });
+        w.set_stage_mm([29.0, 36.75, 5.4]);
+        let p = 4.0 / 3.0 * e_star * 2.5f64.sqrt() * 0.4f64.powf(1.5);
+        assert!((w.wrench().force_n[2] - p).abs() < 1e-12);
+        assert!((w.contact().contact_radius_mm - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn lateral_motion_in_contact_sticks_then_slides_at_the_friction_limit() {
+        let w = world(Indenter::Flat { diameter_mm: 5.0 });
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        let p = w.wrench().force_n[2];
+        // Mindlin stiffness: 8 G a / (2 − ν) with G = 1/3 N/mm², a = 2.5 mm.
+        let k = 8.0 * (1.0 / 3.0) * 2.5 / 1.5;
+        w.set_stage_mm([29.01, 36.75, 5.3]);
+        let f = w.wrench().force_n;
+        assert!((f[0] - k * 0.01).abs() < 1e-9, "{f:?}");
+        assert!(!w.contact().sliding);
+        // Far beyond the limit: |Q| = μP, sliding; moving back relieves it at once.
+        w.set_stage_mm([31.0, 36.75, 5.3]);
+        let f = w.wrench().force_n;
+        assert!(
+            (f[0] - 0.5 * p).abs() < 1e-9 && w.contact().sliding,
+            "{f:?}"
+        );
+        w.set_stage_mm([30.9, 36.75, 5.3]);
+        let f = w.wrench().force_n;
+        assert!((f[0] - (0.5 * p - k * 0.1)).abs() < 1e-9, "{f:?}");
+        // Torque about the F/T origin 40 mm above the tip: My = L·Fx.
+        assert!((w.wrench().torque_nm[1] - 0.04 * f[0]).abs() < 1e-12);
+        // Lifting off releases the stick point.
+        w.set_stage_mm([30.9, 36.75, 4.0]);
+        w.set_stage_mm([30.9, 36.75, 5.3]);
+        assert_eq!(w.wrench().force_n[0], 0.0);
+    }
+
+    #[test]
+    fn camera_frames_show_the_same_contact() {
+        let w = world(Indenter::Flat { diameter_mm: 5.0 });
+        let mut img = w.blank_frame();
+        let truth = w.render(&mut img).unwrap();
+        assert!(
+            truth.elastic_u_mm.iter().all(|u| *u == 0.0),
+            "no contact, no displacement"
+        );
+        w.set_stage_mm([29.0, 36.75, 5.5]);
+        let truth = w.render(&mut img).unwrap();
+        let c = truth.contact.expect("contact");
+        assert!((c.normal_force_n - w.wrench().force_n[2]).abs() < 1e-9);
+        let sum: f64 = truth.forces_n.iter().skip(2).step_by(3).sum();
+        assert!((sum - c.normal_force_n).abs() < 1e-6 * c.normal_force_n);
+        assert!(truth.elastic_u_mm.iter().any(|u| u.abs() > 1e-3));
+        assert_eq!(truth.frame, 2, "frames count up");
+    }
+}
