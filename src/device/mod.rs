@@ -213,3 +213,5 @@ pub trait Camera {
     /// Grabs one RGB frame.
     fn grab(&mut self) -> DeviceResult<CameraFrame>;
 }
+
+pub mod pty;
