@@ -214,4 +214,7 @@ pub trait Camera {
     fn grab(&mut self) -> DeviceResult<CameraFrame>;
 }
 
+pub mod fault;
+pub mod grbl;
+pub mod lineio;
 pub mod pty;

@@ -1,0 +1,143 @@
+//! Stage drivers (GRBL, Zaber) against their simulators over real pseudo-terminals,
+//! fault outcomes, transcript replays, and the `tactbench stage` CLI end to end.
+
+use std::time::Duration;
+
+use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
+use tactbench::device::grbl::sim::{GrblSim, GrblSimConfig};
+use tactbench::device::grbl::{open_serial, Grbl, GrblConfig};
+use tactbench::device::pty::PtyServer;
+use tactbench::device::{ErrorKind, Stage, StageState};
+
+type Port = Box<dyn serialport::SerialPort>;
+
+/// Position tolerance: GRBL reports 3 decimals.
+const POS_TOL_MM: f64 = 1.5e-3;
+
+fn grbl_on_pty(cfg: GrblSimConfig, driver: GrblConfig) -> (PtyServer<GrblSim>, Grbl<Port>) {
+    let server = PtyServer::spawn(GrblSim::new(cfg), None).expect("pty");
+    let port = open_serial(&server.path().to_string_lossy(), 115_200).expect("open pty");
+    let grbl = Grbl::connect(port, driver).expect("connect");
+    (server, grbl)
+}
+
+fn assert_pos(got: [f64; 3], want: [f64; 3]) {
+    for i in 0..3 {
+        assert!(
+            (got[i] - want[i]).abs() <= POS_TOL_MM,
+            "axis {i}: got {got:?}, want {want:?}"
+        );
+    }
+}
+
+fn fast_driver() -> GrblConfig {
+    GrblConfig {
+        reply_timeout: Duration::from_millis(400),
+        status_timeout: Duration::from_millis(200),
+        ..Default::default()
+    }
+}
+
+#[test]
+fn grbl_homes_moves_and_reports_position_over_a_pty() {
+    let mut cfg = GrblSimConfig::homing_bench();
+    cfg.start_mpos_mm = [-1.5, -1.5, -1.5];
+    let (server, mut g) = grbl_on_pty(cfg, GrblConfig::default());
+    assert_eq!(
+        g.state().unwrap(),
+        StageState::Alarm,
+        "power-up with homing enabled"
+    );
+    // Limits derived from $130..$132 in GRBL's negative space.
+    assert_eq!(
+        g.limits().axes_mm,
+        [[-100.0, 0.0], [-100.0, 0.0], [-50.0, 0.0]]
+    );
+    g.home().unwrap();
+    assert_pos(g.position().unwrap(), [-1.0; 3]);
+    g.move_to([-2.0, -3.0, -1.5], Some(20.0)).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-2.0, -3.0, -1.5]);
+    g.move_by([0.5, 0.25, -0.125], None).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-1.5, -2.75, -1.625]);
+    assert_eq!(g.state().unwrap(), StageState::Idle);
+    let sim = server.stop().expect("sim back");
+    assert_pos(sim.mpos_mm(), [-1.5, -2.75, -1.625]);
+}
+
+#[test]
+fn grbl_refuses_out_of_travel_moves_before_sending() {
+    let mut cfg = GrblSimConfig::homing_bench();
+    cfg.start_in_alarm = false;
+    let (server, mut g) = grbl_on_pty(cfg, GrblConfig::default());
+    let e = g.move_to([-10.0, -10.0, 1.0], None).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Limit);
+    assert!(
+        e.message.contains("z = 1 mm exceeds travel limit 0 mm"),
+        "{e}"
+    );
+    let sim = server.stop().unwrap();
+    assert!(!sim.in_alarm(), "nothing was sent, so no soft-limit alarm");
+}
+
+#[test]
+fn grbl_home_with_homing_disabled_is_a_clear_rejection() {
+    let (_server, mut g) = grbl_on_pty(GrblSimConfig::default(), GrblConfig::default());
+    let e = g.home().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Rejected);
+    assert!(
+        e.message
+            .starts_with("homing is disabled on the controller ($22=0)"),
+        "{e}"
+    );
+    assert!(e.hint.as_deref().unwrap_or("").contains("$22=1"));
+}
+
+#[test]
+fn grbl_moves_in_alarm_are_rejected_with_an_unlock_hint_and_unlock_clears() {
+    let mut cfg = GrblSimConfig::homing_bench();
+    cfg.start_mpos_mm = [-5.0; 3];
+    let (_server, mut g) = grbl_on_pty(cfg, GrblConfig::default());
+    let e = g.move_to([-6.0, -5.0, -5.0], Some(10.0)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Rejected);
+    assert!(e.message.starts_with("error:9"), "{e}");
+    assert!(e.hint.as_deref().unwrap_or("").contains("unlock"));
+    g.unlock().unwrap();
+    g.move_to([-6.0, -5.0, -5.0], Some(10.0)).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-6.0, -5.0, -5.0]);
+}
+
+#[test]
+fn grbl_stop_holds_then_resets_without_alarm_and_position_is_kept() {
+    let (server, mut g) = grbl_on_pty(GrblSimConfig::default(), GrblConfig::default());
+    g.move_to([-20.0, 0.0, 0.0], Some(2.0)).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(g.state().unwrap(), StageState::Moving);
+    g.stop().unwrap();
+    assert_eq!(
+        g.state().unwrap(),
+        StageState::Idle,
+        "hold complete + reset: no alarm 3"
+    );
+    let x = g.position().unwrap()[0];
+    std::thread::sleep(Duration::from_millis(200));
+    assert_pos(g.position().unwrap(), [x, 0.0, 0.0]);
+    assert!(x < -0.3 && x > -2.0, "stopped part way: x = {x} mm");
+    assert!(!server.stop().unwrap().in_alarm());
+}
+
+#[test]
+fn grbl_jog_and_probe() {
+    let cfg = GrblSimConfig {
+        probe_contact_z_mm: Some(-3.0),
+        ..Default::default()
+    };
+    let (_server, mut g) = grbl_on_pty(cfg, GrblConfig::default());
+    g.jog([-1.0, 0.0, 0.0], 5.0).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-1.0, 0.0, 0.0]);
+    let contact = g.probe_z(-5.0, 5.0, Duration::from_secs(5)).unwrap();
+    assert_pos(contact, [-1.0, 0.0, -3.0]);
+}

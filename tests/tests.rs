@@ -1,0 +1,3 @@
+//! The single integration-test harness: one module per area.
+
+mod stage;
