@@ -141,3 +141,139 @@ fn grbl_jog_and_probe() {
     let contact = g.probe_z(-5.0, 5.0, Duration::from_secs(5)).unwrap();
     assert_pos(contact, [-1.0, 0.0, -3.0]);
 }
+
+// ---- GRBL faults: each has a defined outcome ----
+
+fn grbl_with_fault(
+    kind: FaultKind,
+    target: FaultTarget,
+    skip: u32,
+    late_by_ms: u64,
+) -> (PtyServer<GrblSim>, Grbl<Port>) {
+    let mut fault = FaultConfig::once(kind, target, skip);
+    fault.late_by = Duration::from_millis(late_by_ms);
+    let cfg = GrblSimConfig {
+        faults: Some(fault),
+        ..Default::default()
+    };
+    grbl_on_pty(cfg, fast_driver())
+}
+
+/// Queries at connect: `?` (1+), `$G`, `$$` — skip enough to hit a later query.
+const AFTER_CONNECT: u32 = 3;
+
+#[test]
+fn grbl_fault_late_status_reply_is_retried_and_recovers() {
+    let (server, mut g) = grbl_with_fault(
+        FaultKind::LateReply,
+        FaultTarget::Queries,
+        AFTER_CONNECT,
+        300,
+    );
+    assert_pos(g.position().unwrap(), [0.0; 3]);
+    assert_eq!(server.stop().unwrap().faults_injected(), 1);
+}
+
+#[test]
+fn grbl_fault_late_move_reply_times_out_is_not_resent_and_the_stream_resyncs() {
+    let (server, mut g) = grbl_with_fault(FaultKind::LateReply, FaultTarget::Commands, 0, 1000);
+    let e = g.move_to([-1.0, 0.0, 0.0], Some(10.0)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Timeout);
+    assert!(e.message.contains("not re-sent"), "{e}");
+    // The late `ok` is discarded by the resync before the next line.
+    g.move_to([-2.0, 0.0, 0.0], Some(10.0)).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-2.0, 0.0, 0.0]);
+    let sim = server.stop().unwrap();
+    assert_eq!(sim.motions_accepted(), 2, "each move sent exactly once");
+}
+
+#[test]
+fn grbl_fault_dropped_byte_in_a_move_reply_is_a_protocol_error_without_resend() {
+    let (server, mut g) = grbl_with_fault(FaultKind::DroppedByte, FaultTarget::Commands, 0, 0);
+    let e = g.move_to([-1.0, 0.0, 0.0], Some(10.0)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Protocol);
+    assert!(e.message.contains("not re-sent"), "{e}");
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-1.0, 0.0, 0.0]);
+    assert_eq!(server.stop().unwrap().motions_accepted(), 1);
+}
+
+#[test]
+fn grbl_fault_garbled_status_report_is_retried_and_recovers() {
+    let (server, mut g) =
+        grbl_with_fault(FaultKind::Garbled, FaultTarget::Queries, AFTER_CONNECT, 0);
+    assert_pos(g.position().unwrap(), [0.0; 3]);
+    assert_eq!(server.stop().unwrap().faults_injected(), 1);
+}
+
+#[test]
+fn grbl_fault_unsolicited_messages_are_ignored() {
+    let mut fault = FaultConfig::once(FaultKind::Unsolicited, FaultTarget::Any, 0);
+    fault.max_faults = 1000;
+    let cfg = GrblSimConfig {
+        faults: Some(fault),
+        ..Default::default()
+    };
+    let (server, mut g) = grbl_on_pty(cfg, fast_driver());
+    g.move_to([-1.0, -1.0, 0.0], Some(20.0)).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-1.0, -1.0, 0.0]);
+    assert_eq!(g.last_message(), Some("Simulated unsolicited message"));
+    assert!(server.stop().unwrap().faults_injected() >= 4);
+}
+
+#[test]
+fn grbl_fault_reset_during_a_status_query_recovers_by_asking_again() {
+    let (server, mut g) = grbl_with_fault(
+        FaultKind::DeviceReset,
+        FaultTarget::Queries,
+        AFTER_CONNECT,
+        0,
+    );
+    let before = g.resets_seen();
+    assert_pos(g.position().unwrap(), [0.0; 3]);
+    assert_eq!(g.resets_seen(), before + 1);
+    assert_eq!(server.stop().unwrap().faults_injected(), 1);
+}
+
+#[test]
+fn grbl_fault_reset_after_a_move_is_an_alarm_3_then_unlock_recovers() {
+    let (_server, mut g) = grbl_with_fault(FaultKind::DeviceReset, FaultTarget::Commands, 0, 0);
+    let e = g.move_to([-1.0, 0.0, 0.0], Some(10.0)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Limit);
+    assert!(e.message.contains("ALARM:3"), "{e}");
+    assert_eq!(g.state().unwrap(), StageState::Alarm);
+    g.unlock().unwrap();
+    assert_eq!(g.state().unwrap(), StageState::Idle);
+}
+
+#[test]
+fn grbl_fault_hard_limit_trip_fails_wait_idle_with_limit_and_unlock_resets() {
+    let (_server, mut g) = grbl_with_fault(FaultKind::LimitTrip, FaultTarget::Commands, 0, 0);
+    g.move_to([-5.0, 0.0, 0.0], Some(10.0)).unwrap();
+    let e = g.wait_idle(Duration::from_secs(5)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Limit, "{e}");
+    assert!(
+        e.message.contains("ALARM:1") && e.message.contains("hard limit"),
+        "{e}"
+    );
+    // Further moves fail fast until unlock (which needs a reset first).
+    assert_eq!(
+        g.move_to([-1.0, 0.0, 0.0], None).unwrap_err().kind(),
+        ErrorKind::Limit
+    );
+    g.unlock().unwrap();
+    assert_eq!(g.state().unwrap(), StageState::Idle);
+    g.move_to([-1.0, 0.0, 0.0], Some(10.0)).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+}
+
+#[test]
+fn grbl_fault_disconnect_is_reported_as_disconnected() {
+    let (server, mut g) =
+        grbl_with_fault(FaultKind::Disconnect, FaultTarget::Any, AFTER_CONNECT, 0);
+    let e = g.position().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+    assert!(server.is_finished() || server.stop().is_some());
+}

@@ -303,11 +303,8 @@ impl<P: Read + Write> Grbl<P> {
                     self.note_pushed(&Response::Status(s.clone()));
                     return Ok(s);
                 }
-                Ok(r @ Response::Banner(_)) => {
-                    self.note_pushed(&r);
-                    // Reset mid-query: the `?` may have been flushed; ask again.
-                    self.port.send(&[Realtime::StatusQuery.byte()], "?")?;
-                }
+                // A banner means a reset mid-query: the `?` may have been flushed
+                // or answered; if no report comes, `status` asks again.
                 Ok(r) => self.note_pushed(&r),
                 Err(e) => {
                     return Err(DeviceError::new(
@@ -351,50 +348,61 @@ impl<P: Read + Write> Grbl<P> {
     }
 
     /// Reads replies until the stream is known clean: sends `$G` and discards
-    /// everything up to its `[GC:..]` and the `ok` after it.
+    /// everything up to its `[GC:..]` and the `ok` after it. If nothing at all
+    /// arrives for a reply timeout, another `$G` is sent, and then as many
+    /// `[GC:..]` + `ok` pairs as `$G` lines sent are awaited, so no reply of the
+    /// resync itself is left behind to be mistaken for the next command's.
     fn resync(&mut self) -> DeviceResult<()> {
         let cmd = Command::ParserState;
         let text = cmd.encode();
-        let mut last = None;
-        for _ in 0..=QUERY_RETRIES {
-            self.port.send(&cmd.to_bytes(), &text)?;
-            let deadline = Instant::now() + self.config.reply_timeout;
-            let mut seen_gc = false;
-            let result = loop {
-                let line = match self.port.read_line(deadline, &text) {
-                    Ok(l) => l,
-                    Err(e) => break Err(e),
-                };
-                match decode(&line) {
-                    Ok(Response::ParserState(_)) => seen_gc = true,
-                    Ok(Response::Ok) if seen_gc => break Ok(()),
-                    Ok(Response::Error(_)) if seen_gc => break Ok(()),
-                    Ok(r @ Response::Banner(_)) => {
-                        // The controller reset: our `$G` may be lost; send it again.
-                        self.note_pushed(&r);
-                        break Err(DeviceError::new(
-                            ErrorKind::Other,
-                            DEVICE,
-                            text.clone(),
-                            "reset during resync",
-                        ));
+        let total_deadline = Instant::now() + self.config.reply_timeout * (QUERY_RETRIES + 1);
+        self.port.send(&cmd.to_bytes(), &text)?;
+        let (mut sent, mut answered) = (1u32, 0u32);
+        let mut seen_gc = false;
+        let mut quiet_deadline = Instant::now() + self.config.reply_timeout;
+        loop {
+            match self
+                .port
+                .read_line(quiet_deadline.min(total_deadline), &text)
+            {
+                Ok(line) => {
+                    quiet_deadline = Instant::now() + self.config.reply_timeout;
+                    match decode(&line) {
+                        Ok(Response::ParserState(_)) => seen_gc = true,
+                        Ok(Response::Ok | Response::Error(_)) if seen_gc => {
+                            seen_gc = false;
+                            answered += 1;
+                            if answered >= sent {
+                                self.needs_resync = false;
+                                return Ok(());
+                            }
+                        }
+                        Ok(r @ Response::Banner(_)) => {
+                            // The controller reset and flushed our `$G`s: start over.
+                            self.note_pushed(&r);
+                            self.port.send(&cmd.to_bytes(), &text)?;
+                            (sent, answered, seen_gc) = (1, 0, false);
+                        }
+                        Ok(r) => self.note_pushed(&r),
+                        // Garbage in the stale part of the stream is expected here.
+                        Err(_) => {}
                     }
-                    Ok(r) => self.note_pushed(&r),
-                    // Garbage in the stale part of the stream is expected here.
-                    Err(_) => {}
                 }
-            };
-            match result {
-                Ok(()) => {
-                    self.needs_resync = false;
-                    return Ok(());
+                Err(e) if e.kind() == ErrorKind::Timeout && Instant::now() < total_deadline => {
+                    self.port.send(&cmd.to_bytes(), &text)?;
+                    sent += 1;
+                    quiet_deadline = Instant::now() + self.config.reply_timeout;
                 }
-                Err(e) if e.kind() == ErrorKind::Disconnected => return Err(e),
-                Err(e) => last = Some(e),
+                Err(mut e) => {
+                    if e.kind() == ErrorKind::Timeout {
+                        e.message = format!(
+                            "could not resynchronise the reply stream ({answered} of {sent} `$G` answered)"
+                        );
+                    }
+                    return Err(e);
+                }
             }
         }
-        Err(last
-            .unwrap_or_else(|| DeviceError::new(ErrorKind::Timeout, DEVICE, text, "resync failed")))
     }
 
     /// Sends one line and waits for its `ok`/`error:N`, polling `?` every
@@ -404,11 +412,12 @@ impl<P: Read + Write> Grbl<P> {
         let attempts = if cmd.is_query() { QUERY_RETRIES + 1 } else { 1 };
         let mut last = None;
         for _ in 0..attempts {
-            if self.needs_resync {
-                self.resync()?;
-            }
+            // A critical alarm blocks every line until reset: fail fast.
             if self.needs_reset {
                 return Err(self.alarm_error(&text, self.alarm.unwrap_or(0)));
+            }
+            if self.needs_resync {
+                self.resync()?;
             }
             match self.line_once(cmd, &text, timeout, poll) {
                 Ok(()) => return Ok(()),

@@ -192,6 +192,8 @@ pub struct GrblSim {
     answered: u64,
     /// A G0/G1 hit the soft limit: GRBL answers its `ok` only after the reset.
     ok_on_reset: bool,
+    /// Motion lines (G0/G1/G38.2/$J=) accepted into the planner.
+    motions_accepted: u32,
 }
 
 impl GrblSim {
@@ -226,6 +228,7 @@ impl GrblSim {
             hangup: false,
             answered: 0,
             ok_on_reset: false,
+            motions_accepted: 0,
         }
     }
 
@@ -237,6 +240,12 @@ impl GrblSim {
     /// True if the controller is in an alarm state.
     pub fn in_alarm(&self) -> bool {
         self.mode != Mode::Idle
+    }
+
+    /// Motion lines (G0/G1/G38.2/`$J=`) accepted so far: lets tests check that a
+    /// driver never re-sent a move.
+    pub fn motions_accepted(&self) -> u32 {
+        self.motions_accepted
     }
 
     /// Faults injected so far.
@@ -745,6 +754,7 @@ impl GrblSim {
         }
         let from = self.planned_end();
         let speed = self.capped(from, target, feed);
+        self.motions_accepted += 1;
         self.queue.push_back(Segment {
             kind: SegKind::Jog,
             target,
@@ -834,6 +844,7 @@ impl GrblSim {
         if kind == SegKind::Probe && self.moving() {
             return Err(8);
         }
+        self.motions_accepted += 1;
         self.queue.push_back(Segment {
             kind,
             target,
