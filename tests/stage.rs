@@ -277,3 +277,109 @@ fn grbl_fault_disconnect_is_reported_as_disconnected() {
     assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
     assert!(server.is_finished() || server.stop().is_some());
 }
+
+// ---- Zaber ----
+
+use tactbench::device::zaber::codec::Warning;
+use tactbench::device::zaber::sim::{ZaberSim, ZaberSimConfig};
+use tactbench::device::zaber::{self, Zaber, ZaberConfig};
+
+/// 1 µm per microstep keeps numbers readable; travel 0..50 mm.
+const ZABER_MM_PER_STEP: f64 = 1e-3;
+const ZABER_TRAVEL_STEPS: i64 = 50_000;
+
+fn zaber_sim_config() -> ZaberSimConfig {
+    let mut cfg = ZaberSimConfig::three_single_axis(ZABER_TRAVEL_STEPS);
+    for axes in cfg.devices.values_mut() {
+        // 20 mm/s = 20_000 steps/s.
+        axes[0].maxspeed = (20_000.0 * zaber::VELOCITY_UNITS_PER_STEP_S) as i64;
+    }
+    cfg
+}
+
+fn zaber_driver_config() -> ZaberConfig {
+    let mut c = ZaberConfig::single_axis_devices([1, 2, 3], ZABER_MM_PER_STEP);
+    c.reply_timeout = Duration::from_millis(300);
+    c
+}
+
+fn zaber_on_pty(cfg: ZaberSimConfig, driver: ZaberConfig) -> (PtyServer<ZaberSim>, Zaber<Port>) {
+    let server = PtyServer::spawn(ZaberSim::new(cfg), None).expect("pty");
+    let port = zaber::open_serial(&server.path().to_string_lossy(), 115_200).expect("open pty");
+    let z = Zaber::connect(port, driver).expect("connect");
+    (server, z)
+}
+
+#[test]
+fn zaber_homes_moves_and_reports_position_over_a_pty() {
+    let (server, mut z) = zaber_on_pty(zaber_sim_config(), zaber_driver_config());
+    assert_eq!(
+        z.limits().axes_mm,
+        [[0.0, 50.0]; 3],
+        "from limit.min/limit.max x resolution"
+    );
+    assert_eq!(z.warnings(), [Warning::NOT_HOMED; 3]);
+    assert_eq!(z.state().unwrap(), StageState::Alarm, "not homed");
+    let e = z.move_to([1.0, 1.0, 1.0], None).unwrap_err();
+    assert!(e.message.contains("no reference position (WR)"), "{e}");
+    z.home().unwrap();
+    assert_eq!(z.state().unwrap(), StageState::Idle);
+    assert_pos(z.position().unwrap(), [0.0; 3]);
+    z.move_to([10.0, 5.5, 0.25], Some(40.0)).unwrap();
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(z.position().unwrap(), [10.0, 5.5, 0.25]);
+    z.move_by([-1.0, 0.5, 0.0], None).unwrap();
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(z.position().unwrap(), [9.0, 6.0, 0.25]);
+    let sim = server.stop().unwrap();
+    assert_eq!(sim.axis(1, 1).unwrap().pos, 9000.0);
+}
+
+#[test]
+fn zaber_without_checksums_or_ids_still_works() {
+    let mut d = zaber_driver_config();
+    d.checksums = false;
+    d.message_ids = false;
+    let (_server, mut z) = zaber_on_pty(zaber_sim_config(), d);
+    z.home().unwrap();
+    z.move_to([1.0, 2.0, 3.0], None).unwrap();
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(z.position().unwrap(), [1.0, 2.0, 3.0]);
+}
+
+#[test]
+fn zaber_stop_leaves_ni_and_is_not_an_error() {
+    let (_server, mut z) = zaber_on_pty(zaber_sim_config(), zaber_driver_config());
+    z.home().unwrap();
+    z.move_to([40.0, 0.0, 0.0], Some(10.0)).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    assert_eq!(z.state().unwrap(), StageState::Moving);
+    z.stop().unwrap();
+    z.wait_idle(Duration::from_secs(1)).unwrap();
+    assert_eq!(z.warnings()[0], Warning::INTERRUPTED);
+    let x = z.position().unwrap()[0];
+    assert!(x > 0.5 && x < 20.0, "stopped part way: {x} mm");
+    z.unlock().unwrap();
+    assert_eq!(z.warnings()[0], Warning::NONE);
+}
+
+#[test]
+fn zaber_rejections_carry_the_reason_and_out_of_travel_is_refused_locally() {
+    let mut d = zaber_driver_config();
+    // Driver limits wider than the device's: the device must reject.
+    d.limits = Some(tactbench::device::TravelLimits {
+        axes_mm: [[-100.0, 100.0]; 3],
+    });
+    let (_server, mut z) = zaber_on_pty(zaber_sim_config(), d);
+    z.home().unwrap();
+    let e = z.move_to([60.0, 0.0, 0.0], None).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Rejected);
+    assert!(e.message.ends_with("rejected the command: BADDATA"), "{e}");
+    let (_server2, mut z2) = zaber_on_pty(zaber_sim_config(), zaber_driver_config());
+    let e = z2.move_by([0.0, 0.0, 30.0], None).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Limit);
+    assert!(
+        e.message.contains("z = 55 mm exceeds travel limit 50 mm"),
+        "{e}"
+    );
+}

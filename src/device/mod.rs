@@ -218,3 +218,4 @@ pub mod fault;
 pub mod grbl;
 pub mod lineio;
 pub mod pty;
+pub mod zaber;
