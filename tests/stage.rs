@@ -383,3 +383,138 @@ fn zaber_rejections_carry_the_reason_and_out_of_travel_is_refused_locally() {
         "{e}"
     );
 }
+
+// ---- Zaber faults ----
+
+/// Queries at connect: 3 status + 3 × (limit.min, limit.max).
+const ZABER_CONNECT_QUERIES: u32 = 9;
+
+fn zaber_with_fault(
+    kind: FaultKind,
+    target: FaultTarget,
+    skip: u32,
+    late_by_ms: u64,
+) -> (PtyServer<ZaberSim>, Zaber<Port>) {
+    let mut cfg = zaber_sim_config();
+    let mut fault = FaultConfig::once(kind, target, skip);
+    fault.late_by = Duration::from_millis(late_by_ms);
+    cfg.faults = Some(fault);
+    zaber_on_pty(cfg, zaber_driver_config())
+}
+
+#[test]
+fn zaber_fault_late_query_reply_is_retried_and_the_stale_reply_discarded_by_id() {
+    let (server, mut z) = zaber_with_fault(
+        FaultKind::LateReply,
+        FaultTarget::Queries,
+        ZABER_CONNECT_QUERIES,
+        400,
+    );
+    assert_pos(z.position().unwrap(), [25.0; 3]);
+    assert_pos(z.position().unwrap(), [25.0; 3]);
+    assert_eq!(server.stop().unwrap().faults_injected(), 1);
+}
+
+#[test]
+fn zaber_fault_late_move_reply_times_out_without_resend() {
+    let (server, mut z) = zaber_with_fault(FaultKind::LateReply, FaultTarget::Commands, 3, 600);
+    z.home().unwrap();
+    let e = z.move_to([1.0, 1.0, 1.0], None).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Timeout);
+    assert!(e.message.contains("not re-sent"), "{e}");
+    // The late reply is recognised by its id and skipped.
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(z.position().unwrap(), [1.0, 0.0, 0.0]);
+    assert_eq!(
+        server.stop().unwrap().moves_accepted(),
+        4,
+        "3 homes + 1 move, none repeated"
+    );
+}
+
+#[test]
+fn zaber_fault_dropped_byte_in_a_move_reply_is_a_protocol_error_without_resend() {
+    let (server, mut z) = zaber_with_fault(FaultKind::DroppedByte, FaultTarget::Commands, 3, 0);
+    z.home().unwrap();
+    let e = z.move_to([2.0, 2.0, 2.0], None).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Protocol, "{e}");
+    assert!(e.message.contains("not re-sent"), "{e}");
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_eq!(server.stop().unwrap().moves_accepted(), 4);
+}
+
+#[test]
+fn zaber_fault_bad_checksum_on_a_query_is_retried_and_recovers() {
+    let (server, mut z) = zaber_with_fault(
+        FaultKind::Garbled,
+        FaultTarget::Queries,
+        ZABER_CONNECT_QUERIES,
+        0,
+    );
+    assert_pos(z.position().unwrap(), [25.0; 3]);
+    assert_eq!(server.stop().unwrap().faults_injected(), 1);
+}
+
+#[test]
+fn zaber_fault_unsolicited_alerts_and_info_are_ignored() {
+    let mut cfg = zaber_sim_config();
+    let mut fault = FaultConfig::once(FaultKind::Unsolicited, FaultTarget::Any, 0);
+    fault.max_faults = 1000;
+    cfg.faults = Some(fault);
+    let (server, mut z) = zaber_on_pty(cfg, zaber_driver_config());
+    z.home().unwrap();
+    z.move_to([3.0, 2.0, 1.0], None).unwrap();
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(z.position().unwrap(), [3.0, 2.0, 1.0]);
+    assert!(server.stop().unwrap().faults_injected() > 10);
+}
+
+#[test]
+fn zaber_fault_device_reset_surfaces_lost_reference_and_refuses_absolute_moves() {
+    // The reset swallows the reply to the first move after homing (3 homes).
+    let (_server, mut z) = zaber_with_fault(FaultKind::DeviceReset, FaultTarget::Commands, 3, 0);
+    z.home().unwrap();
+    let e = z.move_to([1.0, 1.0, 1.0], None).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
+    assert_eq!(
+        z.state().unwrap(),
+        StageState::Alarm,
+        "reset device reports WR"
+    );
+    assert_eq!(z.warnings()[0], Warning::NOT_HOMED);
+    let e = z.move_to([1.0, 1.0, 1.0], None).unwrap_err();
+    assert!(
+        e.message
+            .contains("x axis (device 1 axis 1) has no reference position"),
+        "{e}"
+    );
+    z.home().unwrap();
+    z.move_to([1.0, 1.0, 1.0], None).unwrap();
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(z.position().unwrap(), [1.0, 1.0, 1.0]);
+}
+
+#[test]
+fn zaber_fault_limit_trip_fails_wait_idle_with_limit_and_unlock_clears() {
+    let (_server, mut z) = zaber_with_fault(FaultKind::LimitTrip, FaultTarget::Commands, 3, 0);
+    z.home().unwrap();
+    z.move_to([5.0, 5.0, 5.0], None).unwrap();
+    let e = z.wait_idle(Duration::from_secs(5)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Limit, "{e}");
+    assert!(e.message.contains("WL (unexpected limit trigger)"), "{e}");
+    z.unlock().unwrap();
+    assert_eq!(z.warnings()[0], Warning::NONE);
+    z.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_eq!(z.state().unwrap(), StageState::Idle);
+}
+
+#[test]
+fn zaber_fault_disconnect_is_reported_as_disconnected() {
+    let (_server, mut z) = zaber_with_fault(
+        FaultKind::Disconnect,
+        FaultTarget::Any,
+        ZABER_CONNECT_QUERIES,
+        0,
+    );
+    assert_eq!(z.position().unwrap_err().kind(), ErrorKind::Disconnected);
+}
