@@ -518,3 +518,198 @@ fn zaber_fault_disconnect_is_reported_as_disconnected() {
     );
     assert_eq!(z.position().unwrap_err().kind(), ErrorKind::Disconnected);
 }
+
+// ---- `tactbench stage` end to end against a simulator on a pty ----
+
+mod cli {
+    use std::io::BufRead;
+    use std::path::{Path, PathBuf};
+    use std::process::{Child, Command, Output, Stdio};
+    use std::time::{Duration, Instant};
+
+    const BIN: &str = env!("CARGO_BIN_EXE_tactbench");
+
+    /// A `tactbench sim-serve-stage` child; stops when dropped (stdin closed).
+    struct Served {
+        child: Child,
+        link: PathBuf,
+        _dir: tempfile::TempDir,
+    }
+
+    impl Served {
+        fn start(protocol: &str, extra: &[&str]) -> Served {
+            let dir = tempfile::tempdir().expect("tempdir");
+            let link = dir.path().join("stage");
+            let mut child = Command::new(BIN)
+                .args(["sim-serve-stage", "--protocol", protocol, "--link"])
+                .arg(&link)
+                .args(extra)
+                .stdin(Stdio::piped())
+                .stdout(Stdio::piped())
+                .spawn()
+                .expect("spawn sim-serve-stage");
+            // The helper prints one line once the pty is served.
+            let mut line = String::new();
+            let out = child.stdout.take().expect("stdout");
+            std::io::BufReader::new(out)
+                .read_line(&mut line)
+                .expect("read");
+            assert!(line.starts_with("serving on /dev/pts/"), "{line}");
+            let deadline = Instant::now() + Duration::from_secs(5);
+            while !link.exists() && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            Served {
+                child,
+                link,
+                _dir: dir,
+            }
+        }
+
+        fn stage(&self, protocol: &str, args: &[&str]) -> Output {
+            Command::new(BIN)
+                .args(["stage", "--port"])
+                .arg(&self.link)
+                .args(["--protocol", protocol])
+                .args(args)
+                .output()
+                .expect("run tactbench stage")
+        }
+    }
+
+    impl Drop for Served {
+        fn drop(&mut self) {
+            drop(self.child.stdin.take());
+            let _ = self.child.wait();
+        }
+    }
+
+    fn stdout(o: &Output) -> String {
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    }
+
+    fn stderr(o: &Output) -> String {
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    }
+
+    #[test]
+    fn cli_grbl_status_home_move_jog_and_exact_position_json() {
+        let s = Served::start("grbl", &["--homing"]);
+        let o = s.stage("grbl", &["status"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(stdout(&o).starts_with("state: alarm\n"), "{}", stdout(&o));
+        // Moves in alarm: clear message, non-zero exit.
+        let o = s.stage("grbl", &["move", "-10", "-5", "-1"]);
+        assert!(!o.status.success());
+        assert!(
+            stderr(&o).contains("error:9") && stderr(&o).contains("unlock"),
+            "{}",
+            stderr(&o)
+        );
+        let o = s.stage("grbl", &["home", "--json"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert_eq!(stdout(&o), "{\"x_mm\":-1.0,\"y_mm\":-1.0,\"z_mm\":-1.0}\n");
+        let o = s.stage("grbl", &["move", "-10", "-5", "-1.25", "--speed", "50"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert_eq!(
+            stdout(&o),
+            "x = -10.0000 mm  y = -5.0000 mm  z = -1.2500 mm\n"
+        );
+        let o = s.stage("grbl", &["jog", "1", "-1", "0.25", "--speed", "20"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let o = s.stage("grbl", &["position", "--json"]);
+        assert_eq!(stdout(&o), "{\"x_mm\":-9.0,\"y_mm\":-6.0,\"z_mm\":-1.0}\n");
+        // Outside the soft-limit box: refused before sending.
+        let o = s.stage("grbl", &["move", "-1000", "0", "0"]);
+        assert_eq!(o.status.code(), Some(2));
+        assert!(
+            stderr(&o).contains("requested x = -1000 mm is below travel limit -100 mm"),
+            "{}",
+            stderr(&o)
+        );
+    }
+
+    #[test]
+    fn cli_grbl_home_with_homing_disabled_explains() {
+        let s = Served::start("grbl", &[]);
+        let o = s.stage("grbl", &["home"]);
+        assert!(!o.status.success());
+        assert!(
+            stderr(&o).contains("homing is disabled on the controller ($22=0)"),
+            "{}",
+            stderr(&o)
+        );
+    }
+
+    #[test]
+    fn cli_zaber_home_move_and_position_json() {
+        let s = Served::start("zaber", &[]);
+        let res = ["--zaber-mm-per-step", "0.001"];
+        let o = s.stage("zaber", &[&["status"][..], &res].concat());
+        assert!(
+            stdout(&o).contains("zaber warnings x WR y WR z WR"),
+            "{}",
+            stdout(&o)
+        );
+        let o = s.stage("zaber", &[&["home"][..], &res].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        let o = s.stage("zaber", &[&["move", "1.5", "2", "3"][..], &res].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        let o = s.stage("zaber", &[&["position", "--json"][..], &res].concat());
+        assert_eq!(stdout(&o), "{\"x_mm\":1.5,\"y_mm\":2.0,\"z_mm\":3.0}\n");
+        let o = s.stage(
+            "zaber",
+            &[&["status", "--zaber-devices", "7,8,9"][..], &res].concat(),
+        );
+        assert!(!o.status.success());
+        assert!(
+            stderr(&o).contains("no answer from device 7 axis 1"),
+            "{}",
+            stderr(&o)
+        );
+    }
+
+    #[test]
+    fn cli_missing_port_and_bad_options_are_clear_errors() {
+        let o = Command::new(BIN)
+            .args(["stage", "--protocol", "grbl", "status"])
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(2));
+        assert!(stderr(&o).contains("missing --port"), "{}", stderr(&o));
+        let missing = Path::new("/nonexistent/tty");
+        let o = Command::new(BIN)
+            .args(["stage", "--protocol", "zaber", "--port"])
+            .arg(missing)
+            .args(["--zaber-mm-per-step", "0,1", "position"])
+            .output()
+            .unwrap();
+        assert!(
+            stderr(&o).contains("--zaber-mm-per-step takes 1 or 3 values"),
+            "{}",
+            stderr(&o)
+        );
+        let o = Command::new(BIN)
+            .args(["stage", "--port"])
+            .arg(missing)
+            .args(["--protocol", "grbl", "status"])
+            .output()
+            .unwrap();
+        assert!(
+            stderr(&o).contains("cannot open serial port /nonexistent/tty"),
+            "{}",
+            stderr(&o)
+        );
+    }
+
+    #[test]
+    fn cli_ports_lists_or_says_none() {
+        let o = Command::new(BIN).arg("ports").output().unwrap();
+        assert!(o.status.success());
+        let out = stdout(&o);
+        assert!(
+            out.starts_with("no serial ports found") || out.lines().all(|l| l.starts_with("/dev/")),
+            "{out}"
+        );
+    }
+}

@@ -7,7 +7,9 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod model;
+mod ports;
 mod reconstruct;
+mod stage;
 
 /// tactbench: test bench controller for vision-based tactile sensors.
 ///
@@ -26,6 +28,12 @@ enum Command {
     Reconstruct(reconstruct::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
+    /// List serial ports.
+    Ports(ports::Args),
+    Stage(stage::Args),
+    /// Serve a stage simulator on a pseudo-terminal (test helper).
+    #[command(hide = true)]
+    SimServeStage(stage::ServeArgs),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -34,6 +42,9 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Model(cmd) => model::run(cmd),
+        Command::Ports(args) => ports::run(args),
+        Command::Stage(args) => stage::run(args),
+        Command::SimServeStage(args) => stage::serve(args),
     };
     match result {
         Ok(code) => code,

@@ -116,13 +116,15 @@ impl Default for GrblSimConfig {
 }
 
 impl GrblSimConfig {
-    /// A typical bench: homing and soft limits on, travel 100 × 100 × 50 mm, starting
-    /// in the alarm state as GRBL does at power-up with homing enabled.
+    /// A typical bench: homing and soft limits on, travel 100 × 100 × 50 mm, homing
+    /// seek 3000 mm/min, starting in the alarm state as GRBL does at power-up with
+    /// homing enabled.
     pub fn homing_bench() -> Self {
         GrblSimConfig {
             settings: vec![
                 (20, 1.0),
                 (22, 1.0),
+                (25, 3000.0),
                 (130, 100.0),
                 (131, 100.0),
                 (132, 50.0),
@@ -1044,8 +1046,9 @@ mod tests {
         );
         assert_eq!(run(&mut sim, 0.0, "$H\n"), "");
         assert!(run(&mut sim, 0.1, "?").starts_with("<Home|"));
-        // |(-50,-50,-25)| = 75 mm at $25 = 500 mm/min -> 9 s.
-        assert_eq!(run(&mut sim, 9.1, ""), "ok\r\n");
+        // |(-50,-50,-25)| = 75 mm at $25 = 3000 mm/min -> 1.5 s.
+        assert_eq!(run(&mut sim, 1.4, ""), "", "still homing");
+        assert_eq!(run(&mut sim, 1.51, ""), "ok\r\n");
         assert_eq!(sim.mpos_mm(), [-1.0; 3], "pull-off $27 = 1 mm");
     }
 
