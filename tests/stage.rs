@@ -713,3 +713,82 @@ mod cli {
         );
     }
 }
+
+// ---- transcript replays (protocols/transcripts/) ----
+
+mod replay {
+    use super::*;
+    use tactbench::device::replay::{Replay, Transcript};
+
+    fn load(name: &str) -> Replay {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("protocols/transcripts")
+            .join(name);
+        let text = std::fs::read_to_string(&path).expect("transcript");
+        Replay::new(Transcript::parse(&text).expect("parse transcript"))
+    }
+
+    #[test]
+    fn replay_grbl_connect_home_move() {
+        let mut g =
+            Grbl::connect(load("grbl_connect_home_move.txt"), GrblConfig::default()).unwrap();
+        assert_eq!(g.version(), Some("1.1h"));
+        assert_eq!(
+            g.limits().axes_mm,
+            [[-100.0, 0.0], [-100.0, 0.0], [-50.0, 0.0]]
+        );
+        g.home().unwrap();
+        assert_eq!(g.position().unwrap(), [-1.0; 3]);
+        g.move_to([-10.0, -5.0, -1.25], Some(10.0)).unwrap();
+        g.wait_idle(Duration::from_secs(1)).unwrap();
+        assert_eq!(g.position().unwrap(), [-10.0, -5.0, -1.25]);
+        g.into_inner().finish().unwrap();
+    }
+
+    #[test]
+    fn replay_grbl_wpos_homing_disabled_hard_limit() {
+        let mut g = Grbl::connect(
+            load("grbl_wpos_homing_disabled_hard_limit.txt"),
+            GrblConfig::default(),
+        )
+        .unwrap();
+        let e = g.home().unwrap_err();
+        assert!(
+            e.message
+                .starts_with("homing is disabled on the controller ($22=0)"),
+            "{e}"
+        );
+        // MPos = WPos + WCO = (1, 2, 3) + (-10, -10, -2).
+        assert_eq!(g.position().unwrap(), [-9.0, -8.0, 1.0]);
+        g.move_to([-20.0, -10.0, -1.0], None).unwrap();
+        let e = g.wait_idle(Duration::from_secs(1)).unwrap_err();
+        assert_eq!(e.kind(), ErrorKind::Limit);
+        assert!(e.message.contains("ALARM:1"), "{e}");
+        g.unlock().unwrap();
+        assert_eq!(g.position().unwrap(), [-12.0, -10.0, -1.0]);
+        g.into_inner().finish().unwrap();
+    }
+
+    #[test]
+    fn replay_zaber_connect_home_move() {
+        let cfg = ZaberConfig::single_axis_devices([1, 2, 3], 0.001);
+        let mut z = Zaber::connect(load("zaber_connect_home_move.txt"), cfg).unwrap();
+        assert_eq!(z.limits().axes_mm, [[0.0, 50.0]; 3]);
+        z.home().unwrap();
+        z.move_to([1.5, 2.0, 3.0], None).unwrap();
+        z.wait_idle(Duration::from_secs(1)).unwrap();
+        assert_pos(z.position().unwrap(), [1.5, 2.0, 3.0]);
+        z.into_inner().finish().unwrap();
+    }
+
+    #[test]
+    fn replay_detects_a_driver_that_deviates_from_the_transcript() {
+        let cfg = ZaberConfig::single_axis_devices([1, 2, 3], 0.001);
+        let mut z = Zaber::connect(load("zaber_connect_home_move.txt"), cfg).unwrap();
+        // Skipping `home` makes the next write differ from the transcript.
+        let e = z.move_to([1.5, 2.0, 3.0], None).unwrap_err();
+        assert!(e.message.contains("has no reference position"), "{e}");
+        let r = z.into_inner();
+        assert!(r.finish().unwrap_err().contains("host bytes never written"));
+    }
+}

@@ -218,4 +218,5 @@ pub mod fault;
 pub mod grbl;
 pub mod lineio;
 pub mod pty;
+pub mod replay;
 pub mod zaber;
