@@ -540,9 +540,10 @@ impl GrblSim {
         }
         let result = if let Some(sys) = line.strip_prefix('$') {
             self.system_command(sys, out)
-        } else if self.mode != Mode::Idle {
-            Err(9)
-        } else if self.moving() && self.queue.front().is_some_and(|s| s.kind == SegKind::Jog) {
+        } else if self.mode != Mode::Idle
+            || (self.moving() && self.queue.front().is_some_and(|s| s.kind == SegKind::Jog))
+        {
+            // G-code is locked out in alarm and while jogging.
             Err(9)
         } else {
             self.gcode(&line, now, out)
@@ -737,10 +738,10 @@ impl GrblSim {
         let mut relative = false;
         let mut feed = None;
         for (l, v) in &words {
-            match (l, *v) {
-                ('G', g) if g == 91.0 => relative = true,
-                ('G', g) if g == 90.0 || g == 53.0 || g == 21.0 => {}
-                ('F', f) => feed = Some(f),
+            match (l, g_code(*v)) {
+                ('G', 910) => relative = true,
+                ('G', 900 | 530 | 210) => {}
+                ('F', _) => feed = Some(*v),
                 ('X' | 'Y' | 'Z', _) => {}
                 _ => return Err(16),
             }
@@ -780,31 +781,32 @@ impl GrblSim {
         let mut feed = self.feed_mm_min;
         let mut p = None;
         for (l, v) in &words {
-            match (l, *v) {
-                ('G', g) if g == 0.0 => {
+            match (l, g_code(*v)) {
+                ('G', 0) => {
                     motion = Some(SegKind::Line);
                     rapid = true;
                 }
-                ('G', g) if g == 1.0 => {
+                ('G', 10) => {
                     motion = Some(SegKind::Line);
                     rapid = false;
                 }
-                ('G', g) if (g - 38.2).abs() < 1e-9 => motion = Some(SegKind::Probe),
-                ('G', g) if g == 4.0 => dwell = true,
-                ('G', g) if g == 21.0 => {}
+                ('G', 382) => motion = Some(SegKind::Probe),
+                ('G', 40) => dwell = true,
+                ('G', 210) => {}
                 // Inches are valid G-code but the driver never sends them; refusing
                 // keeps the simulator in one unit (documented in protocols/grbl.md).
-                ('G', g) if g == 20.0 => return Err(20),
-                ('G', g) if g == 53.0 => machine = true,
-                ('G', g) if g == 90.0 => relative = false,
-                ('G', g) if g == 91.0 => relative = true,
-                ('F', f) => {
+                ('G', 200) => return Err(20),
+                ('G', 530) => machine = true,
+                ('G', 900) => relative = false,
+                ('G', 910) => relative = true,
+                ('F', _) => {
+                    let f = *v;
                     if f <= 0.0 {
                         return Err(4);
                     }
                     feed = Some(f)
                 }
-                ('P', v) => p = Some(v),
+                ('P', _) => p = Some(*v),
                 ('X' | 'Y' | 'Z', _) => {}
                 ('N', _) => {}
                 _ => return Err(20),
@@ -861,18 +863,14 @@ impl GrblSim {
                 let report = self.status_report();
                 self.reply(out, &report, ReplyClass::Query, now);
             }
-            b'!' => {
-                if self.moving() && self.queue.front().is_some_and(|s| s.kind != SegKind::Home) {
-                    self.held = true;
-                }
+            b'!' if self.queue.front().is_some_and(|s| s.kind != SegKind::Home) => {
+                self.held = true;
             }
             b'~' => self.held = false,
             0x18 => self.soft_reset(out),
-            0x85 => {
-                if self.queue.front().is_some_and(|s| s.kind == SegKind::Jog) {
-                    self.queue.clear();
-                    self.held = false;
-                }
+            0x85 if self.queue.front().is_some_and(|s| s.kind == SegKind::Jog) => {
+                self.queue.clear();
+                self.held = false;
             }
             _ => {}
         }
@@ -952,6 +950,11 @@ impl Simulator for GrblSim {
         }
         wake
     }
+}
+
+/// A G-word number ×10 as an integer (`38.2` → 382), so codes match exactly.
+fn g_code(v: f64) -> i64 {
+    (v * 10.0).round() as i64
 }
 
 fn push_line(out: &mut Vec<u8>, line: &str) {

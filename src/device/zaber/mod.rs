@@ -396,7 +396,7 @@ impl<P: Read + Write> Stage for Zaber<P> {
             DeviceError::new(ErrorKind::Limit, DEVICE, "move abs", m)
                 .with_hint("the move was not sent")
         })?;
-        for i in 0..3 {
+        for (i, name) in AXIS_NAMES.iter().enumerate() {
             if self.warnings[i] == Warning::NOT_HOMED {
                 let a = self.config.axes[i];
                 return Err(DeviceError::new(
@@ -405,15 +405,15 @@ impl<P: Read + Write> Stage for Zaber<P> {
                     "move abs",
                     format!(
                         "{} axis (device {} axis {}) has no reference position (WR): absolute targets are meaningless",
-                        AXIS_NAMES[i], a.device, a.axis
+                        name, a.device, a.axis
                     ),
                 )
                 .with_hint("home the stage first"));
             }
         }
         self.set_speed(speed_mm_s)?;
-        for i in 0..3 {
-            let steps = self.steps(i, target_mm[i]);
+        for (i, t) in target_mm.iter().enumerate() {
+            let steps = self.steps(i, *t);
             self.request(i, &format!("move abs {steps}"), false)?;
         }
         Ok(())
@@ -431,8 +431,8 @@ impl<P: Read + Write> Stage for Zaber<P> {
                 .with_hint("the move was not sent")
         })?;
         self.set_speed(speed_mm_s)?;
-        for i in 0..3 {
-            let steps = self.steps(i, delta_mm[i]);
+        for (i, d) in delta_mm.iter().enumerate() {
+            let steps = self.steps(i, *d);
             if steps != 0 {
                 self.request(i, &format!("move rel {steps}"), false)?;
             }
