@@ -25,7 +25,10 @@ fn bench_grbl(c: &mut Criterion) {
     let port = grbl::open_serial(&server.path().to_string_lossy(), 115_200).expect("open");
     let mut g = Grbl::connect(port, GrblConfig::default()).expect("connect");
     // `?` (1 byte) + `<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n` (~40 bytes).
-    eprintln!("grbl position: wire time at 115200 baud ~ {:.2} ms", wire_ms(41));
+    eprintln!(
+        "grbl position: wire time at 115200 baud ~ {:.2} ms",
+        wire_ms(41)
+    );
     c.bench_function("grbl position (? -> status report)", |b| {
         b.iter(|| g.position().expect("position"))
     });
@@ -46,7 +49,10 @@ fn bench_zaber(c: &mut Criterion) {
     let port = zaber::open_serial(&server.path().to_string_lossy(), 115_200).expect("open");
     let mut z = Zaber::connect(port, ZaberConfig::default()).expect("connect");
     // Three `/1 1 12 get pos:CC\n` (~20 bytes) + `@01 1 12 OK IDLE WR 500000:CC\r\n` (~31).
-    eprintln!("zaber position: wire time ~ {:.2} ms (3 axes)", wire_ms(3 * 51));
+    eprintln!(
+        "zaber position: wire time ~ {:.2} ms (3 axes)",
+        wire_ms(3 * 51)
+    );
     c.bench_function("zaber position (3 x get pos)", |b| {
         b.iter(|| z.position().expect("position"))
     });

@@ -69,6 +69,10 @@ pub const STOP_TIMEOUT: Duration = Duration::from_secs(10);
 /// Retries of a query after a timeout or garbled reply.
 pub const QUERY_RETRIES: u32 = 2;
 
+/// Time per `$G` answer when resynchronising at connect (a locked controller never
+/// answers; a working one answers in milliseconds).
+pub const CONNECT_RESYNC_TIMEOUT: Duration = Duration::from_millis(300);
+
 /// Driver configuration.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GrblConfig {
@@ -180,10 +184,23 @@ impl<P: Read + Write> Grbl<P> {
                 Err(_) => {}
             }
         };
-        if status_state(&status) == MachineState::Alarm && g.alarm.is_none() {
+        let in_alarm = status_state(&status) == MachineState::Alarm;
+        if in_alarm && g.alarm.is_none() {
             g.alarm = Some(0);
         }
-        g.resync()?;
+        // GRBL answers `$G` within milliseconds unless it is locked: do not wait
+        // the full reply timeout to find out.
+        match g.resync_within(g.config.reply_timeout.min(CONNECT_RESYNC_TIMEOUT)) {
+            Ok(()) => {}
+            // A critical alarm (hard/soft limit) left by an earlier session blocks
+            // every line until a reset; a reset in alarm moves nothing and keeps
+            // the alarm, so it is safe here.
+            Err(e) if in_alarm && e.kind() == ErrorKind::Timeout => {
+                g.soft_reset()?;
+                g.resync()?;
+            }
+            Err(e) => return Err(e),
+        }
         g.read_settings()?;
         if g.config.limits.is_none() {
             g.limits = g.limits_from_settings()?;
@@ -353,9 +370,14 @@ impl<P: Read + Write> Grbl<P> {
     /// `[GC:..]` + `ok` pairs as `$G` lines sent are awaited, so no reply of the
     /// resync itself is left behind to be mistaken for the next command's.
     fn resync(&mut self) -> DeviceResult<()> {
+        self.resync_within(self.config.reply_timeout)
+    }
+
+    /// [`Self::resync`] waiting at most `per_reply` for each `$G` answer.
+    fn resync_within(&mut self, per_reply: Duration) -> DeviceResult<()> {
         let cmd = Command::ParserState;
         let text = cmd.encode();
-        let total_deadline = Instant::now() + self.config.reply_timeout * (QUERY_RETRIES + 1);
+        let total_deadline = Instant::now() + per_reply * (QUERY_RETRIES + 1);
         self.port.send(&cmd.to_bytes(), &text)?;
         let (mut sent, mut answered) = (1u32, 0u32);
         let mut seen_gc = false;
@@ -391,7 +413,7 @@ impl<P: Read + Write> Grbl<P> {
                 Err(e) if e.kind() == ErrorKind::Timeout && Instant::now() < total_deadline => {
                     self.port.send(&cmd.to_bytes(), &text)?;
                     sent += 1;
-                    quiet_deadline = Instant::now() + self.config.reply_timeout;
+                    quiet_deadline = Instant::now() + per_reply;
                 }
                 Err(mut e) => {
                     if e.kind() == ErrorKind::Timeout {
