@@ -659,4 +659,21 @@ mod tests {
         }
         assert_eq!(error_text(200), "unknown error code");
     }
+
+    proptest::proptest! {
+        #[test]
+        fn status_reports_of_any_position_decode_to_within_half_a_micron(
+            x in -1000.0f64..1000.0, y in -1000.0f64..1000.0, z in -1000.0f64..1000.0, feed in 0u32..30000,
+        ) {
+            let line = format!("<Run|MPos:{},{},{}|FS:{feed},0>", fmt_num(x), fmt_num(y), fmt_num(z));
+            let Ok(Response::Status(s)) = decode(line.as_bytes()) else {
+                return Err(proptest::test_runner::TestCaseError::fail(line));
+            };
+            let p = s.mpos_mm.unwrap();
+            for (got, want) in p.iter().zip([x, y, z]) {
+                proptest::prop_assert!((got - want).abs() <= 5e-4 + 1e-12);
+            }
+            proptest::prop_assert_eq!(s.feed_mm_min, Some(f64::from(feed)));
+        }
+    }
 }

@@ -490,4 +490,40 @@ mod tests {
             assert!(decode(bad).is_err(), "{:?}", String::from_utf8_lossy(bad));
         }
     }
+
+    proptest::proptest! {
+        #[test]
+        fn any_reply_round_trips_with_and_without_checksum(
+            device in 1u8..=99,
+            axis in 0u8..=9,
+            id in proptest::option::of(0u8..=99),
+            rejected: bool,
+            busy: bool,
+            w in 0usize..5,
+            data in -2_000_000_000i64..2_000_000_000,
+            checksum: bool,
+        ) {
+            let warnings = [Warning::NONE, Warning::NOT_HOMED, Warning::INTERRUPTED, Warning::LIMIT, Warning::FAULT];
+            let r = Reply {
+                device,
+                axis,
+                id,
+                flag: if rejected { ReplyFlag::Rejected } else { ReplyFlag::Ok },
+                status: if busy { Status::Busy } else { Status::Idle },
+                warning: warnings[w],
+                data: data.to_string(),
+            };
+            let line = r.encode(checksum);
+            proptest::prop_assert_eq!(decode(line.as_bytes()), Ok(Message::Reply(r)));
+        }
+
+        #[test]
+        fn checksummed_commands_verify_under_the_lrc(device in 0u8..=99, axis in 0u8..=9, steps: i32) {
+            let line = Command::new(device, axis, format!("move abs {steps}")).encode(true);
+            let (body, cc) = line[1..].rsplit_once(':').unwrap();
+            let sum = body.bytes().fold(0u32, |a, b| a + u32::from(b)) + u32::from(u8::from_str_radix(cc, 16).unwrap());
+            // Body plus checksum sums to 0 mod 256: the LRC definition.
+            proptest::prop_assert_eq!(sum % 256, 0);
+        }
+    }
 }
