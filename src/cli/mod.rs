@@ -7,11 +7,13 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod model;
+mod ports;
 mod reconstruct;
 mod sim;
 mod solver_args;
 
 pub use solver_args::SolverArgs;
+mod stage;
 
 /// tactbench: test bench controller for vision-based tactile sensors.
 ///
@@ -32,6 +34,12 @@ enum Command {
     Model(model::ModelCommand),
     #[command(subcommand)]
     Sim(sim::SimCommand),
+    /// List serial ports.
+    Ports(ports::Args),
+    Stage(stage::Args),
+    /// Serve a stage simulator on a pseudo-terminal (test helper).
+    #[command(hide = true)]
+    SimServeStage(stage::ServeArgs),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -41,6 +49,9 @@ pub fn main() -> ExitCode {
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),
+        Command::Ports(args) => ports::run(args),
+        Command::Stage(args) => stage::run(args),
+        Command::SimServeStage(args) => stage::serve(args),
     };
     match result {
         Ok(code) => code,

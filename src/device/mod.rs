@@ -213,3 +213,10 @@ pub trait Camera {
     /// Grabs one RGB frame.
     fn grab(&mut self) -> DeviceResult<CameraFrame>;
 }
+
+pub mod fault;
+pub mod grbl;
+pub mod lineio;
+pub mod pty;
+pub mod replay;
+pub mod zaber;
