@@ -29,7 +29,7 @@
 use image::Rgb32FImage;
 use thiserror::Error;
 
-use super::render::{disc_coverage_visit, fill, Marker, RenderError, Renderer};
+use super::render::{disc_visit, fill, Marker, RenderError, Renderer};
 use super::rng::Rng;
 
 /// An invalid effect parameter.
@@ -478,7 +478,8 @@ fn render_blurred(
             let c = cam.mm_to_px(mk.position_mm);
             let r = 0.5 * mk.diameter_mm / cam.mm_per_px;
             let cov = &mut scratch.coverage;
-            disc_coverage_visit(
+            disc_visit(
+                renderer.filter(),
                 pw as u32,
                 ph as u32,
                 [c[0] + m as f64, c[1] + m as f64],
