@@ -453,8 +453,7 @@ fn render_blurred(
     out: &mut Rgb32FImage,
     scratch: &mut Scratch,
 ) -> Result<(), RenderError> {
-    // Validate through the ideal path's checks (cheap) before writing anything.
-    renderer.render_into(&[], out)?;
+    renderer.check(markers, out)?;
     for (index, m) in markers.iter().enumerate() {
         if m.layer >= sigma_px.len() {
             return Err(RenderError::UnknownLayer {

@@ -367,7 +367,9 @@ impl Renderer {
         Ok(())
     }
 
-    fn check(&self, markers: &[Marker], frame: &Rgb32FImage) -> Result<(), RenderError> {
+    /// Checks that `frame` has the camera's size and every marker a known layer, a
+    /// finite centre and a finite diameter ≥ 0 (what [`Renderer::render_into`] checks).
+    pub fn check(&self, markers: &[Marker], frame: &Rgb32FImage) -> Result<(), RenderError> {
         if frame.dimensions() != (self.camera.width_px, self.camera.height_px) {
             return Err(RenderError::FrameSize {
                 width: frame.width(),
