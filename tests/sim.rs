@@ -742,3 +742,28 @@ fn sim_render_reports_a_bad_scene_without_panicking() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("bad.toml") && err.contains("force"), "{err}");
 }
+
+#[test]
+fn two_blur_entries_compose_like_one_with_added_variances() {
+    let one = through(
+        vec![Effect::Blur {
+            sigma_px: vec![1.0, 0.0],
+        }],
+        1,
+    )
+    .0;
+    let split = std::f64::consts::FRAC_1_SQRT_2;
+    let two = through(
+        vec![
+            Effect::Blur {
+                sigma_px: vec![split, 0.0],
+            },
+            Effect::Blur {
+                sigma_px: vec![split, 0.0],
+            },
+        ],
+        1,
+    )
+    .0;
+    assert!(max_abs_diff(&one, &two) < 1e-5);
+}
