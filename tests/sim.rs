@@ -767,3 +767,27 @@ fn two_blur_entries_compose_like_one_with_added_variances() {
     .0;
     assert!(max_abs_diff(&one, &two) < 1e-5);
 }
+
+#[test]
+fn large_motion_scene_moves_markers_over_40_px_in_small_steps() {
+    let sc = Scene::from_path(scenes_dir().join("large_motion.toml")).unwrap();
+    let mut sim = Simulation::from_scene(&sc);
+    let mut f = sim.blank_frame();
+    let mm_per_px = sc.sensor.camera.mm_per_px;
+    let mut prev = vec![0.0; 2 * sim.markers().len()];
+    let (mut max_total, mut max_step) = (0.0f64, 0.0f64);
+    for k in 1..=sc.frames {
+        let t = sim
+            .render_load(&sc.frame_load(k), k as u64, &mut f)
+            .unwrap();
+        for m in 0..sim.markers().len() {
+            let u = [t.elastic_u_mm[2 * m], t.elastic_u_mm[2 * m + 1]];
+            let d = [u[0] - prev[2 * m], u[1] - prev[2 * m + 1]];
+            max_total = max_total.max(u[0].hypot(u[1]) / mm_per_px);
+            max_step = max_step.max(d[0].hypot(d[1]) / mm_per_px);
+        }
+        prev = t.elastic_u_mm;
+    }
+    assert!(max_total >= 40.0, "largest motion {max_total} px");
+    assert!(max_step <= 6.0, "largest frame-to-frame step {max_step} px");
+}
