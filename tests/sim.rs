@@ -3,7 +3,7 @@
 
 use image::Rgb32FImage;
 use tactbench::sensor::paper_sensor;
-use tactbench::sim::render::{reference_markers, to_rgb16, to_rgb8, Marker, Renderer};
+use tactbench::sim::render::{reference_markers, to_rgb16, to_rgb8, Marker, PixelFilter, Renderer};
 
 /// Intensity-weighted centroid (px, integer pixel centres) of channel `ch` minus the
 /// background level, over a window around `around_px`.
@@ -62,6 +62,33 @@ fn ideal_disc_centroid_equals_true_centre_to_the_area_sampling_limit() {
         worst <= 2e-3 && mean <= 1.1e-3,
         "worst centroid error {worst} px, mean {mean} px"
     );
+}
+
+#[test]
+fn tent_filter_disc_centroid_equals_true_centre_within_1e_5_px() {
+    let s = paper_sensor();
+    let r = Renderer::new(&s).with_filter(PixelFilter::Tent);
+    let bg = r.palette().background[2];
+    let mut worst = 0.0f64;
+    for a in 0..10 {
+        for b in 0..10 {
+            let c_px = [
+                100.0 + 0.1 * a as f64 + 0.0137,
+                80.0 + 0.1 * b as f64 + 0.0071,
+            ];
+            let m = Marker {
+                layer: 0,
+                position_mm: s.camera.px_to_mm(c_px),
+                diameter_mm: 0.6,
+            };
+            let c = centroid(&r.render(&[m]).unwrap(), 2, bg, c_px, 10);
+            worst = worst
+                .max((c[0] - c_px[0]).abs())
+                .max((c[1] - c_px[1]).abs());
+        }
+    }
+    // Exact in exact arithmetic; f32 pixel values and sums leave ~1e-6 px.
+    assert!(worst <= 1e-5, "worst centroid error {worst} px");
 }
 
 #[test]
@@ -554,6 +581,17 @@ fn scene_errors_name_file_key_value_and_unit() {
         e.contains("load.angle_deg = 95") && e.contains("[0, 90)"),
         "{e}"
     );
+    let e = scene_err(&format!("pixel_filter = \"gauss\"\n{BASE}"));
+    assert!(
+        e.contains("pixel_filter = \"gauss\"") && e.contains("tent"),
+        "{e}"
+    );
+    let tent = Scene::from_toml_str(
+        &format!("pixel_filter = \"tent\"\n{BASE}"),
+        "s.toml",
+        paper_sensor(),
+    );
+    assert_eq!(tent.unwrap().pixel_filter, PixelFilter::Tent);
     let e = scene_err(&format!("{BASE}[sequence]\nframes = 0\n"));
     assert!(e.contains("sequence.frames = 0"), "{e}");
 }
@@ -703,4 +741,53 @@ fn sim_render_reports_a_bad_scene_without_panicking() {
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("bad.toml") && err.contains("force"), "{err}");
+}
+
+#[test]
+fn two_blur_entries_compose_like_one_with_added_variances() {
+    let one = through(
+        vec![Effect::Blur {
+            sigma_px: vec![1.0, 0.0],
+        }],
+        1,
+    )
+    .0;
+    let split = std::f64::consts::FRAC_1_SQRT_2;
+    let two = through(
+        vec![
+            Effect::Blur {
+                sigma_px: vec![split, 0.0],
+            },
+            Effect::Blur {
+                sigma_px: vec![split, 0.0],
+            },
+        ],
+        1,
+    )
+    .0;
+    assert!(max_abs_diff(&one, &two) < 1e-5);
+}
+
+#[test]
+fn large_motion_scene_moves_markers_over_40_px_in_small_steps() {
+    let sc = Scene::from_path(scenes_dir().join("large_motion.toml")).unwrap();
+    let mut sim = Simulation::from_scene(&sc);
+    let mut f = sim.blank_frame();
+    let mm_per_px = sc.sensor.camera.mm_per_px;
+    let mut prev = vec![0.0; 2 * sim.markers().len()];
+    let (mut max_total, mut max_step) = (0.0f64, 0.0f64);
+    for k in 1..=sc.frames {
+        let t = sim
+            .render_load(&sc.frame_load(k), k as u64, &mut f)
+            .unwrap();
+        for m in 0..sim.markers().len() {
+            let u = [t.elastic_u_mm[2 * m], t.elastic_u_mm[2 * m + 1]];
+            let d = [u[0] - prev[2 * m], u[1] - prev[2 * m + 1]];
+            max_total = max_total.max(u[0].hypot(u[1]) / mm_per_px);
+            max_step = max_step.max(d[0].hypot(d[1]) / mm_per_px);
+        }
+        prev = t.elastic_u_mm;
+    }
+    assert!(max_total >= 40.0, "largest motion {max_total} px");
+    assert!(max_step <= 6.0, "largest frame-to-frame step {max_step} px");
 }

@@ -18,14 +18,23 @@ pub enum SimCommand {
 
 /// Render a scene: the unloaded reference frame, the loaded frames and ground truth.
 ///
-/// Writes into DIR: `reference.png` (unloaded), `frame_000.png`, `frame_001.png`, …
-/// (one per loaded frame; a `[sequence]` ramps the load over `frames` steps),
-/// `markers.csv` (`layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,
-/// elastic_ux_mm,elastic_uy_mm`: reference position, the apparent displacement an ideal
-/// tracker measures against reference.png — elastic displacement plus whole-image shift
-/// and drift — and the elastic part alone; marker = row-major index in the layer grid)
-/// and `forces.csv` (`ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n[,frame]`: the applied traction
-/// integrated over each force-grid cell).
+/// Writes into DIR:
+///
+/// - reference.png: the unloaded frame;
+///
+/// - frame_000.png, frame_001.png, ...: one per loaded frame (a [sequence] ramps the
+///   load over `frames` steps);
+///
+/// - markers.csv, columns
+///   layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,elastic_ux_mm,elastic_uy_mm:
+///   the marker's true reference position (after any placement jitter; x_px,y_px in
+///   reference.png), the apparent displacement an ideal tracker measures against
+///   reference.png (elastic displacement plus whole-image shift and drift), and the
+///   elastic part alone; marker = row-major index in the layer grid, frame = index of
+///   frame_NNN.png;
+///
+/// - forces.csv, columns ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n (+ frame with several frames):
+///   the applied traction integrated over each force-grid cell.
 ///
 /// PNG bit depth: 16-bit RGB when the scene has no `quantize8` effect (ideal renders
 /// stay exact to 1/65535), 8-bit RGB when it has.

@@ -29,7 +29,7 @@
 use image::Rgb32FImage;
 use thiserror::Error;
 
-use super::render::{disc_coverage_visit, fill, Marker, RenderError, Renderer};
+use super::render::{disc_visit, fill, round_code, Marker, RenderError, Renderer};
 use super::rng::Rng;
 
 /// An invalid effect parameter.
@@ -87,7 +87,8 @@ pub enum Effect {
     },
     /// Rounding to 8-bit code values: `round(255 clamp(v, 0, 1)) / 255`.
     Quantize8,
-    /// Depth defocus: each layer's coverage blurred by a Gaussian of σ px (0 = sharp).
+    /// Depth defocus: each layer's coverage blurred by a Gaussian of σ px (0 = sharp),
+    /// truncated at ±4σ. Several blur entries compose (their variances add).
     Blur {
         /// σ in px per layer index of the sensor.
         sigma_px: Vec<f64>,
@@ -421,10 +422,16 @@ impl Pipeline {
             }));
             &scratch.moved
         };
-        let blur = self.effects.iter().find_map(|e| match e {
-            Effect::Blur { sigma_px } => Some(sigma_px),
-            _ => None,
-        });
+        // Several blur entries compose: Gaussians add their variances per layer.
+        let mut blur: Option<Vec<f64>> = None;
+        for e in &self.effects {
+            if let Effect::Blur { sigma_px } = e {
+                let acc = blur.get_or_insert_with(|| vec![0.0; sigma_px.len()]);
+                for (a, s) in acc.iter_mut().zip(sigma_px) {
+                    *a = a.hypot(*s);
+                }
+            }
+        }
         match blur {
             None => renderer.render_into(src, out)?,
             Some(sigma_px) => {
@@ -432,7 +439,7 @@ impl Pipeline {
                 // borrowed mutably alongside it.
                 let moved = std::mem::take(&mut scratch.moved);
                 let src: &[Marker] = if off == [0.0, 0.0] { markers } else { &moved };
-                let r = render_blurred(renderer, src, sigma_px, out, scratch);
+                let r = render_blurred(renderer, src, &sigma_px, out, scratch);
                 scratch.moved = moved;
                 r?
             }
@@ -453,8 +460,7 @@ fn render_blurred(
     out: &mut Rgb32FImage,
     scratch: &mut Scratch,
 ) -> Result<(), RenderError> {
-    // Validate through the ideal path's checks (cheap) before writing anything.
-    renderer.render_into(&[], out)?;
+    renderer.check(markers, out)?;
     for (index, m) in markers.iter().enumerate() {
         if m.layer >= sigma_px.len() {
             return Err(RenderError::UnknownLayer {
@@ -478,7 +484,8 @@ fn render_blurred(
             let c = cam.mm_to_px(mk.position_mm);
             let r = 0.5 * mk.diameter_mm / cam.mm_per_px;
             let cov = &mut scratch.coverage;
-            disc_coverage_visit(
+            disc_visit(
+                renderer.filter(),
                 pw as u32,
                 ph as u32,
                 [c[0] + m as f64, c[1] + m as f64],
@@ -575,7 +582,7 @@ pub fn apply_image_effect(e: &Effect, out: &mut Rgb32FImage, frame: u64) {
         }
         Effect::Quantize8 => {
             for v in out.as_mut().iter_mut() {
-                *v = (v.clamp(0.0, 1.0) * 255.0).round() / 255.0;
+                *v = round_code(*v, 255.0) as f32 / 255.0;
             }
         }
         Effect::Illumination { gradient } => {

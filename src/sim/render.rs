@@ -25,7 +25,10 @@
 //! therefore `π r²` to rounding; its intensity-weighted centroid differs from the true
 //! centre only by the pixel-sampling (anti-aliasing) error of assigning each covered
 //! area to its pixel centre, measured below 1e-3 px for the paper's 12 px discs
-//! (`tests/sim.rs`).
+//! (`tests/sim.rs`). For tracker tests that need the rendering error out of the way,
+//! [`PixelFilter::Tent`] gives each pixel the disc's integral against the tent
+//! `t(x − i) t(y − j)` instead (exact moments per cell between pixel centres), and the
+//! centroid is then exact (≤ 1e-5 px measured, limited by `f32`).
 //!
 //! **Compositing.** A pixel of colour `p` covered by fraction `a` of a marker of colour
 //! `c` becomes `p + a (c − p)` ("over" compositing). Layers are drawn from the
@@ -45,6 +48,22 @@ use crate::sensor::{CameraMapping, MarkerColor, Sensor};
 
 /// A 16-bit RGB image (PNG-compatible), the lossless output for ideal renders.
 pub type Rgb16Image = ImageBuffer<Rgb<u16>, Vec<u16>>;
+
+/// How a pixel integrates the scene (the pixel's spatial response).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PixelFilter {
+    /// Box response: the exact area of the pixel square covered by the disc (a camera
+    /// pixel with 100 % fill factor). The default. Centroids carry the area-sampling
+    /// error (≤ 1.53e-3 px for 12 px discs).
+    #[default]
+    Area,
+    /// Tent response `t(x)t(y)`, `t(x) = max(0, 1 − |x|)` (the box convolved with
+    /// itself: a pixel with a one-pixel optical blur). Linear interpolation reproduces
+    /// linear functions, `Σ_i t(x − i) i = x`, so the intensity-weighted centroid of a
+    /// disc equals its centre exactly (to `f32` storage, ~1e-6 px): for testing trackers
+    /// independently of rendering error.
+    Tent,
+}
 
 /// An error rendering a frame.
 #[derive(Debug, Error, PartialEq)]
@@ -186,6 +205,7 @@ pub struct Renderer {
     layer_colors: Vec<[f32; 3]>,
     /// Layer indices from the shallowest to the deepest (drawing order).
     draw_order: Vec<usize>,
+    filter: PixelFilter,
 }
 
 impl Renderer {
@@ -212,7 +232,19 @@ impl Renderer {
                 .map(|l| palette.color(l.color))
                 .collect(),
             draw_order,
+            filter: PixelFilter::Area,
         }
+    }
+
+    /// This renderer with another pixel response.
+    pub fn with_filter(mut self, filter: PixelFilter) -> Self {
+        self.filter = filter;
+        self
+    }
+
+    /// The pixel response used.
+    pub fn filter(&self) -> PixelFilter {
+        self.filter
     }
 
     /// The camera mapping used.
@@ -258,7 +290,7 @@ impl Renderer {
             for m in markers.iter().filter(|m| m.layer == layer) {
                 let c = self.camera.mm_to_px(m.position_mm);
                 let r = 0.5 * m.diameter_mm / self.camera.mm_per_px;
-                draw_disc(frame, c, r, |p, a| {
+                draw_disc(frame, self.filter, c, r, |p, a| {
                     if a >= 1.0 {
                         // Exact colour for covered pixels (p + 1·(c − p) rounds in f32).
                         p.copy_from_slice(&color);
@@ -294,7 +326,7 @@ impl Renderer {
         for m in markers.iter().filter(|m| m.layer == layer) {
             let c = self.camera.mm_to_px(m.position_mm);
             let r = 0.5 * m.diameter_mm / self.camera.mm_per_px;
-            disc_coverage_visit(w, h, c, r, |i, j, a| {
+            disc_visit(self.filter, w, h, c, r, |i, j, a| {
                 let v = &mut coverage[j * w as usize + i];
                 *v = (*v + a).min(1.0);
             });
@@ -335,7 +367,9 @@ impl Renderer {
         Ok(())
     }
 
-    fn check(&self, markers: &[Marker], frame: &Rgb32FImage) -> Result<(), RenderError> {
+    /// Checks that `frame` has the camera's size and every marker a known layer, a
+    /// finite centre and a finite diameter ≥ 0 (what [`Renderer::render_into`] checks).
+    pub fn check(&self, markers: &[Marker], frame: &Rgb32FImage) -> Result<(), RenderError> {
         if frame.dimensions() != (self.camera.width_px, self.camera.height_px) {
             return Err(RenderError::FrameSize {
                 width: frame.width(),
@@ -348,14 +382,24 @@ impl Renderer {
     }
 }
 
-/// Fills a frame with one colour.
+/// Fills a frame with one colour: the first row by pixels, the others by copying it
+/// (memcpy speed; a plain memset when the colour is grey).
 pub fn fill(frame: &mut Rgb32FImage, color: [f32; 3]) {
+    let row_len = 3 * frame.width() as usize;
+    let data: &mut [f32] = frame.as_mut();
     if color[0] == color[1] && color[1] == color[2] {
-        frame.as_mut().fill(color[0]);
-    } else {
-        for p in frame.as_mut().chunks_exact_mut(3) {
-            p.copy_from_slice(&color);
-        }
+        data.fill(color[0]);
+        return;
+    }
+    if row_len == 0 {
+        return;
+    }
+    let (first, rest) = data.split_at_mut(row_len);
+    for p in first.chunks_exact_mut(3) {
+        p.copy_from_slice(&color);
+    }
+    for row in rest.chunks_exact_mut(row_len) {
+        row.copy_from_slice(first);
     }
 }
 
@@ -363,21 +407,31 @@ pub fn fill(frame: &mut Rgb32FImage, color: [f32; 3]) {
 /// coverage)` for every pixel with coverage > 0. Parts outside the frame are clipped.
 pub fn draw_disc(
     frame: &mut Rgb32FImage,
+    filter: PixelFilter,
     c_px: [f64; 2],
     r_px: f64,
     mut blend: impl FnMut(&mut [f32], f32),
 ) {
     let (w, h) = frame.dimensions();
     let data: &mut [f32] = frame.as_mut();
-    disc_coverage_visit(w, h, c_px, r_px, |i, j, a| {
+    disc_visit(filter, w, h, c_px, r_px, |i, j, a| {
         let k = 3 * (j * w as usize + i);
         blend(&mut data[k..k + 3], a);
     });
 }
 
-/// Largest bounding box (pixels per side) a disc may have; larger discs are still
-/// drawn, but with per-pixel evaluation of the edge terms.
-const MAX_CACHED_EDGES: usize = 130;
+/// Edge tables of [`disc_coverage_visit`]: column edges, their `G`, row lines.
+#[derive(Default)]
+struct EdgeTables {
+    xe: Vec<f64>,
+    gx: Vec<f64>,
+    lines: Vec<Line>,
+}
+
+std::thread_local! {
+    /// Reused across discs (taken out while in use, so a nested call only allocates).
+    static EDGE_TABLES: std::cell::Cell<EdgeTables> = std::cell::Cell::new(EdgeTables::default());
+}
 
 /// Calls `visit(i, j, coverage)` for every pixel `(i, j)` of a `w × h` image that a
 /// disc of centre `c_px` and radius `r_px` covers, with the exact covered area
@@ -410,50 +464,34 @@ pub fn disc_coverage_visit(
         let x = x.clamp(-r, r);
         0.5 * (x * (r2 - x * x).max(0.0).sqrt() + r2 * (x / r).clamp(-1.0, 1.0).asin())
     };
-    // Column edges x_e = i - 0.5 - cx and row lines |y_e|, relative to the centre.
-    let mut xe = [0.0f64; MAX_CACHED_EDGES + 1];
-    let mut gx = [0.0f64; MAX_CACHED_EDGES + 1];
-    let mut ye = [0.0f64; MAX_CACHED_EDGES + 1];
-    let mut lines = [Line::default(); MAX_CACHED_EDGES + 1];
-    let cached = nx <= MAX_CACHED_EDGES && ny <= MAX_CACHED_EDGES;
-    if cached {
-        for k in 0..=nx {
-            xe[k] = (i0 + k) as f64 - 0.5 - c_px[0];
-            gx[k] = g(xe[k]);
-        }
-        for k in 0..=ny {
-            ye[k] = (j0 + k) as f64 - 0.5 - c_px[1];
-            lines[k] = Line::new(ye[k].abs(), r, &g);
-        }
+    // Column edges x_e = i - 0.5 - cx with G(x_e), and row lines y_e = j - 0.5 - cy
+    // (signed, with the half-chord and G of |y_e|), relative to the centre.
+    let mut t = EDGE_TABLES.with(|c| c.take());
+    t.xe.clear();
+    t.gx.clear();
+    t.lines.clear();
+    for k in 0..=nx {
+        let x = (i0 + k) as f64 - 0.5 - c_px[0];
+        t.xe.push(x);
+        t.gx.push(g(x));
+    }
+    for k in 0..=ny {
+        let y = (j0 + k) as f64 - 0.5 - c_px[1];
+        t.lines.push(Line::new(y, r, &g));
     }
     let zero = Line::new(0.0, r, &g);
     for jj in 0..ny {
-        let (ya, yb, la, lb) = if cached {
-            (ye[jj], ye[jj + 1], lines[jj], lines[jj + 1])
-        } else {
-            let ya = (j0 + jj) as f64 - 0.5 - c_px[1];
-            let yb = ya + 1.0;
-            (
-                ya,
-                yb,
-                Line::new(ya.abs(), r, &g),
-                Line::new(yb.abs(), r, &g),
-            )
-        };
-        // Nearest |y| of the row to the centre, for the quick outside test.
+        let (la, lb) = (t.lines[jj], t.lines[jj + 1]);
+        let (ya, yb) = (la.y, lb.y);
+        // Nearest and farthest |y| of the row from the centre, for the quick tests.
         let ny_near = if ya <= 0.0 && yb >= 0.0 {
             0.0
         } else {
-            ya.abs().min(yb.abs())
+            la.h.min(lb.h)
         };
-        let ny_far = ya.abs().max(yb.abs());
+        let ny_far = la.h.max(lb.h);
         for ii in 0..nx {
-            let (xa, xb, gxa, gxb) = if cached {
-                (xe[ii], xe[ii + 1], gx[ii], gx[ii + 1])
-            } else {
-                let xa = (i0 + ii) as f64 - 0.5 - c_px[0];
-                (xa, xa + 1.0, g(xa), g(xa + 1.0))
-            };
+            let (xa, xb) = (t.xe[ii], t.xe[ii + 1]);
             let nx_near = if xa <= 0.0 && xb >= 0.0 {
                 0.0
             } else {
@@ -466,7 +504,13 @@ pub fn disc_coverage_visit(
             let a = if nx_far * nx_far + ny_far * ny_far <= r2 {
                 1.0 // entirely inside
             } else {
-                let ex = [Edge { x: xa, g: gxa }, Edge { x: xb, g: gxb }];
+                let ex = [
+                    Edge { x: xa, g: t.gx[ii] },
+                    Edge {
+                        x: xb,
+                        g: t.gx[ii + 1],
+                    },
+                ];
                 let v = if ya >= 0.0 {
                     strip(ex, la) - strip(ex, lb)
                 } else if yb <= 0.0 {
@@ -481,6 +525,156 @@ pub fn disc_coverage_visit(
             }
         }
     }
+    EDGE_TABLES.with(|c| c.set(t));
+}
+
+/// Calls `visit(i, j, value)` for every pixel of a `w × h` image a disc reaches, with
+/// the pixel's response to the disc under `filter` (see [`PixelFilter`]).
+pub fn disc_visit(
+    filter: PixelFilter,
+    w: u32,
+    h: u32,
+    c_px: [f64; 2],
+    r_px: f64,
+    visit: impl FnMut(usize, usize, f32),
+) {
+    match filter {
+        PixelFilter::Area => disc_coverage_visit(w, h, c_px, r_px, visit),
+        PixelFilter::Tent => disc_tent_visit(w, h, c_px, r_px, visit),
+    }
+}
+
+std::thread_local! {
+    /// Node accumulator of [`disc_tent_visit`], reused across discs (taken out while
+    /// in use, so a nested call only allocates).
+    static TENT_NODES: std::cell::Cell<Vec<f64>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// Tent-filtered disc: `v(i, j) = ∫∫_disc t(x − i) t(y − j)`. The plane is cut into the
+/// unit cells between pixel centres; on each cell the moments `∫1, ∫u, ∫v, ∫uv` of
+/// the disc part (exact, from [`rect_moments`]) give the bilinear shares of its four
+/// corner pixels. Values within 1e-9 of 1 are snapped to 1.
+pub fn disc_tent_visit(
+    w: u32,
+    h: u32,
+    c_px: [f64; 2],
+    r_px: f64,
+    mut visit: impl FnMut(usize, usize, f32),
+) {
+    let usable = r_px > 0.0 && r_px.is_finite() && c_px[0].is_finite() && c_px[1].is_finite();
+    if !usable {
+        return;
+    }
+    let r = r_px;
+    let (ci0, ci1) = ((c_px[0] - r).floor(), (c_px[0] + r).floor());
+    let (cj0, cj1) = ((c_px[1] - r).floor(), (c_px[1] + r).floor());
+    // Nodes ci0 ..= ci1 + 1; skip discs whose nodes all lie outside the image.
+    if ci1 + 1.0 < 0.0 || cj1 + 1.0 < 0.0 || ci0 > w as f64 - 1.0 || cj0 > h as f64 - 1.0 {
+        return;
+    }
+    let ncx = (ci1 - ci0) as usize + 1;
+    let ncy = (cj1 - cj0) as usize + 1;
+    let (nw, nh) = (ncx + 1, ncy + 1);
+    let r2 = r * r;
+    let mut nodes = TENT_NODES.with(|c| c.take());
+    {
+        nodes.clear();
+        nodes.resize(nw * nh, 0.0);
+        for cj in 0..ncy {
+            let jg = cj0 + cj as f64;
+            let (y0, y1) = (jg - c_px[1], jg + 1.0 - c_px[1]);
+            let ny_near = if y0 <= 0.0 && y1 >= 0.0 {
+                0.0
+            } else {
+                y0.abs().min(y1.abs())
+            };
+            let ny_far = y0.abs().max(y1.abs());
+            for ci in 0..ncx {
+                let ig = ci0 + ci as f64;
+                let (x0, x1) = (ig - c_px[0], ig + 1.0 - c_px[0]);
+                let nx_near = if x0 <= 0.0 && x1 >= 0.0 {
+                    0.0
+                } else {
+                    x0.abs().min(x1.abs())
+                };
+                if nx_near * nx_near + ny_near * ny_near >= r2 {
+                    continue;
+                }
+                let nx_far = x0.abs().max(x1.abs());
+                let m = if nx_far * nx_far + ny_far * ny_far <= r2 {
+                    let (mx, my) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+                    [1.0, mx, my, mx * my]
+                } else {
+                    rect_moments(x0, x1, y0, y1, r)
+                };
+                // Moments in the cell's local frame u = x − i, v = y − j.
+                let (dx, dy) = (c_px[0] - ig, c_px[1] - jg);
+                let a = m[0];
+                let u = m[1] + dx * a;
+                let v = m[2] + dy * a;
+                let uv = m[3] + dy * m[1] + dx * m[2] + dx * dy * a;
+                let k = cj * nw + ci;
+                nodes[k] += a - u - v + uv;
+                nodes[k + 1] += u - uv;
+                nodes[k + nw] += v - uv;
+                nodes[k + nw + 1] += uv;
+            }
+        }
+        for lj in 0..nh {
+            let j = cj0 + lj as f64;
+            if j < 0.0 || j > h as f64 - 1.0 {
+                continue;
+            }
+            for li in 0..nw {
+                let i = ci0 + li as f64;
+                if i < 0.0 || i > w as f64 - 1.0 {
+                    continue;
+                }
+                let val = nodes[lj * nw + li];
+                if val > 0.0 {
+                    let val = if val > 1.0 - 1e-9 { 1.0 } else { val };
+                    visit(i as usize, j as usize, val as f32);
+                }
+            }
+        }
+    }
+    TENT_NODES.with(|c| c.set(nodes));
+}
+
+/// Moments `[∫1, ∫x, ∫y, ∫xy]` of the part of a circle (radius `r`, centred at the
+/// origin) inside the rectangle `[x0, x1] × [y0, y1]` (`x0 ≤ x1`, `y0 ≤ y1`), exact.
+/// Strips above `y = h ≥ 0` are integrated in closed form between `c = clamp(x, ±s)`:
+/// `∫1 = G(x) − hx`, `∫x = −(r²−x²)^{3/2}/3 − hx²/2`, `∫y = ((r²−h²)x − x³/3)/2`,
+/// `∫xy = ((r²−h²)x²/2 − x⁴/4)/2`; parts below `y = 0` are mirrored.
+pub fn rect_moments(x0: f64, x1: f64, y0: f64, y1: f64, r: f64) -> [f64; 4] {
+    let strip = |h: f64| -> [f64; 4] {
+        let r2 = r * r;
+        let s = if h < r { (r2 - h * h).sqrt() } else { 0.0 };
+        let k = r2 - h * h;
+        let f = |x: f64| -> [f64; 4] {
+            let q = (r2 - x * x).max(0.0);
+            let g = 0.5 * (x * q.sqrt() + r2 * (x / r).clamp(-1.0, 1.0).asin());
+            [
+                g - h * x,
+                -q * q.sqrt() / 3.0 - 0.5 * h * x * x,
+                0.5 * (k * x - x * x * x / 3.0),
+                0.5 * (0.5 * k * x * x - 0.25 * x * x * x * x),
+            ]
+        };
+        let (a, b) = (f(x1.clamp(-s, s)), f(x0.clamp(-s, s)));
+        [a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3]]
+    };
+    let sub = |a: [f64; 4], b: [f64; 4]| [a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3]];
+    let flip = |m: [f64; 4]| [m[0], m[1], -m[2], -m[3]];
+    if y0 >= 0.0 {
+        sub(strip(y0), strip(y1))
+    } else if y1 <= 0.0 {
+        flip(sub(strip(-y1), strip(-y0)))
+    } else {
+        let lo = flip(sub(strip(0.0), strip(-y0)));
+        let hi = sub(strip(0.0), strip(y1));
+        [lo[0] + hi[0], lo[1] + hi[1], lo[2] + hi[2], lo[3] + hi[3]]
+    }
 }
 
 /// A vertical edge at `x` (relative to the circle centre) with `G(x)` precomputed.
@@ -490,18 +684,21 @@ struct Edge {
     g: f64,
 }
 
-/// A horizontal line `y = h ≥ 0` (relative to the centre): half-chord `s` and `G(s)`.
+/// A horizontal line at signed height `y` (relative to the centre), with `h = |y|`,
+/// the half-chord `s` at `h` and `G(s)`.
 #[derive(Clone, Copy, Default)]
 struct Line {
+    y: f64,
     h: f64,
     s: f64,
     gs: f64,
 }
 
 impl Line {
-    fn new(h: f64, r: f64, g: &impl Fn(f64) -> f64) -> Self {
+    fn new(y: f64, r: f64, g: &impl Fn(f64) -> f64) -> Self {
+        let h = y.abs();
         let s = if h < r { (r * r - h * h).sqrt() } else { 0.0 };
-        Line { h, s, gs: g(s) }
+        Line { y, h, s, gs: g(s) }
     }
 }
 
@@ -531,12 +728,21 @@ pub fn pixel_coverage(i: i64, j: i64, c_px: [f64; 2], r_px: f64) -> f64 {
     out
 }
 
+/// `round(full · clamp(v, 0, 1))` for a non-negative code range. Adding ½ and
+/// truncating equals rounding (half away from zero) for non-negative values and
+/// compiles to one conversion instruction, where `f32::round` is a library call on
+/// baseline x86-64 (4× slower here). NaN maps to 0.
+#[inline]
+pub fn round_code(v: f32, full: f32) -> u32 {
+    (v.clamp(0.0, 1.0) * full + 0.5) as u32
+}
+
 /// Converts a float frame to 8 bits per channel: `round(255 v)`, clamped to `[0, 255]`.
 pub fn to_rgb8(frame: &Rgb32FImage) -> RgbImage {
     let data = frame
         .as_raw()
         .iter()
-        .map(|&v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
+        .map(|&v| round_code(v, 255.0) as u8)
         .collect();
     // The lengths match by construction (same dimensions, 3 channels).
     RgbImage::from_raw(frame.width(), frame.height(), data)
@@ -548,7 +754,7 @@ pub fn to_rgb16(frame: &Rgb32FImage) -> Rgb16Image {
     let data = frame
         .as_raw()
         .iter()
-        .map(|&v| (v * 65535.0).round().clamp(0.0, 65535.0) as u16)
+        .map(|&v| round_code(v, 65535.0) as u16)
         .collect();
     Rgb16Image::from_raw(frame.width(), frame.height(), data)
         .unwrap_or_else(|| Rgb16Image::new(frame.width(), frame.height()))
@@ -630,6 +836,55 @@ mod tests {
         let mut n = 0;
         disc_coverage_visit(64, 64, [-20.0, 30.0], 5.0, |_, _, _| n += 1);
         assert_eq!(n, 0);
+    }
+
+    #[test]
+    fn tent_response_sums_to_the_area_and_centroid_is_exact() {
+        for (c, r) in [
+            ([20.3, 19.7], 6.0),
+            ([20.0, 20.0], 0.4),
+            ([21.77, 18.13], 9.41),
+        ] {
+            let (mut s, mut sx, mut sy) = (0.0f64, 0.0f64, 0.0f64);
+            disc_tent_visit(64, 64, c, r, |i, j, a| {
+                s += a as f64;
+                sx += a as f64 * i as f64;
+                sy += a as f64 * j as f64;
+            });
+            let area = std::f64::consts::PI * r * r;
+            assert!((s - area).abs() < 1e-5 * area, "r={r}: {s} vs {area}");
+            // f32 values: relative 6e-8 each.
+            assert!(
+                (sx / s - c[0]).abs() < 1e-5 && (sy / s - c[1]).abs() < 1e-5,
+                "r={r}"
+            );
+        }
+    }
+
+    #[test]
+    fn tent_response_matches_supersampled_tent_integral() {
+        // 800×800 samples over [i−1, i+1]²: error ≲ 2e-3 per node.
+        let (c, r) = ([10.37, 9.81], 2.3);
+        let mut exact = std::collections::HashMap::new();
+        disc_tent_visit(32, 32, c, r, |i, j, a| {
+            exact.insert((i, j), a as f64);
+        });
+        for (i, j) in [(10usize, 10usize), (8, 9), (12, 11), (10, 7), (13, 10)] {
+            let n = 800;
+            let mut acc = 0.0;
+            for a in 0..n {
+                for b in 0..n {
+                    let x = i as f64 - 1.0 + 2.0 * (a as f64 + 0.5) / n as f64;
+                    let y = j as f64 - 1.0 + 2.0 * (b as f64 + 0.5) / n as f64;
+                    if (x - c[0]).powi(2) + (y - c[1]).powi(2) < r * r {
+                        acc += (1.0 - (x - i as f64).abs()) * (1.0 - (y - j as f64).abs());
+                    }
+                }
+            }
+            acc *= 4.0 / (n * n) as f64;
+            let e = exact.get(&(i, j)).copied().unwrap_or(0.0);
+            assert!((e - acc).abs() < 2e-3, "({i},{j}): {e} vs {acc}");
+        }
     }
 
     #[test]

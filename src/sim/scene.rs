@@ -5,6 +5,8 @@
 //!
 //! ```toml
 //! sensor = "../paper_sensor.toml"   # sensor file, relative to this scene file
+//! pixel_filter = "area"    # optional: area (default; exact pixel coverage) | tent
+//!                          # (exact centroids, see sim::render::PixelFilter)
 //!
 //! [indenter]
 //! kind = "flat"            # flat | hemisphere | point
@@ -62,6 +64,7 @@ use thiserror::Error;
 
 use super::contact::{Indenter, LoadCase, Normal, Tangential};
 use super::effects::{Effect, EffectError, Pipeline};
+use super::render::PixelFilter;
 use crate::sensor::{Sensor, SensorError};
 use crate::units;
 
@@ -134,6 +137,8 @@ pub struct Scene {
     pub frames: usize,
     /// The effects.
     pub pipeline: Pipeline,
+    /// The pixel response of the renderer.
+    pub pixel_filter: PixelFilter,
 }
 
 impl Scene {
@@ -186,6 +191,7 @@ fn parse_raw(text: &str, path: &Path) -> Result<RawScene, SceneError> {
 #[serde(deny_unknown_fields)]
 struct RawScene {
     sensor: String,
+    pixel_filter: Option<String>,
     indenter: RawIndenter,
     load: RawLoad,
     sequence: Option<RawSequence>,
@@ -552,7 +558,20 @@ impl RawScene {
                 source,
             })?;
 
+        let pixel_filter = match self.pixel_filter.as_deref() {
+            None | Some("area") => PixelFilter::Area,
+            Some("tent") => PixelFilter::Tent,
+            Some(other) => {
+                return Err(invalid(
+                    "pixel_filter",
+                    &format!("{other:?}"),
+                    "expected \"area\" or \"tent\"",
+                ))
+            }
+        };
+
         Ok(Scene {
+            pixel_filter,
             path: path.to_path_buf(),
             sensor_path,
             sensor,

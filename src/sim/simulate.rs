@@ -12,7 +12,7 @@ use thiserror::Error;
 
 use super::contact::{Contact, ContactError, Indenter, LoadCase};
 use super::effects::{Pipeline, Scratch};
-use super::render::{reference_markers, Marker, RenderError, Renderer};
+use super::render::{reference_markers, Marker, PixelFilter, RenderError, Renderer};
 use super::scene::Scene;
 use crate::model::{HalfSpace, MarkerSite};
 use crate::sensor::Sensor;
@@ -109,9 +109,16 @@ impl Simulation {
         }
     }
 
-    /// The simulation of a scene.
+    /// The simulation of a scene (with its pixel filter).
     pub fn from_scene(scene: &Scene) -> Self {
         Self::new(scene.sensor.clone(), scene.indenter, scene.pipeline.clone())
+            .with_pixel_filter(scene.pixel_filter)
+    }
+
+    /// This simulation with another pixel response (see [`PixelFilter`]).
+    pub fn with_pixel_filter(mut self, filter: PixelFilter) -> Self {
+        self.renderer = self.renderer.with_filter(filter);
+        self
     }
 
     /// The sensor.
