@@ -7,7 +7,9 @@
 //!
 //! Geometry (stage machine coordinates, mm): the indenter tip is over sensor-frame
 //! point `xy_stage − sensor_origin_in_stage_mm`, and touches the elastomer surface at
-//! stage `z = surface_z_mm`; larger z presses deeper. Indentation `δ = z − surface_z`.
+//! stage `z = surface_z_mm`. Indentation `δ = press_direction · (z − surface_z)`:
+//! `press_direction = +1` when larger z presses deeper, `−1` for a CNC-style stage
+//! (GRBL: +z is up, machine coordinates are ≤ 0).
 //!
 //! Contact laws (Johnson, *Contact Mechanics*, §3.4, §5.2, §7.2; `E* = E/(1−ν²)`,
 //! `G = E/(2(1+ν))`):
@@ -44,6 +46,8 @@ pub struct WorldGeometry {
     pub sensor_origin_in_stage_mm: [f64; 2],
     /// Stage z at which the tip touches the surface, mm.
     pub surface_z_mm: f64,
+    /// +1: increasing stage z presses into the elastomer; −1: decreasing z does.
+    pub press_direction: f64,
     /// Friction coefficient μ between indenter and elastomer.
     pub friction: f64,
     /// Distance from the F/T sensor origin down to the tip, mm (for torques).
@@ -55,6 +59,7 @@ impl Default for WorldGeometry {
         WorldGeometry {
             sensor_origin_in_stage_mm: [0.0, 0.0],
             surface_z_mm: 10.0,
+            press_direction: 1.0,
             friction: 1.0,
             tool_length_mm: 50.0,
         }
@@ -305,7 +310,7 @@ impl World {
             stage[0] - g.sensor_origin_in_stage_mm[0],
             stage[1] - g.sensor_origin_in_stage_mm[1],
         ];
-        let d = stage[2] - g.surface_z_mm;
+        let d = g.press_direction.signum() * (stage[2] - g.surface_z_mm);
         let (p, a) = self.normal_law(d);
         let mut q = [0.0; 2];
         let mut sliding = false;
@@ -344,6 +349,7 @@ mod tests {
         let g = WorldGeometry {
             sensor_origin_in_stage_mm: [20.0, 30.0],
             surface_z_mm: 5.0,
+            press_direction: 1.0,
             friction: 0.5,
             tool_length_mm: 40.0,
         };
@@ -371,6 +377,30 @@ mod tests {
         let p = 4.0 / 3.0 * e_star * 2.5f64.sqrt() * 0.4f64.powf(1.5);
         assert!((w.wrench().force_n[2] - p).abs() < 1e-12);
         assert!((w.contact().contact_radius_mm - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_cnc_stage_presses_towards_negative_z() {
+        let sim = Simulation::new(
+            paper_sensor(),
+            Indenter::Flat { diameter_mm: 5.0 },
+            Pipeline::ideal(),
+        );
+        let g = WorldGeometry {
+            surface_z_mm: -20.0,
+            press_direction: -1.0,
+            ..WorldGeometry::default()
+        };
+        let w = World::new(
+            sim,
+            Indenter::Flat { diameter_mm: 5.0 },
+            g,
+            [9.0, 6.75, -10.0],
+        );
+        assert_eq!(w.wrench().force_n[2], 0.0);
+        w.set_stage_mm([9.0, 6.75, -20.3]);
+        assert!((w.contact().indentation_mm - 0.3).abs() < 1e-12);
+        assert!(w.wrench().force_n[2] > 0.0);
     }
 
     #[test]
