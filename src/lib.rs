@@ -13,3 +13,4 @@ pub mod model;
 pub mod sensor;
 pub mod solve;
 pub mod units;
+pub mod vision;
