@@ -50,6 +50,8 @@ pub struct LayerReference {
     pub aperture_radius_px: f64,
     /// Median distance to the nearest same-layer marker, px (infinite for one marker).
     pub spacing_px: f64,
+    /// Median colour score of the image (the background's score).
+    pub background_score: f64,
 }
 
 /// A marker found in the reference image.
@@ -66,7 +68,7 @@ pub struct ReferenceMarker {
     pub position_mm: [f64; 2],
     /// Background-corrected signal (score × px), the scale for lost/merged checks.
     pub signal: f64,
-    /// Largest colour score in the aperture.
+    /// Largest colour score in the aperture, above the layer's background score.
     pub peak: f64,
 }
 
@@ -148,6 +150,7 @@ struct LayerBlobs {
     marker_radius_px: f64,
     aperture_radius_px: f64,
     spacing_px: f64,
+    background_score: f64,
 }
 
 /// Finds the markers of every layer in an unloaded frame and matches them to the
@@ -172,6 +175,7 @@ pub fn detect(
             marker_radius_px: found.marker_radius_px,
             aperture_radius_px: found.aperture_radius_px,
             spacing_px: found.spacing_px,
+            background_score: found.background_score,
         });
         let to_marker = |b: &Blob, id: u64| ReferenceMarker {
             layer: li,
@@ -275,18 +279,25 @@ fn detect_layer<T: Sample, const C: usize>(
         .chunks_exact(C)
         .map(|px| super::window::score(px, ch))
         .collect();
+    if score.is_empty() {
+        return LayerBlobs {
+            blobs: Vec::new(),
+            marker_radius_px: expected_radius_px.unwrap_or(1.0),
+            aperture_radius_px: config.aperture_radius_px.unwrap_or(1.0),
+            spacing_px: f64::INFINITY,
+            background_score: 0.0,
+        };
+    }
+    let mut tmp = score.clone();
+    let n = tmp.len();
+    let median = kth(&mut tmp, n / 2);
     let empty = |r: f64| LayerBlobs {
         blobs: Vec::new(),
         marker_radius_px: r,
         aperture_radius_px: config.aperture_radius_px.unwrap_or(r + 1.5),
         spacing_px: f64::INFINITY,
+        background_score: median as f64,
     };
-    if score.is_empty() {
-        return empty(expected_radius_px.unwrap_or(1.0));
-    }
-    let mut tmp = score.clone();
-    let n = tmp.len();
-    let median = kth(&mut tmp, n / 2);
     let peak = kth(&mut tmp, n.saturating_sub(20));
     for v in tmp.iter_mut() {
         *v = (*v - median).abs();
@@ -441,5 +452,6 @@ fn detect_layer<T: Sample, const C: usize>(
         marker_radius_px: radius_px,
         aperture_radius_px: aperture,
         spacing_px: spacing,
+        background_score: median as f64,
     }
 }

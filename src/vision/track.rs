@@ -135,6 +135,7 @@ struct LayerState {
     search_half: i32,
     max_jump_px: f64,
     merge_distance_px: f64,
+    search_threshold_base: i32,
 }
 
 /// Tracks the markers of a [`Reference`] in frames of the same size.
@@ -171,6 +172,7 @@ impl Tracker {
                     search_half: search_half.round() as i32,
                     max_jump_px: search_half + l.aperture_radius_px,
                     merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
+                    search_threshold_base: l.background_score.round() as i32,
                 }
             })
             .collect();
@@ -320,7 +322,7 @@ impl Tracker {
             };
             let mut found = accept(ls.window.locate(img, ls.ch, start, cfg.max_iterations));
             if found.is_none() {
-                let threshold = (0.4 * r.peak).round() as i32;
+                let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
                 if let Some(seed) = search(img, ls.ch, start, ls.search_half, threshold) {
                     found = accept(ls.window.locate(img, ls.ch, seed, cfg.max_iterations));
                 }

@@ -2,9 +2,17 @@
 //! background-corrected centre of mass, iterated with re-centring.
 //!
 //! **Colour score.** For a layer of colour `c` the score of a pixel is
-//! `s = max(0, I_c − max(I_o1, I_o2))`: grey light (equal channels, including uneven
-//! grey illumination) scores 0, markers of another colour score 0, and a marker of the
-//! layer's colour scores its colour excess.
+//! `s = max(0, 2·I_c − I_o1 − I_o2 + 2K)`, twice the colour's excess over the mean of
+//! the other two channels, lifted by a small offset `K` (8 levels of 8 bits): grey
+//! light (equal channels, including uneven grey illumination) scores the constant
+//! `2K`, which the background plane removes; a marker of the layer's colour scores its
+//! colour excess; markers of another colour are strongly negative and clip to 0, so
+//! they never look like this layer. The score is *linear* in the pixel values wherever
+//! it matters (markers of this colour, background with noise): a blend `α·marker +
+//! (1 − α)·background` at a soft or anti-aliased edge scores linearly in `α`, which
+//! keeps the centre of mass unbiased. (`I_c − max(I_o1, I_o2)` would be piecewise
+//! linear in `α` and bias sub-pixel centroids by ~0.003 px; clipping at 0 without
+//! the offset would clip the background noise.)
 //!
 //! **Window.** Centred on an integer pixel `(cx, cy)`: an aperture disc of radius
 //! `Ra` (the marker plus its soft edge), a one-pixel gap, and a background ring
@@ -29,10 +37,13 @@
 
 /// Samples the kernel can read (8- and 16-bit).
 pub(crate) trait Sample: Copy {
+    /// Score offset `K` (see the module docs): 8 levels of an 8-bit image.
+    const OFFSET: i32;
     fn value(self) -> i32;
 }
 
 impl Sample for u8 {
+    const OFFSET: i32 = 8;
     #[inline(always)]
     fn value(self) -> i32 {
         self as i32
@@ -40,6 +51,7 @@ impl Sample for u8 {
 }
 
 impl Sample for u16 {
+    const OFFSET: i32 = 8 * 257;
     #[inline(always)]
     fn value(self) -> i32 {
         self as i32
@@ -60,8 +72,7 @@ pub(crate) fn channels(color: crate::sensor::MarkerColor) -> [usize; 3] {
 #[inline(always)]
 pub(crate) fn score<T: Sample>(px: &[T], ch: [usize; 3]) -> i32 {
     let c = px[ch[0]].value();
-    let o = px[ch[1]].value().max(px[ch[2]].value());
-    (c - o).max(0)
+    (2 * c - px[ch[1]].value() - px[ch[2]].value() + 2 * T::OFFSET).max(0)
 }
 
 /// A borrowed image as the kernel reads it.
