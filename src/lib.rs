@@ -11,6 +11,7 @@ pub mod device;
 pub mod formats;
 pub mod model;
 pub mod sensor;
+pub mod sim;
 pub mod solve;
 pub mod units;
 pub mod vision;

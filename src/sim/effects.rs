@@ -1,0 +1,614 @@
+//! Imaging and manufacturing effects, each a separate unit with its own parameters
+//! (and its own seed when random), applied only when a scene lists it, in the listed
+//! order. With no effects the render is the ideal one of [`super::render`], bit for bit.
+//!
+//! Effects act at three stages of a frame:
+//!
+//! 1. **Build** (once per scene, on the reference marker list, before the contact
+//!    model): [`Effect::SizeJitter`] and [`Effect::PlacementJitter`] model marker
+//!    manufacturing: each marker's diameter / reference position is perturbed once and
+//!    stays so in every frame (the ground truth reports the perturbed positions).
+//! 2. **Scene** (per frame, before rasterisation): [`Effect::Shift`] (a rigid
+//!    whole-image shift of the loaded frames, not the reference: the paper's Table I
+//!    test), [`Effect::Drift`] (an image offset growing frame by frame) move every disc
+//!    by a sub-pixel offset, so centroids move by exactly the offset; [`Effect::Blur`]
+//!    (depth defocus) rasterises each layer to a coverage map, blurs it with the
+//!    layer's Gaussian σ and composites the layers (a layer can only be blurred before
+//!    it is composited behind the deeper ones).
+//! 3. **Image** (per frame, on the float RGB frame, in list order):
+//!    [`Effect::Illumination`], [`Effect::Vignetting`], [`Effect::ShotNoise`],
+//!    [`Effect::PixelNoise`], [`Effect::Quantize8`].
+//!
+//! Because of this, build and scene effects must be listed before image effects
+//! ([`Pipeline::new`] rejects other orders rather than silently reordering).
+//!
+//! Frame indices: the reference (unloaded) frame is index 0, loaded frames 1, 2, ….
+//! Random image effects draw frame `k` from stream `k` of their seed, so each frame is
+//! reproducible alone and the reference and the loaded frames get independent noise.
+
+use image::Rgb32FImage;
+use thiserror::Error;
+
+use super::render::{disc_coverage_visit, fill, Marker, RenderError, Renderer};
+use super::rng::Rng;
+
+/// An invalid effect parameter.
+#[derive(Debug, Error, PartialEq)]
+pub enum EffectError {
+    /// A parameter is out of range.
+    #[error("effects[{index}] ({kind}): {key} = {value} is invalid: {allowed}")]
+    Invalid {
+        /// Position in the effect list.
+        index: usize,
+        /// Effect kind.
+        kind: &'static str,
+        /// The parameter.
+        key: &'static str,
+        /// The value as given.
+        value: String,
+        /// What is allowed, with units.
+        allowed: String,
+    },
+    /// An effect acting before rasterisation is listed after an image effect.
+    #[error(
+        "effects[{index}] ({kind}) acts on the markers before rasterisation and must be listed \
+         before the image effect effects[{image_index}] ({image_kind})"
+    )]
+    Order {
+        /// Position of the misplaced effect.
+        index: usize,
+        /// Its kind.
+        kind: &'static str,
+        /// Position of the earlier image effect.
+        image_index: usize,
+        /// Its kind.
+        image_kind: &'static str,
+    },
+}
+
+/// One effect with its parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Effect {
+    /// Additive Gaussian pixel noise, σ in 8-bit levels (σ/255 in float), independent
+    /// per pixel and channel.
+    PixelNoise {
+        /// Standard deviation in 8-bit levels (≥ 0).
+        sigma_8bit: f64,
+        /// Seed.
+        seed: u64,
+    },
+    /// Photon shot noise: a value `v` becomes `Poisson(v N) / N` with `N` the photons
+    /// collected at full scale (v = 1), per pixel and channel.
+    ShotNoise {
+        /// Photons (electrons) at full scale, > 0.
+        full_scale_photons: f64,
+        /// Seed.
+        seed: u64,
+    },
+    /// Rounding to 8-bit code values: `round(255 clamp(v, 0, 1)) / 255`.
+    Quantize8,
+    /// Depth defocus: each layer's coverage blurred by a Gaussian of σ px (0 = sharp).
+    Blur {
+        /// σ in px per layer index of the sensor.
+        sigma_px: Vec<f64>,
+    },
+    /// Linear illumination gradient: gain `1 + g_x (x/(W−1) − ½) + g_y (y/(H−1) − ½)`
+    /// on pixel centres (`g` is the relative gain change across the whole image).
+    Illumination {
+        /// `[g_x, g_y]`, with `|g_x| + |g_y| ≤ 2` so the gain stays ≥ 0.
+        gradient: [f64; 2],
+    },
+    /// Radial fall-off: gain `1 − strength (ρ/ρ_max)²`, `ρ` the distance from the
+    /// centre, `ρ_max` that of the farthest image corner.
+    Vignetting {
+        /// Relative loss at the farthest corner, in [0, 1].
+        strength: f64,
+        /// Optical centre in px (default: the image centre).
+        center_px: Option<[f64; 2]>,
+    },
+    /// Marker diameters perturbed once: `d + N(0, σ)`, clamped at 0.
+    SizeJitter {
+        /// σ in mm.
+        sigma_mm: f64,
+        /// Seed.
+        seed: u64,
+    },
+    /// Marker reference positions perturbed once by `N(0, σ)` per axis.
+    PlacementJitter {
+        /// σ in mm.
+        sigma_mm: f64,
+        /// Seed.
+        seed: u64,
+    },
+    /// Rigid image shift of the loaded frames (frame index ≥ 1), px.
+    Shift {
+        /// `[dx, dy]` in px.
+        shift_px: [f64; 2],
+    },
+    /// Image offset at frame `k`: `k · px_per_frame + Σ_{i=1..k} N(0, σ_walk)` per axis.
+    Drift {
+        /// Deterministic drift per frame, px.
+        px_per_frame: [f64; 2],
+        /// Random-walk step σ per frame, px (0 = none).
+        random_walk_px: f64,
+        /// Seed (used only when `random_walk_px > 0`).
+        seed: u64,
+    },
+}
+
+/// Stage of an effect (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Stage {
+    /// Once per scene, on the reference markers.
+    Build,
+    /// Per frame, before or during rasterisation.
+    Scene,
+    /// Per frame, on the float image.
+    Image,
+}
+
+impl Effect {
+    /// The kind name used in scene files.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Effect::PixelNoise { .. } => "pixel_noise",
+            Effect::ShotNoise { .. } => "shot_noise",
+            Effect::Quantize8 => "quantize8",
+            Effect::Blur { .. } => "blur",
+            Effect::Illumination { .. } => "illumination",
+            Effect::Vignetting { .. } => "vignetting",
+            Effect::SizeJitter { .. } => "size_jitter",
+            Effect::PlacementJitter { .. } => "placement_jitter",
+            Effect::Shift { .. } => "shift",
+            Effect::Drift { .. } => "drift",
+        }
+    }
+
+    /// Where in the frame pipeline the effect acts.
+    pub fn stage(&self) -> Stage {
+        match self {
+            Effect::SizeJitter { .. } | Effect::PlacementJitter { .. } => Stage::Build,
+            Effect::Shift { .. } | Effect::Drift { .. } | Effect::Blur { .. } => Stage::Scene,
+            _ => Stage::Image,
+        }
+    }
+
+    fn check(&self, index: usize) -> Result<(), EffectError> {
+        let bad = |key: &'static str, value: String, allowed: &str| EffectError::Invalid {
+            index,
+            kind: self.kind(),
+            key,
+            value,
+            allowed: allowed.to_string(),
+        };
+        let nonneg = |key, v: f64, unit: &str| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(bad(
+                    key,
+                    v.to_string(),
+                    &format!("must be a finite number >= 0 {unit}"),
+                ))
+            }
+        };
+        let finite2 = |key, v: [f64; 2], unit: &str| {
+            if v[0].is_finite() && v[1].is_finite() {
+                Ok(())
+            } else {
+                Err(bad(
+                    key,
+                    format!("{v:?}"),
+                    &format!("must be two finite numbers ({unit})"),
+                ))
+            }
+        };
+        match self {
+            Effect::PixelNoise { sigma_8bit, .. } => {
+                nonneg("sigma_8bit", *sigma_8bit, "(8-bit levels)")
+            }
+            Effect::ShotNoise {
+                full_scale_photons, ..
+            } => {
+                if full_scale_photons.is_finite() && *full_scale_photons > 0.0 {
+                    Ok(())
+                } else {
+                    Err(bad(
+                        "full_scale_photons",
+                        full_scale_photons.to_string(),
+                        "must be a finite number > 0 (photons at full scale)",
+                    ))
+                }
+            }
+            Effect::Quantize8 => Ok(()),
+            Effect::Blur { sigma_px } => {
+                for &s in sigma_px {
+                    nonneg("sigma_px", s, "px")?;
+                }
+                Ok(())
+            }
+            Effect::Illumination { gradient } => {
+                finite2(
+                    "gradient",
+                    *gradient,
+                    "relative gain change across the image",
+                )?;
+                if gradient[0].abs() + gradient[1].abs() <= 2.0 {
+                    Ok(())
+                } else {
+                    Err(bad(
+                        "gradient",
+                        format!("{gradient:?}"),
+                        "needs |g_x| + |g_y| <= 2 (gain >= 0)",
+                    ))
+                }
+            }
+            Effect::Vignetting {
+                strength,
+                center_px,
+            } => {
+                if !(strength.is_finite() && (0.0..=1.0).contains(strength)) {
+                    return Err(bad(
+                        "strength",
+                        strength.to_string(),
+                        "must be in [0, 1] (relative loss at the corner)",
+                    ));
+                }
+                match center_px {
+                    Some(c) => finite2("center_px", *c, "px"),
+                    None => Ok(()),
+                }
+            }
+            Effect::SizeJitter { sigma_mm, .. } | Effect::PlacementJitter { sigma_mm, .. } => {
+                nonneg("sigma_mm", *sigma_mm, "mm")
+            }
+            Effect::Shift { shift_px } => finite2("shift_px", *shift_px, "px"),
+            Effect::Drift {
+                px_per_frame,
+                random_walk_px,
+                ..
+            } => {
+                finite2("px_per_frame", *px_per_frame, "px per frame")?;
+                nonneg("random_walk_px", *random_walk_px, "px")
+            }
+        }
+    }
+}
+
+/// A validated, ordered list of effects, and the frame pipeline that applies them.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Pipeline {
+    effects: Vec<Effect>,
+}
+
+/// Reusable buffers of the blur path.
+#[derive(Debug, Default)]
+pub struct Scratch {
+    coverage: Vec<f32>,
+    tmp: Vec<f32>,
+    moved: Vec<Marker>,
+}
+
+impl Pipeline {
+    /// Checks every parameter and the stage order (build and scene effects before image
+    /// effects). `layers` is the sensor's layer count (for blur's per-layer σ).
+    pub fn new(effects: Vec<Effect>, layers: usize) -> Result<Self, EffectError> {
+        let mut first_image: Option<(usize, &'static str)> = None;
+        for (i, e) in effects.iter().enumerate() {
+            e.check(i)?;
+            if let Effect::Blur { sigma_px } = e {
+                if sigma_px.len() != layers {
+                    return Err(EffectError::Invalid {
+                        index: i,
+                        kind: "blur",
+                        key: "sigma_px",
+                        value: format!("{} values", sigma_px.len()),
+                        allowed: format!("needs one σ per sensor layer ({layers})"),
+                    });
+                }
+            }
+            match (e.stage(), first_image) {
+                (Stage::Image, None) => first_image = Some((i, e.kind())),
+                (Stage::Build | Stage::Scene, Some((image_index, image_kind))) => {
+                    return Err(EffectError::Order {
+                        index: i,
+                        kind: e.kind(),
+                        image_index,
+                        image_kind,
+                    })
+                }
+                _ => {}
+            }
+        }
+        Ok(Pipeline { effects })
+    }
+
+    /// No effects: the ideal render.
+    pub fn ideal() -> Self {
+        Pipeline::default()
+    }
+
+    /// The effects, in order.
+    pub fn effects(&self) -> &[Effect] {
+        &self.effects
+    }
+
+    /// True when the list contains [`Effect::Quantize8`] (frames are then written as
+    /// 8-bit PNG).
+    pub fn quantizes_to_8bit(&self) -> bool {
+        self.effects.iter().any(|e| matches!(e, Effect::Quantize8))
+    }
+
+    /// Applies the build-stage effects (size and placement jitter) to the reference
+    /// markers, in list order. Marker `k` always receives draw `k` of the effect's
+    /// seed, so the perturbation of a marker does not depend on the other effects.
+    pub fn build_markers(&self, markers: &mut [Marker]) {
+        for e in &self.effects {
+            match *e {
+                Effect::SizeJitter { sigma_mm, seed } => {
+                    let mut rng = Rng::new(seed);
+                    for m in markers.iter_mut() {
+                        m.diameter_mm = (m.diameter_mm + sigma_mm * rng.normal()).max(0.0);
+                    }
+                }
+                Effect::PlacementJitter { sigma_mm, seed } => {
+                    let mut rng = Rng::new(seed);
+                    for m in markers.iter_mut() {
+                        m.position_mm[0] += sigma_mm * rng.normal();
+                        m.position_mm[1] += sigma_mm * rng.normal();
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// The whole-image offset in px of frame `frame` (0 = reference) from the shift and
+    /// drift effects.
+    pub fn image_offset_px(&self, frame: u64) -> [f64; 2] {
+        let mut off = [0.0, 0.0];
+        for e in &self.effects {
+            match *e {
+                Effect::Shift { shift_px } if frame > 0 => {
+                    off[0] += shift_px[0];
+                    off[1] += shift_px[1];
+                }
+                Effect::Drift {
+                    px_per_frame,
+                    random_walk_px,
+                    seed,
+                } => {
+                    let k = frame as f64;
+                    off[0] += k * px_per_frame[0];
+                    off[1] += k * px_per_frame[1];
+                    if random_walk_px > 0.0 {
+                        let mut rng = Rng::new(seed);
+                        for _ in 0..frame {
+                            off[0] += random_walk_px * rng.normal();
+                            off[1] += random_walk_px * rng.normal();
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        off
+    }
+
+    /// Renders frame `frame` (0 = reference) of `markers` (already built, i.e. after
+    /// [`Pipeline::build_markers`], and displaced) into `out`: image offset, ideal or
+    /// blurred rasterisation, then the image effects in list order.
+    pub fn render_frame(
+        &self,
+        renderer: &Renderer,
+        markers: &[Marker],
+        frame: u64,
+        out: &mut Rgb32FImage,
+        scratch: &mut Scratch,
+    ) -> Result<(), RenderError> {
+        let off = self.image_offset_px(frame);
+        let mm = renderer.camera().mm_per_px;
+        let src: &[Marker] = if off == [0.0, 0.0] {
+            markers
+        } else {
+            scratch.moved.clear();
+            scratch.moved.extend(markers.iter().map(|m| Marker {
+                position_mm: [
+                    m.position_mm[0] + off[0] * mm,
+                    m.position_mm[1] + off[1] * mm,
+                ],
+                ..*m
+            }));
+            &scratch.moved
+        };
+        let blur = self.effects.iter().find_map(|e| match e {
+            Effect::Blur { sigma_px } => Some(sigma_px),
+            _ => None,
+        });
+        match blur {
+            None => renderer.render_into(src, out)?,
+            Some(sigma_px) => {
+                // Temporarily take the moved list out so the scratch buffers can be
+                // borrowed mutably alongside it.
+                let moved = std::mem::take(&mut scratch.moved);
+                let src: &[Marker] = if off == [0.0, 0.0] { markers } else { &moved };
+                let r = render_blurred(renderer, src, sigma_px, out, scratch);
+                scratch.moved = moved;
+                r?
+            }
+        }
+        for e in &self.effects {
+            apply_image_effect(e, out, frame);
+        }
+        Ok(())
+    }
+}
+
+/// Rasterises each layer to a padded coverage map, blurs it with the layer's σ and
+/// composites the layers shallowest first.
+fn render_blurred(
+    renderer: &Renderer,
+    markers: &[Marker],
+    sigma_px: &[f64],
+    out: &mut Rgb32FImage,
+    scratch: &mut Scratch,
+) -> Result<(), RenderError> {
+    // Validate through the ideal path's checks (cheap) before writing anything.
+    renderer.render_into(&[], out)?;
+    for (index, m) in markers.iter().enumerate() {
+        if m.layer >= sigma_px.len() {
+            return Err(RenderError::UnknownLayer {
+                index,
+                layer: m.layer,
+                layers: sigma_px.len(),
+            });
+        }
+    }
+    let cam = *renderer.camera();
+    let (w, h) = (cam.width_px as usize, cam.height_px as usize);
+    fill(out, renderer.palette().background);
+    for &layer in renderer.draw_order() {
+        let sigma = sigma_px[layer];
+        // Margin so discs just outside the frame blur into it.
+        let m = (4.0 * sigma).ceil() as usize;
+        let (pw, ph) = (w + 2 * m, h + 2 * m);
+        scratch.coverage.clear();
+        scratch.coverage.resize(pw * ph, 0.0);
+        for mk in markers.iter().filter(|mk| mk.layer == layer) {
+            let c = cam.mm_to_px(mk.position_mm);
+            let r = 0.5 * mk.diameter_mm / cam.mm_per_px;
+            let cov = &mut scratch.coverage;
+            disc_coverage_visit(
+                pw as u32,
+                ph as u32,
+                [c[0] + m as f64, c[1] + m as f64],
+                r,
+                |i, j, a| {
+                    let v = &mut cov[j * pw + i];
+                    *v = (*v + a).min(1.0);
+                },
+            );
+        }
+        if sigma > 0.0 {
+            gaussian_blur(&mut scratch.coverage, &mut scratch.tmp, pw, ph, sigma);
+        }
+        let color = renderer.layer_color(layer);
+        let data: &mut [f32] = out.as_mut();
+        for j in 0..h {
+            let row = &scratch.coverage[(j + m) * pw + m..(j + m) * pw + m + w];
+            for (i, &a) in row.iter().enumerate() {
+                if a > 0.0 {
+                    let p = &mut data[3 * (j * w + i)..3 * (j * w + i) + 3];
+                    for ch in 0..3 {
+                        p[ch] += a * (color[ch] - p[ch]);
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Separable Gaussian blur of a `w × h` map, kernel truncated at ±4σ and normalised,
+/// zero outside the map.
+fn gaussian_blur(map: &mut [f32], tmp: &mut Vec<f32>, w: usize, h: usize, sigma: f64) {
+    let rad = (4.0 * sigma).ceil() as isize;
+    let mut k: Vec<f32> = (-rad..=rad)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
+    let sum: f32 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= sum);
+    tmp.clear();
+    tmp.resize(w * h, 0.0);
+    // Horizontal pass: map -> tmp.
+    for j in 0..h {
+        let row = &map[j * w..(j + 1) * w];
+        let trow = &mut tmp[j * w..(j + 1) * w];
+        for (i, &v) in row.iter().enumerate() {
+            if v == 0.0 {
+                continue;
+            }
+            for (t, &kv) in k.iter().enumerate() {
+                let ii = i as isize + t as isize - rad;
+                if ii >= 0 && (ii as usize) < w {
+                    trow[ii as usize] += v * kv;
+                }
+            }
+        }
+    }
+    // Vertical pass: tmp -> map.
+    map.fill(0.0);
+    for j in 0..h {
+        for (t, &kv) in k.iter().enumerate() {
+            let jj = j as isize + t as isize - rad;
+            if jj < 0 || jj as usize >= h {
+                continue;
+            }
+            let (src, dst) = (j * w, jj as usize * w);
+            for i in 0..w {
+                map[dst + i] += tmp[src + i] * kv;
+            }
+        }
+    }
+}
+
+/// Applies one image-stage effect to frame `frame` (other stages: no-op).
+pub fn apply_image_effect(e: &Effect, out: &mut Rgb32FImage, frame: u64) {
+    let (w, h) = out.dimensions();
+    match *e {
+        Effect::PixelNoise { sigma_8bit, seed } => {
+            let s = (sigma_8bit / 255.0) as f32;
+            let mut rng = Rng::stream(seed, frame);
+            for v in out.as_mut().iter_mut() {
+                *v += s * rng.normal() as f32;
+            }
+        }
+        Effect::ShotNoise {
+            full_scale_photons,
+            seed,
+        } => {
+            let mut rng = Rng::stream(seed, frame);
+            for v in out.as_mut().iter_mut() {
+                let lambda = (*v as f64).max(0.0) * full_scale_photons;
+                *v = (rng.poisson(lambda) / full_scale_photons) as f32;
+            }
+        }
+        Effect::Quantize8 => {
+            for v in out.as_mut().iter_mut() {
+                *v = (v.clamp(0.0, 1.0) * 255.0).round() / 255.0;
+            }
+        }
+        Effect::Illumination { gradient } => {
+            let sx = if w > 1 { 1.0 / (w - 1) as f64 } else { 0.0 };
+            let sy = if h > 1 { 1.0 / (h - 1) as f64 } else { 0.0 };
+            for (i, j, p) in out.enumerate_pixels_mut() {
+                let g =
+                    1.0 + gradient[0] * (i as f64 * sx - 0.5) + gradient[1] * (j as f64 * sy - 0.5);
+                p.0.iter_mut().for_each(|v| *v *= g as f32);
+            }
+        }
+        Effect::Vignetting {
+            strength,
+            center_px,
+        } => {
+            let c = center_px.unwrap_or([(w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0]);
+            let corners = [
+                [0.0, 0.0],
+                [w as f64 - 1.0, 0.0],
+                [0.0, h as f64 - 1.0],
+                [w as f64 - 1.0, h as f64 - 1.0],
+            ];
+            let rho2_max = corners
+                .iter()
+                .map(|q| (q[0] - c[0]).powi(2) + (q[1] - c[1]).powi(2))
+                .fold(0.0f64, f64::max)
+                .max(f64::MIN_POSITIVE);
+            for (i, j, p) in out.enumerate_pixels_mut() {
+                let rho2 = (i as f64 - c[0]).powi(2) + (j as f64 - c[1]).powi(2);
+                let g = 1.0 - strength * rho2 / rho2_max;
+                p.0.iter_mut().for_each(|v| *v *= g as f32);
+            }
+        }
+        _ => {}
+    }
+}
