@@ -582,3 +582,96 @@ fn blank_reference_is_an_error_naming_the_layers() {
     let e = detect(&FrameView::rgb8(&img), &s, &DetectConfig::default()).unwrap_err();
     assert!(e.to_string().contains("blue (blue), red (red)"), "{e}");
 }
+
+// ---- command line -------------------------------------------------------------------
+
+#[test]
+fn track_command_writes_displacement_csv_readable_by_reconstruct() {
+    let s = paper_sensor();
+    let dir = tempfile::tempdir().unwrap();
+    let sensor_path = dir.path().join("sensor.toml");
+    std::fs::write(&sensor_path, s.to_toml_string()).unwrap();
+    let reference = dir.path().join("ref.png");
+    paper_scene(&s, Edge::Gaussian(1.0), |_, _| [0.0, 0.0])
+        .rgb8(2.0, 90)
+        .save(&reference)
+        .unwrap();
+    let shifted = dir.path().join("shift.bmp");
+    let mut scene = paper_scene(&s, Edge::Gaussian(1.0), |_, _| [3.0, 0.0]);
+    scene.discs.remove(5); // blue id 5 lost
+    scene.rgb8(2.0, 91).save(&shifted).unwrap();
+    let jpeg = dir.path().join("shift.jpg");
+    paper_scene(&s, Edge::Gaussian(1.0), |_, _| [3.0, 0.0])
+        .rgb8(2.0, 92)
+        .save(&jpeg)
+        .unwrap();
+    let out = dir.path().join("d.csv");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
+        .arg("track")
+        .arg("--sensor")
+        .arg(&sensor_path)
+        .arg("--reference")
+        .arg(&reference)
+        .arg(&shifted)
+        .arg(&jpeg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(stderr.contains("1 lost"), "{stderr}");
+
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(text.starts_with(
+        "layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,status\n"
+    ));
+    let frames = tactbench::formats::read_displacements(&out, &s).unwrap();
+    assert_eq!(frames.len(), 2);
+    assert_eq!(frames[0].frame, shifted.to_string_lossy());
+    assert_eq!(frames[0].lost(), vec![(0, 5)]);
+    for f in &frames {
+        assert_eq!(f.records.len(), 260);
+        let u = f.u_mm();
+        let n = u.len() / 2;
+        let mean_ux = u.iter().step_by(2).sum::<f64>() / n as f64;
+        // 3 px × 0.05 mm/px (JPEG compression included): 0.15 ± 0.002 mm.
+        assert!((mean_ux - 0.15).abs() < 0.002, "{}: {mean_ux}", f.frame);
+    }
+    // The lost marker's row: empty displacements, reference centroid kept, status lost.
+    let row = text
+        .lines()
+        .find(|l| l.starts_with("blue,5,") && l.contains("shift.bmp"))
+        .unwrap();
+    let cols: Vec<&str> = row.split(',').collect();
+    assert_eq!((cols[4], cols[5], cols[9], cols[10], cols[11]), ("", "", "", "", "lost"));
+    assert!((cols[7].parse::<f64>().unwrap() - 175.0).abs() < 0.1);
+}
+
+#[test]
+fn track_command_rejects_a_grayscale_frame_naming_it() {
+    let s = paper_sensor();
+    let dir = tempfile::tempdir().unwrap();
+    let sensor_path = dir.path().join("sensor.toml");
+    std::fs::write(&sensor_path, s.to_toml_string()).unwrap();
+    let reference = dir.path().join("ref.png");
+    paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0])
+        .rgb8(2.0, 93)
+        .save(&reference)
+        .unwrap();
+    let gray = dir.path().join("gray-frame.png");
+    image::GrayImage::new(430, 340).save(&gray).unwrap();
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
+        .args(["track", "--sensor"])
+        .arg(&sensor_path)
+        .arg("--reference")
+        .arg(&reference)
+        .arg(&gray)
+        .arg("--out")
+        .arg(dir.path().join("d.csv"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success());
+    assert!(stderr.contains("gray-frame.png") && stderr.contains("grayscale"), "{stderr}");
+}

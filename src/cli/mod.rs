@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 mod model;
 mod reconstruct;
+mod track;
 
 /// tactbench: test bench controller for vision-based tactile sensors.
 ///
@@ -24,6 +25,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     Reconstruct(reconstruct::Args),
+    Track(track::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
 }
@@ -33,6 +35,7 @@ pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
+        Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),
     };
     match result {
