@@ -15,7 +15,7 @@
 //! within `match_tolerance` pitches of it (the nearer of two claimants wins).
 
 use super::image::FrameView;
-use super::window::{channels, Located, Raw, Sample, Window};
+use super::window::{score, with_channel, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Sensor};
 
@@ -70,6 +70,13 @@ pub struct ReferenceMarker {
     pub signal: f64,
     /// Largest colour score in the aperture, above the layer's background score.
     pub peak: f64,
+    /// Background score of the window (the ring's plane fit at the centre).
+    pub background: f64,
+    /// Background plane slope, score per px. A frame whose ring plane differs from
+    /// the reference's by more than 5 % of `peak` (level change + slope change × ring
+    /// radius) is re-measured with the clamped score: another layer's marker is in the
+    /// window.
+    pub background_slope: [f64; 2],
 }
 
 /// A grid node with no marker found near it.
@@ -143,6 +150,8 @@ struct Blob {
     centroid_px: [f64; 2],
     signal: f64,
     peak: f64,
+    background: f64,
+    slope: [f64; 2],
 }
 
 struct LayerBlobs {
@@ -167,8 +176,8 @@ pub fn detect(
     let mm_per_px = sensor.camera.mm_per_px;
     for (li, layer) in sensor.layers.iter().enumerate() {
         let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
-        let ch = channels(layer.color);
-        let found = with_raw!(view, img => detect_layer(img, ch, expected_r, config));
+        let found = with_raw!(view, img => with_channel!(layer.color, CI =>
+            detect_layer::<_, _, CI>(img, expected_r, config)));
         layers.push(LayerReference {
             name: layer.name.clone(),
             color: layer.color,
@@ -184,6 +193,8 @@ pub fn detect(
             position_mm: sensor.camera.px_to_mm(b.centroid_px),
             signal: b.signal,
             peak: b.peak,
+            background: b.background,
+            background_slope: b.slope,
         };
         match &layer.markers {
             Some(m) => {
@@ -267,9 +278,8 @@ fn kth(v: &mut [i32], k: usize) -> i32 {
     *v.select_nth_unstable(k).1
 }
 
-fn detect_layer<T: Sample, const C: usize>(
+fn detect_layer<T: Sample, const C: usize, const CI: usize>(
     img: Raw<'_, T, C>,
-    ch: [usize; 3],
     expected_radius_px: Option<f64>,
     config: &DetectConfig,
 ) -> LayerBlobs {
@@ -277,7 +287,7 @@ fn detect_layer<T: Sample, const C: usize>(
     let score: Vec<i32> = img
         .data
         .chunks_exact(C)
-        .map(|px| super::window::score(px, ch))
+        .map(score::<T, CI>)
         .collect();
     if score.is_empty() {
         return LayerBlobs {
@@ -425,13 +435,21 @@ fn detect_layer<T: Sample, const C: usize>(
 
     let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
     for s in &seeds {
-        if let Located::Found { centroid_px, m0 } = window.locate(img, ch, *s, 20) {
+        if let Located::Found {
+            centroid_px,
+            m0,
+            background,
+            slope,
+        } = window.locate::<T, C, CI>(img, *s, 20, false)
+        {
             let c = [centroid_px[0].round() as i32, centroid_px[1].round() as i32];
-            let pk = window.peak(img, ch, c[0], c[1]).unwrap_or(0);
+            let pk = window.peak::<T, C, CI>(img, c[0], c[1]).unwrap_or(0);
             blobs.push(Blob {
                 centroid_px,
                 signal: m0,
                 peak: (pk - median).max(1) as f64,
+                background,
+                slope,
             });
         }
     }

@@ -26,7 +26,7 @@
 
 use super::detect::{with_raw, Reference};
 use super::image::FrameView;
-use super::window::{channels, search, Located, Raw, Sample, Window};
+use super::window::{search, with_channel, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::CameraMapping;
@@ -131,11 +131,13 @@ const MAX_NEIGHBOURS: usize = 8;
 
 struct LayerState {
     window: Window,
-    ch: [usize; 3],
+    color: crate::sensor::MarkerColor,
     search_half: i32,
     max_jump_px: f64,
     merge_distance_px: f64,
     search_threshold_base: i32,
+    /// This layer's markers in `Reference::markers`.
+    markers: std::ops::Range<usize>,
 }
 
 /// Tracks the markers of a [`Reference`] in frames of the same size.
@@ -151,12 +153,16 @@ pub struct Tracker {
 }
 
 impl Tracker {
-    /// Prepares windows, neighbour lists and buffers for `reference`.
-    pub fn new(reference: Reference, config: TrackConfig) -> Tracker {
+    /// Prepares windows, neighbour lists and buffers for `reference`. Its markers are
+    /// kept sorted by layer, then id (as [`super::detect`] returns them): track results
+    /// are indexed like [`Tracker::reference`]'s markers.
+    pub fn new(mut reference: Reference, config: TrackConfig) -> Tracker {
+        reference.markers.sort_by_key(|m| (m.layer, m.id));
         let layers = reference
             .layers
             .iter()
-            .map(|l| {
+            .enumerate()
+            .map(|(li, l)| {
                 let spacing = if l.spacing_px.is_finite() {
                     l.spacing_px
                 } else {
@@ -168,11 +174,16 @@ impl Tracker {
                     .max(l.aperture_radius_px);
                 LayerState {
                     window: Window::new(l.aperture_radius_px),
-                    ch: channels(l.color),
+                    color: l.color,
                     search_half: search_half.round() as i32,
                     max_jump_px: search_half + l.aperture_radius_px,
                     merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
                     search_threshold_base: l.background_score.round() as i32,
+                    markers: {
+                        let m = &reference.markers;
+                        let lo = m.partition_point(|r| r.layer < li);
+                        lo..lo + m[lo..].partition_point(|r| r.layer == li)
+                    },
                 }
             })
             .collect();
@@ -299,9 +310,23 @@ impl Tracker {
     }
 
     fn measure_all<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
+        for layer in 0..self.layers.len() {
+            let color = self.layers[layer].color;
+            with_channel!(color, CI => self.measure_layer::<T, C, CI>(img, layer));
+        }
+    }
+
+    /// Measures the markers of one layer (a contiguous range: markers are sorted by layer).
+    fn measure_layer<T: Sample, const C: usize, const CI: usize>(
+        &mut self,
+        img: Raw<'_, T, C>,
+        layer: usize,
+    ) {
         let cfg = self.config;
-        for (i, r) in self.reference.markers.iter().enumerate() {
-            let ls = &self.layers[r.layer];
+        let ls = &self.layers[layer];
+        let range = ls.markers.clone();
+        for i in range {
+            let r = &self.reference.markers[i];
             let start = match cfg.mode {
                 TrackMode::PerWindow => r.centroid_px,
                 TrackMode::FrameToFrame => [
@@ -310,21 +335,46 @@ impl Tracker {
                 ],
             };
             let min_signal = cfg.min_signal_ratio * r.signal;
+            let max_jump2 = ls.max_jump_px * ls.max_jump_px;
+            let max_background_change = 0.05 * r.peak;
+            let ring_px = ls.window.ring_radius_px();
+            // Linear score first (fast); when the ring's background plane moved away
+            // from the reference's (another layer's marker entering the window), again
+            // from there with the clamped score, which ignores other colours.
+            let locate = |from: [f64; 2]| {
+                let loc = ls.window.locate::<T, C, CI>(img, from, cfg.max_iterations, false);
+                match loc {
+                    Located::Found {
+                        centroid_px,
+                        background,
+                        slope,
+                        ..
+                    } if (background - r.background).abs()
+                        + ring_px
+                            * ((slope[0] - r.background_slope[0]).abs()
+                                + (slope[1] - r.background_slope[1]).abs())
+                        > max_background_change =>
+                    {
+                        ls
+                        .window
+                            .locate::<T, C, CI>(img, centroid_px, cfg.max_iterations, true)
+                    }
+                    other => other,
+                }
+            };
             let accept = |loc: Located| match loc {
-                Located::Found { centroid_px, m0 }
-                    if m0 >= min_signal
-                        && (centroid_px[0] - start[0]).hypot(centroid_px[1] - start[1])
-                            <= ls.max_jump_px =>
+                Located::Found { centroid_px, m0, .. }
+                    if m0 >= min_signal && dist2(centroid_px, start) <= max_jump2 =>
                 {
                     Some((centroid_px, m0))
                 }
                 _ => None,
             };
-            let mut found = accept(ls.window.locate(img, ls.ch, start, cfg.max_iterations));
+            let mut found = accept(locate(start));
             if found.is_none() {
                 let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
-                if let Some(seed) = search(img, ls.ch, start, ls.search_half, threshold) {
-                    found = accept(ls.window.locate(img, ls.ch, seed, cfg.max_iterations));
+                if let Some(seed) = search::<T, C, CI>(img, start, ls.search_half, threshold) {
+                    found = accept(locate(seed));
                 }
             }
             self.out[i] = match found {
@@ -351,8 +401,7 @@ impl Tracker {
             for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
                 let b = &self.out[j as usize];
                 if b.status != MarkerStatus::Lost
-                    && (a[0] - b.centroid_px[0]).hypot(a[1] - b.centroid_px[1])
-                        < ls.merge_distance_px
+                    && dist2(a, b.centroid_px) < ls.merge_distance_px * ls.merge_distance_px
                 {
                     merged = true;
                 }
@@ -389,15 +438,21 @@ impl Tracker {
             let my = median(&mut uy[..n]);
             let mut dev = [0.0f64; MAX_NEIGHBOURS];
             for k in 0..n {
-                dev[k] = (ux[k] - mx).hypot(uy[k] - my);
+                dev[k] = dist2([ux[k], uy[k]], [mx, my]).sqrt();
             }
             let spread = median(&mut dev[..n]);
             let u = self.out[i].displacement_px;
-            if (u[0] - mx).hypot(u[1] - my) > tol + 3.0 * spread {
+            if dist2(u, [mx, my]).sqrt() > tol + 3.0 * spread {
                 self.out[i].status = MarkerStatus::Outlier;
             }
         }
     }
+}
+
+/// Squared distance, px².
+#[inline]
+fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
+    (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1])
 }
 
 /// Median of a small slice (reorders it).

@@ -58,21 +58,56 @@ impl Sample for u16 {
     }
 }
 
-/// Channel indices `[colour, other, other]` of an RGB pixel for a layer colour.
-pub(crate) fn channels(color: crate::sensor::MarkerColor) -> [usize; 3] {
+/// Channel index of a layer colour in an RGB(A) pixel.
+pub(crate) fn channel(color: crate::sensor::MarkerColor) -> usize {
     use crate::sensor::MarkerColor::*;
     match color {
-        Red => [0, 1, 2],
-        Green => [1, 0, 2],
-        Blue => [2, 0, 1],
+        Red => 0,
+        Green => 1,
+        Blue => 2,
     }
 }
 
-/// The colour score of one pixel (see the module docs).
+/// Runs `$body` with `$ci` bound to the colour's channel index as a constant, so the
+/// kernel is compiled once per colour with fixed sample offsets.
+macro_rules! with_channel {
+    ($color:expr, $ci:ident => $body:expr) => {{
+        match $crate::vision::window::channel($color) {
+            0 => {
+                const $ci: usize = 0;
+                $body
+            }
+            1 => {
+                const $ci: usize = 1;
+                $body
+            }
+            _ => {
+                const $ci: usize = 2;
+                $body
+            }
+        }
+    }};
+}
+pub(crate) use with_channel;
+
+/// The colour score of one pixel for colour channel `CI` (see the module docs):
+/// `2·I_c − I_o1 − I_o2 = 3·I_c − (R + G + B)`.
 #[inline(always)]
-pub(crate) fn score<T: Sample>(px: &[T], ch: [usize; 3]) -> i32 {
-    let c = px[ch[0]].value();
-    (2 * c - px[ch[1]].value() - px[ch[2]].value() + 2 * T::OFFSET).max(0)
+pub(crate) fn score<T: Sample, const CI: usize>(px: &[T]) -> i32 {
+    (3 * px[CI].value() - px[0].value() - px[1].value() - px[2].value() + 2 * T::OFFSET).max(0)
+}
+
+/// `(Σ s, Σ s·i)` over consecutive pixels, `i` counted from 0.
+#[inline(always)]
+fn span_sums<T: Sample, const C: usize, const CI: usize>(samples: &[T]) -> (i32, i32) {
+    let mut rs = 0i32;
+    let mut rx = 0i32;
+    for (i, px) in samples.chunks_exact(C).enumerate() {
+        let s = score::<T, CI>(px);
+        rs += s;
+        rx += s * i as i32;
+    }
+    (rs, rx)
 }
 
 /// A borrowed image as the kernel reads it.
@@ -104,6 +139,32 @@ pub(crate) struct Window {
     n_bg: f64,
     sxx_bg: f64,
     syy_bg: f64,
+    radius_px: f64,
+    /// Linear-kernel weights, `[colour channel][RGB, RGBA]`.
+    linear: [[LinearWeights; 2]; 3],
+}
+
+/// One row of the linear kernel: samples `[start, start + len)` of the row `dy`,
+/// beginning at pixel `dx = lo`; weights at `offset` in the weight arrays.
+#[derive(Debug, Clone, Copy)]
+struct LinearRow {
+    dy: i32,
+    lo: i32,
+    offset: usize,
+    len: usize,
+}
+
+/// Per-sample weights of the linear kernel for one pixel layout and colour: the score
+/// `3·I_c − (R + G + B)` times aperture / ring membership, and times `dx`. Summing
+/// `sample × weight` over whole contiguous rows is a plain integer dot product that
+/// the compiler vectorises, with no de-interleaving of the RGB samples.
+#[derive(Debug, Clone, Default)]
+struct LinearWeights {
+    rows: Vec<LinearRow>,
+    ap: Vec<i16>,
+    ap_dx: Vec<i16>,
+    ring: Vec<i16>,
+    ring_dx: Vec<i16>,
 }
 
 /// Background-corrected moments of one window.
@@ -113,13 +174,22 @@ pub(crate) struct Moments {
     pub m0: f64,
     /// Centroid offset from the window centre, px.
     pub offset: [f64; 2],
+    /// Background score at the window centre (the ring's plane fit).
+    pub background: f64,
+    /// Background plane slope, score per px.
+    pub slope: [f64; 2],
 }
 
 /// Outcome of an iterated measurement.
 #[derive(Debug, Clone, Copy)]
 pub(crate) enum Located {
-    /// Converged: sub-pixel centroid and net signal.
-    Found { centroid_px: [f64; 2], m0: f64 },
+    /// Converged: sub-pixel centroid, net signal, background score and slope.
+    Found {
+        centroid_px: [f64; 2],
+        m0: f64,
+        background: f64,
+        slope: [f64; 2],
+    },
     /// The window left the image.
     OutOfImage,
     /// No positive signal in the aperture.
@@ -150,6 +220,8 @@ impl Window {
             n_bg: 0.0,
             sxx_bg: 0.0,
             syy_bg: 0.0,
+            radius_px: ra,
+            linear: Default::default(),
         };
         for dy in -half..=half {
             let row = Row {
@@ -173,7 +245,55 @@ impl Window {
             }
             w.rows.push(row);
         }
+        for ci in 0..3 {
+            for (k, channels) in [3usize, 4].into_iter().enumerate() {
+                w.linear[ci][k] = w.linear_weights(ci, channels);
+            }
+        }
         w
+    }
+
+    fn linear_weights(&self, ci: usize, channels: usize) -> LinearWeights {
+        let mut lw = LinearWeights::default();
+        let h = self.half;
+        for (k, row) in self.rows.iter().enumerate() {
+            if row.outer < 0 {
+                continue;
+            }
+            let lo = -row.outer;
+            let offset = lw.ap.len();
+            for dx in lo..=row.outer {
+                let adx = dx.abs();
+                let in_ap = adx <= row.ap;
+                let in_ring = adx > row.inner && adx <= row.outer;
+                for c in 0..channels {
+                    let cw: i16 = if c == ci {
+                        2
+                    } else if c < 3 {
+                        -1
+                    } else {
+                        0
+                    };
+                    let (a, r) = (cw * in_ap as i16, cw * in_ring as i16);
+                    lw.ap.push(a);
+                    lw.ap_dx.push(a * dx as i16);
+                    lw.ring.push(r);
+                    lw.ring_dx.push(r * dx as i16);
+                }
+            }
+            lw.rows.push(LinearRow {
+                dy: k as i32 - h,
+                lo,
+                offset,
+                len: lw.ap.len() - offset,
+            });
+        }
+        lw
+    }
+
+    /// Mid-radius of the background ring, px.
+    pub fn ring_radius_px(&self) -> f64 {
+        self.radius_px + 2.0
     }
 
     /// Half-size of the square the window reads, px.
@@ -183,36 +303,103 @@ impl Window {
     }
 
     /// Background-corrected moments of the window centred on `(cx, cy)`, or `None` when
-    /// the window does not fit in the image.
+    /// the window does not fit in the image. `clamped` selects the clamped score
+    /// (robust to other-colour markers inside the window, scalar) instead of the
+    /// linear score (vectorised; the default).
     #[inline]
-    pub fn moments<T: Sample, const C: usize>(
+    pub fn moments<T: Sample, const C: usize, const CI: usize>(
         &self,
         img: Raw<'_, T, C>,
-        ch: [usize; 3],
         cx: i32,
         cy: i32,
+        clamped: bool,
     ) -> Option<Moments> {
         let h = self.half;
         if cx < h || cy < h || cx + h >= img.width as i32 || cy + h >= img.height as i32 {
             return None;
         }
+        let [s0, sx, sy, b0, bx, by] = if clamped {
+            self.sums_clamped::<T, C, CI>(img, cx, cy)
+        } else {
+            self.sums_linear::<T, C, CI>(img, cx, cy)
+        };
+        let a = b0 as f64 / self.n_bg;
+        let gx = bx as f64 / self.sxx_bg;
+        let gy = by as f64 / self.syy_bg;
+        let m0 = s0 as f64 - a * self.n_ap;
+        let mx = sx as f64 - gx * self.sxx_ap;
+        let my = sy as f64 - gy * self.syy_ap;
+        let offset = if m0 > 0.0 {
+            [mx / m0, my / m0]
+        } else {
+            [0.0, 0.0]
+        };
+        Some(Moments {
+            m0,
+            offset,
+            background: a,
+            slope: [gx, gy],
+        })
+    }
+
+    /// Aperture and ring sums `[Σs, Σs·dx, Σs·dy]` ×2 with the linear score
+    /// `3·I_c − (R + G + B)`, as dot products of whole rows with precomputed weights.
+    #[inline]
+    fn sums_linear<T: Sample, const C: usize, const CI: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+    ) -> [i64; 6] {
+        let lw = &self.linear[CI][(C == 4) as usize];
+        let mut t = [0i64; 6];
+        for r in &lw.rows {
+            let start = ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C;
+            let data = &img.data[start..start + r.len];
+            let w = r.offset..r.offset + r.len;
+            let (mut a0, mut a1, mut b0, mut b1) = (0i32, 0i32, 0i32, 0i32);
+            for ((((v, &wa), &wax), &wb), &wbx) in data
+                .iter()
+                .zip(&lw.ap[w.clone()])
+                .zip(&lw.ap_dx[w.clone()])
+                .zip(&lw.ring[w.clone()])
+                .zip(&lw.ring_dx[w])
+            {
+                let v = v.value();
+                a0 += v * wa as i32;
+                a1 += v * wax as i32;
+                b0 += v * wb as i32;
+                b1 += v * wbx as i32;
+            }
+            let dy = r.dy as i64;
+            t[0] += a0 as i64;
+            t[1] += a1 as i64;
+            t[2] += a0 as i64 * dy;
+            t[3] += b0 as i64;
+            t[4] += b1 as i64;
+            t[5] += b0 as i64 * dy;
+        }
+        t
+    }
+
+    /// As [`Self::sums_linear`] with the clamped score `max(0, 3·I_c − (R+G+B) + 2K)`.
+    fn sums_clamped<T: Sample, const C: usize, const CI: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+    ) -> [i64; 6] {
+        let h = self.half;
         let (mut s0, mut sx, mut sy) = (0i64, 0i64, 0i64);
         let (mut b0, mut bx, mut by) = (0i64, 0i64, 0i64);
         for (k, row) in self.rows.iter().enumerate() {
             let dy = k as i32 - h;
             let centre = (cy + dy) as usize * img.width + cx as usize;
-            // Sum of s and of s·i over the pixels [lo, hi] of this row (i from 0).
+            // Sum of s and of s·dx over the pixels dx in [lo, hi] of this row.
             let span = |lo: i32, hi: i32| -> (i32, i32) {
                 let start = (centre as isize + lo as isize) as usize * C;
                 let end = (centre as isize + hi as isize + 1) as usize * C;
-                let mut rs = 0i32;
-                let mut rx = 0i32;
-                for (i, px) in img.data[start..end].chunks_exact(C).enumerate() {
-                    let s = score(px, ch);
-                    rs += s;
-                    rx += s * i as i32;
-                }
-                // Σ s·dx with dx = lo + i.
+                let (rs, rx) = span_sums::<T, C, CI>(&img.data[start..end]);
                 (rs, rx + lo * rs)
             };
             if row.ap >= 0 {
@@ -235,31 +422,16 @@ impl Window {
                 }
             }
         }
-        let a = b0 as f64 / self.n_bg;
-        let gx = bx as f64 / self.sxx_bg;
-        let gy = by as f64 / self.syy_bg;
-        let m0 = s0 as f64 - a * self.n_ap;
-        let mx = sx as f64 - gx * self.sxx_ap;
-        let my = sy as f64 - gy * self.syy_ap;
-        if !(m0 > 0.0) {
-            return Some(Moments {
-                m0,
-                offset: [0.0, 0.0],
-            });
-        }
-        Some(Moments {
-            m0,
-            offset: [mx / m0, my / m0],
-        })
+        [s0, sx, sy, b0, bx, by]
     }
 
     /// Iterates [`Self::moments`] with re-centring from `start_px` (see module docs).
-    pub fn locate<T: Sample, const C: usize>(
+    pub fn locate<T: Sample, const C: usize, const CI: usize>(
         &self,
         img: Raw<'_, T, C>,
-        ch: [usize; 3],
         start_px: [f64; 2],
         max_iterations: u32,
+        clamped: bool,
     ) -> Located {
         if !(start_px[0].is_finite() && start_px[1].is_finite()) {
             return Located::OutOfImage;
@@ -268,7 +440,7 @@ impl Window {
         let mut prev = [i32::MIN, i32::MIN];
         let mut last = Located::NoSignal;
         for _ in 0..max_iterations.max(1) {
-            let Some(m) = self.moments(img, ch, c[0], c[1]) else {
+            let Some(m) = self.moments::<T, C, CI>(img, c[0], c[1], clamped) else {
                 return Located::OutOfImage;
             };
             if !(m.m0 > 0.0) {
@@ -278,6 +450,8 @@ impl Window {
             last = Located::Found {
                 centroid_px: est,
                 m0: m.m0,
+                background: m.background,
+                slope: m.slope,
             };
             let next = [est[0].round() as i32, est[1].round() as i32];
             // Converged, or a two-cycle between neighbouring pixels (centroid on a
@@ -292,10 +466,9 @@ impl Window {
     }
 
     /// Largest colour score inside the aperture centred on `(cx, cy)`.
-    pub fn peak<T: Sample, const C: usize>(
+    pub fn peak<T: Sample, const C: usize, const CI: usize>(
         &self,
         img: Raw<'_, T, C>,
-        ch: [usize; 3],
         cx: i32,
         cy: i32,
     ) -> Option<i32> {
@@ -312,7 +485,7 @@ impl Window {
             let start = (y * img.width + (cx - row.ap) as usize) * C;
             let end = (y * img.width + (cx + row.ap) as usize + 1) * C;
             for px in img.data[start..end].chunks_exact(C) {
-                best = best.max(score(px, ch));
+                best = best.max(score::<T, CI>(px));
             }
         }
         Some(best)
@@ -322,9 +495,8 @@ impl Window {
 /// The paper's window search: centre of mass of `max(0, s − threshold)` over the square
 /// of half-size `half_px` around `centre_px` (clipped to the image). Used to acquire a
 /// marker that the aperture does not see. `None` when nothing exceeds the threshold.
-pub(crate) fn search<T: Sample, const C: usize>(
+pub(crate) fn search<T: Sample, const C: usize, const CI: usize>(
     img: Raw<'_, T, C>,
-    ch: [usize; 3],
     centre_px: [f64; 2],
     half_px: i32,
     threshold: i32,
@@ -349,7 +521,7 @@ pub(crate) fn search<T: Sample, const C: usize>(
         let mut rs = 0i64;
         let mut rx = 0i64;
         for (i, px) in img.data[start..end].chunks_exact(C).enumerate() {
-            let s = (score(px, ch) - threshold).max(0) as i64;
+            let s = (score::<T, CI>(px) - threshold).max(0) as i64;
             rs += s;
             rx += s * i as i64;
         }
@@ -419,12 +591,14 @@ mod tests {
                 height: ht,
             };
             let w = Window::new(8.0);
-            match w.locate(img, [2, 0, 1], [c[0] + 2.6, c[1] - 2.2], 10) {
+            for clamped in [false, true] {
+            match w.locate::<u16, 3, 2>(img, [c[0] + 2.6, c[1] - 2.2], 10, clamped) {
                 Located::Found { centroid_px, .. } => {
                     assert!((centroid_px[0] - c[0]).abs() < 0.01, "{centroid_px:?} vs {c:?}");
                     assert!((centroid_px[1] - c[1]).abs() < 0.01, "{centroid_px:?} vs {c:?}");
                 }
                 other => panic!("not found: {other:?}"),
+            }
             }
         }
     }
@@ -439,15 +613,15 @@ mod tests {
         };
         let w = Window::new(6.0);
         assert!(matches!(
-            w.locate(img, [2, 0, 1], [20.0, 20.0], 5),
+            w.locate::<u8, 3, 2>(img, [20.0, 20.0], 5, false),
             Located::NoSignal
         ));
         assert!(matches!(
-            w.locate(img, [2, 0, 1], [3.0, 20.0], 5),
+            w.locate::<u8, 3, 2>(img, [3.0, 20.0], 5, false),
             Located::OutOfImage
         ));
         assert!(matches!(
-            w.locate(img, [2, 0, 1], [f64::NAN, 20.0], 5),
+            w.locate::<u8, 3, 2>(img, [f64::NAN, 20.0], 5, false),
             Located::OutOfImage
         ));
     }
