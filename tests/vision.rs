@@ -59,9 +59,7 @@ fn coverage(edge: Edge, dx: f64, dy: f64, r: f64) -> f64 {
             }
             n as f64 / 4096.0
         }
-        Edge::Gaussian(s) => {
-            0.5 * (1.0 - erf((dx.hypot(dy) - r) / (std::f64::consts::SQRT_2 * s)))
-        }
+        Edge::Gaussian(s) => 0.5 * (1.0 - erf((dx.hypot(dy) - r) / (std::f64::consts::SQRT_2 * s))),
         Edge::Logistic(s) => 1.0 / (1.0 + ((dx.hypot(dy) - r) / s).exp()),
     }
 }
@@ -132,8 +130,8 @@ impl Scene {
                         self.radius_px,
                     );
                     let p = &mut img[y * w + x];
-                    for c in 0..3 {
-                        p[c] = p[c] * (1.0 - a) + d.color[c] * a;
+                    for (pc, dc) in p.iter_mut().zip(d.color) {
+                        *pc = *pc * (1.0 - a) + dc * a;
                     }
                 }
             }
@@ -147,8 +145,8 @@ impl Scene {
         let f = self.float();
         let mut out = RgbImage::new(self.width, self.height);
         for (p, v) in out.pixels_mut().zip(f) {
-            for c in 0..3 {
-                p.0[c] = (v[c] + sigma * noise.gauss()).round().clamp(0.0, 255.0) as u8;
+            for (pc, vc) in p.0.iter_mut().zip(v) {
+                *pc = (vc + sigma * noise.gauss()).round().clamp(0.0, 255.0) as u8;
             }
         }
         out
@@ -159,8 +157,8 @@ impl Scene {
         let f = self.float();
         let mut out = ImageBuffer::<Rgb<u16>, Vec<u16>>::new(self.width, self.height);
         for (p, v) in out.pixels_mut().zip(f) {
-            for c in 0..3 {
-                p.0[c] = (v[c] * 257.0).round().clamp(0.0, 65535.0) as u16;
+            for (pc, vc) in p.0.iter_mut().zip(v) {
+                *pc = (vc * 257.0).round().clamp(0.0, 65535.0) as u16;
             }
         }
         out
@@ -299,7 +297,7 @@ fn reference_reports_missing_and_unmatched_markers() {
     assert_eq!(r.missing[0].node_mm, [1.5, 1.5]);
     assert_eq!(r.unmatched.len(), 1);
     assert!((r.unmatched[0].centroid_px[0] - 70.0).abs() < 0.1);
-    assert_eq!(r.markers.len(), 259 + 0);
+    assert_eq!(r.markers.len(), 259);
 }
 
 // ---- accuracy -----------------------------------------------------------------------
@@ -366,14 +364,26 @@ fn subpixel_displacements_of_a_16_bit_ideal_render_within_0_005_px() {
         for ((m, tr), (layer, c)) in r.markers.iter().zip(tracks).zip(&truth_ref) {
             assert_eq!(tr.status, MarkerStatus::Ok);
             let u = field(*layer, *c);
-            let e0 = (m.centroid_px[0]-c[0], m.centroid_px[1]-c[1]);
-            if (tr.displacement_px[0] - u[0]).abs().max((tr.displacement_px[1] - u[1]).abs()) > 0.004 { eprintln!("{edge:?} {layer} {c:?} u {u:?} got {:?} refErr {e0:?}", tr.displacement_px); }
+            let e0 = (m.centroid_px[0] - c[0], m.centroid_px[1] - c[1]);
+            if (tr.displacement_px[0] - u[0])
+                .abs()
+                .max((tr.displacement_px[1] - u[1]).abs())
+                > 0.004
+            {
+                eprintln!(
+                    "{edge:?} {layer} {c:?} u {u:?} got {:?} refErr {e0:?}",
+                    tr.displacement_px
+                );
+            }
             worst = worst
                 .max((tr.displacement_px[0] - u[0]).abs())
                 .max((tr.displacement_px[1] - u[1]).abs());
             let _ = m;
         }
-        assert!(worst <= 0.005, "worst displacement error {worst} px ({edge:?})");
+        assert!(
+            worst <= 0.005,
+            "worst displacement error {worst} px ({edge:?})"
+        );
     }
 }
 
@@ -411,7 +421,10 @@ fn sim_ideal_render_tracked_to_0_005_px() {
             }
         }
         eprintln!("sim ideal render, {mode:?}: worst error {worst:.2e} px");
-        assert!(worst <= 0.005, "{mode:?}: worst displacement error {worst} px");
+        assert!(
+            worst <= 0.005,
+            "{mode:?}: worst displacement error {worst} px"
+        );
     }
 }
 
@@ -430,7 +443,10 @@ fn large_motion_sequence_tracked_frame_to_frame_without_losses() {
             [48.0 * k * g, -20.0 * k * g]
         }
     };
-    let r = reference_of(&paper_scene(&s, Edge::Gaussian(1.0), field(0.0)).rgb8(2.0, 40), &s);
+    let r = reference_of(
+        &paper_scene(&s, Edge::Gaussian(1.0), field(0.0)).rgb8(2.0, 40),
+        &s,
+    );
     let mut t = Tracker::new(r.clone(), config(TrackMode::FrameToFrame));
     let truth_ref = centres(&s, |_, _| [0.0, 0.0]);
     for step in 1..=8 {
@@ -470,7 +486,10 @@ fn large_motion_sequence_tracked_frame_to_frame_without_losses() {
 #[test]
 fn erased_marker_is_lost_and_others_stay_ok() {
     let s = paper_sensor();
-    let r = reference_of(&paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 50), &s);
+    let r = reference_of(
+        &paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 50),
+        &s,
+    );
     let mut scene = paper_scene(&s, Edge::Hard, |_, _| [1.5, -1.0]);
     scene.discs[130 + 7].color = [40.0, 12.0, 14.0]; // red id 7 dimmed to ~15 %
     scene.discs.remove(40); // blue id 40
@@ -482,14 +501,21 @@ fn erased_marker_is_lost_and_others_stay_ok() {
         assert!(tracks[40].displacement_px[0].is_nan());
         assert_eq!(tracks[130 + 7].status, MarkerStatus::Lost);
         let c = StatusCounts::of(tracks, 0);
-        assert_eq!((c.ok, c.lost, c.merged, c.outlier), (258, 2, 0, 0), "{mode:?}");
+        assert_eq!(
+            (c.ok, c.lost, c.merged, c.outlier),
+            (258, 2, 0, 0),
+            "{mode:?}"
+        );
     }
 }
 
 #[test]
 fn two_markers_pushed_together_are_merged() {
     let s = paper_sensor();
-    let r = reference_of(&paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 60), &s);
+    let r = reference_of(
+        &paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 60),
+        &s,
+    );
     let mut scene = paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]);
     // Blue ids 45 and 46 are 30 px apart; push both to 3 px of their midpoint.
     let (a, b) = (scene.discs[45].centre_px, scene.discs[46].centre_px);
@@ -510,7 +536,10 @@ fn two_markers_pushed_together_are_merged() {
 #[test]
 fn marker_moving_against_its_neighbours_is_an_outlier() {
     let s = paper_sensor();
-    let r = reference_of(&paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 70), &s);
+    let r = reference_of(
+        &paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 70),
+        &s,
+    );
     let mut scene = paper_scene(&s, Edge::Hard, |_, _| [1.0, 0.5]);
     scene.discs[130 + 60].centre_px[0] += 7.0; // red id 60 moves 8 px, neighbours 1 px
     let img = scene.rgb8(2.0, 71);
@@ -524,7 +553,10 @@ fn marker_moving_against_its_neighbours_is_an_outlier() {
 #[test]
 fn frame_of_another_size_is_rejected() {
     let s = paper_sensor();
-    let r = reference_of(&paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 80), &s);
+    let r = reference_of(
+        &paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 80),
+        &s,
+    );
     let mut t = Tracker::new(r, TrackConfig::default());
     let small = RgbImage::new(100, 100);
     let e = t.track(&FrameView::rgb8(&small)).unwrap_err().to_string();
@@ -561,7 +593,10 @@ fn loads_8_and_16_bit_colour_images_and_rejects_bad_ones_naming_the_file() {
     let e = load_frame(&small, &s.camera).unwrap_err();
     assert!(matches!(e, VisionError::WrongSize { .. }));
     let m = e.to_string();
-    assert!(m.contains("small.png") && m.contains("320×240") && m.contains("430×340"), "{m}");
+    assert!(
+        m.contains("small.png") && m.contains("320×240") && m.contains("430×340"),
+        "{m}"
+    );
 
     let junk = dir.path().join("junk.png");
     std::fs::write(&junk, b"not an image at all").unwrap();
@@ -623,9 +658,9 @@ fn track_command_writes_displacement_csv_readable_by_reconstruct() {
     assert!(stderr.contains("1 lost"), "{stderr}");
 
     let text = std::fs::read_to_string(&out).unwrap();
-    assert!(text.starts_with(
-        "layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,status\n"
-    ));
+    assert!(
+        text.starts_with("layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,status\n")
+    );
     let frames = tactbench::formats::read_displacements(&out, &s).unwrap();
     assert_eq!(frames.len(), 2);
     assert_eq!(frames[0].frame, shifted.to_string_lossy());
@@ -644,7 +679,10 @@ fn track_command_writes_displacement_csv_readable_by_reconstruct() {
         .find(|l| l.starts_with("blue,5,") && l.contains("shift.bmp"))
         .unwrap();
     let cols: Vec<&str> = row.split(',').collect();
-    assert_eq!((cols[4], cols[5], cols[9], cols[10], cols[11]), ("", "", "", "", "lost"));
+    assert_eq!(
+        (cols[4], cols[5], cols[9], cols[10], cols[11]),
+        ("", "", "", "", "lost")
+    );
     assert!((cols[7].parse::<f64>().unwrap() - 175.0).abs() < 0.1);
 }
 
@@ -673,5 +711,61 @@ fn track_command_rejects_a_grayscale_frame_naming_it() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success());
-    assert!(stderr.contains("gray-frame.png") && stderr.contains("grayscale"), "{stderr}");
+    assert!(
+        stderr.contains("gray-frame.png") && stderr.contains("grayscale"),
+        "{stderr}"
+    );
+}
+
+// ---- allocation-free hot path ---------------------------------------------------------
+
+/// Counts allocations made by the current thread (a pass-through to the system
+/// allocator; other tests' threads are not counted).
+struct CountingAllocator;
+
+thread_local! {
+    static ALLOCATIONS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+unsafe impl std::alloc::GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        unsafe { std::alloc::System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        unsafe { std::alloc::System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new_size: usize) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        unsafe { std::alloc::System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
+
+#[test]
+fn tracking_a_frame_allocates_nothing() {
+    let s = paper_sensor();
+    let r = reference_of(
+        &paper_scene(&s, Edge::Hard, |_, _| [0.0, 0.0]).rgb8(2.0, 100),
+        &s,
+    );
+    let mut scene = paper_scene(&s, Edge::Hard, |_, _| [3.0, 1.0]);
+    scene.discs.remove(3); // exercise the lost path (search fallback) too
+    let img = scene.rgb8(2.0, 101);
+    for mode in [TrackMode::PerWindow, TrackMode::FrameToFrame] {
+        let mut t = Tracker::new(r.clone(), config(mode));
+        let view = FrameView::rgb8(&img);
+        let before = ALLOCATIONS.with(|c| c.get());
+        let lost = t
+            .track(&view)
+            .unwrap()
+            .iter()
+            .filter(|t| t.status == MarkerStatus::Lost)
+            .count();
+        let after = ALLOCATIONS.with(|c| c.get());
+        assert_eq!(lost, 1);
+        assert_eq!(after - before, 0, "{mode:?}: track() allocated");
+    }
 }

@@ -15,7 +15,7 @@
 //! within `match_tolerance` pitches of it (the nearer of two claimants wins).
 
 use super::image::FrameView;
-use super::window::{score, with_channel, Located, Raw, Sample, Window};
+use super::window::{score, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Sensor};
 
@@ -52,6 +52,8 @@ pub struct LayerReference {
     pub spacing_px: f64,
     /// Median colour score of the image (the background's score).
     pub background_score: f64,
+    /// Channel weights of the colour score (`window::score_weights`).
+    pub score_weights: [i32; 3],
 }
 
 /// A marker found in the reference image.
@@ -124,19 +126,35 @@ macro_rules! with_raw {
         let height = $view.height_px() as usize;
         match $view.pixels() {
             Pixels::Rgb8(data) => {
-                let $img = Raw::<u8, 3> { data, width, height };
+                let $img = Raw::<u8, 3> {
+                    data,
+                    width,
+                    height,
+                };
                 $body
             }
             Pixels::Rgba8(data) => {
-                let $img = Raw::<u8, 4> { data, width, height };
+                let $img = Raw::<u8, 4> {
+                    data,
+                    width,
+                    height,
+                };
                 $body
             }
             Pixels::Rgb16(data) => {
-                let $img = Raw::<u16, 3> { data, width, height };
+                let $img = Raw::<u16, 3> {
+                    data,
+                    width,
+                    height,
+                };
                 $body
             }
             Pixels::Rgba16(data) => {
-                let $img = Raw::<u16, 4> { data, width, height };
+                let $img = Raw::<u16, 4> {
+                    data,
+                    width,
+                    height,
+                };
                 $body
             }
         }
@@ -176,8 +194,9 @@ pub fn detect(
     let mm_per_px = sensor.camera.mm_per_px;
     for (li, layer) in sensor.layers.iter().enumerate() {
         let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
-        let found = with_raw!(view, img => with_channel!(layer.color, CI =>
-            detect_layer::<_, _, CI>(img, expected_r, config)));
+        let used: Vec<MarkerColor> = sensor.layers.iter().map(|l| l.color).collect();
+        let weights = score_weights(layer.color, &used);
+        let found = with_raw!(view, img => detect_layer(img, weights, expected_r, config));
         layers.push(LayerReference {
             name: layer.name.clone(),
             color: layer.color,
@@ -185,6 +204,7 @@ pub fn detect(
             aperture_radius_px: found.aperture_radius_px,
             spacing_px: found.spacing_px,
             background_score: found.background_score,
+            score_weights: weights,
         });
         let to_marker = |b: &Blob, id: u64| ReferenceMarker {
             layer: li,
@@ -278,8 +298,9 @@ fn kth(v: &mut [i32], k: usize) -> i32 {
     *v.select_nth_unstable(k).1
 }
 
-fn detect_layer<T: Sample, const C: usize, const CI: usize>(
+fn detect_layer<T: Sample, const C: usize>(
     img: Raw<'_, T, C>,
+    weights: [i32; 3],
     expected_radius_px: Option<f64>,
     config: &DetectConfig,
 ) -> LayerBlobs {
@@ -287,7 +308,7 @@ fn detect_layer<T: Sample, const C: usize, const CI: usize>(
     let score: Vec<i32> = img
         .data
         .chunks_exact(C)
-        .map(score::<T, CI>)
+        .map(|px| score(px, &weights))
         .collect();
     if score.is_empty() {
         return LayerBlobs {
@@ -431,7 +452,7 @@ fn detect_layer<T: Sample, const C: usize, const CI: usize>(
         let cap = spacing - extent - 4.0;
         want.min(cap).max(radius_px.max(2.0))
     });
-    let window = Window::new(aperture);
+    let window = Window::new(aperture, weights);
 
     let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
     for s in &seeds {
@@ -440,10 +461,10 @@ fn detect_layer<T: Sample, const C: usize, const CI: usize>(
             m0,
             background,
             slope,
-        } = window.locate::<T, C, CI>(img, *s, 20, false)
+        } = window.locate::<T, C>(img, *s, 20, false)
         {
             let c = [centroid_px[0].round() as i32, centroid_px[1].round() as i32];
-            let pk = window.peak::<T, C, CI>(img, c[0], c[1]).unwrap_or(0);
+            let pk = window.peak::<T, C>(img, c[0], c[1]).unwrap_or(0);
             blobs.push(Blob {
                 centroid_px,
                 signal: m0,

@@ -29,7 +29,9 @@ mod output;
 mod track;
 mod window;
 
-pub use self::detect::{detect, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker, UnmatchedBlob};
+pub use self::detect::{
+    detect, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker, UnmatchedBlob,
+};
 pub use self::image::{load_frame, Frame, FrameView, Pixels};
 pub use self::output::{write_tracks, write_tracks_to, TRACK_EXTRA_COLUMNS};
 pub use self::track::{MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker};

@@ -26,7 +26,7 @@
 
 use super::detect::{with_raw, Reference};
 use super::image::FrameView;
-use super::window::{search, with_channel, Located, Raw, Sample, Window};
+use super::window::{search, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::CameraMapping;
@@ -131,7 +131,7 @@ const MAX_NEIGHBOURS: usize = 8;
 
 struct LayerState {
     window: Window,
-    color: crate::sensor::MarkerColor,
+    weights: [i32; 3],
     search_half: i32,
     max_jump_px: f64,
     merge_distance_px: f64,
@@ -173,8 +173,8 @@ impl Tracker {
                     .unwrap_or(0.5 * spacing)
                     .max(l.aperture_radius_px);
                 LayerState {
-                    window: Window::new(l.aperture_radius_px),
-                    color: l.color,
+                    window: Window::new(l.aperture_radius_px, l.score_weights),
+                    weights: l.score_weights,
                     search_half: search_half.round() as i32,
                     max_jump_px: search_half + l.aperture_radius_px,
                     merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
@@ -311,17 +311,12 @@ impl Tracker {
 
     fn measure_all<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
         for layer in 0..self.layers.len() {
-            let color = self.layers[layer].color;
-            with_channel!(color, CI => self.measure_layer::<T, C, CI>(img, layer));
+            self.measure_layer::<T, C>(img, layer);
         }
     }
 
     /// Measures the markers of one layer (a contiguous range: markers are sorted by layer).
-    fn measure_layer<T: Sample, const C: usize, const CI: usize>(
-        &mut self,
-        img: Raw<'_, T, C>,
-        layer: usize,
-    ) {
+    fn measure_layer<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>, layer: usize) {
         let cfg = self.config;
         let ls = &self.layers[layer];
         let range = ls.markers.clone();
@@ -342,7 +337,9 @@ impl Tracker {
             // from the reference's (another layer's marker entering the window), again
             // from there with the clamped score, which ignores other colours.
             let locate = |from: [f64; 2]| {
-                let loc = ls.window.locate::<T, C, CI>(img, from, cfg.max_iterations, false);
+                let loc = ls
+                    .window
+                    .locate::<T, C>(img, from, cfg.max_iterations, false);
                 match loc {
                     Located::Found {
                         centroid_px,
@@ -355,17 +352,16 @@ impl Tracker {
                                 + (slope[1] - r.background_slope[1]).abs())
                         > max_background_change =>
                     {
-                        ls
-                        .window
-                            .locate::<T, C, CI>(img, centroid_px, cfg.max_iterations, true)
+                        ls.window
+                            .locate::<T, C>(img, centroid_px, cfg.max_iterations, true)
                     }
                     other => other,
                 }
             };
             let accept = |loc: Located| match loc {
-                Located::Found { centroid_px, m0, .. }
-                    if m0 >= min_signal && dist2(centroid_px, start) <= max_jump2 =>
-                {
+                Located::Found {
+                    centroid_px, m0, ..
+                } if m0 >= min_signal && dist2(centroid_px, start) <= max_jump2 => {
                     Some((centroid_px, m0))
                 }
                 _ => None,
@@ -373,7 +369,9 @@ impl Tracker {
             let mut found = accept(locate(start));
             if found.is_none() {
                 let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
-                if let Some(seed) = search::<T, C, CI>(img, start, ls.search_half, threshold) {
+                if let Some(seed) =
+                    search::<T, C>(img, &ls.weights, start, ls.search_half, threshold)
+                {
                     found = accept(locate(seed));
                 }
             }

@@ -1,18 +1,23 @@
 //! The per-marker window kernel: colour score, local background plane and
 //! background-corrected centre of mass, iterated with re-centring.
 //!
-//! **Colour score.** For a layer of colour `c` the score of a pixel is
-//! `s = max(0, 2·I_c − I_o1 − I_o2 + 2K)`, twice the colour's excess over the mean of
-//! the other two channels, lifted by a small offset `K` (8 levels of 8 bits): grey
-//! light (equal channels, including uneven grey illumination) scores the constant
-//! `2K`, which the background plane removes; a marker of the layer's colour scores its
-//! colour excess; markers of another colour are strongly negative and clip to 0, so
-//! they never look like this layer. The score is *linear* in the pixel values wherever
-//! it matters (markers of this colour, background with noise): a blend `α·marker +
-//! (1 − α)·background` at a soft or anti-aliased edge scores linearly in `α`, which
-//! keeps the centre of mass unbiased. (`I_c − max(I_o1, I_o2)` would be piecewise
-//! linear in `α` and bias sub-pixel centroids by ~0.003 px; clipping at 0 without
-//! the offset would clip the background noise.)
+//! **Colour score.** A layer of colour `c` scores a pixel by a fixed linear
+//! combination `s = w · (R, G, B)` whose weights sum to zero ([`score_weights`]):
+//! `B − G` and `R − G` for a blue+red sensor (green, used by no layer, is the
+//! reference), `2·I_c − I_o1 − I_o2` when every channel is used. Grey light, including
+//! uneven grey illumination, scores 0; another layer's markers score near 0; a marker
+//! of the layer's colour scores its colour excess. The score is *linear* in the pixel
+//! values, so a blend `α·marker + (1 − α)·background` at a soft or anti-aliased edge
+//! scores linearly in `α` and the centre of mass stays unbiased (a `max()` of channels
+//! would be piecewise linear in `α` and bias sub-pixel centroids by ~0.003 px).
+//!
+//! Two kernels compute the same moments: the *linear* one (default) sums
+//! `sample × weight` over whole rows with precomputed per-sample weights — a plain
+//! integer dot product the compiler vectorises, with no de-interleaving; the
+//! *clamped* one scores `max(0, s + 2K)` per pixel (`K` = 8 levels of 8 bits, so the
+//! background noise is not clipped) and is used by the tracker when the ring's
+//! background plane moved away from the reference's: a strongly negative foreign blob
+//! in the window then clips to background.
 //!
 //! **Window.** Centred on an integer pixel `(cx, cy)`: an aperture disc of radius
 //! `Ra` (the marker plus its soft edge), a one-pixel gap, and a background ring
@@ -34,6 +39,8 @@
 //! motion is measured with the whole marker inside a symmetric aperture and no
 //! truncation by the window edge. Everything is integer arithmetic over the raw
 //! interleaved samples: no allocation, no whole-image conversion.
+
+use crate::sensor::MarkerColor;
 
 /// Samples the kernel can read (8- and 16-bit).
 pub(crate) trait Sample: Copy {
@@ -58,52 +65,50 @@ impl Sample for u16 {
     }
 }
 
-/// Channel index of a layer colour in an RGB(A) pixel.
-pub(crate) fn channel(color: crate::sensor::MarkerColor) -> usize {
-    use crate::sensor::MarkerColor::*;
-    match color {
-        Red => 0,
-        Green => 1,
-        Blue => 2,
-    }
-}
-
-/// Runs `$body` with `$ci` bound to the colour's channel index as a constant, so the
-/// kernel is compiled once per colour with fixed sample offsets.
-macro_rules! with_channel {
-    ($color:expr, $ci:ident => $body:expr) => {{
-        match $crate::vision::window::channel($color) {
-            0 => {
-                const $ci: usize = 0;
-                $body
-            }
-            1 => {
-                const $ci: usize = 1;
-                $body
-            }
-            _ => {
-                const $ci: usize = 2;
-                $body
-            }
+/// Per-channel weights `w` of a layer's colour score `w · (R, G, B)`.
+///
+/// For colour `c`, with `U` the channels that no layer of the sensor uses:
+/// `w = |U|·e_c − Σ_{u∈U} e_u` when `U` is not empty, else `2·e_c − Σ_{o≠c} e_o`.
+/// The weights sum to zero, so grey light (and uneven grey illumination) scores 0.
+/// Subtracting an unused channel makes the other layers' markers score near 0
+/// instead of strongly negative (a blue+red sensor scores `B − G` and `R − G`): their
+/// pixels then look like background when they come near a window.
+pub(crate) fn score_weights(color: MarkerColor, used: &[MarkerColor]) -> [i32; 3] {
+    let idx = |c: MarkerColor| match c {
+        MarkerColor::Red => 0,
+        MarkerColor::Green => 1,
+        MarkerColor::Blue => 2,
+    };
+    let ci = idx(color);
+    let unused: Vec<usize> = (0..3)
+        .filter(|&k| !used.iter().any(|&u| idx(u) == k))
+        .collect();
+    let mut w = [0i32; 3];
+    if unused.is_empty() {
+        w = [-1; 3];
+        w[ci] = 2;
+    } else {
+        for &u in &unused {
+            w[u] = -1;
         }
-    }};
+        w[ci] = unused.len() as i32;
+    }
+    w
 }
-pub(crate) use with_channel;
 
-/// The colour score of one pixel for colour channel `CI` (see the module docs):
-/// `2·I_c − I_o1 − I_o2 = 3·I_c − (R + G + B)`.
+/// The clamped colour score of one pixel: `max(0, w · (R, G, B) + 2K)`.
 #[inline(always)]
-pub(crate) fn score<T: Sample, const CI: usize>(px: &[T]) -> i32 {
-    (3 * px[CI].value() - px[0].value() - px[1].value() - px[2].value() + 2 * T::OFFSET).max(0)
+pub(crate) fn score<T: Sample>(px: &[T], w: &[i32; 3]) -> i32 {
+    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + 2 * T::OFFSET).max(0)
 }
 
 /// `(Σ s, Σ s·i)` over consecutive pixels, `i` counted from 0.
 #[inline(always)]
-fn span_sums<T: Sample, const C: usize, const CI: usize>(samples: &[T]) -> (i32, i32) {
+fn span_sums<T: Sample, const C: usize>(samples: &[T], w: &[i32; 3]) -> (i32, i32) {
     let mut rs = 0i32;
     let mut rx = 0i32;
     for (i, px) in samples.chunks_exact(C).enumerate() {
-        let s = score::<T, CI>(px);
+        let s = score(px, w);
         rs += s;
         rx += s * i as i32;
     }
@@ -140,8 +145,10 @@ pub(crate) struct Window {
     sxx_bg: f64,
     syy_bg: f64,
     radius_px: f64,
-    /// Linear-kernel weights, `[colour channel][RGB, RGBA]`.
-    linear: [[LinearWeights; 2]; 3],
+    /// Colour weights of the score.
+    weights: [i32; 3],
+    /// Linear-kernel weights, `[RGB, RGBA]`.
+    linear: [LinearWeights; 2],
 }
 
 /// One row of the linear kernel: samples `[start, start + len)` of the row `dy`,
@@ -197,8 +204,9 @@ pub(crate) enum Located {
 }
 
 impl Window {
-    /// Window with aperture radius `radius_px` (gap 1 px, background ring 2 px wide).
-    pub fn new(radius_px: f64) -> Window {
+    /// Window with aperture radius `radius_px` (gap 1 px, background ring 2 px wide)
+    /// for the colour score with weights `weights` (see [`score_weights`]).
+    pub fn new(radius_px: f64, weights: [i32; 3]) -> Window {
         let ra = radius_px.max(1.0);
         let rb = ra + 1.0;
         let rc = ra + 3.0;
@@ -221,6 +229,7 @@ impl Window {
             sxx_bg: 0.0,
             syy_bg: 0.0,
             radius_px: ra,
+            weights,
             linear: Default::default(),
         };
         for dy in -half..=half {
@@ -245,15 +254,13 @@ impl Window {
             }
             w.rows.push(row);
         }
-        for ci in 0..3 {
-            for (k, channels) in [3usize, 4].into_iter().enumerate() {
-                w.linear[ci][k] = w.linear_weights(ci, channels);
-            }
+        for (k, channels) in [3usize, 4].into_iter().enumerate() {
+            w.linear[k] = w.linear_weights(channels);
         }
         w
     }
 
-    fn linear_weights(&self, ci: usize, channels: usize) -> LinearWeights {
+    fn linear_weights(&self, channels: usize) -> LinearWeights {
         let mut lw = LinearWeights::default();
         let h = self.half;
         for (k, row) in self.rows.iter().enumerate() {
@@ -267,13 +274,7 @@ impl Window {
                 let in_ap = adx <= row.ap;
                 let in_ring = adx > row.inner && adx <= row.outer;
                 for c in 0..channels {
-                    let cw: i16 = if c == ci {
-                        2
-                    } else if c < 3 {
-                        -1
-                    } else {
-                        0
-                    };
+                    let cw = if c < 3 { self.weights[c] as i16 } else { 0 };
                     let (a, r) = (cw * in_ap as i16, cw * in_ring as i16);
                     lw.ap.push(a);
                     lw.ap_dx.push(a * dx as i16);
@@ -307,7 +308,7 @@ impl Window {
     /// (robust to other-colour markers inside the window, scalar) instead of the
     /// linear score (vectorised; the default).
     #[inline]
-    pub fn moments<T: Sample, const C: usize, const CI: usize>(
+    pub fn moments<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
         cx: i32,
@@ -319,9 +320,9 @@ impl Window {
             return None;
         }
         let [s0, sx, sy, b0, bx, by] = if clamped {
-            self.sums_clamped::<T, C, CI>(img, cx, cy)
+            self.sums_clamped::<T, C>(img, cx, cy)
         } else {
-            self.sums_linear::<T, C, CI>(img, cx, cy)
+            self.sums_linear::<T, C>(img, cx, cy)
         };
         let a = b0 as f64 / self.n_bg;
         let gx = bx as f64 / self.sxx_bg;
@@ -345,13 +346,13 @@ impl Window {
     /// Aperture and ring sums `[Σs, Σs·dx, Σs·dy]` ×2 with the linear score
     /// `3·I_c − (R + G + B)`, as dot products of whole rows with precomputed weights.
     #[inline]
-    fn sums_linear<T: Sample, const C: usize, const CI: usize>(
+    fn sums_linear<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
         cx: i32,
         cy: i32,
     ) -> [i64; 6] {
-        let lw = &self.linear[CI][(C == 4) as usize];
+        let lw = &self.linear[(C == 4) as usize];
         let mut t = [0i64; 6];
         for r in &lw.rows {
             let start = ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C;
@@ -383,7 +384,7 @@ impl Window {
     }
 
     /// As [`Self::sums_linear`] with the clamped score `max(0, 3·I_c − (R+G+B) + 2K)`.
-    fn sums_clamped<T: Sample, const C: usize, const CI: usize>(
+    fn sums_clamped<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
         cx: i32,
@@ -399,7 +400,7 @@ impl Window {
             let span = |lo: i32, hi: i32| -> (i32, i32) {
                 let start = (centre as isize + lo as isize) as usize * C;
                 let end = (centre as isize + hi as isize + 1) as usize * C;
-                let (rs, rx) = span_sums::<T, C, CI>(&img.data[start..end]);
+                let (rs, rx) = span_sums::<T, C>(&img.data[start..end], &self.weights);
                 (rs, rx + lo * rs)
             };
             if row.ap >= 0 {
@@ -426,7 +427,7 @@ impl Window {
     }
 
     /// Iterates [`Self::moments`] with re-centring from `start_px` (see module docs).
-    pub fn locate<T: Sample, const C: usize, const CI: usize>(
+    pub fn locate<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
         start_px: [f64; 2],
@@ -440,10 +441,11 @@ impl Window {
         let mut prev = [i32::MIN, i32::MIN];
         let mut last = Located::NoSignal;
         for _ in 0..max_iterations.max(1) {
-            let Some(m) = self.moments::<T, C, CI>(img, c[0], c[1], clamped) else {
+            let Some(m) = self.moments::<T, C>(img, c[0], c[1], clamped) else {
                 return Located::OutOfImage;
             };
-            if !(m.m0 > 0.0) {
+            // NaN-safe: anything but a positive signal is no signal.
+            if m.m0.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                 return Located::NoSignal;
             }
             let est = [c[0] as f64 + m.offset[0], c[1] as f64 + m.offset[1]];
@@ -466,7 +468,7 @@ impl Window {
     }
 
     /// Largest colour score inside the aperture centred on `(cx, cy)`.
-    pub fn peak<T: Sample, const C: usize, const CI: usize>(
+    pub fn peak<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
         cx: i32,
@@ -485,7 +487,7 @@ impl Window {
             let start = (y * img.width + (cx - row.ap) as usize) * C;
             let end = (y * img.width + (cx + row.ap) as usize + 1) * C;
             for px in img.data[start..end].chunks_exact(C) {
-                best = best.max(score::<T, CI>(px));
+                best = best.max(score(px, &self.weights));
             }
         }
         Some(best)
@@ -495,8 +497,9 @@ impl Window {
 /// The paper's window search: centre of mass of `max(0, s − threshold)` over the square
 /// of half-size `half_px` around `centre_px` (clipped to the image). Used to acquire a
 /// marker that the aperture does not see. `None` when nothing exceeds the threshold.
-pub(crate) fn search<T: Sample, const C: usize, const CI: usize>(
+pub(crate) fn search<T: Sample, const C: usize>(
     img: Raw<'_, T, C>,
+    weights: &[i32; 3],
     centre_px: [f64; 2],
     half_px: i32,
     threshold: i32,
@@ -521,7 +524,7 @@ pub(crate) fn search<T: Sample, const C: usize, const CI: usize>(
         let mut rs = 0i64;
         let mut rx = 0i64;
         for (i, px) in img.data[start..end].chunks_exact(C).enumerate() {
-            let s = (score::<T, CI>(px) - threshold).max(0) as i64;
+            let s = (score(px, weights) - threshold).max(0) as i64;
             rs += s;
             rx += s * i as i64;
         }
@@ -565,12 +568,16 @@ mod tests {
 
     #[test]
     fn window_regions_are_symmetric_and_disjoint() {
-        let w = Window::new(8.0);
+        let w = Window::new(8.0, [-1, -1, 2]);
         assert_eq!(w.half_px(), 11);
         assert_eq!(w.sxx_ap, w.syy_ap);
         assert_eq!(w.sxx_bg, w.syy_bg);
         // Disc area within a few pixels of π r².
-        assert!((w.n_ap - std::f64::consts::PI * 64.0).abs() < 12.0, "{}", w.n_ap);
+        assert!(
+            (w.n_ap - std::f64::consts::PI * 64.0).abs() < 12.0,
+            "{}",
+            w.n_ap
+        );
         assert!(w.n_bg > 100.0);
     }
 
@@ -590,15 +597,21 @@ mod tests {
                 width: wd,
                 height: ht,
             };
-            let w = Window::new(8.0);
+            let w = Window::new(8.0, [-1, -1, 2]);
             for clamped in [false, true] {
-            match w.locate::<u16, 3, 2>(img, [c[0] + 2.6, c[1] - 2.2], 10, clamped) {
-                Located::Found { centroid_px, .. } => {
-                    assert!((centroid_px[0] - c[0]).abs() < 0.01, "{centroid_px:?} vs {c:?}");
-                    assert!((centroid_px[1] - c[1]).abs() < 0.01, "{centroid_px:?} vs {c:?}");
+                match w.locate::<u16, 3>(img, [c[0] + 2.6, c[1] - 2.2], 10, clamped) {
+                    Located::Found { centroid_px, .. } => {
+                        assert!(
+                            (centroid_px[0] - c[0]).abs() < 0.01,
+                            "{centroid_px:?} vs {c:?}"
+                        );
+                        assert!(
+                            (centroid_px[1] - c[1]).abs() < 0.01,
+                            "{centroid_px:?} vs {c:?}"
+                        );
+                    }
+                    other => panic!("not found: {other:?}"),
                 }
-                other => panic!("not found: {other:?}"),
-            }
             }
         }
     }
@@ -611,17 +624,17 @@ mod tests {
             width: 40,
             height: 40,
         };
-        let w = Window::new(6.0);
+        let w = Window::new(6.0, [-1, -1, 2]);
         assert!(matches!(
-            w.locate::<u8, 3, 2>(img, [20.0, 20.0], 5, false),
+            w.locate::<u8, 3>(img, [20.0, 20.0], 5, false),
             Located::NoSignal
         ));
         assert!(matches!(
-            w.locate::<u8, 3, 2>(img, [3.0, 20.0], 5, false),
+            w.locate::<u8, 3>(img, [3.0, 20.0], 5, false),
             Located::OutOfImage
         ));
         assert!(matches!(
-            w.locate::<u8, 3, 2>(img, [f64::NAN, 20.0], 5, false),
+            w.locate::<u8, 3>(img, [f64::NAN, 20.0], 5, false),
             Located::OutOfImage
         ));
     }
