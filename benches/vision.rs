@@ -39,7 +39,11 @@ fn frame(shift_px: f64, seed: u64) -> RgbImage {
 fn vision(c: &mut Criterion) {
     let s = paper_sensor();
     let reference = frame(0.0, 1);
-    let shifted = [frame(3.0, 2), frame(3.5, 3)];
+    let shifted = frame(3.0, 2);
+    // A steady sequence: 0.25 px per frame along x, 8 frames, cycled.
+    let sequence: Vec<RgbImage> = (0..8)
+        .map(|k| frame(3.0 + 0.25 * k as f64, 10 + k))
+        .collect();
     let reference_view = FrameView::rgb8(&reference);
 
     c.bench_function("vision/detect_reference_paper_430x340", |b| {
@@ -57,20 +61,23 @@ fn vision(c: &mut Criterion) {
             ..TrackConfig::default()
         },
     );
-    let view = FrameView::rgb8(&shifted[0]);
+    let view = FrameView::rgb8(&shifted);
     c.bench_function("vision/track_per_window_paper_260_markers", |b| {
         b.iter(|| per_window.track(black_box(&view)).unwrap().len())
     });
 
-    // Frame-to-frame: alternate between two frames 0.5 px apart (markers move every
-    // frame; each window starts from the last position plus velocity).
+    // Frame-to-frame on a steady sequence (markers move 0.25 px every frame; each
+    // window starts at the last position plus the last velocity). The wrap from the
+    // last frame back to the first (−1.75 px) is included once every 8 frames.
     let mut f2f = Tracker::new(r, TrackConfig::default());
-    let views = [FrameView::rgb8(&shifted[0]), FrameView::rgb8(&shifted[1])];
-    f2f.track(&views[0]).unwrap();
+    let views: Vec<FrameView<'_>> = sequence.iter().map(FrameView::rgb8).collect();
+    for v in &views {
+        f2f.track(v).unwrap();
+    }
     let mut k = 0;
     c.bench_function("vision/track_frame_to_frame_paper_260_markers", |b| {
         b.iter(|| {
-            k ^= 1;
+            k = (k + 1) % views.len();
             f2f.track(black_box(&views[k])).unwrap().len()
         })
     });

@@ -567,6 +567,21 @@ mod tests {
     }
 
     #[test]
+    fn score_weights_subtract_unused_channels_and_sum_to_zero() {
+        use MarkerColor::*;
+        assert_eq!(score_weights(Blue, &[Blue, Red]), [0, -1, 1]);
+        assert_eq!(score_weights(Red, &[Blue, Red]), [1, -1, 0]);
+        assert_eq!(score_weights(Blue, &[Blue]), [-1, -1, 2]);
+        assert_eq!(score_weights(Green, &[Blue, Red, Green]), [-1, 2, -1]);
+        for w in [
+            score_weights(Green, &[Green, Red]),
+            score_weights(Red, &[Red]),
+        ] {
+            assert_eq!(w.iter().sum::<i32>(), 0, "{w:?}");
+        }
+    }
+
+    #[test]
     fn window_regions_are_symmetric_and_disjoint() {
         let w = Window::new(8.0, [-1, -1, 2]);
         assert_eq!(w.half_px(), 11);
