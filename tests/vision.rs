@@ -342,6 +342,48 @@ fn table_i_three_pixel_shift_with_noise_sigma_2() {
     }
 }
 
+/// Table I again with another renderer's look: pure blue (0, 0, 255) and red
+/// (255, 0, 0) discs with a wide Gaussian edge (σ = 1.5 px) on a black background,
+/// where the σ = 2 noise is clipped at 0. Same bounds: mean 3.00 ± 0.01 px, SD ≤ 0.05 px.
+#[test]
+fn table_i_shift_with_pure_colours_on_black_and_clipped_noise() {
+    let s = paper_sensor();
+    let scene = |dx: f64| {
+        let mut sc = paper_scene(&s, Edge::Gaussian(1.5), |_, _| [dx, 0.0]);
+        sc.background = [0.0; 3];
+        sc.gradient = 0.0;
+        for d in &mut sc.discs {
+            d.color = if d.color == BLUE {
+                [0.0, 0.0, 255.0]
+            } else {
+                [255.0, 0.0, 0.0]
+            };
+        }
+        sc
+    };
+    let r = reference_of(&scene(0.0).rgb8(2.0, 200), &s);
+    assert_eq!(r.markers.len(), 260);
+    let shifted = scene(3.0).rgb8(2.0, 201);
+    let mut t = Tracker::new(r.clone(), config(TrackMode::PerWindow));
+    let tracks = t.track(&FrameView::rgb8(&shifted)).unwrap();
+    for layer in 0..2 {
+        let (ux, uy): (Vec<f64>, Vec<f64>) = r
+            .markers
+            .iter()
+            .zip(tracks)
+            .filter(|(m, t)| m.layer == layer && t.status == MarkerStatus::Ok)
+            .map(|(_, t)| (t.displacement_px[0], t.displacement_px[1]))
+            .unzip();
+        assert_eq!(ux.len(), 130);
+        let (mx, sx) = mean_sd(&ux);
+        let (my, sy) = mean_sd(&uy);
+        let what = format!("layer {layer}: x {mx}±{sx}, y {my}±{sy}");
+        eprintln!("{what}");
+        assert!((mx - 3.0).abs() <= 0.01 && my.abs() <= 0.01, "{what}");
+        assert!(sx <= 0.05 && sy <= 0.05, "{what}");
+    }
+}
+
 /// Noise-free 16-bit renders: sub-pixel displacements recovered to ≤ 0.005 px.
 #[test]
 fn subpixel_displacements_of_a_16_bit_ideal_render_within_0_005_px() {
