@@ -15,3 +15,4 @@ pub mod sensor;
 pub mod sim;
 pub mod solve;
 pub mod units;
+pub mod vision;

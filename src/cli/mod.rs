@@ -11,9 +11,10 @@ mod ports;
 mod reconstruct;
 mod sim;
 mod solver_args;
+mod stage;
+mod track;
 
 pub use solver_args::SolverArgs;
-mod stage;
 
 /// tactbench: test bench controller for vision-based tactile sensors.
 ///
@@ -30,6 +31,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     Reconstruct(reconstruct::Args),
+    Track(track::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
     #[command(subcommand)]
@@ -47,6 +49,7 @@ pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
+        Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),
         Command::Ports(args) => ports::run(args),

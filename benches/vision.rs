@@ -1,0 +1,87 @@
+//! Vision benchmarks on the paper geometry (430×340 px, 260 markers in two layers):
+//! reference detection, and tracking one 8-bit frame per-window and frame-to-frame.
+//! Frames come from the `sim` ideal renderer with σ = 2 pixel noise added here.
+//! Paper (Table II): 2.9 ms for tracking + reconstruction on a 1.8 GHz Pentium 4.
+//!
+//! Run: `cargo bench --bench vision`.
+
+use std::hint::black_box;
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use image::RgbImage;
+use tactbench::sensor::paper_sensor;
+use tactbench::sim::render::{reference_markers, render_sensor, to_rgb8};
+use tactbench::vision::{detect, DetectConfig, FrameView, TrackConfig, TrackMode, Tracker};
+
+/// The paper sensor's markers shifted by `shift_px` in x, rendered at 8 bits with
+/// Gaussian noise of σ = 2 levels (deterministic xorshift + Box–Muller).
+fn frame(shift_px: f64, seed: u64) -> RgbImage {
+    let s = paper_sensor();
+    let n = reference_markers(&s).len();
+    let u: Vec<f64> = (0..n)
+        .flat_map(|_| [shift_px * s.camera.mm_per_px, 0.0])
+        .collect();
+    let mut img = to_rgb8(&render_sensor(&s, Some(&u)).expect("paper sensor renders"));
+    let mut state = seed | 1;
+    let mut uniform = move || {
+        state ^= state >> 12;
+        state ^= state << 25;
+        state ^= state >> 27;
+        ((state.wrapping_mul(0x2545F4914F6CDD1D) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    for v in img.iter_mut() {
+        let g = (-2.0 * uniform().ln()).sqrt() * (2.0 * std::f64::consts::PI * uniform()).cos();
+        *v = (*v as f64 + 2.0 * g).round().clamp(0.0, 255.0) as u8;
+    }
+    img
+}
+
+fn vision(c: &mut Criterion) {
+    let s = paper_sensor();
+    let reference = frame(0.0, 1);
+    let shifted = frame(3.0, 2);
+    // A steady sequence: 0.25 px per frame along x, 8 frames, cycled.
+    let sequence: Vec<RgbImage> = (0..8)
+        .map(|k| frame(3.0 + 0.25 * k as f64, 10 + k))
+        .collect();
+    let reference_view = FrameView::rgb8(&reference);
+
+    c.bench_function("vision/detect_reference_paper_430x340", |b| {
+        b.iter(|| detect(black_box(&reference_view), &s, &DetectConfig::default()).unwrap())
+    });
+
+    let r = detect(&reference_view, &s, &DetectConfig::default()).unwrap();
+    assert_eq!(r.markers.len(), 260);
+
+    // Per-window: every frame measured from the reference positions (3 px shift).
+    let mut per_window = Tracker::new(
+        r.clone(),
+        TrackConfig {
+            mode: TrackMode::PerWindow,
+            ..TrackConfig::default()
+        },
+    );
+    let view = FrameView::rgb8(&shifted);
+    c.bench_function("vision/track_per_window_paper_260_markers", |b| {
+        b.iter(|| per_window.track(black_box(&view)).unwrap().len())
+    });
+
+    // Frame-to-frame on a steady sequence (markers move 0.25 px every frame; each
+    // window starts at the last position plus the last velocity). The wrap from the
+    // last frame back to the first (−1.75 px) is included once every 8 frames.
+    let mut f2f = Tracker::new(r, TrackConfig::default());
+    let views: Vec<FrameView<'_>> = sequence.iter().map(FrameView::rgb8).collect();
+    for v in &views {
+        f2f.track(v).unwrap();
+    }
+    let mut k = 0;
+    c.bench_function("vision/track_frame_to_frame_paper_260_markers", |b| {
+        b.iter(|| {
+            k = (k + 1) % views.len();
+            f2f.track(black_box(&views[k])).unwrap().len()
+        })
+    });
+}
+
+criterion_group!(benches, vision);
+criterion_main!(benches);

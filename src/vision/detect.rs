@@ -1,0 +1,496 @@
+//! Reference layout: find every layer's markers in an unloaded frame and match them to
+//! the layer grids of sensor.toml (paper Section II-A: "the position of markers is
+//! determined from the CCD image when the elastic body doesn't vary ... markers at
+//! arbitrary positions").
+//!
+//! Per layer: colour score map (see `window.rs`); robust statistics (median `b`, noise
+//! `σ = 1.4826·MAD`, peak `p` = 20th largest score, immune to a few hot pixels);
+//! threshold `T = b + max(6σ, 0.2·(p − b))`; 8-connected components above `T`; blobs
+//! smaller than a fifth of the expected marker area dropped as noise. The aperture
+//! radius is the marker's measured extent (where the score falls to 5 % of the blob's
+//! peak, median over blobs and the four axis directions) plus 1.5 px, so soft edges of
+//! any profile stay inside the aperture; it is capped so the background ring never
+//! reaches the nearest same-layer neighbour. Each blob is then refined by the iterated
+//! window centroid. A detection is matched to the nearest grid node when it lies
+//! within `match_tolerance` pitches of it (the nearer of two claimants wins).
+
+use super::image::FrameView;
+use super::window::{score, score_weights, Located, Raw, Sample, Window};
+use super::{Pixels, VisionError};
+use crate::sensor::{MarkerColor, Sensor};
+
+/// Options of [`detect`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DetectConfig {
+    /// A detection matches a grid node within this many pitches (default 0.35).
+    pub match_tolerance: f64,
+    /// Overrides the measured aperture radius, px.
+    pub aperture_radius_px: Option<f64>,
+}
+
+impl Default for DetectConfig {
+    fn default() -> Self {
+        DetectConfig {
+            match_tolerance: 0.35,
+            aperture_radius_px: None,
+        }
+    }
+}
+
+/// Per-layer results of the reference detection.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LayerReference {
+    /// Layer name (sensor.toml).
+    pub name: String,
+    /// Layer colour.
+    pub color: MarkerColor,
+    /// Marker radius used for size checks, px (grid diameter / 2, else measured).
+    pub marker_radius_px: f64,
+    /// Aperture radius of the centroid window, px.
+    pub aperture_radius_px: f64,
+    /// Median distance to the nearest same-layer marker, px (infinite for one marker).
+    pub spacing_px: f64,
+    /// Median colour score of the image (the background's score).
+    pub background_score: f64,
+    /// Channel weights of the colour score (`window::score_weights`).
+    pub score_weights: [i32; 3],
+}
+
+/// A marker found in the reference image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReferenceMarker {
+    /// Layer index in the sensor.
+    pub layer: usize,
+    /// Marker id: row-major grid index when the layer has a grid, else the order of
+    /// the centroids by image row, then column.
+    pub id: u64,
+    /// Sub-pixel centroid, px.
+    pub centroid_px: [f64; 2],
+    /// The centroid in the sensor frame, mm (`CameraMapping::px_to_mm`).
+    pub position_mm: [f64; 2],
+    /// Background-corrected signal (score × px), the scale for lost/merged checks.
+    pub signal: f64,
+    /// Largest colour score in the aperture, above the layer's background score.
+    pub peak: f64,
+    /// Background score of the window (the ring's plane fit at the centre).
+    pub background: f64,
+    /// Background plane slope, score per px. A frame whose ring plane differs from
+    /// the reference's by more than 5 % of `peak` (level change + slope change × ring
+    /// radius) is re-measured with the clamped score: another layer's marker is in the
+    /// window.
+    pub background_slope: [f64; 2],
+}
+
+/// A grid node with no marker found near it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MissingMarker {
+    /// Layer index.
+    pub layer: usize,
+    /// Row-major grid index.
+    pub id: u64,
+    /// Node position, mm.
+    pub node_mm: [f64; 2],
+}
+
+/// A blob that matched no grid node (or lost a node to a nearer blob).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UnmatchedBlob {
+    /// Layer index.
+    pub layer: usize,
+    /// Centroid, px.
+    pub centroid_px: [f64; 2],
+    /// Centroid, mm.
+    pub position_mm: [f64; 2],
+}
+
+/// The reference layout: every found marker with its id, plus what did not match.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reference {
+    /// Image width, px.
+    pub width_px: u32,
+    /// Image height, px.
+    pub height_px: u32,
+    /// One entry per sensor layer, in sensor order.
+    pub layers: Vec<LayerReference>,
+    /// Found markers, sorted by layer then id.
+    pub markers: Vec<ReferenceMarker>,
+    /// Grid nodes with no marker (tracked as lost in every frame).
+    pub missing: Vec<MissingMarker>,
+    /// Blobs without a grid node (not tracked).
+    pub unmatched: Vec<UnmatchedBlob>,
+}
+
+macro_rules! with_raw {
+    ($view:expr, $img:ident => $body:expr) => {{
+        let width = $view.width_px() as usize;
+        let height = $view.height_px() as usize;
+        match $view.pixels() {
+            Pixels::Rgb8(data) => {
+                let $img = Raw::<u8, 3> {
+                    data,
+                    width,
+                    height,
+                };
+                $body
+            }
+            Pixels::Rgba8(data) => {
+                let $img = Raw::<u8, 4> {
+                    data,
+                    width,
+                    height,
+                };
+                $body
+            }
+            Pixels::Rgb16(data) => {
+                let $img = Raw::<u16, 3> {
+                    data,
+                    width,
+                    height,
+                };
+                $body
+            }
+            Pixels::Rgba16(data) => {
+                let $img = Raw::<u16, 4> {
+                    data,
+                    width,
+                    height,
+                };
+                $body
+            }
+        }
+    }};
+}
+pub(crate) use with_raw;
+
+/// A refined blob of one layer.
+#[derive(Debug, Clone, Copy)]
+struct Blob {
+    centroid_px: [f64; 2],
+    signal: f64,
+    peak: f64,
+    background: f64,
+    slope: [f64; 2],
+}
+
+struct LayerBlobs {
+    blobs: Vec<Blob>,
+    marker_radius_px: f64,
+    aperture_radius_px: f64,
+    spacing_px: f64,
+    background_score: f64,
+}
+
+/// Finds the markers of every layer in an unloaded frame and matches them to the
+/// layer grids (see the module docs). Fails only when no layer has any marker.
+pub fn detect(
+    view: &FrameView<'_>,
+    sensor: &Sensor,
+    config: &DetectConfig,
+) -> Result<Reference, VisionError> {
+    let mut layers = Vec::with_capacity(sensor.layers.len());
+    let mut markers = Vec::new();
+    let mut missing = Vec::new();
+    let mut unmatched = Vec::new();
+    let mm_per_px = sensor.camera.mm_per_px;
+    for (li, layer) in sensor.layers.iter().enumerate() {
+        let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
+        let used: Vec<MarkerColor> = sensor.layers.iter().map(|l| l.color).collect();
+        let weights = score_weights(layer.color, &used);
+        let found = with_raw!(view, img => detect_layer(img, weights, expected_r, config));
+        layers.push(LayerReference {
+            name: layer.name.clone(),
+            color: layer.color,
+            marker_radius_px: found.marker_radius_px,
+            aperture_radius_px: found.aperture_radius_px,
+            spacing_px: found.spacing_px,
+            background_score: found.background_score,
+            score_weights: weights,
+        });
+        let to_marker = |b: &Blob, id: u64| ReferenceMarker {
+            layer: li,
+            id,
+            centroid_px: b.centroid_px,
+            position_mm: sensor.camera.px_to_mm(b.centroid_px),
+            signal: b.signal,
+            peak: b.peak,
+            background: b.background,
+            background_slope: b.slope,
+        };
+        match &layer.markers {
+            Some(m) => {
+                let grid = m.grid;
+                // Best claimant per node: (blob index, distance mm).
+                let mut claim: Vec<Option<(usize, f64)>> = vec![None; grid.len()];
+                let mut rejected = Vec::new();
+                for (bi, b) in found.blobs.iter().enumerate() {
+                    let p = sensor.camera.px_to_mm(b.centroid_px);
+                    match grid.nearest_node(p) {
+                        Some(((ix, iy), d)) if d <= config.match_tolerance * grid.pitch_mm => {
+                            let k = iy * grid.nx + ix;
+                            match claim[k] {
+                                Some((_, od)) if od <= d => rejected.push(bi),
+                                Some((other, _)) => {
+                                    rejected.push(other);
+                                    claim[k] = Some((bi, d));
+                                }
+                                None => claim[k] = Some((bi, d)),
+                            }
+                        }
+                        _ => rejected.push(bi),
+                    }
+                }
+                for (k, c) in claim.iter().enumerate() {
+                    match c {
+                        Some((bi, _)) => markers.push(to_marker(&found.blobs[*bi], k as u64)),
+                        None => missing.push(MissingMarker {
+                            layer: li,
+                            id: k as u64,
+                            node_mm: grid.node_mm(k % grid.nx, k / grid.nx),
+                        }),
+                    }
+                }
+                rejected.sort_unstable();
+                for bi in rejected {
+                    let b = &found.blobs[bi];
+                    unmatched.push(UnmatchedBlob {
+                        layer: li,
+                        centroid_px: b.centroid_px,
+                        position_mm: sensor.camera.px_to_mm(b.centroid_px),
+                    });
+                }
+            }
+            None => {
+                let mut blobs = found.blobs.clone();
+                blobs.sort_by(|a, b| {
+                    (a.centroid_px[1].round(), a.centroid_px[0])
+                        .partial_cmp(&(b.centroid_px[1].round(), b.centroid_px[0]))
+                        .unwrap_or(std::cmp::Ordering::Equal)
+                });
+                for (k, b) in blobs.iter().enumerate() {
+                    markers.push(to_marker(b, k as u64));
+                }
+            }
+        }
+    }
+    if markers.is_empty() {
+        return Err(VisionError::NoMarkers {
+            layers: sensor
+                .layers
+                .iter()
+                .map(|l| format!("{} ({})", l.name, l.color))
+                .collect::<Vec<_>>()
+                .join(", "),
+        });
+    }
+    Ok(Reference {
+        width_px: view.width_px(),
+        height_px: view.height_px(),
+        layers,
+        markers,
+        missing,
+        unmatched,
+    })
+}
+
+/// The `k`-th smallest of `v` (reorders `v`).
+fn kth(v: &mut [i32], k: usize) -> i32 {
+    let k = k.min(v.len() - 1);
+    *v.select_nth_unstable(k).1
+}
+
+fn detect_layer<T: Sample, const C: usize>(
+    img: Raw<'_, T, C>,
+    weights: [i32; 3],
+    expected_radius_px: Option<f64>,
+    config: &DetectConfig,
+) -> LayerBlobs {
+    let (w, h) = (img.width, img.height);
+    let score: Vec<i32> = img
+        .data
+        .chunks_exact(C)
+        .map(|px| score(px, &weights))
+        .collect();
+    if score.is_empty() {
+        return LayerBlobs {
+            blobs: Vec::new(),
+            marker_radius_px: expected_radius_px.unwrap_or(1.0),
+            aperture_radius_px: config.aperture_radius_px.unwrap_or(1.0),
+            spacing_px: f64::INFINITY,
+            background_score: 0.0,
+        };
+    }
+    let mut tmp = score.clone();
+    let n = tmp.len();
+    let median = kth(&mut tmp, n / 2);
+    let empty = |r: f64| LayerBlobs {
+        blobs: Vec::new(),
+        marker_radius_px: r,
+        aperture_radius_px: config.aperture_radius_px.unwrap_or(r + 1.5),
+        spacing_px: f64::INFINITY,
+        background_score: median as f64,
+    };
+    let peak = kth(&mut tmp, n.saturating_sub(20));
+    for v in tmp.iter_mut() {
+        *v = (*v - median).abs();
+    }
+    let mad = kth(&mut tmp, n / 2);
+    let noise = (1.4826 * mad as f64).max(1.0);
+    let (b, p) = (median as f64, peak as f64);
+    if p - b <= 8.0 * noise {
+        return empty(expected_radius_px.unwrap_or(1.0));
+    }
+    let threshold = (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32;
+
+    // 8-connected components above the threshold (flood fill with an explicit stack).
+    struct Comp {
+        area: usize,
+        sum: f64,
+        sx: f64,
+        sy: f64,
+        peak: i32,
+    }
+    let mut label = vec![false; n];
+    let mut comps = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..n {
+        if label[start] || score[start] <= threshold {
+            continue;
+        }
+        label[start] = true;
+        stack.push(start);
+        let mut c = Comp {
+            area: 0,
+            sum: 0.0,
+            sx: 0.0,
+            sy: 0.0,
+            peak: 0,
+        };
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % w, i / w);
+            let s = (score[i] - median) as f64;
+            c.area += 1;
+            c.sum += s;
+            c.sx += s * x as f64;
+            c.sy += s * y as f64;
+            c.peak = c.peak.max(score[i]);
+            for dy in -1i64..=1 {
+                for dx in -1i64..=1 {
+                    let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                    if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                        continue;
+                    }
+                    let j = ny as usize * w + nx as usize;
+                    if !label[j] && score[j] > threshold {
+                        label[j] = true;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        comps.push(c);
+    }
+    let mut areas: Vec<usize> = comps.iter().map(|c| c.area).collect();
+    areas.sort_unstable();
+    let radius_px = expected_radius_px.unwrap_or_else(|| {
+        // Median blob size, ignoring the smallest half (noise specks).
+        let big = &areas[areas.len() / 2..];
+        big.get(big.len() / 2)
+            .map(|&a| (a as f64 / std::f64::consts::PI).sqrt())
+            .unwrap_or(1.0)
+    });
+    let min_area = (0.2 * std::f64::consts::PI * radius_px * radius_px).max(3.0);
+    let comps: Vec<Comp> = comps
+        .into_iter()
+        .filter(|c| c.area as f64 >= min_area && c.sum > 0.0)
+        .collect();
+    if comps.is_empty() {
+        return empty(radius_px);
+    }
+    let seeds: Vec<[f64; 2]> = comps.iter().map(|c| [c.sx / c.sum, c.sy / c.sum]).collect();
+
+    // Extent: where the score falls to 5 % of the blob's peak above background.
+    let mut extents = Vec::new();
+    for (c, s) in comps.iter().zip(&seeds).take(200) {
+        let level = b + 0.05 * (c.peak as f64 - b);
+        let (x0, y0) = (s[0].round() as i64, s[1].round() as i64);
+        for (dx, dy) in [(1i64, 0i64), (-1, 0), (0, 1), (0, -1)] {
+            let mut r = 0i64;
+            loop {
+                let (x, y) = (x0 + dx * (r + 1), y0 + dy * (r + 1));
+                if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 || r > 200 {
+                    break;
+                }
+                if (score[y as usize * w + x as usize] as f64) <= level {
+                    break;
+                }
+                r += 1;
+            }
+            extents.push(r as f64 + 0.5);
+        }
+    }
+    extents.sort_by(f64::total_cmp);
+    let extent = extents[extents.len() / 2].max(radius_px);
+
+    // Nearest-neighbour spacing of the seeds (median), to cap the window.
+    let mut nn: Vec<f64> = seeds
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            seeds
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, b)| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    nn.sort_by(f64::total_cmp);
+    let spacing = nn[nn.len() / 2];
+    let aperture = config.aperture_radius_px.unwrap_or_else(|| {
+        let want = extent + 1.5;
+        // Background ring (aperture + 3 px) must stay clear of the neighbour's extent.
+        let cap = spacing - extent - 4.0;
+        want.min(cap).max(radius_px.max(2.0))
+    });
+    let window = Window::new(aperture, weights);
+
+    let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
+    for s in &seeds {
+        if let Located::Found {
+            centroid_px,
+            m0,
+            background,
+            slope,
+        } = window.locate::<T, C>(img, *s, 20, false)
+        {
+            let c = [centroid_px[0].round() as i32, centroid_px[1].round() as i32];
+            let pk = window.peak::<T, C>(img, c[0], c[1]).unwrap_or(0);
+            blobs.push(Blob {
+                centroid_px,
+                signal: m0,
+                peak: (pk - median).max(1) as f64,
+                background,
+                slope,
+            });
+        }
+    }
+    // Fragments of one marker converge to the same centroid: keep the strongest.
+    blobs.sort_by(|a, b| b.signal.total_cmp(&a.signal));
+    let mut kept: Vec<Blob> = Vec::with_capacity(blobs.len());
+    for b in blobs {
+        let dup = kept.iter().any(|k| {
+            (k.centroid_px[0] - b.centroid_px[0]).hypot(k.centroid_px[1] - b.centroid_px[1])
+                < radius_px
+        });
+        if !dup {
+            kept.push(b);
+        }
+    }
+    LayerBlobs {
+        blobs: kept,
+        marker_radius_px: radius_px,
+        aperture_radius_px: aperture,
+        spacing_px: spacing,
+        background_score: median as f64,
+    }
+}

@@ -1,0 +1,150 @@
+//! Marker vision: colour separation, sub-pixel centroids, the reference layout and
+//! per-window / frame-to-frame tracking with per-marker status (paper Section II-A).
+//!
+//! Pipeline:
+//! 1. [`load_frame`] reads a PNG/JPEG/BMP colour image (8- or 16-bit RGB/RGBA) and
+//!    checks its size against `[camera]`; [`FrameView`] borrows any RGB buffer (e.g. a
+//!    [`crate::device::CameraFrame`]) without copying.
+//! 2. [`detect`] finds every layer's markers in an unloaded frame (anywhere, no grid
+//!    assumed), refines them to sub-pixel centroids and, when the layer has a grid in
+//!    sensor.toml, matches them to its nodes (marker id = row-major grid index).
+//!    The result is a [`Reference`]; grid nodes without a marker and blobs without a
+//!    node are listed in it.
+//! 3. [`Tracker::track`] measures one frame against the reference, allocation-free,
+//!    and gives every marker a [`MarkerStatus`].
+//!
+//! Centroids are the centre of mass of a colour score after local background
+//! removal, in a window re-centred on the marker (see `window.rs` for the equations).
+//! Pixel `(i, j)` covers `[i − 0.5, i + 0.5] × [j − 0.5, j + 0.5]`: a centroid of
+//! `(i, j)` is the centre of that pixel, as in [`crate::sensor::CameraMapping`].
+
+use std::fmt;
+use std::path::PathBuf;
+
+use thiserror::Error;
+
+mod detect;
+mod image;
+mod output;
+mod track;
+mod window;
+
+pub use self::detect::{
+    detect, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker, UnmatchedBlob,
+};
+pub use self::image::{load_frame, Frame, FrameView, Pixels};
+pub use self::output::{write_tracks, write_tracks_to, TRACK_EXTRA_COLUMNS};
+pub use self::track::{MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker};
+
+/// An error of the vision module. File errors name the file.
+#[derive(Debug, Error)]
+pub enum VisionError {
+    /// The image file could not be opened.
+    #[error("cannot open image {path}: {source}")]
+    Open {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The image could not be decoded.
+    #[error("cannot decode image {path}: {message}")]
+    Decode {
+        /// The file.
+        path: PathBuf,
+        /// The decoder's message.
+        message: String,
+    },
+    /// The image is grayscale: layers are told apart by colour.
+    #[error("{path}: grayscale image: the tracker needs an RGB or RGBA colour image to tell the marker layers apart")]
+    Grayscale {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A pixel format the tracker does not read.
+    #[error("{path}: unsupported pixel format ({kind}): expected 8- or 16-bit RGB or RGBA")]
+    UnsupportedPixels {
+        /// The file.
+        path: PathBuf,
+        /// What was found.
+        kind: String,
+    },
+    /// The image size disagrees with the sensor's `[camera]`.
+    #[error("{path}: image is {}×{} px but [camera] says {}×{} px", found[0], found[1], expected[0], expected[1])]
+    WrongSize {
+        /// The file.
+        path: PathBuf,
+        /// Width, height found, px.
+        found: [u32; 2],
+        /// Width, height from sensor.toml, px.
+        expected: [u32; 2],
+    },
+    /// A raw buffer's length does not match its stated size.
+    #[error("pixel buffer holds {found} samples but {width_px}×{height_px} px × {channels} channels needs {expected}")]
+    BufferSize {
+        /// Width, px.
+        width_px: u32,
+        /// Height, px.
+        height_px: u32,
+        /// Samples per pixel.
+        channels: usize,
+        /// Expected sample count.
+        expected: usize,
+        /// Actual sample count.
+        found: usize,
+    },
+    /// A frame's size differs from the reference's.
+    #[error("frame is {}×{} px but the reference is {}×{} px", found[0], found[1], expected[0], expected[1])]
+    FrameSize {
+        /// Width, height of the frame, px.
+        found: [u32; 2],
+        /// Width, height of the reference, px.
+        expected: [u32; 2],
+    },
+    /// No marker of any layer was found in the reference image.
+    #[error("no markers found in the reference image (layers searched: {layers})")]
+    NoMarkers {
+        /// The layer names searched.
+        layers: String,
+    },
+}
+
+/// The outcome of tracking one marker in one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum MarkerStatus {
+    /// Measured; the displacement is trusted.
+    Ok,
+    /// Not found: no signal, too weak, outside the image, or missing from the reference.
+    Lost,
+    /// Its window converged onto the same blob as a neighbour's (or onto a blob with
+    /// about twice the reference signal): two markers merged in the image.
+    Merged,
+    /// Found, but its displacement disagrees with its neighbours'.
+    Outlier,
+}
+
+impl MarkerStatus {
+    /// All statuses, in report order.
+    pub const ALL: [MarkerStatus; 4] = [
+        MarkerStatus::Ok,
+        MarkerStatus::Lost,
+        MarkerStatus::Merged,
+        MarkerStatus::Outlier,
+    ];
+
+    /// The name written in CSV files.
+    pub fn name(self) -> &'static str {
+        match self {
+            MarkerStatus::Ok => "ok",
+            MarkerStatus::Lost => "lost",
+            MarkerStatus::Merged => "merged",
+            MarkerStatus::Outlier => "outlier",
+        }
+    }
+}
+
+impl fmt::Display for MarkerStatus {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}

@@ -1,0 +1,465 @@
+//! Tracking markers frame by frame against a [`Reference`] (paper Section II-A).
+//!
+//! * [`TrackMode::PerWindow`] — the paper's method: every frame is measured on its
+//!   own, each marker in a window starting at its reference position. Valid while a
+//!   marker stays within about its search radius (half the marker spacing) of rest.
+//! * [`TrackMode::FrameToFrame`] — the paper's "tracking" for larger motion: each
+//!   window starts at the marker's last position plus its last velocity, so markers
+//!   can travel 40 px and more over a sequence of frames.
+//!
+//! Per marker: iterated window centroid from the start (`window.rs`); when that finds
+//! no marker (too weak or nothing there), the paper's window search (centre of mass of
+//! the score above 40 % of the marker's reference peak within the search radius)
+//! acquires it and the window centroid refines it. Then, per frame:
+//! * **lost** — nothing found, signal below `min_signal_ratio` of the reference
+//!   signal, window outside the image, or the result farther than search radius +
+//!   aperture from the start;
+//! * **merged** — two same-layer neighbours closer than `merge_distance` (default:
+//!   the marker radius), or a signal above `merge_signal_ratio` × reference;
+//! * **outlier** — displacement farther than `outlier_px + 3·spread` from the median
+//!   of its (ok) neighbours' displacements, where `spread` is the median distance of
+//!   the neighbours' displacements from that median (needs ≥ 3 neighbours).
+//!
+//! Only ok markers' displacements are meant for the solver. In frame-to-frame mode,
+//! lost and merged markers keep their last good position for the next frame.
+//! [`Tracker::track`] allocates nothing: all buffers are sized in [`Tracker::new`].
+
+use super::detect::{with_raw, Reference};
+use super::image::FrameView;
+use super::window::{search, Located, Raw, Sample, Window};
+use super::{MarkerStatus, Pixels, VisionError};
+use crate::formats::DisplacementRecord;
+use crate::sensor::CameraMapping;
+
+/// How windows are placed in each frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrackMode {
+    /// Start at the reference position (paper: squares centred on the rest position).
+    PerWindow,
+    /// Start at the last position plus the last velocity (large motion, sequences).
+    FrameToFrame,
+}
+
+/// Options of the [`Tracker`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackConfig {
+    /// Window placement.
+    pub mode: TrackMode,
+    /// Maximum window re-centrings per marker (default 8).
+    pub max_iterations: u32,
+    /// Below this fraction of its reference signal a marker is lost (default 0.3).
+    pub min_signal_ratio: f64,
+    /// Above this multiple of its reference signal a marker is merged (default 1.6).
+    pub merge_signal_ratio: f64,
+    /// Neighbours closer than this are merged, px (default: the marker radius).
+    pub merge_distance_px: Option<f64>,
+    /// Base tolerance of the neighbour-consistency check, px (default 3).
+    pub outlier_px: f64,
+    /// Half-size of the acquisition search square, px (default: 0.5 × marker spacing).
+    pub search_half_px: Option<f64>,
+}
+
+impl Default for TrackConfig {
+    fn default() -> Self {
+        TrackConfig {
+            mode: TrackMode::FrameToFrame,
+            max_iterations: 8,
+            min_signal_ratio: 0.3,
+            merge_signal_ratio: 1.6,
+            merge_distance_px: None,
+            outlier_px: 3.0,
+            search_half_px: None,
+        }
+    }
+}
+
+/// One marker in one frame. Indexes match [`Reference::markers`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarkerTrack {
+    /// Measured centroid, px (NaN when lost).
+    pub centroid_px: [f64; 2],
+    /// Centroid minus reference centroid, px (NaN when lost).
+    pub displacement_px: [f64; 2],
+    /// Status.
+    pub status: MarkerStatus,
+    /// Signal relative to the reference (0 when lost with nothing found).
+    pub signal_ratio: f64,
+}
+
+impl MarkerTrack {
+    const LOST: MarkerTrack = MarkerTrack {
+        centroid_px: [f64::NAN; 2],
+        displacement_px: [f64::NAN; 2],
+        status: MarkerStatus::Lost,
+        signal_ratio: 0.0,
+    };
+}
+
+/// Counts of each status in one frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StatusCounts {
+    /// Ok markers.
+    pub ok: usize,
+    /// Lost markers (reference-missing ones included).
+    pub lost: usize,
+    /// Merged markers.
+    pub merged: usize,
+    /// Outliers.
+    pub outlier: usize,
+}
+
+impl StatusCounts {
+    /// Counts the statuses of `tracks`, plus `missing` always-lost markers.
+    pub fn of(tracks: &[MarkerTrack], missing: usize) -> StatusCounts {
+        let mut c = StatusCounts {
+            lost: missing,
+            ..Default::default()
+        };
+        for t in tracks {
+            match t.status {
+                MarkerStatus::Ok => c.ok += 1,
+                MarkerStatus::Lost => c.lost += 1,
+                MarkerStatus::Merged => c.merged += 1,
+                MarkerStatus::Outlier => c.outlier += 1,
+            }
+        }
+        c
+    }
+}
+
+const MAX_NEIGHBOURS: usize = 8;
+
+struct LayerState {
+    window: Window,
+    weights: [i32; 3],
+    search_half: i32,
+    max_jump_px: f64,
+    merge_distance_px: f64,
+    search_threshold_base: i32,
+    /// This layer's markers in `Reference::markers`.
+    markers: std::ops::Range<usize>,
+}
+
+/// Tracks the markers of a [`Reference`] in frames of the same size.
+pub struct Tracker {
+    reference: Reference,
+    config: TrackConfig,
+    layers: Vec<LayerState>,
+    neighbours: Vec<[u32; MAX_NEIGHBOURS]>,
+    neighbour_count: Vec<u8>,
+    last_px: Vec<[f64; 2]>,
+    velocity_px: Vec<[f64; 2]>,
+    out: Vec<MarkerTrack>,
+}
+
+impl Tracker {
+    /// Prepares windows, neighbour lists and buffers for `reference`. Its markers are
+    /// kept sorted by layer, then id (as [`super::detect`] returns them): track results
+    /// are indexed like [`Tracker::reference`]'s markers.
+    pub fn new(mut reference: Reference, config: TrackConfig) -> Tracker {
+        reference.markers.sort_by_key(|m| (m.layer, m.id));
+        let layers = reference
+            .layers
+            .iter()
+            .enumerate()
+            .map(|(li, l)| {
+                let spacing = if l.spacing_px.is_finite() {
+                    l.spacing_px
+                } else {
+                    4.0 * l.aperture_radius_px
+                };
+                let search_half = config
+                    .search_half_px
+                    .unwrap_or(0.5 * spacing)
+                    .max(l.aperture_radius_px);
+                LayerState {
+                    window: Window::new(l.aperture_radius_px, l.score_weights),
+                    weights: l.score_weights,
+                    search_half: search_half.round() as i32,
+                    max_jump_px: search_half + l.aperture_radius_px,
+                    merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
+                    search_threshold_base: l.background_score.round() as i32,
+                    markers: {
+                        let m = &reference.markers;
+                        let lo = m.partition_point(|r| r.layer < li);
+                        lo..lo + m[lo..].partition_point(|r| r.layer == li)
+                    },
+                }
+            })
+            .collect();
+        let m = &reference.markers;
+        let mut neighbours = vec![[0u32; MAX_NEIGHBOURS]; m.len()];
+        let mut neighbour_count = vec![0u8; m.len()];
+        for (i, a) in m.iter().enumerate() {
+            let spacing = reference.layers[a.layer].spacing_px;
+            let radius = 1.6 * spacing;
+            let mut near: Vec<(f64, usize)> = m
+                .iter()
+                .enumerate()
+                .filter(|(j, b)| *j != i && b.layer == a.layer)
+                .map(|(j, b)| {
+                    let d = (a.centroid_px[0] - b.centroid_px[0])
+                        .hypot(a.centroid_px[1] - b.centroid_px[1]);
+                    (d, j)
+                })
+                .filter(|(d, _)| *d <= radius)
+                .collect();
+            near.sort_by(|x, y| x.0.total_cmp(&y.0));
+            for (k, (_, j)) in near.iter().take(MAX_NEIGHBOURS).enumerate() {
+                neighbours[i][k] = *j as u32;
+                neighbour_count[i] = k as u8 + 1;
+            }
+        }
+        let last_px = m.iter().map(|r| r.centroid_px).collect();
+        Tracker {
+            velocity_px: vec![[0.0; 2]; m.len()],
+            out: vec![MarkerTrack::LOST; m.len()],
+            reference,
+            config,
+            layers,
+            neighbours,
+            neighbour_count,
+            last_px,
+        }
+    }
+
+    /// The reference being tracked.
+    pub fn reference(&self) -> &Reference {
+        &self.reference
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TrackConfig {
+        &self.config
+    }
+
+    /// Forgets the sequence: the next frame starts from the reference positions.
+    pub fn reset(&mut self) {
+        for (l, r) in self.last_px.iter_mut().zip(&self.reference.markers) {
+            *l = r.centroid_px;
+        }
+        for v in &mut self.velocity_px {
+            *v = [0.0; 2];
+        }
+    }
+
+    /// Measures one frame; the result's indexes match [`Reference::markers`].
+    /// Fails only when the frame size differs from the reference's.
+    pub fn track(&mut self, frame: &FrameView<'_>) -> Result<&[MarkerTrack], VisionError> {
+        if frame.width_px() != self.reference.width_px
+            || frame.height_px() != self.reference.height_px
+        {
+            return Err(VisionError::FrameSize {
+                found: [frame.width_px(), frame.height_px()],
+                expected: [self.reference.width_px, self.reference.height_px],
+            });
+        }
+        with_raw!(frame, img => self.measure_all(img));
+        self.flag_merged();
+        self.flag_outliers();
+        if self.config.mode == TrackMode::FrameToFrame {
+            for i in 0..self.out.len() {
+                let t = &self.out[i];
+                match t.status {
+                    MarkerStatus::Ok | MarkerStatus::Outlier => {
+                        let l = self.last_px[i];
+                        self.velocity_px[i] = [t.centroid_px[0] - l[0], t.centroid_px[1] - l[1]];
+                        self.last_px[i] = t.centroid_px;
+                    }
+                    MarkerStatus::Lost | MarkerStatus::Merged => self.velocity_px[i] = [0.0; 2],
+                }
+            }
+        }
+        Ok(&self.out)
+    }
+
+    /// Displacement rows for the solver (`formats` types), reference-missing markers
+    /// included: only ok markers carry a displacement (mm), the others are `None`.
+    pub fn displacement_records(
+        &self,
+        tracks: &[MarkerTrack],
+        camera: &CameraMapping,
+    ) -> Vec<DisplacementRecord> {
+        let mut rows: Vec<DisplacementRecord> = self
+            .reference
+            .markers
+            .iter()
+            .zip(tracks)
+            .map(|(r, t)| DisplacementRecord {
+                layer: r.layer,
+                marker: r.id,
+                position_mm: r.position_mm,
+                u_mm: (t.status == MarkerStatus::Ok).then(|| {
+                    [
+                        t.displacement_px[0] * camera.mm_per_px,
+                        t.displacement_px[1] * camera.mm_per_px,
+                    ]
+                }),
+                line: 0,
+            })
+            .chain(self.reference.missing.iter().map(|m| DisplacementRecord {
+                layer: m.layer,
+                marker: m.id,
+                position_mm: m.node_mm,
+                u_mm: None,
+                line: 0,
+            }))
+            .collect();
+        rows.sort_by_key(|r| (r.layer, r.marker));
+        rows
+    }
+
+    fn measure_all<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
+        for layer in 0..self.layers.len() {
+            self.measure_layer::<T, C>(img, layer);
+        }
+    }
+
+    /// Measures the markers of one layer (a contiguous range: markers are sorted by layer).
+    fn measure_layer<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>, layer: usize) {
+        let cfg = self.config;
+        let ls = &self.layers[layer];
+        let range = ls.markers.clone();
+        for i in range {
+            let r = &self.reference.markers[i];
+            let start = match cfg.mode {
+                TrackMode::PerWindow => r.centroid_px,
+                TrackMode::FrameToFrame => [
+                    self.last_px[i][0] + self.velocity_px[i][0],
+                    self.last_px[i][1] + self.velocity_px[i][1],
+                ],
+            };
+            let min_signal = cfg.min_signal_ratio * r.signal;
+            let max_jump2 = ls.max_jump_px * ls.max_jump_px;
+            let max_background_change = 0.05 * r.peak;
+            let ring_px = ls.window.ring_radius_px();
+            // Linear score first (fast); when the ring's background plane moved away
+            // from the reference's (another layer's marker entering the window), again
+            // from there with the clamped score, which ignores other colours.
+            let locate = |from: [f64; 2]| {
+                let loc = ls
+                    .window
+                    .locate::<T, C>(img, from, cfg.max_iterations, false);
+                match loc {
+                    Located::Found {
+                        centroid_px,
+                        background,
+                        slope,
+                        ..
+                    } if (background - r.background).abs()
+                        + ring_px
+                            * ((slope[0] - r.background_slope[0]).abs()
+                                + (slope[1] - r.background_slope[1]).abs())
+                        > max_background_change =>
+                    {
+                        ls.window
+                            .locate::<T, C>(img, centroid_px, cfg.max_iterations, true)
+                    }
+                    other => other,
+                }
+            };
+            let accept = |loc: Located| match loc {
+                Located::Found {
+                    centroid_px, m0, ..
+                } if m0 >= min_signal && dist2(centroid_px, start) <= max_jump2 => {
+                    Some((centroid_px, m0))
+                }
+                _ => None,
+            };
+            let mut found = accept(locate(start));
+            if found.is_none() {
+                let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
+                if let Some(seed) =
+                    search::<T, C>(img, &ls.weights, start, ls.search_half, threshold)
+                {
+                    found = accept(locate(seed));
+                }
+            }
+            self.out[i] = match found {
+                Some((c, m0)) => MarkerTrack {
+                    centroid_px: c,
+                    displacement_px: [c[0] - r.centroid_px[0], c[1] - r.centroid_px[1]],
+                    status: MarkerStatus::Ok,
+                    signal_ratio: m0 / r.signal,
+                },
+                None => MarkerTrack::LOST,
+            };
+        }
+    }
+
+    fn flag_merged(&mut self) {
+        let ratio = self.config.merge_signal_ratio;
+        for i in 0..self.out.len() {
+            if self.out[i].status == MarkerStatus::Lost {
+                continue;
+            }
+            let ls = &self.layers[self.reference.markers[i].layer];
+            let a = self.out[i].centroid_px;
+            let mut merged = self.out[i].signal_ratio > ratio;
+            for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
+                let b = &self.out[j as usize];
+                if b.status != MarkerStatus::Lost
+                    && dist2(a, b.centroid_px) < ls.merge_distance_px * ls.merge_distance_px
+                {
+                    merged = true;
+                }
+            }
+            if merged {
+                self.out[i].status = MarkerStatus::Merged;
+            }
+        }
+    }
+
+    fn flag_outliers(&mut self) {
+        let tol = self.config.outlier_px;
+        for i in 0..self.out.len() {
+            if self.out[i].status != MarkerStatus::Ok {
+                continue;
+            }
+            let mut ux = [0.0f64; MAX_NEIGHBOURS];
+            let mut uy = [0.0f64; MAX_NEIGHBOURS];
+            let mut n = 0;
+            for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
+                let t = &self.out[j as usize];
+                // Outliers flagged earlier in this loop still count: the decision must
+                // not depend on marker order.
+                if matches!(t.status, MarkerStatus::Ok | MarkerStatus::Outlier) {
+                    ux[n] = t.displacement_px[0];
+                    uy[n] = t.displacement_px[1];
+                    n += 1;
+                }
+            }
+            if n < 3 {
+                continue;
+            }
+            let mx = median(&mut ux[..n]);
+            let my = median(&mut uy[..n]);
+            let mut dev = [0.0f64; MAX_NEIGHBOURS];
+            for k in 0..n {
+                dev[k] = dist2([ux[k], uy[k]], [mx, my]).sqrt();
+            }
+            let spread = median(&mut dev[..n]);
+            let u = self.out[i].displacement_px;
+            if dist2(u, [mx, my]).sqrt() > tol + 3.0 * spread {
+                self.out[i].status = MarkerStatus::Outlier;
+            }
+        }
+    }
+}
+
+/// Squared distance, px².
+#[inline]
+fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
+    (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1])
+}
+
+/// Median of a small slice (reorders it).
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_unstable_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}

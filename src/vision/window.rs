@@ -1,0 +1,656 @@
+//! The per-marker window kernel: colour score, local background plane and
+//! background-corrected centre of mass, iterated with re-centring.
+//!
+//! **Colour score.** A layer of colour `c` scores a pixel by a fixed linear
+//! combination `s = w · (R, G, B)` whose weights sum to zero ([`score_weights`]):
+//! `B − G` and `R − G` for a blue+red sensor (green, used by no layer, is the
+//! reference), `2·I_c − I_o1 − I_o2` when every channel is used. Grey light, including
+//! uneven grey illumination, scores 0; another layer's markers score near 0; a marker
+//! of the layer's colour scores its colour excess. The score is *linear* in the pixel
+//! values, so a blend `α·marker + (1 − α)·background` at a soft or anti-aliased edge
+//! scores linearly in `α` and the centre of mass stays unbiased (a `max()` of channels
+//! would be piecewise linear in `α` and bias sub-pixel centroids by ~0.003 px).
+//!
+//! Two kernels compute the same moments: the *linear* one (default) sums
+//! `sample × weight` over whole rows with precomputed per-sample weights — a plain
+//! integer dot product the compiler vectorises, with no de-interleaving; the
+//! *clamped* one scores `max(0, s + 2K)` per pixel (`K` = 8 levels of 8 bits, so the
+//! background noise is not clipped) and is used by the tracker when the ring's
+//! background plane moved away from the reference's: a strongly negative foreign blob
+//! in the window then clips to background.
+//!
+//! **Window.** Centred on an integer pixel `(cx, cy)`: an aperture disc of radius
+//! `Ra` (the marker plus its soft edge), a one-pixel gap, and a background ring
+//! `Ra + 1 < r ≤ Ra + 3`. The ring's scores are fitted by a plane
+//! `b(dx, dy) = a + gx·dx + gy·dy`; because the ring is symmetric about the centre the
+//! least-squares fit decouples into `a = Σs/N`, `gx = Σs·dx/Σdx²`, `gy = Σs·dy/Σdy²`.
+//! The aperture's moments minus the plane's moments over the aperture (again by
+//! symmetry only `a·N_ap` and `g·Σdx²_ap` survive) give the marker's centre of mass
+//! (paper Section II-A) without the background:
+//!
+//! ```text
+//! M0 = Σ_ap s − a·N_ap,   Mx = Σ_ap s·dx − gx·Σ_ap dx²,   My = Σ_ap s·dy − gy·Σ_ap dy²
+//! centroid = (cx + Mx/M0, cy + My/M0)
+//! ```
+//!
+//! **Re-centring.** The window is moved to the rounded centroid and the moments taken
+//! again until the rounded centroid stays put (or a two-cycle is detected). At the
+//! fixed point the aperture is centred within half a pixel of the marker, so a 3 px
+//! motion is measured with the whole marker inside a symmetric aperture and no
+//! truncation by the window edge. Everything is integer arithmetic over the raw
+//! interleaved samples: no allocation, no whole-image conversion.
+
+use crate::sensor::MarkerColor;
+
+/// Samples the kernel can read (8- and 16-bit).
+pub(crate) trait Sample: Copy {
+    /// Score offset `K` (see the module docs): 8 levels of an 8-bit image.
+    const OFFSET: i32;
+    fn value(self) -> i32;
+}
+
+impl Sample for u8 {
+    const OFFSET: i32 = 8;
+    #[inline(always)]
+    fn value(self) -> i32 {
+        self as i32
+    }
+}
+
+impl Sample for u16 {
+    const OFFSET: i32 = 8 * 257;
+    #[inline(always)]
+    fn value(self) -> i32 {
+        self as i32
+    }
+}
+
+/// Per-channel weights `w` of a layer's colour score `w · (R, G, B)`.
+///
+/// For colour `c`, with `U` the channels that no layer of the sensor uses:
+/// `w = |U|·e_c − Σ_{u∈U} e_u` when `U` is not empty, else `2·e_c − Σ_{o≠c} e_o`.
+/// The weights sum to zero, so grey light (and uneven grey illumination) scores 0.
+/// Subtracting an unused channel makes the other layers' markers score near 0
+/// instead of strongly negative (a blue+red sensor scores `B − G` and `R − G`): their
+/// pixels then look like background when they come near a window.
+pub(crate) fn score_weights(color: MarkerColor, used: &[MarkerColor]) -> [i32; 3] {
+    let idx = |c: MarkerColor| match c {
+        MarkerColor::Red => 0,
+        MarkerColor::Green => 1,
+        MarkerColor::Blue => 2,
+    };
+    let ci = idx(color);
+    let unused: Vec<usize> = (0..3)
+        .filter(|&k| !used.iter().any(|&u| idx(u) == k))
+        .collect();
+    let mut w = [0i32; 3];
+    if unused.is_empty() {
+        w = [-1; 3];
+        w[ci] = 2;
+    } else {
+        for &u in &unused {
+            w[u] = -1;
+        }
+        w[ci] = unused.len() as i32;
+    }
+    w
+}
+
+/// The clamped colour score of one pixel: `max(0, w · (R, G, B) + 2K)`.
+#[inline(always)]
+pub(crate) fn score<T: Sample>(px: &[T], w: &[i32; 3]) -> i32 {
+    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + 2 * T::OFFSET).max(0)
+}
+
+/// `(Σ s, Σ s·i)` over consecutive pixels, `i` counted from 0.
+#[inline(always)]
+fn span_sums<T: Sample, const C: usize>(samples: &[T], w: &[i32; 3]) -> (i32, i32) {
+    let mut rs = 0i32;
+    let mut rx = 0i32;
+    for (i, px) in samples.chunks_exact(C).enumerate() {
+        let s = score(px, w);
+        rs += s;
+        rx += s * i as i32;
+    }
+    (rs, rx)
+}
+
+/// A borrowed image as the kernel reads it.
+#[derive(Clone, Copy)]
+pub(crate) struct Raw<'a, T, const C: usize> {
+    pub data: &'a [T],
+    pub width: usize,
+    pub height: usize,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Row {
+    /// Aperture half-width (`|dx| ≤ ap`), or −1 when the row misses the aperture.
+    ap: i32,
+    /// Background ring: `inner < |dx| ≤ outer`; `inner = −1` means the whole `[−outer, outer]`.
+    inner: i32,
+    /// Outer half-width, or −1 when the row misses the ring.
+    outer: i32,
+}
+
+/// Precomputed geometry of the window for one aperture radius.
+#[derive(Debug, Clone)]
+pub(crate) struct Window {
+    half: i32,
+    rows: Vec<Row>,
+    n_ap: f64,
+    sxx_ap: f64,
+    syy_ap: f64,
+    n_bg: f64,
+    sxx_bg: f64,
+    syy_bg: f64,
+    radius_px: f64,
+    /// Colour weights of the score.
+    weights: [i32; 3],
+    /// Linear-kernel weights, `[RGB, RGBA]`.
+    linear: [LinearWeights; 2],
+}
+
+/// One row of the linear kernel: samples `[start, start + len)` of the row `dy`,
+/// beginning at pixel `dx = lo`; weights at `offset` in the weight arrays.
+#[derive(Debug, Clone, Copy)]
+struct LinearRow {
+    dy: i32,
+    lo: i32,
+    offset: usize,
+    len: usize,
+}
+
+/// Per-sample weights of the linear kernel for one pixel layout and colour: the score
+/// `3·I_c − (R + G + B)` times aperture / ring membership, and times `dx`. Summing
+/// `sample × weight` over whole contiguous rows is a plain integer dot product that
+/// the compiler vectorises, with no de-interleaving of the RGB samples.
+#[derive(Debug, Clone, Default)]
+struct LinearWeights {
+    rows: Vec<LinearRow>,
+    ap: Vec<i16>,
+    ap_dx: Vec<i16>,
+    ring: Vec<i16>,
+    ring_dx: Vec<i16>,
+}
+
+/// Background-corrected moments of one window.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Moments {
+    /// Net signal (score units × pixels).
+    pub m0: f64,
+    /// Centroid offset from the window centre, px.
+    pub offset: [f64; 2],
+    /// Background score at the window centre (the ring's plane fit).
+    pub background: f64,
+    /// Background plane slope, score per px.
+    pub slope: [f64; 2],
+}
+
+/// Outcome of an iterated measurement.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Located {
+    /// Converged: sub-pixel centroid, net signal, background score and slope.
+    Found {
+        centroid_px: [f64; 2],
+        m0: f64,
+        background: f64,
+        slope: [f64; 2],
+    },
+    /// The window left the image.
+    OutOfImage,
+    /// No positive signal in the aperture.
+    NoSignal,
+}
+
+impl Window {
+    /// Window with aperture radius `radius_px` (gap 1 px, background ring 2 px wide)
+    /// for the colour score with weights `weights` (see [`score_weights`]).
+    pub fn new(radius_px: f64, weights: [i32; 3]) -> Window {
+        let ra = radius_px.max(1.0);
+        let rb = ra + 1.0;
+        let rc = ra + 3.0;
+        let half = rc.floor() as i32;
+        let hw = |r: f64, dy: i32| -> i32 {
+            let d = r * r - (dy * dy) as f64;
+            if d >= 0.0 {
+                d.sqrt().floor() as i32
+            } else {
+                -1
+            }
+        };
+        let mut w = Window {
+            half,
+            rows: Vec::with_capacity(2 * half as usize + 1),
+            n_ap: 0.0,
+            sxx_ap: 0.0,
+            syy_ap: 0.0,
+            n_bg: 0.0,
+            sxx_bg: 0.0,
+            syy_bg: 0.0,
+            radius_px: ra,
+            weights,
+            linear: Default::default(),
+        };
+        for dy in -half..=half {
+            let row = Row {
+                ap: hw(ra, dy),
+                inner: hw(rb, dy),
+                outer: hw(rc, dy),
+            };
+            let dy2 = (dy * dy) as f64;
+            for dx in -half..=half {
+                let dx2 = (dx * dx) as f64;
+                let adx = dx.abs();
+                if adx <= row.ap {
+                    w.n_ap += 1.0;
+                    w.sxx_ap += dx2;
+                    w.syy_ap += dy2;
+                } else if adx > row.inner && adx <= row.outer {
+                    w.n_bg += 1.0;
+                    w.sxx_bg += dx2;
+                    w.syy_bg += dy2;
+                }
+            }
+            w.rows.push(row);
+        }
+        for (k, channels) in [3usize, 4].into_iter().enumerate() {
+            w.linear[k] = w.linear_weights(channels);
+        }
+        w
+    }
+
+    fn linear_weights(&self, channels: usize) -> LinearWeights {
+        let mut lw = LinearWeights::default();
+        let h = self.half;
+        for (k, row) in self.rows.iter().enumerate() {
+            if row.outer < 0 {
+                continue;
+            }
+            let lo = -row.outer;
+            let offset = lw.ap.len();
+            for dx in lo..=row.outer {
+                let adx = dx.abs();
+                let in_ap = adx <= row.ap;
+                let in_ring = adx > row.inner && adx <= row.outer;
+                for c in 0..channels {
+                    let cw = if c < 3 { self.weights[c] as i16 } else { 0 };
+                    let (a, r) = (cw * in_ap as i16, cw * in_ring as i16);
+                    lw.ap.push(a);
+                    lw.ap_dx.push(a * dx as i16);
+                    lw.ring.push(r);
+                    lw.ring_dx.push(r * dx as i16);
+                }
+            }
+            lw.rows.push(LinearRow {
+                dy: k as i32 - h,
+                lo,
+                offset,
+                len: lw.ap.len() - offset,
+            });
+        }
+        lw
+    }
+
+    /// Mid-radius of the background ring, px.
+    pub fn ring_radius_px(&self) -> f64 {
+        self.radius_px + 2.0
+    }
+
+    /// Half-size of the square the window reads, px.
+    #[cfg(test)]
+    pub fn half_px(&self) -> i32 {
+        self.half
+    }
+
+    /// Background-corrected moments of the window centred on `(cx, cy)`, or `None` when
+    /// the window does not fit in the image. `clamped` selects the clamped score
+    /// (robust to other-colour markers inside the window, scalar) instead of the
+    /// linear score (vectorised; the default).
+    #[inline]
+    pub fn moments<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+        clamped: bool,
+    ) -> Option<Moments> {
+        let h = self.half;
+        if cx < h || cy < h || cx + h >= img.width as i32 || cy + h >= img.height as i32 {
+            return None;
+        }
+        let [s0, sx, sy, b0, bx, by] = if clamped {
+            self.sums_clamped::<T, C>(img, cx, cy)
+        } else {
+            self.sums_linear::<T, C>(img, cx, cy)
+        };
+        let a = b0 as f64 / self.n_bg;
+        let gx = bx as f64 / self.sxx_bg;
+        let gy = by as f64 / self.syy_bg;
+        let m0 = s0 as f64 - a * self.n_ap;
+        let mx = sx as f64 - gx * self.sxx_ap;
+        let my = sy as f64 - gy * self.syy_ap;
+        let offset = if m0 > 0.0 {
+            [mx / m0, my / m0]
+        } else {
+            [0.0, 0.0]
+        };
+        Some(Moments {
+            m0,
+            offset,
+            background: a,
+            slope: [gx, gy],
+        })
+    }
+
+    /// Aperture and ring sums `[Σs, Σs·dx, Σs·dy]` ×2 with the linear score
+    /// `3·I_c − (R + G + B)`, as dot products of whole rows with precomputed weights.
+    #[inline]
+    fn sums_linear<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+    ) -> [i64; 6] {
+        let lw = &self.linear[(C == 4) as usize];
+        let mut t = [0i64; 6];
+        for r in &lw.rows {
+            let start = ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C;
+            let data = &img.data[start..start + r.len];
+            let w = r.offset..r.offset + r.len;
+            let (mut a0, mut a1, mut b0, mut b1) = (0i32, 0i32, 0i32, 0i32);
+            for ((((v, &wa), &wax), &wb), &wbx) in data
+                .iter()
+                .zip(&lw.ap[w.clone()])
+                .zip(&lw.ap_dx[w.clone()])
+                .zip(&lw.ring[w.clone()])
+                .zip(&lw.ring_dx[w])
+            {
+                let v = v.value();
+                a0 += v * wa as i32;
+                a1 += v * wax as i32;
+                b0 += v * wb as i32;
+                b1 += v * wbx as i32;
+            }
+            let dy = r.dy as i64;
+            t[0] += a0 as i64;
+            t[1] += a1 as i64;
+            t[2] += a0 as i64 * dy;
+            t[3] += b0 as i64;
+            t[4] += b1 as i64;
+            t[5] += b0 as i64 * dy;
+        }
+        t
+    }
+
+    /// As [`Self::sums_linear`] with the clamped score `max(0, 3·I_c − (R+G+B) + 2K)`.
+    fn sums_clamped<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+    ) -> [i64; 6] {
+        let h = self.half;
+        let (mut s0, mut sx, mut sy) = (0i64, 0i64, 0i64);
+        let (mut b0, mut bx, mut by) = (0i64, 0i64, 0i64);
+        for (k, row) in self.rows.iter().enumerate() {
+            let dy = k as i32 - h;
+            let centre = (cy + dy) as usize * img.width + cx as usize;
+            // Sum of s and of s·dx over the pixels dx in [lo, hi] of this row.
+            let span = |lo: i32, hi: i32| -> (i32, i32) {
+                let start = (centre as isize + lo as isize) as usize * C;
+                let end = (centre as isize + hi as isize + 1) as usize * C;
+                let (rs, rx) = span_sums::<T, C>(&img.data[start..end], &self.weights);
+                (rs, rx + lo * rs)
+            };
+            if row.ap >= 0 {
+                let (rs, rx) = span(-row.ap, row.ap);
+                s0 += rs as i64;
+                sx += rx as i64;
+                sy += rs as i64 * dy as i64;
+            }
+            if row.outer >= 0 {
+                let mut add = |(rs, rx): (i32, i32)| {
+                    b0 += rs as i64;
+                    bx += rx as i64;
+                    by += rs as i64 * dy as i64;
+                };
+                if row.inner < 0 {
+                    add(span(-row.outer, row.outer));
+                } else {
+                    add(span(-row.outer, -row.inner - 1));
+                    add(span(row.inner + 1, row.outer));
+                }
+            }
+        }
+        [s0, sx, sy, b0, bx, by]
+    }
+
+    /// Iterates [`Self::moments`] with re-centring from `start_px` (see module docs).
+    pub fn locate<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        start_px: [f64; 2],
+        max_iterations: u32,
+        clamped: bool,
+    ) -> Located {
+        if !(start_px[0].is_finite() && start_px[1].is_finite()) {
+            return Located::OutOfImage;
+        }
+        let mut c = [start_px[0].round() as i32, start_px[1].round() as i32];
+        let mut prev = [i32::MIN, i32::MIN];
+        let mut last = Located::NoSignal;
+        for _ in 0..max_iterations.max(1) {
+            let Some(m) = self.moments::<T, C>(img, c[0], c[1], clamped) else {
+                return Located::OutOfImage;
+            };
+            // NaN-safe: anything but a positive signal is no signal.
+            if m.m0.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+                return Located::NoSignal;
+            }
+            let est = [c[0] as f64 + m.offset[0], c[1] as f64 + m.offset[1]];
+            last = Located::Found {
+                centroid_px: est,
+                m0: m.m0,
+                background: m.background,
+                slope: m.slope,
+            };
+            let next = [est[0].round() as i32, est[1].round() as i32];
+            // Converged, or a two-cycle between neighbouring pixels (centroid on a
+            // half-pixel boundary): either window is centred within ~0.5 px.
+            if next == c || next == prev {
+                return last;
+            }
+            prev = c;
+            c = next;
+        }
+        last
+    }
+
+    /// Largest colour score inside the aperture centred on `(cx, cy)`.
+    pub fn peak<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+    ) -> Option<i32> {
+        let h = self.half;
+        if cx < h || cy < h || cx + h >= img.width as i32 || cy + h >= img.height as i32 {
+            return None;
+        }
+        let mut best = 0;
+        for (k, row) in self.rows.iter().enumerate() {
+            if row.ap < 0 {
+                continue;
+            }
+            let y = (cy + k as i32 - h) as usize;
+            let start = (y * img.width + (cx - row.ap) as usize) * C;
+            let end = (y * img.width + (cx + row.ap) as usize + 1) * C;
+            for px in img.data[start..end].chunks_exact(C) {
+                best = best.max(score(px, &self.weights));
+            }
+        }
+        Some(best)
+    }
+}
+
+/// The paper's window search: centre of mass of `max(0, s − threshold)` over the square
+/// of half-size `half_px` around `centre_px` (clipped to the image). Used to acquire a
+/// marker that the aperture does not see. `None` when nothing exceeds the threshold.
+pub(crate) fn search<T: Sample, const C: usize>(
+    img: Raw<'_, T, C>,
+    weights: &[i32; 3],
+    centre_px: [f64; 2],
+    half_px: i32,
+    threshold: i32,
+) -> Option<[f64; 2]> {
+    if !(centre_px[0].is_finite() && centre_px[1].is_finite()) {
+        return None;
+    }
+    let cx = centre_px[0].round() as i64;
+    let cy = centre_px[1].round() as i64;
+    let h = half_px as i64;
+    let x0 = (cx - h).max(0);
+    let x1 = (cx + h).min(img.width as i64 - 1);
+    let y0 = (cy - h).max(0);
+    let y1 = (cy + h).min(img.height as i64 - 1);
+    if x0 > x1 || y0 > y1 {
+        return None;
+    }
+    let (mut s0, mut sx, mut sy) = (0i64, 0i64, 0i64);
+    for y in y0..=y1 {
+        let start = (y as usize * img.width + x0 as usize) * C;
+        let end = (y as usize * img.width + x1 as usize + 1) * C;
+        let mut rs = 0i64;
+        let mut rx = 0i64;
+        for (i, px) in img.data[start..end].chunks_exact(C).enumerate() {
+            let s = (score(px, weights) - threshold).max(0) as i64;
+            rs += s;
+            rx += s * i as i64;
+        }
+        s0 += rs;
+        sx += rx + x0 * rs;
+        sy += rs * y;
+    }
+    if s0 <= 0 {
+        return None;
+    }
+    Some([sx as f64 / s0 as f64, sy as f64 / s0 as f64])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An anti-aliased disc (16×16 supersampled) of colour score `amp` in the blue channel.
+    fn disc(w: usize, h: usize, c: [f64; 2], r: f64, amp: f64, bg: f64) -> Vec<u16> {
+        let mut d = vec![0u16; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                let mut cov = 0.0;
+                for sy in 0..16 {
+                    for sx in 0..16 {
+                        let px = x as f64 + (sx as f64 + 0.5) / 16.0 - 0.5 - c[0];
+                        let py = y as f64 + (sy as f64 + 0.5) / 16.0 - 0.5 - c[1];
+                        if px * px + py * py <= r * r {
+                            cov += 1.0 / 256.0;
+                        }
+                    }
+                }
+                let i = (y * w + x) * 3;
+                d[i] = bg as u16;
+                d[i + 1] = bg as u16;
+                d[i + 2] = (bg + amp * cov).round() as u16;
+            }
+        }
+        d
+    }
+
+    #[test]
+    fn score_weights_subtract_unused_channels_and_sum_to_zero() {
+        use MarkerColor::*;
+        assert_eq!(score_weights(Blue, &[Blue, Red]), [0, -1, 1]);
+        assert_eq!(score_weights(Red, &[Blue, Red]), [1, -1, 0]);
+        assert_eq!(score_weights(Blue, &[Blue]), [-1, -1, 2]);
+        assert_eq!(score_weights(Green, &[Blue, Red, Green]), [-1, 2, -1]);
+        for w in [
+            score_weights(Green, &[Green, Red]),
+            score_weights(Red, &[Red]),
+        ] {
+            assert_eq!(w.iter().sum::<i32>(), 0, "{w:?}");
+        }
+    }
+
+    #[test]
+    fn window_regions_are_symmetric_and_disjoint() {
+        let w = Window::new(8.0, [-1, -1, 2]);
+        assert_eq!(w.half_px(), 11);
+        assert_eq!(w.sxx_ap, w.syy_ap);
+        assert_eq!(w.sxx_bg, w.syy_bg);
+        // Disc area within a few pixels of π r².
+        assert!(
+            (w.n_ap - std::f64::consts::PI * 64.0).abs() < 12.0,
+            "{}",
+            w.n_ap
+        );
+        assert!(w.n_bg > 100.0);
+    }
+
+    #[test]
+    fn locate_recovers_subpixel_centre_of_a_disc_on_a_sloped_background() {
+        let (wd, ht) = (60, 60);
+        for &c in &[[30.0, 30.0], [30.37, 29.81], [28.5, 31.25]] {
+            let mut d = disc(wd, ht, c, 6.0, 4000.0, 0.0);
+            // Add a blue-only linear background gradient (uneven illumination).
+            for y in 0..ht {
+                for x in 0..wd {
+                    d[(y * wd + x) * 3 + 2] += (3.0 * x as f64 + 2.0 * y as f64) as u16;
+                }
+            }
+            let img = Raw::<u16, 3> {
+                data: &d,
+                width: wd,
+                height: ht,
+            };
+            let w = Window::new(8.0, [-1, -1, 2]);
+            for clamped in [false, true] {
+                match w.locate::<u16, 3>(img, [c[0] + 2.6, c[1] - 2.2], 10, clamped) {
+                    Located::Found { centroid_px, .. } => {
+                        assert!(
+                            (centroid_px[0] - c[0]).abs() < 0.01,
+                            "{centroid_px:?} vs {c:?}"
+                        );
+                        assert!(
+                            (centroid_px[1] - c[1]).abs() < 0.01,
+                            "{centroid_px:?} vs {c:?}"
+                        );
+                    }
+                    other => panic!("not found: {other:?}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn locate_reports_no_signal_and_out_of_image() {
+        let d = vec![10u8; 40 * 40 * 3];
+        let img = Raw::<u8, 3> {
+            data: &d,
+            width: 40,
+            height: 40,
+        };
+        let w = Window::new(6.0, [-1, -1, 2]);
+        assert!(matches!(
+            w.locate::<u8, 3>(img, [20.0, 20.0], 5, false),
+            Located::NoSignal
+        ));
+        assert!(matches!(
+            w.locate::<u8, 3>(img, [3.0, 20.0], 5, false),
+            Located::OutOfImage
+        ));
+        assert!(matches!(
+            w.locate::<u8, 3>(img, [f64::NAN, 20.0], 5, false),
+            Located::OutOfImage
+        ));
+    }
+}
