@@ -1,0 +1,3 @@
+//! Integration tests (one harness; one module per area).
+
+mod fourier;
