@@ -57,11 +57,14 @@
 //! decay like `1/r`. The direct solve therefore has a boundary error: forces within a few
 //! elastomer depths of the grid edges are biased, and the bias leaks into the interior
 //! because the kernel is wide. Measured on `grid_sensor(16,16,1.1,1.1)` and
-//! `grid_sensor(10,8,2.2,1.1)` with a 2 mm Gaussian load, noise-free, λ = 1e-3·σ_max: the
-//! direct solve is within ~25 % of the truth in the interior (≥ 4 mm from the edges),
-//! about the same as the dense Tikhonov solution at that λ, and within ~35 % over the whole
-//! grid; against dense Tikhonov at the same λ it agrees to ~10 % in the interior and ~20 %
-//! overall (zero padding instead of the bridge: 2–5× worse).
+//! `grid_sensor(10,8,2.2,1.1)` with a 2 mm Gaussian load, noise-free, λ = 1e-3·σ_max
+//! (σ_max of the periodic operator, about 5× that of the dense `H`): the direct solve is
+//! within ~25 % of the truth in the interior (≥ 4 mm from the edges), about the same as
+//! the dense Tikhonov solution at that λ (regularisation bias), and within ~35 % over the
+//! whole grid; at λ = 1e-2·σ_max it agrees with dense Tikhonov at the same λ to ~10 % in
+//! the interior and ~20 % overall (zero padding instead of the bridge: 2–5× worse).
+//! Smaller λ does not help the direct solve: its error floor (~20 % interior on the
+//! 10×8 grid) is the boundary model, while dense Tikhonov goes to 0.
 //!
 //! Optional refinement ([`FourierSolver::refine_iterations`]) removes the boundary error:
 //! CGLS (conjugate gradients on the normal equations of `min ‖H f − u‖² + λ²‖f‖²`,
@@ -77,8 +80,9 @@
 //!
 //! # Per frame
 //!
-//! `ux + i·uy` of each layer goes through one complex 2-D FFT (x then y, rows that are
-//! all zero are skipped); the real spectra are separated by conjugate symmetry; the
+//! `ux + i·uy` of each layer goes through one complex 2-D FFT (x then y; the x pass runs
+//! on the marker rows only: padding rows are zero or, with the bridge, blends of two
+//! transformed rows, since the transform is linear); the real spectra are separated by conjugate symmetry; the
 //! blocks with `c_x ≤ M_x/2` are applied (the others follow by Hermitian symmetry);
 //! `fx + i·fy` and `fz` are transformed back (only the rows of the force grid in the last
 //! pass) and cropped. Plans, scratch and all buffers live in the struct: no allocation.
