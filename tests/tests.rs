@@ -4,6 +4,7 @@
 mod util;
 
 mod cli;
+mod fourier;
 mod sim;
 mod stage;
 mod vision;
