@@ -1,0 +1,269 @@
+//! WACOH DynPick simulator: serves the single-byte command protocol from a
+//! [`WrenchSource`] (the virtual world, or a test closure).
+//!
+//! State: record counter (0–9, +1 per record), sensitivities, offset (set by `O` to
+//! the current load, so that records read zero there), firmware version string and
+//! filter divider n (records average the source over the last n 1-kHz samples:
+//! t, t − 1 ms, …, t − (n−1) ms). Unknown bytes are ignored; a digit waits for the
+//! `F` that completes `nF` (any other byte cancels it; n ∉ {0, 1, 2, 4, 8} is
+//! ignored). Faults from [`FaultConfig`] apply per reply. See `protocols/dynpick.md`.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::codec::{encode_filter, FilterDivider, Record, Sensitivities};
+use crate::device::ft_common::{
+    FaultConfig, FaultInjector, LinkState, OutQueue, SimCounters, SimDevice, WrenchSource,
+};
+use crate::device::Wrench;
+
+/// Sensitivities of the simulated sensor (LSB/N, LSB/(N·m)): 32.8 LSB/N gives
+/// ±250 N over the 14-bit range, 1638.4 LSB/(N·m) gives ±5 N·m.
+pub const DEFAULT_SENSITIVITIES: Sensitivities =
+    Sensitivities([32.8, 32.8, 32.8, 1638.4, 1638.4, 1638.4]);
+/// Firmware version line of the simulator.
+pub const DEFAULT_FIRMWARE: &str = "DynPick simulator 1.0 (tactbench)";
+/// Internal sampling period used by the filter average.
+pub const SAMPLE_PERIOD: Duration = Duration::from_millis(1);
+
+/// Simulator configuration.
+#[derive(Debug, Clone)]
+pub struct DynPickSimConfig {
+    /// Sensitivities the device reports and uses.
+    pub sensitivities: Sensitivities,
+    /// `V` reply (without CR LF).
+    pub firmware: String,
+    /// Faults to inject (none by default).
+    pub faults: FaultConfig,
+}
+
+impl Default for DynPickSimConfig {
+    fn default() -> Self {
+        DynPickSimConfig {
+            sensitivities: DEFAULT_SENSITIVITIES,
+            firmware: DEFAULT_FIRMWARE.to_string(),
+            faults: FaultConfig::default(),
+        }
+    }
+}
+
+/// The simulated DynPick.
+pub struct DynPickSim {
+    config: DynPickSimConfig,
+    source: Box<dyn WrenchSource>,
+    start: Instant,
+    counter: u8,
+    filter: FilterDivider,
+    offset_lsb: [f64; 6],
+    pending_digit: Option<u8>,
+    out: OutQueue,
+    faults: FaultInjector,
+    drop_link: bool,
+}
+
+impl DynPickSim {
+    /// A simulator reading its load from `source`.
+    pub fn new(config: DynPickSimConfig, source: impl WrenchSource + 'static) -> Self {
+        let faults = FaultInjector::new(config.faults.clone());
+        DynPickSim {
+            config,
+            source: Box::new(source),
+            start: Instant::now(),
+            counter: 0,
+            filter: FilterDivider::D1,
+            offset_lsb: [0.0; 6],
+            pending_digit: None,
+            out: OutQueue::default(),
+            faults,
+            drop_link: false,
+        }
+    }
+
+    /// Counters shared with the caller (replies, injected faults).
+    pub fn counters(&self) -> Arc<SimCounters> {
+        self.faults.counters()
+    }
+
+    /// Load in LSB per channel at `now`, filter average applied, before offset.
+    fn load_lsb(&mut self, now: Instant) -> [f64; 6] {
+        let t = now.saturating_duration_since(self.start);
+        let n = self.filter.n();
+        let s = self.config.sensitivities.0;
+        let mut acc = [0.0; 6];
+        for k in 0..n {
+            let w: Wrench = self.source.wrench_at(t.saturating_sub(SAMPLE_PERIOD * k));
+            let v = [
+                w.force_n[0],
+                w.force_n[1],
+                w.force_n[2],
+                w.torque_nm[0],
+                w.torque_nm[1],
+                w.torque_nm[2],
+            ];
+            for i in 0..6 {
+                acc[i] += v[i] * s[i] / n as f64;
+            }
+        }
+        acc
+    }
+
+    fn record(&mut self, now: Instant) -> Vec<u8> {
+        let lsb = self.load_lsb(now);
+        let s = self.config.sensitivities;
+        // Convert the offset-corrected LSB back to a wrench and let the codec round and
+        // saturate, so the simulator and the codec share one quantisation rule.
+        let w = Wrench {
+            force_n: [0, 1, 2].map(|i| (lsb[i] - self.offset_lsb[i]) / s.0[i]),
+            torque_nm: [3, 4, 5].map(|i| (lsb[i] - self.offset_lsb[i]) / s.0[i]),
+        };
+        let r = Record {
+            counter: self.counter,
+            raw: Record::raw_from_wrench(&w, &s),
+        };
+        self.counter = (self.counter + 1) % 10;
+        r.encode().to_vec()
+    }
+
+    fn reset(&mut self) {
+        self.counter = 0;
+        self.filter = FilterDivider::D1;
+        self.offset_lsb = [0.0; 6];
+        self.pending_digit = None;
+        self.out.clear();
+    }
+
+    /// Sends a reply through the fault injector.
+    fn reply(&mut self, bytes: Vec<u8>, now: Instant) {
+        let counters = self.faults.counters();
+        counters.replies.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let plan = self.faults.plan();
+        if plan.disconnect {
+            self.drop_link = true;
+            return;
+        }
+        if plan.reset {
+            self.reset();
+            return;
+        }
+        let bytes = self.faults.shape(&plan, bytes, garble_ascii);
+        let at = if plan.late {
+            now + self.faults.config().late_by
+        } else {
+            now
+        };
+        self.out.push(at, bytes);
+    }
+
+    fn command(&mut self, b: u8, now: Instant) {
+        if let Some(d) = self.pending_digit.take() {
+            if b == b'F' {
+                if d == 0 {
+                    let line = encode_filter(self.filter);
+                    self.reply(line, now);
+                } else if let Some(f) = FilterDivider::from_n(d as u32) {
+                    self.filter = f;
+                }
+                return;
+            }
+        }
+        match b {
+            b'R' => {
+                let r = self.record(now);
+                self.reply(r, now);
+            }
+            b'p' => {
+                let l = self.config.sensitivities.encode();
+                self.reply(l, now);
+            }
+            b'O' => self.offset_lsb = self.load_lsb(now),
+            b'V' => {
+                let l = format!("{}\r\n", self.config.firmware).into_bytes();
+                self.reply(l, now);
+            }
+            b'0'..=b'9' => self.pending_digit = Some(b - b'0'),
+            _ => {}
+        }
+    }
+}
+
+/// DynPick garble: a character of the line body becomes `G` (not a hex digit, not a
+/// number), so the reply fails to decode.
+fn garble_ascii(bytes: &mut [u8], i: usize) {
+    if bytes.len() > 2 {
+        let n = bytes.len() - 2;
+        bytes[i % n] = b'G';
+    }
+}
+
+impl SimDevice for DynPickSim {
+    fn receive(&mut self, bytes: &[u8], now: Instant) {
+        for &b in bytes {
+            if self.drop_link {
+                return;
+            }
+            self.command(b, now);
+        }
+    }
+
+    fn poll(&mut self, now: Instant, out: &mut Vec<u8>) -> LinkState {
+        if self.drop_link {
+            return LinkState::Drop;
+        }
+        self.out.drain_due(now, out);
+        LinkState::Up
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::device::ft_common::SharedWrench;
+
+    fn run(sim: &mut DynPickSim, input: &[u8]) -> Vec<u8> {
+        let now = Instant::now();
+        sim.receive(input, now);
+        let mut out = Vec::new();
+        sim.poll(now, &mut out);
+        out
+    }
+
+    #[test]
+    fn zero_offset_makes_current_load_read_zero() {
+        let w = SharedWrench::new(Wrench {
+            force_n: [1.0, -2.0, 30.0],
+            torque_nm: [0.1, 0.0, -0.2],
+        });
+        let mut sim = DynPickSim::new(DynPickSimConfig::default(), w.clone());
+        let before = Record::decode(&run(&mut sim, b"R")).unwrap();
+        assert_eq!(before.raw[2], 8192 + (30.0f64 * 32.8).round() as u16);
+        run(&mut sim, b"O");
+        let after = Record::decode(&run(&mut sim, b"R")).unwrap();
+        assert_eq!(after.raw, [8192; 6]);
+        assert_eq!((before.counter, after.counter), (0, 1));
+    }
+
+    #[test]
+    fn filter_divider_is_set_and_read_back() {
+        let mut sim = DynPickSim::new(DynPickSimConfig::default(), SharedWrench::default());
+        assert_eq!(run(&mut sim, b"0F"), b"1\r\n");
+        assert!(run(&mut sim, b"4F").is_empty());
+        assert_eq!(run(&mut sim, b"0F"), b"4\r\n");
+        // 3 is not a divider: ignored.
+        run(&mut sim, b"3F");
+        assert_eq!(run(&mut sim, b"0F"), b"4\r\n");
+    }
+
+    #[test]
+    fn filter_averages_the_last_n_samples() {
+        // Fz ramps 1 N per ms: the average over t, t-1, t-2, t-3 ms lags by 1.5 ms.
+        let ramp = |t: Duration| Wrench {
+            force_n: [0.0, 0.0, t.as_secs_f64() * 1000.0],
+            torque_nm: [0.0; 3],
+        };
+        let mut sim = DynPickSim::new(DynPickSimConfig::default(), ramp);
+        run(&mut sim, b"4F");
+        let now = sim.start + Duration::from_millis(100);
+        let lsb = sim.load_lsb(now);
+        assert!((lsb[2] / 32.8 - 98.5).abs() < 1e-9, "{}", lsb[2] / 32.8);
+    }
+}
