@@ -218,3 +218,5 @@ pub trait Camera {
     /// Grabs one RGB frame.
     fn grab(&mut self) -> DeviceResult<CameraFrame>;
 }
+
+pub mod pty;
