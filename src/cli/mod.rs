@@ -6,6 +6,8 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+mod camera;
+mod ft;
 mod model;
 mod reconstruct;
 
@@ -26,6 +28,11 @@ enum Command {
     Reconstruct(reconstruct::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
+    /// Force/torque sensor: read, tare, info.
+    Ft(ft::Args),
+    /// Cameras: list, grab a frame.
+    #[command(subcommand)]
+    Camera(camera::CameraCommand),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -34,6 +41,8 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Model(cmd) => model::run(cmd),
+        Command::Ft(args) => ft::run(args),
+        Command::Camera(cmd) => camera::run(cmd),
     };
     match result {
         Ok(code) => code,

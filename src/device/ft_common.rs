@@ -1,7 +1,7 @@
 //! Pieces shared by the two force/torque devices (`dynpick`, `ft300`): the wrench
 //! source their simulators sample, seeded fault injection for those simulators, the
-//! sans-IO simulator interface with a generic serve loop, and deadline-bounded reads
-//! for the drivers.
+//! output queue for late replies, and deadline-bounded reads for the drivers. The
+//! simulators are served on pseudo-terminals by [`crate::device::pty`].
 //!
 //! Why a deadline loop instead of one blocking read: drivers are generic over
 //! `Read + Write`, so they cannot set a timeout on the port themselves. The port is
@@ -293,32 +293,16 @@ impl FaultInjector {
     }
 }
 
-/// What a simulator's poll says about the link.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum LinkState {
-    /// Keep serving.
-    Up,
-    /// The simulated device drops the link: the serve loop closes the port.
-    Drop,
-}
-
-/// A device simulator without I/O: bytes in, bytes out at given times.
-pub trait SimDevice: Send {
-    /// Bytes arrived from the host at `now`.
-    fn receive(&mut self, bytes: &[u8], now: Instant);
-    /// Appends output due by `now` to `out`.
-    fn poll(&mut self, now: Instant, out: &mut Vec<u8>) -> LinkState;
-}
-
-/// A scheduled output queue for simulators (late replies, stream frames).
+/// A scheduled output queue for simulators (late replies), keyed by time since the
+/// simulator's server started (the clock of [`crate::device::pty::Simulator::step`]).
 #[derive(Debug, Default)]
 pub struct OutQueue {
-    items: VecDeque<(Instant, Vec<u8>)>,
+    items: VecDeque<(Duration, Vec<u8>)>,
 }
 
 impl OutQueue {
     /// Queues `bytes` to go out at `at` (kept in time order; equal times keep FIFO).
-    pub fn push(&mut self, at: Instant, bytes: Vec<u8>) {
+    pub fn push(&mut self, at: Duration, bytes: Vec<u8>) {
         let pos = self.items.iter().position(|(t, _)| *t > at);
         match pos {
             Some(i) => self.items.insert(i, (at, bytes)),
@@ -326,55 +310,21 @@ impl OutQueue {
         }
     }
     /// Moves everything due by `now` into `out`.
-    pub fn drain_due(&mut self, now: Instant, out: &mut Vec<u8>) {
+    pub fn drain_due(&mut self, now: Duration, out: &mut Vec<u8>) {
         while self.items.front().is_some_and(|(t, _)| *t <= now) {
             if let Some((_, b)) = self.items.pop_front() {
                 out.extend_from_slice(&b);
             }
         }
     }
+    /// When the next queued output is due.
+    pub fn next_due(&self) -> Option<Duration> {
+        self.items.front().map(|(t, _)| *t)
+    }
     /// Forgets everything queued (device reset).
     pub fn clear(&mut self) {
         self.items.clear();
     }
-}
-
-/// How often the serve loop polls the simulator when the port has nothing to read.
-pub const SERVE_POLL: Duration = Duration::from_micros(500);
-
-/// Serves `sim` on `port` until `stop` is set, the simulator drops the link, or the
-/// port fails (the host closed it). The port must have a short read timeout
-/// ([`open_serial`] / a pseudo-terminal master with [`PORT_READ_TIMEOUT`]). Returns
-/// the port so the caller decides when to close it (dropping it is the disconnect).
-pub fn serve<S: SimDevice + ?Sized, P: Read + Write>(
-    sim: &mut S,
-    mut port: P,
-    stop: &AtomicBool,
-) -> io::Result<P> {
-    let mut buf = [0u8; 512];
-    let mut out = Vec::with_capacity(1024);
-    while !stop.load(Ordering::Relaxed) {
-        match port.read(&mut buf) {
-            Ok(0) => return Ok(port),
-            Ok(n) => sim.receive(&buf[..n], Instant::now()),
-            Err(e) if is_quiet(&e) => {}
-            Err(e) if is_disconnect(&e) => return Ok(port),
-            Err(e) => return Err(e),
-        }
-        out.clear();
-        let state = sim.poll(Instant::now(), &mut out);
-        if !out.is_empty() {
-            match port.write_all(&out).and_then(|_| port.flush()) {
-                Ok(()) => {}
-                Err(e) if is_disconnect(&e) => return Ok(port),
-                Err(e) => return Err(e),
-            }
-        }
-        if state == LinkState::Drop {
-            return Ok(port);
-        }
-    }
-    Ok(port)
 }
 
 /// Errors that only mean "nothing arrived yet".
@@ -559,7 +509,7 @@ mod tests {
 
     #[test]
     fn out_queue_releases_in_time_order() {
-        let t0 = Instant::now();
+        let t0 = Duration::from_millis(3);
         let mut q = OutQueue::default();
         q.push(t0 + Duration::from_millis(5), b"late".to_vec());
         q.push(t0, b"now".to_vec());

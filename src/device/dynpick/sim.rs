@@ -9,12 +9,11 @@
 //! ignored). Faults from [`FaultConfig`] apply per reply. See `protocols/dynpick.md`.
 
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use super::codec::{encode_filter, FilterDivider, Record, Sensitivities};
-use crate::device::ft_common::{
-    FaultConfig, FaultInjector, LinkState, OutQueue, SimCounters, SimDevice, WrenchSource,
-};
+use crate::device::ft_common::{FaultConfig, FaultInjector, OutQueue, SimCounters, WrenchSource};
+use crate::device::pty::{Flow, Simulator};
 use crate::device::Wrench;
 
 /// Sensitivities of the simulated sensor (LSB/N, LSB/(N·m)): 32.8 LSB/N gives
@@ -51,7 +50,6 @@ impl Default for DynPickSimConfig {
 pub struct DynPickSim {
     config: DynPickSimConfig,
     source: Box<dyn WrenchSource>,
-    start: Instant,
     counter: u8,
     filter: FilterDivider,
     offset_lsb: [f64; 6],
@@ -68,7 +66,6 @@ impl DynPickSim {
         DynPickSim {
             config,
             source: Box::new(source),
-            start: Instant::now(),
             counter: 0,
             filter: FilterDivider::D1,
             offset_lsb: [0.0; 6],
@@ -85,8 +82,7 @@ impl DynPickSim {
     }
 
     /// Load in LSB per channel at `now`, filter average applied, before offset.
-    fn load_lsb(&mut self, now: Instant) -> [f64; 6] {
-        let t = now.saturating_duration_since(self.start);
+    fn load_lsb(&mut self, t: Duration) -> [f64; 6] {
         let n = self.filter.n();
         let s = self.config.sensitivities.0;
         let mut acc = [0.0; 6];
@@ -107,7 +103,7 @@ impl DynPickSim {
         acc
     }
 
-    fn record(&mut self, now: Instant) -> Vec<u8> {
+    fn record(&mut self, now: Duration) -> Vec<u8> {
         let lsb = self.load_lsb(now);
         let s = self.config.sensitivities;
         // Convert the offset-corrected LSB back to a wrench and let the codec round and
@@ -133,7 +129,7 @@ impl DynPickSim {
     }
 
     /// Sends a reply through the fault injector.
-    fn reply(&mut self, bytes: Vec<u8>, now: Instant) {
+    fn reply(&mut self, bytes: Vec<u8>, now: Duration) {
         let counters = self.faults.counters();
         counters.replies.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         let plan = self.faults.plan();
@@ -154,7 +150,7 @@ impl DynPickSim {
         self.out.push(at, bytes);
     }
 
-    fn command(&mut self, b: u8, now: Instant) {
+    fn command(&mut self, b: u8, now: Duration) {
         if let Some(d) = self.pending_digit.take() {
             if b == b'F' {
                 if d == 0 {
@@ -195,22 +191,23 @@ fn garble_ascii(bytes: &mut [u8], i: usize) {
     }
 }
 
-impl SimDevice for DynPickSim {
-    fn receive(&mut self, bytes: &[u8], now: Instant) {
-        for &b in bytes {
+impl Simulator for DynPickSim {
+    fn step(&mut self, now: Duration, input: &[u8], output: &mut Vec<u8>) -> Flow {
+        for &b in input {
             if self.drop_link {
-                return;
+                break;
             }
             self.command(b, now);
         }
+        if self.drop_link {
+            return Flow::Hangup;
+        }
+        self.out.drain_due(now, output);
+        Flow::Continue
     }
 
-    fn poll(&mut self, now: Instant, out: &mut Vec<u8>) -> LinkState {
-        if self.drop_link {
-            return LinkState::Drop;
-        }
-        self.out.drain_due(now, out);
-        LinkState::Up
+    fn next_wake(&self, now: Duration) -> Option<Duration> {
+        self.out.next_due().map(|t| t.saturating_sub(now))
     }
 }
 
@@ -220,10 +217,8 @@ mod tests {
     use crate::device::ft_common::SharedWrench;
 
     fn run(sim: &mut DynPickSim, input: &[u8]) -> Vec<u8> {
-        let now = Instant::now();
-        sim.receive(input, now);
         let mut out = Vec::new();
-        sim.poll(now, &mut out);
+        sim.step(Duration::from_millis(5), input, &mut out);
         out
     }
 
@@ -262,8 +257,7 @@ mod tests {
         };
         let mut sim = DynPickSim::new(DynPickSimConfig::default(), ramp);
         run(&mut sim, b"4F");
-        let now = sim.start + Duration::from_millis(100);
-        let lsb = sim.load_lsb(now);
+        let lsb = sim.load_lsb(Duration::from_millis(100));
         assert!((lsb[2] / 32.8 - 98.5).abs() < 1e-9, "{}", lsb[2] / 32.8);
     }
 }

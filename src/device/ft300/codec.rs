@@ -11,7 +11,6 @@
 //! raw a signed 16-bit integer. Modbus registers are big-endian on the wire; stream
 //! values are little-endian. See `protocols/ft300.md`.
 
-use crate::device::ft_common::show_bytes;
 use crate::device::Wrench;
 
 /// Default Modbus slave address of the FT 300.

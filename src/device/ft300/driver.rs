@@ -363,6 +363,17 @@ pub struct StreamSample {
     pub received: Instant,
 }
 
+/// What [`Ft300Stream::stop`] reports.
+#[derive(Debug, Clone)]
+pub struct StreamSummary {
+    /// Final decoder counters (frames, bad CRC, bytes skipped, restarts).
+    pub stats: StreamStats,
+    /// Samples dropped from the buffer because nobody took them.
+    pub overflowed: u64,
+    /// Samples not yet taken, in-flight frames decoded after the stop bytes included.
+    pub remaining: Vec<StreamSample>,
+}
+
 #[derive(Default)]
 struct Shared {
     latest: Option<StreamSample>,
@@ -458,8 +469,9 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
     }
 
     /// Stops the stream: ends the reader, sends the stop bytes, decodes frames still in
-    /// flight until the line is quiet, and returns the polled driver.
-    pub fn stop(mut self) -> DeviceResult<Ft300<P>> {
+    /// flight until the line is quiet, and returns the polled driver with a summary
+    /// (final counters and the samples nobody took yet).
+    pub fn stop(mut self) -> DeviceResult<(Ft300<P>, StreamSummary)> {
         self.stop.store(true, Ordering::SeqCst);
         let (mut port, mut decoder) = match self.thread.take().map(|t| t.join()) {
             Some(Ok(pd)) => pd,
@@ -491,7 +503,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
                 Err(e) => return Err(ft_common::io_error(DEVICE, "stop stream", &e)),
             }
         }
-        {
+        let summary = {
             let mut g = lock(&self.shared);
             let restarts = g.stats.restarts;
             g.stats = decoder.stats;
@@ -506,13 +518,19 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
                 };
                 push_sample(&mut g, s);
             }
-        }
-        Ok(Ft300 {
+            StreamSummary {
+                stats: g.stats,
+                overflowed: g.overflowed,
+                remaining: g.samples.drain(..).collect(),
+            }
+        };
+        let d = Ft300 {
             port,
             slave: self.slave,
             offset: self.offset,
             stats: self.stats,
-        })
+        };
+        Ok((d, summary))
     }
 }
 

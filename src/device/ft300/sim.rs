@@ -13,16 +13,15 @@
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use super::codec::{
     raw_from_wrench, ExceptionCode, Request, Response, StreamFrame, FN_READ_HOLDING,
     FN_WRITE_MULTIPLE, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR,
     SLAVE_ADDRESS, STREAM_START,
 };
-use crate::device::ft_common::{
-    FaultConfig, FaultInjector, LinkState, OutQueue, SimCounters, SimDevice, WrenchSource,
-};
+use crate::device::ft_common::{FaultConfig, FaultInjector, OutQueue, SimCounters, WrenchSource};
+use crate::device::pty::{Flow, Simulator};
 
 /// Stream period (100 Hz).
 pub const STREAM_PERIOD: Duration = Duration::from_millis(10);
@@ -63,11 +62,10 @@ impl Default for Ft300SimConfig {
 pub struct Ft300Sim {
     config: Ft300SimConfig,
     source: Box<dyn WrenchSource>,
-    start: Instant,
     rx: Vec<u8>,
-    rx_since: Option<Instant>,
+    rx_since: Option<Duration>,
     ff_run: usize,
-    stream_next: Option<(Instant, u64)>,
+    stream_next: Option<(Duration, u64)>,
     out: OutQueue,
     faults: FaultInjector,
     drop_link: bool,
@@ -80,7 +78,6 @@ impl Ft300Sim {
         Ft300Sim {
             config,
             source: Box::new(source),
-            start: Instant::now(),
             rx: Vec::new(),
             rx_since: None,
             ff_run: 0,
@@ -96,12 +93,11 @@ impl Ft300Sim {
         self.faults.counters()
     }
 
-    fn raw_now(&mut self, now: Instant) -> [i16; 6] {
-        let t = now.saturating_duration_since(self.start);
-        raw_from_wrench(&self.source.wrench_at(t))
+    fn raw_now(&mut self, now: Duration) -> [i16; 6] {
+        raw_from_wrench(&self.source.wrench_at(now))
     }
 
-    fn register(&mut self, reg: u16, now: Instant) -> Option<u16> {
+    fn register(&mut self, reg: u16, now: Duration) -> Option<u16> {
         let serial: Vec<u8> = {
             let mut s = self.config.serial.as_bytes().to_vec();
             s.resize(8, b' ');
@@ -127,7 +123,7 @@ impl Ft300Sim {
         }
     }
 
-    fn handle(&mut self, req: Request, now: Instant) {
+    fn handle(&mut self, req: Request, now: Duration) {
         let slave = self.config.slave;
         let exception = |function, code| Response::Exception { slave, function, code };
         let resp = match req {
@@ -184,7 +180,7 @@ impl Ft300Sim {
 
     /// Sends bytes through the fault injector; false if the device reset or dropped
     /// the link instead.
-    fn emit(&mut self, bytes: Vec<u8>, at: Instant) -> bool {
+    fn emit(&mut self, bytes: Vec<u8>, at: Duration) -> bool {
         let plan = self.faults.plan();
         if plan.disconnect {
             self.drop_link = true;
@@ -204,12 +200,12 @@ impl Ft300Sim {
         true
     }
 
-    fn reply(&mut self, bytes: Vec<u8>, now: Instant) -> bool {
+    fn reply(&mut self, bytes: Vec<u8>, now: Duration) -> bool {
         self.faults.counters().replies.fetch_add(1, Ordering::SeqCst);
         self.emit(bytes, now)
     }
 
-    fn parse_requests(&mut self, now: Instant) {
+    fn parse_requests(&mut self, now: Duration) {
         loop {
             if self.rx.is_empty() {
                 self.rx_since = None;
@@ -261,12 +257,9 @@ fn flip_bit(bytes: &mut [u8], i: usize) {
     }
 }
 
-impl SimDevice for Ft300Sim {
-    fn receive(&mut self, bytes: &[u8], now: Instant) {
-        if self.drop_link {
-            return;
-        }
-        if self.rx_since.is_some_and(|t| now.duration_since(t) > REQUEST_STALE) {
+impl Ft300Sim {
+    fn receive(&mut self, bytes: &[u8], now: Duration) {
+        if self.rx_since.is_some_and(|t| now.saturating_sub(t) > REQUEST_STALE) {
             self.rx.clear();
         }
         for &b in bytes {
@@ -285,8 +278,13 @@ impl SimDevice for Ft300Sim {
         self.rx.extend_from_slice(bytes);
         self.parse_requests(now);
     }
+}
 
-    fn poll(&mut self, now: Instant, out: &mut Vec<u8>) -> LinkState {
+impl Simulator for Ft300Sim {
+    fn step(&mut self, now: Duration, input: &[u8], output: &mut Vec<u8>) -> Flow {
+        if !self.drop_link && !input.is_empty() {
+            self.receive(input, now);
+        }
         while let Some((due, k)) = self.stream_next {
             if due > now || self.drop_link {
                 break;
@@ -297,10 +295,20 @@ impl SimDevice for Ft300Sim {
             self.emit(frame, due);
         }
         if self.drop_link {
-            return LinkState::Drop;
+            return Flow::Hangup;
         }
-        self.out.drain_due(now, out);
-        LinkState::Up
+        self.out.drain_due(now, output);
+        Flow::Continue
+    }
+
+    fn next_wake(&self, now: Duration) -> Option<Duration> {
+        let q = self.out.next_due();
+        let s = self.stream_next.map(|(t, _)| t);
+        match (q, s) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+        .map(|t| t.saturating_sub(now))
     }
 }
 
@@ -311,10 +319,8 @@ mod tests {
     use crate::device::Wrench;
 
     fn exchange(sim: &mut Ft300Sim, req: &[u8]) -> Vec<u8> {
-        let now = Instant::now();
-        sim.receive(req, now);
         let mut out = Vec::new();
-        sim.poll(now, &mut out);
+        sim.step(Duration::from_millis(1), req, &mut out);
         out
     }
 
@@ -363,21 +369,20 @@ mod tests {
     #[test]
     fn stream_runs_at_100_hz_and_stops_on_ff_run() {
         let mut s = sim();
-        let t0 = Instant::now();
+        let t0 = Duration::from_millis(1);
         let req = Request::WriteMultiple { slave: 9, start: 410, values: vec![STREAM_START] }.encode();
-        s.receive(&req, t0);
         let mut out = Vec::new();
-        s.poll(t0, &mut out);
+        s.step(t0, &req, &mut out);
         assert_eq!(out.len(), 8, "write acknowledgement only");
         out.clear();
         // 1 s later: exactly 100 frames due.
-        s.poll(t0 + Duration::from_secs(1), &mut out);
+        s.step(t0 + Duration::from_secs(1), &[], &mut out);
         assert_eq!(out.len(), 100 * 16);
         let f = StreamFrame::decode(&out[..16]).unwrap();
         assert_eq!(f.raw, [150, -200, 1234, 100, 0, -250]);
-        s.receive(&[0xFF; 50], t0 + Duration::from_secs(1));
         out.clear();
-        s.poll(t0 + Duration::from_secs(2), &mut out);
+        s.step(t0 + Duration::from_secs(1), &[0xFF; 50], &mut out);
+        s.step(t0 + Duration::from_secs(2), &[], &mut out);
         assert!(out.is_empty());
     }
 }

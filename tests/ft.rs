@@ -1,0 +1,706 @@
+//! Force/torque sensors and cameras end to end: transcript replay (driver bytes must
+//! match recorded exchanges, every expectation used), each driver against its
+//! simulator over a real pseudo-terminal, every injected fault and its outcome, the
+//! FT 300 stream without frame loss, and the `tactbench ft` / `camera` CLI.
+
+use std::io::{self, Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use tactbench::device::dynpick::codec::FilterDivider;
+use tactbench::device::dynpick::{driver as dp, DynPick, DynPickSim, DynPickSimConfig};
+use tactbench::device::ft300::{driver as ft, Ft300, Ft300Sim, Ft300SimConfig};
+use tactbench::device::ft_common::{open_serial, FaultConfig, SharedWrench, SimCounters};
+use tactbench::device::pty::PtyServer;
+use tactbench::device::{ErrorKind, ForceSensor, Wrench};
+
+type Port = Box<dyn serialport::SerialPort>;
+
+/// The load used throughout: distinct values per channel, within both sensors' ranges.
+const LOAD: Wrench = Wrench {
+    force_n: [1.5, -2.25, 12.34],
+    torque_nm: [0.125, -0.05, 0.3],
+};
+
+/// DynPick quantum per channel (1 LSB) with the simulator's sensitivities.
+const DP_LSB: [f64; 6] = [1.0 / 32.8, 1.0 / 32.8, 1.0 / 32.8, 1.0 / 1638.4, 1.0 / 1638.4, 1.0 / 1638.4];
+/// FT 300 quantum: 0.01 N, 0.001 N·m.
+const FT_LSB: [f64; 6] = [0.01, 0.01, 0.01, 0.001, 0.001, 0.001];
+
+fn channels(w: &Wrench) -> [f64; 6] {
+    [w.force_n[0], w.force_n[1], w.force_n[2], w.torque_nm[0], w.torque_nm[1], w.torque_nm[2]]
+}
+
+/// Asserts `got` equals `want` within half a quantum (plus rounding slack) per channel.
+fn assert_wrench_near(got: &Wrench, want: &Wrench, lsb: [f64; 6]) {
+    let (g, w) = (channels(got), channels(want));
+    for i in 0..6 {
+        assert!(
+            (g[i] - w[i]).abs() <= 0.5 * lsb[i] + 1e-9,
+            "channel {i}: got {} want {} (tolerance {})",
+            g[i],
+            w[i],
+            0.5 * lsb[i]
+        );
+    }
+}
+
+fn dynpick_sim(faults: FaultConfig, load: SharedWrench) -> (PtyServer<DynPickSim>, Arc<SimCounters>) {
+    let sim = DynPickSim::new(DynPickSimConfig { faults, ..Default::default() }, load);
+    let c = sim.counters();
+    (PtyServer::spawn(sim, None).expect("pty"), c)
+}
+
+fn ft300_sim(faults: FaultConfig, load: SharedWrench) -> (PtyServer<Ft300Sim>, Arc<SimCounters>) {
+    let sim = Ft300Sim::new(Ft300SimConfig { faults, ..Default::default() }, load);
+    let c = sim.counters();
+    (PtyServer::spawn(sim, None).expect("pty"), c)
+}
+
+fn open(device: &'static str, path: &Path, baud: u32) -> Port {
+    open_serial(device, path.to_str().expect("utf-8 path"), baud).expect("open pty")
+}
+
+fn get(c: &std::sync::atomic::AtomicU64) -> u64 {
+    c.load(Ordering::SeqCst)
+}
+
+// ---------------------------------------------------------------- transcripts
+
+/// Direction of one transcript step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Dir {
+    /// Host to device (`>`).
+    Host,
+    /// Device to host (`<`).
+    Device,
+}
+
+/// Parses a transcript: `> "text"` / `< "text"` with `\r \n \xNN \\ \"` escapes, or
+/// `> hex 09 03 ...`; `#` comments.
+fn parse_transcript(text: &str) -> Vec<(Dir, Vec<u8>)> {
+    let mut steps = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim_end();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let dir = match &line[..1] {
+            ">" => Dir::Host,
+            "<" => Dir::Device,
+            _ => panic!("transcript line {}: must start with > or <", n + 1),
+        };
+        let body = line[1..].trim();
+        let bytes = if let Some(hex) = body.strip_prefix("hex ") {
+            hex.split_whitespace()
+                .map(|h| u8::from_str_radix(h, 16).expect("hex byte"))
+                .collect()
+        } else {
+            let inner = body
+                .strip_prefix('"')
+                .and_then(|b| b.strip_suffix('"'))
+                .unwrap_or_else(|| panic!("transcript line {}: expected \"...\" or hex", n + 1));
+            unescape(inner)
+        };
+        steps.push((dir, bytes));
+    }
+    steps
+}
+
+fn unescape(s: &str) -> Vec<u8> {
+    let b = s.as_bytes();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'\\' && i + 1 < b.len() {
+            match b[i + 1] {
+                b'r' => out.push(b'\r'),
+                b'n' => out.push(b'\n'),
+                b'\\' => out.push(b'\\'),
+                b'"' => out.push(b'"'),
+                b'x' => {
+                    out.push(u8::from_str_radix(&s[i + 2..i + 4], 16).expect("\\xNN"));
+                    i += 2;
+                }
+                c => panic!("unknown escape \\{}", c as char),
+            }
+            i += 2;
+        } else {
+            out.push(b[i]);
+            i += 1;
+        }
+    }
+    out
+}
+
+fn escape(bytes: &[u8]) -> String {
+    let mut s = String::new();
+    for &b in bytes {
+        match b {
+            b'\r' => s.push_str("\\r"),
+            b'\n' => s.push_str("\\n"),
+            b'\\' => s.push_str("\\\\"),
+            b'"' => s.push_str("\\\""),
+            0x20..=0x7e => s.push(b as char),
+            _ => s.push_str(&format!("\\x{b:02x}")),
+        }
+    }
+    s
+}
+
+/// A transport replaying a transcript: writes must match the expected host bytes in
+/// order, reads return the recorded device bytes once the host bytes before them
+/// were written, and [`Replay::finish`] fails unless every step was used. With
+/// nothing to read it reports `TimedOut`, as a serial port does.
+struct Replay {
+    steps: Vec<(Dir, Vec<u8>)>,
+    step: usize,
+    pos: usize,
+}
+
+impl Replay {
+    fn new(steps: Vec<(Dir, Vec<u8>)>) -> Self {
+        Replay { steps, step: 0, pos: 0 }
+    }
+    fn advance(&mut self) {
+        if self.pos == self.steps[self.step].1.len() {
+            self.step += 1;
+            self.pos = 0;
+        }
+    }
+    fn finish(&self) {
+        assert_eq!(
+            self.step,
+            self.steps.len(),
+            "transcript not used up: stopped at step {} of {} ({:?})",
+            self.step + 1,
+            self.steps.len(),
+            self.steps.get(self.step).map(|(d, b)| (d, escape(b)))
+        );
+    }
+}
+
+impl Read for Replay {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        match self.steps.get(self.step) {
+            Some((Dir::Device, bytes)) => {
+                let n = buf.len().min(bytes.len() - self.pos);
+                buf[..n].copy_from_slice(&bytes[self.pos..self.pos + n]);
+                self.pos += n;
+                self.advance();
+                Ok(n)
+            }
+            _ => Err(io::Error::new(io::ErrorKind::TimedOut, "nothing to read")),
+        }
+    }
+}
+
+impl Write for Replay {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        for &b in buf {
+            match self.steps.get(self.step) {
+                Some((Dir::Host, bytes)) if bytes[self.pos] == b => {
+                    self.pos += 1;
+                    self.advance();
+                }
+                other => panic!(
+                    "driver wrote {:?} at step {}, transcript expects {:?}",
+                    escape(&[b]),
+                    self.step + 1,
+                    other.map(|(d, bytes)| (d, escape(&bytes[self.pos..])))
+                ),
+            }
+        }
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Records a session (for regenerating transcripts from the simulators).
+struct Recorder<P> {
+    inner: P,
+    log: Arc<Mutex<Vec<(Dir, Vec<u8>)>>>,
+}
+
+impl<P> Recorder<P> {
+    fn push(&self, dir: Dir, bytes: &[u8]) {
+        let mut log = self.log.lock().unwrap();
+        match log.last_mut() {
+            Some((d, b)) if *d == dir => b.extend_from_slice(bytes),
+            _ => log.push((dir, bytes.to_vec())),
+        }
+    }
+}
+
+impl<P: Read> Read for Recorder<P> {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.push(Dir::Device, &buf[..n]);
+        Ok(n)
+    }
+}
+
+impl<P: Write> Write for Recorder<P> {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.push(Dir::Host, &buf[..n]);
+        Ok(n)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+fn transcript_path(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("protocols/transcripts").join(name)
+}
+
+fn write_transcript(name: &str, header: &str, log: &[(Dir, Vec<u8>)], hex: bool) {
+    let mut s = String::from(header);
+    for (d, b) in log {
+        let arrow = if *d == Dir::Host { ">" } else { "<" };
+        if hex {
+            let h: Vec<String> = b.iter().map(|x| format!("{x:02X}")).collect();
+            s.push_str(&format!("{arrow} hex {}\n", h.join(" ")));
+        } else {
+            s.push_str(&format!("{arrow} \"{}\"\n", escape(b)));
+        }
+    }
+    std::fs::write(transcript_path(name), s).expect("write transcript");
+}
+
+/// The session recorded in `dynpick_session.txt`: connect, version, filter, read, tare,
+/// read.
+fn dynpick_session<P: Read + Write>(port: P) -> (Vec<Wrench>, String, FilterDivider) {
+    let mut d = DynPick::connect(port).expect("connect");
+    let fw = d.firmware_version().expect("V");
+    d.set_filter(FilterDivider::D2).expect("2F");
+    let f = d.filter().expect("0F");
+    let a = d.read().expect("R");
+    d.tare().expect("O");
+    let b = d.read().expect("R");
+    (vec![a, b], fw, f)
+}
+
+/// The session recorded in `ft300_session.txt`: connect, info, read.
+fn ft300_session<P: Read + Write>(port: P) -> (Wrench, ft::Ft300Info) {
+    let mut d = Ft300::connect(port).expect("connect");
+    let info = d.info().expect("info");
+    let w = d.read().expect("read");
+    (w, info)
+}
+
+/// Regenerates the transcripts from the simulators (run with `--ignored` after a
+/// deliberate protocol change, then review the diff).
+#[test]
+#[ignore]
+fn regenerate_transcripts() {
+    let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let log = Arc::new(Mutex::new(Vec::new()));
+    let port = Recorder { inner: open("dynpick", server.path(), dp::BAUD), log: Arc::clone(&log) };
+    dynpick_session(port);
+    write_transcript(
+        "dynpick_session.txt",
+        "# DynPick session recorded from the simulator (load Fx 1.5 Fy -2.25 Fz 12.34 N,\n\
+         # Mx 0.125 My -0.05 Mz 0.3 N·m): connect (p), V, 2F, 0F, R, O, R.\n",
+        &log.lock().unwrap(),
+        false,
+    );
+    let (server, _) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let log = Arc::new(Mutex::new(Vec::new()));
+    let port = Recorder { inner: open("ft300", server.path(), ft::BAUD), log: Arc::clone(&log) };
+    ft300_session(port);
+    write_transcript(
+        "ft300_session.txt",
+        "# FT 300 session recorded from the simulator (same load): connect (stop bytes,\n\
+         # read 180+6), info (read 500+3, 510+4, 514+1), read 180+6.\n",
+        &log.lock().unwrap(),
+        true,
+    );
+}
+
+#[test]
+fn dynpick_transcript_replays_exactly() {
+    let text = std::fs::read_to_string(transcript_path("dynpick_session.txt")).expect("transcript");
+    let mut replay = Replay::new(parse_transcript(&text));
+    let (ws, fw, f) = dynpick_session(&mut replay);
+    replay.finish();
+    assert_eq!(fw, "DynPick simulator 1.0 (tactbench)");
+    assert_eq!(f, FilterDivider::D2);
+    assert_wrench_near(&ws[0], &LOAD, DP_LSB);
+    assert_wrench_near(&ws[1], &Wrench::default(), DP_LSB);
+}
+
+#[test]
+fn ft300_transcript_replays_exactly() {
+    let text = std::fs::read_to_string(transcript_path("ft300_session.txt")).expect("transcript");
+    let mut replay = Replay::new(parse_transcript(&text));
+    let (w, info) = ft300_session(&mut replay);
+    replay.finish();
+    assert_eq!(info.serial, "SIM00001");
+    assert_eq!(info.year, 2026);
+    assert_eq!(info.firmware, "FTS-3.0.1");
+    assert_wrench_near(&w, &LOAD, FT_LSB);
+}
+
+#[test]
+fn replay_fails_when_expectations_are_left_unused() {
+    let steps = parse_transcript("> \"R\"\n< \"0200020002000200020002000\\r\\n\"\n> \"R\"\n");
+    let mut replay = Replay::new(steps);
+    replay.write_all(b"R").unwrap();
+    let mut buf = [0u8; 64];
+    let n = replay.read(&mut buf).unwrap();
+    assert_eq!(n, 27);
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| replay.finish()));
+    assert!(r.is_err(), "finish must fail with one step unused");
+}
+
+// ---------------------------------------------------------------- DynPick on a pty
+
+#[test]
+fn dynpick_reads_the_simulated_load_over_a_pty() {
+    let load = SharedWrench::new(LOAD);
+    let (server, counters) = dynpick_sim(FaultConfig::default(), load.clone());
+    let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
+    assert_eq!(d.sensitivities().0, [32.8, 32.8, 32.8, 1638.4, 1638.4, 1638.4]);
+    for _ in 0..20 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    }
+    // The counter digit advances once per record (p was reply 1, records follow).
+    assert_eq!(d.last_counter(), Some(19 % 10));
+    let changed = Wrench { force_n: [-100.0, 50.0, 0.0], torque_nm: [1.0, -2.0, 0.5] };
+    load.set(changed);
+    assert_wrench_near(&d.read().unwrap(), &changed, DP_LSB);
+    assert_eq!(get(&counters.replies), 22);
+    assert_eq!(d.stats().retries, 0);
+}
+
+#[test]
+fn dynpick_tare_zeroes_the_current_load_on_the_device() {
+    let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
+    d.tare().unwrap();
+    assert_wrench_near(&d.read().unwrap(), &Wrench::default(), DP_LSB);
+    d.set_filter(FilterDivider::D8).unwrap();
+    assert_eq!(d.filter().unwrap(), FilterDivider::D8);
+    assert_eq!(d.firmware_version().unwrap(), "DynPick simulator 1.0 (tactbench)");
+}
+
+fn dynpick_with(faults: FaultConfig) -> (PtyServer<DynPickSim>, Arc<SimCounters>, DynPick<Port>) {
+    // Connect without faults applying to `p`: the fault generator counts replies, and
+    // tests below configure faults that start with the first record.
+    let (server, counters) = dynpick_sim(faults, SharedWrench::new(LOAD));
+    let d = DynPick::connect(open("dynpick", server.path(), dp::BAUD));
+    (server, counters, d.expect("connect"))
+}
+
+#[test]
+fn dynpick_late_reply_within_timeout_is_simply_slower() {
+    let faults = FaultConfig { late_reply: 1.0, late_by: dp::REPLY_TIMEOUT / 2, ..Default::default() };
+    let (_s, c, mut d) = dynpick_with(faults);
+    for _ in 0..5 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    }
+    assert_eq!(d.stats().retries, 0);
+    assert_eq!(get(&c.late), 6);
+}
+
+#[test]
+fn dynpick_late_reply_past_timeout_is_discarded_and_retried() {
+    // Every 2nd-ish reply late by 1.5 timeouts: the attempt times out, the drain
+    // discards the late record, the retry gets a fresh one.
+    let faults = FaultConfig {
+        seed: 7,
+        late_reply: 0.4,
+        late_by: dp::REPLY_TIMEOUT * 3 / 2,
+        ..Default::default()
+    };
+    let (_s, c, mut d) = dynpick_with(faults);
+    let mut ok = 0;
+    for _ in 0..15 {
+        match d.read() {
+            Ok(w) => {
+                assert_wrench_near(&w, &LOAD, DP_LSB);
+                ok += 1;
+            }
+            // Three late replies in a row: a clear timeout, never a wrong value.
+            Err(e) => assert_eq!(e.kind(), ErrorKind::Timeout, "{e}"),
+        }
+    }
+    assert!(ok >= 12, "{ok} of 15 reads succeeded");
+    assert!(get(&c.late) > 0);
+    assert!(d.stats().timeouts > 0 && d.stats().retries > 0, "{:?}", d.stats());
+}
+
+#[test]
+fn dynpick_dropped_and_garbled_bytes_are_retried() {
+    let faults = FaultConfig { seed: 3, drop_byte: 0.2, garble: 0.2, ..Default::default() };
+    let (_s, c, mut d) = dynpick_with(faults);
+    for _ in 0..30 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    }
+    assert!(get(&c.dropped) + get(&c.garbled) > 0);
+    assert_eq!(d.stats().protocol_errors, d.stats().retries, "{:?}", d.stats());
+    assert!(d.stats().retries > 0);
+}
+
+#[test]
+fn dynpick_always_garbled_is_a_protocol_error_with_the_bytes() {
+    let faults = FaultConfig { garble: 1.0, ..Default::default() };
+    let (server, _) = dynpick_sim(faults, SharedWrench::new(LOAD));
+    let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).err().expect("must fail");
+    assert_eq!(e.kind(), ErrorKind::Protocol);
+    assert_eq!(e.command, "p");
+    assert!(e.message.contains('G') && e.message.contains("after 3 attempts"), "{e}");
+}
+
+#[test]
+fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
+    let faults = FaultConfig { seed: 11, unsolicited: 1.0, ..Default::default() };
+    let (_s, c, mut d) = dynpick_with(faults);
+    for _ in 0..20 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    }
+    assert_eq!(get(&c.unsolicited), 21);
+    assert_eq!(d.stats().retries, 0, "{:?}", d.stats());
+    assert!(d.stats().resyncs > 0);
+}
+
+#[test]
+fn dynpick_reset_recovers_by_retry_but_loses_the_device_tare() {
+    let faults = FaultConfig { seed: 5, reset: 0.15, ..Default::default() };
+    let (_s, c, mut d) = dynpick_with(faults);
+    d.tare().unwrap();
+    let mut saw_untared = false;
+    for _ in 0..30 {
+        let w = d.read().unwrap();
+        let near_zero = channels(&w).iter().zip(DP_LSB).all(|(v, l)| v.abs() <= 0.5 * l + 1e-9);
+        if !near_zero {
+            // After a reset the device offset is gone: the full load reads again.
+            assert_wrench_near(&w, &LOAD, DP_LSB);
+            saw_untared = true;
+        }
+    }
+    assert!(get(&c.resets) > 0);
+    assert!(saw_untared, "a reset must make the tare visible as lost");
+    assert!(d.stats().timeouts > 0);
+}
+
+#[test]
+fn dynpick_disconnect_is_reported_without_retry() {
+    let faults = FaultConfig { disconnect_after: Some(4), ..Default::default() };
+    let (server, _, mut d) = dynpick_with(faults);
+    for _ in 0..3 {
+        d.read().unwrap();
+    }
+    let t = Instant::now();
+    let e = d.read().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+    assert!(server.is_finished() || t.elapsed() < Duration::from_secs(5));
+}
+
+// ---------------------------------------------------------------- FT 300 on a pty
+
+fn ft300_with(faults: FaultConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>, Ft300<Port>) {
+    let (server, counters) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).expect("connect");
+    (server, counters, d)
+}
+
+#[test]
+fn ft300_polled_reads_info_and_software_tare() {
+    let (_s, _c, mut d) = ft300_with(FaultConfig::default());
+    for _ in 0..10 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+    }
+    let info = d.info().unwrap();
+    assert_eq!((info.serial.as_str(), info.year, info.firmware.as_str()), ("SIM00001", 2026, "FTS-3.0.1"));
+    d.tare().unwrap();
+    assert_wrench_near(&d.read().unwrap(), &Wrench::default(), FT_LSB);
+    assert_wrench_near(&d.read_raw_wrench().unwrap(), &LOAD, FT_LSB);
+}
+
+#[test]
+fn ft300_exception_is_rejected_and_not_retried() {
+    let (_s, c, mut d) = ft300_with(FaultConfig::default());
+    let before = get(&c.replies);
+    let e = d.read_registers(1000, 2).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Rejected);
+    assert!(e.message.contains("illegal data address"), "{e}");
+    assert_eq!(e.command, "read 1000+2");
+    assert_eq!(get(&c.replies), before + 1);
+    let e = d.write_registers(410, &[1]).unwrap_err();
+    assert!(e.message.contains("illegal data value"), "{e}");
+}
+
+#[test]
+fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
+    let faults = FaultConfig {
+        seed: 21,
+        late_reply: 0.1,
+        late_by: ft::REPLY_TIMEOUT * 3 / 2,
+        drop_byte: 0.1,
+        garble: 0.1,
+        unsolicited: 0.3,
+        ..Default::default()
+    };
+    let (_s, c, mut d) = ft300_with(faults);
+    let mut ok = 0;
+    for _ in 0..30 {
+        match d.read() {
+            Ok(w) => {
+                assert_wrench_near(&w, &LOAD, FT_LSB);
+                ok += 1;
+            }
+            Err(e) => assert!(matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{e}"),
+        }
+    }
+    assert!(ok >= 28, "{ok} of 30");
+    let s = d.stats();
+    assert!(get(&c.late) + get(&c.dropped) + get(&c.garbled) > 0);
+    assert!(s.retries > 0 && s.resyncs > 0, "{s:?}");
+}
+
+#[test]
+fn ft300_always_bad_crc_is_a_protocol_error() {
+    let (server, _) = ft300_sim(FaultConfig { garble: 1.0, ..Default::default() }, SharedWrench::new(LOAD));
+    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD)).err().expect("must fail");
+    assert_eq!(e.kind(), ErrorKind::Protocol, "{e}");
+    assert!(e.message.contains("bad crc"), "{e}");
+}
+
+#[test]
+fn ft300_always_dropped_byte_is_a_timeout_on_the_incomplete_reply() {
+    let (server, _) = ft300_sim(FaultConfig { drop_byte: 1.0, ..Default::default() }, SharedWrench::new(LOAD));
+    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD)).err().expect("must fail");
+    assert!(matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{e}");
+}
+
+#[test]
+fn ft300_reset_is_retried_and_keeps_the_software_tare() {
+    let faults = FaultConfig { seed: 9, reset: 0.15, ..Default::default() };
+    let (_s, c, mut d) = ft300_with(faults);
+    d.tare().unwrap();
+    for _ in 0..30 {
+        // The offset lives in the driver: resets do not undo it.
+        assert_wrench_near(&d.read().unwrap(), &Wrench::default(), FT_LSB);
+    }
+    assert!(get(&c.resets) > 0);
+    assert!(d.stats().timeouts > 0);
+}
+
+#[test]
+fn ft300_disconnect_is_reported() {
+    let (_s, _c, mut d) = ft300_with(FaultConfig { disconnect_after: Some(3), ..Default::default() });
+    d.read().unwrap();
+    d.read().unwrap();
+    let e = d.read().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+}
+
+#[test]
+fn ft300_stream_delivers_every_frame_for_1_5_s() {
+    let (server, c) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
+    let mut s = d.start_stream().unwrap();
+    assert_eq!(s.sample_rate_hz(), 100.0);
+    let start = Instant::now();
+    let mut samples = Vec::new();
+    let mut reads = 0;
+    while start.elapsed() < Duration::from_millis(1500) {
+        assert_wrench_near(&s.read().unwrap(), &LOAD, FT_LSB);
+        reads += 1;
+        samples.extend(s.take_samples());
+    }
+    let (mut d, summary) = s.stop().unwrap();
+    samples.extend(summary.remaining);
+    // Lossless: every frame the simulator sent was decoded, in order, none corrupt.
+    let sent = get(&c.frames);
+    assert!(sent >= 100, "{sent} frames in 1.5 s");
+    assert_eq!(samples.len() as u64, sent);
+    assert_eq!(summary.stats.frames, sent);
+    assert_eq!((summary.stats.bad_crc, summary.stats.bytes_skipped, summary.overflowed), (0, 0, 0));
+    for (i, x) in samples.iter().enumerate() {
+        assert_eq!(x.seq, i as u64 + 1, "stream sequence");
+        assert_wrench_near(&x.raw_wrench, &LOAD, FT_LSB);
+    }
+    assert!(reads > 0);
+    // After the stream, polled reads work again.
+    assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+}
+
+#[test]
+fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
+    let faults = FaultConfig {
+        seed: 4,
+        drop_byte: 0.05,
+        garble: 0.05,
+        unsolicited: 0.05,
+        late_reply: 0.05,
+        late_by: Duration::from_millis(25),
+        ..Default::default()
+    };
+    let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
+    let mut s = d.start_stream().unwrap();
+    let start = Instant::now();
+    let mut samples = Vec::new();
+    while start.elapsed() < Duration::from_millis(1000) {
+        // Every sample that gets through is correct (CRC-checked).
+        assert_wrench_near(&s.read().unwrap(), &LOAD, FT_LSB);
+        samples.extend(s.take_samples());
+    }
+    let (_d, summary) = s.stop().unwrap();
+    samples.extend(summary.remaining);
+    let sent = get(&c.frames);
+    let damaged = get(&c.dropped) + get(&c.garbled);
+    assert!(damaged > 0 && get(&c.unsolicited) > 0);
+    // Each damaged frame is lost, and may take its neighbour with it when garbage or
+    // a drop splices two frames; nothing else is lost.
+    let lost = sent - samples.len() as u64;
+    assert!(lost >= 1 && lost <= 2 * damaged, "lost {lost} of {sent}, damaged {damaged}");
+    assert!(summary.stats.bad_crc > 0 && summary.stats.bytes_skipped > 0, "{:?}", summary.stats);
+}
+
+#[test]
+fn ft300_stream_restarts_after_a_device_reset() {
+    let faults = FaultConfig { seed: 2, reset: 0.01, ..Default::default() };
+    let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
+    let mut s = d.start_stream().unwrap();
+    let start = Instant::now();
+    let mut ok = 0;
+    while start.elapsed() < Duration::from_millis(2000) {
+        match s.read() {
+            Ok(w) => {
+                assert_wrench_near(&w, &LOAD, FT_LSB);
+                ok += 1;
+            }
+            // While the stream is down, reads time out clearly.
+            Err(e) => assert_eq!(e.kind(), ErrorKind::Timeout, "{e}"),
+        }
+    }
+    let (_d, summary) = s.stop().unwrap();
+    assert!(get(&c.resets) > 0);
+    assert!(summary.stats.restarts >= 1, "{:?}", summary.stats);
+    assert!(ok > 50, "{ok} good reads");
+}
+
+#[test]
+fn ft300_stream_disconnect_is_reported() {
+    let faults = FaultConfig { disconnect_after: Some(30), ..Default::default() };
+    let (server, _) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
+    let mut s = d.start_stream().unwrap();
+    let e = loop {
+        match s.read() {
+            Ok(_) => continue,
+            Err(e) => break e,
+        }
+    };
+    assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+}
