@@ -110,6 +110,9 @@ pub struct FaultConfig {
     pub reset: f64,
     /// The link drops (port closed) after this many replies / frames.
     pub disconnect_after: Option<u64>,
+    /// The first this many replies / frames are served clean (lets a driver connect
+    /// before the faults start).
+    pub clean_first: u64,
 }
 
 impl Default for FaultConfig {
@@ -123,6 +126,7 @@ impl Default for FaultConfig {
             unsolicited: 0.0,
             reset: 0.0,
             disconnect_after: None,
+            clean_first: 0,
         }
     }
 }
@@ -237,6 +241,14 @@ impl FaultInjector {
         let idx_b = self.next_u64() as usize;
         let n_garbage = 1 + (self.next_u64() % 8) as usize;
         let disconnect = c.disconnect_after.is_some_and(|n| self.replies > n);
+        if self.replies <= c.clean_first {
+            // The draws above still happened, so reply k gets the same faults whatever
+            // `clean_first` is; only the first ones are suppressed.
+            return FaultPlan {
+                disconnect,
+                ..FaultPlan::default()
+            };
+        }
         let plan = FaultPlan {
             late,
             drop_at: drop.then_some(idx_a),

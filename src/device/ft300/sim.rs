@@ -249,11 +249,13 @@ impl Ft300Sim {
     }
 }
 
-/// FT 300 garble: flip one bit of a byte outside the CRC, so the CRC check fails.
+/// FT 300 garble ("bad CRC"): flip one bit in the last three bytes (last payload byte
+/// or the CRC), so the framing (address, function, byte count, header) stays intact
+/// and only the CRC check can catch it.
 fn flip_bit(bytes: &mut [u8], i: usize) {
-    if bytes.len() > 2 {
-        let n = bytes.len() - 2;
-        bytes[i % n] ^= 0x01;
+    if bytes.len() >= 3 {
+        let j = bytes.len() - 3 + i % 3;
+        bytes[j] ^= 0x01 << (i / 3 % 8);
     }
 }
 
