@@ -713,3 +713,204 @@ fn ft300_stream_disconnect_is_reported() {
     };
     assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
 }
+
+// ---------------------------------------------------------------- CLI end to end
+
+/// A `tactbench` child process, killed on drop (so a failing test leaks nothing).
+struct Served(std::process::Child);
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn tactbench() -> std::process::Command {
+    std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
+}
+
+const LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
+
+/// Starts `tactbench ft serve-sim` and waits for its "serving" line.
+fn serve(protocol: &str, link: &Path) -> Served {
+    use std::io::BufRead;
+    let mut child = tactbench()
+        .args(["ft", "--protocol", protocol, "serve-sim", "--wrench", LOAD_ARG, "--duration-s", "60", "--link"])
+        .arg(link)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn tactbench");
+    let stdout = child.stdout.take().expect("stdout");
+    let served = Served(child);
+    let mut line = String::new();
+    std::io::BufReader::new(stdout).read_line(&mut line).expect("serving line");
+    assert!(line.starts_with("serving simulated"), "{line}");
+    served
+}
+
+fn run_ok(args: &[&str], port: &Path) -> String {
+    let out = tactbench().args(["ft", "--port"]).arg(port).args(args).output().expect("run");
+    assert!(
+        out.status.success(),
+        "tactbench ft {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).expect("utf-8")
+}
+
+fn json_wrench(v: &serde_json::Value) -> Wrench {
+    let f = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("missing {k} in {v}"));
+    Wrench {
+        force_n: [f("fx_n"), f("fy_n"), f("fz_n")],
+        torque_nm: [f("mx_nm"), f("my_nm"), f("mz_nm")],
+    }
+}
+
+#[test]
+fn cli_ft_dynpick_read_info_tare_against_a_served_simulator() {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("dynpick");
+    let _sim = serve("dynpick", &link);
+    let out = run_ok(&["--protocol", "dynpick", "read", "--samples", "3", "--json"], &link);
+    let v: serde_json::Value = serde_json::from_str(&out).expect("json");
+    assert_eq!(v["protocol"], "dynpick");
+    let samples = v["samples"].as_array().expect("samples");
+    assert_eq!(samples.len(), 3);
+    for s in samples {
+        assert_wrench_near(&json_wrench(s), &LOAD, DP_LSB);
+    }
+    assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, DP_LSB);
+    let text = run_ok(&["--protocol", "dynpick", "read"], &link);
+    assert!(text.contains("Fz   +12.317 N") || text.contains("Fz   +12.348 N"), "{text}");
+    let info = run_ok(&["--protocol", "dynpick", "info", "--json"], &link);
+    let v: serde_json::Value = serde_json::from_str(&info).expect("json");
+    assert_eq!(v["firmware"], "DynPick simulator 1.0 (tactbench)");
+    assert_eq!(v["filter_divider"], "1");
+    // Tare is kept by the device across invocations.
+    run_ok(&["--protocol", "dynpick", "tare"], &link);
+    let out = run_ok(&["--protocol", "dynpick", "read", "--json"], &link);
+    let v: serde_json::Value = serde_json::from_str(&out).expect("json");
+    assert_wrench_near(&json_wrench(&v["mean"]), &Wrench::default(), DP_LSB);
+}
+
+#[test]
+fn cli_ft_ft300_polled_stream_and_info_against_a_served_simulator() {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ft300");
+    let _sim = serve("ft300", &link);
+    for extra in [&[][..], &["--stream"][..]] {
+        let mut args = vec!["--protocol", "ft300", "read", "--samples", "5", "--json"];
+        args.extend_from_slice(extra);
+        let v: serde_json::Value = serde_json::from_str(&run_ok(&args, &link)).expect("json");
+        assert_eq!(v["samples"].as_array().map(Vec::len), Some(5));
+        assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, FT_LSB);
+    }
+    let v: serde_json::Value =
+        serde_json::from_str(&run_ok(&["--protocol", "ft300", "read", "--tare", "--json"], &link)).expect("json");
+    assert_wrench_near(&json_wrench(&v["mean"]), &Wrench::default(), FT_LSB);
+    let info = run_ok(&["--protocol", "ft300", "info"], &link);
+    assert!(info.contains("serial: SIM00001") && info.contains("production_year: 2026"), "{info}");
+    let out = tactbench().args(["ft", "--port"]).arg(&link).args(["--protocol", "ft300", "tare"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("software offset"));
+}
+
+#[test]
+fn cli_ft_missing_port_is_a_clear_error() {
+    let out = tactbench()
+        .args(["ft", "--port", "/dev/tactbench-no-such-port", "--protocol", "dynpick", "read"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot open serial port /dev/tactbench-no-such-port at 921600 baud"), "{err}");
+}
+
+#[test]
+fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    let img = image::RgbImage::from_fn(8, 6, |x, y| image::Rgb([x as u8 * 30, y as u8 * 40, 99]));
+    img.save(frames.join("0001.png")).unwrap();
+    let out_png = dir.path().join("grab.png");
+    let out = tactbench()
+        .args(["camera", "grab", "--device"])
+        .arg(format!("dir:{}", frames.display()))
+        .arg("--out")
+        .arg(&out_png)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(image::open(&out_png).unwrap().to_rgb8(), img);
+
+    // No camera on this machine: V4L2 index 0 must fail clearly (skipped where one exists).
+    if !Path::new("/dev/video0").exists() {
+        let out = tactbench()
+            .args(["camera", "grab", "--device", "0", "--out"])
+            .arg(dir.path().join("x.png"))
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("cannot open V4L2 camera 0") && err.contains("0 V4L2 camera(s) found"), "{err}");
+        let list = tactbench().args(["camera", "list"]).output().unwrap();
+        assert!(list.status.success());
+        assert!(String::from_utf8_lossy(&list.stdout).contains("no V4L2 cameras found"));
+    }
+}
+
+/// Measures the sustained FT 300 stream for 10 s and the polled rates of both drivers
+/// over a pty; prints the figures (not a pass/fail speed check). Run once with
+/// `cargo test --test tests ft::measure_sustained_rates -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn measure_sustained_rates() {
+    let (server, c) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
+    let mut s = d.start_stream().unwrap();
+    let start = Instant::now();
+    let mut samples = Vec::new();
+    let mut reads = 0u64;
+    while start.elapsed() < Duration::from_secs(10) {
+        s.read().unwrap();
+        reads += 1;
+        samples.extend(s.take_samples());
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    let (mut polled, summary) = s.stop().unwrap();
+    samples.extend(summary.remaining);
+    let sent = get(&c.frames);
+    let max_gap = samples
+        .windows(2)
+        .map(|w| w[1].received.duration_since(w[0].received))
+        .max()
+        .unwrap_or_default();
+    println!(
+        "ft300 stream 10 s: sent {sent}, decoded {}, lost {}, bad crc {}, skipped {} B, \
+         {:.2} frames/s, {reads} newest-sample reads, max inter-arrival {:.1} ms",
+        samples.len(),
+        sent - samples.len() as u64,
+        summary.stats.bad_crc,
+        summary.stats.bytes_skipped,
+        samples.len() as f64 / elapsed,
+        max_gap.as_secs_f64() * 1e3
+    );
+    let t = Instant::now();
+    let mut n = 0;
+    while t.elapsed() < Duration::from_secs(3) {
+        polled.read().unwrap();
+        n += 1;
+    }
+    println!("ft300 polled over pty: {:.0} reads/s", n as f64 / t.elapsed().as_secs_f64());
+    let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
+    let t = Instant::now();
+    let mut n = 0;
+    while t.elapsed() < Duration::from_secs(3) {
+        d.read().unwrap();
+        n += 1;
+    }
+    println!("dynpick polled over pty: {:.0} reads/s", n as f64 / t.elapsed().as_secs_f64());
+}

@@ -39,6 +39,15 @@ enum Protocol {
     Ft300,
 }
 
+impl Protocol {
+    fn name(self) -> &'static str {
+        match self {
+            Protocol::Dynpick => "dynpick",
+            Protocol::Ft300 => "ft300",
+        }
+    }
+}
+
 #[derive(Subcommand)]
 enum Action {
     /// Read the wrench: Fx Fy Fz in N, Mx My Mz in N·m.
@@ -175,7 +184,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     mean: WrenchJson,
                 }
                 let out = Out {
-                    protocol: format!("{protocol:?}").to_lowercase(),
+                    protocol: protocol.name().to_string(),
                     samples: ws.iter().map(|w| WrenchJson::from(*w)).collect(),
                     mean: m.into(),
                 };
@@ -297,7 +306,8 @@ fn serve_until<S: Simulator>(
     duration_s: Option<f64>,
 ) -> anyhow::Result<ExitCode> {
     println!(
-        "serving simulated {protocol:?} on {} (link {})",
+        "serving simulated {} on {} (link {})",
+        protocol.name(),
         server.path().display(),
         server.port_path().display()
     );
