@@ -26,7 +26,11 @@ struct Loop<S> {
 
 impl<S: Simulator> Loop<S> {
     fn new(sim: S) -> Self {
-        Loop { sim, start: Instant::now(), out: Vec::new() }
+        Loop {
+            sim,
+            start: Instant::now(),
+            out: Vec::new(),
+        }
     }
 }
 
@@ -57,15 +61,27 @@ impl<S: Simulator> Write for Loop<S> {
     }
 }
 
-const LOAD: Wrench = Wrench { force_n: [1.5, -2.25, 12.34], torque_nm: [0.125, -0.05, 0.3] };
+const LOAD: Wrench = Wrench {
+    force_n: [1.5, -2.25, 12.34],
+    torque_nm: [0.125, -0.05, 0.3],
+};
 
 fn codecs(c: &mut Criterion) {
-    let rec = Record { counter: 3, raw: [8192, 8300, 7000, 9000, 8192, 100] }.encode();
+    let rec = Record {
+        counter: 3,
+        raw: [8192, 8300, 7000, 9000, 8192, 100],
+    }
+    .encode();
     c.bench_function("codec/dynpick_record_decode", |b| {
         b.iter(|| Record::decode(std::hint::black_box(&rec)))
     });
-    let frame = StreamFrame { raw: [1, -2, 300, 4, -5, 6] }.encode();
-    c.bench_function("codec/ft300_crc16_14_bytes", |b| b.iter(|| crc16(std::hint::black_box(&frame[..14]))));
+    let frame = StreamFrame {
+        raw: [1, -2, 300, 4, -5, 6],
+    }
+    .encode();
+    c.bench_function("codec/ft300_crc16_14_bytes", |b| {
+        b.iter(|| crc16(std::hint::black_box(&frame[..14])))
+    });
     let chunk: Vec<u8> = (0..16).flat_map(|_| frame).collect();
     c.bench_function("codec/ft300_stream_decode_16_frames", |b| {
         let mut d = StreamDecoder::default();
@@ -81,23 +97,35 @@ fn codecs(c: &mut Criterion) {
 fn drivers_in_memory(c: &mut Criterion) {
     let sim = DynPickSim::new(DynPickSimConfig::default(), SharedWrench::new(LOAD));
     let mut d = DynPick::connect(Loop::new(sim)).expect("connect");
-    c.bench_function("driver_in_memory/dynpick_read", |b| b.iter(|| d.read().expect("read")));
+    c.bench_function("driver_in_memory/dynpick_read", |b| {
+        b.iter(|| d.read().expect("read"))
+    });
     let sim = Ft300Sim::new(Ft300SimConfig::default(), SharedWrench::new(LOAD));
     let mut f = Ft300::connect(Loop::new(sim)).expect("connect");
-    c.bench_function("driver_in_memory/ft300_read", |b| b.iter(|| f.read().expect("read")));
+    c.bench_function("driver_in_memory/ft300_read", |b| {
+        b.iter(|| f.read().expect("read"))
+    });
 }
 
 fn drivers_over_pty(c: &mut Criterion) {
     let mut g = c.benchmark_group("pty_round_trip");
     g.measurement_time(Duration::from_secs(5));
-    let server = PtyServer::spawn(DynPickSim::new(DynPickSimConfig::default(), SharedWrench::new(LOAD)), None)
-        .expect("pty");
-    let port = open_serial("dynpick", server.path().to_str().expect("path"), dp::BAUD).expect("open");
+    let server = PtyServer::spawn(
+        DynPickSim::new(DynPickSimConfig::default(), SharedWrench::new(LOAD)),
+        None,
+    )
+    .expect("pty");
+    let port =
+        open_serial("dynpick", server.path().to_str().expect("path"), dp::BAUD).expect("open");
     let mut d = DynPick::connect(port).expect("connect");
     g.bench_function("dynpick_read", |b| b.iter(|| d.read().expect("read")));
-    let server2 = PtyServer::spawn(Ft300Sim::new(Ft300SimConfig::default(), SharedWrench::new(LOAD)), None)
-        .expect("pty");
-    let port = open_serial("ft300", server2.path().to_str().expect("path"), ft::BAUD).expect("open");
+    let server2 = PtyServer::spawn(
+        Ft300Sim::new(Ft300SimConfig::default(), SharedWrench::new(LOAD)),
+        None,
+    )
+    .expect("pty");
+    let port =
+        open_serial("ft300", server2.path().to_str().expect("path"), ft::BAUD).expect("open");
     let mut f = Ft300::connect(port).expect("connect");
     g.bench_function("ft300_read", |b| b.iter(|| f.read().expect("read")));
     g.finish();

@@ -25,12 +25,26 @@ const LOAD: Wrench = Wrench {
 };
 
 /// DynPick quantum per channel (1 LSB) with the simulator's sensitivities.
-const DP_LSB: [f64; 6] = [1.0 / 32.8, 1.0 / 32.8, 1.0 / 32.8, 1.0 / 1638.4, 1.0 / 1638.4, 1.0 / 1638.4];
+const DP_LSB: [f64; 6] = [
+    1.0 / 32.8,
+    1.0 / 32.8,
+    1.0 / 32.8,
+    1.0 / 1638.4,
+    1.0 / 1638.4,
+    1.0 / 1638.4,
+];
 /// FT 300 quantum: 0.01 N, 0.001 N·m.
 const FT_LSB: [f64; 6] = [0.01, 0.01, 0.01, 0.001, 0.001, 0.001];
 
 fn channels(w: &Wrench) -> [f64; 6] {
-    [w.force_n[0], w.force_n[1], w.force_n[2], w.torque_nm[0], w.torque_nm[1], w.torque_nm[2]]
+    [
+        w.force_n[0],
+        w.force_n[1],
+        w.force_n[2],
+        w.torque_nm[0],
+        w.torque_nm[1],
+        w.torque_nm[2],
+    ]
 }
 
 /// Asserts `got` equals `want` within half a quantum (plus rounding slack) per channel.
@@ -47,14 +61,29 @@ fn assert_wrench_near(got: &Wrench, want: &Wrench, lsb: [f64; 6]) {
     }
 }
 
-fn dynpick_sim(faults: FaultConfig, load: SharedWrench) -> (PtyServer<DynPickSim>, Arc<SimCounters>) {
-    let sim = DynPickSim::new(DynPickSimConfig { faults, ..Default::default() }, load);
+fn dynpick_sim(
+    faults: FaultConfig,
+    load: SharedWrench,
+) -> (PtyServer<DynPickSim>, Arc<SimCounters>) {
+    let sim = DynPickSim::new(
+        DynPickSimConfig {
+            faults,
+            ..Default::default()
+        },
+        load,
+    );
     let c = sim.counters();
     (PtyServer::spawn(sim, None).expect("pty"), c)
 }
 
 fn ft300_sim(faults: FaultConfig, load: SharedWrench) -> (PtyServer<Ft300Sim>, Arc<SimCounters>) {
-    let sim = Ft300Sim::new(Ft300SimConfig { faults, ..Default::default() }, load);
+    let sim = Ft300Sim::new(
+        Ft300SimConfig {
+            faults,
+            ..Default::default()
+        },
+        load,
+    );
     let c = sim.counters();
     (PtyServer::spawn(sim, None).expect("pty"), c)
 }
@@ -162,7 +191,11 @@ struct Replay {
 
 impl Replay {
     fn new(steps: Vec<(Dir, Vec<u8>)>) -> Self {
-        Replay { steps, step: 0, pos: 0 }
+        Replay {
+            steps,
+            step: 0,
+            pos: 0,
+        }
     }
     fn advance(&mut self) {
         if self.pos == self.steps[self.step].1.len() {
@@ -220,10 +253,13 @@ impl Write for Replay {
     }
 }
 
+/// A recorded session: direction and bytes, consecutive same-direction chunks merged.
+type Log = Arc<Mutex<Vec<(Dir, Vec<u8>)>>>;
+
 /// Records a session (for regenerating transcripts from the simulators).
 struct Recorder<P> {
     inner: P,
-    log: Arc<Mutex<Vec<(Dir, Vec<u8>)>>>,
+    log: Log,
 }
 
 impl<P> Recorder<P> {
@@ -256,7 +292,9 @@ impl<P: Write> Write for Recorder<P> {
 }
 
 fn transcript_path(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("protocols/transcripts").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("protocols/transcripts")
+        .join(name)
 }
 
 fn write_transcript(name: &str, header: &str, log: &[(Dir, Vec<u8>)], hex: bool) {
@@ -301,7 +339,10 @@ fn ft300_session<P: Read + Write>(port: P) -> (Wrench, ft::Ft300Info) {
 fn regenerate_transcripts() {
     let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
     let log = Arc::new(Mutex::new(Vec::new()));
-    let port = Recorder { inner: open("dynpick", server.path(), dp::BAUD), log: Arc::clone(&log) };
+    let port = Recorder {
+        inner: open("dynpick", server.path(), dp::BAUD),
+        log: Arc::clone(&log),
+    };
     dynpick_session(port);
     write_transcript(
         "dynpick_session.txt",
@@ -312,7 +353,10 @@ fn regenerate_transcripts() {
     );
     let (server, _) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
     let log = Arc::new(Mutex::new(Vec::new()));
-    let port = Recorder { inner: open("ft300", server.path(), ft::BAUD), log: Arc::clone(&log) };
+    let port = Recorder {
+        inner: open("ft300", server.path(), ft::BAUD),
+        log: Arc::clone(&log),
+    };
     ft300_session(port);
     write_transcript(
         "ft300_session.txt",
@@ -366,13 +410,19 @@ fn dynpick_reads_the_simulated_load_over_a_pty() {
     let load = SharedWrench::new(LOAD);
     let (server, counters) = dynpick_sim(FaultConfig::default(), load.clone());
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
-    assert_eq!(d.sensitivities().0, [32.8, 32.8, 32.8, 1638.4, 1638.4, 1638.4]);
+    assert_eq!(
+        d.sensitivities().0,
+        [32.8, 32.8, 32.8, 1638.4, 1638.4, 1638.4]
+    );
     for _ in 0..20 {
         assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
     }
     // The counter digit advances once per record (p was reply 1, records follow).
     assert_eq!(d.last_counter(), Some(19 % 10));
-    let changed = Wrench { force_n: [-100.0, 50.0, 0.0], torque_nm: [1.0, -2.0, 0.5] };
+    let changed = Wrench {
+        force_n: [-100.0, 50.0, 0.0],
+        torque_nm: [1.0, -2.0, 0.5],
+    };
     load.set(changed);
     assert_wrench_near(&d.read().unwrap(), &changed, DP_LSB);
     assert_eq!(get(&counters.replies), 22);
@@ -387,19 +437,32 @@ fn dynpick_tare_zeroes_the_current_load_on_the_device() {
     assert_wrench_near(&d.read().unwrap(), &Wrench::default(), DP_LSB);
     d.set_filter(FilterDivider::D8).unwrap();
     assert_eq!(d.filter().unwrap(), FilterDivider::D8);
-    assert_eq!(d.firmware_version().unwrap(), "DynPick simulator 1.0 (tactbench)");
+    assert_eq!(
+        d.firmware_version().unwrap(),
+        "DynPick simulator 1.0 (tactbench)"
+    );
 }
 
 fn dynpick_with(faults: FaultConfig) -> (PtyServer<DynPickSim>, Arc<SimCounters>, DynPick<Port>) {
     // Connect cleanly (the `p` reply is reply 1); faults start with the first record.
-    let (server, counters) = dynpick_sim(FaultConfig { clean_first: 1, ..faults }, SharedWrench::new(LOAD));
+    let (server, counters) = dynpick_sim(
+        FaultConfig {
+            clean_first: 1,
+            ..faults
+        },
+        SharedWrench::new(LOAD),
+    );
     let d = DynPick::connect(open("dynpick", server.path(), dp::BAUD));
     (server, counters, d.expect("connect"))
 }
 
 #[test]
 fn dynpick_late_reply_within_timeout_is_simply_slower() {
-    let faults = FaultConfig { late_reply: 1.0, late_by: dp::REPLY_TIMEOUT / 2, ..Default::default() };
+    let faults = FaultConfig {
+        late_reply: 1.0,
+        late_by: dp::REPLY_TIMEOUT / 2,
+        ..Default::default()
+    };
     let (_s, c, mut d) = dynpick_with(faults);
     for _ in 0..5 {
         assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
@@ -432,12 +495,21 @@ fn dynpick_late_reply_past_timeout_is_discarded_and_retried() {
     }
     assert!(ok >= 12, "{ok} of 15 reads succeeded");
     assert!(get(&c.late) > 0);
-    assert!(d.stats().timeouts > 0 && d.stats().retries > 0, "{:?}", d.stats());
+    assert!(
+        d.stats().timeouts > 0 && d.stats().retries > 0,
+        "{:?}",
+        d.stats()
+    );
 }
 
 #[test]
 fn dynpick_dropped_and_garbled_bytes_are_retried() {
-    let faults = FaultConfig { seed: 3, drop_byte: 0.1, garble: 0.1, ..Default::default() };
+    let faults = FaultConfig {
+        seed: 3,
+        drop_byte: 0.1,
+        garble: 0.1,
+        ..Default::default()
+    };
     let (_s, c, mut d) = dynpick_with(faults);
     let mut ok = 0;
     for _ in 0..30 {
@@ -452,23 +524,40 @@ fn dynpick_dropped_and_garbled_bytes_are_retried() {
     }
     assert!(ok >= 27, "{ok} of 30 reads succeeded");
     assert!(get(&c.dropped) + get(&c.garbled) > 0);
-    assert_eq!(d.stats().protocol_errors, d.stats().retries, "{:?}", d.stats());
+    assert_eq!(
+        d.stats().protocol_errors,
+        d.stats().retries,
+        "{:?}",
+        d.stats()
+    );
     assert!(d.stats().retries > 0);
 }
 
 #[test]
 fn dynpick_always_garbled_is_a_protocol_error_with_the_bytes() {
-    let faults = FaultConfig { garble: 1.0, ..Default::default() };
+    let faults = FaultConfig {
+        garble: 1.0,
+        ..Default::default()
+    };
     let (server, _) = dynpick_sim(faults, SharedWrench::new(LOAD));
-    let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).err().expect("must fail");
+    let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD))
+        .err()
+        .expect("must fail");
     assert_eq!(e.kind(), ErrorKind::Protocol);
     assert_eq!(e.command, "p");
-    assert!(e.message.contains('G') && e.message.contains("after 3 attempts"), "{e}");
+    assert!(
+        e.message.contains('G') && e.message.contains("after 3 attempts"),
+        "{e}"
+    );
 }
 
 #[test]
 fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
-    let faults = FaultConfig { seed: 11, unsolicited: 1.0, ..Default::default() };
+    let faults = FaultConfig {
+        seed: 11,
+        unsolicited: 1.0,
+        ..Default::default()
+    };
     let (_s, c, mut d) = dynpick_with(faults);
     for _ in 0..20 {
         assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
@@ -480,13 +569,20 @@ fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
 
 #[test]
 fn dynpick_reset_recovers_by_retry_but_loses_the_device_tare() {
-    let faults = FaultConfig { seed: 5, reset: 0.15, ..Default::default() };
+    let faults = FaultConfig {
+        seed: 5,
+        reset: 0.15,
+        ..Default::default()
+    };
     let (_s, c, mut d) = dynpick_with(faults);
     d.tare().unwrap();
     let mut saw_untared = false;
     for _ in 0..30 {
         let w = d.read().unwrap();
-        let near_zero = channels(&w).iter().zip(DP_LSB).all(|(v, l)| v.abs() <= 0.5 * l + 1e-9);
+        let near_zero = channels(&w)
+            .iter()
+            .zip(DP_LSB)
+            .all(|(v, l)| v.abs() <= 0.5 * l + 1e-9);
         if !near_zero {
             // After a reset the device offset is gone: the full load reads again.
             assert_wrench_near(&w, &LOAD, DP_LSB);
@@ -500,7 +596,10 @@ fn dynpick_reset_recovers_by_retry_but_loses_the_device_tare() {
 
 #[test]
 fn dynpick_disconnect_is_reported_without_retry() {
-    let faults = FaultConfig { disconnect_after: Some(4), ..Default::default() };
+    let faults = FaultConfig {
+        disconnect_after: Some(4),
+        ..Default::default()
+    };
     let (server, _, mut d) = dynpick_with(faults);
     for _ in 0..3 {
         d.read().unwrap();
@@ -515,7 +614,13 @@ fn dynpick_disconnect_is_reported_without_retry() {
 
 fn ft300_with(faults: FaultConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>, Ft300<Port>) {
     // Connect cleanly (one read of the wrench); faults start after it.
-    let (server, counters) = ft300_sim(FaultConfig { clean_first: 1, ..faults }, SharedWrench::new(LOAD));
+    let (server, counters) = ft300_sim(
+        FaultConfig {
+            clean_first: 1,
+            ..faults
+        },
+        SharedWrench::new(LOAD),
+    );
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).expect("connect");
     (server, counters, d)
 }
@@ -527,7 +632,10 @@ fn ft300_polled_reads_info_and_software_tare() {
         assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
     }
     let info = d.info().unwrap();
-    assert_eq!((info.serial.as_str(), info.year, info.firmware.as_str()), ("SIM00001", 2026, "FTS-3.0.1"));
+    assert_eq!(
+        (info.serial.as_str(), info.year, info.firmware.as_str()),
+        ("SIM00001", 2026, "FTS-3.0.1")
+    );
     d.tare().unwrap();
     assert_wrench_near(&d.read().unwrap(), &Wrench::default(), FT_LSB);
     assert_wrench_near(&d.read_raw_wrench().unwrap(), &LOAD, FT_LSB);
@@ -565,7 +673,10 @@ fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
                 assert_wrench_near(&w, &LOAD, FT_LSB);
                 ok += 1;
             }
-            Err(e) => assert!(matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{e}"),
+            Err(e) => assert!(
+                matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol),
+                "{e}"
+            ),
         }
     }
     assert!(ok >= 28, "{ok} of 30");
@@ -576,22 +687,45 @@ fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
 
 #[test]
 fn ft300_always_bad_crc_is_a_protocol_error() {
-    let (server, _) = ft300_sim(FaultConfig { garble: 1.0, ..Default::default() }, SharedWrench::new(LOAD));
-    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD)).err().expect("must fail");
+    let (server, _) = ft300_sim(
+        FaultConfig {
+            garble: 1.0,
+            ..Default::default()
+        },
+        SharedWrench::new(LOAD),
+    );
+    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
+        .err()
+        .expect("must fail");
     assert_eq!(e.kind(), ErrorKind::Protocol, "{e}");
     assert!(e.message.contains("bad crc"), "{e}");
 }
 
 #[test]
 fn ft300_always_dropped_byte_is_a_timeout_on_the_incomplete_reply() {
-    let (server, _) = ft300_sim(FaultConfig { drop_byte: 1.0, ..Default::default() }, SharedWrench::new(LOAD));
-    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD)).err().expect("must fail");
-    assert!(matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol), "{e}");
+    let (server, _) = ft300_sim(
+        FaultConfig {
+            drop_byte: 1.0,
+            ..Default::default()
+        },
+        SharedWrench::new(LOAD),
+    );
+    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
+        .err()
+        .expect("must fail");
+    assert!(
+        matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol),
+        "{e}"
+    );
 }
 
 #[test]
 fn ft300_reset_is_retried_and_keeps_the_software_tare() {
-    let faults = FaultConfig { seed: 9, reset: 0.15, ..Default::default() };
+    let faults = FaultConfig {
+        seed: 9,
+        reset: 0.15,
+        ..Default::default()
+    };
     let (_s, c, mut d) = ft300_with(faults);
     d.tare().unwrap();
     for _ in 0..30 {
@@ -604,7 +738,10 @@ fn ft300_reset_is_retried_and_keeps_the_software_tare() {
 
 #[test]
 fn ft300_disconnect_is_reported() {
-    let (_s, _c, mut d) = ft300_with(FaultConfig { disconnect_after: Some(3), ..Default::default() });
+    let (_s, _c, mut d) = ft300_with(FaultConfig {
+        disconnect_after: Some(3),
+        ..Default::default()
+    });
     d.read().unwrap();
     d.read().unwrap();
     let e = d.read().unwrap_err();
@@ -632,7 +769,14 @@ fn ft300_stream_delivers_every_frame_for_1_5_s() {
     assert!(sent >= 100, "{sent} frames in 1.5 s");
     assert_eq!(samples.len() as u64, sent);
     assert_eq!(summary.stats.frames, sent);
-    assert_eq!((summary.stats.bad_crc, summary.stats.bytes_skipped, summary.overflowed), (0, 0, 0));
+    assert_eq!(
+        (
+            summary.stats.bad_crc,
+            summary.stats.bytes_skipped,
+            summary.overflowed
+        ),
+        (0, 0, 0)
+    );
     for (i, x) in samples.iter().enumerate() {
         assert_eq!(x.seq, i as u64 + 1, "stream sequence");
         assert_wrench_near(&x.raw_wrench, &LOAD, FT_LSB);
@@ -671,13 +815,24 @@ fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
     // Each damaged frame is lost, and may take its neighbour with it when garbage or
     // a drop splices two frames; nothing else is lost.
     let lost = sent - samples.len() as u64;
-    assert!(lost >= 1 && lost <= 2 * damaged, "lost {lost} of {sent}, damaged {damaged}");
-    assert!(summary.stats.bad_crc > 0 && summary.stats.bytes_skipped > 0, "{:?}", summary.stats);
+    assert!(
+        lost >= 1 && lost <= 2 * damaged,
+        "lost {lost} of {sent}, damaged {damaged}"
+    );
+    assert!(
+        summary.stats.bad_crc > 0 && summary.stats.bytes_skipped > 0,
+        "{:?}",
+        summary.stats
+    );
 }
 
 #[test]
 fn ft300_stream_restarts_after_a_device_reset() {
-    let faults = FaultConfig { seed: 2, reset: 0.01, ..Default::default() };
+    let faults = FaultConfig {
+        seed: 2,
+        reset: 0.01,
+        ..Default::default()
+    };
     let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
@@ -701,7 +856,10 @@ fn ft300_stream_restarts_after_a_device_reset() {
 
 #[test]
 fn ft300_stream_disconnect_is_reported() {
-    let faults = FaultConfig { disconnect_after: Some(30), ..Default::default() };
+    let faults = FaultConfig {
+        disconnect_after: Some(30),
+        ..Default::default()
+    };
     let (server, _) = ft300_sim(faults, SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
@@ -736,7 +894,17 @@ const LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
 fn serve(protocol: &str, link: &Path) -> Served {
     use std::io::BufRead;
     let mut child = tactbench()
-        .args(["ft", "--protocol", protocol, "serve-sim", "--wrench", LOAD_ARG, "--duration-s", "60", "--link"])
+        .args([
+            "ft",
+            "--protocol",
+            protocol,
+            "serve-sim",
+            "--wrench",
+            LOAD_ARG,
+            "--duration-s",
+            "60",
+            "--link",
+        ])
         .arg(link)
         .stdout(std::process::Stdio::piped())
         .spawn()
@@ -744,13 +912,20 @@ fn serve(protocol: &str, link: &Path) -> Served {
     let stdout = child.stdout.take().expect("stdout");
     let served = Served(child);
     let mut line = String::new();
-    std::io::BufReader::new(stdout).read_line(&mut line).expect("serving line");
+    std::io::BufReader::new(stdout)
+        .read_line(&mut line)
+        .expect("serving line");
     assert!(line.starts_with("serving simulated"), "{line}");
     served
 }
 
 fn run_ok(args: &[&str], port: &Path) -> String {
-    let out = tactbench().args(["ft", "--port"]).arg(port).args(args).output().expect("run");
+    let out = tactbench()
+        .args(["ft", "--port"])
+        .arg(port)
+        .args(args)
+        .output()
+        .expect("run");
     assert!(
         out.status.success(),
         "tactbench ft {args:?} failed: {}",
@@ -760,7 +935,10 @@ fn run_ok(args: &[&str], port: &Path) -> String {
 }
 
 fn json_wrench(v: &serde_json::Value) -> Wrench {
-    let f = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("missing {k} in {v}"));
+    let f = |k: &str| {
+        v[k].as_f64()
+            .unwrap_or_else(|| panic!("missing {k} in {v}"))
+    };
     Wrench {
         force_n: [f("fx_n"), f("fy_n"), f("fz_n")],
         torque_nm: [f("mx_nm"), f("my_nm"), f("mz_nm")],
@@ -772,7 +950,10 @@ fn cli_ft_dynpick_read_info_tare_against_a_served_simulator() {
     let dir = tempfile::tempdir().unwrap();
     let link = dir.path().join("dynpick");
     let _sim = serve("dynpick", &link);
-    let out = run_ok(&["--protocol", "dynpick", "read", "--samples", "3", "--json"], &link);
+    let out = run_ok(
+        &["--protocol", "dynpick", "read", "--samples", "3", "--json"],
+        &link,
+    );
     let v: serde_json::Value = serde_json::from_str(&out).expect("json");
     assert_eq!(v["protocol"], "dynpick");
     let samples = v["samples"].as_array().expect("samples");
@@ -782,7 +963,10 @@ fn cli_ft_dynpick_read_info_tare_against_a_served_simulator() {
     }
     assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, DP_LSB);
     let text = run_ok(&["--protocol", "dynpick", "read"], &link);
-    assert!(text.contains("Fz   +12.317 N") || text.contains("Fz   +12.348 N"), "{text}");
+    assert!(
+        text.contains("Fz   +12.317 N") || text.contains("Fz   +12.348 N"),
+        "{text}"
+    );
     let info = run_ok(&["--protocol", "dynpick", "info", "--json"], &link);
     let v: serde_json::Value = serde_json::from_str(&info).expect("json");
     assert_eq!(v["firmware"], "DynPick simulator 1.0 (tactbench)");
@@ -806,12 +990,23 @@ fn cli_ft_ft300_polled_stream_and_info_against_a_served_simulator() {
         assert_eq!(v["samples"].as_array().map(Vec::len), Some(5));
         assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, FT_LSB);
     }
-    let v: serde_json::Value =
-        serde_json::from_str(&run_ok(&["--protocol", "ft300", "read", "--tare", "--json"], &link)).expect("json");
+    let v: serde_json::Value = serde_json::from_str(&run_ok(
+        &["--protocol", "ft300", "read", "--tare", "--json"],
+        &link,
+    ))
+    .expect("json");
     assert_wrench_near(&json_wrench(&v["mean"]), &Wrench::default(), FT_LSB);
     let info = run_ok(&["--protocol", "ft300", "info"], &link);
-    assert!(info.contains("serial: SIM00001") && info.contains("production_year: 2026"), "{info}");
-    let out = tactbench().args(["ft", "--port"]).arg(&link).args(["--protocol", "ft300", "tare"]).output().unwrap();
+    assert!(
+        info.contains("serial: SIM00001") && info.contains("production_year: 2026"),
+        "{info}"
+    );
+    let out = tactbench()
+        .args(["ft", "--port"])
+        .arg(&link)
+        .args(["--protocol", "ft300", "tare"])
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("software offset"));
 }
@@ -819,12 +1014,22 @@ fn cli_ft_ft300_polled_stream_and_info_against_a_served_simulator() {
 #[test]
 fn cli_ft_missing_port_is_a_clear_error() {
     let out = tactbench()
-        .args(["ft", "--port", "/dev/tactbench-no-such-port", "--protocol", "dynpick", "read"])
+        .args([
+            "ft",
+            "--port",
+            "/dev/tactbench-no-such-port",
+            "--protocol",
+            "dynpick",
+            "read",
+        ])
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("cannot open serial port /dev/tactbench-no-such-port at 921600 baud"), "{err}");
+    assert!(
+        err.contains("cannot open serial port /dev/tactbench-no-such-port at 921600 baud"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -842,7 +1047,11 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
         .arg(&out_png)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     assert_eq!(image::open(&out_png).unwrap().to_rgb8(), img);
 
     // No camera on this machine: V4L2 index 0 must fail clearly (skipped where one exists).
@@ -854,7 +1063,10 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
             .unwrap();
         assert_eq!(out.status.code(), Some(2));
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains("cannot open V4L2 camera 0") && err.contains("0 V4L2 camera(s) found"), "{err}");
+        assert!(
+            err.contains("cannot open V4L2 camera 0") && err.contains("0 V4L2 camera(s) found"),
+            "{err}"
+        );
         let list = tactbench().args(["camera", "list"]).output().unwrap();
         assert!(list.status.success());
         assert!(String::from_utf8_lossy(&list.stdout).contains("no V4L2 cameras found"));
@@ -903,7 +1115,10 @@ fn measure_sustained_rates() {
         polled.read().unwrap();
         n += 1;
     }
-    println!("ft300 polled over pty: {:.0} reads/s", n as f64 / t.elapsed().as_secs_f64());
+    println!(
+        "ft300 polled over pty: {:.0} reads/s",
+        n as f64 / t.elapsed().as_secs_f64()
+    );
     let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     let t = Instant::now();
@@ -912,5 +1127,8 @@ fn measure_sustained_rates() {
         d.read().unwrap();
         n += 1;
     }
-    println!("dynpick polled over pty: {:.0} reads/s", n as f64 / t.elapsed().as_secs_f64());
+    println!(
+        "dynpick polled over pty: {:.0} reads/s",
+        n as f64 / t.elapsed().as_secs_f64()
+    );
 }

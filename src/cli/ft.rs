@@ -157,12 +157,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     if stream {
                         bail!("--stream is only available for the ft300 protocol");
                     }
-                    let port = open_serial("dynpick", port_path, tactbench::device::dynpick::driver::BAUD)?;
+                    let port = open_serial(
+                        "dynpick",
+                        port_path,
+                        tactbench::device::dynpick::driver::BAUD,
+                    )?;
                     let mut d = DynPick::connect(port)?;
                     read_n(&mut d, samples, tare)?
                 }
                 Protocol::Ft300 => {
-                    let port = open_serial("ft300", port_path, tactbench::device::ft300::driver::BAUD)?;
+                    let port =
+                        open_serial("ft300", port_path, tactbench::device::ft300::driver::BAUD)?;
                     let d = Ft300::connect(port)?;
                     if stream {
                         let mut s = d.start_stream()?;
@@ -200,7 +205,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         Action::Tare => match protocol {
             Protocol::Dynpick => {
-                let port = open_serial("dynpick", port_path, tactbench::device::dynpick::driver::BAUD)?;
+                let port = open_serial(
+                    "dynpick",
+                    port_path,
+                    tactbench::device::dynpick::driver::BAUD,
+                )?;
                 let mut d = DynPick::connect(port)?;
                 d.tare()?;
                 // Read back once so the user sees the zeroed value and the command was
@@ -216,7 +225,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Action::Info { json } => {
             let fields: Vec<(&str, String)> = match protocol {
                 Protocol::Dynpick => {
-                    let port = open_serial("dynpick", port_path, tactbench::device::dynpick::driver::BAUD)?;
+                    let port = open_serial(
+                        "dynpick",
+                        port_path,
+                        tactbench::device::dynpick::driver::BAUD,
+                    )?;
                     let mut d = DynPick::connect(port)?;
                     let fw = d.firmware_version()?;
                     let f = d.filter()?;
@@ -228,7 +241,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     ]
                 }
                 Protocol::Ft300 => {
-                    let port = open_serial("ft300", port_path, tactbench::device::ft300::driver::BAUD)?;
+                    let port =
+                        open_serial("ft300", port_path, tactbench::device::ft300::driver::BAUD)?;
                     let mut d = Ft300::connect(port)?;
                     let i = d.info()?;
                     vec![
@@ -287,7 +301,10 @@ fn serve_sim(
     let source = SharedWrench::new(parse_wrench(wrench)?);
     match protocol {
         Protocol::Dynpick => serve_until(
-            PtyServer::spawn(DynPickSim::new(DynPickSimConfig::default(), source), Some(link))?,
+            PtyServer::spawn(
+                DynPickSim::new(DynPickSimConfig::default(), source),
+                Some(link),
+            )?,
             protocol,
             duration_s,
         ),

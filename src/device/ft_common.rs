@@ -277,7 +277,12 @@ impl FaultInjector {
     /// Applies a plan's byte-level faults to a reply: garble (with the device's own
     /// `garble` rule), drop one byte, prepend garbage. Timing, reset and disconnect are
     /// the simulator's to act on.
-    pub fn shape(&mut self, plan: &FaultPlan, mut bytes: Vec<u8>, garble: fn(&mut [u8], usize)) -> Vec<u8> {
+    pub fn shape(
+        &mut self,
+        plan: &FaultPlan,
+        mut bytes: Vec<u8>,
+        garble: fn(&mut [u8], usize),
+    ) -> Vec<u8> {
         if let Some(i) = plan.garble_at {
             garble(&mut bytes, i);
         }
@@ -375,7 +380,12 @@ pub fn io_error(device: &'static str, command: &str, e: &io::Error) -> DeviceErr
 }
 
 /// Writes a whole command, mapping errors.
-pub fn send<P: Write>(port: &mut P, device: &'static str, command: &str, bytes: &[u8]) -> DeviceResult<()> {
+pub fn send<P: Write>(
+    port: &mut P,
+    device: &'static str,
+    command: &str,
+    bytes: &[u8],
+) -> DeviceResult<()> {
     port.write_all(bytes)
         .and_then(|_| port.flush())
         .map_err(|e| io_error(device, command, &e))

@@ -129,7 +129,9 @@ mod tests {
         frame(1).save(dir.path().join("a.png")).unwrap();
         frame(2).save(dir.path().join("b.png")).unwrap();
         let mut cam = ImageDirCamera::open(dir.path(), true).unwrap();
-        let seq: Vec<u8> = (0..5).map(|_| cam.grab().unwrap().image.get_pixel(0, 0).0[0]).collect();
+        let seq: Vec<u8> = (0..5)
+            .map(|_| cam.grab().unwrap().image.get_pixel(0, 0).0[0])
+            .collect();
         assert_eq!(seq, [1, 2, 1, 2, 1]);
     }
 

@@ -55,7 +55,8 @@ impl V4lCamera {
             let n = list().map(|l| l.len()).unwrap_or(0);
             format!("{n} V4L2 camera(s) found")
         };
-        let format = RequestedFormat::new::<RgbFormat>(RequestedFormatType::AbsoluteHighestFrameRate);
+        let format =
+            RequestedFormat::new::<RgbFormat>(RequestedFormatType::AbsoluteHighestFrameRate);
         let mut camera = nokhwa::Camera::new(CameraIndex::Index(index), format).map_err(|e| {
             DeviceError::new(
                 ErrorKind::Disconnected,
@@ -81,11 +82,21 @@ impl Camera for V4lCamera {
     fn grab(&mut self) -> DeviceResult<CameraFrame> {
         let cmd = format!("grab {}", self.index);
         let buffer = self.camera.frame().map_err(|e| {
-            DeviceError::new(ErrorKind::Disconnected, DEVICE, &cmd, format!("no frame: {e}"))
+            DeviceError::new(
+                ErrorKind::Disconnected,
+                DEVICE,
+                &cmd,
+                format!("no frame: {e}"),
+            )
         })?;
         let timestamp = SystemTime::now();
         let image = buffer.decode_image::<RgbFormat>().map_err(|e| {
-            DeviceError::new(ErrorKind::Protocol, DEVICE, &cmd, format!("cannot decode frame: {e}"))
+            DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                &cmd,
+                format!("cannot decode frame: {e}"),
+            )
         })?;
         Ok(CameraFrame { image, timestamp })
     }

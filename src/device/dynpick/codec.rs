@@ -371,7 +371,11 @@ mod tests {
         .encode();
         b[7] = b'G';
         match Record::decode(&b) {
-            Err(CodecError::RecordChar { index: 7, found: 'G', .. }) => {}
+            Err(CodecError::RecordChar {
+                index: 7,
+                found: 'G',
+                ..
+            }) => {}
             other => panic!("unexpected {other:?}"),
         }
         assert!(matches!(
@@ -381,7 +385,10 @@ mod tests {
         let mut c = b;
         c[7] = b'0';
         c[0] = b'x';
-        assert!(matches!(Record::decode(&c), Err(CodecError::RecordChar { index: 0, .. })));
+        assert!(matches!(
+            Record::decode(&c),
+            Err(CodecError::RecordChar { index: 0, .. })
+        ));
     }
 
     #[test]

@@ -49,7 +49,13 @@ pub struct DynPick<P> {
 impl<P: Read + Write> DynPick<P> {
     /// Connects: discards pending input, then reads the sensitivities (`p`).
     pub fn connect(mut port: P) -> DeviceResult<Self> {
-        ft_common::drain(&mut port, Duration::from_millis(10), DRAIN_MAX, DEVICE, "connect")?;
+        ft_common::drain(
+            &mut port,
+            Duration::from_millis(10),
+            DRAIN_MAX,
+            DEVICE,
+            "connect",
+        )?;
         let mut d = DynPick {
             port,
             sensitivities: Sensitivities([1.0; 6]),
@@ -107,7 +113,11 @@ impl<P: Read + Write> DynPick<P> {
                 ErrorKind::Rejected,
                 DEVICE,
                 cmd.text(),
-                format!("filter divider reads back {} after setting {}", back.n(), d.n()),
+                format!(
+                    "filter divider reads back {} after setting {}",
+                    back.n(),
+                    d.n()
+                ),
             ));
         }
         Ok(())
@@ -132,10 +142,19 @@ impl<P: Read + Write> DynPick<P> {
                     ErrorKind::Protocol,
                     DEVICE,
                     command,
-                    format!("no line end within {MAX_LINE} bytes: `{}`", show_bytes(&bytes)),
+                    format!(
+                        "no line end within {MAX_LINE} bytes: `{}`",
+                        show_bytes(&bytes)
+                    ),
                 ));
             }
-            let n = ft_common::read_until_deadline(&mut self.port, &mut buf, deadline, DEVICE, command)?;
+            let n = ft_common::read_until_deadline(
+                &mut self.port,
+                &mut buf,
+                deadline,
+                DEVICE,
+                command,
+            )?;
             self.rx.extend_from_slice(&buf[..n]);
         }
     }

@@ -131,7 +131,9 @@ impl DynPickSim {
     /// Sends a reply through the fault injector.
     fn reply(&mut self, bytes: Vec<u8>, now: Duration) {
         let counters = self.faults.counters();
-        counters.replies.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        counters
+            .replies
+            .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         let plan = self.faults.plan();
         if plan.disconnect {
             self.drop_link = true;

@@ -50,7 +50,11 @@ pub fn crc16(data: &[u8]) -> u16 {
     for &b in data {
         crc ^= b as u16;
         for _ in 0..8 {
-            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xA001 } else { crc >> 1 };
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
         }
     }
     crc
@@ -203,13 +207,21 @@ impl Request {
     /// The frame on the wire, CRC included.
     pub fn encode(&self) -> Vec<u8> {
         match self {
-            Request::ReadHolding { slave, start, count } => {
+            Request::ReadHolding {
+                slave,
+                start,
+                count,
+            } => {
                 let mut f = vec![*slave, FN_READ_HOLDING];
                 f.extend_from_slice(&start.to_be_bytes());
                 f.extend_from_slice(&count.to_be_bytes());
                 with_crc(f)
             }
-            Request::WriteMultiple { slave, start, values } => {
+            Request::WriteMultiple {
+                slave,
+                start,
+                values,
+            } => {
                 let mut f = vec![*slave, FN_WRITE_MULTIPLE];
                 f.extend_from_slice(&start.to_be_bytes());
                 f.extend_from_slice(&(values.len() as u16).to_be_bytes());
@@ -301,15 +313,21 @@ impl Response {
                 }
                 with_crc(f)
             }
-            Response::WriteMultiple { slave, start, count } => {
+            Response::WriteMultiple {
+                slave,
+                start,
+                count,
+            } => {
                 let mut f = vec![*slave, FN_WRITE_MULTIPLE];
                 f.extend_from_slice(&start.to_be_bytes());
                 f.extend_from_slice(&count.to_be_bytes());
                 with_crc(f)
             }
-            Response::Exception { slave, function, code } => {
-                with_crc(vec![*slave, function | 0x80, code.byte()])
-            }
+            Response::Exception {
+                slave,
+                function,
+                code,
+            } => with_crc(vec![*slave, function | 0x80, code.byte()]),
         }
     }
 
@@ -332,7 +350,10 @@ impl Response {
             return Err(ModbusError::Crc { bytes: shown() });
         }
         let be = |i: usize| u16::from_be_bytes([frame[i], frame[i + 1]]);
-        let bad = |why| ModbusError::Malformed { bytes: shown(), why };
+        let bad = |why| ModbusError::Malformed {
+            bytes: shown(),
+            why,
+        };
         match frame.get(1) {
             Some(&FN_READ_HOLDING) => {
                 let n = *frame.get(2).ok_or_else(|| bad("too short"))? as usize;
@@ -528,8 +549,16 @@ mod tests {
     #[test]
     fn requests_and_responses_round_trip() {
         let reqs = [
-            Request::ReadHolding { slave: 9, start: 510, count: 5 },
-            Request::WriteMultiple { slave: 9, start: 410, values: vec![0x0200] },
+            Request::ReadHolding {
+                slave: 9,
+                start: 510,
+                count: 5,
+            },
+            Request::WriteMultiple {
+                slave: 9,
+                start: 410,
+                values: vec![0x0200],
+            },
         ];
         for r in reqs {
             let f = r.encode();
@@ -537,9 +566,20 @@ mod tests {
             assert_eq!(Request::decode(&f).unwrap(), r);
         }
         let resps = [
-            Response::ReadHolding { slave: 9, values: vec![1, 0xFFFF, 0x8000, 7, 0, 42] },
-            Response::WriteMultiple { slave: 9, start: 410, count: 1 },
-            Response::Exception { slave: 9, function: 3, code: ExceptionCode::IllegalDataAddress },
+            Response::ReadHolding {
+                slave: 9,
+                values: vec![1, 0xFFFF, 0x8000, 7, 0, 42],
+            },
+            Response::WriteMultiple {
+                slave: 9,
+                start: 410,
+                count: 1,
+            },
+            Response::Exception {
+                slave: 9,
+                function: 3,
+                code: ExceptionCode::IllegalDataAddress,
+            },
         ];
         for r in resps {
             let f = r.encode();
@@ -550,13 +590,22 @@ mod tests {
 
     #[test]
     fn exception_reply_known_bytes() {
-        let f = Response::Exception { slave: 9, function: 3, code: ExceptionCode::IllegalDataAddress }.encode();
+        let f = Response::Exception {
+            slave: 9,
+            function: 3,
+            code: ExceptionCode::IllegalDataAddress,
+        }
+        .encode();
         assert_eq!(&f[..3], &[0x09, 0x83, 0x02]);
     }
 
     #[test]
     fn corrupted_frames_fail_the_crc() {
-        let mut f = Response::ReadHolding { slave: 9, values: vec![100, 200] }.encode();
+        let mut f = Response::ReadHolding {
+            slave: 9,
+            values: vec![100, 200],
+        }
+        .encode();
         f[4] ^= 0x01;
         assert!(matches!(Response::decode(&f), Err(ModbusError::Crc { .. })));
     }
@@ -567,23 +616,38 @@ mod tests {
         assert_eq!(w.force_n, [1.0, -2.5, 300.0]);
         assert_eq!(w.torque_nm, [1.0, -0.001, 0.0]);
         assert_eq!(raw_from_wrench(&w), [100, -250, 30000, 1000, -1, 0]);
-        let big = Wrench { force_n: [1e9, -1e9, f64::NAN], torque_nm: [0.0; 3] };
+        let big = Wrench {
+            force_n: [1e9, -1e9, f64::NAN],
+            torque_nm: [0.0; 3],
+        };
         assert_eq!(&raw_from_wrench(&big)[..3], &[i16::MAX, i16::MIN, 0]);
     }
 
     #[test]
     fn stream_frame_known_layout() {
-        let f = StreamFrame { raw: [1, -1, 0x1234, 0, 0, 0] }.encode();
+        let f = StreamFrame {
+            raw: [1, -1, 0x1234, 0, 0, 0],
+        }
+        .encode();
         assert_eq!(&f[..8], &[0x20, 0x4E, 0x01, 0x00, 0xFF, 0xFF, 0x34, 0x12]);
         let c = crc16(&f[..14]);
         assert_eq!(&f[14..], &c.to_le_bytes());
-        assert_eq!(StreamFrame::decode(&f).unwrap().raw, [1, -1, 0x1234, 0, 0, 0]);
+        assert_eq!(
+            StreamFrame::decode(&f).unwrap().raw,
+            [1, -1, 0x1234, 0, 0, 0]
+        );
     }
 
     #[test]
     fn decoder_resyncs_after_garbage_bad_crc_and_partial_frames() {
-        let a = StreamFrame { raw: [1, 2, 3, 4, 5, 6] }.encode();
-        let b = StreamFrame { raw: [7, 8, 9, 10, 11, 12] }.encode();
+        let a = StreamFrame {
+            raw: [1, 2, 3, 4, 5, 6],
+        }
+        .encode();
+        let b = StreamFrame {
+            raw: [7, 8, 9, 10, 11, 12],
+        }
+        .encode();
         let mut bad = a;
         bad[5] ^= 0x10;
         let mut stream = vec![0x00, 0x4E, 0x20]; // garbage incl. a half header
@@ -603,5 +667,4 @@ mod tests {
         assert!(d.stats.bad_crc >= 2, "{:?}", d.stats);
         assert_eq!(d.pending(), 0);
     }
-
 }

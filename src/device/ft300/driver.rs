@@ -22,8 +22,8 @@ use std::time::{Duration, Instant};
 
 use super::codec::{
     raw_from_wrench, show_bytes_hex, wrench_from_raw, Request, Response, StreamDecoder,
-    StreamFrame, StreamStats, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH,
-    REG_YEAR, SLAVE_ADDRESS, STOP_STREAM, STREAM_START,
+    StreamFrame, StreamStats, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR,
+    SLAVE_ADDRESS, STOP_STREAM, STREAM_START,
 };
 use crate::device::ft_common::{self, LinkStats};
 use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
@@ -102,7 +102,13 @@ fn ascii_regs(regs: &[u16]) -> String {
     regs.iter()
         .flat_map(|r| r.to_be_bytes())
         .filter(|b| *b != 0)
-        .map(|b| if b.is_ascii_graphic() || b == b' ' { b as char } else { '?' })
+        .map(|b| {
+            if b.is_ascii_graphic() || b == b' ' {
+                b as char
+            } else {
+                '?'
+            }
+        })
         .collect::<String>()
         .trim()
         .to_string()
@@ -118,7 +124,13 @@ impl<P: Read + Write> Ft300<P> {
     /// Connects to another slave address.
     pub fn connect_slave(mut port: P, slave: u8) -> DeviceResult<Self> {
         ft_common::send(&mut port, DEVICE, "stop stream", &STOP_STREAM)?;
-        ft_common::drain(&mut port, Duration::from_millis(30), DRAIN_MAX, DEVICE, "stop stream")?;
+        ft_common::drain(
+            &mut port,
+            Duration::from_millis(30),
+            DRAIN_MAX,
+            DEVICE,
+            "stop stream",
+        )?;
         let mut d = Ft300 {
             port,
             slave,
@@ -170,11 +182,9 @@ impl<P: Read + Write> Ft300<P> {
             values: values.to_vec(),
         };
         match self.transact(&req)? {
-            Response::WriteMultiple { start: s, count, .. }
-                if s == start && count as usize == values.len() =>
-            {
-                Ok(())
-            }
+            Response::WriteMultiple {
+                start: s, count, ..
+            } if s == start && count as usize == values.len() => Ok(()),
             other => Err(DeviceError::new(
                 ErrorKind::Protocol,
                 DEVICE,
@@ -303,7 +313,8 @@ impl<P: Read + Write> Ft300<P> {
                     Some(Ok(_)) => break,
                 }
             }
-            match ft_common::read_until_deadline(&mut self.port, &mut chunk, deadline, DEVICE, text) {
+            match ft_common::read_until_deadline(&mut self.port, &mut chunk, deadline, DEVICE, text)
+            {
                 Ok(n) => buf.extend_from_slice(&chunk[..n]),
                 Err(e) if e.kind == ErrorKind::Timeout => {
                     return Err(match bad {
@@ -508,9 +519,8 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             let restarts = g.stats.restarts;
             g.stats = decoder.stats;
             g.stats.restarts = restarts;
-            let mut seq = g.latest.map_or(0, |s| s.seq);
-            for f in frames {
-                seq += 1;
+            let first = g.latest.map_or(0, |s| s.seq) + 1;
+            for (seq, f) in (first..).zip(frames) {
                 let s = StreamSample {
                     seq,
                     raw_wrench: f.wrench(),

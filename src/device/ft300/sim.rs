@@ -17,8 +17,8 @@ use std::time::Duration;
 
 use super::codec::{
     raw_from_wrench, ExceptionCode, Request, Response, StreamFrame, FN_READ_HOLDING,
-    FN_WRITE_MULTIPLE, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR,
-    SLAVE_ADDRESS, STREAM_START,
+    FN_WRITE_MULTIPLE, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS,
+    STREAM_START,
 };
 use crate::device::ft_common::{FaultConfig, FaultInjector, OutQueue, SimCounters, WrenchSource};
 use crate::device::pty::{Flow, Simulator};
@@ -104,7 +104,9 @@ impl Ft300Sim {
             s
         };
         let (letters, version) = self.config.firmware;
-        let fw = [letters[0], letters[1], letters[2], version[0], version[1], version[2]];
+        let fw = [
+            letters[0], letters[1], letters[2], version[0], version[1], version[2],
+        ];
         match reg {
             r if (REG_WRENCH..REG_WRENCH + 6).contains(&r) => {
                 Some(self.raw_now(now)[(r - REG_WRENCH) as usize] as u16)
@@ -118,14 +120,22 @@ impl Ft300Sim {
                 Some(u16::from_be_bytes([serial[i], serial[i + 1]]))
             }
             REG_YEAR => Some(self.config.year),
-            REG_STREAM => Some(if self.stream_next.is_some() { STREAM_START } else { 0 }),
+            REG_STREAM => Some(if self.stream_next.is_some() {
+                STREAM_START
+            } else {
+                0
+            }),
             _ => None,
         }
     }
 
     fn handle(&mut self, req: Request, now: Duration) {
         let slave = self.config.slave;
-        let exception = |function, code| Response::Exception { slave, function, code };
+        let exception = |function, code| Response::Exception {
+            slave,
+            function,
+            code,
+        };
         let resp = match req {
             Request::ReadHolding { slave: s, .. } | Request::WriteMultiple { slave: s, .. }
                 if s != slave =>
@@ -159,7 +169,11 @@ impl Ft300Sim {
                 } else if values[0] != STREAM_START {
                     exception(FN_WRITE_MULTIPLE, ExceptionCode::IllegalDataValue)
                 } else {
-                    let ack = Response::WriteMultiple { slave, start, count: 1 };
+                    let ack = Response::WriteMultiple {
+                        slave,
+                        start,
+                        count: 1,
+                    };
                     if self.reply(ack.encode(), now) && self.stream_next.is_none() {
                         self.stream_next = Some((now + STREAM_PERIOD, 0));
                     }
@@ -201,7 +215,10 @@ impl Ft300Sim {
     }
 
     fn reply(&mut self, bytes: Vec<u8>, now: Duration) -> bool {
-        self.faults.counters().replies.fetch_add(1, Ordering::SeqCst);
+        self.faults
+            .counters()
+            .replies
+            .fetch_add(1, Ordering::SeqCst);
         self.emit(bytes, now)
     }
 
@@ -261,7 +278,10 @@ fn flip_bit(bytes: &mut [u8], i: usize) {
 
 impl Ft300Sim {
     fn receive(&mut self, bytes: &[u8], now: Duration) {
-        if self.rx_since.is_some_and(|t| now.saturating_sub(t) > REQUEST_STALE) {
+        if self
+            .rx_since
+            .is_some_and(|t| now.saturating_sub(t) > REQUEST_STALE)
+        {
             self.rx.clear();
         }
         for &b in bytes {
@@ -292,7 +312,11 @@ impl Simulator for Ft300Sim {
                 break;
             }
             self.stream_next = Some((due + STREAM_PERIOD, k + 1));
-            let frame = StreamFrame { raw: self.raw_now(due) }.encode().to_vec();
+            let frame = StreamFrame {
+                raw: self.raw_now(due),
+            }
+            .encode()
+            .to_vec();
             self.faults.counters().frames.fetch_add(1, Ordering::SeqCst);
             self.emit(frame, due);
         }
@@ -337,33 +361,75 @@ mod tests {
     #[test]
     fn serves_wrench_registers_big_endian() {
         let mut s = sim();
-        let req = Request::ReadHolding { slave: 9, start: 180, count: 6 }.encode();
+        let req = Request::ReadHolding {
+            slave: 9,
+            start: 180,
+            count: 6,
+        }
+        .encode();
         let resp = Response::decode(&exchange(&mut s, &req)).unwrap();
-        let expect: Vec<u16> = [150i16, -200, 1234, 100, 0, -250].iter().map(|&v| v as u16).collect();
-        assert_eq!(resp, Response::ReadHolding { slave: 9, values: expect });
+        let expect: Vec<u16> = [150i16, -200, 1234, 100, 0, -250]
+            .iter()
+            .map(|&v| v as u16)
+            .collect();
+        assert_eq!(
+            resp,
+            Response::ReadHolding {
+                slave: 9,
+                values: expect
+            }
+        );
     }
 
     #[test]
     fn unknown_register_and_value_give_exceptions() {
         let mut s = sim();
-        let req = Request::ReadHolding { slave: 9, start: 1000, count: 1 }.encode();
+        let req = Request::ReadHolding {
+            slave: 9,
+            start: 1000,
+            count: 1,
+        }
+        .encode();
         assert_eq!(
             Response::decode(&exchange(&mut s, &req)).unwrap(),
-            Response::Exception { slave: 9, function: 3, code: ExceptionCode::IllegalDataAddress }
+            Response::Exception {
+                slave: 9,
+                function: 3,
+                code: ExceptionCode::IllegalDataAddress
+            }
         );
-        let req = Request::WriteMultiple { slave: 9, start: 410, values: vec![1] }.encode();
+        let req = Request::WriteMultiple {
+            slave: 9,
+            start: 410,
+            values: vec![1],
+        }
+        .encode();
         assert_eq!(
             Response::decode(&exchange(&mut s, &req)).unwrap(),
-            Response::Exception { slave: 9, function: 16, code: ExceptionCode::IllegalDataValue }
+            Response::Exception {
+                slave: 9,
+                function: 16,
+                code: ExceptionCode::IllegalDataValue
+            }
         );
     }
 
     #[test]
     fn other_slaves_and_bad_crc_get_no_reply() {
         let mut s = sim();
-        let req = Request::ReadHolding { slave: 8, start: 180, count: 6 }.encode();
+        let req = Request::ReadHolding {
+            slave: 8,
+            start: 180,
+            count: 6,
+        }
+        .encode();
         assert!(exchange(&mut s, &req).is_empty());
-        let mut req = Request::ReadHolding { slave: 9, start: 180, count: 6 }.encode();
+        let mut req = Request::ReadHolding {
+            slave: 9,
+            start: 180,
+            count: 6,
+        }
+        .encode();
         req[7] ^= 0xFF;
         assert!(exchange(&mut s, &req).is_empty());
     }
@@ -372,7 +438,12 @@ mod tests {
     fn stream_runs_at_100_hz_and_stops_on_ff_run() {
         let mut s = sim();
         let t0 = Duration::from_millis(1);
-        let req = Request::WriteMultiple { slave: 9, start: 410, values: vec![STREAM_START] }.encode();
+        let req = Request::WriteMultiple {
+            slave: 9,
+            start: 410,
+            values: vec![STREAM_START],
+        }
+        .encode();
         let mut out = Vec::new();
         s.step(t0, &req, &mut out);
         assert_eq!(out.len(), 8, "write acknowledgement only");
