@@ -890,15 +890,14 @@ fn tactbench() -> std::process::Command {
 
 const LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
 
-/// Starts `tactbench ft serve-sim` and waits for its "serving" line.
+/// Starts `tactbench sim-serve-ft` and waits for its "serving" line.
 fn serve(protocol: &str, link: &Path) -> Served {
     use std::io::BufRead;
     let mut child = tactbench()
         .args([
-            "ft",
+            "sim-serve-ft",
             "--protocol",
             protocol,
-            "serve-sim",
             "--wrench",
             LOAD_ARG,
             "--duration-s",

@@ -1,6 +1,6 @@
 //! `tactbench ft`: read, tare and identify a 6-axis force/torque sensor (WACOH DynPick
-//! or Robotiq FT 300) on a serial port; a hidden `serve-sim` action serves a simulated
-//! sensor on a pseudo-terminal for tests and dry runs.
+//! or Robotiq FT 300) on a serial port; the hidden `sim-serve-ft` command serves a
+//! simulated sensor on a pseudo-terminal for tests and dry runs.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -28,6 +28,24 @@ pub struct Args {
     protocol: Option<Protocol>,
     #[command(subcommand)]
     action: Action,
+}
+
+/// `tactbench sim-serve-ft`: serve a simulated sensor on a pseudo-terminal until killed
+/// (tests, dry runs).
+#[derive(ClapArgs)]
+pub struct ServeArgs {
+    /// Wire protocol to simulate.
+    #[arg(long, value_enum)]
+    protocol: Protocol,
+    /// Symlink to create pointing at the pseudo-terminal.
+    #[arg(long)]
+    link: PathBuf,
+    /// Constant load: Fx,Fy,Fz (N),Mx,My,Mz (N·m).
+    #[arg(long, default_value = "0,0,0,0,0,0", allow_hyphen_values = true)]
+    wrench: String,
+    /// Stop after this many seconds (default: serve until killed).
+    #[arg(long)]
+    duration_s: Option<f64>,
 }
 
 /// Supported sensors.
@@ -73,19 +91,6 @@ enum Action {
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
-    },
-    /// Serve a simulated sensor on a pseudo-terminal until killed (tests, dry runs).
-    #[command(hide = true)]
-    ServeSim {
-        /// Symlink to create pointing at the pseudo-terminal.
-        #[arg(long)]
-        link: PathBuf,
-        /// Constant load: Fx,Fy,Fz (N),Mx,My,Mz (N·m).
-        #[arg(long, default_value = "0,0,0,0,0,0", allow_hyphen_values = true)]
-        wrench: String,
-        /// Stop after this many seconds (default: serve until killed).
-        #[arg(long)]
-        duration_s: Option<f64>,
     },
 }
 
@@ -136,14 +141,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let protocol = args
         .protocol
         .context("--protocol is required (dynpick or ft300)")?;
-    if let Action::ServeSim {
-        link,
-        wrench,
-        duration_s,
-    } = &args.action
-    {
-        return serve_sim(protocol, link, wrench, *duration_s);
-    }
     let port_path = args.port.as_deref().context("--port is required")?;
     match args.action {
         Action::Read {
@@ -265,7 +262,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 }
             }
         }
-        Action::ServeSim { .. } => unreachable!("handled above"),
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -292,13 +288,16 @@ fn parse_wrench(text: &str) -> anyhow::Result<Wrench> {
     })
 }
 
-fn serve_sim(
-    protocol: Protocol,
-    link: &std::path::Path,
-    wrench: &str,
-    duration_s: Option<f64>,
-) -> anyhow::Result<ExitCode> {
-    let source = SharedWrench::new(parse_wrench(wrench)?);
+/// Runs `tactbench sim-serve-ft`.
+pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
+    let ServeArgs {
+        protocol,
+        link,
+        wrench,
+        duration_s,
+    } = args;
+    let link = link.as_path();
+    let source = SharedWrench::new(parse_wrench(&wrench)?);
     match protocol {
         Protocol::Dynpick => serve_until(
             PtyServer::spawn(

@@ -33,6 +33,9 @@ enum Command {
     /// Cameras: list, grab a frame.
     #[command(subcommand)]
     Camera(camera::CameraCommand),
+    /// Serve a force/torque sensor simulator on a pseudo-terminal (test helper).
+    #[command(hide = true)]
+    SimServeFt(ft::ServeArgs),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -43,6 +46,7 @@ pub fn main() -> ExitCode {
         Command::Model(cmd) => model::run(cmd),
         Command::Ft(args) => ft::run(args),
         Command::Camera(cmd) => camera::run(cmd),
+        Command::SimServeFt(args) => ft::serve(args),
     };
     match result {
         Ok(code) => code,
