@@ -32,10 +32,22 @@ fn bench_grbl(c: &mut Criterion) {
     c.bench_function("grbl position (? -> status report)", |b| {
         b.iter(|| g.position().expect("position"))
     });
+    // `$X\n` + `ok\r\n`: the plainest line round trip.
+    eprintln!("grbl unlock: wire time ~ {:.2} ms", wire_ms(7));
+    c.bench_function("grbl unlock ($X -> ok)", |b| {
+        b.iter(|| g.unlock().expect("unlock"))
+    });
     // `G21 G53 G1 X.. Y.. Z.. F..\n` (~45 bytes) + `ok\r\n`; the move is 0 mm long.
     eprintln!("grbl move_to: wire time ~ {:.2} ms", wire_ms(49));
     c.bench_function("grbl move_to (line -> ok), zero-length move", |b| {
         b.iter(|| g.move_to([0.0, 0.0, 0.0], Some(10.0)).expect("move"))
+    });
+    // move_to + wait_idle: `G4 P0` round trip after a zero-length move.
+    c.bench_function("grbl move_to + wait_idle, zero-length move", |b| {
+        b.iter(|| {
+            g.move_to([0.0, 0.0, 0.0], Some(10.0)).expect("move");
+            g.wait_idle(Duration::from_secs(1)).expect("wait")
+        })
     });
     drop(server);
 }
