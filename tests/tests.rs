@@ -1,1 +1,4 @@
+//! The single integration-test harness: one module per area.
+
 mod ft;
+mod stage;

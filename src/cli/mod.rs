@@ -9,7 +9,9 @@ use clap::{Parser, Subcommand};
 mod camera;
 mod ft;
 mod model;
+mod ports;
 mod reconstruct;
+mod stage;
 
 /// tactbench: test bench controller for vision-based tactile sensors.
 ///
@@ -28,6 +30,12 @@ enum Command {
     Reconstruct(reconstruct::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
+    /// List serial ports.
+    Ports(ports::Args),
+    Stage(stage::Args),
+    /// Serve a stage simulator on a pseudo-terminal (test helper).
+    #[command(hide = true)]
+    SimServeStage(stage::ServeArgs),
     /// Force/torque sensor: read, tare, info.
     Ft(ft::Args),
     /// Cameras: list, grab a frame.
@@ -44,6 +52,9 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Model(cmd) => model::run(cmd),
+        Command::Ports(args) => ports::run(args),
+        Command::Stage(args) => stage::run(args),
+        Command::SimServeStage(args) => stage::serve(args),
         Command::Ft(args) => ft::run(args),
         Command::Camera(cmd) => camera::run(cmd),
         Command::SimServeFt(args) => ft::serve(args),

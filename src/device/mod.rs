@@ -219,4 +219,9 @@ pub trait Camera {
     fn grab(&mut self) -> DeviceResult<CameraFrame>;
 }
 
+pub mod fault;
+pub mod grbl;
+pub mod lineio;
 pub mod pty;
+pub mod replay;
+pub mod zaber;

@@ -1,0 +1,1112 @@
+//! GRBL 1.1h simulator: a pure state machine serving the GRBL protocol.
+//!
+//! Modelled (see `protocols/grbl.md` for the full list and the choices made):
+//! - line protocol: each line answered by `ok` / `error:N`, lines processed in
+//!   order; a line that must wait (dwell `G4`, homing `$H`, a full planner, the
+//!   critical-alarm lock) blocks the lines behind it, as in GRBL's main loop;
+//! - real-time bytes `?` `!` `~` 0x18 0x85 handled on arrival, anywhere in a line;
+//! - motion: straight segments at constant speed (no acceleration), the position
+//!   integrating over time, `F` feed or `G0` at the `$110..$112` max rate;
+//! - machine coordinates only (no work offsets: WCO is always 0);
+//! - status reports `<State|MPos:..|FS:..>` (or `WPos` when `$10` bit 0 is clear,
+//!   `Bf:` when bit 1 is set, `WCO:` on every 10th report, `Ov:` on every 20th);
+//! - homing per `$22` (error:5 when disabled), ending at MPos = −`$27` pull-off;
+//! - soft limits `$20` with `$130..$132` in GRBL's negative space
+//!   (−max_travel ≤ MPos ≤ 0): G0/G1 beyond → `ALARM:2` + critical lock,
+//!   `$J=` beyond → `error:15`;
+//! - alarm state: only `$X`, `$H`, `$$`, `$G`, `$N=V` accepted, G-code → `error:9`,
+//!   `$J=` → `error:8`; critical alarms (1, 2) block everything but `?` and reset;
+//! - feed hold (immediate stop → `Hold:0`), resume, jog cancel, soft reset (banner;
+//!   `ALARM:3` if reset in motion; `[MSG:'$H'|'$X' to unlock]` when in alarm);
+//! - probing `G38.2` against an optional contact plane `z = probe_contact_z_mm`.
+//!
+//! Faults from [`FaultConfig`] are applied to replies: see [`GrblSim::apply_fault`].
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::Duration;
+
+use super::codec::fmt_num;
+use crate::device::fault::{FaultConfig, FaultInjector, FaultKind, ReplyClass};
+use crate::device::pty::{Flow, Simulator};
+
+/// The reset banner GRBL prints (preceded by an empty line, as the firmware does).
+pub const BANNER: &str = "Grbl 1.1h ['$' for help]";
+
+/// GRBL's serial line buffer: longer lines answer `error:11`.
+const LINE_BUFFER_SIZE: usize = 80;
+
+/// Planner blocks (GRBL on an ATmega328p: 16, one kept free).
+const PLANNER_BLOCKS: usize = 15;
+
+/// Settings that GRBL prints as integers.
+const INTEGER_SETTINGS: [u16; 14] = [0, 1, 2, 3, 4, 5, 6, 10, 20, 21, 22, 23, 26, 30];
+
+/// GRBL 1.1h default settings (`$RST=$`), numbers as printed by `$$`.
+fn default_settings() -> BTreeMap<u16, f64> {
+    [
+        (0, 10.0),
+        (1, 25.0),
+        (2, 0.0),
+        (3, 0.0),
+        (4, 0.0),
+        (5, 0.0),
+        (6, 0.0),
+        (10, 1.0),
+        (11, 0.010),
+        (12, 0.002),
+        (13, 0.0),
+        (20, 0.0),
+        (21, 0.0),
+        (22, 0.0),
+        (23, 0.0),
+        (24, 25.0),
+        (25, 500.0),
+        (26, 250.0),
+        (27, 1.0),
+        (30, 1000.0),
+        (31, 0.0),
+        (32, 0.0),
+        (100, 250.0),
+        (101, 250.0),
+        (102, 250.0),
+        (110, 500.0),
+        (111, 500.0),
+        (112, 500.0),
+        (120, 10.0),
+        (121, 10.0),
+        (122, 10.0),
+        (130, 200.0),
+        (131, 200.0),
+        (132, 200.0),
+    ]
+    .into_iter()
+    .collect()
+}
+
+/// Simulator configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GrblSimConfig {
+    /// Setting overrides applied over the GRBL defaults (e.g. `(22, 1.0)` homing on).
+    pub settings: Vec<(u16, f64)>,
+    /// Start position in machine coordinates, mm.
+    pub start_mpos_mm: [f64; 3],
+    /// Start in the alarm state (GRBL does at power-up when homing is enabled).
+    pub start_in_alarm: bool,
+    /// Height of the contact plane for `G38.2` probing, machine z in mm (`None`:
+    /// the probe never touches).
+    pub probe_contact_z_mm: Option<f64>,
+    /// Send the banner when the simulator starts (as an Arduino GRBL does when the
+    /// port is opened and DTR resets it).
+    pub banner_on_start: bool,
+    /// Opt-in faults.
+    pub faults: Option<FaultConfig>,
+}
+
+impl Default for GrblSimConfig {
+    fn default() -> Self {
+        GrblSimConfig {
+            settings: Vec::new(),
+            start_mpos_mm: [0.0; 3],
+            start_in_alarm: false,
+            probe_contact_z_mm: None,
+            banner_on_start: true,
+            faults: None,
+        }
+    }
+}
+
+impl GrblSimConfig {
+    /// A typical bench: homing and soft limits on, travel 100 × 100 × 50 mm, homing
+    /// seek 3000 mm/min, starting in the alarm state as GRBL does at power-up with
+    /// homing enabled.
+    pub fn homing_bench() -> Self {
+        GrblSimConfig {
+            settings: vec![
+                (20, 1.0),
+                (22, 1.0),
+                (25, 3000.0),
+                (130, 100.0),
+                (131, 100.0),
+                (132, 50.0),
+            ],
+            start_mpos_mm: [-50.0, -50.0, -25.0],
+            start_in_alarm: true,
+            ..Default::default()
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum SegKind {
+    Line,
+    Jog,
+    Home,
+    Probe,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Segment {
+    kind: SegKind,
+    target: [f64; 3],
+    speed_mm_s: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    Idle,
+    Alarm,
+    /// Critical alarm: nothing but `?` and reset until reset.
+    AlarmLocked,
+}
+
+/// Output held back until its release time (late-reply fault). Everything sent
+/// after a late reply queues behind it, as when the controller itself is slow, so
+/// the order of lines is preserved.
+#[derive(Debug, Clone)]
+struct Delayed {
+    at: Duration,
+    bytes: Vec<u8>,
+}
+
+/// The GRBL simulator.
+#[derive(Debug, Clone)]
+pub struct GrblSim {
+    settings: BTreeMap<u16, f64>,
+    probe_contact_z_mm: Option<f64>,
+    mpos: [f64; 3],
+    mode: Mode,
+    held: bool,
+    queue: VecDeque<Segment>,
+    last_time: Duration,
+    line_buf: Vec<u8>,
+    line_overflow: bool,
+    lines: VecDeque<String>,
+    dwell_until: Option<Duration>,
+    feed_mm_min: Option<f64>,
+    relative: bool,
+    reports: u32,
+    pending_banner: bool,
+    delayed: Option<Delayed>,
+    faults: Option<FaultInjector>,
+    /// After a `DeviceReset` or `Disconnect` fault the current reply is swallowed.
+    hangup: bool,
+    /// Line counter for diagnostics: lines answered so far.
+    answered: u64,
+    /// A G0/G1 hit the soft limit: GRBL answers its `ok` only after the reset.
+    ok_on_reset: bool,
+    /// Motion lines (G0/G1/G38.2/$J=) accepted into the planner.
+    motions_accepted: u32,
+}
+
+impl GrblSim {
+    /// A new simulator.
+    pub fn new(config: GrblSimConfig) -> Self {
+        let mut settings = default_settings();
+        for (k, v) in &config.settings {
+            settings.insert(*k, *v);
+        }
+        GrblSim {
+            settings,
+            probe_contact_z_mm: config.probe_contact_z_mm,
+            mpos: config.start_mpos_mm,
+            mode: if config.start_in_alarm {
+                Mode::Alarm
+            } else {
+                Mode::Idle
+            },
+            held: false,
+            queue: VecDeque::new(),
+            last_time: Duration::ZERO,
+            line_buf: Vec::new(),
+            line_overflow: false,
+            lines: VecDeque::new(),
+            dwell_until: None,
+            feed_mm_min: None,
+            relative: false,
+            reports: 0,
+            pending_banner: config.banner_on_start,
+            delayed: None,
+            faults: config.faults.map(FaultInjector::new),
+            hangup: false,
+            answered: 0,
+            ok_on_reset: false,
+            motions_accepted: 0,
+        }
+    }
+
+    /// Machine position now, mm.
+    pub fn mpos_mm(&self) -> [f64; 3] {
+        self.mpos
+    }
+
+    /// True if the controller is in an alarm state.
+    pub fn in_alarm(&self) -> bool {
+        self.mode != Mode::Idle
+    }
+
+    /// Motion lines (G0/G1/G38.2/`$J=`) accepted so far: lets tests check that a
+    /// driver never re-sent a move.
+    pub fn motions_accepted(&self) -> u32 {
+        self.motions_accepted
+    }
+
+    /// Faults injected so far.
+    pub fn faults_injected(&self) -> u32 {
+        self.faults.as_ref().map_or(0, |f| f.injected())
+    }
+
+    fn setting(&self, n: u16) -> f64 {
+        self.settings.get(&n).copied().unwrap_or(0.0)
+    }
+
+    fn homing_enabled(&self) -> bool {
+        self.setting(22) != 0.0
+    }
+
+    fn moving(&self) -> bool {
+        !self.queue.is_empty()
+    }
+
+    fn state_text(&self) -> String {
+        if self.mode != Mode::Idle {
+            return "Alarm".into();
+        }
+        match self.queue.front() {
+            Some(_) if self.held => "Hold:0".into(),
+            Some(s) => match s.kind {
+                SegKind::Line | SegKind::Probe => "Run".into(),
+                SegKind::Jog => "Jog".into(),
+                SegKind::Home => "Home".into(),
+            },
+            None => "Idle".into(),
+        }
+    }
+
+    fn status_report(&mut self) -> String {
+        let mask = self.setting(10) as u32;
+        let pos = self
+            .mpos
+            .iter()
+            .map(|v| fmt_num(*v))
+            .collect::<Vec<_>>()
+            .join(",");
+        let mut s = format!("<{}|", self.state_text());
+        s.push_str(if mask & 1 == 1 { "MPos:" } else { "WPos:" });
+        s.push_str(&pos);
+        if mask & 2 == 2 {
+            s.push_str(&format!(
+                "|Bf:{},{}",
+                PLANNER_BLOCKS - self.queue.len().min(PLANNER_BLOCKS),
+                128
+            ));
+        }
+        let feed = match self.queue.front() {
+            Some(seg) if !self.held => seg.speed_mm_s * 60.0,
+            _ => 0.0,
+        };
+        s.push_str(&format!("|FS:{},0", feed.round() as i64));
+        if self.reports % 10 == 0 {
+            s.push_str("|WCO:0.000,0.000,0.000");
+        }
+        if self.reports % 20 == 1 {
+            s.push_str("|Ov:100,100,100");
+        }
+        s.push('>');
+        self.reports += 1;
+        s
+    }
+
+    /// Moves the machine along its queued segments up to `now`.
+    fn advance(&mut self, now: Duration, out: &mut Vec<u8>) {
+        let mut dt = now.saturating_sub(self.last_time).as_secs_f64();
+        self.last_time = now;
+        if self.held || self.mode != Mode::Idle {
+            return;
+        }
+        // `loop`, not `while dt > 0`: zero-length segments finish even when no
+        // time has passed.
+        loop {
+            let Some(seg) = self.queue.front().copied() else {
+                break;
+            };
+            let d = dist(self.mpos, seg.target);
+            let t_needed = d / seg.speed_mm_s;
+            if seg.kind == SegKind::Probe {
+                if let Some(zc) = self.probe_contact_z_mm {
+                    // Contact when z crosses the plane on the way to the target.
+                    let crosses = (self.mpos[2] - zc) * (seg.target[2] - zc) <= 0.0
+                        && self.mpos[2] != seg.target[2];
+                    if crosses {
+                        let frac_to_contact = (self.mpos[2] - zc) / (self.mpos[2] - seg.target[2]);
+                        let t_contact = t_needed * frac_to_contact;
+                        if dt >= t_contact {
+                            let contact = lerp(self.mpos, seg.target, frac_to_contact);
+                            self.mpos = contact;
+                            self.queue.pop_front();
+                            dt -= t_contact;
+                            let p: Vec<String> = contact.iter().map(|v| fmt_num(*v)).collect();
+                            push_line(out, &format!("[PRB:{}:1]", p.join(",")));
+                            continue;
+                        }
+                    }
+                }
+            }
+            if dt >= t_needed {
+                self.mpos = seg.target;
+                self.queue.pop_front();
+                dt -= t_needed;
+                match seg.kind {
+                    SegKind::Home => {
+                        let pulloff = self.setting(27);
+                        self.mpos = [-pulloff; 3];
+                        // The `$H` line is answered when homing completes.
+                        self.reply(out, "ok", ReplyClass::Command, now);
+                    }
+                    SegKind::Probe => {
+                        // Reached the target without contact: ALARM:5, probe fail.
+                        self.queue.clear();
+                        self.mode = Mode::Alarm;
+                        push_line(out, "ALARM:5");
+                        dt = 0.0;
+                    }
+                    _ => {}
+                }
+            } else {
+                self.mpos = lerp(self.mpos, seg.target, dt / t_needed);
+                break;
+            }
+        }
+    }
+
+    fn soft_reset(&mut self, out: &mut Vec<u8>) {
+        if self.moving() && !self.held && self.mode == Mode::Idle {
+            let homing = self.queue.front().is_some_and(|s| s.kind == SegKind::Home);
+            push_line(out, if homing { "ALARM:6" } else { "ALARM:3" });
+            self.mode = Mode::Alarm;
+        }
+        if self.mode == Mode::AlarmLocked {
+            self.mode = Mode::Alarm;
+        }
+        self.queue.clear();
+        self.held = false;
+        self.lines.clear();
+        self.line_buf.clear();
+        self.line_overflow = false;
+        self.dwell_until = None;
+        self.delayed = None;
+        if std::mem::take(&mut self.ok_on_reset) {
+            push_line(out, "ok");
+        }
+        self.feed_mm_min = None;
+        self.relative = false;
+        self.send_banner(out);
+    }
+
+    fn send_banner(&mut self, out: &mut Vec<u8>) {
+        out.extend_from_slice(b"\r\n");
+        push_line(out, BANNER);
+        if self.mode != Mode::Idle {
+            push_line(out, "[MSG:'$H'|'$X' to unlock]");
+        }
+    }
+
+    fn critical_alarm(&mut self, code: u8, out: &mut Vec<u8>) {
+        self.queue.clear();
+        self.held = false;
+        self.mode = Mode::AlarmLocked;
+        push_line(out, &format!("ALARM:{code}"));
+        push_line(out, "[MSG:Reset to continue]");
+    }
+
+    /// Sends a reply line, through the fault injector.
+    fn reply(&mut self, out: &mut Vec<u8>, line: &str, class: ReplyClass, now: Duration) {
+        self.answered += 1;
+        let fault = self.faults.as_mut().and_then(|f| f.decide(class));
+        self.apply_fault(fault, out, line, now);
+    }
+
+    /// Applies a fault to one reply line:
+    /// - `LateReply`: the line is released `late_by` later;
+    /// - `DroppedByte`: one content byte is removed;
+    /// - `Garbled`: one content byte is replaced by 0xFE;
+    /// - `Unsolicited`: `[MSG:Simulated unsolicited message]` precedes the line;
+    /// - `DeviceReset`: the line is swallowed and the controller resets (banner;
+    ///   `ALARM:3` if it was moving);
+    /// - `LimitTrip`: the line is sent, then `ALARM:1` + `[MSG:Reset to continue]`
+    ///   (hard limit: motion killed, critical lock until reset);
+    /// - `Disconnect`: the line is swallowed and the port hangs up.
+    fn apply_fault(
+        &mut self,
+        fault: Option<FaultKind>,
+        out: &mut Vec<u8>,
+        line: &str,
+        now: Duration,
+    ) {
+        let mut bytes = line.as_bytes().to_vec();
+        match fault {
+            None => push_line(out, line),
+            Some(FaultKind::LateReply) => {
+                let late_by = self
+                    .faults
+                    .as_ref()
+                    .map_or(Duration::ZERO, |f| f.config().late_by);
+                // Output produced earlier in this step goes first, then the held line.
+                let mut held = std::mem::take(out);
+                held.extend_from_slice(&bytes);
+                held.extend_from_slice(b"\r\n");
+                match &mut self.delayed {
+                    Some(d) => d.bytes.extend_from_slice(&held),
+                    None => {
+                        self.delayed = Some(Delayed {
+                            at: now + late_by,
+                            bytes: held,
+                        })
+                    }
+                }
+            }
+            Some(FaultKind::DroppedByte) => {
+                let i = self.faults.as_mut().map_or(0, |f| f.index(bytes.len()));
+                if !bytes.is_empty() {
+                    bytes.remove(i);
+                }
+                out.extend_from_slice(&bytes);
+                out.extend_from_slice(b"\r\n");
+            }
+            Some(FaultKind::Garbled) => {
+                let i = self.faults.as_mut().map_or(0, |f| f.index(bytes.len()));
+                if let Some(b) = bytes.get_mut(i) {
+                    *b = 0xFE;
+                }
+                out.extend_from_slice(&bytes);
+                out.extend_from_slice(b"\r\n");
+            }
+            Some(FaultKind::Unsolicited) => {
+                push_line(out, "[MSG:Simulated unsolicited message]");
+                push_line(out, line);
+            }
+            Some(FaultKind::DeviceReset) => self.soft_reset(out),
+            Some(FaultKind::LimitTrip) => {
+                push_line(out, line);
+                self.critical_alarm(1, out);
+            }
+            Some(FaultKind::Disconnect) => self.hangup = true,
+        }
+    }
+
+    /// True if the front line must wait (GRBL's main loop is blocked).
+    fn blocked(&self, now: Duration) -> bool {
+        if self.mode == Mode::AlarmLocked {
+            return true;
+        }
+        if self.queue.front().is_some_and(|s| s.kind == SegKind::Home) {
+            return true;
+        }
+        if let Some(t) = self.dwell_until {
+            return !self.queue.is_empty() || now < t;
+        }
+        self.queue.len() >= PLANNER_BLOCKS
+    }
+
+    fn process_lines(&mut self, now: Duration, out: &mut Vec<u8>) {
+        loop {
+            if self.hangup {
+                return;
+            }
+            if let Some(t) = self.dwell_until {
+                if self.queue.is_empty() && now >= t {
+                    self.dwell_until = None;
+                    self.reply(out, "ok", ReplyClass::Query, now);
+                    continue;
+                }
+            }
+            if self.blocked(now) {
+                return;
+            }
+            let Some(line) = self.lines.pop_front() else {
+                return;
+            };
+            self.execute_line(&line, now, out);
+        }
+    }
+
+    fn execute_line(&mut self, raw: &str, now: Duration, out: &mut Vec<u8>) {
+        // GRBL strips spaces and upper-cases before parsing.
+        let line: String = raw
+            .chars()
+            .filter(|c| !c.is_whitespace())
+            .map(|c| c.to_ascii_uppercase())
+            .collect();
+        if line.is_empty() {
+            self.reply(out, "ok", ReplyClass::Query, now);
+            return;
+        }
+        let result = if let Some(sys) = line.strip_prefix('$') {
+            self.system_command(sys, out)
+        } else if self.mode != Mode::Idle
+            || (self.moving() && self.queue.front().is_some_and(|s| s.kind == SegKind::Jog))
+        {
+            // G-code is locked out in alarm and while jogging.
+            Err(9)
+        } else {
+            self.gcode(&line, now, out)
+        };
+        match result {
+            Ok(Some(class)) => self.reply(out, "ok", class, now),
+            // Answered later (homing, dwell).
+            Ok(None) => {}
+            Err(code) => self.reply(out, &format!("error:{code}"), ReplyClass::Command, now),
+        }
+    }
+
+    fn system_command(&mut self, sys: &str, out: &mut Vec<u8>) -> Result<Option<ReplyClass>, u8> {
+        match sys {
+            "" => {
+                push_line(
+                    out,
+                    "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]",
+                );
+                Ok(Some(ReplyClass::Query))
+            }
+            "$" => {
+                if self.moving() {
+                    return Err(8);
+                }
+                let lines: Vec<String> = self
+                    .settings
+                    .iter()
+                    .map(|(k, v)| {
+                        if INTEGER_SETTINGS.contains(k) {
+                            format!("${k}={}", *v as i64)
+                        } else {
+                            format!("${k}={}", fmt_num(*v))
+                        }
+                    })
+                    .collect();
+                for l in lines {
+                    push_line(out, &l);
+                }
+                Ok(Some(ReplyClass::Query))
+            }
+            "G" => {
+                let motion = if self.feed_mm_min.is_some() {
+                    "G1"
+                } else {
+                    "G0"
+                };
+                let dist = if self.relative { "G91" } else { "G90" };
+                let f = self.feed_mm_min.unwrap_or(0.0);
+                push_line(
+                    out,
+                    &format!(
+                        "[GC:{motion} G54 G17 G21 {dist} G94 M5 M9 T0 F{} S0]",
+                        f.round() as i64
+                    ),
+                );
+                Ok(Some(ReplyClass::Query))
+            }
+            "X" => {
+                if self.mode != Mode::Idle {
+                    push_line(out, "[MSG:Caution: Unlocked]");
+                    self.mode = Mode::Idle;
+                }
+                Ok(Some(ReplyClass::Command))
+            }
+            "H" => {
+                if !self.homing_enabled() {
+                    return Err(5);
+                }
+                if self.moving() {
+                    return Err(8);
+                }
+                self.mode = Mode::Idle;
+                let seek = self.setting(25).max(1.0) / 60.0;
+                self.queue.push_back(Segment {
+                    kind: SegKind::Home,
+                    target: [0.0; 3],
+                    speed_mm_s: seek,
+                });
+                Ok(None)
+            }
+            _ => {
+                if let Some(jog) = sys.strip_prefix("J=") {
+                    if self.mode != Mode::Idle
+                        || (self.moving()
+                            && self.queue.front().is_some_and(|s| s.kind != SegKind::Jog))
+                    {
+                        return Err(8);
+                    }
+                    return self.jog(jog).map(|_| Some(ReplyClass::Command));
+                }
+                let (n, v) = sys.split_once('=').ok_or(3u8)?;
+                let n: u16 = n.parse().map_err(|_| 3u8)?;
+                let v: f64 = v.parse().map_err(|_| 2u8)?;
+                if !self.settings.contains_key(&n) {
+                    return Err(3);
+                }
+                if self.moving() {
+                    return Err(8);
+                }
+                if v < 0.0 {
+                    return Err(4);
+                }
+                if n == 20 && v != 0.0 && !self.homing_enabled() {
+                    return Err(10);
+                }
+                self.settings.insert(n, v);
+                Ok(Some(ReplyClass::Command))
+            }
+        }
+    }
+
+    /// Parses `G21 G91 X1 F100`-style words (spaces already stripped).
+    fn words(line: &str) -> Result<Vec<(char, f64)>, u8> {
+        let b = line.as_bytes();
+        let mut i = 0;
+        let mut words = Vec::new();
+        while i < b.len() {
+            let letter = b[i] as char;
+            if !letter.is_ascii_alphabetic() {
+                return Err(1);
+            }
+            i += 1;
+            let start = i;
+            while i < b.len()
+                && (b[i].is_ascii_digit() || b[i] == b'.' || b[i] == b'-' || b[i] == b'+')
+            {
+                i += 1;
+            }
+            let v: f64 = line[start..i].parse().map_err(|_| 2u8)?;
+            words.push((letter, v));
+        }
+        Ok(words)
+    }
+
+    fn axis_words(words: &[(char, f64)]) -> [Option<f64>; 3] {
+        let mut xyz = [None; 3];
+        for (l, v) in words {
+            match l {
+                'X' => xyz[0] = Some(*v),
+                'Y' => xyz[1] = Some(*v),
+                'Z' => xyz[2] = Some(*v),
+                _ => {}
+            }
+        }
+        xyz
+    }
+
+    /// End of the queued motion (where a new segment starts).
+    fn planned_end(&self) -> [f64; 3] {
+        self.queue.back().map_or(self.mpos, |s| s.target)
+    }
+
+    fn resolve(&self, xyz: [Option<f64>; 3], relative: bool) -> [f64; 3] {
+        let base = self.planned_end();
+        let mut t = base;
+        for i in 0..3 {
+            if let Some(v) = xyz[i] {
+                t[i] = if relative { base[i] + v } else { v };
+            }
+        }
+        t
+    }
+
+    fn within_travel(&self, t: [f64; 3]) -> bool {
+        (0..3).all(|i| t[i] <= 1e-9 && t[i] >= -self.setting(130 + i as u16) - 1e-9)
+    }
+
+    fn rapid_speed(&self, from: [f64; 3], to: [f64; 3]) -> f64 {
+        // Each axis component must stay below its own max rate ($110..$112 mm/min).
+        let d = dist(from, to);
+        let mut v = f64::INFINITY;
+        for i in 0..3 {
+            let comp = (to[i] - from[i]).abs();
+            if comp > 0.0 {
+                v = v.min(self.setting(110 + i as u16) / 60.0 * d / comp);
+            }
+        }
+        if v.is_finite() {
+            v
+        } else {
+            1.0
+        }
+    }
+
+    fn capped(&self, from: [f64; 3], to: [f64; 3], feed_mm_min: f64) -> f64 {
+        (feed_mm_min / 60.0).min(self.rapid_speed(from, to))
+    }
+
+    fn jog(&mut self, body: &str) -> Result<(), u8> {
+        let words = Self::words(body)?;
+        let mut relative = false;
+        let mut feed = None;
+        for (l, v) in &words {
+            match (l, g_code(*v)) {
+                ('G', 910) => relative = true,
+                ('G', 900 | 530 | 210) => {}
+                ('F', _) => feed = Some(*v),
+                ('X' | 'Y' | 'Z', _) => {}
+                _ => return Err(16),
+            }
+        }
+        let feed = feed.ok_or(16u8)?;
+        let xyz = Self::axis_words(&words);
+        if xyz.iter().all(Option::is_none) {
+            return Err(16);
+        }
+        let target = self.resolve(xyz, relative);
+        if self.setting(20) != 0.0 && !self.within_travel(target) {
+            return Err(15);
+        }
+        let from = self.planned_end();
+        let speed = self.capped(from, target, feed);
+        self.motions_accepted += 1;
+        self.queue.push_back(Segment {
+            kind: SegKind::Jog,
+            target,
+            speed_mm_s: speed,
+        });
+        Ok(())
+    }
+
+    fn gcode(
+        &mut self,
+        line: &str,
+        now: Duration,
+        out: &mut Vec<u8>,
+    ) -> Result<Option<ReplyClass>, u8> {
+        let words = Self::words(line)?;
+        let mut motion: Option<SegKind> = None;
+        let mut rapid = false;
+        let mut machine = false;
+        let mut dwell = false;
+        let mut relative = self.relative;
+        let mut feed = self.feed_mm_min;
+        let mut p = None;
+        for (l, v) in &words {
+            match (l, g_code(*v)) {
+                ('G', 0) => {
+                    motion = Some(SegKind::Line);
+                    rapid = true;
+                }
+                ('G', 10) => {
+                    motion = Some(SegKind::Line);
+                    rapid = false;
+                }
+                ('G', 382) => motion = Some(SegKind::Probe),
+                ('G', 40) => dwell = true,
+                ('G', 210) => {}
+                // Inches are valid G-code but the driver never sends them; refusing
+                // keeps the simulator in one unit (documented in protocols/grbl.md).
+                ('G', 200) => return Err(20),
+                ('G', 530) => machine = true,
+                ('G', 900) => relative = false,
+                ('G', 910) => relative = true,
+                ('F', _) => {
+                    let f = *v;
+                    if f <= 0.0 {
+                        return Err(4);
+                    }
+                    feed = Some(f)
+                }
+                ('P', _) => p = Some(*v),
+                ('X' | 'Y' | 'Z', _) => {}
+                ('N', _) => {}
+                _ => return Err(20),
+            }
+        }
+        self.relative = relative;
+        self.feed_mm_min = feed;
+        let xyz = Self::axis_words(&words);
+        if dwell {
+            let p = p.ok_or(28u8)?;
+            if p < 0.0 {
+                return Err(4);
+            }
+            self.dwell_until = Some(now + Duration::from_secs_f64(p));
+            return Ok(None);
+        }
+        if machine && motion != Some(SegKind::Line) {
+            return Err(30);
+        }
+        let Some(kind) = motion else {
+            return Ok(Some(ReplyClass::Command));
+        };
+        if xyz.iter().all(Option::is_none) {
+            return Err(26);
+        }
+        let target = self.resolve(xyz, relative && !machine);
+        let from = self.planned_end();
+        let speed = if rapid {
+            self.rapid_speed(from, target)
+        } else {
+            self.capped(from, target, feed.ok_or(22u8)?)
+        };
+        if self.setting(20) != 0.0 && !self.within_travel(target) {
+            // GRBL checks soft limits when planning a G0/G1: alarm, critical lock.
+            self.critical_alarm(2, out);
+            self.ok_on_reset = true;
+            return Ok(None);
+        }
+        if kind == SegKind::Probe && self.moving() {
+            return Err(8);
+        }
+        self.motions_accepted += 1;
+        self.queue.push_back(Segment {
+            kind,
+            target,
+            speed_mm_s: speed,
+        });
+        Ok(Some(ReplyClass::Command))
+    }
+
+    fn realtime(&mut self, b: u8, now: Duration, out: &mut Vec<u8>) {
+        match b {
+            b'?' => {
+                let report = self.status_report();
+                self.reply(out, &report, ReplyClass::Query, now);
+            }
+            b'!' if self.queue.front().is_some_and(|s| s.kind != SegKind::Home) => {
+                self.held = true;
+            }
+            b'~' => self.held = false,
+            0x18 => self.soft_reset(out),
+            0x85 if self.queue.front().is_some_and(|s| s.kind == SegKind::Jog) => {
+                self.queue.clear();
+                self.held = false;
+            }
+            _ => {}
+        }
+    }
+}
+
+impl Simulator for GrblSim {
+    fn step(&mut self, now: Duration, input: &[u8], out: &mut Vec<u8>) -> Flow {
+        if self.pending_banner {
+            self.pending_banner = false;
+            self.send_banner(out);
+        }
+        self.advance(now, out);
+        for &b in input {
+            if self.hangup {
+                break;
+            }
+            if b == b'?' || b == b'!' || b == b'~' || b == 0x18 || b >= 0x80 {
+                self.realtime(b, now, out);
+                continue;
+            }
+            if b == b'\n' || b == b'\r' {
+                let line = String::from_utf8_lossy(&self.line_buf).into_owned();
+                self.line_buf.clear();
+                if std::mem::take(&mut self.line_overflow) {
+                    self.lines.push_back(String::from("\u{1}overflow"));
+                } else if !line.trim().is_empty() {
+                    self.lines.push_back(line);
+                }
+                continue;
+            }
+            if self.line_buf.len() >= LINE_BUFFER_SIZE {
+                self.line_overflow = true;
+            } else {
+                self.line_buf.push(b);
+            }
+        }
+        // Overflowed lines answer error:11 in order.
+        if self.lines.front().is_some_and(|l| l == "\u{1}overflow") && !self.blocked(now) {
+            self.lines.pop_front();
+            self.reply(out, "error:11", ReplyClass::Command, now);
+        }
+        self.process_lines(now, out);
+        // Hold everything behind a late reply until it is due, then release in order.
+        if let Some(d) = &mut self.delayed {
+            if d.at <= now {
+                let mut released = std::mem::take(&mut d.bytes);
+                released.append(out);
+                *out = released;
+                self.delayed = None;
+            } else {
+                d.bytes.append(out);
+            }
+        }
+        if self.hangup {
+            Flow::Hangup
+        } else {
+            Flow::Continue
+        }
+    }
+
+    fn next_wake(&self, now: Duration) -> Option<Duration> {
+        let mut wake: Option<Duration> = None;
+        let mut consider = |t: Duration| {
+            let dt = t.saturating_sub(now);
+            wake = Some(wake.map_or(dt, |w| w.min(dt)));
+        };
+        if let Some(d) = &self.delayed {
+            consider(d.at);
+        }
+        if let Some(t) = self.dwell_until {
+            consider(t);
+        }
+        if self.moving() && !self.held {
+            // Finish times matter for `ok` of `$H`/`G4`; 2 ms resolution is plenty.
+            consider(now + Duration::from_millis(2));
+        }
+        wake
+    }
+}
+
+/// A G-word number ×10 as an integer (`38.2` → 382), so codes match exactly.
+fn g_code(v: f64) -> i64 {
+    (v * 10.0).round() as i64
+}
+
+fn push_line(out: &mut Vec<u8>, line: &str) {
+    out.extend_from_slice(line.as_bytes());
+    out.extend_from_slice(b"\r\n");
+}
+
+fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+fn lerp(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
+    [
+        a[0] + (b[0] - a[0]) * t,
+        a[1] + (b[1] - a[1]) * t,
+        a[2] + (b[2] - a[2]) * t,
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(sim: &mut GrblSim, t_s: f64, input: &str) -> String {
+        let mut out = Vec::new();
+        sim.step(Duration::from_secs_f64(t_s), input.as_bytes(), &mut out);
+        String::from_utf8_lossy(&out).into_owned()
+    }
+
+    #[test]
+    fn banner_on_start_then_status_report_of_idle_machine() {
+        let mut sim = GrblSim::new(GrblSimConfig::default());
+        let out = run(&mut sim, 0.0, "?");
+        assert!(
+            out.starts_with("\r\nGrbl 1.1h ['$' for help]\r\n"),
+            "{out:?}"
+        );
+        assert!(
+            out.contains("<Idle|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n"),
+            "{out:?}"
+        );
+    }
+
+    #[test]
+    fn position_integrates_at_feed_rate_and_ok_means_queued() {
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            ..Default::default()
+        });
+        // 300 mm/min = 5 mm/s along x for 10 mm (below the 500 mm/min $110 cap): 2 s.
+        assert_eq!(run(&mut sim, 0.0, "G21 G53 G1 X-10 F300\n"), "ok\r\n");
+        let _ = run(&mut sim, 0.5, "");
+        assert!(
+            (sim.mpos_mm()[0] + 2.5).abs() < 1e-9,
+            "2.5 mm after 0.5 s: {:?}",
+            sim.mpos_mm()
+        );
+        assert!(run(&mut sim, 0.5, "?").starts_with("<Run|MPos:-2.500,0.000,0.000|FS:300,0"));
+        let _ = run(&mut sim, 2.1, "");
+        assert_eq!(sim.mpos_mm(), [-10.0, 0.0, 0.0]);
+        assert!(run(&mut sim, 2.1, "?").starts_with("<Idle|"));
+        // F above the axis max rate is capped at $110 = 500 mm/min.
+        run(&mut sim, 3.0, "G53 G1 X0 F6000\n");
+        assert!(run(&mut sim, 3.1, "?").contains("|FS:500,0"));
+    }
+
+    #[test]
+    fn dwell_zero_answers_only_after_motion_finishes() {
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            ..Default::default()
+        });
+        assert_eq!(run(&mut sim, 0.0, "G53 G1 X-1 F60\nG4 P0\n"), "ok\r\n");
+        assert_eq!(run(&mut sim, 0.5, ""), "", "still moving: no ok for G4");
+        assert_eq!(run(&mut sim, 1.01, ""), "ok\r\n");
+    }
+
+    #[test]
+    fn homing_disabled_answers_error_5_and_enabled_homes_to_pulloff() {
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            ..Default::default()
+        });
+        assert_eq!(run(&mut sim, 0.0, "$H\n"), "error:5\r\n");
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            ..GrblSimConfig::homing_bench()
+        });
+        assert!(
+            run(&mut sim, 0.0, "G0 X-1\n").contains("error:9"),
+            "alarm lock"
+        );
+        assert_eq!(run(&mut sim, 0.0, "$H\n"), "");
+        assert!(run(&mut sim, 0.1, "?").starts_with("<Home|"));
+        // |(-50,-50,-25)| = 75 mm at $25 = 3000 mm/min -> 1.5 s.
+        assert_eq!(run(&mut sim, 1.4, ""), "", "still homing");
+        assert_eq!(run(&mut sim, 1.51, ""), "ok\r\n");
+        assert_eq!(sim.mpos_mm(), [-1.0; 3], "pull-off $27 = 1 mm");
+    }
+
+    #[test]
+    fn soft_limit_on_g1_is_a_critical_alarm_and_on_jog_is_error_15() {
+        let mut cfg = GrblSimConfig::homing_bench();
+        cfg.start_in_alarm = false;
+        cfg.banner_on_start = false;
+        let mut sim = GrblSim::new(cfg);
+        assert_eq!(run(&mut sim, 0.0, "$J=G91 X200 F100\n"), "error:15\r\n");
+        let out = run(&mut sim, 0.0, "G53 G1 X5 F100\n");
+        assert_eq!(out, "ALARM:2\r\n[MSG:Reset to continue]\r\n");
+        assert_eq!(run(&mut sim, 0.0, "$X\n"), "", "locked until reset");
+        let out = run(&mut sim, 0.1, "\u{18}");
+        assert!(
+            out.starts_with("ok\r\n\r\nGrbl 1.1h"),
+            "the G1's ok comes after the reset: {out:?}"
+        );
+        assert!(out.contains("[MSG:'$H'|'$X' to unlock]"), "{out:?}");
+        assert_eq!(
+            run(&mut sim, 0.2, "$X\n"),
+            "[MSG:Caution: Unlocked]\r\nok\r\n"
+        );
+    }
+
+    #[test]
+    fn feed_hold_stops_resume_continues_and_reset_in_motion_alarms_3() {
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            ..Default::default()
+        });
+        run(&mut sim, 0.0, "G53 G1 X-10 F300\n");
+        run(&mut sim, 0.2, "!");
+        assert!(run(&mut sim, 0.8, "?").starts_with("<Hold:0|MPos:-1.000,"));
+        run(&mut sim, 1.0, "~");
+        let _ = run(&mut sim, 1.3, "");
+        assert!((sim.mpos_mm()[0] + 2.5).abs() < 1e-9, "{:?}", sim.mpos_mm());
+        let out = run(&mut sim, 1.3, "\u{18}");
+        assert!(out.starts_with("ALARM:3\r\n\r\nGrbl 1.1h"), "{out:?}");
+        assert!(sim.in_alarm());
+    }
+
+    #[test]
+    fn probe_stops_at_contact_and_reports_prb() {
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            probe_contact_z_mm: Some(-2.0),
+            ..Default::default()
+        });
+        assert_eq!(run(&mut sim, 0.0, "G53 G38.2 Z-5 F60\n"), "error:30\r\n");
+        assert_eq!(run(&mut sim, 0.0, "G91 G38.2 Z-5 F60\n"), "ok\r\n");
+        let out = run(&mut sim, 3.0, "");
+        assert_eq!(out, "[PRB:0.000,0.000,-2.000:1]\r\n");
+        assert_eq!(sim.mpos_mm(), [0.0, 0.0, -2.0]);
+    }
+}
