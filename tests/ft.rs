@@ -14,6 +14,7 @@ use tactbench::device::dynpick::{driver as dp, DynPick, DynPickSim, DynPickSimCo
 use tactbench::device::ft300::{driver as ft, Ft300, Ft300Sim, Ft300SimConfig};
 use tactbench::device::ft_common::{open_serial, FaultConfig, SharedWrench, SimCounters};
 use tactbench::device::pty::PtyServer;
+use tactbench::device::replay::{Dir, Replay, Transcript};
 use tactbench::device::{ErrorKind, ForceSensor, Wrench};
 
 type Port = Box<dyn serialport::SerialPort>;
@@ -98,159 +99,26 @@ fn get(c: &std::sync::atomic::AtomicU64) -> u64 {
 
 // ---------------------------------------------------------------- transcripts
 
-/// Direction of one transcript step.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Dir {
-    /// Host to device (`>`).
-    Host,
-    /// Device to host (`<`).
-    Device,
-}
-
-/// Parses a transcript: `> "text"` / `< "text"` with `\r \n \xNN \\ \"` escapes, or
-/// `> hex 09 03 ...`; `#` comments.
-fn parse_transcript(text: &str) -> Vec<(Dir, Vec<u8>)> {
-    let mut steps = Vec::new();
-    for (n, line) in text.lines().enumerate() {
-        let line = line.trim_end();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let dir = match &line[..1] {
-            ">" => Dir::Host,
-            "<" => Dir::Device,
-            _ => panic!("transcript line {}: must start with > or <", n + 1),
-        };
-        let body = line[1..].trim();
-        let bytes = if let Some(hex) = body.strip_prefix("hex ") {
-            hex.split_whitespace()
-                .map(|h| u8::from_str_radix(h, 16).expect("hex byte"))
-                .collect()
-        } else {
-            let inner = body
-                .strip_prefix('"')
-                .and_then(|b| b.strip_suffix('"'))
-                .unwrap_or_else(|| panic!("transcript line {}: expected \"...\" or hex", n + 1));
-            unescape(inner)
-        };
-        steps.push((dir, bytes));
-    }
-    steps
-}
-
-fn unescape(s: &str) -> Vec<u8> {
-    let b = s.as_bytes();
-    let mut out = Vec::new();
-    let mut i = 0;
-    while i < b.len() {
-        if b[i] == b'\\' && i + 1 < b.len() {
-            match b[i + 1] {
-                b'r' => out.push(b'\r'),
-                b'n' => out.push(b'\n'),
-                b'\\' => out.push(b'\\'),
-                b'"' => out.push(b'"'),
-                b'x' => {
-                    out.push(u8::from_str_radix(&s[i + 2..i + 4], 16).expect("\\xNN"));
-                    i += 2;
-                }
-                c => panic!("unknown escape \\{}", c as char),
-            }
-            i += 2;
-        } else {
-            out.push(b[i]);
-            i += 1;
-        }
-    }
-    out
-}
-
-fn escape(bytes: &[u8]) -> String {
+fn escape(bytes: &[u8], all_hex: bool) -> String {
     let mut s = String::new();
-    for &b in bytes {
+    for (i, &b) in bytes.iter().enumerate() {
         match b {
+            _ if all_hex => s.push_str(&format!("\\x{b:02X}")),
+            // A trailing space would be lost to the parser's trim: escape only that one.
+            b' ' if i + 1 < bytes.len() => s.push(' '),
             b'\r' => s.push_str("\\r"),
             b'\n' => s.push_str("\\n"),
             b'\\' => s.push_str("\\\\"),
-            b'"' => s.push_str("\\\""),
-            0x20..=0x7e => s.push(b as char),
-            _ => s.push_str(&format!("\\x{b:02x}")),
+            0x21..=0x7e => s.push(b as char),
+            _ => s.push_str(&format!("\\x{b:02X}")),
         }
     }
     s
 }
 
-/// A transport replaying a transcript: writes must match the expected host bytes in
-/// order, reads return the recorded device bytes once the host bytes before them
-/// were written, and [`Replay::finish`] fails unless every step was used. With
-/// nothing to read it reports `TimedOut`, as a serial port does.
-struct Replay {
-    steps: Vec<(Dir, Vec<u8>)>,
-    step: usize,
-    pos: usize,
-}
-
-impl Replay {
-    fn new(steps: Vec<(Dir, Vec<u8>)>) -> Self {
-        Replay {
-            steps,
-            step: 0,
-            pos: 0,
-        }
-    }
-    fn advance(&mut self) {
-        if self.pos == self.steps[self.step].1.len() {
-            self.step += 1;
-            self.pos = 0;
-        }
-    }
-    fn finish(&self) {
-        assert_eq!(
-            self.step,
-            self.steps.len(),
-            "transcript not used up: stopped at step {} of {} ({:?})",
-            self.step + 1,
-            self.steps.len(),
-            self.steps.get(self.step).map(|(d, b)| (d, escape(b)))
-        );
-    }
-}
-
-impl Read for Replay {
-    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        match self.steps.get(self.step) {
-            Some((Dir::Device, bytes)) => {
-                let n = buf.len().min(bytes.len() - self.pos);
-                buf[..n].copy_from_slice(&bytes[self.pos..self.pos + n]);
-                self.pos += n;
-                self.advance();
-                Ok(n)
-            }
-            _ => Err(io::Error::new(io::ErrorKind::TimedOut, "nothing to read")),
-        }
-    }
-}
-
-impl Write for Replay {
-    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
-        for &b in buf {
-            match self.steps.get(self.step) {
-                Some((Dir::Host, bytes)) if bytes[self.pos] == b => {
-                    self.pos += 1;
-                    self.advance();
-                }
-                other => panic!(
-                    "driver wrote {:?} at step {}, transcript expects {:?}",
-                    escape(&[b]),
-                    self.step + 1,
-                    other.map(|(d, bytes)| (d, escape(&bytes[self.pos..])))
-                ),
-            }
-        }
-        Ok(buf.len())
-    }
-    fn flush(&mut self) -> io::Result<()> {
-        Ok(())
-    }
+fn replay_of(name: &str) -> Replay {
+    let text = std::fs::read_to_string(transcript_path(name)).expect("transcript");
+    Replay::new(Transcript::parse(&text).expect("transcript parses"))
 }
 
 /// A recorded session: direction and bytes, consecutive same-direction chunks merged.
@@ -301,12 +169,7 @@ fn write_transcript(name: &str, header: &str, log: &[(Dir, Vec<u8>)], hex: bool)
     let mut s = String::from(header);
     for (d, b) in log {
         let arrow = if *d == Dir::Host { ">" } else { "<" };
-        if hex {
-            let h: Vec<String> = b.iter().map(|x| format!("{x:02X}")).collect();
-            s.push_str(&format!("{arrow} hex {}\n", h.join(" ")));
-        } else {
-            s.push_str(&format!("{arrow} \"{}\"\n", escape(b)));
-        }
+        s.push_str(&format!("{arrow} {}\n", escape(b, hex)));
     }
     std::fs::write(transcript_path(name), s).expect("write transcript");
 }
@@ -347,7 +210,10 @@ fn regenerate_transcripts() {
     write_transcript(
         "dynpick_session.txt",
         "# DynPick session recorded from the simulator (load Fx 1.5 Fy -2.25 Fz 12.34 N,\n\
-         # Mx 0.125 My -0.05 Mz 0.3 N·m): connect (p), V, 2F, 0F, R, O, R.\n",
+         # Mx 0.125 My -0.05 Mz 0.3 N·m): connect (p), V, 2F + 0F (set, read back), 0F, R,\n\
+         # O (no reply), R. Regenerate: cargo test --test tests ft::regenerate_transcripts\n\
+         # -- --ignored. No hardware on the development machines: formats follow\n\
+         # protocols/dynpick.md, recorded against the simulator.\n",
         &log.lock().unwrap(),
         false,
     );
@@ -360,8 +226,9 @@ fn regenerate_transcripts() {
     ft300_session(port);
     write_transcript(
         "ft300_session.txt",
-        "# FT 300 session recorded from the simulator (same load): connect (stop bytes,\n\
-         # read 180+6), info (read 500+3, 510+4, 514+1), read 180+6.\n",
+        "# FT 300 session recorded from the simulator (same load), Modbus RTU bytes as\n\
+         # \\xHH: connect (50 x FF stop bytes, read 180+6), info (read 500+3, 510+4,\n\
+         # 514+1), read 180+6. CRCs checked against codec tests (4B37, C5 CD vectors).\n",
         &log.lock().unwrap(),
         true,
     );
@@ -369,10 +236,9 @@ fn regenerate_transcripts() {
 
 #[test]
 fn dynpick_transcript_replays_exactly() {
-    let text = std::fs::read_to_string(transcript_path("dynpick_session.txt")).expect("transcript");
-    let mut replay = Replay::new(parse_transcript(&text));
+    let mut replay = replay_of("dynpick_session.txt");
     let (ws, fw, f) = dynpick_session(&mut replay);
-    replay.finish();
+    replay.finish().expect("every expectation used");
     assert_eq!(fw, "DynPick simulator 1.0 (tactbench)");
     assert_eq!(f, FilterDivider::D2);
     assert_wrench_near(&ws[0], &LOAD, DP_LSB);
@@ -381,10 +247,9 @@ fn dynpick_transcript_replays_exactly() {
 
 #[test]
 fn ft300_transcript_replays_exactly() {
-    let text = std::fs::read_to_string(transcript_path("ft300_session.txt")).expect("transcript");
-    let mut replay = Replay::new(parse_transcript(&text));
+    let mut replay = replay_of("ft300_session.txt");
     let (w, info) = ft300_session(&mut replay);
-    replay.finish();
+    replay.finish().expect("every expectation used");
     assert_eq!(info.serial, "SIM00001");
     assert_eq!(info.year, 2026);
     assert_eq!(info.firmware, "FTS-3.0.1");
@@ -392,15 +257,11 @@ fn ft300_transcript_replays_exactly() {
 }
 
 #[test]
-fn replay_fails_when_expectations_are_left_unused() {
-    let steps = parse_transcript("> \"R\"\n< \"0200020002000200020002000\\r\\n\"\n> \"R\"\n");
-    let mut replay = Replay::new(steps);
-    replay.write_all(b"R").unwrap();
-    let mut buf = [0u8; 64];
-    let n = replay.read(&mut buf).unwrap();
-    assert_eq!(n, 27);
-    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| replay.finish()));
-    assert!(r.is_err(), "finish must fail with one step unused");
+fn dynpick_replay_fails_when_the_session_stops_early() {
+    // Connect only: the rest of the recorded session is left unused.
+    let mut replay = replay_of("dynpick_session.txt");
+    DynPick::connect(&mut replay).expect("connect");
+    assert!(replay.finish().is_err());
 }
 
 // ---------------------------------------------------------------- DynPick on a pty
