@@ -12,7 +12,9 @@ use std::time::{Duration, Instant};
 use tactbench::device::dynpick::codec::FilterDivider;
 use tactbench::device::dynpick::{driver as dp, DynPick, DynPickSim, DynPickSimConfig};
 use tactbench::device::ft300::{driver as ft, Ft300, Ft300Sim, Ft300SimConfig};
-use tactbench::device::ft_common::{open_serial, FaultConfig, SharedWrench, SimCounters};
+use tactbench::device::ft_common::{
+    no_faults, open_serial, FaultConfig, FaultKind, FaultTarget, SharedWrench, SimCounters,
+};
 use tactbench::device::pty::PtyServer;
 use tactbench::device::replay::{Dir, Replay, Transcript};
 use tactbench::device::{ErrorKind, ForceSensor, Wrench};
@@ -59,6 +61,19 @@ fn assert_wrench_near(got: &Wrench, want: &Wrench, lsb: [f64; 6]) {
             w[i],
             0.5 * lsb[i]
         );
+    }
+}
+
+/// Faults of `kinds` (drawn uniformly) on each reply with probability `p`, seeded,
+/// unlimited in number, from the first reply on.
+fn faults(seed: u64, kinds: &[FaultKind], p: f64) -> FaultConfig {
+    FaultConfig {
+        seed,
+        kinds: kinds.to_vec(),
+        probability: p,
+        skip: 0,
+        max_faults: u32::MAX,
+        ..no_faults()
     }
 }
 
@@ -200,7 +215,7 @@ fn ft300_session<P: Read + Write>(port: P) -> (Wrench, ft::Ft300Info) {
 #[test]
 #[ignore]
 fn regenerate_transcripts() {
-    let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(LOAD));
     let log = Arc::new(Mutex::new(Vec::new()));
     let port = Recorder {
         inner: open("dynpick", server.path(), dp::BAUD),
@@ -217,7 +232,7 @@ fn regenerate_transcripts() {
         &log.lock().unwrap(),
         false,
     );
-    let (server, _) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let (server, _) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
     let log = Arc::new(Mutex::new(Vec::new()));
     let port = Recorder {
         inner: open("ft300", server.path(), ft::BAUD),
@@ -269,7 +284,7 @@ fn dynpick_replay_fails_when_the_session_stops_early() {
 #[test]
 fn dynpick_reads_the_simulated_load_over_a_pty() {
     let load = SharedWrench::new(LOAD);
-    let (server, counters) = dynpick_sim(FaultConfig::default(), load.clone());
+    let (server, counters) = dynpick_sim(no_faults(), load.clone());
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     assert_eq!(
         d.sensitivities().0,
@@ -292,7 +307,7 @@ fn dynpick_reads_the_simulated_load_over_a_pty() {
 
 #[test]
 fn dynpick_tare_zeroes_the_current_load_on_the_device() {
-    let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(LOAD));
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     d.tare().unwrap();
     assert_wrench_near(&d.read().unwrap(), &Wrench::default(), DP_LSB);
@@ -308,7 +323,7 @@ fn dynpick_with(faults: FaultConfig) -> (PtyServer<DynPickSim>, Arc<SimCounters>
     // Connect cleanly (the `p` reply is reply 1); faults start with the first record.
     let (server, counters) = dynpick_sim(
         FaultConfig {
-            clean_first: 1,
+            skip: faults.skip.max(1),
             ..faults
         },
         SharedWrench::new(LOAD),
@@ -320,9 +335,8 @@ fn dynpick_with(faults: FaultConfig) -> (PtyServer<DynPickSim>, Arc<SimCounters>
 #[test]
 fn dynpick_late_reply_within_timeout_is_simply_slower() {
     let faults = FaultConfig {
-        late_reply: 1.0,
         late_by: dp::REPLY_TIMEOUT / 2,
-        ..Default::default()
+        ..faults(0, &[FaultKind::LateReply], 1.0)
     };
     let (_s, c, mut d) = dynpick_with(faults);
     for _ in 0..5 {
@@ -337,10 +351,8 @@ fn dynpick_late_reply_past_timeout_is_discarded_and_retried() {
     // Every 2nd-ish reply late by 1.5 timeouts: the attempt times out, the drain
     // discards the late record, the retry gets a fresh one.
     let faults = FaultConfig {
-        seed: 7,
-        late_reply: 0.4,
         late_by: dp::REPLY_TIMEOUT * 3 / 2,
-        ..Default::default()
+        ..faults(7, &[FaultKind::LateReply], 0.4)
     };
     let (_s, c, mut d) = dynpick_with(faults);
     let mut ok = 0;
@@ -365,12 +377,7 @@ fn dynpick_late_reply_past_timeout_is_discarded_and_retried() {
 
 #[test]
 fn dynpick_dropped_and_garbled_bytes_are_retried() {
-    let faults = FaultConfig {
-        seed: 3,
-        drop_byte: 0.1,
-        garble: 0.1,
-        ..Default::default()
-    };
+    let faults = faults(3, &[FaultKind::DroppedByte, FaultKind::Garbled], 0.2);
     let (_s, c, mut d) = dynpick_with(faults);
     let mut ok = 0;
     for _ in 0..30 {
@@ -385,9 +392,11 @@ fn dynpick_dropped_and_garbled_bytes_are_retried() {
     }
     assert!(ok >= 27, "{ok} of 30 reads succeeded");
     assert!(get(&c.dropped) + get(&c.garbled) > 0);
+    // Every bad reply cost one attempt: retried, or (third in a row) reported.
+    let failed = 30 - ok as u64;
     assert_eq!(
         d.stats().protocol_errors,
-        d.stats().retries,
+        d.stats().retries + failed,
         "{:?}",
         d.stats()
     );
@@ -396,10 +405,7 @@ fn dynpick_dropped_and_garbled_bytes_are_retried() {
 
 #[test]
 fn dynpick_always_garbled_is_a_protocol_error_with_the_bytes() {
-    let faults = FaultConfig {
-        garble: 1.0,
-        ..Default::default()
-    };
+    let faults = faults(0, &[FaultKind::Garbled], 1.0);
     let (server, _) = dynpick_sim(faults, SharedWrench::new(LOAD));
     let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD))
         .err()
@@ -414,11 +420,7 @@ fn dynpick_always_garbled_is_a_protocol_error_with_the_bytes() {
 
 #[test]
 fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
-    let faults = FaultConfig {
-        seed: 11,
-        unsolicited: 1.0,
-        ..Default::default()
-    };
+    let faults = faults(11, &[FaultKind::Unsolicited], 1.0);
     let (_s, c, mut d) = dynpick_with(faults);
     for _ in 0..20 {
         assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
@@ -430,11 +432,7 @@ fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
 
 #[test]
 fn dynpick_reset_recovers_by_retry_but_loses_the_device_tare() {
-    let faults = FaultConfig {
-        seed: 5,
-        reset: 0.15,
-        ..Default::default()
-    };
+    let faults = faults(5, &[FaultKind::DeviceReset], 0.15);
     let (_s, c, mut d) = dynpick_with(faults);
     d.tare().unwrap();
     let mut saw_untared = false;
@@ -457,10 +455,7 @@ fn dynpick_reset_recovers_by_retry_but_loses_the_device_tare() {
 
 #[test]
 fn dynpick_disconnect_is_reported_without_retry() {
-    let faults = FaultConfig {
-        disconnect_after: Some(4),
-        ..Default::default()
-    };
+    let faults = FaultConfig::once(FaultKind::Disconnect, FaultTarget::Any, 4);
     let (server, _, mut d) = dynpick_with(faults);
     for _ in 0..3 {
         d.read().unwrap();
@@ -477,7 +472,7 @@ fn ft300_with(faults: FaultConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>, Ft
     // Connect cleanly (one read of the wrench); faults start after it.
     let (server, counters) = ft300_sim(
         FaultConfig {
-            clean_first: 1,
+            skip: faults.skip.max(1),
             ..faults
         },
         SharedWrench::new(LOAD),
@@ -488,7 +483,7 @@ fn ft300_with(faults: FaultConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>, Ft
 
 #[test]
 fn ft300_polled_reads_info_and_software_tare() {
-    let (_s, _c, mut d) = ft300_with(FaultConfig::default());
+    let (_s, _c, mut d) = ft300_with(no_faults());
     for _ in 0..10 {
         assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
     }
@@ -504,7 +499,7 @@ fn ft300_polled_reads_info_and_software_tare() {
 
 #[test]
 fn ft300_exception_is_rejected_and_not_retried() {
-    let (_s, c, mut d) = ft300_with(FaultConfig::default());
+    let (_s, c, mut d) = ft300_with(no_faults());
     let before = get(&c.replies);
     let e = d.read_registers(1000, 2).unwrap_err();
     assert_eq!(e.kind(), ErrorKind::Rejected);
@@ -518,13 +513,17 @@ fn ft300_exception_is_rejected_and_not_retried() {
 #[test]
 fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
     let faults = FaultConfig {
-        seed: 21,
-        late_reply: 0.1,
         late_by: ft::REPLY_TIMEOUT * 3 / 2,
-        drop_byte: 0.1,
-        garble: 0.1,
-        unsolicited: 0.3,
-        ..Default::default()
+        ..faults(
+            21,
+            &[
+                FaultKind::LateReply,
+                FaultKind::DroppedByte,
+                FaultKind::Garbled,
+                FaultKind::Unsolicited,
+            ],
+            0.4,
+        )
     };
     let (_s, c, mut d) = ft300_with(faults);
     let mut ok = 0;
@@ -549,10 +548,7 @@ fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
 #[test]
 fn ft300_always_bad_crc_is_a_protocol_error() {
     let (server, _) = ft300_sim(
-        FaultConfig {
-            garble: 1.0,
-            ..Default::default()
-        },
+        faults(0, &[FaultKind::Garbled], 1.0),
         SharedWrench::new(LOAD),
     );
     let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
@@ -565,10 +561,7 @@ fn ft300_always_bad_crc_is_a_protocol_error() {
 #[test]
 fn ft300_always_dropped_byte_is_a_timeout_on_the_incomplete_reply() {
     let (server, _) = ft300_sim(
-        FaultConfig {
-            drop_byte: 1.0,
-            ..Default::default()
-        },
+        faults(0, &[FaultKind::DroppedByte], 1.0),
         SharedWrench::new(LOAD),
     );
     let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
@@ -582,11 +575,7 @@ fn ft300_always_dropped_byte_is_a_timeout_on_the_incomplete_reply() {
 
 #[test]
 fn ft300_reset_is_retried_and_keeps_the_software_tare() {
-    let faults = FaultConfig {
-        seed: 9,
-        reset: 0.15,
-        ..Default::default()
-    };
+    let faults = faults(9, &[FaultKind::DeviceReset], 0.15);
     let (_s, c, mut d) = ft300_with(faults);
     d.tare().unwrap();
     for _ in 0..30 {
@@ -599,10 +588,11 @@ fn ft300_reset_is_retried_and_keeps_the_software_tare() {
 
 #[test]
 fn ft300_disconnect_is_reported() {
-    let (_s, _c, mut d) = ft300_with(FaultConfig {
-        disconnect_after: Some(3),
-        ..Default::default()
-    });
+    let (_s, _c, mut d) = ft300_with(FaultConfig::once(
+        FaultKind::Disconnect,
+        FaultTarget::Any,
+        3,
+    ));
     d.read().unwrap();
     d.read().unwrap();
     let e = d.read().unwrap_err();
@@ -611,7 +601,7 @@ fn ft300_disconnect_is_reported() {
 
 #[test]
 fn ft300_stream_delivers_every_frame_for_1_5_s() {
-    let (server, c) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     assert_eq!(s.sample_rate_hz(), 100.0);
@@ -650,13 +640,17 @@ fn ft300_stream_delivers_every_frame_for_1_5_s() {
 #[test]
 fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
     let faults = FaultConfig {
-        seed: 4,
-        drop_byte: 0.05,
-        garble: 0.05,
-        unsolicited: 0.05,
-        late_reply: 0.05,
         late_by: Duration::from_millis(25),
-        ..Default::default()
+        ..faults(
+            4,
+            &[
+                FaultKind::LateReply,
+                FaultKind::DroppedByte,
+                FaultKind::Garbled,
+                FaultKind::Unsolicited,
+            ],
+            0.2,
+        )
     };
     let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
@@ -689,11 +683,7 @@ fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
 
 #[test]
 fn ft300_stream_restarts_after_a_device_reset() {
-    let faults = FaultConfig {
-        seed: 2,
-        reset: 0.01,
-        ..Default::default()
-    };
+    let faults = faults(2, &[FaultKind::DeviceReset], 0.01);
     let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
@@ -717,10 +707,7 @@ fn ft300_stream_restarts_after_a_device_reset() {
 
 #[test]
 fn ft300_stream_disconnect_is_reported() {
-    let faults = FaultConfig {
-        disconnect_after: Some(30),
-        ..Default::default()
-    };
+    let faults = FaultConfig::once(FaultKind::Disconnect, FaultTarget::Any, 30);
     let (server, _) = ft300_sim(faults, SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
@@ -939,7 +926,7 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
 #[test]
 #[ignore]
 fn measure_sustained_rates() {
-    let (server, c) = ft300_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     let start = Instant::now();
@@ -979,7 +966,7 @@ fn measure_sustained_rates() {
         "ft300 polled over pty: {:.0} reads/s",
         n as f64 / t.elapsed().as_secs_f64()
     );
-    let (server, _) = dynpick_sim(FaultConfig::default(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(LOAD));
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     let t = Instant::now();
     let mut n = 0;

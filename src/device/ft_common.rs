@@ -1,5 +1,6 @@
 //! Pieces shared by the two force/torque devices (`dynpick`, `ft300`): the wrench
-//! source their simulators sample, seeded fault injection for those simulators, the
+//! source their simulators sample, their use of the shared seeded fault injection
+//! ([`crate::device::fault`]), the
 //! output queue for late replies, and deadline-bounded reads for the drivers. The
 //! simulators are served on pseudo-terminals by [`crate::device::pty`].
 //!
@@ -16,6 +17,8 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use super::fault::FaultInjector;
+pub use super::fault::{FaultConfig, FaultKind, FaultTarget, ReplyClass};
 use super::{DeviceError, DeviceResult, ErrorKind, Wrench};
 
 /// Read timeout the serial helpers configure on a port: short, so that driver deadlines
@@ -87,58 +90,27 @@ impl WrenchSource for SharedWrench {
     }
 }
 
-/// Faults a force-sensor simulator injects, opt-in and seeded (same seed, same faults
-/// for the same traffic). Probabilities apply per reply (polled) or per frame
-/// (stream); all zero by default.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FaultConfig {
-    /// Seed of the fault generator.
-    pub seed: u64,
-    /// Probability that a reply is sent `late_by` later than normal.
-    pub late_reply: f64,
-    /// Delay of a late reply.
-    pub late_by: Duration,
-    /// Probability that one byte of a reply is dropped.
-    pub drop_byte: f64,
-    /// Probability that a reply is garbled (DynPick: a hex digit replaced by `G`;
-    /// FT 300: one payload bit flipped, so the CRC fails).
-    pub garble: f64,
-    /// Probability that unsolicited garbage precedes a reply.
-    pub unsolicited: f64,
-    /// Probability that the device resets instead of replying (state back to
-    /// power-on: offset zeroing lost, filter default, stream off; request dropped).
-    pub reset: f64,
-    /// The link drops (port closed) after this many replies / frames.
-    pub disconnect_after: Option<u64>,
-    /// The first this many replies / frames are served clean (lets a driver connect
-    /// before the faults start).
-    pub clean_first: u64,
-}
-
-impl Default for FaultConfig {
-    fn default() -> Self {
-        FaultConfig {
-            seed: 0,
-            late_reply: 0.0,
-            late_by: Duration::from_millis(0),
-            drop_byte: 0.0,
-            garble: 0.0,
-            unsolicited: 0.0,
-            reset: 0.0,
-            disconnect_after: None,
-            clean_first: 0,
-        }
+/// An empty fault configuration: no faults (what the simulators use by default).
+pub fn no_faults() -> FaultConfig {
+    FaultConfig {
+        seed: 0,
+        kinds: Vec::new(),
+        probability: 0.0,
+        target: FaultTarget::Any,
+        skip: 0,
+        max_faults: 0,
+        late_by: Duration::ZERO,
     }
 }
 
-/// What the fault injector decided for one reply.
+/// What the fault injector decided for one reply or stream frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct FaultPlan {
     /// Delay the reply by [`FaultConfig::late_by`].
     pub late: bool,
     /// Drop the byte at this index (modulo the reply length).
     pub drop_at: Option<usize>,
-    /// Garble the byte at this index (modulo the reply length).
+    /// Garble the byte at this index (the device's own rule decides where exactly).
     pub garble_at: Option<usize>,
     /// Prepend this many garbage bytes.
     pub unsolicited: usize,
@@ -170,31 +142,22 @@ pub struct SimCounters {
     pub disconnected: AtomicBool,
 }
 
-impl SimCounters {
-    /// Reads one counter.
-    pub fn get(c: &AtomicU64) -> u64 {
-        c.load(Ordering::SeqCst)
-    }
-}
-
-/// Seeded fault generator (SplitMix64: tiny, deterministic, good enough for choosing
-/// faults; not for statistics).
-#[derive(Debug, Clone)]
-pub struct FaultInjector {
-    config: FaultConfig,
-    state: u64,
-    replies: u64,
+/// The force-sensor simulators' use of the shared [`FaultInjector`]: turns its
+/// decision into byte-level actions and counts them. Every reply and every stream
+/// frame is a [`ReplyClass::Query`] (reading a force sensor is idempotent), except
+/// the FT 300 stream-start acknowledgement, a [`ReplyClass::Command`].
+/// [`FaultKind::LimitTrip`] has no meaning for these sensors and does nothing.
+#[derive(Debug)]
+pub struct SimFaults {
+    injector: FaultInjector,
     counters: Arc<SimCounters>,
 }
 
-impl FaultInjector {
-    /// An injector for `config`.
+impl SimFaults {
+    /// Faults drawn from `config`.
     pub fn new(config: FaultConfig) -> Self {
-        let state = config.seed ^ 0x9E37_79B9_7F4A_7C15;
-        FaultInjector {
-            config,
-            state,
-            replies: 0,
+        SimFaults {
+            injector: FaultInjector::new(config),
             counters: Arc::new(SimCounters::default()),
         }
     }
@@ -204,72 +167,47 @@ impl FaultInjector {
         Arc::clone(&self.counters)
     }
 
-    /// The configuration.
-    pub fn config(&self) -> &FaultConfig {
-        &self.config
+    /// Delay of a late reply.
+    pub fn late_by(&self) -> Duration {
+        self.injector.config().late_by
     }
 
-    /// Next pseudo-random 64-bit value (SplitMix64).
-    pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    fn chance(&mut self, p: f64) -> bool {
-        if p <= 0.0 {
-            return false;
-        }
-        // 53 random bits -> uniform in [0, 1).
-        let u = (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-        u < p
-    }
-
-    /// Decides the faults of the next reply. Draws a fixed number of values per reply
-    /// so that enabling one fault does not shift the others' sequence.
-    pub fn plan(&mut self) -> FaultPlan {
-        self.replies += 1;
-        let c = self.config.clone();
-        let late = self.chance(c.late_reply);
-        let drop = self.chance(c.drop_byte);
-        let garble = self.chance(c.garble);
-        let unsolicited = self.chance(c.unsolicited);
-        let reset = self.chance(c.reset);
-        let idx_a = self.next_u64() as usize;
-        let idx_b = self.next_u64() as usize;
-        let n_garbage = 1 + (self.next_u64() % 8) as usize;
-        let disconnect = c.disconnect_after.is_some_and(|n| self.replies > n);
-        if self.replies <= c.clean_first {
-            // The draws above still happened, so reply k gets the same faults whatever
-            // `clean_first` is; only the first ones are suppressed.
-            return FaultPlan {
-                disconnect,
-                ..FaultPlan::default()
-            };
-        }
-        let plan = FaultPlan {
-            late,
-            drop_at: drop.then_some(idx_a),
-            garble_at: garble.then_some(idx_b),
-            unsolicited: if unsolicited { n_garbage } else { 0 },
-            reset,
-            disconnect,
+    /// Decides the faults of the next reply or frame.
+    pub fn plan(&mut self, class: ReplyClass) -> FaultPlan {
+        let Some(kind) = self.injector.decide(class) else {
+            return FaultPlan::default();
         };
         let c = &self.counters;
-        let bump = |a: &AtomicU64, on: bool| {
-            if on {
-                a.fetch_add(1, Ordering::SeqCst);
-            }
+        let bump = |a: &AtomicU64| {
+            a.fetch_add(1, Ordering::SeqCst);
         };
-        bump(&c.late, plan.late);
-        bump(&c.dropped, plan.drop_at.is_some());
-        bump(&c.garbled, plan.garble_at.is_some());
-        bump(&c.unsolicited, plan.unsolicited > 0);
-        bump(&c.resets, plan.reset);
-        if plan.disconnect {
-            c.disconnected.store(true, Ordering::SeqCst);
+        let mut plan = FaultPlan::default();
+        match kind {
+            FaultKind::LateReply => {
+                bump(&c.late);
+                plan.late = true;
+            }
+            FaultKind::DroppedByte => {
+                bump(&c.dropped);
+                plan.drop_at = Some(self.injector.index(usize::MAX));
+            }
+            FaultKind::Garbled => {
+                bump(&c.garbled);
+                plan.garble_at = Some(self.injector.index(usize::MAX));
+            }
+            FaultKind::Unsolicited => {
+                bump(&c.unsolicited);
+                plan.unsolicited = 1 + self.injector.index(8);
+            }
+            FaultKind::DeviceReset => {
+                bump(&c.resets);
+                plan.reset = true;
+            }
+            FaultKind::Disconnect => {
+                c.disconnected.store(true, Ordering::SeqCst);
+                plan.disconnect = true;
+            }
+            FaultKind::LimitTrip => {}
         }
         plan
     }
@@ -300,12 +238,12 @@ impl FaultInjector {
         bytes
     }
 
-    /// Garbage bytes for an unsolicited burst (printable junk and line breaks
-    /// mixed in, so line-based readers meet both kinds).
-    pub fn garbage(&mut self, n: usize) -> Vec<u8> {
+    /// Garbage bytes for an unsolicited burst (printable junk and line breaks mixed
+    /// in, so line-based readers meet both kinds).
+    fn garbage(&mut self, n: usize) -> Vec<u8> {
         const ALPHABET: &[u8] = b"#!?xq\r\n\xfe\x00ZZ";
         (0..n)
-            .map(|_| ALPHABET[(self.next_u64() % ALPHABET.len() as u64) as usize])
+            .map(|_| ALPHABET[self.injector.index(ALPHABET.len())])
             .collect()
     }
 }
@@ -493,40 +431,46 @@ mod tests {
     use super::*;
 
     #[test]
-    fn same_seed_gives_same_fault_sequence() {
+    fn plan_maps_each_kind_to_its_action_and_counts_it() {
         let cfg = FaultConfig {
-            seed: 42,
-            garble: 0.3,
-            drop_byte: 0.2,
-            ..FaultConfig::default()
+            kinds: vec![FaultKind::Garbled],
+            probability: 1.0,
+            max_faults: 2,
+            ..no_faults()
         };
-        let a: Vec<_> = {
-            let mut f = FaultInjector::new(cfg.clone());
-            (0..50).map(|_| f.plan()).collect()
-        };
-        let mut f = FaultInjector::new(cfg);
-        let b: Vec<_> = (0..50).map(|_| f.plan()).collect();
-        assert_eq!(a, b);
-        assert!(a.iter().any(|p| p.garble_at.is_some()));
-        assert!(a.iter().any(|p| p.garble_at.is_none()));
+        let mut f = SimFaults::new(cfg);
+        let p = f.plan(ReplyClass::Query);
+        assert!(p.garble_at.is_some() && !p.late && p.drop_at.is_none());
+        f.plan(ReplyClass::Query);
+        assert_eq!(
+            f.plan(ReplyClass::Query),
+            FaultPlan::default(),
+            "max_faults"
+        );
+        assert_eq!(f.counters().garbled.load(Ordering::SeqCst), 2);
     }
 
     #[test]
-    fn no_faults_by_default() {
-        let mut f = FaultInjector::new(FaultConfig::default());
+    fn no_faults_injects_nothing() {
+        let mut f = SimFaults::new(no_faults());
         for _ in 0..100 {
-            assert_eq!(f.plan(), FaultPlan::default());
+            assert_eq!(f.plan(ReplyClass::Query), FaultPlan::default());
         }
     }
 
     #[test]
-    fn disconnect_after_n_replies() {
-        let mut f = FaultInjector::new(FaultConfig {
-            disconnect_after: Some(3),
-            ..FaultConfig::default()
-        });
-        let d: Vec<bool> = (0..5).map(|_| f.plan().disconnect).collect();
-        assert_eq!(d, [false, false, false, true, true]);
+    fn unsolicited_burst_is_prepended() {
+        let cfg = FaultConfig {
+            kinds: vec![FaultKind::Unsolicited],
+            probability: 1.0,
+            max_faults: 1,
+            ..no_faults()
+        };
+        let mut f = SimFaults::new(cfg);
+        let p = f.plan(ReplyClass::Query);
+        let out = f.shape(&p, b"R1".to_vec(), |_, _| {});
+        assert_eq!(out.len(), 2 + p.unsolicited);
+        assert!(out.ends_with(b"R1"));
     }
 
     #[test]

@@ -12,7 +12,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::codec::{encode_filter, FilterDivider, Record, Sensitivities};
-use crate::device::ft_common::{FaultConfig, FaultInjector, OutQueue, SimCounters, WrenchSource};
+use crate::device::ft_common::{
+    no_faults, FaultConfig, OutQueue, ReplyClass, SimCounters, SimFaults, WrenchSource,
+};
 use crate::device::pty::{Flow, Simulator};
 use crate::device::Wrench;
 
@@ -41,7 +43,7 @@ impl Default for DynPickSimConfig {
         DynPickSimConfig {
             sensitivities: DEFAULT_SENSITIVITIES,
             firmware: DEFAULT_FIRMWARE.to_string(),
-            faults: FaultConfig::default(),
+            faults: no_faults(),
         }
     }
 }
@@ -55,14 +57,14 @@ pub struct DynPickSim {
     offset_lsb: [f64; 6],
     pending_digit: Option<u8>,
     out: OutQueue,
-    faults: FaultInjector,
+    faults: SimFaults,
     drop_link: bool,
 }
 
 impl DynPickSim {
     /// A simulator reading its load from `source`.
     pub fn new(config: DynPickSimConfig, source: impl WrenchSource + 'static) -> Self {
-        let faults = FaultInjector::new(config.faults.clone());
+        let faults = SimFaults::new(config.faults.clone());
         DynPickSim {
             config,
             source: Box::new(source),
@@ -134,7 +136,7 @@ impl DynPickSim {
         counters
             .replies
             .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        let plan = self.faults.plan();
+        let plan = self.faults.plan(ReplyClass::Query);
         if plan.disconnect {
             self.drop_link = true;
             return;
@@ -145,7 +147,7 @@ impl DynPickSim {
         }
         let bytes = self.faults.shape(&plan, bytes, garble_ascii);
         let at = if plan.late {
-            now + self.faults.config().late_by
+            now + self.faults.late_by()
         } else {
             now
         };

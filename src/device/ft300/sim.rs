@@ -20,7 +20,9 @@ use super::codec::{
     FN_WRITE_MULTIPLE, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS,
     STREAM_START,
 };
-use crate::device::ft_common::{FaultConfig, FaultInjector, OutQueue, SimCounters, WrenchSource};
+use crate::device::ft_common::{
+    no_faults, FaultConfig, OutQueue, ReplyClass, SimCounters, SimFaults, WrenchSource,
+};
 use crate::device::pty::{Flow, Simulator};
 
 /// Stream period (100 Hz).
@@ -53,7 +55,7 @@ impl Default for Ft300SimConfig {
             serial: "SIM00001".to_string(),
             year: 2026,
             firmware: (*b"FTS", [3, 0, 1]),
-            faults: FaultConfig::default(),
+            faults: no_faults(),
         }
     }
 }
@@ -67,14 +69,14 @@ pub struct Ft300Sim {
     ff_run: usize,
     stream_next: Option<(Duration, u64)>,
     out: OutQueue,
-    faults: FaultInjector,
+    faults: SimFaults,
     drop_link: bool,
 }
 
 impl Ft300Sim {
     /// A simulator reading its load from `source`.
     pub fn new(config: Ft300SimConfig, source: impl WrenchSource + 'static) -> Self {
-        let faults = FaultInjector::new(config.faults.clone());
+        let faults = SimFaults::new(config.faults.clone());
         Ft300Sim {
             config,
             source: Box::new(source),
@@ -174,14 +176,16 @@ impl Ft300Sim {
                         start,
                         count: 1,
                     };
-                    if self.reply(ack.encode(), now) && self.stream_next.is_none() {
+                    if self.reply(ack.encode(), now, ReplyClass::Command)
+                        && self.stream_next.is_none()
+                    {
                         self.stream_next = Some((now + STREAM_PERIOD, 0));
                     }
                     return;
                 }
             }
         };
-        self.reply(resp.encode(), now);
+        self.reply(resp.encode(), now, ReplyClass::Query);
     }
 
     fn reset(&mut self) {
@@ -194,8 +198,8 @@ impl Ft300Sim {
 
     /// Sends bytes through the fault injector; false if the device reset or dropped
     /// the link instead.
-    fn emit(&mut self, bytes: Vec<u8>, at: Duration) -> bool {
-        let plan = self.faults.plan();
+    fn emit(&mut self, bytes: Vec<u8>, at: Duration, class: ReplyClass) -> bool {
+        let plan = self.faults.plan(class);
         if plan.disconnect {
             self.drop_link = true;
             return false;
@@ -206,7 +210,7 @@ impl Ft300Sim {
         }
         let bytes = self.faults.shape(&plan, bytes, flip_bit);
         let at = if plan.late {
-            at + self.faults.config().late_by
+            at + self.faults.late_by()
         } else {
             at
         };
@@ -214,12 +218,12 @@ impl Ft300Sim {
         true
     }
 
-    fn reply(&mut self, bytes: Vec<u8>, now: Duration) -> bool {
+    fn reply(&mut self, bytes: Vec<u8>, now: Duration, class: ReplyClass) -> bool {
         self.faults
             .counters()
             .replies
             .fetch_add(1, Ordering::SeqCst);
-        self.emit(bytes, now)
+        self.emit(bytes, now, class)
     }
 
     fn parse_requests(&mut self, now: Duration) {
@@ -244,7 +248,7 @@ impl Ft300Sim {
                             function,
                             code: ExceptionCode::IllegalFunction,
                         };
-                        self.reply(e.encode(), now);
+                        self.reply(e.encode(), now, ReplyClass::Query);
                         self.rx.drain(..2);
                     } else {
                         self.rx.remove(0);
@@ -318,7 +322,7 @@ impl Simulator for Ft300Sim {
             .encode()
             .to_vec();
             self.faults.counters().frames.fetch_add(1, Ordering::SeqCst);
-            self.emit(frame, due);
+            self.emit(frame, due, ReplyClass::Query);
         }
         if self.drop_link {
             return Flow::Hangup;
