@@ -740,6 +740,11 @@ const LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
 
 /// Starts `tactbench sim-serve-ft` and waits for its "serving" line.
 fn serve(protocol: &str, link: &Path) -> Served {
+    serve_with(protocol, link, &[])
+}
+
+/// As [`serve`], with extra arguments (faults).
+fn serve_with(protocol: &str, link: &Path, extra: &[&str]) -> Served {
     use std::io::BufRead;
     let mut child = tactbench()
         .args([
@@ -753,6 +758,7 @@ fn serve(protocol: &str, link: &Path) -> Served {
             "--link",
         ])
         .arg(link)
+        .args(extra)
         .stdout(std::process::Stdio::piped())
         .spawn()
         .expect("spawn tactbench");
@@ -856,6 +862,27 @@ fn cli_ft_ft300_polled_stream_and_info_against_a_served_simulator() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("software offset"));
+}
+
+#[test]
+fn cli_ft_reports_a_simulated_disconnect_with_exit_code_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("dynpick");
+    // p and two records pass, the third record's reply is a hang-up.
+    let _sim = serve_with(
+        "dynpick",
+        &link,
+        &["--fault", "disconnect", "--fault-skip", "3"],
+    );
+    let out = tactbench()
+        .args(["ft", "--port"])
+        .arg(&link)
+        .args(["--protocol", "dynpick", "read", "--samples", "5"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("dynpick: `R` failed (disconnected)"), "{err}");
 }
 
 #[test]

@@ -13,7 +13,9 @@ use serde::Serialize;
 
 use tactbench::device::dynpick::{DynPick, DynPickSim, DynPickSimConfig};
 use tactbench::device::ft300::{Ft300, Ft300Sim, Ft300SimConfig};
-use tactbench::device::ft_common::{open_serial, SharedWrench};
+use tactbench::device::ft_common::{
+    no_faults, open_serial, FaultConfig, FaultKind, FaultTarget, SharedWrench,
+};
 use tactbench::device::pty::{PtyServer, Simulator};
 use tactbench::device::{ForceSensor, Wrench};
 
@@ -46,6 +48,23 @@ pub struct ServeArgs {
     /// Stop after this many seconds (default: serve until killed).
     #[arg(long)]
     duration_s: Option<f64>,
+    /// Inject one fault of this kind (as `sim-serve-stage --fault`).
+    #[arg(long, value_enum)]
+    fault: Option<FaultArg>,
+    /// Replies passed untouched before the fault.
+    #[arg(long, default_value_t = 0)]
+    fault_skip: u32,
+}
+
+/// Fault kinds a force-sensor simulator can inject.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum FaultArg {
+    Late,
+    DroppedByte,
+    Garbled,
+    Unsolicited,
+    Reset,
+    Disconnect,
 }
 
 /// Supported sensors.
@@ -295,23 +314,42 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         link,
         wrench,
         duration_s,
+        fault,
+        fault_skip,
     } = args;
     let link = link.as_path();
     let source = SharedWrench::new(parse_wrench(&wrench)?);
+    let faults = match fault {
+        None => no_faults(),
+        Some(f) => {
+            let kind = match f {
+                FaultArg::Late => FaultKind::LateReply,
+                FaultArg::DroppedByte => FaultKind::DroppedByte,
+                FaultArg::Garbled => FaultKind::Garbled,
+                FaultArg::Unsolicited => FaultKind::Unsolicited,
+                FaultArg::Reset => FaultKind::DeviceReset,
+                FaultArg::Disconnect => FaultKind::Disconnect,
+            };
+            FaultConfig::once(kind, FaultTarget::Any, fault_skip)
+        }
+    };
     match protocol {
-        Protocol::Dynpick => serve_until(
-            PtyServer::spawn(
-                DynPickSim::new(DynPickSimConfig::default(), source),
-                Some(link),
-            )?,
-            protocol,
-            duration_s,
-        ),
-        Protocol::Ft300 => serve_until(
-            PtyServer::spawn(Ft300Sim::new(Ft300SimConfig::default(), source), Some(link))?,
-            protocol,
-            duration_s,
-        ),
+        Protocol::Dynpick => {
+            let cfg = DynPickSimConfig {
+                faults,
+                ..Default::default()
+            };
+            let sim = DynPickSim::new(cfg, source);
+            serve_until(PtyServer::spawn(sim, Some(link))?, protocol, duration_s)
+        }
+        Protocol::Ft300 => {
+            let cfg = Ft300SimConfig {
+                faults,
+                ..Default::default()
+            };
+            let sim = Ft300Sim::new(cfg, source);
+            serve_until(PtyServer::spawn(sim, Some(link))?, protocol, duration_s)
+        }
     }
 }
 
