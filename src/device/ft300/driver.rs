@@ -21,9 +21,9 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use super::codec::{
-    raw_from_wrench, show_bytes_hex, wrench_from_raw, Request, Response, StreamDecoder,
-    StreamFrame, StreamStats, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR,
-    SLAVE_ADDRESS, STOP_STREAM, STREAM_START,
+    show_bytes_hex, wrench_from_raw, Request, Response, StreamDecoder, StreamFrame, StreamStats,
+    REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS, STOP_STREAM,
+    STREAM_START,
 };
 use crate::device::ft_common::{self, LinkStats};
 use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
@@ -662,9 +662,4 @@ impl<P: Send + 'static> Drop for Ft300Stream<P> {
             let _ = t.join();
         }
     }
-}
-
-/// Quantises a wrench the way the device does (for tests comparing readings).
-pub fn quantise(w: &Wrench) -> Wrench {
-    wrench_from_raw(raw_from_wrench(w))
 }
