@@ -5,6 +5,7 @@ mod util;
 
 mod cli;
 mod fourier;
+mod ft;
 mod sim;
 mod stage;
 mod vision;

@@ -6,6 +6,8 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+mod camera;
+mod ft;
 mod model;
 mod ports;
 mod reconstruct;
@@ -42,6 +44,14 @@ enum Command {
     /// Serve a stage simulator on a pseudo-terminal (test helper).
     #[command(hide = true)]
     SimServeStage(stage::ServeArgs),
+    /// Force/torque sensor: read, tare, info.
+    Ft(ft::Args),
+    /// Cameras: list, grab a frame.
+    #[command(subcommand)]
+    Camera(camera::CameraCommand),
+    /// Serve a force/torque sensor simulator on a pseudo-terminal (test helper).
+    #[command(hide = true)]
+    SimServeFt(ft::ServeArgs),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -55,6 +65,9 @@ pub fn main() -> ExitCode {
         Command::Ports(args) => ports::run(args),
         Command::Stage(args) => stage::run(args),
         Command::SimServeStage(args) => stage::serve(args),
+        Command::Ft(args) => ft::run(args),
+        Command::Camera(cmd) => camera::run(cmd),
+        Command::SimServeFt(args) => ft::serve(args),
     };
     match result {
         Ok(code) => code,

@@ -8,6 +8,11 @@
 //! can hang. Each driver keeps a rich error but exposes a small [`ErrorKind`] the
 //! runner can act on, and every error carries the command that failed.
 
+pub mod camera;
+pub mod dynpick;
+pub mod ft300;
+pub mod ft_common;
+
 use std::fmt;
 use std::time::{Duration, SystemTime};
 

@@ -323,7 +323,9 @@ impl GrblSim {
         if self.held || self.mode != Mode::Idle {
             return;
         }
-        while dt > 0.0 {
+        // `loop`, not `while dt > 0`: zero-length segments finish even when no
+        // time has passed.
+        loop {
             let Some(seg) = self.queue.front().copied() else {
                 break;
             };
@@ -371,7 +373,7 @@ impl GrblSim {
                 }
             } else {
                 self.mpos = lerp(self.mpos, seg.target, dt / t_needed);
-                dt = 0.0;
+                break;
             }
         }
     }

@@ -1,0 +1,154 @@
+//! A camera replaying recorded frames from a directory: every PNG, JPEG or BMP file
+//! (by extension, case-insensitive) in file-name order, converted to 8-bit RGB. At the
+//! end it either loops or fails with a clear error; an empty directory fails at open.
+
+use std::path::{Path, PathBuf};
+use std::time::SystemTime;
+
+use super::DEVICE;
+use crate::device::{Camera, CameraFrame, DeviceError, DeviceResult, ErrorKind};
+
+/// File extensions replayed.
+pub const EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
+
+/// Replays image files as camera frames.
+#[derive(Debug)]
+pub struct ImageDirCamera {
+    dir: PathBuf,
+    files: Vec<PathBuf>,
+    next: usize,
+    looping: bool,
+}
+
+impl ImageDirCamera {
+    /// Lists the frames in `dir`; `looping` restarts at the first frame after the last.
+    pub fn open(dir: &Path, looping: bool) -> DeviceResult<Self> {
+        let cmd = format!("open dir:{}", dir.display());
+        let entries = std::fs::read_dir(dir).map_err(|e| {
+            DeviceError::new(
+                ErrorKind::Disconnected,
+                DEVICE,
+                &cmd,
+                format!("cannot read image directory {}: {e}", dir.display()),
+            )
+        })?;
+        let mut files: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.is_file()
+                    && p.extension()
+                        .and_then(|e| e.to_str())
+                        .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+            })
+            .collect();
+        files.sort();
+        if files.is_empty() {
+            return Err(DeviceError::new(
+                ErrorKind::Disconnected,
+                DEVICE,
+                &cmd,
+                format!("no PNG/JPEG/BMP frames in {}", dir.display()),
+            ));
+        }
+        Ok(ImageDirCamera {
+            dir: dir.to_path_buf(),
+            files,
+            next: 0,
+            looping,
+        })
+    }
+
+    /// The frame files in replay order.
+    pub fn files(&self) -> &[PathBuf] {
+        &self.files
+    }
+}
+
+impl Camera for ImageDirCamera {
+    fn grab(&mut self) -> DeviceResult<CameraFrame> {
+        if self.next >= self.files.len() {
+            if !self.looping {
+                return Err(DeviceError::new(
+                    ErrorKind::Disconnected,
+                    DEVICE,
+                    format!("grab dir:{}", self.dir.display()),
+                    format!(
+                        "end of recorded frames: all {} frames of {} replayed",
+                        self.files.len(),
+                        self.dir.display()
+                    ),
+                ));
+            }
+            self.next = 0;
+        }
+        let path = &self.files[self.next];
+        self.next += 1;
+        let image = image::open(path)
+            .map_err(|e| {
+                DeviceError::new(
+                    ErrorKind::Protocol,
+                    DEVICE,
+                    format!("grab {}", path.display()),
+                    format!("cannot decode frame {}: {e}", path.display()),
+                )
+            })?
+            .to_rgb8();
+        Ok(CameraFrame {
+            image,
+            timestamp: SystemTime::now(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(v: u8) -> image::RgbImage {
+        image::RgbImage::from_pixel(4, 3, image::Rgb([v, 255 - v, 7]))
+    }
+
+    #[test]
+    fn replays_frames_in_name_order_then_ends_with_error() {
+        let dir = tempfile::tempdir().unwrap();
+        frame(20).save(dir.path().join("f002.png")).unwrap();
+        frame(10).save(dir.path().join("f001.bmp")).unwrap();
+        std::fs::write(dir.path().join("notes.txt"), "not a frame").unwrap();
+        let mut cam = ImageDirCamera::open(dir.path(), false).unwrap();
+        assert_eq!(cam.files().len(), 2);
+        assert_eq!(cam.grab().unwrap().image, frame(10));
+        assert_eq!(cam.grab().unwrap().image, frame(20));
+        let e = cam.grab().unwrap_err();
+        assert_eq!(e.kind(), ErrorKind::Disconnected);
+        assert!(e.message.contains("end of recorded frames"), "{e}");
+    }
+
+    #[test]
+    fn looping_restarts_at_the_first_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        frame(1).save(dir.path().join("a.png")).unwrap();
+        frame(2).save(dir.path().join("b.png")).unwrap();
+        let mut cam = ImageDirCamera::open(dir.path(), true).unwrap();
+        let seq: Vec<u8> = (0..5)
+            .map(|_| cam.grab().unwrap().image.get_pixel(0, 0).0[0])
+            .collect();
+        assert_eq!(seq, [1, 2, 1, 2, 1]);
+    }
+
+    #[test]
+    fn empty_or_missing_directory_is_a_clear_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = ImageDirCamera::open(dir.path(), false).unwrap_err();
+        assert!(e.message.contains("no PNG/JPEG/BMP frames"), "{e}");
+        let e = ImageDirCamera::open(&dir.path().join("missing"), false).unwrap_err();
+        assert!(e.message.contains("cannot read image directory"), "{e}");
+    }
+
+    #[test]
+    fn undecodable_frame_is_a_protocol_error() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("bad.png"), b"not a png").unwrap();
+        let mut cam = ImageDirCamera::open(dir.path(), false).unwrap();
+        assert_eq!(cam.grab().unwrap_err().kind(), ErrorKind::Protocol);
+    }
+}

@@ -1,0 +1,258 @@
+//! WACOH DynPick driver, generic over `Read + Write`: polled records (`R`),
+//! sensitivities read once at connect (`p`), tare by the device's offset zeroing (`O`),
+//! firmware version (`V`) and filter divider (`nF` / `0F`).
+//!
+//! Every reply has a deadline ([`REPLY_TIMEOUT`]). Reads are idempotent, so a failed
+//! attempt (timeout, malformed record) is retried up to [`MAX_ATTEMPTS`] times after
+//! draining the input (late replies and garbage are discarded, [`DRAIN_QUIET`]). A
+//! line with garbage in front of a valid record is accepted by taking its last 27
+//! bytes (resync). A closed port is never retried.
+
+use std::io::{Read, Write};
+use std::time::{Duration, Instant};
+
+use super::codec::{
+    decode_filter, CodecError, Command, FilterDivider, Record, Sensitivities, RECORD_LEN,
+};
+use crate::device::ft_common::{self, show_bytes, LinkStats};
+use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
+
+/// Device name in errors.
+pub const DEVICE: &str = "dynpick";
+/// Baud rate (8N1).
+pub const BAUD: u32 = 921_600;
+/// Deadline for a complete reply line after the command was written. A record takes
+/// 0.3 ms on the wire at 921600 baud; the margin is for USB-serial latency.
+pub const REPLY_TIMEOUT: Duration = Duration::from_millis(50);
+/// Attempts per command before giving up (reads are idempotent, so retrying is safe).
+pub const MAX_ATTEMPTS: u32 = 3;
+/// Before a retry, input is discarded until the line has been quiet this long, so a
+/// reply arriving up to one more [`REPLY_TIMEOUT`] late is not taken for the next one.
+pub const DRAIN_QUIET: Duration = REPLY_TIMEOUT;
+/// Upper bound on one drain (a device spewing garbage must not hang the driver).
+pub const DRAIN_MAX: Duration = Duration::from_millis(500);
+/// Longest line accepted; anything longer is garbage.
+pub const MAX_LINE: usize = 128;
+/// The device's internal sampling rate, Hz (what [`ForceSensor::sample_rate_hz`]
+/// reports; the polled rate is lower and is measured, see `protocols/dynpick.md`).
+pub const SAMPLE_RATE_HZ: f64 = 1000.0;
+
+/// A connected DynPick.
+pub struct DynPick<P> {
+    port: P,
+    sensitivities: Sensitivities,
+    rx: Vec<u8>,
+    stats: LinkStats,
+    last_counter: Option<u8>,
+}
+
+impl<P: Read + Write> DynPick<P> {
+    /// Connects: discards pending input, then reads the sensitivities (`p`).
+    pub fn connect(mut port: P) -> DeviceResult<Self> {
+        ft_common::drain(
+            &mut port,
+            Duration::from_millis(10),
+            DRAIN_MAX,
+            DEVICE,
+            "connect",
+        )?;
+        let mut d = DynPick {
+            port,
+            sensitivities: Sensitivities([1.0; 6]),
+            rx: Vec::new(),
+            stats: LinkStats::default(),
+            last_counter: None,
+        };
+        d.sensitivities = d.transact(Command::Sensitivities, |l| {
+            Sensitivities::decode(l).map(|s| (s, false))
+        })?;
+        Ok(d)
+    }
+
+    /// The sensitivities read at connect (LSB per N, LSB per N·m).
+    pub fn sensitivities(&self) -> Sensitivities {
+        self.sensitivities
+    }
+
+    /// Link statistics (retries, timeouts, protocol errors, resyncs).
+    pub fn stats(&self) -> LinkStats {
+        self.stats
+    }
+
+    /// Counter digit of the last record.
+    pub fn last_counter(&self) -> Option<u8> {
+        self.last_counter
+    }
+
+    /// One raw record (`R`).
+    pub fn read_record(&mut self) -> DeviceResult<Record> {
+        let r = self.transact(Command::Read, decode_record_resync)?;
+        self.last_counter = Some(r.counter);
+        Ok(r)
+    }
+
+    /// Firmware version line (`V`), CR LF stripped.
+    pub fn firmware_version(&mut self) -> DeviceResult<String> {
+        self.transact(Command::Version, |l| {
+            Ok((String::from_utf8_lossy(l).trim_end().to_string(), false))
+        })
+    }
+
+    /// The filter divider (`0F`).
+    pub fn filter(&mut self) -> DeviceResult<FilterDivider> {
+        self.transact(Command::GetFilter, |l| decode_filter(l).map(|f| (f, false)))
+    }
+
+    /// Sets the filter divider (`nF`) and checks it by reading it back.
+    pub fn set_filter(&mut self, d: FilterDivider) -> DeviceResult<()> {
+        let cmd = Command::SetFilter(d);
+        ft_common::send(&mut self.port, DEVICE, &cmd.text(), &cmd.encode())?;
+        let back = self.filter()?;
+        if back != d {
+            return Err(DeviceError::new(
+                ErrorKind::Rejected,
+                DEVICE,
+                cmd.text(),
+                format!(
+                    "filter divider reads back {} after setting {}",
+                    back.n(),
+                    d.n()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Gives the port back.
+    pub fn into_inner(self) -> P {
+        self.port
+    }
+
+    /// Reads one line (LF-terminated, LF included) before `deadline`.
+    fn read_line(&mut self, deadline: Instant, command: &str) -> DeviceResult<Vec<u8>> {
+        let mut buf = [0u8; 64];
+        loop {
+            if let Some(pos) = self.rx.iter().position(|&b| b == b'\n') {
+                let rest = self.rx.split_off(pos + 1);
+                return Ok(std::mem::replace(&mut self.rx, rest));
+            }
+            if self.rx.len() > MAX_LINE {
+                let bytes = std::mem::take(&mut self.rx);
+                return Err(DeviceError::new(
+                    ErrorKind::Protocol,
+                    DEVICE,
+                    command,
+                    format!(
+                        "no line end within {MAX_LINE} bytes: `{}`",
+                        show_bytes(&bytes)
+                    ),
+                ));
+            }
+            let n = ft_common::read_until_deadline(
+                &mut self.port,
+                &mut buf,
+                deadline,
+                DEVICE,
+                command,
+            )?;
+            self.rx.extend_from_slice(&buf[..n]);
+        }
+    }
+
+    /// Sends `cmd` and parses its reply line, retrying failed attempts. `parse`
+    /// returns the value and whether it had to resync (skip garbage).
+    fn transact<T>(
+        &mut self,
+        cmd: Command,
+        parse: impl Fn(&[u8]) -> Result<(T, bool), CodecError>,
+    ) -> DeviceResult<T> {
+        let text = cmd.text();
+        let bytes = cmd.encode();
+        self.stats.commands += 1;
+        let mut last_err = None;
+        for attempt in 0..MAX_ATTEMPTS {
+            if attempt > 0 {
+                self.stats.retries += 1;
+                ft_common::drain(&mut self.port, DRAIN_QUIET, DRAIN_MAX, DEVICE, &text)?;
+            }
+            // Bytes already buffered before the command cannot be its reply.
+            self.rx.clear();
+            ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
+            let deadline = Instant::now() + REPLY_TIMEOUT;
+            let mut bad: Option<String> = None;
+            loop {
+                match self.read_line(deadline, &text) {
+                    Ok(line) => match parse(&line) {
+                        Ok((v, resynced)) => {
+                            if resynced || bad.is_some() {
+                                self.stats.resyncs += 1;
+                            }
+                            return Ok(v);
+                        }
+                        // Keep listening: the reply may follow a garbage line.
+                        Err(e) => bad = Some(e.to_string()),
+                    },
+                    Err(e) if e.kind == ErrorKind::Protocol => bad = Some(e.message),
+                    Err(e) if e.kind == ErrorKind::Timeout => {
+                        last_err = Some(match bad {
+                            Some(b) => {
+                                self.stats.protocol_errors += 1;
+                                DeviceError::new(ErrorKind::Protocol, DEVICE, &text, b)
+                            }
+                            None => {
+                                self.stats.timeouts += 1;
+                                DeviceError::new(
+                                    ErrorKind::Timeout,
+                                    DEVICE,
+                                    &text,
+                                    format!("no reply within {} ms", REPLY_TIMEOUT.as_millis()),
+                                )
+                            }
+                        });
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+        }
+        let e = last_err.unwrap_or_else(|| {
+            DeviceError::new(ErrorKind::Other, DEVICE, &text, "no attempt was made")
+        });
+        Err(DeviceError {
+            message: format!("{} (after {MAX_ATTEMPTS} attempts)", e.message),
+            ..e
+        }
+        .with_hint("check baud rate (921600) and cable; the device may be resetting"))
+    }
+}
+
+/// Decodes a record line; a longer line whose last 27 bytes are a valid record is
+/// accepted (garbage in front of the reply: resync).
+pub fn decode_record_resync(line: &[u8]) -> Result<(Record, bool), CodecError> {
+    match Record::decode(line) {
+        Ok(r) => Ok((r, false)),
+        Err(e) if line.len() > RECORD_LEN => Record::decode(&line[line.len() - RECORD_LEN..])
+            .map(|r| (r, true))
+            .map_err(|_| e),
+        Err(e) => Err(e),
+    }
+}
+
+impl<P: Read + Write> ForceSensor for DynPick<P> {
+    fn read(&mut self) -> DeviceResult<Wrench> {
+        let s = self.sensitivities;
+        Ok(self.read_record()?.to_wrench(&s))
+    }
+
+    /// Zeroes the device's offset (`O`). The device does not answer; the next record
+    /// reflects the new offset. A device reset loses it (see `protocols/dynpick.md`).
+    fn tare(&mut self) -> DeviceResult<()> {
+        let cmd = Command::ZeroOffset;
+        self.rx.clear();
+        ft_common::send(&mut self.port, DEVICE, &cmd.text(), &cmd.encode())
+    }
+
+    fn sample_rate_hz(&self) -> f64 {
+        SAMPLE_RATE_HZ
+    }
+}

@@ -1,0 +1,665 @@
+//! Robotiq FT 300 driver, generic over `Read + Write`: polled Modbus RTU reads of the
+//! wrench registers ([`Ft300`]) and the binary stream ([`Ft300Stream`], a reader
+//! thread keeping the newest sample and every frame since the last
+//! [`Ft300Stream::take_samples`]).
+//!
+//! Tare is a software offset (the FT 300 has no zeroing command in the subset we
+//! use): the mean of [`TARE_SAMPLES`] readings is subtracted from later readings.
+//! It lives in the driver, so it survives a device reset and carries over between
+//! polled and stream mode.
+//!
+//! Polled replies are framed by length (function code, byte count); bytes before the
+//! slave address are skipped, and a frame with a bad CRC makes the reader move on by
+//! one byte (resync) until the deadline. Failed attempts are retried (reads are
+//! idempotent) after draining; exceptions are [`ErrorKind::Rejected`], never retried.
+
+use std::collections::VecDeque;
+use std::io::{Read, Write};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use super::codec::{
+    show_bytes_hex, wrench_from_raw, Request, Response, StreamDecoder, StreamFrame, StreamStats,
+    REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS, STOP_STREAM,
+    STREAM_START,
+};
+use crate::device::ft_common::{self, LinkStats};
+use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
+
+/// Device name in errors.
+pub const DEVICE: &str = "ft300";
+/// Baud rate (8N1).
+pub const BAUD: u32 = 19_200;
+/// Deadline for a complete reply: a 17-byte reply takes 8.9 ms at 19200 baud, plus the
+/// device's turnaround and USB latency.
+pub const REPLY_TIMEOUT: Duration = Duration::from_millis(100);
+/// Attempts per command (reads and the stream-start write are idempotent).
+pub const MAX_ATTEMPTS: u32 = 3;
+/// Quiet time required by the drain before a retry (discards late replies).
+pub const DRAIN_QUIET: Duration = REPLY_TIMEOUT;
+/// Upper bound on one drain. A streaming device never goes quiet; this bounds it.
+pub const DRAIN_MAX: Duration = Duration::from_millis(500);
+/// Readings averaged by [`ForceSensor::tare`].
+pub const TARE_SAMPLES: usize = 10;
+/// Nominal stream rate, Hz.
+pub const STREAM_RATE_HZ: f64 = 100.0;
+/// Polled rate the wire allows: 8-byte request + 17-byte reply = 250 bit times at
+/// 19200 baud = 13.0 ms (turnaround not included).
+pub const POLL_RATE_HZ: f64 = 19_200.0 / 250.0;
+/// [`Ft300Stream::read`] waits this long for a frame newer than the last one returned.
+pub const STREAM_READ_TIMEOUT: Duration = Duration::from_millis(100);
+/// With no valid frame for this long, the reader re-sends the stream start (the
+/// device may have reset).
+pub const STREAM_STALL: Duration = Duration::from_millis(100);
+/// After the stop bytes, frames still in flight are decoded until the line is quiet
+/// this long.
+pub const STOP_QUIET: Duration = Duration::from_millis(50);
+/// Frames kept for [`Ft300Stream::take_samples`] (10 s at 100 Hz); older ones are
+/// dropped and counted.
+pub const SAMPLE_BUFFER: usize = 1000;
+
+/// Identity registers.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Ft300Info {
+    /// Firmware version, e.g. `FTS-3.0.1` (registers 500–502).
+    pub firmware: String,
+    /// Serial number (registers 510–513, ASCII).
+    pub serial: String,
+    /// Production year (register 514).
+    pub year: u16,
+}
+
+/// A connected FT 300 in polled (Modbus) mode.
+pub struct Ft300<P> {
+    port: P,
+    slave: u8,
+    offset: Wrench,
+    stats: LinkStats,
+}
+
+fn sub(a: Wrench, b: Wrench) -> Wrench {
+    Wrench {
+        force_n: [0, 1, 2].map(|i| a.force_n[i] - b.force_n[i]),
+        torque_nm: [0, 1, 2].map(|i| a.torque_nm[i] - b.torque_nm[i]),
+    }
+}
+
+fn mean(ws: &[Wrench]) -> Wrench {
+    let n = ws.len().max(1) as f64;
+    let mut m = Wrench::default();
+    for w in ws {
+        for i in 0..3 {
+            m.force_n[i] += w.force_n[i] / n;
+            m.torque_nm[i] += w.torque_nm[i] / n;
+        }
+    }
+    m
+}
+
+fn ascii_regs(regs: &[u16]) -> String {
+    regs.iter()
+        .flat_map(|r| r.to_be_bytes())
+        .filter(|b| *b != 0)
+        .map(|b| {
+            if b.is_ascii_graphic() || b == b' ' {
+                b as char
+            } else {
+                '?'
+            }
+        })
+        .collect::<String>()
+        .trim()
+        .to_string()
+}
+
+impl<P: Read + Write> Ft300<P> {
+    /// Connects to slave [`SLAVE_ADDRESS`]: stops a stream left running (sends the stop
+    /// bytes, drains), then checks the device answers by reading the wrench registers.
+    pub fn connect(port: P) -> DeviceResult<Self> {
+        Self::connect_slave(port, SLAVE_ADDRESS)
+    }
+
+    /// Connects to another slave address.
+    pub fn connect_slave(mut port: P, slave: u8) -> DeviceResult<Self> {
+        ft_common::send(&mut port, DEVICE, "stop stream", &STOP_STREAM)?;
+        ft_common::drain(
+            &mut port,
+            Duration::from_millis(30),
+            DRAIN_MAX,
+            DEVICE,
+            "stop stream",
+        )?;
+        let mut d = Ft300 {
+            port,
+            slave,
+            offset: Wrench::default(),
+            stats: LinkStats::default(),
+        };
+        d.read_raw_wrench()?;
+        Ok(d)
+    }
+
+    /// Link statistics.
+    pub fn stats(&self) -> LinkStats {
+        self.stats
+    }
+
+    /// The software tare offset subtracted from readings.
+    pub fn offset(&self) -> Wrench {
+        self.offset
+    }
+
+    /// Gives the port back.
+    pub fn into_inner(self) -> P {
+        self.port
+    }
+
+    /// Reads `count` holding registers from `start` (function 03).
+    pub fn read_registers(&mut self, start: u16, count: u16) -> DeviceResult<Vec<u16>> {
+        let req = Request::ReadHolding {
+            slave: self.slave,
+            start,
+            count,
+        };
+        match self.transact(&req)? {
+            Response::ReadHolding { values, .. } if values.len() == count as usize => Ok(values),
+            other => Err(DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                req.text(),
+                format!("reply does not match the request: {other:?}"),
+            )),
+        }
+    }
+
+    /// Writes registers from `start` (function 16).
+    pub fn write_registers(&mut self, start: u16, values: &[u16]) -> DeviceResult<()> {
+        let req = Request::WriteMultiple {
+            slave: self.slave,
+            start,
+            values: values.to_vec(),
+        };
+        match self.transact(&req)? {
+            Response::WriteMultiple {
+                start: s, count, ..
+            } if s == start && count as usize == values.len() => Ok(()),
+            other => Err(DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                req.text(),
+                format!("reply does not match the request: {other:?}"),
+            )),
+        }
+    }
+
+    /// The wrench without the tare offset.
+    pub fn read_raw_wrench(&mut self) -> DeviceResult<Wrench> {
+        let v = self.read_registers(REG_WRENCH, 6)?;
+        let raw: [i16; 6] = [0, 1, 2, 3, 4, 5].map(|i| v[i] as i16);
+        Ok(wrench_from_raw(raw))
+    }
+
+    /// Firmware, serial number and production year.
+    pub fn info(&mut self) -> DeviceResult<Ft300Info> {
+        let fw = self.read_registers(REG_FIRMWARE, 3)?;
+        let serial = self.read_registers(REG_SERIAL, 4)?;
+        let year = self.read_registers(REG_YEAR, 1)?;
+        let b: Vec<u8> = fw.iter().flat_map(|r| r.to_be_bytes()).collect();
+        let letters: String = b[..3]
+            .iter()
+            .map(|&c| if c.is_ascii_graphic() { c as char } else { '?' })
+            .collect();
+        Ok(Ft300Info {
+            firmware: format!("{letters}-{}.{}.{}", b[3], b[4], b[5]),
+            serial: ascii_regs(&serial),
+            year: year[0],
+        })
+    }
+
+    /// Starts the stream (writes 0x0200 to register 410; the write is acknowledged
+    /// before the first frame) and hands the port to a reader thread.
+    pub fn start_stream(mut self) -> DeviceResult<Ft300Stream<P>>
+    where
+        P: Send + 'static,
+    {
+        self.write_registers(REG_STREAM, &[STREAM_START])?;
+        Ok(Ft300Stream::spawn(self))
+    }
+
+    /// Sends `req` and reads its reply, retrying timeouts and malformed replies.
+    fn transact(&mut self, req: &Request) -> DeviceResult<Response> {
+        let text = req.text();
+        let bytes = req.encode();
+        self.stats.commands += 1;
+        let mut last_err = None;
+        for attempt in 0..MAX_ATTEMPTS {
+            if attempt > 0 {
+                self.stats.retries += 1;
+                ft_common::drain(&mut self.port, DRAIN_QUIET, DRAIN_MAX, DEVICE, &text)?;
+            }
+            ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
+            match self.read_reply(&text) {
+                Ok(Response::Exception { function, code, .. }) => {
+                    return Err(DeviceError::new(
+                        ErrorKind::Rejected,
+                        DEVICE,
+                        &text,
+                        format!(
+                            "modbus exception {:02x} ({}) to function {function:02x}",
+                            code.byte(),
+                            code.describe()
+                        ),
+                    ))
+                }
+                Ok(r) => return Ok(r),
+                Err(e) if matches!(e.kind, ErrorKind::Timeout | ErrorKind::Protocol) => {
+                    if e.kind == ErrorKind::Timeout {
+                        self.stats.timeouts += 1;
+                    } else {
+                        self.stats.protocol_errors += 1;
+                    }
+                    last_err = Some(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        let e = last_err.unwrap_or_else(|| {
+            DeviceError::new(ErrorKind::Other, DEVICE, &text, "no attempt was made")
+        });
+        Err(DeviceError {
+            message: format!("{} (after {MAX_ATTEMPTS} attempts)", e.message),
+            ..e
+        }
+        .with_hint("check baud rate (19200), slave address (9) and cable"))
+    }
+
+    /// Reads one reply frame addressed to us before the deadline, resynchronising on
+    /// garbage: the result is Timeout if nothing framed arrived, Protocol if only
+    /// frames with a bad CRC did.
+    fn read_reply(&mut self, text: &str) -> DeviceResult<Response> {
+        let deadline = Instant::now() + REPLY_TIMEOUT;
+        let mut buf: Vec<u8> = Vec::with_capacity(64);
+        let mut chunk = [0u8; 64];
+        let mut bad: Option<String> = None;
+        let mut skipped = false;
+        loop {
+            // Frame what we have.
+            loop {
+                while !buf.is_empty() && buf[0] != self.slave {
+                    buf.remove(0);
+                    skipped = true;
+                }
+                match Response::frame_len(&buf) {
+                    None => break,
+                    Some(Err(_)) => {
+                        buf.remove(0);
+                        skipped = true;
+                    }
+                    Some(Ok(n)) if buf.len() >= n => match Response::decode(&buf[..n]) {
+                        Ok(r) => {
+                            if skipped || bad.is_some() {
+                                self.stats.resyncs += 1;
+                            }
+                            return Ok(r);
+                        }
+                        Err(e) => {
+                            bad = Some(e.to_string());
+                            buf.remove(0);
+                            skipped = true;
+                        }
+                    },
+                    Some(Ok(_)) => break,
+                }
+            }
+            match ft_common::read_until_deadline(&mut self.port, &mut chunk, deadline, DEVICE, text)
+            {
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                Err(e) if e.kind == ErrorKind::Timeout => {
+                    return Err(match bad {
+                        Some(b) => DeviceError::new(ErrorKind::Protocol, DEVICE, text, b),
+                        None if !buf.is_empty() => DeviceError::new(
+                            ErrorKind::Timeout,
+                            DEVICE,
+                            text,
+                            format!(
+                                "incomplete reply within {} ms: `{}`",
+                                REPLY_TIMEOUT.as_millis(),
+                                show_bytes_hex(&buf)
+                            ),
+                        ),
+                        None => DeviceError::new(
+                            ErrorKind::Timeout,
+                            DEVICE,
+                            text,
+                            format!("no reply within {} ms", REPLY_TIMEOUT.as_millis()),
+                        ),
+                    })
+                }
+                Err(e) => return Err(e),
+            }
+        }
+    }
+}
+
+impl<P: Read + Write> ForceSensor for Ft300<P> {
+    fn read(&mut self) -> DeviceResult<Wrench> {
+        Ok(sub(self.read_raw_wrench()?, self.offset))
+    }
+
+    /// Software tare: the mean of [`TARE_SAMPLES`] raw readings becomes the offset.
+    fn tare(&mut self) -> DeviceResult<()> {
+        let mut ws = Vec::with_capacity(TARE_SAMPLES);
+        for _ in 0..TARE_SAMPLES {
+            ws.push(self.read_raw_wrench()?);
+        }
+        self.offset = mean(&ws);
+        Ok(())
+    }
+
+    fn sample_rate_hz(&self) -> f64 {
+        POLL_RATE_HZ
+    }
+}
+
+/// A streamed sample.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamSample {
+    /// Sequence number of the frame since the stream started (1, 2, ...).
+    pub seq: u64,
+    /// The wrench, tare offset not applied.
+    pub raw_wrench: Wrench,
+    /// When the reader decoded it.
+    pub received: Instant,
+}
+
+/// What [`Ft300Stream::stop`] reports.
+#[derive(Debug, Clone)]
+pub struct StreamSummary {
+    /// Final decoder counters (frames, bad CRC, bytes skipped, restarts).
+    pub stats: StreamStats,
+    /// Samples dropped from the buffer because nobody took them.
+    pub overflowed: u64,
+    /// Samples not yet taken, in-flight frames decoded after the stop bytes included.
+    pub remaining: Vec<StreamSample>,
+}
+
+#[derive(Default)]
+struct Shared {
+    latest: Option<StreamSample>,
+    samples: VecDeque<StreamSample>,
+    overflowed: u64,
+    stats: StreamStats,
+    error: Option<DeviceError>,
+}
+
+type SharedState = Arc<(Mutex<Shared>, Condvar)>;
+
+/// An FT 300 in stream mode: a reader thread owns the port until [`Ft300Stream::stop`].
+pub struct Ft300Stream<P: Send + 'static> {
+    shared: SharedState,
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<(P, StreamDecoder)>>,
+    slave: u8,
+    offset: Wrench,
+    stats: LinkStats,
+    last_seq: u64,
+}
+
+fn lock(s: &SharedState) -> std::sync::MutexGuard<'_, Shared> {
+    s.0.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
+    fn spawn(d: Ft300<P>) -> Self {
+        let shared: SharedState = Arc::new((Mutex::new(Shared::default()), Condvar::new()));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (s2, stop2) = (Arc::clone(&shared), Arc::clone(&stop));
+        let slave = d.slave;
+        let port = d.port;
+        let thread = std::thread::spawn(move || reader(port, slave, s2, stop2));
+        Ft300Stream {
+            shared,
+            stop,
+            thread: Some(thread),
+            slave,
+            offset: d.offset,
+            stats: d.stats,
+            last_seq: 0,
+        }
+    }
+
+    /// Decoder counters (frames, bad CRC, bytes skipped, restarts).
+    pub fn stream_stats(&self) -> StreamStats {
+        lock(&self.shared).stats
+    }
+
+    /// Frames dropped from the sample buffer because nobody took them.
+    pub fn overflowed(&self) -> u64 {
+        lock(&self.shared).overflowed
+    }
+
+    /// Every frame decoded since the last call (oldest first, at most
+    /// [`SAMPLE_BUFFER`]).
+    pub fn take_samples(&mut self) -> Vec<StreamSample> {
+        let mut g = lock(&self.shared);
+        g.samples.drain(..).collect()
+    }
+
+    /// The newest sample, waiting up to [`STREAM_READ_TIMEOUT`] for one newer than the
+    /// last returned. Samples in between are skipped (see [`Self::take_samples`]).
+    pub fn read_sample(&mut self) -> DeviceResult<StreamSample> {
+        let deadline = Instant::now() + STREAM_READ_TIMEOUT;
+        let (m, cv) = &*self.shared;
+        let mut g = m.lock().unwrap_or_else(|p| p.into_inner());
+        loop {
+            if let Some(s) = g.latest {
+                if s.seq > self.last_seq {
+                    self.last_seq = s.seq;
+                    return Ok(s);
+                }
+            }
+            if let Some(e) = &g.error {
+                return Err(e.clone());
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(DeviceError::new(
+                    ErrorKind::Timeout,
+                    DEVICE,
+                    "stream",
+                    format!("no new frame within {} ms", STREAM_READ_TIMEOUT.as_millis()),
+                ));
+            }
+            g = cv
+                .wait_timeout(g, deadline - now)
+                .map(|(g, _)| g)
+                .unwrap_or_else(|p| p.into_inner().0);
+        }
+    }
+
+    /// Stops the stream: ends the reader, sends the stop bytes, decodes frames still in
+    /// flight until the line is quiet, and returns the polled driver with a summary
+    /// (final counters and the samples nobody took yet).
+    pub fn stop(mut self) -> DeviceResult<(Ft300<P>, StreamSummary)> {
+        self.stop.store(true, Ordering::SeqCst);
+        let (mut port, mut decoder) = match self.thread.take().map(|t| t.join()) {
+            Some(Ok(pd)) => pd,
+            _ => {
+                return Err(DeviceError::new(
+                    ErrorKind::Other,
+                    DEVICE,
+                    "stop stream",
+                    "stream reader thread panicked",
+                ))
+            }
+        };
+        if let Some(e) = lock(&self.shared).error.clone() {
+            return Err(e);
+        }
+        ft_common::send(&mut port, DEVICE, "stop stream", &STOP_STREAM)?;
+        let start = Instant::now();
+        let mut last = Instant::now();
+        let mut buf = [0u8; 256];
+        let mut frames = Vec::new();
+        while last.elapsed() < STOP_QUIET && start.elapsed() < DRAIN_MAX {
+            match port.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => {
+                    decoder.push(&buf[..n], &mut frames);
+                    last = Instant::now();
+                }
+                Err(e) if ft_common::is_quiet(&e) => {}
+                Err(e) => return Err(ft_common::io_error(DEVICE, "stop stream", &e)),
+            }
+        }
+        let summary = {
+            let mut g = lock(&self.shared);
+            let restarts = g.stats.restarts;
+            g.stats = decoder.stats;
+            g.stats.restarts = restarts;
+            let first = g.latest.map_or(0, |s| s.seq) + 1;
+            for (seq, f) in (first..).zip(frames) {
+                let s = StreamSample {
+                    seq,
+                    raw_wrench: f.wrench(),
+                    received: Instant::now(),
+                };
+                push_sample(&mut g, s);
+            }
+            StreamSummary {
+                stats: g.stats,
+                overflowed: g.overflowed,
+                remaining: g.samples.drain(..).collect(),
+            }
+        };
+        let d = Ft300 {
+            port,
+            slave: self.slave,
+            offset: self.offset,
+            stats: self.stats,
+        };
+        Ok((d, summary))
+    }
+}
+
+fn push_sample(g: &mut Shared, s: StreamSample) {
+    g.latest = Some(s);
+    if g.samples.len() >= SAMPLE_BUFFER {
+        g.samples.pop_front();
+        g.overflowed += 1;
+    }
+    g.samples.push_back(s);
+}
+
+/// The reader thread: decode, publish, restart a stalled stream, stop on request or
+/// when the port goes away.
+fn reader<P: Read + Write>(
+    mut port: P,
+    slave: u8,
+    shared: SharedState,
+    stop: Arc<AtomicBool>,
+) -> (P, StreamDecoder) {
+    let mut decoder = StreamDecoder::default();
+    let mut buf = [0u8; 512];
+    let mut frames: Vec<StreamFrame> = Vec::new();
+    let mut seq = 0u64;
+    let mut last_frame = Instant::now();
+    let restart = Request::WriteMultiple {
+        slave,
+        start: REG_STREAM,
+        values: vec![STREAM_START],
+    }
+    .encode();
+    let fail = |e: DeviceError| {
+        let (m, cv) = &*shared;
+        m.lock().unwrap_or_else(|p| p.into_inner()).error = Some(e);
+        cv.notify_all();
+    };
+    while !stop.load(Ordering::SeqCst) {
+        match port.read(&mut buf) {
+            Ok(0) => {
+                fail(DeviceError::new(
+                    ErrorKind::Disconnected,
+                    DEVICE,
+                    "stream",
+                    "port reached end of file",
+                ));
+                break;
+            }
+            Ok(n) => {
+                frames.clear();
+                decoder.push(&buf[..n], &mut frames);
+                if !frames.is_empty() {
+                    last_frame = Instant::now();
+                    let (m, cv) = &*shared;
+                    let mut g = m.lock().unwrap_or_else(|p| p.into_inner());
+                    for f in &frames {
+                        seq += 1;
+                        push_sample(
+                            &mut g,
+                            StreamSample {
+                                seq,
+                                raw_wrench: f.wrench(),
+                                received: last_frame,
+                            },
+                        );
+                    }
+                    let restarts = g.stats.restarts;
+                    g.stats = decoder.stats;
+                    g.stats.restarts = restarts;
+                    cv.notify_all();
+                }
+            }
+            Err(e) if ft_common::is_quiet(&e) => {}
+            Err(e) => {
+                fail(ft_common::io_error(DEVICE, "stream", &e));
+                break;
+            }
+        }
+        if last_frame.elapsed() > STREAM_STALL {
+            // No frame for 10 periods: the device may have reset and left stream mode.
+            // Re-sending the start is safe (idempotent); its acknowledgement is skipped
+            // by the frame decoder.
+            if let Err(e) = port.write_all(&restart).and_then(|_| port.flush()) {
+                fail(ft_common::io_error(DEVICE, "stream restart", &e));
+                break;
+            }
+            lock(&shared).stats.restarts += 1;
+            last_frame = Instant::now();
+        }
+    }
+    (port, decoder)
+}
+
+impl<P: Read + Write + Send + 'static> ForceSensor for Ft300Stream<P> {
+    fn read(&mut self) -> DeviceResult<Wrench> {
+        Ok(sub(self.read_sample()?.raw_wrench, self.offset))
+    }
+
+    /// Software tare: the mean of the next [`TARE_SAMPLES`] frames becomes the offset.
+    fn tare(&mut self) -> DeviceResult<()> {
+        let mut ws = Vec::with_capacity(TARE_SAMPLES);
+        for _ in 0..TARE_SAMPLES {
+            ws.push(self.read_sample()?.raw_wrench);
+        }
+        self.offset = mean(&ws);
+        Ok(())
+    }
+
+    fn sample_rate_hz(&self) -> f64 {
+        STREAM_RATE_HZ
+    }
+}
+
+impl<P: Send + 'static> Drop for Ft300Stream<P> {
+    fn drop(&mut self) {
+        // Stop the reader thread; the port is dropped with it (the stream keeps
+        // running on the device until the next connect sends the stop bytes).
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
