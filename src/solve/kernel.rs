@@ -12,7 +12,7 @@
 //! 0.5 MB in f32, so the product streams `A` once from L2 and is bound by load
 //! bandwidth, not arithmetic. To keep the load ports busy the kernel
 //!
-//! - walks `R` rows at once so each `x` chunk loaded is used `R` times,
+//! - walks two rows at once so each `x` chunk loaded is used twice,
 //! - keeps `W` independent partial sums per row (several SIMD registers), which hides
 //!   the 4-cycle latency of a fused multiply-add (a single accumulator serialises the
 //!   whole row on that latency),
@@ -135,109 +135,108 @@ fn reduce<T: Element, const W: usize>(mut acc: [T; W]) -> f64 {
     acc[0].to_f64()
 }
 
-/// `R` rows starting at `a[0]` (each `cols` long) dotted with `x`, written to `y[..R]`.
-/// `W` partial sums per row; a tail of `cols % W` columns is done in chunks of `V`
-/// (one SIMD vector) and then one by one.
+/// Dot product of one row with `x`: `W` partial sums (several SIMD registers), main
+/// loop over `chunks_exact(W)`, the `cols % W` tail one by one.
 #[inline(always)]
-fn rows_dot<T: Element, const FMA: bool, const R: usize, const W: usize, const V: usize>(
-    a: &[T],
-    cols: usize,
-    x: &[T],
-    y: &mut [f64],
-) {
-    let mut acc = [[T::default(); W]; R];
-    let rows: [&[T]; R] = std::array::from_fn(|r| &a[r * cols..(r + 1) * cols]);
-    let main = cols - cols % W;
-    // Main loop: chunks of W columns.
-    let mut j = 0;
-    while j < main {
-        let xc: &[T; W] = x[j..j + W].try_into().expect("chunk of W");
-        for r in 0..R {
-            let ac: &[T; W] = rows[r][j..j + W].try_into().expect("chunk of W");
-            for k in 0..W {
-                acc[r][k] = madd::<T, FMA>(ac[k], xc[k], acc[r][k]);
-            }
+fn dot1<T: Element, const FMA: bool, const W: usize>(a: &[T], x: &[T]) -> f64 {
+    let mut acc = [T::default(); W];
+    let ac = a.chunks_exact(W);
+    let xc = x.chunks_exact(W);
+    let (at, xt) = (ac.remainder(), xc.remainder());
+    for (a, x) in ac.zip(xc) {
+        for k in 0..W {
+            acc[k] = madd::<T, FMA>(a[k], x[k], acc[k]);
         }
-        j += W;
     }
-    // Vector-sized tail.
-    while j + V <= cols {
-        let xc: &[T; V] = x[j..j + V].try_into().expect("chunk of V");
-        for r in 0..R {
-            let ac: &[T; V] = rows[r][j..j + V].try_into().expect("chunk of V");
-            for k in 0..V {
-                acc[r][k] = madd::<T, FMA>(ac[k], xc[k], acc[r][k]);
-            }
-        }
-        j += V;
+    for (k, (&a, &x)) in at.iter().zip(xt).enumerate() {
+        acc[k] = madd::<T, FMA>(a, x, acc[k]);
     }
-    // Scalar tail.
-    while j < cols {
-        for r in 0..R {
-            acc[r][0] = madd::<T, FMA>(rows[r][j], x[j], acc[r][0]);
-        }
-        j += 1;
-    }
-    for r in 0..R {
-        y[r] = reduce::<T, W>(acc[r]);
-    }
+    reduce::<T, W>(acc)
 }
 
-/// The full product, `R` rows at a time, the leftover rows one at a time.
+/// Two rows at once: each chunk of `x` loaded once is used twice (the kernel is bound
+/// by loads), `2·W` partial sums in flight.
 #[inline(always)]
-fn gemv_body<T: Element, const FMA: bool, const R: usize, const W: usize, const V: usize>(
+fn dot2<T: Element, const FMA: bool, const W: usize>(a0: &[T], a1: &[T], x: &[T]) -> [f64; 2] {
+    let mut acc0 = [T::default(); W];
+    let mut acc1 = [T::default(); W];
+    let c0 = a0.chunks_exact(W);
+    let c1 = a1.chunks_exact(W);
+    let cx = x.chunks_exact(W);
+    let (t0, t1, tx) = (c0.remainder(), c1.remainder(), cx.remainder());
+    for ((r0, r1), xc) in c0.zip(c1).zip(cx) {
+        for k in 0..W {
+            acc0[k] = madd::<T, FMA>(r0[k], xc[k], acc0[k]);
+            acc1[k] = madd::<T, FMA>(r1[k], xc[k], acc1[k]);
+        }
+    }
+    for (k, ((&p0, &p1), &xv)) in t0.iter().zip(t1).zip(tx).enumerate() {
+        acc0[k] = madd::<T, FMA>(p0, xv, acc0[k]);
+        acc1[k] = madd::<T, FMA>(p1, xv, acc1[k]);
+    }
+    [reduce::<T, W>(acc0), reduce::<T, W>(acc1)]
+}
+
+/// The full product: pairs of rows, then the odd row left over.
+#[inline(always)]
+fn gemv_body<T: Element, const FMA: bool, const W: usize>(
     a: &[T],
     rows: usize,
     cols: usize,
     x: &[T],
     y: &mut [f64],
 ) {
-    let blocked = rows - rows % R;
-    let mut i = 0;
-    while i < blocked {
-        rows_dot::<T, FMA, R, W, V>(&a[i * cols..(i + R) * cols], cols, x, &mut y[i..i + R]);
-        i += R;
+    if cols == 0 {
+        y.fill(0.0);
+        return;
     }
-    while i < rows {
-        rows_dot::<T, FMA, 1, W, V>(&a[i * cols..(i + 1) * cols], cols, x, &mut y[i..i + 1]);
-        i += 1;
+    let mut pairs = a.chunks_exact(2 * cols);
+    let mut yp = y.chunks_exact_mut(2);
+    for (ab, yb) in (&mut pairs).zip(&mut yp) {
+        let (a0, a1) = ab.split_at(cols);
+        let r = dot2::<T, FMA, W>(a0, a1, x);
+        yb[0] = r[0];
+        yb[1] = r[1];
+    }
+    if rows % 2 == 1 {
+        y[rows - 1] = dot1::<T, FMA, W>(pairs.remainder(), x);
     }
 }
 
-// Block shapes. AVX-512 has 32 vector registers: 4 rows × 4 vectors of partial sums
-// (16 registers) leave room for the loads. AVX2 and SSE have 16: 2 rows × 4 vectors.
-// The values were chosen by the `solvers` bench (apply, paper geometry).
+// Widths W: four vectors of partial sums per row (AVX-512: 4×8 f64 / 4×16 f32; AVX2:
+// 4×4 / 4×8; SSE2: 4×2 / 4×4), so eight independent chains for the two rows: enough to
+// cover the 4-cycle FMA latency on two ports.
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn gemv_f64_avx512(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
-    gemv_body::<f64, true, 4, 32, 8>(a, rows, cols, x, y)
+    gemv_body::<f64, true, 32>(a, rows, cols, x, y)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn gemv_f32_avx512(a: &[f32], rows: usize, cols: usize, x: &[f32], y: &mut [f64]) {
-    gemv_body::<f32, true, 4, 64, 16>(a, rows, cols, x, y)
+    gemv_body::<f32, true, 64>(a, rows, cols, x, y)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn gemv_f64_avx2(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
-    gemv_body::<f64, true, 2, 16, 4>(a, rows, cols, x, y)
+    gemv_body::<f64, true, 16>(a, rows, cols, x, y)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn gemv_f32_avx2(a: &[f32], rows: usize, cols: usize, x: &[f32], y: &mut [f64]) {
-    gemv_body::<f32, true, 2, 32, 8>(a, rows, cols, x, y)
+    gemv_body::<f32, true, 32>(a, rows, cols, x, y)
 }
 
 fn gemv_f64_portable(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
-    gemv_body::<f64, false, 2, 8, 2>(a, rows, cols, x, y)
+    gemv_body::<f64, false, 8>(a, rows, cols, x, y)
 }
 
 fn gemv_f32_portable(a: &[f32], rows: usize, cols: usize, x: &[f32], y: &mut [f64]) {
-    gemv_body::<f32, false, 2, 16, 4>(a, rows, cols, x, y)
+    gemv_body::<f32, false, 16>(a, rows, cols, x, y)
 }
 
 /// Checks the shapes shared by both entry points.
