@@ -227,25 +227,39 @@ fn main() {
         println!("(need two sizes to extrapolate)");
         return;
     }
-    // Power law through the two largest measured sizes, in the number of unknowns.
-    let (a, b) = (&rows[rows.len() - 2], &rows[rows.len() - 1]);
-    let fit = |ya: f64, yb: f64| {
-        let e = (yb / ya).ln() / (b.n_cols as f64 / a.n_cols as f64).ln();
-        (e, move |n_cols: f64| {
-            yb * (n_cols / b.n_cols as f64).powf(e)
-        })
+    // Power law t = a·N^b by least squares in log-log over the measured sizes with
+    // n ≥ 16 (smaller ones are dominated by fixed costs), N = force unknowns.
+    let fitted: Vec<&Row> = rows.iter().filter(|r| r.n >= 16).collect();
+    let fitted = if fitted.len() >= 2 {
+        fitted
+    } else {
+        rows.iter().collect()
     };
+    let fit = |y: &dyn Fn(&Row) -> f64| {
+        let pts: Vec<(f64, f64)> = fitted
+            .iter()
+            .map(|r| ((r.n_cols as f64).ln(), y(r).max(1e-12).ln()))
+            .collect();
+        let k = pts.len() as f64;
+        let (sx, sy) = pts.iter().fold((0.0, 0.0), |(a, b), p| (a + p.0, b + p.1));
+        let (mx, my) = (sx / k, sy / k);
+        let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
+        let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+        let e = sxy / sxx;
+        (e, move |n_cols: f64| (my + e * (n_cols.ln() - mx)).exp())
+    };
+    let sizes_used: Vec<String> = fitted.iter().map(|r| r.n.to_string()).collect();
     let target = 64;
     let s = sensor::grid_sensor(target, target, 1.1, 1.1);
     let m_rows = 2 * MarkerSite::from_sensor_grids(&s).len();
     let n_cols = 3 * s.force_grid.len();
-    let (eb, build) = fit(a.build_s, b.build_s);
-    let (ep, pre) = fit(a.precompute_s, b.precompute_s);
-    let (ea, app) = fit(a.apply_us, b.apply_us);
+    let (eb, build) = fit(&|r: &Row| r.build_s);
+    let (ep, pre) = fit(&|r: &Row| r.precompute_s);
+    let (ea, app) = fit(&|r: &Row| r.apply_us);
     let mem = memory(m_rows, n_cols);
     println!(
-        "{target}×{target} EXTRAPOLATED (not measured; t ∝ N^b from n = {} and {}: build b = {eb:.2}, precompute b = {ep:.2}, apply b = {ea:.2})",
-        a.n, b.n
+        "{target}×{target} EXTRAPOLATED (not measured; t ∝ N^b fitted over n = {}: build b = {eb:.2}, precompute b = {ep:.2}, apply b = {ea:.2})",
+        sizes_used.join(", ")
     );
     println!(
         "{target}×{target} extrap. | {m_rows:>5}×{n_cols:<5}  | {:>6.1} s | {:>13.0} s   | {:>7.0} µs | {} | {} | {} | {}",

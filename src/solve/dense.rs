@@ -75,15 +75,84 @@ const F32_NOTE: &str = "per-frame apply in f32: relative rounding ~1e-6 of the l
 /// Condition number above which the notes warn that noise is strongly amplified.
 const ILL_CONDITIONED: f64 = 1e6;
 
-/// The filtered operator `P`, row-major `n_out × n_in`, in the apply precision.
+/// Alignment of the operator rows and the frame scratch, bytes: one cache line, so
+/// no SIMD load of the kernel straddles two lines.
+const ALIGN_BYTES: usize = 64;
+
+/// A zero-initialised buffer whose usable part starts on a cache line. (A `Vec` of
+/// this size comes from `mmap` 16 bytes past a page start: every 64-byte load would
+/// split across two lines.)
+#[derive(Debug, Clone)]
+struct Aligned<T> {
+    buf: Vec<T>,
+    off: usize,
+    len: usize,
+}
+
+impl<T: Copy + Default> Aligned<T> {
+    fn zeroed(len: usize) -> Self {
+        let extra = ALIGN_BYTES / std::mem::size_of::<T>();
+        let buf = vec![T::default(); len + extra];
+        // align_offset may decline (usize::MAX); the buffer is then merely unaligned.
+        let off = match buf.as_ptr().align_offset(ALIGN_BYTES) {
+            o if o <= extra => o,
+            _ => 0,
+        };
+        Aligned { buf, off, len }
+    }
+    fn as_slice(&self) -> &[T] {
+        &self.buf[self.off..self.off + self.len]
+    }
+    fn as_mut_slice(&mut self) -> &mut [T] {
+        &mut self.buf[self.off..self.off + self.len]
+    }
+}
+
+/// The filtered operator `P`, row-major `n_out × stride` (the `n_in` columns zero-padded
+/// to a whole number of cache lines), with a frame scratch of `stride` values, in the
+/// apply precision.
 #[derive(Debug, Clone)]
 enum Operator {
-    F64(Vec<f64>),
-    F32 {
-        p: Vec<f32>,
-        /// Scratch for the frame converted to f32 (preallocated, `n_in`).
-        x: Vec<f32>,
-    },
+    F64 { p: Aligned<f64>, x: Aligned<f64> },
+    F32 { p: Aligned<f32>, x: Aligned<f32> },
+}
+
+impl Operator {
+    /// From `P` as row-major `n_out × n_in` f64 values.
+    fn new(p: &[f64], n_out: usize, n_in: usize, precision: Precision) -> (Operator, usize) {
+        fn pad<T: Copy + Default>(
+            p: &[f64],
+            n_out: usize,
+            n_in: usize,
+            conv: impl Fn(f64) -> T,
+        ) -> (Aligned<T>, Aligned<T>, usize) {
+            let lane = ALIGN_BYTES / std::mem::size_of::<T>();
+            let stride = n_in.div_ceil(lane) * lane;
+            let mut a = Aligned::zeroed(n_out * stride);
+            if stride > 0 {
+                for (dst, src) in a
+                    .as_mut_slice()
+                    .chunks_exact_mut(stride)
+                    .zip(p.chunks_exact(n_in))
+                {
+                    for (d, &v) in dst.iter_mut().zip(src) {
+                        *d = conv(v);
+                    }
+                }
+            }
+            (a, Aligned::zeroed(stride), stride)
+        }
+        match precision {
+            Precision::F64 => {
+                let (p, x, stride) = pad(p, n_out, n_in, |v| v);
+                (Operator::F64 { p, x }, stride)
+            }
+            Precision::F32 => {
+                let (p, x, stride) = pad(p, n_out, n_in, |v| v as f32);
+                (Operator::F32 { p, x }, stride)
+            }
+        }
+    }
 }
 
 /// A precomputed dense solver (`pinv`, `tikhonov` or `tsvd`): `f = P u` per frame.
@@ -92,6 +161,8 @@ pub struct DenseSolver {
     n_in: usize,
     n_out: usize,
     op: Operator,
+    /// Row length of the padded operator (≥ `n_in`).
+    stride: usize,
     isa: Isa,
     /// Largest accepted |u| (mm): beyond it `P u` could overflow.
     limit_mm: f64,
@@ -592,22 +663,18 @@ impl DenseSolver {
             ));
         }
         let isa = Isa::detect();
-        let data = pt.as_slice();
-        let op = match config.precision {
-            Precision::F64 => Operator::F64(data.to_vec()),
-            Precision::F32 => {
-                notes.push(F32_NOTE.into());
-                Operator::F32 {
-                    p: data.iter().map(|&v| v as f32).collect(),
-                    x: vec![0.0; m],
-                }
-            }
-        };
+        // Column-major Pᵀ (m × n) is row-major P (n × m).
+        let (op, stride) = Operator::new(pt.as_slice(), n, m, config.precision);
+        drop(pt);
+        if config.precision == Precision::F32 {
+            notes.push(F32_NOTE.into());
+        }
         notes.push(format!("per-frame kernel: {}", isa.name()));
         Ok(DenseSolver {
             n_in: m,
             n_out: n,
             op,
+            stride,
             isa,
             limit_mm,
             diag: Diagnostics {
@@ -632,8 +699,8 @@ impl DenseSolver {
     /// Bytes held by the operator `P` and the apply scratch.
     pub fn operator_bytes(&self) -> usize {
         match &self.op {
-            Operator::F64(p) => p.len() * 8,
-            Operator::F32 { p, x } => p.len() * 4 + x.len() * 4,
+            Operator::F64 { p, x } => (p.buf.len() + x.buf.len()) * 8,
+            Operator::F32 { p, x } => (p.buf.len() + x.buf.len()) * 4,
         }
     }
 
@@ -641,30 +708,39 @@ impl DenseSolver {
     /// converted (f64 → f32 rounds it; f32 → f64 widens the rounded values), no new
     /// decomposition.
     pub fn with_precision(&self, precision: Precision) -> DenseSolver {
-        let op = match (&self.op, precision) {
-            (Operator::F64(p), Precision::F32) => Operator::F32 {
-                p: p.iter().map(|&v| v as f32).collect(),
-                x: vec![0.0; self.n_in],
-            },
-            (Operator::F32 { p, .. }, Precision::F64) => {
-                Operator::F64(p.iter().map(|&v| v as f64).collect())
-            }
-            (op, _) => op.clone(),
-        };
+        let (op, stride) = Operator::new(&self.operator(), self.n_out, self.n_in, precision);
         let mut diag = self.diag.clone();
         diag.notes.retain(|n| n != F32_NOTE);
         if precision == Precision::F32 {
             diag.notes.push(F32_NOTE.into());
         }
-        DenseSolver { op, diag, ..*self }
+        DenseSolver {
+            op,
+            stride,
+            diag,
+            ..*self
+        }
     }
 
     /// The operator `P` (N/mm), row-major `n_outputs × n_inputs`, widened to f64.
     pub fn operator(&self) -> Vec<f64> {
-        match &self.op {
-            Operator::F64(p) => p.clone(),
-            Operator::F32 { p, .. } => p.iter().map(|&v| v as f64).collect(),
+        let mut out = Vec::with_capacity(self.n_out * self.n_in);
+        if self.stride == 0 {
+            return out;
         }
+        match &self.op {
+            Operator::F64 { p, .. } => {
+                for row in p.as_slice().chunks_exact(self.stride) {
+                    out.extend_from_slice(&row[..self.n_in]);
+                }
+            }
+            Operator::F32 { p, .. } => {
+                for row in p.as_slice().chunks_exact(self.stride) {
+                    out.extend(row[..self.n_in].iter().map(|&v| v as f64));
+                }
+            }
+        }
+        out
     }
 }
 
@@ -688,7 +764,18 @@ impl FrameSolver for DenseSolver {
             });
         }
         match &mut self.op {
-            Operator::F64(p) => kernel::gemv_f64(self.isa, p, self.n_out, self.n_in, u_mm, f_n),
+            Operator::F64 { p, x } => {
+                // Copied into the aligned, zero-padded scratch (n_in values, ~50 ns).
+                x.as_mut_slice()[..self.n_in].copy_from_slice(u_mm);
+                kernel::gemv_f64(
+                    self.isa,
+                    p.as_slice(),
+                    self.n_out,
+                    self.stride,
+                    x.as_slice(),
+                    f_n,
+                )
+            }
             Operator::F32 { p, x } => {
                 if max_abs == 0.0 {
                     f_n.fill(0.0);
@@ -698,10 +785,17 @@ impl FrameSolver for DenseSolver {
                 // Clamped so both 2^-e and 2^e stay normal f64 numbers.
                 let e = (max_abs.log2().ceil() as i32).clamp(-1000, 1000);
                 let down = 2f64.powi(-e);
-                for (xi, ui) in x.iter_mut().zip(u_mm) {
+                for (xi, ui) in x.as_mut_slice().iter_mut().zip(u_mm) {
                     *xi = (ui * down) as f32;
                 }
-                kernel::gemv_f32(self.isa, p, self.n_out, self.n_in, x, f_n);
+                kernel::gemv_f32(
+                    self.isa,
+                    p.as_slice(),
+                    self.n_out,
+                    self.stride,
+                    x.as_slice(),
+                    f_n,
+                );
                 let up = 2f64.powi(e);
                 for fi in f_n.iter_mut() {
                     *fi *= up;
