@@ -25,6 +25,11 @@
 //! elsewhere). `f64::mul_add` is only used where FMA is enabled: without it, it would
 //! become a slow libm call.
 //!
+//! Alignment is the caller's business: a 64-byte load that straddles two cache lines
+//! costs a second access, so [`super::dense`] stores `A` and `x` from a cache-line
+//! boundary with rows zero-padded to whole lines (measured on the paper system: f32
+//! 9.5 → 7.7 µs, f64 11.5 → 10.9 µs per product).
+//!
 //! Summation order differs from a naive loop (partial sums), so results agree with a
 //! sequential dot product to rounding (relative `~cols·ε` in the worst case).
 
