@@ -9,3 +9,4 @@ mod ft;
 mod sim;
 mod stage;
 mod vision;
+mod solvers;

@@ -71,6 +71,14 @@ pub enum SolveError {
     /// Automatic λ or rank selection needs a displacement frame and none was given.
     #[error("automatic {0} selection needs a displacement frame to choose from")]
     NeedsFrame(&'static str),
+    /// Displacements so large that the forces would overflow `f64`.
+    #[error("largest displacement {max_abs_mm} mm exceeds the solver's limit of {limit_mm} mm: the forces would overflow")]
+    TooLarge {
+        /// Largest |displacement| in the frame, mm.
+        max_abs_mm: f64,
+        /// Largest |displacement| the solver accepts, mm.
+        limit_mm: f64,
+    },
 }
 
 /// Which inverse method to use.
