@@ -3,10 +3,11 @@
 
 mod util;
 
+mod bench;
 mod cli;
 mod fourier;
 mod ft;
 mod sim;
+mod solvers;
 mod stage;
 mod vision;
-mod solvers;

@@ -1,4 +1,5 @@
-//! `tactbench sim render`: render a scene's camera frames and their ground truth.
+//! `tactbench sim render` (a scene's camera frames and their ground truth) and
+//! `tactbench sim bench` (the whole bench simulated on pseudo-terminals).
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -14,6 +15,67 @@ use tactbench::sim::simulate::{FrameTruth, Simulation};
 #[derive(clap::Subcommand)]
 pub enum SimCommand {
     Render(RenderArgs),
+    Bench(BenchArgs),
+}
+
+/// Serve a simulated bench: stage, force sensor and camera around one virtual world.
+///
+/// The stage simulator (GRBL or Zaber) and the force-sensor simulator (DynPick or
+/// FT 300) speak their real protocols on pseudo-terminals, linked as DIR/stage and
+/// DIR/ft; the camera serves frames on DIR/camera.sock (use `--device sim:DIR/camera.sock`
+/// with `tactbench camera`). Where the stage is decides the contact: the force sensor
+/// reports the matching wrench (N, N·m) and the camera renders the matching markers,
+/// with the scene's effects only. The scene's [load] is not used.
+///
+/// Default geometry (stage machine coordinates, mm): GRBL: sensor origin at
+/// x,y = -100,-100, surface at z = -30, pressing towards -z, start at 0,0,0. Zaber: sensor
+/// origin at 15,15, surface at z = 30, pressing towards +z, start mid-travel (23.8 mm).
+///
+/// Runs until Ctrl-C (or SIGTERM), then removes the links.
+#[derive(clap::Args)]
+#[command(
+    after_long_help = "Example:\n  tactbench sim bench --scene experiments/scenes/fig7_hemisphere_ramp.toml --links /tmp/bench &\n  tactbench stage --port /tmp/bench/stage --protocol grbl move -91 -93.25 -30.5\n  tactbench ft --port /tmp/bench/ft --protocol dynpick read\n  tactbench camera grab --device sim:/tmp/bench/camera.sock --out frame.png"
+)]
+pub struct BenchArgs {
+    /// The scene (sensor, indenter, effects).
+    #[arg(long, value_name = "SCENE")]
+    scene: PathBuf,
+    /// Stage protocol to simulate.
+    #[arg(long, value_enum, default_value = "grbl")]
+    stage: StageArg,
+    /// Force-sensor protocol to simulate.
+    #[arg(long, value_enum, default_value = "dynpick")]
+    ft: FtArg,
+    /// Directory for the links `stage`, `ft` and `camera.sock` (created if missing).
+    #[arg(long, value_name = "DIR")]
+    links: PathBuf,
+    /// Stage x,y (mm) that puts the indenter over the sensor-frame origin.
+    #[arg(
+        long,
+        value_name = "X,Y",
+        value_delimiter = ',',
+        num_args = 2,
+        allow_negative_numbers = true
+    )]
+    sensor_origin_mm: Option<Vec<f64>>,
+    /// Stage z (mm) at which the indenter touches the surface.
+    #[arg(long, value_name = "Z", allow_negative_numbers = true)]
+    surface_z_mm: Option<f64>,
+    /// Friction coefficient between indenter and elastomer.
+    #[arg(long, default_value_t = 1.0)]
+    friction: f64,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum StageArg {
+    Grbl,
+    Zaber,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum FtArg {
+    Dynpick,
+    Ft300,
 }
 
 /// Render a scene: the unloaded reference frame, the loaded frames and ground truth.
@@ -51,7 +113,66 @@ pub struct RenderArgs {
 pub fn run(cmd: SimCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         SimCommand::Render(a) => render(a),
+        SimCommand::Bench(a) => bench(a),
     }
+}
+
+fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    use tactbench::sim::bench::{FtProtocol, StageProtocol, VirtualBench};
+
+    let scene = Scene::from_path(&a.scene)?;
+    let stage = match a.stage {
+        StageArg::Grbl => StageProtocol::Grbl,
+        StageArg::Zaber => StageProtocol::Zaber,
+    };
+    let ft = match a.ft {
+        FtArg::Dynpick => FtProtocol::DynPick,
+        FtArg::Ft300 => FtProtocol::Ft300,
+    };
+    if !(a.friction.is_finite() && a.friction >= 0.0) {
+        anyhow::bail!("--friction {} must be a finite number >= 0", a.friction);
+    }
+    let (mut geometry, _) = stage.default_geometry();
+    if let Some(o) = &a.sensor_origin_mm {
+        geometry.sensor_origin_in_stage_mm = [o[0], o[1]];
+    }
+    if let Some(z) = a.surface_z_mm {
+        geometry.surface_z_mm = z;
+    }
+    geometry.friction = a.friction;
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&stop);
+    ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst))
+        .context("cannot install the Ctrl-C handler")?;
+
+    let bench = VirtualBench::start(&scene, stage, ft, &a.links, Some(geometry))?;
+    let g = bench.world().geometry();
+    println!("stage   {}", bench.stage_port().display());
+    println!("ft      {}", bench.ft_port().display());
+    println!("camera  {}", bench.camera_socket().display());
+    println!(
+        "world   sensor origin at stage ({}, {}) mm, surface at z = {} mm, pressing towards {}z, friction {}",
+        g.sensor_origin_in_stage_mm[0],
+        g.sensor_origin_in_stage_mm[1],
+        g.surface_z_mm,
+        if g.press_direction < 0.0 { "-" } else { "+" },
+        g.friction
+    );
+    println!("serving until Ctrl-C");
+    let _ = std::io::stdout().flush();
+    while !stop.load(Ordering::SeqCst) {
+        if bench.is_finished() {
+            eprintln!("sim bench: a simulator hung up; stopping");
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    drop(bench);
+    eprintln!("sim bench: stopped, links removed");
+    Ok(ExitCode::SUCCESS)
 }
 
 fn save(frame: &Rgb32FImage, eight_bit: bool, path: &Path) -> anyhow::Result<()> {

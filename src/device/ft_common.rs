@@ -300,6 +300,9 @@ pub fn is_disconnect(e: &io::Error) -> bool {
             | io::ErrorKind::ConnectionAborted
             | io::ErrorKind::NotConnected
     ) || e.raw_os_error() == Some(5) // EIO: the pty master was closed
+        // serialport's `flush` is tcdrain and reports its failure (EIO on a hung-up
+        // port) as this bare message, without the OS error code.
+        || (e.kind() == io::ErrorKind::Other && e.to_string() == "flush failed")
 }
 
 /// Maps an I/O error on `command` to a device error.

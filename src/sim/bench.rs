@@ -126,7 +126,11 @@ pub struct WorldStage<S> {
 impl<S> WorldStage<S> {
     /// Wraps `sim`; `position_mm` reads its current position in mm.
     pub fn new(sim: S, world: Arc<World>, position_mm: fn(&S) -> [f64; 3]) -> Self {
-        WorldStage { sim, world, position_mm }
+        WorldStage {
+            sim,
+            world,
+            position_mm,
+        }
     }
 
     /// The wrapped simulator.
@@ -143,7 +147,11 @@ impl<S: Simulator> Simulator for WorldStage<S> {
     }
 
     fn next_wake(&self, now: Duration) -> Option<Duration> {
-        Some(self.sim.next_wake(now).map_or(WORLD_TICK, |w| w.min(WORLD_TICK)))
+        Some(
+            self.sim
+                .next_wake(now)
+                .map_or(WORLD_TICK, |w| w.min(WORLD_TICK)),
+        )
     }
 }
 
@@ -230,12 +238,18 @@ impl VirtualBench {
         let source = WorldWrench(Arc::clone(&world));
         let ft = match ft {
             FtProtocol::DynPick => FtServer::DynPick(
-                PtyServer::spawn(DynPickSim::new(DynPickSimConfig::default(), source), Some(&ft_link))
-                    .map_err(pty("force sensor"))?,
+                PtyServer::spawn(
+                    DynPickSim::new(DynPickSimConfig::default(), source),
+                    Some(&ft_link),
+                )
+                .map_err(pty("force sensor"))?,
             ),
             FtProtocol::Ft300 => FtServer::Ft300(
-                PtyServer::spawn(Ft300Sim::new(Ft300SimConfig::default(), source), Some(&ft_link))
-                    .map_err(pty("force sensor"))?,
+                PtyServer::spawn(
+                    Ft300Sim::new(Ft300SimConfig::default(), source),
+                    Some(&ft_link),
+                )
+                .map_err(pty("force sensor"))?,
             ),
         };
         let camera = CameraServer::start(&links.join("camera.sock"), Arc::clone(&world))?;
@@ -376,7 +390,12 @@ fn serve_client(stream: UnixStream, world: &World, stop: &AtomicBool) {
         match reader.read_line(&mut line) {
             Ok(0) => return,
             Ok(_) => {}
-            Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) =>
+            {
                 continue;
             }
             Err(_) => return,
@@ -385,7 +404,10 @@ fn serve_client(stream: UnixStream, world: &World, stop: &AtomicBool) {
             "grab" => world.render(&mut frame).map(|t| t.frame),
             "reference" => world.render_reference(&mut frame).map(|t| t.frame),
             other => {
-                let _ = writeln!(writer, "error unknown request `{other}`: expected grab or reference");
+                let _ = writeln!(
+                    writer,
+                    "error unknown request `{other}`: expected grab or reference"
+                );
                 continue;
             }
         };
@@ -396,8 +418,15 @@ fn serve_client(stream: UnixStream, world: &World, stop: &AtomicBool) {
                     .duration_since(UNIX_EPOCH)
                     .map(|d| d.as_nanos())
                     .unwrap_or(0);
-                writeln!(writer, "ok {} {} {} {}", img.width(), img.height(), index, ns)
-                    .and_then(|_| writer.write_all(img.as_raw()))
+                writeln!(
+                    writer,
+                    "ok {} {} {} {}",
+                    img.width(),
+                    img.height(),
+                    index,
+                    ns
+                )
+                .and_then(|_| writer.write_all(img.as_raw()))
             }
             Err(e) => writeln!(writer, "error {e}"),
         };

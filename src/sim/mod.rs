@@ -31,6 +31,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod bench;
 pub mod contact;
 pub mod effects;
 pub mod render;

@@ -1,15 +1,17 @@
-//! Cameras: a real V4L2 camera through `nokhwa` ([`v4l`]), and an image directory
-//! replaying recorded frames ([`image_dir`]). Both implement [`Camera`]; [`open`]
-//! picks one from a device spec (`0` = V4L2 index 0, `dir:PATH` = image directory).
-//! The simulated backend (frames rendered from the virtual scene) lives with the
-//! renderer.
+//! Cameras: a real V4L2 camera through `nokhwa` ([`v4l`]), an image directory
+//! replaying recorded frames ([`image_dir`]), and the simulated bench's camera served on
+//! a Unix socket ([`socket`]). All implement [`Camera`]; [`open`] picks one from a
+//! device spec (`0` = V4L2 index 0, `dir:PATH` = image directory, `sim:PATH` = the
+//! simulated bench's `camera.sock`).
 
 pub mod image_dir;
+pub mod socket;
 pub mod v4l;
 
 use std::path::PathBuf;
 
 pub use image_dir::ImageDirCamera;
+pub use socket::SocketCamera;
 pub use v4l::V4lCamera;
 
 use super::{Camera, DeviceError, DeviceResult, ErrorKind};
@@ -24,11 +26,24 @@ pub enum CameraSpec {
     V4l(u32),
     /// A directory of recorded frames (`dir:PATH`).
     Dir(PathBuf),
+    /// The simulated bench's camera socket (`sim:PATH`).
+    Sim(PathBuf),
 }
 
 impl CameraSpec {
-    /// Parses `N` or `dir:PATH`.
+    /// Parses `N`, `dir:PATH` or `sim:PATH`.
     pub fn parse(spec: &str) -> DeviceResult<Self> {
+        if let Some(p) = spec.strip_prefix("sim:") {
+            if p.is_empty() {
+                return Err(DeviceError::new(
+                    ErrorKind::Other,
+                    DEVICE,
+                    format!("open {spec}"),
+                    "`sim:` needs the simulated bench's socket path, e.g. sim:links/camera.sock",
+                ));
+            }
+            return Ok(CameraSpec::Sim(PathBuf::from(p)));
+        }
         if let Some(p) = spec.strip_prefix("dir:") {
             if p.is_empty() {
                 return Err(DeviceError::new(
@@ -45,7 +60,9 @@ impl CameraSpec {
                 ErrorKind::Other,
                 DEVICE,
                 format!("open {spec}"),
-                format!("camera `{spec}` is neither a V4L2 index (0, 1, ...) nor dir:PATH"),
+                format!(
+                    "camera `{spec}` is neither a V4L2 index (0, 1, ...), dir:PATH nor sim:PATH"
+                ),
             )
         })
     }
@@ -57,5 +74,6 @@ pub fn open(spec: &CameraSpec) -> DeviceResult<Box<dyn Camera>> {
     match spec {
         CameraSpec::V4l(i) => Ok(Box::new(V4lCamera::open(*i)?)),
         CameraSpec::Dir(p) => Ok(Box::new(ImageDirCamera::open(p, false)?)),
+        CameraSpec::Sim(p) => Ok(Box::new(SocketCamera::connect(p)?)),
     }
 }

@@ -33,10 +33,18 @@ impl SocketCamera {
     pub fn connect(path: &Path) -> DeviceResult<SocketCamera> {
         let cmd = format!("connect {}", path.display());
         let stream = UnixStream::connect(path).map_err(|e| {
-            DeviceError::new(ErrorKind::Disconnected, DEVICE, &cmd, format!("cannot connect: {e}"))
-                .with_hint("start the simulated bench first: tactbench sim bench --scene S.toml --links DIR")
+            DeviceError::new(
+                ErrorKind::Disconnected,
+                DEVICE,
+                &cmd,
+                format!("cannot connect: {e}"),
+            )
+            .with_hint(
+                "start the simulated bench first: tactbench sim bench --scene S.toml --links DIR",
+            )
         })?;
-        let io = |e: std::io::Error| DeviceError::new(ErrorKind::Other, DEVICE, &cmd, e.to_string());
+        let io =
+            |e: std::io::Error| DeviceError::new(ErrorKind::Other, DEVICE, &cmd, e.to_string());
         stream.set_read_timeout(Some(FRAME_TIMEOUT)).map_err(io)?;
         let writer = stream.try_clone().map_err(io)?;
         Ok(SocketCamera {
@@ -57,18 +65,28 @@ impl SocketCamera {
         let io = |e: std::io::Error| {
             let kind = match e.kind() {
                 std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => ErrorKind::Timeout,
-                std::io::ErrorKind::UnexpectedEof | std::io::ErrorKind::BrokenPipe | std::io::ErrorKind::ConnectionReset => {
-                    ErrorKind::Disconnected
-                }
+                std::io::ErrorKind::UnexpectedEof
+                | std::io::ErrorKind::BrokenPipe
+                | std::io::ErrorKind::ConnectionReset => ErrorKind::Disconnected,
                 _ => ErrorKind::Other,
             };
-            DeviceError::new(kind, DEVICE, what, format!("{e} (is the simulated bench still running?)"))
+            DeviceError::new(
+                kind,
+                DEVICE,
+                what,
+                format!("{e} (is the simulated bench still running?)"),
+            )
         };
-        writeln!(self.writer, "{what}").and_then(|_| self.writer.flush()).map_err(io)?;
+        writeln!(self.writer, "{what}")
+            .and_then(|_| self.writer.flush())
+            .map_err(io)?;
         let mut header = String::new();
         let n = self.reader.read_line(&mut header).map_err(io)?;
         if n == 0 {
-            return Err(fail(ErrorKind::Disconnected, format!("{} closed the connection", self.path.display())));
+            return Err(fail(
+                ErrorKind::Disconnected,
+                format!("{} closed the connection", self.path.display()),
+            ));
         }
         let header = header.trim_end();
         if let Some(msg) = header.strip_prefix("error ") {
@@ -76,19 +94,32 @@ impl SocketCamera {
         }
         let parts: Vec<&str> = header.split(' ').collect();
         let parsed = match parts.as_slice() {
-            ["ok", w, h, _frame, ns] => match (w.parse::<u32>(), h.parse::<u32>(), ns.parse::<u64>()) {
-                (Ok(w), Ok(h), Ok(ns)) if w > 0 && h > 0 && u64::from(w) * u64::from(h) <= MAX_PIXELS => Some((w, h, ns)),
-                _ => None,
-            },
+            ["ok", w, h, _frame, ns] => {
+                match (w.parse::<u32>(), h.parse::<u32>(), ns.parse::<u64>()) {
+                    (Ok(w), Ok(h), Ok(ns))
+                        if w > 0 && h > 0 && u64::from(w) * u64::from(h) <= MAX_PIXELS =>
+                    {
+                        Some((w, h, ns))
+                    }
+                    _ => None,
+                }
+            }
             _ => None,
         };
         let Some((w, h, ns)) = parsed else {
-            return Err(fail(ErrorKind::Protocol, format!("unexpected reply header `{header}`")));
+            return Err(fail(
+                ErrorKind::Protocol,
+                format!("unexpected reply header `{header}`"),
+            ));
         };
         let mut pixels = vec![0u8; w as usize * h as usize * 3];
         self.reader.read_exact(&mut pixels).map_err(io)?;
-        let image = image::RgbImage::from_raw(w, h, pixels)
-            .ok_or_else(|| fail(ErrorKind::Protocol, "frame size does not match its header".into()))?;
+        let image = image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| {
+            fail(
+                ErrorKind::Protocol,
+                "frame size does not match its header".into(),
+            )
+        })?;
         Ok(CameraFrame {
             image,
             timestamp: UNIX_EPOCH + Duration::from_nanos(ns),

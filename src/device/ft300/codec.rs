@@ -357,7 +357,7 @@ impl Response {
         match frame.get(1) {
             Some(&FN_READ_HOLDING) => {
                 let n = *frame.get(2).ok_or_else(|| bad("too short"))? as usize;
-                if n % 2 != 0 || frame.len() != 5 + n {
+                if !n.is_multiple_of(2) || frame.len() != 5 + n {
                     return Err(bad("byte count does not match length"));
                 }
                 Ok(Response::ReadHolding {

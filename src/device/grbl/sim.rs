@@ -305,7 +305,7 @@ impl GrblSim {
             _ => 0.0,
         };
         s.push_str(&format!("|FS:{},0", feed.round() as i64));
-        if self.reports % 10 == 0 {
+        if self.reports.is_multiple_of(10) {
             s.push_str("|WCO:0.000,0.000,0.000");
         }
         if self.reports % 20 == 1 {
@@ -323,12 +323,9 @@ impl GrblSim {
         if self.held || self.mode != Mode::Idle {
             return;
         }
-        // `loop`, not `while dt > 0`: zero-length segments finish even when no
-        // time has passed.
-        loop {
-            let Some(seg) = self.queue.front().copied() else {
-                break;
-            };
+        // Loop over segments, not `while dt > 0`: zero-length segments finish even
+        // when no time has passed.
+        while let Some(seg) = self.queue.front().copied() {
             let d = dist(self.mpos, seg.target);
             let t_needed = d / seg.speed_mm_s;
             if seg.kind == SegKind::Probe {
