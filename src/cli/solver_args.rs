@@ -11,10 +11,12 @@ pub struct SolverArgs {
     #[arg(long, default_value = "pinv", value_parser = parse_method)]
     solver: Method,
     /// Regularisation for tikhonov and fourier: `gcv` (generalised cross-validation),
-    /// `lcurve` (L-curve corner), or a fixed value in mm/N (the units of H's singular
-    /// values; filter factor sigma^2 / (sigma^2 + lambda^2)).
-    #[arg(long, default_value = "gcv", value_parser = parse_lambda)]
-    lambda: Lambda,
+    /// `lcurve` (L-curve corner), a fixed value in mm/N (the units of H's singular
+    /// values; filter factor sigma^2 / (sigma^2 + lambda^2)), or `auto`: gcv for
+    /// tikhonov, lcurve for fourier (whose zero padding looks like noise-free data to
+    /// GCV, which then picks lambda about 10x too small).
+    #[arg(long, default_value = "auto", value_parser = parse_lambda)]
+    lambda: LambdaArg,
     /// Rank for tsvd: `auto` (chosen by GCV) or the number of singular values kept.
     #[arg(long, default_value = "auto", value_parser = parse_rank)]
     rank: Rank,
@@ -33,7 +35,11 @@ impl SolverArgs {
     pub fn config(&self) -> SolverConfig {
         SolverConfig {
             method: self.solver,
-            lambda: self.lambda,
+            lambda: match (self.lambda, self.solver) {
+                (LambdaArg::Given(l), _) => l,
+                (LambdaArg::Auto, Method::Fourier) => Lambda::LCurve,
+                (LambdaArg::Auto, _) => Lambda::Gcv,
+            },
             rank: self.rank,
             precision: self.precision,
             rcond: self.rcond,
@@ -46,8 +52,19 @@ fn parse_method(s: &str) -> Result<Method, String> {
     s.parse()
 }
 
-fn parse_lambda(s: &str) -> Result<Lambda, String> {
-    s.parse()
+/// `--lambda`: `auto` lets the method decide (see the flag's help).
+#[derive(Debug, Clone, Copy)]
+enum LambdaArg {
+    Auto,
+    Given(Lambda),
+}
+
+fn parse_lambda(s: &str) -> Result<LambdaArg, String> {
+    if s == "auto" {
+        Ok(LambdaArg::Auto)
+    } else {
+        s.parse().map(LambdaArg::Given)
+    }
 }
 
 fn parse_rank(s: &str) -> Result<Rank, String> {

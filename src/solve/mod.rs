@@ -279,7 +279,7 @@ pub struct Diagnostics {
     pub noise_gain: f64,
     /// λ in use, mm/N.
     pub lambda: Option<f64>,
-    /// Rank in use (TSVD).
+    /// Rank in use: the truncation rank (TSVD) or the numerical rank kept (pinv).
     pub rank: Option<usize>,
     /// Free-text notes (why an automatic choice came out as it did, cut-offs used).
     pub notes: Vec<String>,
