@@ -494,7 +494,7 @@ impl Window {
         if !(start_px[0].is_finite() && start_px[1].is_finite()) {
             return Located::OutOfImage;
         }
-        let mut c = [start_px[0].round() as i32, start_px[1].round() as i32];
+        let mut c = [round_px(start_px[0]), round_px(start_px[1])];
         let mut prev = [i32::MIN, i32::MIN];
         let mut last = Located::NoSignal;
         for _ in 0..max_iterations.max(1) {
@@ -512,7 +512,7 @@ impl Window {
                 background: m.background,
                 slope: m.slope,
             };
-            let next = [est[0].round() as i32, est[1].round() as i32];
+            let next = [round_px(est[0]), round_px(est[1])];
             // Converged, or a two-cycle between neighbouring pixels (centroid on a
             // half-pixel boundary): either window is centred within ~0.5 px.
             if next == c || next == prev {
@@ -598,6 +598,16 @@ unsafe fn sums_u8_avx2<const C: usize>(
         lanes.iter().map(|&x| x as i64).sum()
     };
     [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
+}
+
+/// `x.round() as i32` (half away from zero; NaN → 0) without a call: baseline x86-64
+/// has no rounding instruction, so `f64::round` is a libm call, and `locate` rounds
+/// twice per pass. Exact for |x| < 2³¹ (the fraction `x − trunc(x)` is exact).
+#[inline(always)]
+fn round_px(x: f64) -> i32 {
+    let t = x as i32;
+    let f = x - t as f64;
+    t + (f >= 0.5) as i32 - (f <= -0.5) as i32
 }
 
 /// The paper's window search: centre of mass of `max(0, s − threshold)` over the square
@@ -804,5 +814,15 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn round_px_matches_f64_round() {
+        for x in [
+            0.0, 0.49, 0.5, 0.51, 1.5, 2.5, -0.5, -0.49, -1.5, -2.51, 123.4999, 429.5, -7.0,
+        ] {
+            assert_eq!(round_px(x), x.round() as i32, "{x}");
+        }
+        assert_eq!(round_px(f64::NAN), 0);
     }
 }
