@@ -3,10 +3,14 @@
 //! Frames come from the `sim` ideal renderer with σ = 2 pixel noise added here.
 //! Paper (Table II): 2.9 ms for tracking + reconstruction on a 1.8 GHz Pentium 4.
 //!
+//! The tracking benches run twice: timed by the wall clock, and by this thread's CPU
+//! time (`vision/cpu_*`; the machine is shared, so wall time includes waiting).
+//!
 //! Run: `cargo bench --bench vision`.
 
 use std::hint::black_box;
 
+use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{criterion_group, criterion_main, Criterion};
 use image::RgbImage;
 use tactbench::sensor::paper_sensor;
@@ -36,7 +40,79 @@ fn frame(shift_px: f64, seed: u64) -> RgbImage {
     img
 }
 
+/// Criterion measurement of this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), so
+/// figures on the shared, loaded machine are not inflated by time spent waiting for a
+/// core. Read once per sample of many iterations.
+struct CpuTime;
+
+#[repr(C)]
+struct Timespec {
+    tv_sec: i64,
+    tv_nsec: i64,
+}
+
+extern "C" {
+    // From the C library std already links (Linux x86-64 `timespec` layout).
+    fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
+}
+
+/// This thread's CPU time, ns.
+fn thread_cpu_ns() -> u64 {
+    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
+    let mut t = Timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid, writable timespec for the call's duration.
+    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    assert_eq!(rc, 0, "clock_gettime(CLOCK_THREAD_CPUTIME_ID) failed");
+    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+}
+
+impl Measurement for CpuTime {
+    type Intermediate = u64;
+    type Value = u64;
+    fn start(&self) -> u64 {
+        thread_cpu_ns()
+    }
+    fn end(&self, start: u64) -> u64 {
+        thread_cpu_ns().saturating_sub(start)
+    }
+    fn add(&self, a: &u64, b: &u64) -> u64 {
+        a + b
+    }
+    fn zero(&self) -> u64 {
+        0
+    }
+    fn to_f64(&self, v: &u64) -> f64 {
+        *v as f64
+    }
+    fn formatter(&self) -> &dyn ValueFormatter {
+        WallTime.formatter()
+    }
+}
+
 fn vision(c: &mut Criterion) {
+    detection(c);
+    tracking(c, "");
+}
+
+fn vision_cpu(c: &mut Criterion<CpuTime>) {
+    tracking(c, "cpu_");
+}
+
+fn detection(c: &mut Criterion) {
+    let s = paper_sensor();
+    let reference = frame(0.0, 1);
+    let reference_view = FrameView::rgb8(&reference);
+    c.bench_function("vision/detect_reference_paper_430x340", |b| {
+        b.iter(|| detect(black_box(&reference_view), &s, &DetectConfig::default()).unwrap())
+    });
+}
+
+/// The tracking benches, timed by `M` (wall clock, or thread CPU time with `prefix`
+/// `"cpu_"`).
+fn tracking<M: Measurement + 'static>(c: &mut Criterion<M>, prefix: &str) {
     let s = paper_sensor();
     let reference = frame(0.0, 1);
     let shifted = frame(3.0, 2);
@@ -45,11 +121,6 @@ fn vision(c: &mut Criterion) {
         .map(|k| frame(3.0 + 0.25 * k as f64, 10 + k))
         .collect();
     let reference_view = FrameView::rgb8(&reference);
-
-    c.bench_function("vision/detect_reference_paper_430x340", |b| {
-        b.iter(|| detect(black_box(&reference_view), &s, &DetectConfig::default()).unwrap())
-    });
-
     let r = detect(&reference_view, &s, &DetectConfig::default()).unwrap();
     assert_eq!(r.markers.len(), 260);
 
@@ -62,9 +133,10 @@ fn vision(c: &mut Criterion) {
         },
     );
     let view = FrameView::rgb8(&shifted);
-    c.bench_function("vision/track_per_window_paper_260_markers", |b| {
-        b.iter(|| per_window.track(black_box(&view)).unwrap().len())
-    });
+    c.bench_function(
+        &format!("vision/{prefix}track_per_window_paper_260_markers"),
+        |b| b.iter(|| per_window.track(black_box(&view)).unwrap().len()),
+    );
 
     // Frame-to-frame on a steady sequence (markers move 0.25 px every frame; each
     // window starts at the last position plus the last velocity). The wrap from the
@@ -75,13 +147,21 @@ fn vision(c: &mut Criterion) {
         f2f.track(v).unwrap();
     }
     let mut k = 0;
-    c.bench_function("vision/track_frame_to_frame_paper_260_markers", |b| {
-        b.iter(|| {
-            k = (k + 1) % views.len();
-            f2f.track(black_box(&views[k])).unwrap().len()
-        })
-    });
+    c.bench_function(
+        &format!("vision/{prefix}track_frame_to_frame_paper_260_markers"),
+        |b| {
+            b.iter(|| {
+                k = (k + 1) % views.len();
+                f2f.track(black_box(&views[k])).unwrap().len()
+            })
+        },
+    );
 }
 
 criterion_group!(benches, vision);
-criterion_main!(benches);
+criterion_group! {
+    name = cpu;
+    config = Criterion::default().with_measurement(CpuTime);
+    targets = vision_cpu
+}
+criterion_main!(benches, cpu);
