@@ -27,6 +27,8 @@ struct Case {
     layers: Vec<(&'static str, f64)>,
     noise_mm: f64,
     seed: u64,
+    /// Forces to apply (N, interleaved); `None` = uniform random in ±0.1 N.
+    forces: Option<Vec<f64>>,
 }
 
 /// Writes a paper-geometry sensor file (markers every 1.5 mm, 10×8 forces every 2.2 mm)
@@ -46,7 +48,10 @@ fn write_case(dir: &Path, case: &Case) -> Vec<f64> {
     std::fs::write(dir.join("sensor.toml"), toml).unwrap();
 
     let mut rng = Rng::new(case.seed);
-    let forces: Vec<f64> = (0..240).map(|_| 0.2 * (rng.uniform() - 0.5)).collect();
+    let forces: Vec<f64> = match &case.forces {
+        Some(f) => f.clone(),
+        None => (0..240).map(|_| 0.2 * (rng.uniform() - 0.5)).collect(),
+    };
     let mut csv = String::from("layer,marker,x_mm,y_mm,ux_mm,uy_mm\n");
     for (name, depth) in &case.layers {
         for iy in 0..10 {
@@ -121,6 +126,7 @@ fn reconstruct_pinv_recovers_independent_eq12_forces_to_1e_6() {
             layers: vec![("blue", 3.0), ("red", 6.0)],
             noise_mm: 0.0,
             seed: 7,
+            forces: None,
         },
     );
     let out = reconstruct(dir.path(), &["--solver", "pinv"]);
@@ -144,6 +150,7 @@ fn reconstruct_writes_design_columns_in_row_major_order() {
             layers: vec![("blue", 3.0), ("red", 6.0)],
             noise_mm: 0.0,
             seed: 1,
+            forces: None,
         },
     );
     let out = reconstruct(dir.path(), &[]);
@@ -165,6 +172,7 @@ fn regularised_solvers_stay_finite_and_accurate_on_noisy_single_layer() {
             layers: vec![("blue", 3.0)],
             noise_mm: 0.005,
             seed: 3,
+            forces: None,
         },
     );
     let mut errors = Vec::new();
@@ -180,6 +188,7 @@ fn regularised_solvers_stay_finite_and_accurate_on_noisy_single_layer() {
         assert!(f.iter().all(|v| v.is_finite()), "{args:?}");
         errors.push((args[1], rel_err(&f, &truth)));
     }
+    eprintln!("single layer, 0.005 mm noise, relative force error: {errors:?}");
     let pinv = errors[0].1;
     for (name, e) in &errors[1..] {
         // The single-layer system is ill-conditioned: the paper's pinv amplifies 0.1 px
@@ -193,6 +202,63 @@ fn regularised_solvers_stay_finite_and_accurate_on_noisy_single_layer() {
 }
 
 #[test]
+fn regularised_solvers_recover_a_smooth_press_on_noisy_single_layer() {
+    // The paper's Fig. 6 load (100 gf normal, 50 gf tangential over 4×4 nodes) seen by
+    // one layer only (condition number ~1e6) with 0.1 px = 0.005 mm noise.
+    let truth = util_fig6_forces();
+    let dir = tempfile::tempdir().unwrap();
+    write_case(
+        dir.path(),
+        &Case {
+            layers: vec![("blue", 3.0)],
+            noise_mm: 0.005,
+            seed: 11,
+            forces: Some(truth.clone()),
+        },
+    );
+    let sum = |f: &[f64], a: usize| f.iter().skip(a).step_by(3).sum::<f64>();
+    let mut report = Vec::new();
+    for args in [
+        &["--solver", "pinv"][..],
+        &["--solver", "tikhonov"],
+        &["--solver", "tikhonov", "--lambda", "lcurve"],
+        &["--solver", "tsvd"],
+    ] {
+        let out = reconstruct(dir.path(), args);
+        assert!(out.status.success(), "{args:?}: {}", util::stderr(&out));
+        let f = read_forces(&dir.path().join("f.csv"));
+        assert!(f.iter().all(|v| v.is_finite()), "{args:?}");
+        report.push((
+            args.get(1..).map(|a| a.join(" ")).unwrap_or_default(),
+            rel_err(&f, &truth),
+            sum(&f, 2),
+            sum(&f, 1),
+        ));
+    }
+    eprintln!(
+        "fig6 load, single layer, 0.005 mm noise (method, relative error, ΣFz, ΣFy): {report:?}"
+    );
+    let (fz, fy) = (sum(&truth, 2), sum(&truth, 1));
+    for (name, e, sz, sy) in &report[1..] {
+        // Measured: pinv is off by 3000× (ΣFz = −2047 N for 0.98 N); the regularised
+        // solvers keep the field within 70 % of its norm and the tangential sum within
+        // 5 %. Zero-order regularisation shrinks the normal sum on one layer (ΣFz 0.59–
+        // 0.74 N of 0.98 N): bounded and explained, not accurate — use two layers.
+        assert!(*e < 0.7 && *e < report[0].1 / 100.0, "{name}: {e}");
+        assert!((sy - fy).abs() < 0.05 * fy, "{name}: ΣFy {sy} vs {fy}");
+        assert!(
+            *sz > 0.5 * fz && *sz < 1.05 * fz,
+            "{name}: ΣFz {sz} vs {fz}"
+        );
+    }
+}
+
+/// The bundled Fig. 6 forces (N, interleaved).
+fn util_fig6_forces() -> Vec<f64> {
+    read_forces(&util::root("experiments/examples/fig6_forces.csv"))
+}
+
+#[test]
 fn lost_markers_are_dropped_and_counted() {
     let dir = tempfile::tempdir().unwrap();
     let truth = write_case(
@@ -201,6 +267,7 @@ fn lost_markers_are_dropped_and_counted() {
             layers: vec![("blue", 3.0), ("red", 6.0)],
             noise_mm: 0.0,
             seed: 5,
+            forces: None,
         },
     );
     let text = std::fs::read_to_string(dir.path().join("d.csv")).unwrap();
@@ -246,6 +313,7 @@ fn bad_displacements_get_a_clear_error_and_no_output() {
             layers: vec![("blue", 3.0), ("red", 6.0)],
             noise_mm: 0.0,
             seed: 2,
+            forces: None,
         },
     );
     let text = std::fs::read_to_string(dir.path().join("d.csv")).unwrap();
