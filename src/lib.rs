@@ -8,6 +8,7 @@
 #![warn(missing_docs)]
 
 pub mod bench;
+pub mod config;
 pub mod device;
 pub mod formats;
 pub mod model;

@@ -41,45 +41,15 @@
 
 use std::collections::HashSet;
 use std::fmt;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::Deserialize;
-use thiserror::Error;
 
+use crate::config::{self, Checker, ConfigError};
 use crate::units;
 
-/// An error reading or validating a sensor file. Every variant names the file.
-#[derive(Debug, Error)]
-pub enum SensorError {
-    /// The file could not be read.
-    #[error("cannot read sensor file {path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
-    /// The file is not valid TOML for the schema (syntax, unknown key, wrong type).
-    #[error("{path}: {message}")]
-    Parse {
-        /// The file.
-        path: PathBuf,
-        /// The parser's message, with line and column.
-        message: String,
-    },
-    /// A value is out of its allowed range.
-    #[error("{path}: {key} = {value} is invalid: {allowed}")]
-    Invalid {
-        /// The file.
-        path: PathBuf,
-        /// The offending key, e.g. `elastomer.poisson_ratio` or `layers[1].depth_mm`.
-        key: String,
-        /// The offending value as written.
-        value: String,
-        /// What is allowed, with units.
-        allowed: String,
-    },
-}
+/// An error reading or validating a sensor file (file, key, value, allowed range).
+pub type SensorError = ConfigError;
 
 /// Colour of a marker layer, used by the tracker and the renderer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -268,20 +238,14 @@ impl Sensor {
     /// Reads and validates a sensor file.
     pub fn from_path(path: impl AsRef<Path>) -> Result<Sensor, SensorError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| SensorError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = config::read_text(path, "sensor file")?;
         Sensor::from_toml_str(&text, path)
     }
 
     /// Parses and validates sensor TOML; `path` is used in error messages only.
     pub fn from_toml_str(text: &str, path: impl AsRef<Path>) -> Result<Sensor, SensorError> {
         let path = path.as_ref();
-        let raw: RawSensor = toml::from_str(text).map_err(|e| SensorError::Parse {
-            path: path.to_path_buf(),
-            message: e.to_string().trim_end().to_string(),
-        })?;
+        let raw: RawSensor = config::parse_toml(text, path)?;
         raw.validate(path)
     }
 
@@ -392,64 +356,25 @@ struct RawCamera {
     height_px: i64,
 }
 
-/// Collects the checks of one file so each error names the file and key.
-struct Checker<'a> {
-    path: &'a Path,
-}
-
-impl Checker<'_> {
-    fn invalid(&self, key: &str, value: impl fmt::Display, allowed: &str) -> SensorError {
-        SensorError::Invalid {
-            path: self.path.to_path_buf(),
-            key: key.to_string(),
-            value: value.to_string(),
-            allowed: allowed.to_string(),
-        }
-    }
-
-    fn positive(&self, key: &str, v: f64, unit: &str) -> Result<f64, SensorError> {
-        if v.is_finite() && v > 0.0 {
-            Ok(v)
-        } else {
-            Err(self.invalid(key, v, &format!("must be a finite number > 0 {unit}")))
-        }
-    }
-
-    fn finite(&self, key: &str, v: f64, unit: &str) -> Result<f64, SensorError> {
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(self.invalid(key, v, &format!("must be a finite number ({unit})")))
-        }
-    }
-
-    fn count(&self, key: &str, v: i64, max: i64) -> Result<usize, SensorError> {
-        if (1..=max).contains(&v) {
-            Ok(v as usize)
-        } else {
-            Err(self.invalid(key, v, &format!("must be an integer in [1, {max}]")))
-        }
-    }
-
-    fn grid(
-        &self,
-        key: &str,
-        nx: i64,
-        ny: i64,
-        pitch: f64,
-        origin: [f64; 2],
-    ) -> Result<Grid, SensorError> {
-        const MAX_NODES: i64 = 4096;
-        Ok(Grid {
-            nx: self.count(&format!("{key}.nx"), nx, MAX_NODES)?,
-            ny: self.count(&format!("{key}.ny"), ny, MAX_NODES)?,
-            pitch_mm: self.positive(&format!("{key}.pitch_mm"), pitch, "mm")?,
-            origin_mm: [
-                self.finite(&format!("{key}.origin_mm[0]"), origin[0], "mm")?,
-                self.finite(&format!("{key}.origin_mm[1]"), origin[1], "mm")?,
-            ],
-        })
-    }
+/// A regular grid's keys, checked.
+fn check_grid(
+    c: &Checker<'_>,
+    key: &str,
+    nx: i64,
+    ny: i64,
+    pitch: f64,
+    origin: [f64; 2],
+) -> Result<Grid, SensorError> {
+    const MAX_NODES: i64 = 4096;
+    Ok(Grid {
+        nx: c.count(&format!("{key}.nx"), nx, MAX_NODES)?,
+        ny: c.count(&format!("{key}.ny"), ny, MAX_NODES)?,
+        pitch_mm: c.positive(&format!("{key}.pitch_mm"), pitch, "mm")?,
+        origin_mm: [
+            c.finite(&format!("{key}.origin_mm[0]"), origin[0], "mm")?,
+            c.finite(&format!("{key}.origin_mm[1]"), origin[1], "mm")?,
+        ],
+    })
 }
 
 impl RawSensor {
@@ -505,14 +430,14 @@ impl RawSensor {
                 return Err(c.invalid(
                     &format!("{key}.depth_mm"),
                     depth,
-                    &format!("must be less than elastomer.thickness_mm = {thickness} mm"),
+                    format!("must be less than elastomer.thickness_mm = {thickness} mm"),
                 ));
             }
             let markers = match l.markers {
                 None => None,
                 Some(m) => {
                     let mkey = format!("{key}.markers");
-                    let grid = c.grid(&mkey, m.nx, m.ny, m.pitch_mm, m.origin_mm)?;
+                    let grid = check_grid(&c, &mkey, m.nx, m.ny, m.pitch_mm, m.origin_mm)?;
                     let d = c.positive(&format!("{mkey}.diameter_mm"), m.diameter_mm, "mm")?;
                     Some(MarkerGrid {
                         grid,
@@ -529,7 +454,7 @@ impl RawSensor {
         }
 
         let g = &self.force_grid;
-        let force_grid = c.grid("force_grid", g.nx, g.ny, g.pitch_mm, g.origin_mm)?;
+        let force_grid = check_grid(&c, "force_grid", g.nx, g.ny, g.pitch_mm, g.origin_mm)?;
 
         let cam = &self.camera;
         let camera = CameraMapping {

@@ -56,43 +56,12 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
-use thiserror::Error;
-
+use crate::config::{self, Checker, ConfigError};
 use crate::units::ForceUnit;
+use serde::Deserialize;
 
-/// An error reading or validating a plan. Every variant names the file.
-#[derive(Debug, Error)]
-pub enum PlanError {
-    /// The file could not be read.
-    #[error("cannot read plan {path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
-    /// Not valid TOML for the schema (syntax, unknown key, wrong type), with line.
-    #[error("{path}: {message}")]
-    Parse {
-        /// The file.
-        path: PathBuf,
-        /// The parser's message.
-        message: String,
-    },
-    /// A value is out of range.
-    #[error("{path}: {key} = {value} is invalid: {allowed}")]
-    Invalid {
-        /// The file.
-        path: PathBuf,
-        /// The key, e.g. `sweep.step`.
-        key: String,
-        /// The value as written, with its unit.
-        value: String,
-        /// What is allowed.
-        allowed: String,
-    },
-}
+/// An error reading or validating a plan (file, key, value with unit, allowed range).
+pub type PlanError = ConfigError;
 
 /// The indenter mounted on the stage.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -259,20 +228,14 @@ impl Plan {
     /// Reads and validates a plan file.
     pub fn from_path(path: impl AsRef<Path>) -> Result<Plan, PlanError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| PlanError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = config::read_text(path, "plan")?;
         Plan::from_toml_str(&text, path)
     }
 
     /// Parses and validates plan TOML; `path` locates the sensor file and names errors.
     pub fn from_toml_str(text: &str, path: impl AsRef<Path>) -> Result<Plan, PlanError> {
         let path = path.as_ref();
-        let raw: RawPlan = toml::from_str(text).map_err(|e| PlanError::Parse {
-            path: path.to_path_buf(),
-            message: e.to_string().trim_end().to_string(),
-        })?;
+        let raw: RawPlan = config::parse_toml(text, path)?;
         raw.validate(path)
     }
 
@@ -563,79 +526,20 @@ struct RawPoint {
     tangential: [f64; 2],
 }
 
-struct Check<'a> {
-    path: &'a Path,
-}
-
-impl Check<'_> {
-    fn invalid(
-        &self,
-        key: &str,
-        value: impl fmt::Display,
-        allowed: impl Into<String>,
-    ) -> PlanError {
-        PlanError::Invalid {
-            path: self.path.to_path_buf(),
-            key: key.into(),
-            value: value.to_string(),
-            allowed: allowed.into(),
-        }
-    }
-
-    fn positive(&self, key: &str, v: f64, unit: &str) -> Result<f64, PlanError> {
-        if v.is_finite() && v > 0.0 {
-            Ok(v)
-        } else {
-            Err(self.invalid(
-                key,
-                format!("{v} {unit}"),
-                format!("must be a finite number > 0 {unit}"),
-            ))
-        }
-    }
-
-    fn non_negative(&self, key: &str, v: f64, unit: &str) -> Result<f64, PlanError> {
-        if v.is_finite() && v >= 0.0 {
-            Ok(v)
-        } else {
-            Err(self.invalid(
-                key,
-                format!("{v} {unit}"),
-                format!("must be a finite number >= 0 {unit}"),
-            ))
-        }
-    }
-
-    fn finite(&self, key: &str, v: f64, unit: &str) -> Result<f64, PlanError> {
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(self.invalid(key, format!("{v} {unit}"), "must be finite"))
-        }
-    }
-
-    fn count(&self, key: &str, v: i64, max: i64) -> Result<usize, PlanError> {
-        if (1..=max).contains(&v) {
-            Ok(v as usize)
-        } else {
-            Err(self.invalid(key, v, format!("must be an integer in [1, {max}]")))
-        }
-    }
-
-    fn need<T>(&self, key: &str, v: Option<T>, kind: &str) -> Result<T, PlanError> {
-        v.ok_or_else(|| {
-            self.invalid(
-                key,
-                "(missing)",
-                format!("required by sweep kind \"{kind}\""),
-            )
-        })
-    }
+/// A key the chosen sweep kind requires.
+fn need<T>(c: &Checker<'_>, key: &str, v: Option<T>, kind: &str) -> Result<T, PlanError> {
+    v.ok_or_else(|| {
+        c.invalid(
+            key,
+            "(missing)",
+            format!("required by sweep kind \"{kind}\""),
+        )
+    })
 }
 
 impl RawPlan {
     fn validate(self, path: &Path) -> Result<Plan, PlanError> {
-        let c = Check { path };
+        let c = Checker { path };
         let unit: ForceUnit = self
             .force_unit
             .parse()
@@ -645,7 +549,8 @@ impl RawPlan {
 
         let indenter = match self.indenter.shape.as_str() {
             "flat" | "hemisphere" => {
-                let d = c.need(
+                let d = need(
+                    &c,
                     "indenter.diameter_mm",
                     self.indenter.diameter_mm,
                     &self.indenter.shape,
@@ -742,13 +647,13 @@ impl RawPlan {
 
         let sw = self.sweep;
         let kind = sw.kind.clone();
-        let trials = |c: &Check| c.count("sweep.trials", sw.trials.unwrap_or(1), 10_000);
+        let trials = |c: &Checker| c.count("sweep.trials", sw.trials.unwrap_or(1), 10_000);
         let sweep = match kind.as_str() {
             "magnitude" => {
                 let from =
-                    c.non_negative("sweep.from", c.need("sweep.from", sw.from, &kind)?, fu)?;
-                let to = c.non_negative("sweep.to", c.need("sweep.to", sw.to, &kind)?, fu)?;
-                let step = c.positive("sweep.step", c.need("sweep.step", sw.step, &kind)?, fu)?;
+                    c.non_negative("sweep.from", need(&c, "sweep.from", sw.from, &kind)?, fu)?;
+                let to = c.non_negative("sweep.to", need(&c, "sweep.to", sw.to, &kind)?, fu)?;
+                let step = c.positive("sweep.step", need(&c, "sweep.step", sw.step, &kind)?, fu)?;
                 if to < from {
                     return Err(c.invalid(
                         "sweep.to",
@@ -765,9 +670,9 @@ impl RawPlan {
             }
             "angle" => {
                 let force =
-                    c.positive("sweep.force", c.need("sweep.force", sw.force, &kind)?, fu)?;
-                let from_deg = c.need("sweep.angle_from_deg", sw.angle_from_deg, &kind)?;
-                let to_deg = c.need("sweep.angle_to_deg", sw.angle_to_deg, &kind)?;
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let from_deg = need(&c, "sweep.angle_from_deg", sw.angle_from_deg, &kind)?;
+                let to_deg = need(&c, "sweep.angle_to_deg", sw.angle_to_deg, &kind)?;
                 for (key, v) in [
                     ("sweep.angle_from_deg", from_deg),
                     ("sweep.angle_to_deg", to_deg),
@@ -793,7 +698,7 @@ impl RawPlan {
                     to_deg,
                     step_deg: c.positive(
                         "sweep.angle_step_deg",
-                        c.need("sweep.angle_step_deg", sw.angle_step_deg, &kind)?,
+                        need(&c, "sweep.angle_step_deg", sw.angle_step_deg, &kind)?,
                         "deg",
                     )?,
                     direction_deg: c.finite(
@@ -806,9 +711,9 @@ impl RawPlan {
             }
             "spatial" => {
                 let force =
-                    c.positive("sweep.force", c.need("sweep.force", sw.force, &kind)?, fu)?;
-                let start_mm = c.need("sweep.start_mm", sw.start_mm, &kind)?;
-                let end_mm = c.need("sweep.end_mm", sw.end_mm, &kind)?;
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let start_mm = need(&c, "sweep.start_mm", sw.start_mm, &kind)?;
+                let end_mm = need(&c, "sweep.end_mm", sw.end_mm, &kind)?;
                 for (key, p) in [("sweep.start_mm", start_mm), ("sweep.end_mm", end_mm)] {
                     c.finite(key, p[0], "mm")?;
                     c.finite(key, p[1], "mm")?;
@@ -819,13 +724,13 @@ impl RawPlan {
                     end_mm,
                     subdivisions: c.count(
                         "sweep.subdivisions",
-                        c.need("sweep.subdivisions", sw.subdivisions, &kind)?,
+                        need(&c, "sweep.subdivisions", sw.subdivisions, &kind)?,
                         10_000,
                     )?,
                 }
             }
             "displacement" => {
-                let shift_mm = c.need("sweep.shift_mm", sw.shift_mm, &kind)?;
+                let shift_mm = need(&c, "sweep.shift_mm", sw.shift_mm, &kind)?;
                 c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
                 c.finite("sweep.shift_mm[1]", shift_mm[1], "mm")?;
                 Sweep::Displacement {
@@ -834,7 +739,7 @@ impl RawPlan {
                 }
             }
             "setpoints" => {
-                let points = c.need("sweep.points", sw.points, &kind)?;
+                let points = need(&c, "sweep.points", sw.points, &kind)?;
                 if points.is_empty() {
                     return Err(c.invalid(
                         "sweep.points",
