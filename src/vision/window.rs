@@ -15,7 +15,9 @@
 //! `sample × weight` over whole rows with precomputed per-sample weights — a plain
 //! integer dot product, with no de-interleaving (for 8-bit frames on a CPU with AVX2,
 //! detected at run time, an explicit kernel does it 16 samples per `vpmaddwd`: the
-//! compiler alone uses 4 lanes on baseline x86-64; the sums are bit-identical); the
+//! compiler alone uses 4 lanes on baseline x86-64; with AVX-512 F+BW a 512-bit variant
+//! takes 32 samples per `vpmaddwd`, so a paper-sensor window row is two blocks instead
+//! of four; the sums are bit-identical on every path); the
 //! *clamped* one scores `max(0, s + 2K)` per pixel (`K` = 8 levels of 8 bits, so the
 //! background noise is not clipped) and is used by the tracker when the ring's
 //! background plane moved away from the reference's: a strongly negative foreign blob
