@@ -15,7 +15,9 @@
 //! `sample × weight` over whole rows with precomputed per-sample weights — a plain
 //! integer dot product, with no de-interleaving (for 8-bit frames on a CPU with AVX2,
 //! detected at run time, an explicit kernel does it 16 samples per `vpmaddwd`: the
-//! compiler alone uses 4 lanes on baseline x86-64; the sums are bit-identical); the
+//! compiler alone uses 4 lanes on baseline x86-64; with AVX-512 F+BW a 512-bit variant
+//! takes 32 samples per `vpmaddwd`, so a paper-sensor window row is two blocks instead
+//! of four; the sums are bit-identical on every path); the
 //! *clamped* one scores `max(0, s + 2K)` per pixel (`K` = 8 levels of 8 bits, so the
 //! background noise is not clipped) and is used by the tracker when the ring's
 //! background plane moved away from the reference's: a strongly negative foreign blob
@@ -162,6 +164,8 @@ pub(crate) struct Window {
     linear: [LinearWeights; 2],
     /// The CPU has AVX2: 8-bit frames take the SIMD kernel [`sums_u8_avx2`].
     avx2: bool,
+    /// The CPU has AVX-512 F and BW: 8-bit frames take [`sums_u8_avx512`] (preferred).
+    avx512: bool,
 }
 
 /// One row of the linear kernel: samples `[start, start + len)` of the row `dy`,
@@ -176,10 +180,17 @@ struct LinearRow {
     block_offset: usize,
     /// Blocks of [`LANES`] samples covering `len` (the last one zero-padded).
     blocks: usize,
+    /// Start of this row's blocks in [`LinearWeights::blocks512`].
+    block512_offset: usize,
+    /// Blocks of [`LANES512`] samples covering `len` (the last one zero-padded).
+    blocks512: usize,
 }
 
 /// Samples per block of the SIMD kernel (one 256-bit register of 16-bit lanes).
 const LANES: usize = 16;
+
+/// Samples per block of the AVX-512 kernel (one 512-bit register of 16-bit lanes).
+const LANES512: usize = 32;
 
 /// Per-sample weights of the linear kernel for one pixel layout and colour: the score
 /// `3·I_c − (R + G + B)` times aperture / ring membership, and times `dx`. Summing
@@ -196,6 +207,8 @@ struct LinearWeights {
     /// `ap`, `ap_dx`, `ring`, `ring_dx` weights of those samples one after the other
     /// (`4 × LANES` values), zero beyond the row's end.
     blocks: Vec<i16>,
+    /// As `blocks`, in blocks of [`LANES512`] samples for the AVX-512 kernel.
+    blocks512: Vec<i16>,
 }
 
 /// Background-corrected moments of one window.
@@ -259,6 +272,11 @@ impl Window {
             avx2: std::is_x86_feature_detected!("avx2"),
             #[cfg(not(target_arch = "x86_64"))]
             avx2: false,
+            #[cfg(target_arch = "x86_64")]
+            avx512: std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512bw"),
+            #[cfg(not(target_arch = "x86_64"))]
+            avx512: false,
         };
         for dy in -half..=half {
             let row = Row {
@@ -311,16 +329,25 @@ impl Window {
                 }
             }
             let len = lw.ap.len() - offset;
-            let blocks = len.div_ceil(LANES);
-            let block_offset = lw.blocks.len();
-            for b in 0..blocks {
-                for arr in [&lw.ap, &lw.ap_dx, &lw.ring, &lw.ring_dx] {
-                    for l in 0..LANES {
-                        let i = b * LANES + l;
-                        lw.blocks.push(if i < len { arr[offset + i] } else { 0 });
+            // Per block of `lanes` samples: the four weight vectors one after the other.
+            let pack = |lanes: usize, out: &mut Vec<i16>| -> (usize, usize) {
+                let (start, blocks) = (out.len(), len.div_ceil(lanes));
+                for b in 0..blocks {
+                    for arr in [&lw.ap, &lw.ap_dx, &lw.ring, &lw.ring_dx] {
+                        for l in 0..lanes {
+                            let i = b * lanes + l;
+                            out.push(if i < len { arr[offset + i] } else { 0 });
+                        }
                     }
                 }
-            }
+                (start, blocks)
+            };
+            let mut packed = std::mem::take(&mut lw.blocks);
+            let (block_offset, blocks) = pack(LANES, &mut packed);
+            let mut packed512 = std::mem::take(&mut lw.blocks512);
+            let (block512_offset, blocks512) = pack(LANES512, &mut packed512);
+            lw.blocks = packed;
+            lw.blocks512 = packed512;
             lw.rows.push(LinearRow {
                 dy: k as i32 - h,
                 lo,
@@ -328,6 +355,8 @@ impl Window {
                 len,
                 block_offset,
                 blocks,
+                block512_offset,
+                blocks512,
             });
         }
         lw
@@ -394,15 +423,27 @@ impl Window {
         cy: i32,
     ) -> [i64; 6] {
         let lw = &self.linear[(C == 4) as usize];
+        // The last block of the window's last row may read past the row's end
+        // (weights 0 there) but must stay inside the buffer.
+        let last_read = |lanes: usize, blocks: fn(&LinearRow) -> usize| {
+            lw.rows.last().map_or(0, |r| {
+                ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C + blocks(r) * lanes
+            })
+        };
+        #[cfg(target_arch = "x86_64")]
+        if self.avx512 {
+            if let Some(bytes) = T::as_bytes(img.data) {
+                if last_read(LANES512, |r| r.blocks512) <= bytes.len() {
+                    // SAFETY: AVX-512 F/BW were detected at run time (`Window::new`),
+                    // and every block read lies inside `bytes` (checked just above).
+                    return unsafe { sums_u8_avx512::<C>(lw, bytes, img.width, cx, cy) };
+                }
+            }
+        }
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             if let Some(bytes) = T::as_bytes(img.data) {
-                // The last block of the window's last row may read past the row's end
-                // (weights 0 there) but must stay inside the buffer.
-                let last = lw.rows.last().map_or(0, |r| {
-                    ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C + r.blocks * LANES
-                });
-                if last <= bytes.len() {
+                if last_read(LANES, |r| r.blocks) <= bytes.len() {
                     // SAFETY: AVX2 was detected at run time (`Window::new`), and every
                     // block read lies inside `bytes` (checked just above: rows are in
                     // increasing address order, the last ends furthest).
@@ -600,6 +641,48 @@ unsafe fn sums_u8_avx2<const C: usize>(
     [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
 }
 
+/// [`sums_u8_avx2`] with 512-bit registers: 32 samples per block (one widening
+/// 256-bit load, four `vpmaddwd` of 32 × i16), so a window row of the paper sensor
+/// (≤ 19 px × 3 samples) takes two blocks instead of four. Same integer sums, bit-identical.
+///
+/// # Safety
+/// The CPU must support AVX-512 F and BW, and for every row `r` of `lw` the
+/// `r.blocks512 × 32` bytes from the row's start must lie inside `data`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn sums_u8_avx512<const C: usize>(
+    lw: &LinearWeights,
+    data: &[u8],
+    width: usize,
+    cx: i32,
+    cy: i32,
+) -> [i64; 6] {
+    use std::arch::x86_64::*;
+    let z = _mm512_setzero_si512();
+    let (mut a0, mut a1, mut a0y, mut b0, mut b1, mut b0y) = (z, z, z, z, z, z);
+    let w = lw.blocks512.as_ptr();
+    for r in &lw.rows {
+        let start = ((cy + r.dy) as usize * width + (cx + r.lo) as usize) * C;
+        let p = data.as_ptr().add(start);
+        let (mut ra0, mut rb0) = (z, z);
+        for b in 0..r.blocks512 {
+            let v = _mm512_cvtepu8_epi16(_mm256_loadu_si256(p.add(b * LANES512) as *const __m256i));
+            let wb = w.add(r.block512_offset + b * 4 * LANES512) as *const __m512i;
+            ra0 = _mm512_add_epi32(ra0, _mm512_madd_epi16(v, _mm512_loadu_si512(wb)));
+            a1 = _mm512_add_epi32(a1, _mm512_madd_epi16(v, _mm512_loadu_si512(wb.add(1))));
+            rb0 = _mm512_add_epi32(rb0, _mm512_madd_epi16(v, _mm512_loadu_si512(wb.add(2))));
+            b1 = _mm512_add_epi32(b1, _mm512_madd_epi16(v, _mm512_loadu_si512(wb.add(3))));
+        }
+        let dy = _mm512_set1_epi32(r.dy);
+        a0 = _mm512_add_epi32(a0, ra0);
+        a0y = _mm512_add_epi32(a0y, _mm512_mullo_epi32(ra0, dy));
+        b0 = _mm512_add_epi32(b0, rb0);
+        b0y = _mm512_add_epi32(b0y, _mm512_mullo_epi32(rb0, dy));
+    }
+    let hsum = |v: __m512i| -> i64 { _mm512_reduce_add_epi32(v) as i64 };
+    [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
+}
+
 /// `x.round() as i32` (half away from zero; NaN → 0) without a call: baseline x86-64
 /// has no rounding instruction, so `f64::round` is a libm call, and `locate` rounds
 /// twice per pass. Exact for |x| < 2³¹ (the fraction `x − trunc(x)` is exact).
@@ -785,7 +868,9 @@ mod tests {
         let d3: Vec<u8> = (0..wd * ht * 3).map(|_| next()).collect();
         let d4: Vec<u8> = (0..wd * ht * 4).map(|_| next()).collect();
         for (radius, weights) in [(6.0, [0, -1, 1]), (8.5, [-1, -1, 2]), (2.0, [1, -1, 0])] {
-            let simd = Window::new(radius, weights);
+            let simd512 = Window::new(radius, weights);
+            let mut simd = simd512.clone();
+            simd.avx512 = false;
             let mut scalar = simd.clone();
             scalar.avx2 = false;
             let h = simd.half;
@@ -805,6 +890,16 @@ mod tests {
                         simd.sums_linear::<u8, 3>(i3, cx, cy),
                         scalar.sums_linear::<u8, 3>(i3, cx, cy),
                         "rgb r={radius} at ({cx}, {cy})"
+                    );
+                    assert_eq!(
+                        simd512.sums_linear::<u8, 3>(i3, cx, cy),
+                        scalar.sums_linear::<u8, 3>(i3, cx, cy),
+                        "avx-512 rgb r={radius} at ({cx}, {cy})"
+                    );
+                    assert_eq!(
+                        simd512.sums_linear::<u8, 4>(i4, cx, cy),
+                        scalar.sums_linear::<u8, 4>(i4, cx, cy),
+                        "avx-512 rgba r={radius} at ({cx}, {cy})"
                     );
                     assert_eq!(
                         simd.sums_linear::<u8, 4>(i4, cx, cy),
