@@ -31,7 +31,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use image::Rgb32FImage;
 
-use super::contact::{Contact, Indenter, LoadCase, Normal, Tangential};
+use super::contact::{Indenter, LoadCase, Normal, Tangential};
 use super::simulate::{FrameTruth, SimError, Simulation};
 use crate::device::Wrench;
 use crate::model::HalfSpace;
@@ -207,28 +207,8 @@ impl World {
             s.next_frame += 1;
             (self.contact_of(s.stage_mm, s.stick_mm), frame)
         };
-        let mut sim = lock(&self.camera);
-        if c.indentation_mm <= 0.0 || c.normal_n <= 0.0 {
-            let load = LoadCase {
-                position_mm: c.tip_in_sensor_mm,
-                normal: Normal::ForceN(0.0),
-                tangential: Tangential::NONE,
-                friction: self.geometry.friction,
-            };
-            return sim.render_load(&load, frame, out);
-        }
-        let q = c.tangential_n;
-        let load = LoadCase {
-            position_mm: c.tip_in_sensor_mm,
-            normal: Normal::ForceN(c.normal_n),
-            tangential: Tangential::ForceN(q),
-            // Q is already limited by friction here; let the traction model carry it.
-            friction: self
-                .geometry
-                .friction
-                .max(q[0].hypot(q[1]) / c.normal_n * (1.0 + 1e-9)),
-        };
-        sim.render_load(&load, frame, out)
+        let load = self.load_case(&c);
+        lock(&self.camera).render_load(&load, frame, out)
     }
 
     /// The unloaded reference frame (pipeline frame 0).
@@ -241,22 +221,28 @@ impl World {
         lock(&self.camera).blank_frame()
     }
 
-    /// The full traction solution for the current contact (for ground truth).
-    pub fn solve_contact(&self) -> Option<Contact> {
-        let c = self.contact();
-        if c.normal_n <= 0.0 {
-            return None;
+    /// The load case the traction model renders for a contact state. The tangential
+    /// force is already limited by friction here, so μ is raised to carry it exactly
+    /// (the traction model would otherwise clamp it a second time).
+    fn load_case(&self, c: &ContactState) -> LoadCase {
+        if c.indentation_mm <= 0.0 || c.normal_n <= 0.0 {
+            return LoadCase {
+                position_mm: c.tip_in_sensor_mm,
+                normal: Normal::ForceN(0.0),
+                tangential: Tangential::NONE,
+                friction: self.geometry.friction,
+            };
         }
-        let load = LoadCase {
+        let q = c.tangential_n;
+        LoadCase {
             position_mm: c.tip_in_sensor_mm,
             normal: Normal::ForceN(c.normal_n),
-            tangential: Tangential::ForceN(c.tangential_n),
+            tangential: Tangential::ForceN(q),
             friction: self
                 .geometry
                 .friction
-                .max(c.tangential_n[0].hypot(c.tangential_n[1]) / c.normal_n * (1.0 + 1e-9)),
-        };
-        Contact::solve(&self.model, self.indenter, &load).ok()
+                .max(q[0].hypot(q[1]) / c.normal_n * (1.0 + 1e-9)),
+        }
     }
 
     fn reduced_modulus(&self) -> f64 {
