@@ -12,6 +12,7 @@ pub mod config;
 pub mod device;
 pub mod formats;
 pub mod model;
+pub mod report;
 pub mod sensor;
 pub mod sim;
 pub mod solve;
