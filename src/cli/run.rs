@@ -357,6 +357,8 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     drop(c.ft);
     drop(c.camera);
     drop(c.sim.take());
+    // The simulated bench removed its links; drop their (now empty) directory.
+    let _ = std::fs::remove_dir(connect::default_links(&dir));
 
     if a.timings {
         let t = summary.timings;
