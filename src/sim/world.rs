@@ -579,3 +579,104 @@ mod tests {
         assert_eq!(truth.frame, 2, "frames count up");
     }
 }
+
+#[cfg(test)]
+mod effect_tests {
+    use super::*;
+    use crate::sensor::paper_sensor;
+    use crate::sim::effects::Pipeline;
+
+    fn world(effects: BenchEffects) -> Arc<World> {
+        let ind = Indenter::Flat { diameter_mm: 5.0 };
+        let sim = Simulation::new(paper_sensor(), ind, Pipeline::ideal());
+        let g = WorldGeometry {
+            sensor_origin_in_stage_mm: [20.0, 30.0],
+            surface_z_mm: 5.0,
+            ..WorldGeometry::default()
+        };
+        World::with_effects(sim, ind, g, [29.0, 36.75, 0.0], effects)
+    }
+
+    /// Flat punch, E* = 4/3 N/mm²: P = 2 a E* δ.
+    fn flat_n(depth_mm: f64) -> f64 {
+        2.0 * 2.5 * (4.0 / 3.0) * depth_mm
+    }
+
+    #[test]
+    fn without_listed_effects_the_wrench_is_exact_and_repeatable() {
+        let w = world(BenchEffects::default());
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        let a = w.wrench();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        assert_eq!(a, w.wrench(), "no noise, no relaxation");
+        assert!((a.force_n[2] - flat_n(0.3)).abs() < 1e-12, "{a:?}");
+    }
+
+    #[test]
+    fn relaxation_overshoots_by_the_fraction_and_decays_with_tau() {
+        let r = ForceRelaxation {
+            fraction: 0.2,
+            time_constant_s: 0.05,
+        };
+        let w = world(BenchEffects {
+            force_relaxation: Some(r),
+            ..BenchEffects::default()
+        });
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        let f0 = w.wrench().force_n[2];
+        let fe = flat_n(0.3);
+        // Read within a few ms of the step: (1 + a)·F_e, decayed by at most a few %.
+        assert!(
+            f0 > fe * 1.15 && f0 <= fe * 1.2 + 1e-12,
+            "right after the step {f0} N vs elastic {fe} N"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(400));
+        let f1 = w.wrench().force_n[2];
+        // 8 τ later the excess is below e^-8 ≈ 3e-4 of 0.2·F_e.
+        assert!((f1 - fe).abs() < 1e-3 * fe, "relaxed {f1} N vs {fe} N");
+        // Unloading relaxes the other way: the force undershoots.
+        w.set_stage_mm([29.0, 36.75, 5.1]);
+        let f2 = w.wrench().force_n[2];
+        assert!(f2 < flat_n(0.1), "{f2} N after unloading");
+    }
+
+    #[test]
+    fn ft_noise_has_the_listed_sigma_and_is_reproducible() {
+        let n = FtNoise {
+            sigma_n: 0.01,
+            seed: 7,
+        };
+        let fx = BenchEffects {
+            ft_noise: Some(n),
+            ..BenchEffects::default()
+        };
+        let a = world(fx);
+        let b = world(fx);
+        a.set_stage_mm([29.0, 36.75, 5.3]);
+        b.set_stage_mm([29.0, 36.75, 5.3]);
+        let fe = flat_n(0.3);
+        let xs: Vec<f64> = (0..4000).map(|_| a.wrench().force_n[2] - fe).collect();
+        let ys: Vec<f64> = (0..4000).map(|_| b.wrench().force_n[2] - fe).collect();
+        assert_eq!(xs, ys, "same seed, same stream");
+        let m = xs.iter().sum::<f64>() / xs.len() as f64;
+        let sd = (xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (xs.len() - 1) as f64).sqrt();
+        // 4000 samples: SE of the mean 1.6e-4, of the SD ~1.1 %.
+        assert!(m.abs() < 6e-4, "mean {m}");
+        assert!((sd - 0.01).abs() < 0.0006, "sd {sd}");
+    }
+
+    #[test]
+    fn a_carried_sensor_shifts_the_image_by_the_stage_travel_and_keeps_the_contact() {
+        let w = world(BenchEffects {
+            carry_zero_mm: Some([9.0, 6.75]),
+            ..BenchEffects::default()
+        });
+        w.set_stage_mm([29.15, 36.75, 0.0]);
+        let c = w.contact();
+        assert_eq!(c.tip_in_sensor_mm, [9.0, 6.75]);
+        assert_eq!(w.carry_shift_mm(&c), [29.15 - 20.0 - 9.0, 0.0]);
+        let plain = world(BenchEffects::default());
+        plain.set_stage_mm([29.15, 36.75, 0.0]);
+        assert_eq!(plain.carry_shift_mm(&plain.contact()), [0.0, 0.0]);
+    }
+}
