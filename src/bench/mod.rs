@@ -1,7 +1,12 @@
-//! The bench runner's inputs and record: experiment plans and the crash-safe journal. The
-//! runner itself (force control, settle detection, safety watchdog, journal and resume)
-//! builds on these types and emits progress as events; it never prints or draws.
+//! The bench runner and its inputs and record: experiment plans ([`plan`]), the bench
+//! file ([`config`]), the runner's pure decision logic ([`control`]: settle detection,
+//! force limits, force control), the runner itself ([`runner`]: setpoints, safety
+//! watchdog, resume) and the crash-safe run directory ([`journal`]). Nothing here
+//! prints or draws: the runner emits [`runner::RunEvent`]s.
 
+pub mod config;
+pub mod connect;
 pub mod control;
 pub mod journal;
 pub mod plan;
+pub mod runner;

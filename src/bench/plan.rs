@@ -32,9 +32,15 @@
 //!
 //! [safety]
 //! max_force = [300.0, 300.0, 1000.0]  # per component |F| limit (force_unit)
-//! travel_min_mm = [0.0, 0.0, -2.0]    # stage travel box
-//! travel_max_mm = [50.0, 50.0, 20.0]
+//! travel_min_mm = [0.0, 0.0, -5.0]    # travel box in the SENSOR frame: x, y of the
+//! travel_max_mm = [18.0, 13.5, 3.0]   # tip, z = indentation depth (> 0 into the
+//!                                     # elastomer, < 0 above it); bench-independent
 //! max_speed_mm_s = 5.0
+//!
+//! [reconstruct]                     # optional: the solver run on every setpoint
+//! solver = "pinv"                   # pinv (default) | tikhonov | tsvd | fourier
+//! lambda = "gcv"                    # tikhonov / fourier: gcv | lcurve | number (mm/N)
+//! rank = "auto"                     # tsvd: auto | integer
 //!
 //! [sweep]                           # exactly one kind:
 //! kind = "magnitude"                # normal force from..to by step, `trials` times
@@ -57,6 +63,7 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use crate::config::{self, Checker, ConfigError};
+use crate::solve::{Lambda, Method, Rank, SolverConfig};
 use crate::units::ForceUnit;
 use serde::Deserialize;
 
@@ -166,9 +173,10 @@ pub struct ExplicitPoint {
 pub struct Safety {
     /// Per-component |F| limit, N.
     pub max_force_n: [f64; 3],
-    /// Stage travel box minimum, mm.
+    /// Travel box minimum in the sensor frame (x, y of the tip; z = indentation depth,
+    /// negative above the surface), mm.
     pub travel_min_mm: [f64; 3],
-    /// Stage travel box maximum, mm.
+    /// Travel box maximum in the sensor frame (z = deepest allowed indentation), mm.
     pub travel_max_mm: [f64; 3],
     /// Maximum stage speed, mm/s.
     pub max_speed_mm_s: f64,
@@ -222,6 +230,8 @@ pub struct Plan {
     pub safety: Safety,
     /// The sweep.
     pub sweep: Sweep,
+    /// Solver for the per-setpoint reconstruction (`[reconstruct]`, default pinv).
+    pub solver: SolverConfig,
 }
 
 impl Plan {
@@ -389,6 +399,16 @@ struct RawPlan {
     acquire: RawAcquire,
     safety: RawSafety,
     sweep: RawSweep,
+    #[serde(default)]
+    reconstruct: RawReconstruct,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawReconstruct {
+    solver: Option<String>,
+    lambda: Option<toml::Value>,
+    rank: Option<toml::Value>,
 }
 
 fn default_unit() -> String {
@@ -772,7 +792,39 @@ impl RawPlan {
             }
         };
 
+        let r = &self.reconstruct;
+        let method: Method = match &r.solver {
+            None => Method::Pinv,
+            Some(m) => m
+                .parse()
+                .map_err(|e: String| c.invalid("reconstruct.solver", format!("{m:?}"), e))?,
+        };
+        let as_text = |v: &toml::Value| match v {
+            toml::Value::String(s) => s.clone(),
+            other => other.to_string(),
+        };
+        let lambda: Lambda = match &r.lambda {
+            None if method == Method::Fourier => Lambda::LCurve,
+            None => Lambda::Gcv,
+            Some(v) => as_text(v)
+                .parse()
+                .map_err(|e: String| c.invalid("reconstruct.lambda", v, e))?,
+        };
+        let rank: Rank = match &r.rank {
+            None => Rank::Auto,
+            Some(v) => as_text(v)
+                .parse()
+                .map_err(|e: String| c.invalid("reconstruct.rank", v, e))?,
+        };
+        let solver = SolverConfig {
+            method,
+            lambda,
+            rank,
+            ..SolverConfig::default()
+        };
+
         let plan = Plan {
+            solver,
             path: path.to_path_buf(),
             name: self.name,
             sensor_path: path.parent().unwrap_or(Path::new(".")).join(&self.sensor),
@@ -790,8 +842,22 @@ impl RawPlan {
             safety,
             sweep,
         };
-        // Every target must stay within the force limits before anything moves.
+        // Every target must stay within the force limits and the travel box before
+        // anything moves.
         for sp in plan.setpoints() {
+            for i in 0..2 {
+                let v = sp.position_mm[i] + sp.shift_mm[i];
+                let (lo, hi) = (plan.safety.travel_min_mm[i], plan.safety.travel_max_mm[i]);
+                if v < lo || v > hi {
+                    return Err(c.invalid(
+                        "sweep",
+                        format!("setpoint {} at {} = {} mm", sp.index, ["x", "y"][i], round9(v)),
+                        format!(
+                            "outside the travel box safety.travel_min_mm[{i}]..travel_max_mm[{i}] = {lo}..{hi} mm"
+                        ),
+                    ));
+                }
+            }
             let f = [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n];
             for (i, axis) in ["x", "y", "z"].iter().enumerate() {
                 if f[i].abs() > plan.safety.max_force_n[i] {

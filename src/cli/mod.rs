@@ -11,6 +11,7 @@ mod ft;
 mod model;
 mod ports;
 mod reconstruct;
+mod run;
 mod sim;
 mod solver_args;
 mod stage;
@@ -32,6 +33,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    Run(run::Args),
     Reconstruct(reconstruct::Args),
     Track(track::Args),
     #[command(subcommand)]
@@ -58,6 +60,7 @@ enum Command {
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Run(args) => run::run(args),
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),

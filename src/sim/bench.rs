@@ -28,8 +28,9 @@ use super::scene::Scene;
 use super::simulate::Simulation;
 use super::world::{World, WorldGeometry};
 use crate::device::dynpick::sim::{DynPickSim, DynPickSimConfig};
+use crate::device::fault::FaultConfig;
 use crate::device::ft300::sim::{Ft300Sim, Ft300SimConfig};
-use crate::device::ft_common::WrenchSource;
+use crate::device::ft_common::{no_faults, WrenchSource};
 use crate::device::grbl::sim::{GrblSim, GrblSimConfig};
 use crate::device::pty::{Flow, PtyError, PtyServer, Simulator};
 use crate::device::zaber::sim::{ZaberSim, ZaberSimConfig};
@@ -189,6 +190,19 @@ enum FtServer {
     Ft300(PtyServer<Ft300Sim>),
 }
 
+/// Options of [`VirtualBench::start_with`] beyond the scene and protocols.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BenchOptions {
+    /// Geometry; `None`: the stage kind's default.
+    pub geometry: Option<WorldGeometry>,
+    /// Stage start position, mm; `None`: the stage kind's default.
+    pub start_mm: Option<[f64; 3]>,
+    /// Opt-in faults of the stage simulator.
+    pub stage_faults: Option<FaultConfig>,
+    /// Opt-in faults of the force-sensor simulator.
+    pub ft_faults: Option<FaultConfig>,
+}
+
 /// A running simulated bench; everything stops and the links are removed when dropped.
 pub struct VirtualBench {
     world: Arc<World>,
@@ -208,14 +222,36 @@ impl VirtualBench {
         links: &Path,
         geometry: Option<WorldGeometry>,
     ) -> Result<VirtualBench, BenchError> {
+        Self::start_with(
+            scene,
+            stage,
+            ft,
+            links,
+            BenchOptions {
+                geometry,
+                ..BenchOptions::default()
+            },
+        )
+    }
+
+    /// [`VirtualBench::start`] with a start position and opt-in simulator faults. The
+    /// scene's `[bench]` effects (force relaxation, F/T noise, a carried sensor) apply.
+    pub fn start_with(
+        scene: &Scene,
+        stage: StageProtocol,
+        ft: FtProtocol,
+        links: &Path,
+        options: BenchOptions,
+    ) -> Result<VirtualBench, BenchError> {
         std::fs::create_dir_all(links).map_err(|source| BenchError::Io {
             path: links.to_path_buf(),
             source,
         })?;
-        let (default_geometry, start_mm) = stage.default_geometry();
-        let geometry = geometry.unwrap_or(default_geometry);
+        let (default_geometry, default_start_mm) = stage.default_geometry();
+        let geometry = options.geometry.unwrap_or(default_geometry);
+        let start_mm = options.start_mm.unwrap_or(default_start_mm);
         let sim = Simulation::from_scene(scene);
-        let world = World::new(sim, scene.indenter, geometry, start_mm);
+        let world = World::with_effects(sim, scene.indenter, geometry, start_mm, scene.bench);
 
         let stage_link = links.join("stage");
         let pty = |what| move |source| BenchError::Pty { what, source };
@@ -223,13 +259,23 @@ impl VirtualBench {
             StageProtocol::Grbl => {
                 let cfg = GrblSimConfig {
                     start_mpos_mm: start_mm,
+                    faults: options.stage_faults.clone(),
                     ..GrblSimConfig::default()
                 };
                 let s = WorldStage::new(GrblSim::new(cfg), Arc::clone(&world), grbl_position);
                 StageServer::Grbl(PtyServer::spawn(s, Some(&stage_link)).map_err(pty("stage"))?)
             }
             StageProtocol::Zaber => {
-                let cfg = ZaberSimConfig::three_single_axis(ZABER_TRAVEL_STEPS);
+                let mut cfg = ZaberSimConfig::three_single_axis(ZABER_TRAVEL_STEPS);
+                cfg.faults = options.stage_faults.clone();
+                let steps = |mm: f64| (mm / DEFAULT_MM_PER_STEP).round() as i64;
+                for (i, dev) in [1u8, 2, 3].into_iter().enumerate() {
+                    if let Some(axes) = cfg.devices.get_mut(&dev) {
+                        for a in axes.iter_mut() {
+                            a.pos = steps(start_mm[i]) as f64;
+                        }
+                    }
+                }
                 let s = WorldStage::new(ZaberSim::new(cfg), Arc::clone(&world), zaber_position);
                 StageServer::Zaber(PtyServer::spawn(s, Some(&stage_link)).map_err(pty("stage"))?)
             }
@@ -239,14 +285,26 @@ impl VirtualBench {
         let ft = match ft {
             FtProtocol::DynPick => FtServer::DynPick(
                 PtyServer::spawn(
-                    DynPickSim::new(DynPickSimConfig::default(), source),
+                    DynPickSim::new(
+                        DynPickSimConfig {
+                            faults: options.ft_faults.clone().unwrap_or_else(no_faults),
+                            ..DynPickSimConfig::default()
+                        },
+                        source,
+                    ),
                     Some(&ft_link),
                 )
                 .map_err(pty("force sensor"))?,
             ),
             FtProtocol::Ft300 => FtServer::Ft300(
                 PtyServer::spawn(
-                    Ft300Sim::new(Ft300SimConfig::default(), source),
+                    Ft300Sim::new(
+                        Ft300SimConfig {
+                            faults: options.ft_faults.clone().unwrap_or_else(no_faults),
+                            ..Ft300SimConfig::default()
+                        },
+                        source,
+                    ),
                     Some(&ft_link),
                 )
                 .map_err(pty("force sensor"))?,

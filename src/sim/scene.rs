@@ -55,6 +55,24 @@
 //! Marker-level effects (`size_jitter`, `placement_jitter`, `shift`, `drift`, `blur`)
 //! must come before image effects (`illumination`, `vignetting`, `shot_noise`,
 //! `pixel_noise`, `quantize8`).
+//!
+//! Effects of the simulated bench (`tactbench sim bench`, `tactbench run --sim`), all
+//! optional and off unless listed (models in [`super::world`]):
+//!
+//! ```toml
+//! [bench]
+//! ft_noise = { sigma_n = 0.005, seed = 1 }   # Gaussian σ (N) per force component
+//!                                            # of every F/T sample, seeded
+//! force_relaxation = { fraction = 0.05, time_constant_s = 0.3 }
+//!                          # viscoelastic creep: a force step overshoots by `fraction`
+//!                          # and relaxes with time constant τ (s)
+//! stage_carries_sensor = true  # the stage's xy motion shifts the whole sensor under
+//! carry_zero_mm = [9.0, 6.75]  # the camera; unshifted with the tip over this point
+//! ```
+//!
+//! With no `[bench]` table the bench is ideal and exact. `[load]` is not used by the
+//! simulated bench (the stage decides the load), except `friction_coefficient`, which
+//! `tactbench run --sim` uses as the indenter/elastomer friction μ.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -65,6 +83,7 @@ use thiserror::Error;
 use super::contact::{Indenter, LoadCase, Normal, Tangential};
 use super::effects::{Effect, EffectError, Pipeline};
 use super::render::PixelFilter;
+use super::world::{BenchEffects, ForceRelaxation, FtNoise};
 use crate::sensor::{Sensor, SensorError};
 use crate::units;
 
@@ -139,6 +158,8 @@ pub struct Scene {
     pub pipeline: Pipeline,
     /// The pixel response of the renderer.
     pub pixel_filter: PixelFilter,
+    /// Opt-in effects of the simulated bench (`[bench]`; default none).
+    pub bench: BenchEffects,
 }
 
 impl Scene {
@@ -197,6 +218,31 @@ struct RawScene {
     sequence: Option<RawSequence>,
     #[serde(default)]
     effects: Vec<RawEffect>,
+    bench: Option<RawSceneBench>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSceneBench {
+    ft_noise: Option<RawFtNoise>,
+    force_relaxation: Option<RawRelaxation>,
+    #[serde(default)]
+    stage_carries_sensor: bool,
+    carry_zero_mm: Option<[f64; 2]>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFtNoise {
+    sigma_n: f64,
+    seed: u64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRelaxation {
+    fraction: f64,
+    time_constant_s: f64,
 }
 
 #[derive(Deserialize)]
@@ -570,7 +616,62 @@ impl RawScene {
             }
         };
 
+        let bench = match self.bench {
+            None => BenchEffects::default(),
+            Some(b) => {
+                let ft_noise = match b.ft_noise {
+                    None => None,
+                    Some(n) => Some(FtNoise {
+                        sigma_n: positive("bench.ft_noise.sigma_n", n.sigma_n, "N")?,
+                        seed: n.seed,
+                    }),
+                };
+                let force_relaxation = match b.force_relaxation {
+                    None => None,
+                    Some(r) => Some(ForceRelaxation {
+                        fraction: nonneg("bench.force_relaxation.fraction", r.fraction, "")?,
+                        time_constant_s: positive(
+                            "bench.force_relaxation.time_constant_s",
+                            r.time_constant_s,
+                            "s",
+                        )?,
+                    }),
+                };
+                let carry_zero_mm = match (b.stage_carries_sensor, b.carry_zero_mm) {
+                    (true, Some(z)) if z.iter().all(|v| v.is_finite()) => Some(z),
+                    (true, Some(z)) => {
+                        return Err(invalid(
+                            "bench.carry_zero_mm",
+                            &format!("{z:?}"),
+                            "must be finite (mm)",
+                        ))
+                    }
+                    (true, None) => {
+                        return Err(invalid(
+                            "bench.carry_zero_mm",
+                            &"(missing)",
+                            "stage_carries_sensor = true needs carry_zero_mm = [x, y] (mm)",
+                        ))
+                    }
+                    (false, Some(_)) => {
+                        return Err(invalid(
+                            "bench.carry_zero_mm",
+                            &"(given)",
+                            "only used with stage_carries_sensor = true",
+                        ))
+                    }
+                    (false, None) => None,
+                };
+                BenchEffects {
+                    ft_noise,
+                    force_relaxation,
+                    carry_zero_mm,
+                }
+            }
+        };
+
         Ok(Scene {
+            bench,
             pixel_filter,
             path: path.to_path_buf(),
             sensor_path,

@@ -172,12 +172,28 @@ impl Simulation {
         frame: u64,
         out: &mut Rgb32FImage,
     ) -> Result<FrameTruth, SimError> {
+        self.render_load_shifted(load, frame, [0.0, 0.0], out)
+    }
+
+    /// As [`Simulation::render_load`], with every marker also moved by `shift_mm` (the
+    /// whole sensor shifted under the camera, e.g. by a stage that carries it). The
+    /// truth's `elastic_u_mm` excludes the shift.
+    pub fn render_load_shifted(
+        &mut self,
+        load: &LoadCase,
+        frame: u64,
+        shift_mm: [f64; 2],
+        out: &mut Rgb32FImage,
+    ) -> Result<FrameTruth, SimError> {
         let contact = Contact::solve(&self.model, self.indenter, load)?;
         let u = contact.marker_displacements_mm(&self.model, &self.sites);
         self.moved.clear();
         self.moved
             .extend(self.markers.iter().enumerate().map(|(k, m)| Marker {
-                position_mm: [m.position_mm[0] + u[2 * k], m.position_mm[1] + u[2 * k + 1]],
+                position_mm: [
+                    m.position_mm[0] + u[2 * k] + shift_mm[0],
+                    m.position_mm[1] + u[2 * k + 1] + shift_mm[1],
+                ],
                 ..*m
             }));
         self.pipeline

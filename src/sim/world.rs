@@ -26,12 +26,31 @@
 //! The force/torque sensor sits `tool_length_mm` above the tip with its axes aligned to
 //! the sensor frame and reports the force the indenter applies to the elastomer
 //! (`fz > 0` pressing) and its moment about the F/T origin.
+//!
+//! Opt-in bench effects ([`BenchEffects`], the scene's `[bench]` table; none listed =
+//! ideal and exact):
+//! - **force relaxation** (viscoelastic elastomer, standard linear solid / one-term
+//!   Prony series): every change `ΔF_e` of the elastic force adds `a·ΔF_e` to an
+//!   excess force `r` that decays as `r(t) = r(t₀)·e^{−(t−t₀)/τ}`; the sensor reads
+//!   `F_e + r`. After a step in indentation the force jumps to `(1+a)` of the step and
+//!   relaxes to the elastic value with time constant τ. The camera still sees the
+//!   elastic field (the indentation, not the force, is held).
+//! - **F/T noise**: independent Gaussian noise of σ (N) on each force component of each
+//!   sample the force sensor serves, from a seeded stream; torques follow the noisy
+//!   force (`M = r × F`).
+//! - **stage carries the sensor**: the stage's xy motion moves the whole sensor under a
+//!   fixed camera: every marker appears shifted by the stage's xy travel from the
+//!   position where the tip is over `carry_zero_mm`, and the contact stays at
+//!   `carry_zero_mm` (the paper's Table I, whole-sensor shift without load).
 
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use image::Rgb32FImage;
 
+use std::time::Instant;
+
 use super::contact::{Indenter, LoadCase, Normal, Tangential};
+use super::rng::Rng;
 use super::simulate::{FrameTruth, SimError, Simulation};
 use crate::device::Wrench;
 use crate::model::HalfSpace;
@@ -66,18 +85,55 @@ impl Default for WorldGeometry {
     }
 }
 
-/// The state the devices share.
+/// Gaussian noise on the force sensor's force components.
 #[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FtNoise {
+    /// σ per component per sample, N.
+    pub sigma_n: f64,
+    /// Seed of the noise stream.
+    pub seed: u64,
+}
+
+/// Viscoelastic force relaxation after a change of indentation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ForceRelaxation {
+    /// Excess fraction `a` of a force step that relaxes away (≥ 0).
+    pub fraction: f64,
+    /// Relaxation time constant τ, s (> 0).
+    pub time_constant_s: f64,
+}
+
+/// Opt-in effects of the simulated bench (see the module docs). The default is none:
+/// ideal and exact.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct BenchEffects {
+    /// Noise on F/T samples.
+    pub ft_noise: Option<FtNoise>,
+    /// Force relaxation.
+    pub force_relaxation: Option<ForceRelaxation>,
+    /// The stage carries the sensor: the sensor-frame point where the image is
+    /// unshifted (and where the contact stays), mm.
+    pub carry_zero_mm: Option<[f64; 2]>,
+}
+
+/// The state the devices share.
+#[derive(Debug, Clone)]
 struct State {
     stage_mm: [f64; 3],
     /// Sensor-frame point where the contact stuck, while in contact.
     stick_mm: Option<[f64; 2]>,
     /// Next camera frame index (the effects pipeline counts frames).
     next_frame: u64,
+    /// Force relaxation: elastic force at the last update, excess force, its time.
+    elastic_n: [f64; 3],
+    excess_n: [f64; 3],
+    updated: Instant,
+    noise: Option<Rng>,
 }
 
 /// The virtual world. Cheap to share: clone the [`Arc`] from [`World::new`].
 pub struct World {
+    effects: BenchEffects,
     geometry: WorldGeometry,
     model: HalfSpace,
     indenter: Indenter,
@@ -115,6 +171,9 @@ pub struct ContactState {
     pub contact_radius_mm: f64,
     /// True when friction limits Q (sliding).
     pub sliding: bool,
+    /// When the stage carries the sensor: where the tip would be without carrying
+    /// (the image shift is this minus `carry_zero_mm`), mm.
+    pub carried_from_mm: Option<[f64; 2]>,
 }
 
 impl World {
@@ -126,8 +185,26 @@ impl World {
         geometry: WorldGeometry,
         start_mm: [f64; 3],
     ) -> Arc<World> {
+        Self::with_effects(
+            simulation,
+            indenter,
+            geometry,
+            start_mm,
+            BenchEffects::default(),
+        )
+    }
+
+    /// A world with opt-in bench effects.
+    pub fn with_effects(
+        simulation: Simulation,
+        indenter: Indenter,
+        geometry: WorldGeometry,
+        start_mm: [f64; 3],
+        effects: BenchEffects,
+    ) -> Arc<World> {
         let model = HalfSpace::from_elastomer(&simulation.sensor().elastomer);
-        Arc::new(World {
+        let world = World {
+            effects,
             geometry,
             model,
             indenter,
@@ -135,9 +212,45 @@ impl World {
                 stage_mm: start_mm,
                 stick_mm: None,
                 next_frame: 1,
+                elastic_n: [0.0; 3],
+                excess_n: [0.0; 3],
+                updated: Instant::now(),
+                noise: effects.ft_noise.map(|n| Rng::new(n.seed)),
             }),
             camera: Mutex::new(simulation),
-        })
+        };
+        {
+            let mut s = lock(&world.state);
+            let c = world.contact_of(s.stage_mm, s.stick_mm);
+            s.elastic_n = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
+        }
+        Arc::new(world)
+    }
+
+    /// The opt-in effects.
+    pub fn effects(&self) -> &BenchEffects {
+        &self.effects
+    }
+
+    /// Advances force relaxation to now with the current contact.
+    fn relax(&self, s: &mut State) {
+        let Some(r) = self.effects.force_relaxation else {
+            return;
+        };
+        let now = Instant::now();
+        let dt = now.duration_since(s.updated).as_secs_f64();
+        s.updated = now;
+        let decay = (-dt / r.time_constant_s).exp();
+        let c = self.contact_of(s.stage_mm, s.stick_mm);
+        let fe = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
+        for i in 0..3 {
+            s.excess_n[i] = s.excess_n[i] * decay + r.fraction * (fe[i] - s.elastic_n[i]);
+            // Out of contact there is nothing to relax.
+            if c.normal_n <= 0.0 {
+                s.excess_n[i] = 0.0;
+            }
+        }
+        s.elastic_n = fe;
     }
 
     /// The geometry.
@@ -176,6 +289,7 @@ impl World {
                 keep => keep,
             }
         };
+        self.relax(&mut s);
     }
 
     /// The contact at the current stage position.
@@ -187,8 +301,21 @@ impl World {
     /// The wrench the F/T sensor feels now (force on the elastomer, N; moment about
     /// the F/T origin, N·m).
     pub fn wrench(&self) -> Wrench {
-        let c = self.contact();
-        let f = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
+        let f = {
+            let mut s = lock(&self.state);
+            self.relax(&mut s);
+            let c = self.contact_of(s.stage_mm, s.stick_mm);
+            let mut f = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
+            for (fi, e) in f.iter_mut().zip(s.excess_n) {
+                *fi += e;
+            }
+            if let (Some(n), Some(rng)) = (self.effects.ft_noise, s.noise.as_mut()) {
+                for fi in &mut f {
+                    *fi += n.sigma_n * rng.normal();
+                }
+            }
+            f
+        };
         // r from the F/T origin to the tip: (0, 0, L) in the sensor frame (z is down
         // into the elastomer), in metres; M = r × F.
         let l_m = self.geometry.tool_length_mm * 1e-3;
@@ -208,7 +335,16 @@ impl World {
             (self.contact_of(s.stage_mm, s.stick_mm), frame)
         };
         let load = self.load_case(&c);
-        lock(&self.camera).render_load(&load, frame, out)
+        let shift = self.carry_shift_mm(&c);
+        lock(&self.camera).render_load_shifted(&load, frame, shift, out)
+    }
+
+    /// Whole-sensor shift in the image when the stage carries the sensor, mm.
+    fn carry_shift_mm(&self, c: &ContactState) -> [f64; 2] {
+        match (self.effects.carry_zero_mm, c.carried_from_mm) {
+            (Some(z), Some(tip)) => [tip[0] - z[0], tip[1] - z[1]],
+            _ => [0.0, 0.0],
+        }
     }
 
     /// The unloaded reference frame (pipeline frame 0).
@@ -292,10 +428,15 @@ impl World {
 
     fn contact_of(&self, stage: [f64; 3], stick: Option<[f64; 2]>) -> ContactState {
         let g = &self.geometry;
-        let tip = [
+        let free_tip = [
             stage[0] - g.sensor_origin_in_stage_mm[0],
             stage[1] - g.sensor_origin_in_stage_mm[1],
         ];
+        // A carried sensor moves with the stage: the tip stays over carry_zero_mm.
+        let (tip, carried_from_mm) = match self.effects.carry_zero_mm {
+            Some(z) => (z, Some(free_tip)),
+            None => (free_tip, None),
+        };
         let d = g.press_direction.signum() * (stage[2] - g.surface_z_mm);
         let (p, a) = self.normal_law(d);
         let mut q = [0.0; 2];
@@ -320,6 +461,7 @@ impl World {
             tangential_n: q,
             contact_radius_mm: a,
             sliding,
+            carried_from_mm,
         }
     }
 }
@@ -435,5 +577,106 @@ mod tests {
         assert!((sum - c.normal_force_n).abs() < 1e-6 * c.normal_force_n);
         assert!(truth.elastic_u_mm.iter().any(|u| u.abs() > 1e-3));
         assert_eq!(truth.frame, 2, "frames count up");
+    }
+}
+
+#[cfg(test)]
+mod effect_tests {
+    use super::*;
+    use crate::sensor::paper_sensor;
+    use crate::sim::effects::Pipeline;
+
+    fn world(effects: BenchEffects) -> Arc<World> {
+        let ind = Indenter::Flat { diameter_mm: 5.0 };
+        let sim = Simulation::new(paper_sensor(), ind, Pipeline::ideal());
+        let g = WorldGeometry {
+            sensor_origin_in_stage_mm: [20.0, 30.0],
+            surface_z_mm: 5.0,
+            ..WorldGeometry::default()
+        };
+        World::with_effects(sim, ind, g, [29.0, 36.75, 0.0], effects)
+    }
+
+    /// Flat punch, E* = 4/3 N/mm²: P = 2 a E* δ.
+    fn flat_n(depth_mm: f64) -> f64 {
+        2.0 * 2.5 * (4.0 / 3.0) * depth_mm
+    }
+
+    #[test]
+    fn without_listed_effects_the_wrench_is_exact_and_repeatable() {
+        let w = world(BenchEffects::default());
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        let a = w.wrench();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        assert_eq!(a, w.wrench(), "no noise, no relaxation");
+        assert!((a.force_n[2] - flat_n(0.3)).abs() < 1e-12, "{a:?}");
+    }
+
+    #[test]
+    fn relaxation_overshoots_by_the_fraction_and_decays_with_tau() {
+        let r = ForceRelaxation {
+            fraction: 0.2,
+            time_constant_s: 0.05,
+        };
+        let w = world(BenchEffects {
+            force_relaxation: Some(r),
+            ..BenchEffects::default()
+        });
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        let f0 = w.wrench().force_n[2];
+        let fe = flat_n(0.3);
+        // Read within a few ms of the step: (1 + a)·F_e, decayed by at most a few %.
+        assert!(
+            f0 > fe * 1.15 && f0 <= fe * 1.2 + 1e-12,
+            "right after the step {f0} N vs elastic {fe} N"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(400));
+        let f1 = w.wrench().force_n[2];
+        // 8 τ later the excess is below e^-8 ≈ 3e-4 of 0.2·F_e.
+        assert!((f1 - fe).abs() < 1e-3 * fe, "relaxed {f1} N vs {fe} N");
+        // Unloading relaxes the other way: the force undershoots.
+        w.set_stage_mm([29.0, 36.75, 5.1]);
+        let f2 = w.wrench().force_n[2];
+        assert!(f2 < flat_n(0.1), "{f2} N after unloading");
+    }
+
+    #[test]
+    fn ft_noise_has_the_listed_sigma_and_is_reproducible() {
+        let n = FtNoise {
+            sigma_n: 0.01,
+            seed: 7,
+        };
+        let fx = BenchEffects {
+            ft_noise: Some(n),
+            ..BenchEffects::default()
+        };
+        let a = world(fx);
+        let b = world(fx);
+        a.set_stage_mm([29.0, 36.75, 5.3]);
+        b.set_stage_mm([29.0, 36.75, 5.3]);
+        let fe = flat_n(0.3);
+        let xs: Vec<f64> = (0..4000).map(|_| a.wrench().force_n[2] - fe).collect();
+        let ys: Vec<f64> = (0..4000).map(|_| b.wrench().force_n[2] - fe).collect();
+        assert_eq!(xs, ys, "same seed, same stream");
+        let m = xs.iter().sum::<f64>() / xs.len() as f64;
+        let sd = (xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (xs.len() - 1) as f64).sqrt();
+        // 4000 samples: SE of the mean 1.6e-4, of the SD ~1.1 %.
+        assert!(m.abs() < 6e-4, "mean {m}");
+        assert!((sd - 0.01).abs() < 0.0006, "sd {sd}");
+    }
+
+    #[test]
+    fn a_carried_sensor_shifts_the_image_by_the_stage_travel_and_keeps_the_contact() {
+        let w = world(BenchEffects {
+            carry_zero_mm: Some([9.0, 6.75]),
+            ..BenchEffects::default()
+        });
+        w.set_stage_mm([29.15, 36.75, 0.0]);
+        let c = w.contact();
+        assert_eq!(c.tip_in_sensor_mm, [9.0, 6.75]);
+        assert_eq!(w.carry_shift_mm(&c), [29.15 - 20.0 - 9.0, 0.0]);
+        let plain = world(BenchEffects::default());
+        plain.set_stage_mm([29.15, 36.75, 0.0]);
+        assert_eq!(plain.carry_shift_mm(&plain.contact()), [0.0, 0.0]);
     }
 }

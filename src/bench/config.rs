@@ -1,0 +1,589 @@
+//! `bench.toml`: which devices a run drives (or the simulated bench), and where the
+//! sensor sits in the stage's coordinates. Parsed once into a validated
+//! [`BenchConfig`]; errors name the file, the key, the value and its unit, like plans.
+//!
+//! A real bench:
+//!
+//! ```toml
+//! [stage]
+//! protocol = "grbl"                 # grbl | zaber
+//! port = "/dev/ttyUSB0"
+//! baud = 115200                     # optional (grbl, zaber: 115200)
+//! # zaber only: devices = [1, 2, 3] (x, y, z addresses), mm_per_step = 0.000047625
+//!
+//! [force_sensor]
+//! protocol = "dynpick"              # dynpick | ft300
+//! port = "/dev/ttyUSB1"
+//! baud = 921600                     # optional (dynpick 921600, ft300 19200)
+//!
+//! [camera]
+//! device = "0"                      # V4L2 index, "dir:PATH" (recorded frames) or
+//!                                   # "sim:PATH" (a simulated bench's camera.sock)
+//!
+//! [geometry]                        # stage machine coordinates, mm
+//! sensor_origin_in_stage_mm = [-100.0, -100.0]  # stage x, y with the tip over the
+//!                                               # sensor-frame origin
+//! surface_z_mm = -30.0              # stage z where the tip touches the surface
+//! press_direction = -1              # -1: decreasing z presses (GRBL, +z up); +1
+//! clearance_mm = 1.0                # retract height above the surface for lateral moves
+//! home = false                      # run the homing cycle at start and on resume
+//! tare = true                       # tare the F/T sensor unloaded at start / resume
+//! ```
+//!
+//! The simulated bench (the same drivers, talking to simulators on pseudo-terminals):
+//!
+//! ```toml
+//! [sim]
+//! scene = "scenes/fig7_hemisphere_ramp.toml"   # relative to this file
+//! stage = "grbl"                    # optional: grbl (default) | zaber
+//! force_sensor = "dynpick"          # optional: dynpick (default) | ft300
+//! friction = 1.0                    # optional: indenter/elastomer friction μ
+//!                                   # (default: the scene's load.friction_coefficient)
+//! # [geometry] optional: defaults from the stage kind (see sim::bench)
+//! ```
+//!
+//! The contact surface only needs to be known roughly: the runner approaches from
+//! `clearance_mm` above it and detects contact on the force reading.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::config::{self, Checker, ConfigError};
+use crate::device::camera::CameraSpec;
+
+/// Which stage protocol.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StageKind {
+    /// GRBL 1.1.
+    Grbl,
+    /// Zaber ASCII.
+    Zaber,
+}
+
+/// Which force-sensor protocol.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FtKind {
+    /// WACOH DynPick.
+    DynPick,
+    /// Robotiq FT 300.
+    Ft300,
+}
+
+/// A real stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StageConfig {
+    /// Protocol.
+    pub protocol: StageKind,
+    /// Serial port path.
+    pub port: String,
+    /// Baud rate.
+    pub baud: u32,
+    /// Zaber: device addresses of x, y, z.
+    pub zaber_devices: [u8; 3],
+    /// Zaber: resolution, mm per microstep.
+    pub zaber_mm_per_step: f64,
+}
+
+/// A real force sensor.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FtConfig {
+    /// Protocol.
+    pub protocol: FtKind,
+    /// Serial port path.
+    pub port: String,
+    /// Baud rate.
+    pub baud: u32,
+}
+
+/// Where the sensor is in stage coordinates (mm) and how to approach it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BenchGeometry {
+    /// Stage x, y with the tip over the sensor-frame origin, mm.
+    pub sensor_origin_in_stage_mm: [f64; 2],
+    /// Stage z where the tip touches the surface, mm.
+    pub surface_z_mm: f64,
+    /// +1: increasing stage z presses; −1: decreasing z presses.
+    pub press_direction: f64,
+    /// Retract height above the surface, mm (> 0).
+    pub clearance_mm: f64,
+}
+
+impl BenchGeometry {
+    /// Stage x, y of a sensor-frame point, mm.
+    pub fn stage_xy(&self, sensor_xy_mm: [f64; 2]) -> [f64; 2] {
+        [
+            sensor_xy_mm[0] + self.sensor_origin_in_stage_mm[0],
+            sensor_xy_mm[1] + self.sensor_origin_in_stage_mm[1],
+        ]
+    }
+
+    /// Sensor-frame x, y of a stage position, mm.
+    pub fn sensor_xy(&self, stage_mm: [f64; 3]) -> [f64; 2] {
+        [
+            stage_mm[0] - self.sensor_origin_in_stage_mm[0],
+            stage_mm[1] - self.sensor_origin_in_stage_mm[1],
+        ]
+    }
+
+    /// Stage z of an indentation depth (mm; negative = above the surface).
+    pub fn stage_z(&self, depth_mm: f64) -> f64 {
+        self.surface_z_mm + self.press_direction * depth_mm
+    }
+
+    /// Indentation depth of a stage z, mm.
+    pub fn depth(&self, stage_z_mm: f64) -> f64 {
+        self.press_direction * (stage_z_mm - self.surface_z_mm)
+    }
+
+    /// The stage position of a sensor-frame point at a depth.
+    pub fn stage_point(&self, sensor_xy_mm: [f64; 2], depth_mm: f64) -> [f64; 3] {
+        let xy = self.stage_xy(sensor_xy_mm);
+        [xy[0], xy[1], self.stage_z(depth_mm)]
+    }
+}
+
+/// The simulated bench.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimConfig {
+    /// The scene file, resolved.
+    pub scene: PathBuf,
+    /// Stage protocol to simulate.
+    pub stage: StageKind,
+    /// Force-sensor protocol to simulate.
+    pub force_sensor: FtKind,
+    /// Friction coefficient; `None`: the scene's `load.friction_coefficient`.
+    pub friction: Option<f64>,
+}
+
+/// What the run drives.
+#[derive(Debug, Clone, PartialEq)]
+pub enum BenchDevices {
+    /// Real devices.
+    Hardware {
+        /// The stage.
+        stage: StageConfig,
+        /// The force sensor.
+        force_sensor: FtConfig,
+        /// The camera.
+        camera: CameraSpec,
+    },
+    /// The simulated bench, started in-process.
+    Sim(SimConfig),
+}
+
+/// A validated bench file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BenchConfig {
+    /// The file (for messages and the manifest).
+    pub path: PathBuf,
+    /// The devices.
+    pub devices: BenchDevices,
+    /// Geometry; `None` for a simulated bench without `[geometry]` (the stage kind's
+    /// defaults apply).
+    pub geometry: Option<BenchGeometry>,
+    /// Home at start and on resume.
+    pub home: bool,
+    /// Tare the force sensor unloaded at start and on resume.
+    pub tare: bool,
+}
+
+impl BenchConfig {
+    /// Reads and validates a bench file.
+    pub fn from_path(path: impl AsRef<Path>) -> Result<BenchConfig, ConfigError> {
+        let path = path.as_ref();
+        let text = config::read_text(path, "bench file")?;
+        BenchConfig::from_toml_str(&text, path)
+    }
+
+    /// Parses bench TOML; `path` resolves the scene and names errors.
+    pub fn from_toml_str(text: &str, path: impl AsRef<Path>) -> Result<BenchConfig, ConfigError> {
+        let path = path.as_ref();
+        let raw: RawBench = config::parse_toml(text, path)?;
+        raw.validate(path)
+    }
+
+    /// A simulated bench for `scene` with the default protocols (what `run --sim` uses).
+    pub fn sim(scene: &Path) -> BenchConfig {
+        BenchConfig {
+            path: scene.to_path_buf(),
+            devices: BenchDevices::Sim(SimConfig {
+                scene: scene.to_path_buf(),
+                stage: StageKind::Grbl,
+                force_sensor: FtKind::DynPick,
+                friction: None,
+            }),
+            geometry: None,
+            home: false,
+            tare: true,
+        }
+    }
+}
+
+// ---- raw schema ---------------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawBench {
+    stage: Option<RawStage>,
+    force_sensor: Option<RawFt>,
+    camera: Option<RawCamera>,
+    sim: Option<RawSim>,
+    geometry: Option<RawGeometry>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawStage {
+    protocol: String,
+    port: String,
+    baud: Option<i64>,
+    devices: Option<[i64; 3]>,
+    mm_per_step: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFt {
+    protocol: String,
+    port: String,
+    baud: Option<i64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCamera {
+    device: toml::Value,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSim {
+    scene: String,
+    stage: Option<String>,
+    force_sensor: Option<String>,
+    friction: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawGeometry {
+    sensor_origin_in_stage_mm: [f64; 2],
+    surface_z_mm: f64,
+    press_direction: i64,
+    #[serde(default = "default_clearance")]
+    clearance_mm: f64,
+    home: Option<bool>,
+    #[serde(default = "default_true")]
+    tare: bool,
+}
+
+fn default_clearance() -> f64 {
+    1.0
+}
+
+fn default_true() -> bool {
+    true
+}
+
+fn stage_kind(c: &Checker<'_>, key: &str, v: &str) -> Result<StageKind, ConfigError> {
+    match v {
+        "grbl" => Ok(StageKind::Grbl),
+        "zaber" => Ok(StageKind::Zaber),
+        other => Err(c.invalid(
+            key,
+            format!("{other:?}"),
+            "unknown stage protocol: expected grbl or zaber",
+        )),
+    }
+}
+
+fn ft_kind(c: &Checker<'_>, key: &str, v: &str) -> Result<FtKind, ConfigError> {
+    match v {
+        "dynpick" => Ok(FtKind::DynPick),
+        "ft300" => Ok(FtKind::Ft300),
+        other => Err(c.invalid(
+            key,
+            format!("{other:?}"),
+            "unknown force-sensor protocol: expected dynpick or ft300",
+        )),
+    }
+}
+
+fn baud(c: &Checker<'_>, key: &str, v: Option<i64>, default: u32) -> Result<u32, ConfigError> {
+    match v {
+        None => Ok(default),
+        Some(b) if (50..=4_000_000).contains(&b) => Ok(b as u32),
+        Some(b) => Err(c.invalid(key, b, "must be a baud rate in [50, 4000000]")),
+    }
+}
+
+impl RawBench {
+    fn validate(self, path: &Path) -> Result<BenchConfig, ConfigError> {
+        let c = Checker { path };
+        let geometry = match &self.geometry {
+            None => None,
+            Some(g) => {
+                for i in 0..2 {
+                    c.finite(
+                        &format!("geometry.sensor_origin_in_stage_mm[{i}]"),
+                        g.sensor_origin_in_stage_mm[i],
+                        "mm",
+                    )?;
+                }
+                c.finite("geometry.surface_z_mm", g.surface_z_mm, "mm")?;
+                if g.press_direction != 1 && g.press_direction != -1 {
+                    return Err(c.invalid(
+                        "geometry.press_direction",
+                        g.press_direction,
+                        "must be 1 (increasing z presses) or -1 (decreasing z presses)",
+                    ));
+                }
+                Some(BenchGeometry {
+                    sensor_origin_in_stage_mm: g.sensor_origin_in_stage_mm,
+                    surface_z_mm: g.surface_z_mm,
+                    press_direction: g.press_direction as f64,
+                    clearance_mm: c.positive("geometry.clearance_mm", g.clearance_mm, "mm")?,
+                })
+            }
+        };
+        let tare = self.geometry.as_ref().is_none_or(|g| g.tare);
+        let home_given = self.geometry.as_ref().and_then(|g| g.home);
+
+        if let Some(s) = self.sim {
+            for (key, present) in [
+                ("stage", self.stage.is_some()),
+                ("force_sensor", self.force_sensor.is_some()),
+                ("camera", self.camera.is_some()),
+            ] {
+                if present {
+                    return Err(c.invalid(
+                        key,
+                        "(given)",
+                        "a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]",
+                    ));
+                }
+            }
+            let stage = match &s.stage {
+                None => StageKind::Grbl,
+                Some(v) => stage_kind(&c, "sim.stage", v)?,
+            };
+            let force_sensor = match &s.force_sensor {
+                None => FtKind::DynPick,
+                Some(v) => ft_kind(&c, "sim.force_sensor", v)?,
+            };
+            let friction = match s.friction {
+                None => None,
+                Some(v) => Some(c.non_negative("sim.friction", v, "")?),
+            };
+            let dir = path.parent().unwrap_or(Path::new("."));
+            return Ok(BenchConfig {
+                path: path.to_path_buf(),
+                devices: BenchDevices::Sim(SimConfig {
+                    scene: dir.join(&s.scene),
+                    stage,
+                    force_sensor,
+                    friction,
+                }),
+                geometry,
+                home: home_given.unwrap_or(false),
+                tare,
+            });
+        }
+
+        let missing = |key: &str| {
+            c.invalid(
+                key,
+                "(missing)",
+                "a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)",
+            )
+        };
+        let s = self.stage.ok_or_else(|| missing("stage"))?;
+        let f = self.force_sensor.ok_or_else(|| missing("force_sensor"))?;
+        let cam = self.camera.ok_or_else(|| missing("camera"))?;
+        let geometry = geometry.ok_or_else(|| {
+            c.invalid(
+                "geometry",
+                "(missing)",
+                "a hardware bench needs [geometry]: sensor_origin_in_stage_mm, surface_z_mm, press_direction",
+            )
+        })?;
+
+        let protocol = stage_kind(&c, "stage.protocol", &s.protocol)?;
+        let mut zaber_devices = [1u8, 2, 3];
+        if let Some(d) = s.devices {
+            for (i, v) in d.iter().enumerate() {
+                if !(1..=99).contains(v) {
+                    return Err(c.invalid(
+                        &format!("stage.devices[{i}]"),
+                        v,
+                        "must be a Zaber device address in [1, 99]",
+                    ));
+                }
+                zaber_devices[i] = *v as u8;
+            }
+        }
+        let zaber_mm_per_step = c.positive(
+            "stage.mm_per_step",
+            s.mm_per_step
+                .unwrap_or(crate::device::zaber::DEFAULT_MM_PER_STEP),
+            "mm",
+        )?;
+        if protocol == StageKind::Grbl && (s.devices.is_some() || s.mm_per_step.is_some()) {
+            return Err(c.invalid(
+                "stage.devices",
+                "(given)",
+                "devices and mm_per_step apply to zaber stages only",
+            ));
+        }
+        let stage_default_baud = match protocol {
+            StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
+            StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
+        };
+        let stage = StageConfig {
+            protocol,
+            port: non_empty(&c, "stage.port", s.port)?,
+            baud: baud(&c, "stage.baud", s.baud, stage_default_baud)?,
+            zaber_devices,
+            zaber_mm_per_step,
+        };
+        let ft_protocol = ft_kind(&c, "force_sensor.protocol", &f.protocol)?;
+        let ft_default_baud = match ft_protocol {
+            FtKind::DynPick => crate::device::dynpick::driver::BAUD,
+            FtKind::Ft300 => crate::device::ft300::driver::BAUD,
+        };
+        let force_sensor = FtConfig {
+            protocol: ft_protocol,
+            port: non_empty(&c, "force_sensor.port", f.port)?,
+            baud: baud(&c, "force_sensor.baud", f.baud, ft_default_baud)?,
+        };
+        let spec_text = match &cam.device {
+            toml::Value::String(s) => s.clone(),
+            toml::Value::Integer(i) => i.to_string(),
+            other => {
+                return Err(c.invalid(
+                    "camera.device",
+                    other,
+                    "expected a V4L2 index (0, 1, ...), \"dir:PATH\" or \"sim:PATH\"",
+                ))
+            }
+        };
+        let camera = CameraSpec::parse(&spec_text)
+            .map_err(|e| c.invalid("camera.device", format!("{spec_text:?}"), e.message))?;
+        Ok(BenchConfig {
+            path: path.to_path_buf(),
+            devices: BenchDevices::Hardware {
+                stage,
+                force_sensor,
+                camera,
+            },
+            geometry: Some(geometry),
+            // Zaber stages lose their reference at power-up: home by default.
+            home: home_given.unwrap_or(protocol == StageKind::Zaber),
+            tare,
+        })
+    }
+}
+
+fn non_empty(c: &Checker<'_>, key: &str, v: String) -> Result<String, ConfigError> {
+    if v.trim().is_empty() {
+        Err(c.invalid(key, "\"\"", "must name a serial port, e.g. /dev/ttyUSB0"))
+    } else {
+        Ok(v)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const HW: &str = r#"
+[stage]
+protocol = "grbl"
+port = "/dev/ttyUSB0"
+[force_sensor]
+protocol = "dynpick"
+port = "/dev/ttyUSB1"
+[camera]
+device = 0
+[geometry]
+sensor_origin_in_stage_mm = [-100.0, -100.0]
+surface_z_mm = -30.0
+press_direction = -1
+"#;
+
+    fn parse(t: &str) -> Result<BenchConfig, ConfigError> {
+        BenchConfig::from_toml_str(t, "experiments/bench.toml")
+    }
+
+    #[test]
+    fn hardware_bench_gets_protocol_default_bauds_and_geometry() {
+        let b = parse(HW).unwrap();
+        let BenchDevices::Hardware {
+            stage,
+            force_sensor,
+            camera,
+        } = &b.devices
+        else {
+            panic!("hardware expected")
+        };
+        assert_eq!(stage.baud, 115_200);
+        assert_eq!(force_sensor.baud, 921_600);
+        assert_eq!(*camera, CameraSpec::V4l(0));
+        let g = b.geometry.unwrap();
+        assert_eq!(g.clearance_mm, 1.0);
+        // Depth 0.5 mm on a CNC stage is 0.5 mm below the surface z.
+        assert_eq!(g.stage_z(0.5), -30.5);
+        assert_eq!(g.depth(-30.5), 0.5);
+        assert_eq!(g.stage_xy([9.0, 6.75]), [-91.0, -93.25]);
+        assert!(!b.home && b.tare);
+    }
+
+    #[test]
+    fn sim_bench_resolves_the_scene_next_to_the_file() {
+        let b = parse("[sim]\nscene = \"scenes/s.toml\"\nstage = \"zaber\"\n").unwrap();
+        let BenchDevices::Sim(s) = &b.devices else {
+            panic!("sim expected")
+        };
+        assert_eq!(s.scene, Path::new("experiments/scenes/s.toml"));
+        assert_eq!(s.stage, StageKind::Zaber);
+        assert_eq!(s.force_sensor, FtKind::DynPick);
+        assert!(b.geometry.is_none());
+    }
+
+    #[test]
+    fn rejects_bad_benches_naming_key_and_value() {
+        let e = parse(&HW.replace("\"grbl\"", "\"marlin\""))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("experiments/bench.toml")
+                && e.contains("stage.protocol")
+                && e.contains("marlin"),
+            "{e}"
+        );
+        let e = parse(&HW.replace("press_direction = -1", "press_direction = 0"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("geometry.press_direction = 0"), "{e}");
+        let e = parse(&HW.replace("device = 0", "device = \"webcam\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("camera.device") && e.contains("webcam"), "{e}");
+        let e = parse(&HW.replace("[camera]\ndevice = 0\n", ""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("camera = (missing)"), "{e}");
+        let e = parse(&format!("{HW}\n[sim]\nscene = \"s.toml\"\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[sim]"), "{e}");
+        let e = parse(&HW.replace(
+            "port = \"/dev/ttyUSB1\"",
+            "port = \"/dev/ttyUSB1\"\nbaud = 7",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("force_sensor.baud = 7"), "{e}");
+    }
+}

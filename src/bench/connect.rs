@@ -1,0 +1,276 @@
+//! Opens the devices a [`BenchConfig`] names: real serial ports and a camera, or a
+//! [`VirtualBench`] started in-process whose pseudo-terminals the *same* drivers then
+//! open (`tactbench run --sim` is the hardware code path against simulators).
+
+use std::path::{Path, PathBuf};
+
+use serde_json::json;
+use thiserror::Error;
+
+use super::config::{BenchConfig, BenchDevices, BenchGeometry, FtKind, StageKind};
+use crate::device::camera::{self, SocketCamera};
+use crate::device::dynpick::driver::{self as dynpick, DynPick};
+use crate::device::fault::FaultConfig;
+use crate::device::ft300::driver::{self as ft300, Ft300};
+use crate::device::ft_common::open_serial;
+use crate::device::grbl::{self, Grbl, GrblConfig};
+use crate::device::zaber::{self, Zaber, ZaberConfig, DEFAULT_MM_PER_STEP};
+use crate::device::{Camera, DeviceError, ForceSensor, Stage};
+use crate::sim::bench::{BenchError, BenchOptions, FtProtocol, StageProtocol, VirtualBench};
+use crate::sim::scene::{Scene, SceneError};
+use crate::sim::world::WorldGeometry;
+
+/// An error opening the bench.
+#[derive(Debug, Error)]
+pub enum ConnectError {
+    /// A device could not be opened or did not answer.
+    #[error("{what}: {source}")]
+    Device {
+        /// Which device.
+        what: &'static str,
+        /// The driver's error.
+        source: DeviceError,
+    },
+    /// The scene of a simulated bench.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    /// The simulated bench could not start.
+    #[error(transparent)]
+    Sim(#[from] BenchError),
+}
+
+/// Options for a simulated bench (tests inject faults here).
+#[derive(Debug, Clone, Default)]
+pub struct SimOptions {
+    /// Where the pseudo-terminal links and the camera socket go.
+    pub links: PathBuf,
+    /// Sensor-frame point to start above (at twice the clearance); `None`: the stage
+    /// kind's default start.
+    pub start_over_mm: Option<[f64; 2]>,
+    /// Opt-in stage simulator faults.
+    pub stage_faults: Option<FaultConfig>,
+    /// Opt-in force-sensor simulator faults.
+    pub ft_faults: Option<FaultConfig>,
+}
+
+/// Open devices, ready for [`super::runner::run`].
+pub struct Connected {
+    /// The stage.
+    pub stage: Box<dyn Stage>,
+    /// The force sensor.
+    pub ft: Box<dyn ForceSensor>,
+    /// The camera.
+    pub camera: Box<dyn Camera>,
+    /// Where the sensor is in stage coordinates.
+    pub geometry: BenchGeometry,
+    /// Home at start / resume.
+    pub home: bool,
+    /// Tare at start / resume.
+    pub tare: bool,
+    /// Device identities for the manifest.
+    pub identities: serde_json::Value,
+    /// The bench description for the manifest.
+    pub description: serde_json::Value,
+    /// The simulated bench, when simulated (dropped after the devices).
+    pub sim: Option<VirtualBench>,
+}
+
+fn dev(what: &'static str) -> impl Fn(DeviceError) -> ConnectError {
+    move |source| ConnectError::Device { what, source }
+}
+
+fn open_stage(
+    kind: StageKind,
+    port: &str,
+    baud: u32,
+    devices: [u8; 3],
+    mm_per_step: f64,
+) -> Result<(Box<dyn Stage>, serde_json::Value), ConnectError> {
+    Ok(match kind {
+        StageKind::Grbl => {
+            let p = grbl::open_serial(port, baud).map_err(dev("stage"))?;
+            let g = Grbl::connect(p, GrblConfig::default()).map_err(dev("stage"))?;
+            let id = json!({"protocol": "grbl", "port": port, "version": g.version()});
+            (Box::new(g), id)
+        }
+        StageKind::Zaber => {
+            let p = zaber::open_serial(port, baud).map_err(dev("stage"))?;
+            let z = Zaber::connect(p, ZaberConfig::single_axis_devices(devices, mm_per_step))
+                .map_err(dev("stage"))?;
+            let id = json!({"protocol": "zaber", "port": port, "devices": devices});
+            (Box::new(z), id)
+        }
+    })
+}
+
+fn open_ft(
+    kind: FtKind,
+    port: &str,
+    baud: u32,
+) -> Result<(Box<dyn ForceSensor>, serde_json::Value), ConnectError> {
+    Ok(match kind {
+        FtKind::DynPick => {
+            let p = open_serial(dynpick::DEVICE, port, baud).map_err(dev("force sensor"))?;
+            let mut d = DynPick::connect(p).map_err(dev("force sensor"))?;
+            let fw = d.firmware_version().ok();
+            (
+                Box::new(d),
+                json!({"protocol": "dynpick", "port": port, "firmware": fw}),
+            )
+        }
+        FtKind::Ft300 => {
+            let p = open_serial(ft300::DEVICE, port, baud).map_err(dev("force sensor"))?;
+            let mut d = Ft300::connect(p).map_err(dev("force sensor"))?;
+            let info = d.info().ok().map(|i| format!("{i:?}"));
+            (
+                Box::new(d),
+                json!({"protocol": "ft300", "port": port, "info": info}),
+            )
+        }
+    })
+}
+
+/// Opens the bench. For `[sim]`, starts the virtual bench first (links under
+/// `sim.links`) and connects the real drivers to it.
+pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, ConnectError> {
+    match &bench.devices {
+        BenchDevices::Hardware {
+            stage,
+            force_sensor,
+            camera: spec,
+        } => {
+            let geometry = bench.geometry.ok_or_else(|| ConnectError::Device {
+                what: "bench",
+                source: DeviceError::new(
+                    crate::device::ErrorKind::Other,
+                    "bench",
+                    "connect",
+                    "a hardware bench needs [geometry]",
+                ),
+            })?;
+            let (s, sid) = open_stage(
+                stage.protocol,
+                &stage.port,
+                stage.baud,
+                stage.zaber_devices,
+                stage.zaber_mm_per_step,
+            )?;
+            let (f, fid) = open_ft(force_sensor.protocol, &force_sensor.port, force_sensor.baud)?;
+            let c = camera::open(spec).map_err(dev("camera"))?;
+            Ok(Connected {
+                stage: s,
+                ft: f,
+                camera: c,
+                geometry,
+                home: bench.home,
+                tare: bench.tare,
+                identities: json!({"stage": sid, "force_sensor": fid, "camera": format!("{spec:?}")}),
+                description: json!({"file": bench.path.display().to_string()}),
+                sim: None,
+            })
+        }
+        BenchDevices::Sim(cfg) => {
+            let scene = Scene::from_path(&cfg.scene)?;
+            let protocol = match cfg.stage {
+                StageKind::Grbl => StageProtocol::Grbl,
+                StageKind::Zaber => StageProtocol::Zaber,
+            };
+            let (mut world, _) = protocol.default_geometry();
+            let geometry = match bench.geometry {
+                Some(g) => {
+                    world.sensor_origin_in_stage_mm = g.sensor_origin_in_stage_mm;
+                    world.surface_z_mm = g.surface_z_mm;
+                    world.press_direction = g.press_direction;
+                    g
+                }
+                None => BenchGeometry {
+                    sensor_origin_in_stage_mm: world.sensor_origin_in_stage_mm,
+                    surface_z_mm: world.surface_z_mm,
+                    press_direction: world.press_direction,
+                    clearance_mm: 1.0,
+                },
+            };
+            world.friction = cfg.friction.unwrap_or(scene.load.friction);
+            let start_mm = sim
+                .start_over_mm
+                .map(|xy| geometry.stage_point(xy, -2.0 * geometry.clearance_mm));
+            let vb = VirtualBench::start_with(
+                &scene,
+                protocol,
+                match cfg.force_sensor {
+                    FtKind::DynPick => FtProtocol::DynPick,
+                    FtKind::Ft300 => FtProtocol::Ft300,
+                },
+                &sim.links,
+                BenchOptions {
+                    geometry: Some(world),
+                    start_mm,
+                    stage_faults: sim.stage_faults.clone(),
+                    ft_faults: sim.ft_faults.clone(),
+                },
+            )?;
+            let port = vb.stage_port().display().to_string();
+            let (s, sid) = open_stage(cfg.stage, &port, 115_200, [1, 2, 3], DEFAULT_MM_PER_STEP)?;
+            let ft_port = vb.ft_port().display().to_string();
+            let baud = match cfg.force_sensor {
+                FtKind::DynPick => dynpick::BAUD,
+                FtKind::Ft300 => ft300::BAUD,
+            };
+            let (f, fid) = open_ft(cfg.force_sensor, &ft_port, baud)?;
+            let c = SocketCamera::connect(vb.camera_socket()).map_err(dev("camera"))?;
+            Ok(Connected {
+                stage: s,
+                ft: f,
+                camera: Box::new(c),
+                geometry,
+                // The Zaber simulator starts unreferenced, as the devices do.
+                home: bench.home || cfg.stage == StageKind::Zaber,
+                tare: bench.tare,
+                identities: json!({"stage": sid, "force_sensor": fid, "camera": "sim"}),
+                description: json!({
+                    "sim": {
+                        "scene": cfg.scene.display().to_string(),
+                        "scene_toml": std::fs::read_to_string(&cfg.scene).unwrap_or_default(),
+                        "stage": format!("{:?}", cfg.stage),
+                        "force_sensor": format!("{:?}", cfg.force_sensor),
+                        "friction": world.friction,
+                    },
+                    "file": bench.path.display().to_string(),
+                }),
+                sim: Some(vb),
+            })
+        }
+    }
+}
+
+/// A temporary-directory-free default for the links of an in-process simulated bench:
+/// `RUN_DIR/.sim` (removed when the bench drops).
+pub fn default_links(run_dir: &Path) -> PathBuf {
+    run_dir.join(".sim")
+}
+
+/// The geometry a bench config will use, without opening anything (for `--dry-run`).
+pub fn geometry_of(bench: &BenchConfig) -> BenchGeometry {
+    match (&bench.devices, bench.geometry) {
+        (_, Some(g)) => g,
+        (BenchDevices::Sim(cfg), None) => {
+            let p = match cfg.stage {
+                StageKind::Grbl => StageProtocol::Grbl,
+                StageKind::Zaber => StageProtocol::Zaber,
+            };
+            let (w, _): (WorldGeometry, _) = p.default_geometry();
+            BenchGeometry {
+                sensor_origin_in_stage_mm: w.sensor_origin_in_stage_mm,
+                surface_z_mm: w.surface_z_mm,
+                press_direction: w.press_direction,
+                clearance_mm: 1.0,
+            }
+        }
+        (BenchDevices::Hardware { .. }, None) => BenchGeometry {
+            sensor_origin_in_stage_mm: [0.0, 0.0],
+            surface_z_mm: 0.0,
+            press_direction: 1.0,
+            clearance_mm: 1.0,
+        },
+    }
+}

@@ -1,0 +1,408 @@
+//! `tactbench run`: the product's main job. Runs an experiment plan on a bench (real
+//! or simulated) into a run directory, drawing progress with indicatif (library:
+//! [`tactbench::bench::runner`]).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use tactbench::bench::config::BenchConfig;
+use tactbench::bench::connect::{self, SimOptions};
+use tactbench::bench::journal::{Manifest, RunStatus};
+use tactbench::bench::plan::Plan;
+use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions};
+use tactbench::sensor::Sensor;
+
+/// Run an experiment plan on the bench: force-controlled setpoints, frames, forces.
+///
+/// For every setpoint of PLAN the stage moves to the target (checked against the
+/// plan's travel box and the stage's limits first), approaches until contact, brings
+/// the measured force to the target within the tolerance by closed-loop stage motion,
+/// waits for the force to settle, averages the F/T samples, grabs the frames, tracks
+/// them against the reference frame and reconstructs the surface forces. While the
+/// stage moves the force is watched: any component beyond its safety limit stops the
+/// stage, retracts it and aborts the run.
+///
+/// The run directory (--out) receives manifest.json, journal.csv (one row per
+/// setpoint, synced before the next move), frames/reference.png, frames/NNNNN_K.png,
+/// displacements/NNNNN.csv (as `tactbench track` writes) and forces/NNNNN.csv (as
+/// `tactbench reconstruct` writes). Ctrl-C stops motion, retracts and marks the run
+/// interrupted; `--resume DIR` continues a killed or interrupted run without
+/// repeating or losing a setpoint.
+///
+/// Exit status: 0 when every setpoint was measured, 3 when the run was aborted (device
+/// error, safety trip), 4 when interrupted, 2 on other errors; the reason goes to
+/// stderr and into manifest.json.
+#[derive(clap::Args)]
+#[command(
+    after_long_help = "Examples:\n  # The paper's Fig. 7 magnitude sweep on the simulated bench (same drivers, pseudo-terminals):\n  tactbench run experiments/fig7_magnitude.toml --sim experiments/scenes/fig7_hemisphere_ramp.toml --out runs/fig7\n  # What a plan will do, without opening any device:\n  tactbench run experiments/fig8_angle.toml --bench experiments/bench_example.toml --dry-run\n  # A real bench:\n  tactbench run experiments/fig7_magnitude.toml --bench experiments/bench_example.toml --out runs/fig7 --build-id E-2026-11\n  # Continue a killed or interrupted run (plan and bench come from its manifest):\n  tactbench run --resume runs/fig7\n  # A short trial: the first 5 setpoints only:\n  tactbench run experiments/fig7_magnitude.toml --bench experiments/bench_sim.toml --out runs/try --limit 5"
+)]
+pub struct Args {
+    /// Experiment plan (experiments/*.toml). Optional with --resume (taken from the
+    /// run's manifest).
+    #[arg(value_name = "PLAN.toml")]
+    plan: Option<PathBuf>,
+    /// Bench file naming the devices (or `[sim]` with a scene).
+    #[arg(long, value_name = "bench.toml", conflicts_with = "sim")]
+    bench: Option<PathBuf>,
+    /// Run on the simulated bench for this scene (GRBL stage, DynPick F/T).
+    #[arg(long, value_name = "SCENE.toml")]
+    sim: Option<PathBuf>,
+    /// Run directory to create (must not hold a run already).
+    #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+    out: Option<PathBuf>,
+    /// Continue the run in DIR.
+    #[arg(long, value_name = "DIR")]
+    resume: Option<PathBuf>,
+    /// Print the setpoints, the estimated duration and the limit checks; move nothing
+    /// and open no device.
+    #[arg(long)]
+    dry_run: bool,
+    /// Elastomer build id recorded in the manifest (overrides the plan's build_id).
+    #[arg(long, value_name = "ID")]
+    build_id: Option<String>,
+    /// Only the first N setpoints of the plan (a short trial run).
+    #[arg(long, value_name = "N")]
+    limit: Option<usize>,
+    /// Print where the time went at the end (device waits, tracking, solving, file
+    /// writes, controller overhead per setpoint).
+    #[arg(long)]
+    timings: bool,
+    /// No progress bar; one line per setpoint on stderr instead.
+    #[arg(long)]
+    no_progress: bool,
+}
+
+/// What the manifest says about the bench, to reopen it on resume.
+fn bench_from_manifest(m: &Manifest) -> anyhow::Result<BenchConfig> {
+    if let Some(scene) = m.bench["sim"]["scene"].as_str() {
+        if let Some(file) = m.bench["file"].as_str() {
+            if file != scene && std::path::Path::new(file).exists() {
+                return Ok(BenchConfig::from_path(file)?);
+            }
+        }
+        return Ok(BenchConfig::sim(std::path::Path::new(scene)));
+    }
+    if let Some(file) = m.bench["file"].as_str() {
+        return Ok(BenchConfig::from_path(file)?);
+    }
+    bail!("the manifest does not say which bench ran; give --bench or --sim")
+}
+
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    // Plan: from the command line, or (resume) from the manifest.
+    let manifest =
+        match &a.resume {
+            Some(dir) => Some(Manifest::read(dir).with_context(|| {
+                format!("cannot resume {}: no readable manifest", dir.display())
+            })?),
+            None => None,
+        };
+    let (plan, plan_toml) = match (&a.plan, &manifest) {
+        (Some(p), _) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read plan {}", p.display()))?;
+            (Plan::from_toml_str(&text, p)?, text)
+        }
+        (None, Some(m)) => (
+            Plan::from_toml_str(&m.plan_toml, &m.plan_path)?,
+            m.plan_toml.clone(),
+        ),
+        (None, None) => {
+            bail!("give a plan: tactbench run PLAN.toml --sim SCENE.toml --out DIR (see --help)")
+        }
+    };
+    let sensor_toml = match &manifest {
+        Some(m) => m.sensor_toml.clone(),
+        None => std::fs::read_to_string(&plan.sensor_path).with_context(|| {
+            format!(
+                "cannot read the plan's sensor file {}",
+                plan.sensor_path.display()
+            )
+        })?,
+    };
+    let sensor = Sensor::from_toml_str(&sensor_toml, &plan.sensor_path)?;
+
+    let bench = match (&a.bench, &a.sim, &manifest) {
+        (Some(b), _, _) => Some(BenchConfig::from_path(b)?),
+        (None, Some(s), _) => Some(BenchConfig::sim(s)),
+        (None, None, Some(m)) => Some(bench_from_manifest(m)?),
+        (None, None, None) => None,
+    };
+
+    if a.dry_run {
+        let geometry = bench.as_ref().map(connect::geometry_of);
+        let report = runner::dry_run(&plan, a.limit, geometry.as_ref(), None);
+        let u = plan.force_unit;
+        println!(
+            "plan {} ({}, {} sweep): {} setpoints, {} samples and {} frame(s) each",
+            plan.path.display(),
+            plan.name,
+            runner::sweep_name(&plan),
+            report.setpoints.len(),
+            plan.samples,
+            plan.frames
+        );
+        println!(
+            "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}",
+            "index",
+            "trial",
+            "x_mm",
+            "y_mm",
+            format!("normal_{}", u.symbol()),
+            format!("tx_{}", u.symbol()),
+            format!("ty_{}", u.symbol()),
+            "swept"
+        );
+        for sp in &report.setpoints {
+            println!(
+                "{:>6} {:>5} {:>10.4} {:>10.4} {:>12.4} {:>12.4} {:>12.4} {:>10.4}",
+                sp.index,
+                sp.trial,
+                sp.position_mm[0] + sp.shift_mm[0],
+                sp.position_mm[1] + sp.shift_mm[1],
+                u.from_newtons(sp.normal_n),
+                u.from_newtons(sp.tangential_n[0]),
+                u.from_newtons(sp.tangential_n[1]),
+                sp.swept_value
+            );
+        }
+        println!("limit checks:");
+        let mut ok = true;
+        for (pass, what) in &report.checks {
+            ok &= pass;
+            println!("  [{}] {what}", if *pass { "ok" } else { "FAIL" });
+        }
+        println!(
+            "estimated duration: {:.0} s ({:.1} min); nothing moved, no device opened",
+            report.estimated_s,
+            report.estimated_s / 60.0
+        );
+        return Ok(if ok {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::from(3)
+        });
+    }
+
+    let bench = bench.context("give a bench: --bench bench.toml or --sim SCENE.toml")?;
+    let (dir, resume) = match (&a.out, &a.resume) {
+        (Some(d), None) => (d.clone(), false),
+        (None, Some(d)) => (d.clone(), true),
+        _ => bail!("give --out DIR for a new run or --resume DIR to continue one"),
+    };
+    if !resume {
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create run directory {}", dir.display()))?;
+    }
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&stop);
+    ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst))
+        .context("cannot install the Ctrl-C handler")?;
+
+    let sim_options = SimOptions {
+        links: connect::default_links(&dir),
+        start_over_mm: Some(plan.approach_position_mm),
+        ..SimOptions::default()
+    };
+    let mut c = connect::connect(&bench, &sim_options).context("cannot open the bench")?;
+    let options = RunOptions {
+        dir: dir.clone(),
+        resume,
+        build_id: a.build_id.clone(),
+        plan_toml,
+        sensor_toml,
+        bench: c.description.clone(),
+        devices: c.identities.clone(),
+        home: c.home,
+        tare: c.tare,
+        limit: a.limit,
+        stop,
+    };
+
+    let bar = if a.no_progress {
+        None
+    } else {
+        let b = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
+        b.set_style(
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} setpoints, ETA {eta} {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        b.enable_steady_tick(Duration::from_millis(200));
+        Some(b)
+    };
+    let unit = plan.force_unit;
+    let sym = unit.symbol();
+    let quiet_bar = bar.clone();
+    let log = move |line: String| match &quiet_bar {
+        Some(b) => b.println(line),
+        None => eprintln!("{line}"),
+    };
+    let mut on_event = |e: &RunEvent| match e {
+        RunEvent::Started {
+            total,
+            done,
+            truncated_bytes,
+        } => {
+            if let Some(b) = &bar {
+                b.set_length(*total as u64);
+                b.set_position(*done as u64);
+                b.reset_eta();
+            }
+            if *done > 0 {
+                log(format!(
+                    "resuming: {done} of {total} setpoints already measured{}",
+                    if *truncated_bytes > 0 {
+                        format!(" (cut a torn journal line of {truncated_bytes} bytes)")
+                    } else {
+                        String::new()
+                    }
+                ));
+            }
+        }
+        RunEvent::Homing => log("homing the stage".into()),
+        RunEvent::Tared { residual_n } => log(format!(
+            "force sensor tared (|F| = {residual_n:.4} N after)"
+        )),
+        RunEvent::Reference {
+            path,
+            markers,
+            missing,
+        } => log(format!(
+            "reference frame {path}: {markers} markers, {missing} missing"
+        )),
+        RunEvent::SetpointStarted { setpoint, .. } => {
+            if let Some(b) = &bar {
+                b.set_message(format!(
+                    "#{} target {:.1} {sym}",
+                    setpoint.index,
+                    unit.from_newtons(setpoint.normal_n)
+                ));
+            }
+        }
+        RunEvent::Contact { .. } => {}
+        RunEvent::Retry {
+            index,
+            attempt,
+            reason,
+        } => log(format!(
+            "retry {attempt}{}: {reason}",
+            index
+                .map(|i| format!(" at setpoint {i}"))
+                .unwrap_or_default()
+        )),
+        RunEvent::Warning { index, message } => {
+            log(format!("warning: setpoint {index}: {message}"))
+        }
+        RunEvent::SetpointMeasured {
+            index,
+            done,
+            total,
+            force_n,
+            fsum_n,
+            settled,
+            elapsed_s,
+            ..
+        } => {
+            let line = format!(
+                "#{index:>5} fz {:>9.3} {sym}  F_sum z {:>9.3} {sym}  ({:.2} s{})",
+                unit.from_newtons(force_n[2]),
+                unit.from_newtons(fsum_n[2]),
+                elapsed_s,
+                if *settled { "" } else { ", not settled" }
+            );
+            match &bar {
+                Some(b) => {
+                    b.set_position(*done as u64);
+                    b.set_message(format!(
+                        "last fz {:.1} {sym}",
+                        unit.from_newtons(force_n[2])
+                    ));
+                }
+                None => eprintln!("{done}/{total} {line}"),
+            }
+        }
+        RunEvent::SafetyTrip { reason, .. } => log(format!("SAFETY STOP: {reason}")),
+        RunEvent::Finished { .. } => {}
+    };
+
+    let summary = {
+        let mut devices = Devices {
+            stage: c.stage.as_mut(),
+            ft: c.ft.as_mut(),
+            camera: c.camera.as_mut(),
+        };
+        runner::run(
+            &plan,
+            &sensor,
+            &c.geometry,
+            &mut devices,
+            &options,
+            &mut on_event,
+        )?
+    };
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    // Drivers first, then the simulated bench they talk to.
+    drop(c.stage);
+    drop(c.ft);
+    drop(c.camera);
+    drop(c.sim.take());
+    // The simulated bench removed its links; drop their (now empty) directory.
+    let _ = std::fs::remove_dir(connect::default_links(&dir));
+
+    if a.timings {
+        let t = summary.timings;
+        let n = t.setpoints.max(1) as f64;
+        eprintln!(
+            "timings over {} setpoints: wall {:.2} s; device waits {:.2} s; tracking {:.3} s; solving {:.3} s; file writes {:.3} s; controller overhead {:.3} ms mean, {:.3} ms max per setpoint",
+            t.setpoints,
+            t.wall_s,
+            t.device_s,
+            t.track_s,
+            t.solve_s,
+            t.io_s,
+            t.overhead_s / n * 1e3,
+            t.max_overhead_s * 1e3
+        );
+    }
+    match summary.status {
+        RunStatus::Completed => {
+            eprintln!(
+                "run completed: {} setpoints ({} this session) in {}",
+                summary.done,
+                summary.measured,
+                dir.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        RunStatus::Interrupted => {
+            eprintln!(
+                "run interrupted: {} of {} setpoints measured; continue with `tactbench run --resume {}`: {}",
+                summary.done,
+                summary.total,
+                dir.display(),
+                summary.reason.unwrap_or_default()
+            );
+            Ok(ExitCode::from(4))
+        }
+        RunStatus::Aborted | RunStatus::Running => {
+            eprintln!(
+                "run aborted after {} of {} setpoints: {}",
+                summary.done,
+                summary.total,
+                summary.reason.unwrap_or_default()
+            );
+            Ok(ExitCode::from(3))
+        }
+    }
+}

@@ -1,0 +1,562 @@
+//! `tactbench run` end to end on the simulated bench (real drivers on pseudo-terminals):
+//! every plan in `experiments/`, kill and resume, the safety watchdog on an overly
+//! stiff contact, injected device faults, malformed inputs, and dry runs.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tactbench::bench::config::BenchConfig;
+use tactbench::bench::connect::{self, SimOptions};
+use tactbench::bench::journal::{self, JournalRow, Manifest, RunStatus};
+use tactbench::bench::plan::Plan;
+use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions, RunSummary};
+use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
+use tactbench::sensor::Sensor;
+use tactbench::sim::scene::Scene;
+
+use crate::util;
+
+/// Each plan in `experiments/` and the scene its simulated run uses.
+const PLANS: [(&str, &str); 5] = [
+    (
+        "experiments/fig7_magnitude.toml",
+        "experiments/scenes/fig7_hemisphere_ramp.toml",
+    ),
+    (
+        "experiments/fig8_angle.toml",
+        "experiments/scenes/fig8_angle_400gf.toml",
+    ),
+    (
+        "experiments/fig9_spatial.toml",
+        "experiments/scenes/fig9_point_200gf.toml",
+    ),
+    (
+        "experiments/table1_displacement.toml",
+        "experiments/scenes/table1_carried.toml",
+    ),
+    (
+        "experiments/setpoints_example.toml",
+        "experiments/scenes/fig8_angle_400gf.toml",
+    ),
+];
+
+fn rows(dir: &Path) -> Vec<JournalRow> {
+    journal::read_rows(dir).unwrap()
+}
+
+/// Checks the run-directory contract for every journal row.
+fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
+    assert!(dir.join("frames/reference.png").exists());
+    let rows = rows(dir);
+    for r in &rows {
+        let frames: Vec<&str> = r.frames.split(';').collect();
+        assert_eq!(frames.len(), plan.frames, "row {}", r.index);
+        for (k, f) in frames.iter().enumerate() {
+            assert_eq!(*f, format!("frames/{:05}_{k}.png", r.index));
+            assert!(dir.join(f).exists(), "{f}");
+        }
+        let d =
+            std::fs::read_to_string(dir.join(format!("displacements/{:05}.csv", r.index))).unwrap();
+        assert_eq!(
+            d.lines().next().unwrap(),
+            "layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,status",
+            "the displacement file is what `tactbench track` writes"
+        );
+        // 260 markers per frame plus the header.
+        assert_eq!(d.lines().count(), 1 + 260 * plan.frames);
+        let f = std::fs::read_to_string(dir.join(format!("forces/{:05}.csv", r.index))).unwrap();
+        assert_eq!(f.lines().next().unwrap(), "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n");
+        assert_eq!(f.lines().count(), 1 + 80);
+    }
+    rows
+}
+
+fn run_cli(args: &[&str]) -> std::process::Output {
+    util::run(args)
+}
+
+#[test]
+fn every_plan_in_experiments_runs_end_to_end_on_the_simulated_bench() {
+    // Every plan file in experiments/ must be listed above (so it is exercised here).
+    let listed: BTreeSet<String> = PLANS.iter().map(|(p, _)| p.to_string()).collect();
+    for e in std::fs::read_dir(util::root("experiments")).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "toml")
+            && std::fs::read_to_string(&p).unwrap().contains("[sweep]")
+        {
+            let rel = format!("experiments/{}", p.file_name().unwrap().to_string_lossy());
+            assert!(
+                listed.contains(&rel),
+                "{rel} has no simulated run in this test"
+            );
+        }
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    for (plan_path, scene) in PLANS {
+        let plan = Plan::from_path(util::root(plan_path)).unwrap();
+        // Short variants: the first few setpoints (fig7: 0, 50, 100 gf).
+        let limit = 3.min(plan.setpoints().len());
+        let out = tmp.path().join(Path::new(plan_path).file_stem().unwrap());
+        let o = run_cli(&[
+            "run",
+            plan_path,
+            "--sim",
+            scene,
+            "--out",
+            out.to_str().unwrap(),
+            "--limit",
+            &limit.to_string(),
+            "--no-progress",
+        ]);
+        assert!(o.status.success(), "{plan_path}: {}", util::stderr(&o));
+        let m = Manifest::read(&out).unwrap();
+        assert_eq!(m.status, RunStatus::Completed, "{plan_path}");
+        assert_eq!(m.setpoints, limit);
+        let rows = check_run_dir(&out, &plan);
+        assert_eq!(
+            rows.iter().map(|r| r.index).collect::<Vec<_>>(),
+            (0..limit).collect::<Vec<_>>(),
+            "{plan_path}"
+        );
+        let sps = plan.setpoints();
+        for r in &rows {
+            let sp = sps[r.index];
+            // The measured wrench (not the target) is recorded; force control holds
+            // it within the plan's tolerance (+ one DynPick count, 1/82 N... ≤ 0.013 N).
+            let tol = plan.force_tolerance_n + 0.013;
+            assert!(
+                (r.fz_n - sp.normal_n).abs() <= tol,
+                "{plan_path} #{}: fz {} N, target {} N ± {tol}",
+                r.index,
+                r.fz_n,
+                sp.normal_n
+            );
+            let t = [r.fx_n, r.fy_n];
+            for i in 0..2 {
+                assert!(
+                    (t[i] - sp.tangential_n[i]).abs() <= tol,
+                    "{plan_path} #{}: tangential {t:?} N, target {:?} N",
+                    r.index,
+                    sp.tangential_n
+                );
+            }
+            assert!(r.settled);
+            // The reconstruction sees the same load: F_sum z within 25 % + 0.05 N.
+            assert!(
+                (r.fsum_z_n - r.fz_n).abs() <= 0.25 * r.fz_n + 0.05
+                    || matches!(
+                        plan.sweep,
+                        tactbench::bench::plan::Sweep::Displacement { .. }
+                    ),
+                "{plan_path} #{}: F_sum z {} N vs F/T {} N",
+                r.index,
+                r.fsum_z_n,
+                r.fz_n
+            );
+        }
+        if plan_path.contains("table1") {
+            // The whole sensor moved 0.15 mm: every tracked marker reports it.
+            let d = std::fs::read_to_string(out.join("displacements/00001.csv")).unwrap();
+            let ux: Vec<f64> = d
+                .lines()
+                .skip(1)
+                .filter_map(|l| l.split(',').nth(4).and_then(|v| v.parse().ok()))
+                .collect();
+            assert_eq!(ux.len(), 520, "all markers tracked in both frames");
+            let mean = ux.iter().sum::<f64>() / ux.len() as f64;
+            assert!((mean - 0.15).abs() < 0.002, "mean ux {mean} mm");
+        }
+        assert!(
+            !out.join(".sim").exists(),
+            "the simulated bench's links are cleaned up"
+        );
+    }
+}
+
+#[test]
+fn a_run_killed_mid_sweep_resumes_to_a_complete_journal() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let n = 8;
+    let mut child = Command::new(util::bin())
+        .args([
+            "run",
+            "experiments/fig7_magnitude.toml",
+            "--sim",
+            "experiments/scenes/fig7_hemisphere_ramp.toml",
+            "--limit",
+            &n.to_string(),
+            "--no-progress",
+            "--out",
+        ])
+        .arg(&out)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    loop {
+        let done = std::fs::read_to_string(out.join("journal.csv"))
+            .map(|s| s.lines().count().saturating_sub(1))
+            .unwrap_or(0);
+        if done >= 3 {
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "run made no progress"
+        );
+        assert!(child.try_wait().unwrap().is_none(), "run ended early");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap(); // SIGKILL: no chance to clean up
+    child.wait().unwrap();
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(
+        m.status,
+        RunStatus::Running,
+        "killed: the manifest could not say"
+    );
+    let before = rows(&out).len();
+    assert!(before >= 3 && before < n, "{before} rows before the kill");
+
+    let o = run_cli(&["run", "--resume", out.to_str().unwrap(), "--no-progress"]);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    let rows = rows(&out);
+    assert_eq!(
+        rows.iter().map(|r| r.index).collect::<Vec<_>>(),
+        (0..n).collect::<Vec<_>>(),
+        "every setpoint exactly once, in order"
+    );
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Completed);
+    assert_eq!(m.resumed_at.len(), 1);
+    assert!(
+        out.join("frames/reference_resume1.png").exists(),
+        "a new reference frame after the resume"
+    );
+    assert!(util::stderr(&o).contains(&format!("{before} of {n} setpoints already measured")));
+}
+
+/// Runs a plan in-process on a simulated bench with optional faults.
+fn run_in_process(
+    plan: &Plan,
+    scene: &Path,
+    out: &Path,
+    resume: bool,
+    limit: Option<usize>,
+    stage_faults: Option<FaultConfig>,
+    ft_faults: Option<FaultConfig>,
+) -> (RunSummary, Vec<RunEvent>, [f64; 3], f64) {
+    let bench = BenchConfig::sim(scene);
+    let sim = SimOptions {
+        links: out.with_extension("links"),
+        start_over_mm: Some(plan.approach_position_mm),
+        stage_faults,
+        ft_faults,
+    };
+    let mut c = connect::connect(&bench, &sim).unwrap();
+    let sensor_toml = std::fs::read_to_string(&plan.sensor_path).unwrap();
+    let sensor = Sensor::from_toml_str(&sensor_toml, &plan.sensor_path).unwrap();
+    let options = RunOptions {
+        dir: out.to_path_buf(),
+        resume,
+        build_id: Some("test-build".into()),
+        plan_toml: std::fs::read_to_string(&plan.path).unwrap_or_default(),
+        sensor_toml,
+        bench: c.description.clone(),
+        devices: c.identities.clone(),
+        home: c.home,
+        tare: c.tare,
+        limit,
+        stop: Arc::new(AtomicBool::new(false)),
+    };
+    let mut events = Vec::new();
+    let summary = {
+        let mut devices = Devices {
+            stage: c.stage.as_mut(),
+            ft: c.ft.as_mut(),
+            camera: c.camera.as_mut(),
+        };
+        runner::run(
+            plan,
+            &sensor,
+            &c.geometry,
+            &mut devices,
+            &options,
+            &mut |e| events.push(e.clone()),
+        )
+        .unwrap()
+    };
+    let world = c.sim.as_ref().unwrap().world();
+    let (stage, fz) = (world.stage_mm(), world.contact().normal_n);
+    (summary, events, stage, fz)
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn an_overly_stiff_contact_trips_the_force_limit_and_the_stage_stops() {
+    let tmp = tempfile::tempdir().unwrap();
+    // 100x the paper's elastomer stiffness: the first force-control step (planned
+    // with the runner's 4 N/mm initial stiffness) would reach hundreds of newtons.
+    let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
+        .unwrap()
+        .replace("young_modulus_kpa = 1000.0", "young_modulus_kpa = 100000.0");
+    write(tmp.path(), "stiff_sensor.toml", &sensor);
+    let scene = write(
+        tmp.path(),
+        "stiff.toml",
+        "sensor = \"stiff_sensor.toml\"\n[indenter]\nkind = \"flat\"\ndiameter_mm = 5.0\n[load]\nposition_mm = [9.0, 6.75]\nnormal_force_n = 0.0\n",
+    );
+    let plan_text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            "sensor = \"stiff_sensor.toml\"",
+        );
+    let plan_path = write(tmp.path(), "plan.toml", &plan_text);
+    let plan = Plan::from_path(&plan_path).unwrap();
+    let out = tmp.path().join("run");
+    let (summary, events, stage, fz) =
+        run_in_process(&plan, &scene, &out, false, Some(4), None, None);
+    assert_eq!(summary.status, RunStatus::Aborted);
+    let reason = summary.reason.clone().unwrap();
+    assert!(
+        reason.contains("safety limit") && reason.contains("exceeds the safety limit 9.8066"),
+        "{reason}"
+    );
+    let latency = events
+        .iter()
+        .find_map(|e| match e {
+            RunEvent::SafetyTrip { stop_latency_s, .. } => Some(*stop_latency_s),
+            _ => None,
+        })
+        .expect("a safety trip event");
+    eprintln!("stop latency {:.1} ms", latency * 1e3);
+    assert!(latency > 0.0 && latency < 0.5, "stop latency {latency} s");
+    // Stopped and retracted: out of contact, at the retract height (GRBL: surface
+    // z = -30 mm, 1 mm clearance).
+    assert_eq!(fz, 0.0, "the stage left the contact");
+    assert!((stage[2] - -29.0).abs() < 1e-3, "stage z {} mm", stage[2]);
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Aborted);
+    assert_eq!(m.end_reason.as_deref(), Some(reason.as_str()));
+    assert!(reason.contains("ms after the reading"), "{reason}");
+    // The 0 gf setpoint before the trip is journalled intact.
+    assert_eq!(
+        rows(&out).iter().map(|r| r.index).collect::<Vec<_>>(),
+        vec![0]
+    );
+}
+
+#[test]
+fn injected_device_faults_end_in_recovery_or_a_clean_abort_with_the_journal_intact() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = Plan::from_path(util::root("experiments/fig7_magnitude.toml")).unwrap();
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+
+    // A garbled F/T reply mid-run: the driver or the runner retries, the run completes.
+    let out = tmp.path().join("garbled");
+    let (s, _, _, _) = run_in_process(
+        &plan,
+        &scene,
+        &out,
+        false,
+        Some(4),
+        None,
+        Some(FaultConfig::once(FaultKind::Garbled, FaultTarget::Any, 700)),
+    );
+    assert_eq!(s.status, RunStatus::Completed, "{:?}", s.reason);
+    assert_eq!(rows(&out).len(), 4);
+
+    // The force sensor disappears mid-run: clean abort, rows so far intact, and a
+    // resume on a working bench completes the run.
+    let out = tmp.path().join("disconnect");
+    let (s, _, _, _) = run_in_process(
+        &plan,
+        &scene,
+        &out,
+        false,
+        Some(5),
+        None,
+        Some(FaultConfig::once(
+            FaultKind::Disconnect,
+            FaultTarget::Any,
+            700,
+        )),
+    );
+    assert_eq!(s.status, RunStatus::Aborted);
+    let reason = s.reason.unwrap();
+    assert!(reason.contains("dynpick"), "{reason}");
+    let before: Vec<usize> = rows(&out).iter().map(|r| r.index).collect();
+    assert_eq!(before, (0..before.len()).collect::<Vec<_>>());
+    assert!(before.len() < 5, "the fault hit mid-run");
+    assert_eq!(Manifest::read(&out).unwrap().status, RunStatus::Aborted);
+    let (s, _, _, _) = run_in_process(&plan, &scene, &out, true, None, None, None);
+    assert_eq!(s.status, RunStatus::Completed, "{:?}", s.reason);
+    assert_eq!(
+        rows(&out).iter().map(|r| r.index).collect::<Vec<_>>(),
+        (0..5).collect::<Vec<_>>()
+    );
+
+    // A garbled reply to a stage command: never re-sent blindly, so the run either
+    // recovers (the driver resynchronises) or aborts cleanly; the journal is intact.
+    let out = tmp.path().join("stage");
+    let (s, _, _, _) = run_in_process(
+        &plan,
+        &scene,
+        &out,
+        false,
+        Some(4),
+        Some(FaultConfig::once(
+            FaultKind::Garbled,
+            FaultTarget::Commands,
+            5,
+        )),
+        None,
+    );
+    let got: Vec<usize> = rows(&out).iter().map(|r| r.index).collect();
+    assert_eq!(got, (0..got.len()).collect::<Vec<_>>());
+    match s.status {
+        RunStatus::Completed => assert_eq!(got.len(), 4),
+        RunStatus::Aborted => assert!(s.reason.unwrap().contains("grbl")),
+        other => panic!("unexpected status {other:?}"),
+    }
+}
+
+#[test]
+fn malformed_plans_and_bench_files_are_rejected_with_clear_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml")).unwrap();
+    let bad = write(
+        tmp.path(),
+        "bad.toml",
+        &plan.replace("step = 50.0", "step = 0.0"),
+    );
+    let o = run_cli(&["run", bad.to_str().unwrap(), "--dry-run"]);
+    assert_eq!(o.status.code(), Some(2));
+    let e = util::stderr(&o);
+    assert!(
+        e.contains("bad.toml") && e.contains("sweep.step = 0 gf") && e.contains("> 0 gf"),
+        "{e}"
+    );
+
+    let far = write(
+        tmp.path(),
+        "far.toml",
+        &plan.replace("position_mm = [9.0, 6.75]", "position_mm = [30.0, 6.75]"),
+    );
+    let e = util::stderr(&run_cli(&["run", far.to_str().unwrap(), "--dry-run"]));
+    assert!(e.contains("x = 30 mm") && e.contains("travel box"), "{e}");
+
+    let bench = write(
+        tmp.path(),
+        "bench.toml",
+        "[stage]\nprotocol = \"marlin\"\nport = \"/dev/ttyUSB0\"\n[force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"\n[camera]\ndevice = 0\n[geometry]\nsensor_origin_in_stage_mm = [0.0, 0.0]\nsurface_z_mm = 10.0\npress_direction = 1\n",
+    );
+    let o = run_cli(&[
+        "run",
+        "experiments/fig7_magnitude.toml",
+        "--bench",
+        bench.to_str().unwrap(),
+        "--dry-run",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    let e = util::stderr(&o);
+    assert!(
+        e.contains("bench.toml") && e.contains("stage.protocol = \"marlin\""),
+        "{e}"
+    );
+
+    let o = run_cli(&["run", "experiments/fig7_magnitude.toml", "--out", "/tmp/x"]);
+    assert!(util::stderr(&o).contains("--bench"), "{}", util::stderr(&o));
+}
+
+#[test]
+fn dry_run_prints_setpoints_duration_and_checks_and_opens_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    // The example bench names /dev/ttyUSB0..1 and camera 0: none exists here, so any
+    // attempt to open them would fail the command.
+    let o = run_cli(&[
+        "run",
+        "experiments/fig7_magnitude.toml",
+        "--bench",
+        "experiments/bench_example.toml",
+        "--dry-run",
+    ]);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    let s = util::stdout(&o);
+    assert!(s.contains("160 setpoints"), "{s}");
+    assert!(
+        s.contains("   159     9"),
+        "the last setpoint is listed: {s}"
+    );
+    assert!(s.contains("estimated duration") && s.contains("nothing moved"));
+    assert!(s.contains(
+        "[ok] largest target |fz| 750.0000 gf within safety.max_force[2] = 1000.0000 gf"
+    ));
+    let out = tmp.path().join("never");
+    let o = run_cli(&[
+        "run",
+        "experiments/fig8_angle.toml",
+        "--sim",
+        "experiments/scenes/fig8_angle_400gf.toml",
+        "--out",
+        out.to_str().unwrap(),
+        "--dry-run",
+    ]);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    assert!(
+        !out.exists(),
+        "a dry run creates no run directory and starts no simulator"
+    );
+}
+
+#[test]
+fn scene_bench_effects_are_validated() {
+    let sensor = tactbench::sensor::paper_sensor();
+    let base = "sensor = \"s.toml\"\n[indenter]\nkind = \"point\"\n[load]\nposition_mm = [9.0, 6.75]\nnormal_force_n = 0.0\n";
+    let s = Scene::from_toml_str(base, "scene.toml", sensor.clone()).unwrap();
+    assert_eq!(
+        s.bench,
+        Default::default(),
+        "nothing listed, nothing applied"
+    );
+    let s = Scene::from_toml_str(
+        &format!("{base}[bench]\nft_noise = {{ sigma_n = 0.01, seed = 3 }}\nforce_relaxation = {{ fraction = 0.1, time_constant_s = 0.2 }}\n"),
+        "scene.toml",
+        sensor.clone(),
+    )
+    .unwrap();
+    assert_eq!(s.bench.ft_noise.unwrap().sigma_n, 0.01);
+    assert_eq!(s.bench.force_relaxation.unwrap().time_constant_s, 0.2);
+    let e = Scene::from_toml_str(
+        &format!("{base}[bench]\nstage_carries_sensor = true\n"),
+        "scene.toml",
+        sensor.clone(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("bench.carry_zero_mm") && e.contains("needs"),
+        "{e}"
+    );
+    let e = Scene::from_toml_str(
+        &format!("{base}[bench]\nforce_relaxation = {{ fraction = 0.1, time_constant_s = 0.0 }}\n"),
+        "scene.toml",
+        sensor,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("bench.force_relaxation.time_constant_s"), "{e}");
+}
