@@ -243,12 +243,14 @@ impl World {
         let decay = (-dt / r.time_constant_s).exp();
         let c = self.contact_of(s.stage_mm, s.stick_mm);
         let fe = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
-        for i in 0..3 {
-            s.excess_n[i] = s.excess_n[i] * decay + r.fraction * (fe[i] - s.elastic_n[i]);
+        let last = s.elastic_n;
+        for ((e, f), l) in s.excess_n.iter_mut().zip(fe).zip(last) {
             // Out of contact there is nothing to relax.
-            if c.normal_n <= 0.0 {
-                s.excess_n[i] = 0.0;
-            }
+            *e = if c.normal_n > 0.0 {
+                *e * decay + r.fraction * (f - l)
+            } else {
+                0.0
+            };
         }
         s.elastic_n = fe;
     }
