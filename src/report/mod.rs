@@ -1,6 +1,8 @@
 //! Reports: plots (plotters), the self-contained HTML report and acceptance verdicts.
 //!
 //! [`plot`] is the shared figure output used by reports and studies: one drawing
-//! routine per figure, written to PNG and SVG from the same code.
+//! routine per figure, written to PNG and SVG from the same code. [`figures`] holds the
+//! report's figures.
 
+pub mod figures;
 pub mod plot;
