@@ -160,7 +160,7 @@ pub fn calibrate(samples: &[Sample]) -> Result<Calibration, CalibrationError> {
             (lo.min(l.applied_mean), hi.max(l.applied_mean))
         });
     let full_scale = fit.slope.abs() * (hi - lo);
-    if !(full_scale > 0.0) {
+    if full_scale.is_nan() || full_scale <= 0.0 {
         return Err(CalibrationError::Insufficient(format!(
             "full-scale output is {full_scale}: the sensor's response does not change with the applied value"
         )));

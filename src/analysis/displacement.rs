@@ -69,7 +69,7 @@ pub fn analyze(
     layer_names: &[String],
     mm_per_px: f64,
 ) -> Result<DisplacementAnalysis, DisplacementError> {
-    if !(mm_per_px > 0.0) {
+    if mm_per_px.is_nan() || mm_per_px <= 0.0 {
         return Err(DisplacementError(format!(
             "camera scale {mm_per_px} mm/px must be > 0"
         )));

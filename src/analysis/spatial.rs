@@ -80,7 +80,7 @@ pub fn analyze(
     line_tolerance_mm: f64,
 ) -> Result<SpatialAnalysis, SpatialError> {
     let len = direction[0].hypot(direction[1]);
-    if !(len > 0.0) || !len.is_finite() {
+    if !len.is_finite() || len <= 0.0 {
         return Err(SpatialError::Insufficient(format!(
             "load segment direction ({}, {}) mm has no length",
             direction[0], direction[1]
@@ -131,7 +131,7 @@ pub fn analyze(
         .enumerate()
         .max_by(|a, b| a.1 .1.total_cmp(&b.1 .1))
         .ok_or_else(|| SpatialError::Insufficient("empty profile".into()))?;
-    if !(fpk > 0.0) {
+    if fpk.is_nan() || fpk <= 0.0 {
         return Err(SpatialError::Profile(format!(
             "profile maximum f_z = {fpk} N is not positive: no load was reconstructed"
         )));

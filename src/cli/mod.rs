@@ -11,6 +11,7 @@ mod ft;
 mod model;
 mod ports;
 mod reconstruct;
+mod report;
 mod sim;
 mod solver_args;
 mod stage;
@@ -33,6 +34,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     Reconstruct(reconstruct::Args),
+    Report(report::Args),
     Track(track::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
@@ -59,6 +61,7 @@ pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct::run(args),
+        Command::Report(args) => report::run(args),
         Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),

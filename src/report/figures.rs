@@ -181,7 +181,7 @@ impl Figure for ProfileFigure {
 fn arrow(a: (f64, f64), b: (f64, f64), head: f64) -> Vec<(f64, f64)> {
     let (dx, dy) = (b.0 - a.0, b.1 - a.1);
     let len = dx.hypot(dy);
-    if !(len > 0.0) {
+    if len.is_nan() || len <= 0.0 {
         return vec![a, b];
     }
     let (ux, uy) = (dx / len, dy / len);
