@@ -7,6 +7,7 @@ mod bench;
 mod cli;
 mod fourier;
 mod ft;
+mod report;
 mod run;
 mod sim;
 mod solvers;

@@ -11,6 +11,7 @@ mod ft;
 mod model;
 mod ports;
 mod reconstruct;
+mod report;
 mod run;
 mod sim;
 mod solver_args;
@@ -35,6 +36,7 @@ struct Cli {
 enum Command {
     Run(run::Args),
     Reconstruct(reconstruct::Args),
+    Report(report::Args),
     Track(track::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
@@ -62,6 +64,7 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Run(args) => run::run(args),
         Command::Reconstruct(args) => reconstruct::run(args),
+        Command::Report(args) => report::run(args),
         Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),

@@ -1,6 +1,254 @@
 //! Reports: plots (plotters), the self-contained HTML report and acceptance verdicts.
 //!
 //! [`plot`] is the shared figure output used by reports and studies: one drawing
-//! routine per figure, written to PNG and SVG from the same code.
+//! routine per figure, written to PNG and SVG from the same code. [`figures`] holds the
+//! report's figures, [`html`] the HTML page, [`acceptance`] the criteria file and its
+//! verdicts. [`write_report`] puts them together for one analysed run directory:
+//!
+//! ```text
+//! RUN_DIR/report.html          self-contained (PNG figures embedded as data URIs)
+//! RUN_DIR/summary.csv          metric,value,unit (every metric of the run)
+//! RUN_DIR/plots/STEM.png|svg   each figure
+//! ```
 
+pub mod acceptance;
+pub mod figures;
+pub mod html;
 pub mod plot;
+
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+use crate::analysis::{Metric, RunAnalysis};
+use acceptance::{AcceptanceError, Criteria, Verdict};
+use figures::{CalibrationFigure, ForceFieldFigure, ProfileFigure, QuiverFigure};
+use plot::{Figure, FigureFiles, FigureResult, PlotError};
+
+/// File name of the HTML report inside the run directory.
+pub const REPORT_FILE: &str = "report.html";
+/// File name of the metric summary inside the run directory.
+pub const SUMMARY_FILE: &str = "summary.csv";
+/// Folder of the figure files inside the run directory.
+pub const PLOTS_DIR: &str = "plots";
+
+/// Figure size in pixels (PNG) / user units (SVG).
+const FIGURE_SIZE: (u32, u32) = (900, 680);
+
+/// An error writing a report.
+#[derive(Debug, Error)]
+pub enum ReportError {
+    /// Drawing or writing a figure failed.
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+    /// The criteria do not apply to this run.
+    #[error(transparent)]
+    Acceptance(#[from] AcceptanceError),
+    /// Writing a report file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+}
+
+/// What [`write_report`] wrote and decided.
+#[derive(Debug, Clone)]
+pub struct ReportOutcome {
+    /// `report.html`.
+    pub html: PathBuf,
+    /// `summary.csv`.
+    pub summary: PathBuf,
+    /// The figure files.
+    pub figures: Vec<FigureFiles>,
+    /// The run's metrics.
+    pub metrics: Vec<Metric>,
+    /// Verdicts (empty without criteria).
+    pub verdicts: Vec<Verdict>,
+}
+
+impl ReportOutcome {
+    /// True when every criterion passed (also when there were none).
+    pub fn passed(&self) -> bool {
+        self.verdicts.iter().all(|v| v.pass)
+    }
+}
+
+/// Any of the report's figures (the [`Figure`] trait is generic, so not object safe).
+#[derive(Debug, Clone)]
+pub enum ReportFigure {
+    /// Fig. 7 / 8.
+    Calibration(CalibrationFigure),
+    /// Fig. 9.
+    Profile(ProfileFigure),
+    /// Fig. 4.
+    Quiver(QuiverFigure),
+    /// Fig. 5.
+    ForceField(ForceFieldFigure),
+}
+
+impl Figure for ReportFigure {
+    fn draw<DB: plotters::prelude::DrawingBackend>(
+        &self,
+        root: &plotters::prelude::DrawingArea<DB, plotters::coord::Shift>,
+    ) -> FigureResult<DB> {
+        match self {
+            ReportFigure::Calibration(f) => f.draw(root),
+            ReportFigure::Profile(f) => f.draw(root),
+            ReportFigure::Quiver(f) => f.draw(root),
+            ReportFigure::ForceField(f) => f.draw(root),
+        }
+    }
+}
+
+/// The figures of an analysed run: `(file stem, caption, figure)`.
+pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)> {
+    let run = &analysis.run;
+    let unit = run.plan.force_unit;
+    let u = unit.symbol();
+    let mut out = Vec::new();
+    if let Some(m) = &analysis.magnitude {
+        out.push((
+            "magnitude".to_string(),
+            format!("Applied against measured normal force ({u}), level means ± 1 SD and least-squares fit (paper Fig. 7)"),
+            ReportFigure::Calibration(CalibrationFigure {
+                title: "force magnitude".into(),
+                x_label: format!("applied Fz, F/T sensor ({u})"),
+                y_label: format!("measured Fz sum ({u})"),
+                display_scale: unit.from_newtons(1.0),
+                calibration: m.calibration.clone(),
+                samples: m.pairs.iter().map(|p| (p.applied_n, p.measured_n)).collect(),
+            }),
+        ));
+    }
+    if let Some(a) = &analysis.angle {
+        out.push((
+            "angle".to_string(),
+            "Applied against measured angle from the normal (deg), level means ± 1 SD and fit (paper Fig. 8)".to_string(),
+            ReportFigure::Calibration(CalibrationFigure {
+                title: "force angle from the normal".into(),
+                x_label: "applied angle, F/T sensor (deg)".into(),
+                y_label: "measured angle, F sum (deg)".into(),
+                display_scale: 1.0,
+                calibration: a.calibration.clone(),
+                samples: a.pairs.iter().map(|p| (p.applied_deg, p.measured_deg)).collect(),
+            }),
+        ));
+    }
+    if let Some(s) = &analysis.spatial {
+        out.push((
+            "spatial_profile".to_string(),
+            format!(
+                "Normalised fz profile of the subdivided point loads; FWHM {} mm (paper Fig. 9)",
+                acceptance::fmt_value(s.fwhm_mm)
+            ),
+            ReportFigure::Profile(ProfileFigure { spatial: s.clone() }),
+        ));
+    }
+    if let Some(snap) = &analysis.snapshot {
+        out.push((
+            "displacements".to_string(),
+            format!(
+                "Tracked marker displacements of setpoint {} by layer (paper Fig. 4)",
+                snap.index
+            ),
+            ReportFigure::Quiver(QuiverFigure {
+                title: format!("marker displacements, setpoint {}", snap.index),
+                sensor: run.sensor.clone(),
+                frame: snap.displacements.clone(),
+            }),
+        ));
+        if let Some(forces) = &snap.forces {
+            out.push((
+                "force_field".to_string(),
+                format!(
+                    "Reconstructed force vectors of setpoint {}: arrows (fx, fy), discs |fz| (red: pressing) (paper Fig. 5)",
+                    snap.index
+                ),
+                ReportFigure::ForceField(ForceFieldFigure {
+                    title: format!("forces, setpoint {}", snap.index),
+                    pitch_mm: run.sensor.force_grid.pitch_mm,
+                    forces: forces.clone(),
+                }),
+            ));
+        }
+    }
+    out
+}
+
+/// Writes `report.html`, `summary.csv` and `plots/` into the analysed run's directory
+/// and judges `criteria` (if any) against its metrics.
+pub fn write_report(
+    analysis: &RunAnalysis,
+    criteria: Option<&Criteria>,
+) -> Result<ReportOutcome, ReportError> {
+    write_report_to(analysis, criteria, &analysis.run.dir)
+}
+
+/// As [`write_report`], into `out_dir`.
+pub fn write_report_to(
+    analysis: &RunAnalysis,
+    criteria: Option<&Criteria>,
+    out_dir: &Path,
+) -> Result<ReportOutcome, ReportError> {
+    let metrics = analysis.metrics();
+    // Judge first: a criterion the run cannot answer is an error before anything is
+    // written.
+    let verdicts = match criteria {
+        Some(c) => c.evaluate(&metrics, analysis.run.sweep_kind())?,
+        None => Vec::new(),
+    };
+    let plots = out_dir.join(PLOTS_DIR);
+    let mut files = Vec::new();
+    let mut embedded = Vec::new();
+    for (stem, caption, fig) in run_figures(analysis) {
+        let f = plot::save_figure(&fig, &plots, &stem, FIGURE_SIZE)?;
+        let png = std::fs::read(&f.png).map_err(|source| ReportError::Io {
+            path: f.png.clone(),
+            source,
+        })?;
+        embedded.push(html::EmbeddedFigure { stem, caption, png });
+        files.push(f);
+    }
+    let summary = out_dir.join(SUMMARY_FILE);
+    // Through the csv writer: layer names in metric names come from the sensor file.
+    let csv_err = |e: csv::Error| ReportError::Io {
+        path: summary.clone(),
+        source: std::io::Error::other(e.to_string()),
+    };
+    let mut w = csv::Writer::from_writer(Vec::new());
+    w.write_record(["metric", "value", "unit"])
+        .map_err(csv_err)?;
+    for m in &metrics {
+        w.write_record([m.name.as_str(), &m.value.to_string(), m.unit])
+            .map_err(csv_err)?;
+    }
+    let bytes = w.into_inner().map_err(|e| csv_err(e.into_error().into()))?;
+    write(&summary, &bytes)?;
+    let criteria_path = criteria.map(|c| c.path.display().to_string());
+    let page = html::render(
+        analysis,
+        &metrics,
+        criteria.map(|_| verdicts.as_slice()),
+        criteria_path.as_deref(),
+        &embedded,
+    );
+    let html_path = out_dir.join(REPORT_FILE);
+    write(&html_path, page.as_bytes())?;
+    Ok(ReportOutcome {
+        html: html_path,
+        summary,
+        figures: files,
+        metrics,
+        verdicts,
+    })
+}
+
+fn write(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    std::fs::write(path, bytes).map_err(|source| ReportError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}

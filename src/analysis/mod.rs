@@ -1,0 +1,679 @@
+//! Analysis of a run directory: the paper's evaluation (Section IV) computed from what
+//! the runner recorded.
+//!
+//! | module | paper | input |
+//! |---|---|---|
+//! | [`magnitude`] | Fig. 7 | journal `fz_n` (applied, F/T) against `fsum_z_n` (F^sum) |
+//! | [`angle`] | Fig. 8 | journal F/T wrench against `fsum_*` |
+//! | [`spatial`] | Fig. 9 | `forces/NNNNN.csv` of a `spatial` sweep |
+//! | [`displacement`] | Table I | `displacements/NNNNN.csv` of a `displacement` sweep |
+//! | [`timing`] | Table II | journal `t_*` columns |
+//!
+//! [`calibration`] holds the definitions shared by Fig. 7 and 8 (fit, resolution,
+//! linearity, hysteresis); [`stats`] the small statistics they use.
+//!
+//! [`RunData::load`] reads a run directory (`manifest.json` with the embedded plan and
+//! sensor, `journal.csv`), validating every value it uses with errors that name the
+//! file, line and column; [`RunAnalysis::new`] dispatches on the plan's sweep kind and
+//! [`RunAnalysis::metrics`] flattens the results into named scalar [`Metric`]s (the
+//! names acceptance criteria refer to, listed in [`METRICS`]).
+
+pub mod angle;
+pub mod calibration;
+pub mod displacement;
+pub mod magnitude;
+pub mod spatial;
+pub mod stats;
+pub mod timing;
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+use crate::bench::journal::{self, JournalError, JournalRow, Manifest, JOURNAL_FILE};
+use crate::bench::plan::{Plan, Setpoint, Sweep};
+use crate::config::ConfigError;
+use crate::formats::{self, DisplacementFrame, ForceRecord, FormatError};
+use crate::sensor::{Sensor, SensorError};
+
+/// An error loading or analysing a run directory. Every variant names what failed.
+#[derive(Debug, Error)]
+pub enum AnalysisError {
+    /// Reading `journal.csv` or `manifest.json` failed.
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+    /// The plan embedded in the manifest is invalid.
+    #[error("{manifest}: embedded plan: {source}")]
+    Plan {
+        /// The manifest file.
+        manifest: PathBuf,
+        /// The plan's error.
+        source: ConfigError,
+    },
+    /// The sensor embedded in the manifest is invalid.
+    #[error("{manifest}: embedded sensor: {source}")]
+    Sensor {
+        /// The manifest file.
+        manifest: PathBuf,
+        /// The sensor's error.
+        source: SensorError,
+    },
+    /// A journal value is unusable.
+    #[error("{path}: line {line}, column `{column}`: {message}")]
+    JournalValue {
+        /// The journal file.
+        path: PathBuf,
+        /// 1-based line.
+        line: u64,
+        /// Column name.
+        column: &'static str,
+        /// What is wrong, with the value.
+        message: String,
+    },
+    /// A per-setpoint file the analysis needs is missing.
+    #[error("{path}: missing ({what} of setpoint {index}, journal line {line})")]
+    MissingFile {
+        /// The expected file.
+        path: PathBuf,
+        /// What it should hold.
+        what: &'static str,
+        /// Setpoint index.
+        index: usize,
+        /// Journal line of that setpoint.
+        line: u64,
+    },
+    /// A per-setpoint file is malformed.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// The data do not support the analysis (too few levels, a flat profile...).
+    #[error("{path}: {message}")]
+    Insufficient {
+        /// The run directory.
+        path: PathBuf,
+        /// What is missing, from the analysis that failed.
+        message: String,
+    },
+}
+
+/// A loaded run directory.
+#[derive(Debug, Clone)]
+pub struct RunData {
+    /// The run directory.
+    pub dir: PathBuf,
+    /// `manifest.json`.
+    pub manifest: Manifest,
+    /// The plan embedded in the manifest.
+    pub plan: Plan,
+    /// The sensor embedded in the manifest.
+    pub sensor: Sensor,
+    /// Every setpoint of the plan (the journal's `index` refers to these).
+    pub setpoints: Vec<Setpoint>,
+    /// The journal rows, in file order.
+    pub rows: Vec<JournalRow>,
+}
+
+/// `displacements/NNNNN.csv` of setpoint `index`.
+pub fn displacements_path(dir: &Path, index: usize) -> PathBuf {
+    dir.join("displacements").join(format!("{index:05}.csv"))
+}
+
+/// `forces/NNNNN.csv` of setpoint `index`.
+pub fn forces_path(dir: &Path, index: usize) -> PathBuf {
+    dir.join("forces").join(format!("{index:05}.csv"))
+}
+
+impl RunData {
+    /// Reads and validates a run directory's manifest and journal.
+    pub fn load(dir: &Path) -> Result<RunData, AnalysisError> {
+        let manifest = Manifest::read(dir)?;
+        let mpath = dir.join(journal::MANIFEST_FILE);
+        let plan =
+            Plan::from_toml_str(&manifest.plan_toml, &manifest.plan_path).map_err(|source| {
+                AnalysisError::Plan {
+                    manifest: mpath.clone(),
+                    source,
+                }
+            })?;
+        let sensor = Sensor::from_toml_str(&manifest.sensor_toml, &manifest.sensor_path).map_err(
+            |source| AnalysisError::Sensor {
+                manifest: mpath.clone(),
+                source,
+            },
+        )?;
+        let rows = journal::read_rows(dir)?;
+        let setpoints = plan.setpoints();
+        let jpath = dir.join(JOURNAL_FILE);
+        let mut seen = BTreeSet::new();
+        for (i, r) in rows.iter().enumerate() {
+            // Header is line 1; rows have no embedded newlines (the journal writes none).
+            let line = i as u64 + 2;
+            let bad = |column: &'static str, message: String| AnalysisError::JournalValue {
+                path: jpath.clone(),
+                line,
+                column,
+                message,
+            };
+            if r.index >= setpoints.len() {
+                return Err(bad(
+                    "index",
+                    format!(
+                        "setpoint {} is not in the plan, which has {} setpoints",
+                        r.index,
+                        setpoints.len()
+                    ),
+                ));
+            }
+            if !seen.insert(r.index) {
+                return Err(bad("index", format!("setpoint {} appears twice", r.index)));
+            }
+            for (column, v) in numeric_columns(r) {
+                if !v.is_finite() {
+                    return Err(bad(column, format!("value {v} is not a finite number")));
+                }
+            }
+        }
+        Ok(RunData {
+            dir: dir.to_path_buf(),
+            manifest,
+            plan,
+            sensor,
+            setpoints,
+            rows,
+        })
+    }
+
+    /// Journal line of the row for setpoint `index` (0 when absent).
+    pub fn line_of(&self, index: usize) -> u64 {
+        self.rows
+            .iter()
+            .position(|r| r.index == index)
+            .map_or(0, |i| i as u64 + 2)
+    }
+
+    /// Reads setpoint `index`'s forces file.
+    pub fn forces(&self, index: usize) -> Result<Vec<ForceRecord>, AnalysisError> {
+        let path = forces_path(&self.dir, index);
+        if !path.is_file() {
+            return Err(AnalysisError::MissingFile {
+                path,
+                what: "reconstructed forces",
+                index,
+                line: self.line_of(index),
+            });
+        }
+        Ok(formats::read_forces(&path)?)
+    }
+
+    /// Reads setpoint `index`'s displacement file (every frame).
+    pub fn displacements(&self, index: usize) -> Result<Vec<DisplacementFrame>, AnalysisError> {
+        let path = displacements_path(&self.dir, index);
+        if !path.is_file() {
+            return Err(AnalysisError::MissingFile {
+                path,
+                what: "tracked displacements",
+                index,
+                line: self.line_of(index),
+            });
+        }
+        Ok(formats::read_displacements(&path, &self.sensor)?)
+    }
+
+    /// The plan's sweep kind as written in plans (`magnitude`, `angle`, ...).
+    pub fn sweep_kind(&self) -> &'static str {
+        match self.plan.sweep {
+            Sweep::Magnitude { .. } => "magnitude",
+            Sweep::Angle { .. } => "angle",
+            Sweep::Spatial { .. } => "spatial",
+            Sweep::Displacement { .. } => "displacement",
+            Sweep::Setpoints(_) => "setpoints",
+        }
+    }
+}
+
+/// The journal columns the analyses use, with their values.
+fn numeric_columns(r: &JournalRow) -> [(&'static str, f64); 16] {
+    [
+        ("swept_value", r.swept_value),
+        ("target_normal_n", r.target_normal_n),
+        ("fx_n", r.fx_n),
+        ("fy_n", r.fy_n),
+        ("fz_n", r.fz_n),
+        ("fsum_x_n", r.fsum_x_n),
+        ("fsum_y_n", r.fsum_y_n),
+        ("fsum_z_n", r.fsum_z_n),
+        ("t_move_s", r.t_move_s),
+        ("t_settle_s", r.t_settle_s),
+        ("t_acquire_s", r.t_acquire_s),
+        ("t_track_s", r.t_track_s),
+        ("t_solve_s", r.t_solve_s),
+        ("stage_x_mm", r.stage_x_mm),
+        ("stage_y_mm", r.stage_y_mm),
+        ("stage_z_mm", r.stage_z_mm),
+    ]
+}
+
+/// One setpoint's tracked displacements and reconstructed forces, for the field
+/// figures (paper Fig. 4 and 5).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Snapshot {
+    /// Setpoint index.
+    pub index: usize,
+    /// First frame of its displacement file.
+    pub displacements: DisplacementFrame,
+    /// Its forces (`None` for displacement sweeps, which may not reconstruct).
+    pub forces: Option<Vec<ForceRecord>>,
+}
+
+/// Options of [`RunAnalysis::new`].
+#[derive(Debug, Clone, Default)]
+pub struct AnalysisOptions {
+    /// Setpoint for the field figures; default: the row with the largest |F^sum|.
+    pub snapshot_index: Option<usize>,
+}
+
+/// Everything computed from one run; each part present when the sweep kind has it.
+#[derive(Debug, Clone)]
+pub struct RunAnalysis {
+    /// The loaded run.
+    pub run: RunData,
+    /// Fig. 7 (magnitude sweeps).
+    pub magnitude: Option<magnitude::MagnitudeAnalysis>,
+    /// Fig. 8 (angle sweeps).
+    pub angle: Option<angle::AngleAnalysis>,
+    /// Fig. 9 (spatial sweeps).
+    pub spatial: Option<spatial::SpatialAnalysis>,
+    /// Table I (displacement sweeps).
+    pub displacement: Option<displacement::DisplacementAnalysis>,
+    /// Table II (every run with rows).
+    pub timing: Option<timing::TimingAnalysis>,
+    /// Fig. 4 and 5 data (every run with rows).
+    pub snapshot: Option<Snapshot>,
+}
+
+/// A named scalar result.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Metric {
+    /// Dotted name, e.g. `magnitude.r2` (see [`METRICS`]).
+    pub name: String,
+    /// The value.
+    pub value: f64,
+    /// Unit (`N`, `gf`, `deg`, `mm`, `px`, `ms`, `%`, `1` for dimensionless, `count`).
+    pub unit: &'static str,
+}
+
+/// Every metric the analyses can produce: `(name pattern, unit, meaning)`. `<layer>`
+/// stands for a layer name of the run's sensor.
+pub const METRICS: &[(&str, &str, &str)] = &[
+    ("run.rows", "count", "completed measurements in the journal"),
+    (
+        "run.unsettled",
+        "count",
+        "rows whose settle criterion timed out",
+    ),
+    (
+        "magnitude.slope",
+        "1",
+        "least-squares slope of F^sum against applied Fz",
+    ),
+    ("magnitude.offset_n", "N", "least-squares offset"),
+    (
+        "magnitude.r2",
+        "1",
+        "coefficient of determination of the fit",
+    ),
+    (
+        "magnitude.residual_sd_n",
+        "N",
+        "pooled within-level residual SD",
+    ),
+    (
+        "magnitude.max_level_sd_n",
+        "N",
+        "largest per-level residual SD",
+    ),
+    (
+        "magnitude.resolution_n",
+        "N",
+        "2 x pooled residual SD / |slope|",
+    ),
+    (
+        "magnitude.resolution_gf",
+        "gf",
+        "the resolution in gram-force",
+    ),
+    (
+        "magnitude.linearity_pct",
+        "%",
+        "max level deviation from the fit / full-scale output",
+    ),
+    (
+        "magnitude.hysteresis_pct",
+        "%",
+        "max unloading-loading difference / full-scale output",
+    ),
+    (
+        "angle.bias_deg",
+        "deg",
+        "mean measured - applied angle from the normal",
+    ),
+    ("angle.sd_deg", "deg", "SD of measured - applied angle"),
+    (
+        "angle.bias_vs_target_deg",
+        "deg",
+        "mean measured - target angle",
+    ),
+    (
+        "angle.resolution_deg",
+        "deg",
+        "2 x pooled residual SD / |slope|",
+    ),
+    (
+        "angle.slope",
+        "1",
+        "least-squares slope of measured against applied angle",
+    ),
+    (
+        "angle.r2",
+        "1",
+        "coefficient of determination of the angle fit",
+    ),
+    (
+        "angle.linearity_pct",
+        "%",
+        "max level deviation from the fit / full-scale output",
+    ),
+    (
+        "spatial.fwhm_mm",
+        "mm",
+        "full width at half maximum of the fz profile",
+    ),
+    (
+        "spatial.peak_offset_mm",
+        "mm",
+        "distance of the profile maximum from the load",
+    ),
+    (
+        "displacement.<layer>.x.mean_px",
+        "px",
+        "mean tracked x displacement",
+    ),
+    (
+        "displacement.<layer>.x.sd_px",
+        "px",
+        "SD of tracked x displacement",
+    ),
+    (
+        "displacement.<layer>.x.bias_px",
+        "px",
+        "mean x displacement - commanded shift",
+    ),
+    (
+        "displacement.<layer>.y.mean_px",
+        "px",
+        "mean tracked y displacement",
+    ),
+    (
+        "displacement.<layer>.y.sd_px",
+        "px",
+        "SD of tracked y displacement",
+    ),
+    (
+        "displacement.<layer>.y.bias_px",
+        "px",
+        "mean y displacement - commanded shift",
+    ),
+    (
+        "displacement.<layer>.x.sd_mm",
+        "mm",
+        "SD of tracked x displacement",
+    ),
+    (
+        "displacement.<layer>.y.sd_mm",
+        "mm",
+        "SD of tracked y displacement",
+    ),
+    (
+        "displacement.max_sd_px",
+        "px",
+        "largest SD over layers and axes",
+    ),
+    (
+        "displacement.max_abs_bias_px",
+        "px",
+        "largest |bias| over layers and axes",
+    ),
+    ("timing.tracking_ms", "ms", "mean tracking time per frame"),
+    (
+        "timing.reconstruction_ms",
+        "ms",
+        "mean reconstruction time per frame",
+    ),
+    (
+        "timing.forces_ms",
+        "ms",
+        "mean tracking + reconstruction per frame",
+    ),
+    (
+        "timing.forces_max_ms",
+        "ms",
+        "largest tracking + reconstruction per frame",
+    ),
+    (
+        "timing.rest_ms",
+        "ms",
+        "mean move + settle + acquire per frame",
+    ),
+];
+
+/// Whether `name` is one of [`METRICS`] (`<layer>` matching any one dot-free word).
+pub fn is_known_metric(name: &str) -> bool {
+    METRICS.iter().any(|(pattern, _, _)| {
+        let p: Vec<&str> = pattern.split('.').collect();
+        let n: Vec<&str> = name.split('.').collect();
+        p.len() == n.len()
+            && p.iter()
+                .zip(&n)
+                .all(|(a, b)| (*a == "<layer>" && !b.is_empty()) || a == b)
+    })
+}
+
+impl RunAnalysis {
+    /// Loads `dir` and analyses it.
+    pub fn load(dir: &Path, options: &AnalysisOptions) -> Result<RunAnalysis, AnalysisError> {
+        RunAnalysis::new(RunData::load(dir)?, options)
+    }
+
+    /// Analyses a loaded run according to its sweep kind.
+    pub fn new(run: RunData, options: &AnalysisOptions) -> Result<RunAnalysis, AnalysisError> {
+        let insufficient = |message: String| AnalysisError::Insufficient {
+            path: run.dir.clone(),
+            message,
+        };
+        let rows = &run.rows;
+        let mut out = RunAnalysis {
+            magnitude: None,
+            angle: None,
+            spatial: None,
+            displacement: None,
+            timing: timing::analyze(rows),
+            snapshot: None,
+            run: run.clone(),
+        };
+        match &run.plan.sweep {
+            Sweep::Magnitude { .. } => {
+                out.magnitude = Some(
+                    magnitude::analyze(rows)
+                        .map_err(|e| insufficient(format!("force magnitude: {e}")))?,
+                );
+            }
+            Sweep::Angle { .. } => {
+                out.angle = Some(
+                    angle::analyze(rows).map_err(|e| insufficient(format!("force angle: {e}")))?,
+                );
+            }
+            Sweep::Spatial {
+                start_mm, end_mm, ..
+            } => {
+                let mut loads = Vec::with_capacity(rows.len());
+                for r in rows {
+                    loads.push(spatial::PointLoad {
+                        index: r.index,
+                        position_mm: run.setpoints[r.index].position_mm,
+                        forces: run.forces(r.index)?,
+                    });
+                }
+                let dir = [end_mm[0] - start_mm[0], end_mm[1] - start_mm[1]];
+                let tol = 0.25 * run.sensor.force_grid.pitch_mm;
+                out.spatial = Some(
+                    spatial::analyze(&loads, dir, tol).map_err(|e| insufficient(e.to_string()))?,
+                );
+            }
+            Sweep::Displacement { .. } => {
+                let mut ms = Vec::with_capacity(rows.len());
+                for r in rows {
+                    ms.push(displacement::ShiftMeasurement {
+                        index: r.index,
+                        shift_mm: run.setpoints[r.index].shift_mm,
+                        frames: run.displacements(r.index)?,
+                    });
+                }
+                let names: Vec<String> = run.sensor.layers.iter().map(|l| l.name.clone()).collect();
+                out.displacement = Some(
+                    displacement::analyze(&ms, &names, run.sensor.camera.mm_per_px)
+                        .map_err(|e| insufficient(e.to_string()))?,
+                );
+            }
+            Sweep::Setpoints(_) => {}
+        }
+        out.snapshot = out.load_snapshot(options.snapshot_index)?;
+        Ok(out)
+    }
+
+    fn load_snapshot(&self, requested: Option<usize>) -> Result<Option<Snapshot>, AnalysisError> {
+        let run = &self.run;
+        let index = match requested {
+            Some(i) => {
+                if !run.rows.iter().any(|r| r.index == i) {
+                    return Err(AnalysisError::Insufficient {
+                        path: run.dir.clone(),
+                        message: format!(
+                            "setpoint {i} requested for the field figures is not in the journal ({} rows)",
+                            run.rows.len()
+                        ),
+                    });
+                }
+                i
+            }
+            None => match run.rows.iter().max_by(|a, b| {
+                let m = |r: &JournalRow| r.fsum_x_n.hypot(r.fsum_y_n).hypot(r.fsum_z_n);
+                m(a).total_cmp(&m(b))
+            }) {
+                Some(r) => r.index,
+                None => return Ok(None),
+            },
+        };
+        let mut frames = run.displacements(index)?;
+        let displacements = frames.swap_remove(0);
+        let forces = if matches!(run.plan.sweep, Sweep::Displacement { .. })
+            && !forces_path(&run.dir, index).is_file()
+        {
+            None
+        } else {
+            Some(run.forces(index)?)
+        };
+        Ok(Some(Snapshot {
+            index,
+            displacements,
+            forces,
+        }))
+    }
+
+    /// Every scalar result, in the order of [`METRICS`].
+    pub fn metrics(&self) -> Vec<Metric> {
+        let mut v = Vec::new();
+        let mut push =
+            |name: String, value: f64, unit: &'static str| v.push(Metric { name, value, unit });
+        push("run.rows".into(), self.run.rows.len() as f64, "count");
+        let unsettled = self.run.rows.iter().filter(|r| !r.settled).count();
+        push("run.unsettled".into(), unsettled as f64, "count");
+        if let Some(m) = &self.magnitude {
+            let c = &m.calibration;
+            push("magnitude.slope".into(), c.fit.slope, "1");
+            push("magnitude.offset_n".into(), c.fit.offset, "N");
+            push("magnitude.r2".into(), c.fit.r2, "1");
+            push("magnitude.residual_sd_n".into(), c.pooled_sd, "N");
+            let max_sd = c.levels.iter().fold(0.0f64, |a, l| a.max(l.residual_sd));
+            push("magnitude.max_level_sd_n".into(), max_sd, "N");
+            push("magnitude.resolution_n".into(), c.resolution, "N");
+            push(
+                "magnitude.resolution_gf".into(),
+                crate::units::n_to_gf(c.resolution),
+                "gf",
+            );
+            push("magnitude.linearity_pct".into(), c.linearity_pct, "%");
+            if let Some(h) = c.hysteresis_pct {
+                push("magnitude.hysteresis_pct".into(), h, "%");
+            }
+        }
+        if let Some(a) = &self.angle {
+            let c = &a.calibration;
+            push("angle.bias_deg".into(), a.bias_deg, "deg");
+            push("angle.sd_deg".into(), a.sd_deg, "deg");
+            push(
+                "angle.bias_vs_target_deg".into(),
+                a.bias_vs_target_deg,
+                "deg",
+            );
+            push("angle.resolution_deg".into(), c.resolution, "deg");
+            push("angle.slope".into(), c.fit.slope, "1");
+            push("angle.r2".into(), c.fit.r2, "1");
+            push("angle.linearity_pct".into(), c.linearity_pct, "%");
+        }
+        if let Some(s) = &self.spatial {
+            push("spatial.fwhm_mm".into(), s.fwhm_mm, "mm");
+            push("spatial.peak_offset_mm".into(), s.peak_distance_mm, "mm");
+        }
+        if let Some(d) = &self.displacement {
+            for a in &d.axes {
+                let base = format!("displacement.{}.{}", a.layer, a.axis);
+                push(format!("{base}.mean_px"), a.mean_px, "px");
+                push(format!("{base}.sd_px"), a.sd_px, "px");
+                push(format!("{base}.bias_px"), a.bias_px, "px");
+                push(format!("{base}.sd_mm"), a.sd_mm, "mm");
+            }
+            let max_sd = d.axes.iter().fold(0.0f64, |m, a| m.max(a.sd_px));
+            let max_bias = d.axes.iter().fold(0.0f64, |m, a| m.max(a.bias_px.abs()));
+            push("displacement.max_sd_px".into(), max_sd, "px");
+            push("displacement.max_abs_bias_px".into(), max_bias, "px");
+        }
+        if let Some(t) = &self.timing {
+            let ms = |s: &str| t.stage(s).map_or(f64::NAN, |s| s.mean_s * 1e3);
+            push("timing.tracking_ms".into(), ms("tracking"), "ms");
+            push(
+                "timing.reconstruction_ms".into(),
+                ms("reconstruction"),
+                "ms",
+            );
+            push("timing.forces_ms".into(), ms("forces"), "ms");
+            let max = t.stage("forces").map_or(f64::NAN, |s| s.max_s * 1e3);
+            push("timing.forces_max_ms".into(), max, "ms");
+            push("timing.rest_ms".into(), ms("rest"), "ms");
+        }
+        v
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metric_names_match_their_patterns() {
+        assert!(is_known_metric("magnitude.r2"));
+        assert!(is_known_metric("displacement.red.x.sd_px"));
+        assert!(!is_known_metric("displacement.red.z.sd_px"));
+        assert!(!is_known_metric("magnitude.r3"));
+        assert!(!is_known_metric("displacement..x.sd_px"));
+    }
+}

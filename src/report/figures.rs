@@ -1,0 +1,390 @@
+//! The report's figures, each a [`Figure`] drawn by plotters (written as PNG and SVG by
+//! [`super::plot::save_figure`]):
+//!
+//! - [`CalibrationFigure`]: applied against measured with ±1 SD error bars per level, the
+//!   individual samples, the least-squares line and the identity (paper Fig. 7 and 8);
+//! - [`ProfileFigure`]: the normalised f_z profile of the spatial sweep with the
+//!   half-maximum crossings (Fig. 9);
+//! - [`QuiverFigure`]: tracked marker displacements as arrows, coloured by layer (Fig. 4);
+//! - [`ForceFieldFigure`]: tangential force arrows (fx, fy) on the force grid with a disc
+//!   per node whose area and colour give fz (Fig. 5).
+//!
+//! Arrow lengths in the two field figures are scaled so the longest arrow spans 90 % of
+//! the grid pitch; the scale factor is printed in the caption (the paper draws Fig. 4
+//! five times longer than real).
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+
+use super::plot::{Figure, FigureResult, FONT};
+use crate::analysis::calibration::Calibration;
+use crate::analysis::spatial::SpatialAnalysis;
+use crate::formats::{DisplacementFrame, ForceRecord};
+use crate::sensor::{MarkerColor, Sensor};
+
+/// Applied against measured (Fig. 7, 8).
+#[derive(Debug, Clone)]
+pub struct CalibrationFigure {
+    /// Caption.
+    pub title: String,
+    /// x axis label (applied, with unit).
+    pub x_label: String,
+    /// y axis label (measured, with unit).
+    pub y_label: String,
+    /// Multiplies every value for display (e.g. N -> gf); 1 for none.
+    pub display_scale: f64,
+    /// The calibration (levels and fit).
+    pub calibration: Calibration,
+    /// Every `(applied, measured)` sample.
+    pub samples: Vec<(f64, f64)>,
+}
+
+/// Padded range covering `values`.
+fn range(values: impl Iterator<Item = f64>, pad_frac: f64) -> std::ops::Range<f64> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !lo.is_finite() {
+        return 0.0..1.0;
+    }
+    let span = (hi - lo).max(1e-9 * hi.abs().max(1.0));
+    (lo - pad_frac * span)..(hi + pad_frac * span)
+}
+
+impl Figure for CalibrationFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let k = self.display_scale;
+        let c = &self.calibration;
+        let xs = range(self.samples.iter().map(|s| s.0 * k), 0.05);
+        let ys = range(self.samples.iter().map(|s| s.1 * k), 0.05);
+        // Same span on both axes when the identity line is near the data (they are
+        // the same quantity), so the eye can judge the slope.
+        let lo = xs.start.min(ys.start);
+        let hi = xs.end.max(ys.end);
+        let mut chart = ChartBuilder::on(root)
+            .caption(&self.title, (FONT, 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(lo..hi, lo..hi)?;
+        chart
+            .configure_mesh()
+            .x_desc(self.x_label.as_str())
+            .y_desc(self.y_label.as_str())
+            .label_style((FONT, 13))
+            .draw()?;
+        chart
+            .draw_series(LineSeries::new(
+                [(lo, lo), (hi, hi)],
+                ShapeStyle::from(&BLACK.mix(0.3)).stroke_width(1),
+            ))?
+            .label("identity")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.3)));
+        chart
+            .draw_series(
+                self.samples
+                    .iter()
+                    .map(|s| Circle::new((s.0 * k, s.1 * k), 2, BLUE.mix(0.35).filled())),
+            )?
+            .label("samples")
+            .legend(|(x, y)| Circle::new((x + 10, y), 3, BLUE.mix(0.35).filled()));
+        chart
+            .draw_series(c.levels.iter().map(|l| {
+                ErrorBar::new_vertical(
+                    l.applied_mean * k,
+                    (l.measured_mean - l.measured_sd) * k,
+                    l.measured_mean * k,
+                    (l.measured_mean + l.measured_sd) * k,
+                    BLACK.stroke_width(2),
+                    8,
+                )
+            }))?
+            .label("level mean ± 1 SD")
+            .legend(|(x, y)| {
+                PathElement::new([(x + 10, y - 6), (x + 10, y + 6)], BLACK.stroke_width(2))
+            });
+        let fit = c.fit;
+        chart
+            .draw_series(LineSeries::new(
+                [lo, hi].map(|x| (x, fit.at(x / k) * k)),
+                RED.stroke_width(2),
+            ))?
+            .label(format!(
+                "fit: slope {:.4}, offset {:.4}, R² {:.5}",
+                fit.slope,
+                fit.offset * k,
+                fit.r2
+            ))
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED.stroke_width(2)));
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
+    }
+}
+
+/// The normalised f_z profile (Fig. 9).
+#[derive(Debug, Clone)]
+pub struct ProfileFigure {
+    /// The spatial analysis.
+    pub spatial: SpatialAnalysis,
+}
+
+impl Figure for ProfileFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let s = &self.spatial;
+        let xs = range(s.profile.iter().map(|p| p.distance_mm), 0.03);
+        let ymin = s.profile.iter().fold(0.0f64, |m, p| m.min(p.normalized)) - 0.05;
+        let mut chart = ChartBuilder::on(root)
+            .caption(
+                format!("normalised fz profile, FWHM {:.2} mm", s.fwhm_mm),
+                (FONT, 20),
+            )
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(xs.clone(), ymin..1.08)?;
+        chart
+            .configure_mesh()
+            .x_desc("distance from the load (mm)")
+            .y_desc("fz / max fz")
+            .label_style((FONT, 13))
+            .draw()?;
+        chart.draw_series(LineSeries::new(
+            s.profile.iter().map(|p| (p.distance_mm, p.normalized)),
+            BLUE.stroke_width(2),
+        ))?;
+        chart.draw_series(
+            s.profile
+                .iter()
+                .map(|p| Circle::new((p.distance_mm, p.normalized), 3, BLUE.filled())),
+        )?;
+        chart.draw_series(LineSeries::new(
+            [(xs.start, 0.5), (xs.end, 0.5)],
+            BLACK.mix(0.4),
+        ))?;
+        chart.draw_series(LineSeries::new(
+            [(s.half_left_mm, 0.5), (s.half_right_mm, 0.5)],
+            RED.stroke_width(3),
+        ))?;
+        Ok(())
+    }
+}
+
+/// An arrow from `a` to `b` in data coordinates, with a head `head` long.
+fn arrow(a: (f64, f64), b: (f64, f64), head: f64) -> Vec<(f64, f64)> {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let len = dx.hypot(dy);
+    if len.is_nan() || len <= 0.0 {
+        return vec![a, b];
+    }
+    let (ux, uy) = (dx / len, dy / len);
+    let h = head.min(0.5 * len);
+    let side = |s: f64| {
+        (
+            b.0 - h * ux - s * 0.5 * h * uy,
+            b.1 - h * uy + s * 0.5 * h * ux,
+        )
+    };
+    vec![a, b, side(1.0), b, side(-1.0)]
+}
+
+fn layer_color(c: MarkerColor) -> RGBColor {
+    match c {
+        MarkerColor::Blue => RGBColor(20, 60, 220),
+        MarkerColor::Red => RGBColor(210, 30, 30),
+        MarkerColor::Green => RGBColor(20, 150, 40),
+    }
+}
+
+/// Tracked displacements as arrows per marker (Fig. 4).
+#[derive(Debug, Clone)]
+pub struct QuiverFigure {
+    /// Caption prefix.
+    pub title: String,
+    /// The sensor (layer names and colours, marker pitch).
+    pub sensor: Sensor,
+    /// The frame to draw.
+    pub frame: DisplacementFrame,
+}
+
+impl QuiverFigure {
+    /// Arrow scale: the longest displacement spans 90 % of the smallest marker pitch.
+    pub fn scale(&self) -> f64 {
+        let pitch = self
+            .sensor
+            .layers
+            .iter()
+            .filter_map(|l| l.markers.map(|m| m.grid.pitch_mm))
+            .fold(f64::INFINITY, f64::min);
+        let pitch = if pitch.is_finite() { pitch } else { 1.0 };
+        let umax = self
+            .frame
+            .records
+            .iter()
+            .filter_map(|r| r.u_mm)
+            .fold(0.0f64, |m, u| m.max(u[0].hypot(u[1])));
+        if umax > 0.0 {
+            0.9 * pitch / umax
+        } else {
+            1.0
+        }
+    }
+}
+
+impl Figure for QuiverFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let k = self.scale();
+        let recs = &self.frame.records;
+        let xs = range(recs.iter().map(|r| r.position_mm[0]), 0.05);
+        let ys = range(recs.iter().map(|r| r.position_mm[1]), 0.05);
+        let mut chart = ChartBuilder::on(root)
+            .caption(format!("{} (arrows ×{k:.1})", self.title), (FONT, 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(xs, ys)?;
+        chart
+            .configure_mesh()
+            .x_desc("x (mm)")
+            .y_desc("y (mm)")
+            .label_style((FONT, 13))
+            .draw()?;
+        for (li, layer) in self.sensor.layers.iter().enumerate() {
+            let color = layer_color(layer.color);
+            let style = ShapeStyle::from(&color).stroke_width(1);
+            let tracked: Vec<_> = recs
+                .iter()
+                .filter(|r| r.layer == li)
+                .filter_map(|r| r.u_mm.map(|u| (r.position_mm, u)))
+                .collect();
+            chart
+                .draw_series(tracked.iter().map(|(p, u)| {
+                    let a = (p[0], p[1]);
+                    let b = (p[0] + k * u[0], p[1] + k * u[1]);
+                    let len = (k * u[0]).hypot(k * u[1]);
+                    PathElement::new(arrow(a, b, 0.3 * len), style)
+                }))?
+                .label(layer.name.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+            chart.draw_series(
+                recs.iter()
+                    .filter(|r| r.layer == li && r.u_mm.is_none())
+                    .map(|r| Cross::new((r.position_mm[0], r.position_mm[1]), 3, color)),
+            )?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
+    }
+}
+
+/// Reconstructed force field (Fig. 5): arrows for (fx, fy), discs for fz.
+#[derive(Debug, Clone)]
+pub struct ForceFieldFigure {
+    /// Caption prefix.
+    pub title: String,
+    /// Grid pitch, mm (arrow and disc scale).
+    pub pitch_mm: f64,
+    /// The forces.
+    pub forces: Vec<ForceRecord>,
+}
+
+impl ForceFieldFigure {
+    /// Arrow scale, mm per N: the longest tangential force spans 90 % of the pitch.
+    pub fn scale_mm_per_n(&self) -> f64 {
+        let tmax = self
+            .forces
+            .iter()
+            .fold(0.0f64, |m, r| m.max(r.f_n[0].hypot(r.f_n[1])));
+        if tmax > 0.0 {
+            0.9 * self.pitch_mm / tmax
+        } else {
+            0.0
+        }
+    }
+}
+
+impl Figure for ForceFieldFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let k = self.scale_mm_per_n();
+        let p = self.pitch_mm;
+        let xs = range(self.forces.iter().map(|r| r.position_mm[0]), 0.0);
+        let ys = range(self.forces.iter().map(|r| r.position_mm[1]), 0.0);
+        let xs = (xs.start - p)..(xs.end + p);
+        let ys = (ys.start - p)..(ys.end + p);
+        let fzmax = self
+            .forces
+            .iter()
+            .fold(0.0f64, |m, r| m.max(r.f_n[2].abs()));
+        let caption = format!(
+            "{}: max |fz| {:.4} N, arrows {:.3} mm/N",
+            self.title, fzmax, k
+        );
+        let mut chart = ChartBuilder::on(root)
+            .caption(caption, (FONT, 18))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(xs, ys)?;
+        chart
+            .configure_mesh()
+            .x_desc("x (mm)")
+            .y_desc("y (mm)")
+            .label_style((FONT, 13))
+            .draw()?;
+        // Disc area ∝ |fz| (radius up to 12 px); red presses in, blue pulls out.
+        chart.draw_series(self.forces.iter().map(|r| {
+            let frac = if fzmax > 0.0 {
+                r.f_n[2].abs() / fzmax
+            } else {
+                0.0
+            };
+            let radius = (12.0 * frac.sqrt()).round() as i32;
+            let shade = (255.0 * (1.0 - frac)) as u8;
+            let color = if r.f_n[2] >= 0.0 {
+                RGBColor(255, shade, shade)
+            } else {
+                RGBColor(shade, shade, 255)
+            };
+            Circle::new(
+                (r.position_mm[0], r.position_mm[1]),
+                radius.max(1),
+                color.filled(),
+            )
+        }))?;
+        chart.draw_series(self.forces.iter().map(|r| {
+            let a = (r.position_mm[0], r.position_mm[1]);
+            let b = (a.0 + k * r.f_n[0], a.1 + k * r.f_n[1]);
+            PathElement::new(arrow(a, b, 0.25 * p), BLACK.stroke_width(2))
+        }))?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn arrow_head_points_back_from_the_tip() {
+        let a = arrow((0.0, 0.0), (10.0, 0.0), 2.0);
+        assert_eq!(a[1], (10.0, 0.0));
+        // Both barbs 2 back along x and ±1 across.
+        assert!((a[2].0 - 8.0).abs() < 1e-12 && (a[2].1.abs() - 1.0).abs() < 1e-12);
+        assert!((a[4].0 - 8.0).abs() < 1e-12 && (a[4].1 + a[2].1).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,352 @@
+//! The self-contained HTML report: provenance, acceptance verdicts, metrics, the
+//! analysis tables and the figures embedded as base64 PNG data URIs (one file, no
+//! external resources). Everything taken from the run's files is HTML-escaped.
+
+use std::fmt::Write;
+
+use base64::Engine;
+
+use super::acceptance::{fmt_value, Verdict};
+use crate::analysis::calibration::Calibration;
+use crate::analysis::{Metric, RunAnalysis};
+
+/// Escapes `& < > " '` for HTML text and attribute values.
+pub fn escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// One embedded figure.
+#[derive(Debug, Clone)]
+pub struct EmbeddedFigure {
+    /// File stem (also the anchor id).
+    pub stem: String,
+    /// Caption text.
+    pub caption: String,
+    /// PNG bytes.
+    pub png: Vec<u8>,
+}
+
+const STYLE: &str = "body{font-family:sans-serif;max-width:70em;margin:1em auto;padding:0 1em;color:#222}\
+table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}\
+th{background:#eee}td.l,th.l{text-align:left}.pass{color:#070;font-weight:bold}.fail{color:#b00;font-weight:bold}\
+pre{background:#f6f6f6;padding:.5em;overflow:auto}figure{margin:1em 0}img{max-width:100%}";
+
+fn row(out: &mut String, cells: &[String]) {
+    out.push_str("<tr>");
+    for (i, c) in cells.iter().enumerate() {
+        let class = if i == 0 { " class=\"l\"" } else { "" };
+        let _ = write!(out, "<td{class}>{c}</td>");
+    }
+    out.push_str("</tr>\n");
+}
+
+fn header(out: &mut String, cells: &[&str]) {
+    out.push_str("<tr>");
+    for (i, c) in cells.iter().enumerate() {
+        let class = if i == 0 { " class=\"l\"" } else { "" };
+        let _ = write!(out, "<th{class}>{}</th>", escape(c));
+    }
+    out.push_str("</tr>\n");
+}
+
+fn calibration_table(out: &mut String, c: &Calibration, unit: &str, scale: f64) {
+    out.push_str("<table>\n");
+    header(
+        out,
+        &[
+            &format!("target ({unit})"),
+            "n",
+            &format!("applied mean ({unit})"),
+            &format!("measured mean ({unit})"),
+            &format!("measured SD ({unit})"),
+            &format!("residual mean ({unit})"),
+            &format!("residual SD ({unit})"),
+        ],
+    );
+    for l in &c.levels {
+        row(
+            out,
+            &[
+                fmt_value(l.target * scale),
+                l.n.to_string(),
+                fmt_value(l.applied_mean * scale),
+                fmt_value(l.measured_mean * scale),
+                fmt_value(l.measured_sd * scale),
+                fmt_value(l.residual_mean * scale),
+                fmt_value(l.residual_sd * scale),
+            ],
+        );
+    }
+    out.push_str("</table>\n");
+}
+
+/// Renders the report. `verdicts` is `None` without `--acceptance`.
+pub fn render(
+    analysis: &RunAnalysis,
+    metrics: &[Metric],
+    verdicts: Option<&[Verdict]>,
+    criteria_path: Option<&str>,
+    figures: &[EmbeddedFigure],
+) -> String {
+    let run = &analysis.run;
+    let m = &run.manifest;
+    let mut o = String::new();
+    let title = format!("tactbench report: {}", m.plan_name);
+    let _ = write!(
+        o,
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <title>{}</title><style>{STYLE}</style></head><body>\n<h1>{}</h1>\n",
+        escape(&title),
+        escape(&title)
+    );
+
+    if let Some(vs) = verdicts {
+        let all = vs.iter().all(|v| v.pass);
+        let _ = write!(
+            o,
+            "<h2>Acceptance</h2>\n<p>criteria: {} &mdash; <span class=\"{}\">{}</span> \
+             ({} of {} passed)</p>\n<table>\n",
+            escape(criteria_path.unwrap_or("")),
+            if all { "pass" } else { "fail" },
+            if all { "PASS" } else { "FAIL" },
+            vs.iter().filter(|v| v.pass).count(),
+            vs.len()
+        );
+        header(&mut o, &["verdict", "metric", "value", "unit", "threshold"]);
+        for v in vs {
+            let (class, word) = if v.pass {
+                ("pass", "PASS")
+            } else {
+                ("fail", "FAIL")
+            };
+            let _ = writeln!(
+                o,
+                "<tr class=\"verdict\"><td class=\"l {class}\">{word}</td><td class=\"l\">{}</td>\
+                 <td>{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td></tr>",
+                escape(&v.criterion.metric),
+                fmt_value(v.value),
+                escape(v.unit),
+                escape(&v.criterion.to_string())
+            );
+        }
+        o.push_str("</table>\n");
+    }
+
+    o.push_str("<h2>Provenance</h2>\n<table>\n");
+    let opt = |s: &Option<String>| s.as_deref().map_or("&mdash;".to_string(), escape);
+    let items: Vec<(&str, String)> = vec![
+        ("plan", escape(&m.plan_name)),
+        ("plan file", escape(&m.plan_path)),
+        ("sweep", escape(run.sweep_kind())),
+        ("sensor file", escape(&m.sensor_path)),
+        ("build id", opt(&m.build_id)),
+        ("software version", escape(&m.software_version)),
+        ("started", escape(&m.started_at)),
+        ("resumed", escape(&m.resumed_at.join(", "))),
+        ("ended", opt(&m.ended_at)),
+        ("status", escape(&format!("{:?}", m.status).to_lowercase())),
+        ("end reason", opt(&m.end_reason)),
+        (
+            "measurements",
+            format!("{} of {} setpoints", run.rows.len(), m.setpoints),
+        ),
+    ];
+    for (k, v) in items {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">{k}</th><td class=\"l\">{v}</td></tr>"
+        );
+    }
+    o.push_str("</table>\n");
+    let json = |v: &serde_json::Value| serde_json::to_string_pretty(v).unwrap_or_default();
+    let _ = write!(
+        o,
+        "<h3>Devices</h3>\n<pre>{}</pre>\n<h3>Bench</h3>\n<pre>{}</pre>\n\
+         <details><summary>Plan</summary><pre>{}</pre></details>\n\
+         <details><summary>Sensor</summary><pre>{}</pre></details>\n",
+        escape(&json(&m.devices)),
+        escape(&json(&m.bench)),
+        escape(&m.plan_toml),
+        escape(&m.sensor_toml)
+    );
+
+    o.push_str("<h2>Metrics</h2>\n<table>\n");
+    header(&mut o, &["metric", "value", "unit"]);
+    for mt in metrics {
+        let _ = writeln!(
+            o,
+            "<tr class=\"metric\"><td class=\"l\">{}</td><td>{}</td><td class=\"l\">{}</td></tr>",
+            escape(&mt.name),
+            fmt_value(mt.value),
+            escape(mt.unit)
+        );
+    }
+    o.push_str("</table>\n");
+
+    let unit = run.plan.force_unit;
+    let scale = unit.from_newtons(1.0);
+    if let Some(mag) = &analysis.magnitude {
+        let _ = writeln!(
+            o,
+            "<h2>Force magnitude (paper Fig. 7)</h2>\n<p>F<sup>sum</sup><sub>z</sub> against the \
+             applied Fz of the F/T sensor, per target level, in {}. Resolution = 2 &times; pooled \
+             within-level residual SD / |slope| = {} {}.</p>",
+            unit.symbol(),
+            fmt_value(mag.calibration.resolution * scale),
+            unit.symbol()
+        );
+        calibration_table(&mut o, &mag.calibration, unit.symbol(), scale);
+    }
+    if let Some(a) = &analysis.angle {
+        let _ = writeln!(
+            o,
+            "<h2>Force angle (paper Fig. 8)</h2>\n<p>Angle from the normal measured from \
+             F<sup>sum</sup> against the applied angle from the F/T wrench, degrees. Bias {} deg, \
+             SD {} deg, resolution {} deg.</p>",
+            fmt_value(a.bias_deg),
+            fmt_value(a.sd_deg),
+            fmt_value(a.calibration.resolution)
+        );
+        calibration_table(&mut o, &a.calibration, "deg", 1.0);
+    }
+    if let Some(s) = &analysis.spatial {
+        let _ = writeln!(
+            o,
+            "<h2>Spatial resolution (paper Fig. 9)</h2>\n<p>Full width at half maximum of the \
+             normalised fz profile: <b>{} mm</b> (half-maximum crossings at {} and {} mm; maximum \
+             {} N at {} mm from the load).</p>\n<details><summary>profile</summary><table>",
+            fmt_value(s.fwhm_mm),
+            fmt_value(s.half_left_mm),
+            fmt_value(s.half_right_mm),
+            fmt_value(s.peak_fz_n),
+            fmt_value(s.peak_distance_mm)
+        );
+        header(&mut o, &["distance (mm)", "fz (N)", "fz / max", "samples"]);
+        for p in &s.profile {
+            row(
+                &mut o,
+                &[
+                    fmt_value(p.distance_mm),
+                    fmt_value(p.fz_n),
+                    fmt_value(p.normalized),
+                    p.n.to_string(),
+                ],
+            );
+        }
+        o.push_str("</table></details>\n");
+    }
+    if let Some(d) = &analysis.displacement {
+        o.push_str(
+            "<h2>Displacement accuracy (paper Table I)</h2>\n<p>Tracked marker displacements \
+             against the commanded shift, per layer and axis.</p>\n<table>\n",
+        );
+        header(
+            &mut o,
+            &[
+                "layer",
+                "axis",
+                "commanded (px)",
+                "mean (px)",
+                "SD (px)",
+                "bias (px)",
+                "SD (µm)",
+                "n",
+            ],
+        );
+        for a in &d.axes {
+            row(
+                &mut o,
+                &[
+                    escape(&a.layer),
+                    a.axis.to_string(),
+                    fmt_value(a.commanded_mm / run.sensor.camera.mm_per_px),
+                    fmt_value(a.mean_px),
+                    fmt_value(a.sd_px),
+                    fmt_value(a.bias_px),
+                    fmt_value(a.sd_mm * 1e3),
+                    a.n.to_string(),
+                ],
+            );
+        }
+        o.push_str("</table>\n<p>lost marker samples: ");
+        let lost: Vec<String> = d
+            .lost
+            .iter()
+            .map(|(l, n)| format!("{} {n}", escape(l)))
+            .collect();
+        o.push_str(&lost.join(", "));
+        o.push_str("</p>\n");
+    }
+    if let Some(t) = &analysis.timing {
+        let _ = writeln!(
+            o,
+            "<h2>Timing (paper Table II)</h2>\n<p>Per frame, over {} rows ({} frames). \
+             <i>forces</i> = tracking + reconstruction (the paper's 2.9 ms); <i>rest</i> = \
+             move + settle + acquire.</p>\n<table>",
+            t.rows, t.frames
+        );
+        header(
+            &mut o,
+            &["stage", "mean (ms)", "SD (ms)", "min (ms)", "max (ms)"],
+        );
+        for s in &t.stages {
+            row(
+                &mut o,
+                &[
+                    s.stage.to_string(),
+                    fmt_value(s.mean_s * 1e3),
+                    fmt_value(s.sd_s * 1e3),
+                    fmt_value(s.min_s * 1e3),
+                    fmt_value(s.max_s * 1e3),
+                ],
+            );
+        }
+        o.push_str("</table>\n");
+    }
+
+    if !figures.is_empty() {
+        o.push_str("<h2>Figures</h2>\n");
+    }
+    let b64 = base64::engine::general_purpose::STANDARD;
+    for f in figures {
+        let _ = writeln!(
+            o,
+            "<figure id=\"{}\"><img alt=\"{}\" src=\"data:image/png;base64,{}\">\
+             <figcaption>{}</figcaption></figure>",
+            escape(&f.stem),
+            escape(&f.caption),
+            b64.encode(&f.png),
+            escape(&f.caption)
+        );
+    }
+    let _ = writeln!(
+        o,
+        "<hr><p><small>generated by tactbench {}</small></p></body></html>",
+        escape(env!("CARGO_PKG_VERSION"))
+    );
+    o
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn escapes_markup_and_quotes() {
+        assert_eq!(
+            escape("<script>\"a\" & 'b'</script>"),
+            "&lt;script&gt;&quot;a&quot; &amp; &#39;b&#39;&lt;/script&gt;"
+        );
+    }
+}

@@ -1,0 +1,463 @@
+//! `tactbench report` on synthetic run directories written with the journal API:
+//! metric values with known answers in summary.csv and report.html, decodable PNG and
+//! present SVG figures, HTML escaping of file content, acceptance verdicts and exit codes,
+//! and clear errors for bad criteria files and incomplete run directories.
+
+use std::path::Path;
+
+use tactbench::analysis::{displacements_path, forces_path};
+use tactbench::bench::journal::{Journal, JournalRow, Manifest, RunStatus};
+use tactbench::bench::plan::Plan;
+use tactbench::formats::{self, DisplacementRecord};
+use tactbench::sensor::{Sensor, PAPER_SENSOR_TOML};
+use tactbench::units::gf_to_n;
+
+use crate::util::{run, stderr, stdout};
+
+const PLAN_HEAD: &str = r#"
+name = "report test <b>&amp;</b>"
+sensor = "paper_sensor.toml"
+build_id = "elastomer-<x>"
+force_unit = "gf"
+[indenter]
+shape = "hemisphere"
+diameter_mm = 5.0
+[approach]
+position_mm = [9.0, 6.75]
+speed_mm_s = 0.5
+contact_force = 5.0
+[safety]
+max_force = [300.0, 300.0, 1000.0]
+travel_min_mm = [0.0, 0.0, -2.0]
+travel_max_mm = [50.0, 50.0, 20.0]
+max_speed_mm_s = 5.0
+"#;
+
+const MAGNITUDE: &str =
+    "[sweep]\nkind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\ntrials = 3\n";
+/// From force node (4, 3) to node (5, 3) of the paper grid in 6 steps.
+const SPATIAL: &str = "[sweep]\nkind = \"spatial\"\nforce = 200.0\nstart_mm = [7.9, 5.65]\nend_mm = [10.1, 5.65]\nsubdivisions = 6\n";
+/// 3 px at 0.05 mm/px along x.
+const DISPLACEMENT: &str = "[sweep]\nkind = \"displacement\"\nshift_mm = [0.15, 0.0]\ntrials = 2\n";
+
+/// Magnitude runs: per-trial error on F^sum (N), mean zero per level, so the fit is
+/// exactly F^sum = 0.95·Fz + 0.01 and each level's residual SD is `E`.
+const E: f64 = 0.02;
+const TRIAL_ERR: [f64; 3] = [E, -E, 0.0];
+
+fn sensor() -> Sensor {
+    Sensor::from_toml_str(PAPER_SENSOR_TOML, "paper_sensor.toml").unwrap()
+}
+
+fn empty_row(index: usize, trial: usize) -> JournalRow {
+    JournalRow {
+        index,
+        trial,
+        swept_value: 0.0,
+        target_normal_n: 0.0,
+        target_tx_n: 0.0,
+        target_ty_n: 0.0,
+        fx_n: 0.0,
+        fy_n: 0.0,
+        fz_n: 0.0,
+        mx_nm: 0.0,
+        my_nm: 0.0,
+        mz_nm: 0.0,
+        fx_sd_n: 0.0,
+        fy_sd_n: 0.0,
+        fz_sd_n: 0.0,
+        stage_x_mm: 0.0,
+        stage_y_mm: 0.0,
+        stage_z_mm: 0.0,
+        settled: true,
+        frames: format!("frames/{index:05}_0.png"),
+        fsum_x_n: 0.0,
+        fsum_y_n: 0.0,
+        fsum_z_n: 0.0,
+        t_move_s: 0.5,
+        t_settle_s: 0.2,
+        t_acquire_s: 0.05,
+        t_track_s: 2e-3,
+        t_solve_s: 1e-3,
+        completed_at: "2026-11-22T01:00:00Z".into(),
+    }
+}
+
+/// Displacements: every marker moves by `u(p)` (mm).
+fn write_displacements(dir: &Path, index: usize, u: impl Fn(usize, [f64; 2], u64) -> [f64; 2]) {
+    let s = sensor();
+    let mut recs = Vec::new();
+    for (li, layer) in s.layers.iter().enumerate() {
+        let g = layer.markers.unwrap().grid;
+        for (k, p) in g.nodes_mm().into_iter().enumerate() {
+            recs.push(DisplacementRecord {
+                layer: li,
+                marker: k as u64,
+                position_mm: p,
+                u_mm: Some(u(li, p, k as u64)),
+                line: 0,
+            });
+        }
+    }
+    std::fs::create_dir_all(dir.join("displacements")).unwrap();
+    formats::write_displacements(&displacements_path(dir, index), &s, &recs).unwrap();
+}
+
+/// Forces: fz(q) = `fz(q)` at every node, a small tangential part along +y.
+fn write_forces(dir: &Path, index: usize, fz: impl Fn([f64; 2]) -> f64) {
+    let g = sensor().force_grid;
+    let f: Vec<f64> = g
+        .nodes_mm()
+        .into_iter()
+        .flat_map(|q| {
+            let z = fz(q);
+            [0.0, 0.1 * z, z]
+        })
+        .collect();
+    std::fs::create_dir_all(dir.join("forces")).unwrap();
+    formats::write_forces(&forces_path(dir, index), &g, &[(String::new(), f)]).unwrap();
+}
+
+/// Writes manifest and journal for `sweep`; `fill` sets each row's measured values and
+/// writes its per-setpoint files.
+fn write_run(dir: &Path, sweep: &str, fill: impl Fn(&Path, &mut JournalRow)) {
+    let plan_toml = format!("{PLAN_HEAD}{sweep}");
+    let plan = Plan::from_toml_str(&plan_toml, "experiments/test.toml").unwrap();
+    let setpoints = plan.setpoints();
+    Manifest {
+        plan_path: "experiments/test.toml".into(),
+        plan_name: plan.name.clone(),
+        plan_toml,
+        sensor_path: "experiments/paper_sensor.toml".into(),
+        sensor_toml: PAPER_SENSOR_TOML.into(),
+        bench: serde_json::json!({"kind": "simulated", "scene": "<scene>.toml"}),
+        devices: serde_json::json!({"stage": "grbl 1.1h", "ft": "dynpick sim 0001"}),
+        build_id: Some("elastomer-<x>".into()),
+        software_version: "0.1.0-test".into(),
+        started_at: "2026-11-22T01:00:00Z".into(),
+        resumed_at: vec![],
+        setpoints: setpoints.len(),
+        status: RunStatus::Completed,
+        end_reason: None,
+        ended_at: Some("2026-11-22T01:10:00Z".into()),
+    }
+    .write(dir)
+    .unwrap();
+    let mut j = Journal::create(dir).unwrap();
+    for sp in &setpoints {
+        let mut r = empty_row(sp.index, sp.trial);
+        r.swept_value = sp.swept_value;
+        r.target_normal_n = sp.normal_n;
+        r.stage_x_mm = sp.position_mm[0];
+        r.stage_y_mm = sp.position_mm[1];
+        fill(dir, &mut r);
+        j.append(&r).unwrap();
+    }
+}
+
+/// A magnitude run: 0..300 gf by 100, 3 trials, known fit and spread; a radial
+/// displacement field and a Gaussian fz bump around the load for the field figures.
+fn magnitude_run(dir: &Path) {
+    write_run(dir, MAGNITUDE, |dir, r| {
+        r.fz_n = r.target_normal_n;
+        r.fsum_z_n = 0.95 * r.fz_n + 0.01 + TRIAL_ERR[r.trial];
+        r.fsum_y_n = 0.1 * r.fsum_z_n;
+        let c = [9.0, 6.75];
+        let a = r.fz_n;
+        write_displacements(dir, r.index, |li, p, _| {
+            let d = [p[0] - c[0], p[1] - c[1]];
+            let w = a * 0.05 / (1.0 + li as f64) / (1.0 + d[0] * d[0] + d[1] * d[1]);
+            [w * d[0], w * d[1]]
+        });
+        write_forces(dir, r.index, |q| {
+            a * (-((q[0] - c[0]).powi(2) + (q[1] - c[1]).powi(2)) / 4.0).exp()
+        });
+    });
+}
+
+fn summary(dir: &Path) -> Vec<(String, f64, String)> {
+    let text = std::fs::read_to_string(dir.join("summary.csv")).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("metric,value,unit"));
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].to_string(), f[1].parse().unwrap(), f[2].to_string())
+        })
+        .collect()
+}
+
+fn metric(dir: &Path, name: &str) -> f64 {
+    summary(dir)
+        .into_iter()
+        .find(|m| m.0 == name)
+        .unwrap_or_else(|| panic!("{name} missing from summary.csv"))
+        .1
+}
+
+fn report(dir: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["report", dir.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+#[test]
+fn magnitude_report_has_known_values_figures_and_escaped_provenance() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(out.status.code(), Some(0));
+
+    // Known answers (tolerance 1e-9 relative to the 1e-2 N scale).
+    assert!((metric(dir, "magnitude.slope") - 0.95).abs() < 1e-9);
+    assert!((metric(dir, "magnitude.offset_n") - 0.01).abs() < 1e-9);
+    assert!((metric(dir, "magnitude.residual_sd_n") - E).abs() < 1e-9);
+    let res = metric(dir, "magnitude.resolution_n");
+    assert!((res - 2.0 * E / 0.95).abs() < 1e-9, "{res}");
+    let res_gf = metric(dir, "magnitude.resolution_gf");
+    assert!((gf_to_n(res_gf) - res).abs() < 1e-12);
+    assert!(metric(dir, "magnitude.linearity_pct") < 1e-6);
+    assert_eq!(metric(dir, "run.rows"), 12.0);
+    assert!((metric(dir, "timing.forces_ms") - 3.0).abs() < 1e-9);
+    assert!((metric(dir, "timing.rest_ms") - 750.0).abs() < 1e-9);
+    assert!(summary(dir)
+        .iter()
+        .all(|m| m.0 != "magnitude.hysteresis_pct"));
+
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    // The values printed in the report are those of summary.csv (6 significant digits).
+    assert!(
+        html.contains(&tactbench::report::acceptance::fmt_value(res)),
+        "resolution missing"
+    );
+    assert!(html.contains("magnitude.r2"));
+    // Provenance, escaped.
+    assert!(
+        html.contains("report test &lt;b&gt;&amp;amp;&lt;/b&gt;"),
+        "plan name not escaped"
+    );
+    assert!(!html.contains("<b>&amp;</b>"));
+    assert!(html.contains("elastomer-&lt;x&gt;") && html.contains("0.1.0-test"));
+    assert!(html.contains("dynpick sim 0001") && html.contains("&lt;scene&gt;.toml"));
+    assert!(html.contains("2026-11-22T01:10:00Z") && html.contains("completed"));
+    // Self-contained: three figures embedded, nothing fetched.
+    assert_eq!(html.matches("src=\"data:image/png;base64,").count(), 3);
+    assert!(!html.contains("http://") && !html.contains("https://"));
+
+    for stem in ["magnitude", "displacements", "force_field"] {
+        let png = dir.join("plots").join(format!("{stem}.png"));
+        let img = image::open(&png).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
+        assert_eq!(image::GenericImageView::dimensions(&img), (900, 680));
+        let svg = std::fs::read_to_string(dir.join("plots").join(format!("{stem}.svg"))).unwrap();
+        assert!(svg.starts_with("<svg"), "{stem}.svg");
+    }
+}
+
+#[test]
+fn acceptance_verdicts_set_the_exit_code() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let pass = dir.join("pass.toml");
+    std::fs::write(
+        &pass,
+        "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99\n\
+         [[criterion]]\nmetric = \"magnitude.slope\"\nmin = 0.9\nmax = 1.0\n\
+         [[criterion]]\nmetric = \"run.unsettled\"\nmax = 0\n",
+    )
+    .unwrap();
+    let out = report(dir, &["--acceptance", pass.to_str().unwrap()]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}{}",
+        stdout(&out),
+        stderr(&out)
+    );
+    let so = stdout(&out);
+    assert!(
+        so.contains("PASS magnitude.slope = 0.95 (in [0.9, 1])"),
+        "{so}"
+    );
+    assert!(so.contains("acceptance: PASS (3 criteria)"), "{so}");
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert_eq!(html.matches("<tr class=\"verdict\">").count(), 3);
+    assert!(!html.contains(">FAIL<"));
+
+    // 2·0.02/0.95 N = 4.29 gf: a 4 gf limit fails, the other criterion passes.
+    let fail = dir.join("fail.toml");
+    std::fs::write(
+        &fail,
+        "[[criterion]]\nmetric = \"magnitude.resolution_gf\"\nmax = 4.0\n\
+         [[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99\n",
+    )
+    .unwrap();
+    let out = report(dir, &["--acceptance", fail.to_str().unwrap()]);
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "{}{}",
+        stdout(&out),
+        stderr(&out)
+    );
+    let so = stdout(&out);
+    assert!(
+        so.contains("FAIL magnitude.resolution_gf = 4.2") && so.contains("(<= 4 gf)"),
+        "{so}"
+    );
+    assert!(so.contains("PASS magnitude.r2"), "{so}");
+    assert!(
+        so.contains("acceptance: FAIL (1 of 2 criteria failed)"),
+        "{so}"
+    );
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("<td class=\"l fail\">FAIL</td>"));
+}
+
+#[test]
+fn bad_criteria_are_errors_with_exit_code_two() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let cases: [(&str, &[&str]); 4] = [
+        (
+            "[[criterion]]\nmetric = \"magnitude.rsquared\"\nmin = 0.9\n",
+            &[
+                "criterion 1 (`magnitude.rsquared`): unknown metric",
+                "magnitude.r2 [1]",
+            ],
+        ),
+        (
+            "[[criterion]]\nmetric = \"spatial.fwhm_mm\"\nmax = 5.0\n",
+            &["has no such metric", "magnitude sweep", "magnitude.r2"],
+        ),
+        (
+            "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = \n",
+            &["bad.toml", "line 3"],
+        ),
+        (
+            "[[criterion]]\nmetric = \"magnitude.r2\"\n",
+            &["give min, max or both"],
+        ),
+    ];
+    for (text, expected) in cases {
+        let p = dir.join("bad.toml");
+        std::fs::write(&p, text).unwrap();
+        let out = report(dir, &["--acceptance", p.to_str().unwrap()]);
+        assert_eq!(out.status.code(), Some(2), "{text}: {}", stdout(&out));
+        let e = stderr(&out);
+        for x in expected {
+            assert!(e.contains(x), "{text}: `{x}` missing from: {e}");
+        }
+    }
+    let out = report(
+        dir,
+        &["--acceptance", dir.join("nope.toml").to_str().unwrap()],
+    );
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("nope.toml"), "{}", stderr(&out));
+}
+
+#[test]
+fn incomplete_run_directories_are_named_in_the_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    // The field figures use the row with the largest F^sum: setpoint 3 (300 gf, trial 0).
+    std::fs::remove_file(forces_path(dir, 3)).unwrap();
+    let out = report(dir, &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let e = stderr(&out);
+    assert!(
+        e.contains("forces/00003.csv: missing") && e.contains("journal line 5"),
+        "{e}"
+    );
+
+    let out = report(dir, &["--setpoint", "99"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("setpoint 99"), "{}", stderr(&out));
+
+    // A non-finite journal value names file, line and column.
+    let j = dir.join("journal.csv");
+    let text = std::fs::read_to_string(&j).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let col = lines[0].split(',').position(|c| c == "fsum_z_n").unwrap();
+    let mut f: Vec<String> = lines[3].split(',').map(String::from).collect();
+    f[col] = "NaN".into();
+    lines[3] = f.join(",");
+    std::fs::write(&j, lines.join("\n") + "\n").unwrap();
+    let out = report(dir, &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let e = stderr(&out);
+    assert!(e.contains("journal.csv: line 4, column `fsum_z_n`"), "{e}");
+
+    std::fs::remove_file(&j).unwrap();
+    let out = report(dir, &[]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("journal.csv"), "{}", stderr(&out));
+    std::fs::remove_file(dir.join("manifest.json")).unwrap();
+    let out = report(dir, &[]);
+    assert!(stderr(&out).contains("manifest.json"), "{}", stderr(&out));
+}
+
+#[test]
+fn spatial_run_reports_the_profile_width() {
+    // fz = 2·max(0, 1 − r/3) around each load (r the distance to it): along the load
+    // line the profile is triangular, FWHM exactly 3 mm.
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    write_run(dir, SPATIAL, |dir, r| {
+        let p = [r.stage_x_mm, r.stage_y_mm];
+        r.fz_n = r.target_normal_n;
+        r.fsum_z_n = r.fz_n;
+        write_displacements(dir, r.index, |_, _, _| [0.0, 0.0]);
+        write_forces(dir, r.index, |q| {
+            2.0 * (1.0 - (q[0] - p[0]).hypot(q[1] - p[1]) / 3.0).max(0.0)
+        });
+    });
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!((metric(dir, "spatial.fwhm_mm") - 3.0).abs() < 1e-9);
+    assert!(metric(dir, "spatial.peak_offset_mm").abs() < 1e-9);
+    let img = image::open(dir.join("plots/spatial_profile.png")).unwrap();
+    assert_eq!(image::GenericImageView::dimensions(&img), (900, 680));
+    assert!(dir.join("plots/spatial_profile.svg").is_file());
+}
+
+#[test]
+fn displacement_run_reports_table_one_in_pixels() {
+    // 3 px shift (0.15 mm); blue markers ±0.003 mm alternating in x (0.06 px), red
+    // markers exact. Two trials of 130 markers per layer.
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    write_run(dir, DISPLACEMENT, |dir, r| {
+        write_displacements(dir, r.index, |li, _, k| {
+            let e = if li == 0 {
+                if k % 2 == 0 {
+                    0.003
+                } else {
+                    -0.003
+                }
+            } else {
+                0.0
+            };
+            [0.15 + e, 0.0]
+        });
+    });
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!((metric(dir, "displacement.blue.x.mean_px") - 3.0).abs() < 1e-9);
+    let n = 260.0f64;
+    let sd = 0.06 * (n / (n - 1.0)).sqrt();
+    assert!((metric(dir, "displacement.blue.x.sd_px") - sd).abs() < 1e-9);
+    assert!(metric(dir, "displacement.red.x.sd_px") < 1e-9);
+    assert!(metric(dir, "displacement.red.y.mean_px").abs() < 1e-12);
+    assert!((metric(dir, "displacement.max_sd_px") - sd).abs() < 1e-9);
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("Displacement accuracy (paper Table I)"));
+    // No forces files: the quiver is drawn, the force field is not.
+    assert!(dir.join("plots/displacements.png").is_file());
+    assert!(!dir.join("plots/force_field.png").exists());
+}
