@@ -4,3 +4,4 @@
 //! routine per figure, written to PNG and SVG from the same code.
 
 pub mod plot;
+pub mod study_plots;
