@@ -20,7 +20,11 @@
 //!
 //! # Metrics
 //!
-//! The scene's full load (its last frame) is applied in every frame. With `f` the
+//! The scene's full load (its last frame) is applied in every frame. One reconstruction
+//! is one noise realisation, and with noisy scenes single realisations scatter widely
+//! (the paper's `pinv` `F^sum` error moves by several percent from frame to frame), so
+//! every error is the root mean square over `realisations` independent force frames
+//! (realisation `g` of an `N`-frame setting averages loaded frames `gN+1 … gN+N`). With `f` the
 //! reconstructed forces on the (possibly re-gridded) force grid and `f*` the scene's
 //! traction integrated over each node's cell of that grid (`Contact::force_grid_n`):
 //!
@@ -38,7 +42,13 @@
 //! wall clock on this machine, the median over `reps` repetitions; tracking and solve
 //! medians are also given separately. Rendering (the camera) is not counted. The
 //! precompute (reference detection + solver precompute, once per sensor and marker set)
-//! is reported separately: it is paid once, not per frame.
+//! is reported separately: it is paid once, not per frame. Automatic λ and rank are
+//! chosen on the first realisation and kept for the others, as a running sensor would.
+//!
+//! The solver's marker sites are the markers' nominal grid positions from the sensor
+//! file (marker id = row-major grid index; the design positions a user knows without a
+//! calibration), at their layer's depth; markers not tracked ok in every frame used are
+//! dropped from the system.
 //!
 //! The library does not print: progress is reported through a callback ([`StudyEvent`]).
 
@@ -65,6 +75,8 @@ use crate::vision::{
 pub const MAX_FRAMES_AVERAGED: usize = 64;
 /// Largest number of timing repetitions.
 pub const MAX_REPS: usize = 100_000;
+/// Largest number of error realisations.
+pub const MAX_REALISATIONS: usize = 64;
 
 /// An error of the accuracy-against-time study.
 #[derive(Debug, Error)]
@@ -106,7 +118,12 @@ pub enum Sweep {
 
 impl Sweep {
     /// All sweeps, in report order.
-    pub const ALL: [Sweep; 4] = [Sweep::Solver, Sweep::ForceGrid, Sweep::Tracking, Sweep::Frames];
+    pub const ALL: [Sweep; 4] = [
+        Sweep::Solver,
+        Sweep::ForceGrid,
+        Sweep::Tracking,
+        Sweep::Frames,
+    ];
 
     /// Name as used on the command line and in the CSV.
     pub fn name(self) -> &'static str {
@@ -239,10 +256,10 @@ impl Setting {
         let b = Setting::baseline();
         let mut s = self.solver.label();
         if let Some(p) = self.force_pitch_mm {
-            s.push_str(&format!(" | grid {p} mm"));
+            s.push_str(&format!(" | grid {} mm", short(p)));
         }
         if self.aperture_scale != b.aperture_scale {
-            s.push_str(&format!(" | window x{}", self.aperture_scale));
+            s.push_str(&format!(" | window x{}", short(self.aperture_scale)));
         }
         if self.max_iterations != b.max_iterations {
             s.push_str(&format!(" | iter {}", self.max_iterations));
@@ -287,6 +304,12 @@ impl Setting {
         }
         Ok(())
     }
+}
+
+/// A number with at most 3 decimals, trailing zeros dropped (labels).
+fn short(v: f64) -> String {
+    let s = format!("{v:.3}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
 /// The default sweep for `sensor` restricted to `sweeps`, with `frames` the numbers of
@@ -460,6 +483,8 @@ pub struct StudyOptions {
     pub settings: Vec<Setting>,
     /// Timing repetitions per setting (median reported), ≥ 1.
     pub reps: usize,
+    /// Independent force frames the errors are averaged over (RMS), ≥ 1.
+    pub realisations: usize,
 }
 
 /// The measured accuracy and time of one setting.
@@ -469,11 +494,11 @@ pub struct StudyRow {
     pub setting: Setting,
     /// Its label ([`Setting::label`]).
     pub label: String,
-    /// Relative error of `F^sum` (see the module docs).
+    /// Relative error of `F^sum` (see the module docs), RMS over the realisations.
     pub sum_error: f64,
-    /// Relative L2 error of the force field.
+    /// Relative L2 error of the force field, RMS over the realisations.
     pub field_error: f64,
-    /// Reconstructed total force `F^sum`, N.
+    /// Reconstructed total force `F^sum`, N, mean over the realisations.
     pub fsum_n: [f64; 3],
     /// Median time per force frame: tracking `N` frames + averaging + solve, s.
     pub total_s: f64,
@@ -527,6 +552,8 @@ pub struct StudyResult {
     pub applied_n: [f64; 3],
     /// Timing repetitions used.
     pub reps: usize,
+    /// Realisations the errors are averaged over.
+    pub realisations: usize,
 }
 
 /// Progress of [`run_study`].
@@ -574,15 +601,22 @@ pub fn run_study(
             options.reps
         )));
     }
+    if options.realisations == 0 || options.realisations > MAX_REALISATIONS {
+        return Err(StudyError::InvalidOption(format!(
+            "realisations = {} must be in 1..={MAX_REALISATIONS}",
+            options.realisations
+        )));
+    }
     for s in &options.settings {
         s.validate()?;
     }
-    let max_frames = options
-        .settings
-        .iter()
-        .map(|s| s.frames_averaged)
-        .max()
-        .unwrap_or(1);
+    let max_frames = options.realisations
+        * options
+            .settings
+            .iter()
+            .map(|s| s.frames_averaged)
+            .max()
+            .unwrap_or(1);
 
     // Render the reference and the loaded frames once; every setting tracks the same
     // images, as a camera would deliver them (8-bit when the scene quantises).
@@ -631,6 +665,7 @@ pub fn run_study(
             &contact,
             applied_n,
             options.reps,
+            options.realisations,
         ) {
             Ok(row) => {
                 progress(StudyEvent::Measured {
@@ -660,6 +695,7 @@ pub fn run_study(
         skipped,
         applied_n,
         reps: options.reps,
+        realisations: options.realisations,
     })
 }
 
@@ -712,6 +748,7 @@ fn measure(
     contact: &Contact,
     applied_n: [f64; 3],
     reps: usize,
+    realisations: usize,
 ) -> Result<StudyRow, String> {
     let t_pre = Instant::now();
     // Reference detection with the default aperture, then again with the scaled one
@@ -746,11 +783,11 @@ fn measure(
         },
     );
     let n = setting.frames_averaged;
-    let frames = &frames[..n];
+    let all_frames = &frames[..n * realisations];
 
-    // Untimed pass: which markers are ok in every frame (the solver's marker set).
+    // Untimed pass: which markers are ok in every frame used (the solver's marker set).
     let mut ok_all = vec![true; n_ref];
-    for f in frames {
+    for f in all_frames {
         let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
         for (o, t) in ok_all.iter_mut().zip(tracks) {
             *o &= t.status == MarkerStatus::Ok;
@@ -764,33 +801,43 @@ fn measure(
         .iter()
         .map(|&i| {
             let m = &tracker.reference().markers[i];
+            let layer = &sensor.layers[m.layer];
+            let position_mm = layer
+                .markers
+                .map(|g| {
+                    let k = m.id as usize;
+                    g.grid.node_mm(k % g.grid.nx, k / g.grid.nx)
+                })
+                .unwrap_or(m.position_mm);
             MarkerSite {
                 layer: m.layer,
-                position_mm: m.position_mm,
-                depth_mm: sensor.layers[m.layer].depth_mm,
+                position_mm,
+                depth_mm: layer.depth_mm,
             }
         })
         .collect();
     let mm_per_px = sensor.camera.mm_per_px;
     let mut u = vec![0.0; 2 * used.len()];
-    let track_and_average = |tracker: &mut Tracker, u: &mut [f64]| -> Result<(), String> {
-        u.iter_mut().for_each(|v| *v = 0.0);
-        for f in frames {
-            let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
-            for (k, &i) in used.iter().enumerate() {
-                // A marker lost in a timed pass (it was ok in the untimed one) would
-                // need a new marker set; the frames are fixed, so this cannot change.
-                u[2 * k] += tracks[i].displacement_px[0];
-                u[2 * k + 1] += tracks[i].displacement_px[1];
+    let track_and_average =
+        |tracker: &mut Tracker, group: &[Frame], u: &mut [f64]| -> Result<(), String> {
+            u.iter_mut().for_each(|v| *v = 0.0);
+            for f in group {
+                let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
+                for (k, &i) in used.iter().enumerate() {
+                    // Every used marker was ok in every frame of the untimed pass, and
+                    // the frames are fixed, so the marker set cannot change here.
+                    u[2 * k] += tracks[i].displacement_px[0];
+                    u[2 * k + 1] += tracks[i].displacement_px[1];
+                }
             }
-        }
-        let s = mm_per_px / n as f64;
-        u.iter_mut().for_each(|v| *v *= s);
-        Ok(())
-    };
-    track_and_average(&mut tracker, &mut u)?;
+            let s = mm_per_px / group.len() as f64;
+            u.iter_mut().for_each(|v| *v *= s);
+            Ok(())
+        };
+    let first = &all_frames[..n];
+    track_and_average(&mut tracker, first, &mut u)?;
 
-    // The problem on the setting's force grid.
+    // The problem on the setting's force grid; automatic choices on realisation 0.
     let mut grid_sensor = sensor.clone();
     if let Some(p) = setting.force_pitch_mm {
         grid_sensor.force_grid = regrid(&sensor.force_grid, p);
@@ -799,14 +846,22 @@ fn measure(
     let mut solver = build_solver(&problem, &setting.solver, &u).map_err(|e| e.to_string())?;
     let precompute_s = t_pre.elapsed().as_secs_f64();
 
-    let mut f = vec![0.0; solver.n_outputs()];
-    solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
     let truth = contact.force_grid_n(&grid_sensor.force_grid);
-    let (sum_error, field_error) = force_errors(&f, &truth, applied_n);
+    let mut f = vec![0.0; solver.n_outputs()];
+    let (mut sum_sq, mut field_sq) = (0.0, 0.0);
     let mut fsum_n = [0.0; 3];
-    for (i, v) in f.iter().enumerate() {
-        fsum_n[i % 3] += v;
+    for group in all_frames.chunks(n) {
+        track_and_average(&mut tracker, group, &mut u)?;
+        solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
+        let (e_sum, e_field) = force_errors(&f, &truth, applied_n);
+        sum_sq += e_sum * e_sum;
+        field_sq += e_field * e_field;
+        for (i, v) in f.iter().enumerate() {
+            fsum_n[i % 3] += v / realisations as f64;
+        }
     }
+    let sum_error = (sum_sq / realisations as f64).sqrt();
+    let field_error = (field_sq / realisations as f64).sqrt();
 
     // Timed passes.
     let mut t_track = Vec::with_capacity(reps);
@@ -814,7 +869,7 @@ fn measure(
     let mut t_total = Vec::with_capacity(reps);
     for _ in 0..reps {
         let a = Instant::now();
-        track_and_average(&mut tracker, &mut u)?;
+        track_and_average(&mut tracker, first, &mut u)?;
         let b = Instant::now();
         solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
         let c = Instant::now();
@@ -907,9 +962,9 @@ pub fn pareto_front(points: &[(f64, f64)]) -> Vec<bool> {
         .iter()
         .map(|p| {
             finite(p)
-                && !points.iter().any(|q| {
-                    finite(q) && q.0 <= p.0 && q.1 <= p.1 && (q.0 < p.0 || q.1 < p.1)
-                })
+                && !points
+                    .iter()
+                    .any(|q| finite(q) && q.0 <= p.0 && q.1 <= p.1 && (q.0 < p.0 || q.1 < p.1))
         })
         .collect()
 }
@@ -1061,8 +1116,14 @@ pub fn write_budgets_csv(
             ),
             None => (String::new(), String::new(), String::new()),
         };
-        w.write_record([metric.name().to_string(), c.budget.to_string(), label, err, t])
-            .map_err(|e| werr(&e))?;
+        w.write_record([
+            metric.name().to_string(),
+            c.budget.to_string(),
+            label,
+            err,
+            t,
+        ])
+        .map_err(|e| werr(&e))?;
     }
     w.flush().map_err(|e| werr(&e))
 }
@@ -1092,7 +1153,13 @@ mod tests {
 
     #[test]
     fn budgets_pick_the_fastest_qualifying_point() {
-        let pts = [(3.0, 0.04), (1.0, 0.30), (2.0, 0.09), (2.0, 0.08), (5.0, 0.005)];
+        let pts = [
+            (3.0, 0.04),
+            (1.0, 0.30),
+            (2.0, 0.09),
+            (2.0, 0.08),
+            (5.0, 0.005),
+        ];
         assert_eq!(fastest_within(&pts, 0.01), Some(4));
         assert_eq!(fastest_within(&pts, 0.05), Some(0));
         // Two at time 2 qualify for 10 %: the smaller error wins.
@@ -1134,9 +1201,8 @@ mod tests {
         let r = regrid(&g, 3.0);
         // Extent 19.8 × 15.4 mm: 7 × 6 nodes, centred.
         assert_eq!((r.nx, r.ny), (7, 6));
-        let c = |g: &Grid, a: usize| {
-            g.origin_mm[a] + 0.5 * g.pitch_mm * ([g.nx, g.ny][a] - 1) as f64
-        };
+        let c =
+            |g: &Grid, a: usize| g.origin_mm[a] + 0.5 * g.pitch_mm * ([g.nx, g.ny][a] - 1) as f64;
         assert!((c(&r, 0) - c(&g, 0)).abs() < 1e-9 && (c(&r, 1) - c(&g, 1)).abs() < 1e-9);
     }
 
@@ -1146,8 +1212,7 @@ mod tests {
         let sites = MarkerSite::from_sensor_grids(&sensor);
         let p = Problem::new(&sensor, &sites);
         let s = sigma_max(&p).unwrap();
-        let h = crate::model::transfer_matrix(&p.model, &sites, &sensor.force_points_mm())
-            .unwrap();
+        let h = crate::model::transfer_matrix(&p.model, &sites, &sensor.force_points_mm()).unwrap();
         let svd = h.svd(false, false);
         let exact = svd.singular_values.max();
         assert!((s - exact).abs() < 1e-6 * exact, "{s} vs {exact}");

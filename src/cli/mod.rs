@@ -14,6 +14,7 @@ mod reconstruct;
 mod sim;
 mod solver_args;
 mod stage;
+mod study;
 mod track;
 
 pub use solver_args::SolverArgs;
@@ -52,6 +53,9 @@ enum Command {
     /// Serve a force/torque sensor simulator on a pseudo-terminal (test helper).
     #[command(hide = true)]
     SimServeFt(ft::ServeArgs),
+    /// Simulation studies: accuracy against time, layer separation (paper Fig. 6).
+    #[command(subcommand)]
+    Study(study::StudyCommand),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -68,6 +72,7 @@ pub fn main() -> ExitCode {
         Command::Ft(args) => ft::run(args),
         Command::Camera(cmd) => camera::run(cmd),
         Command::SimServeFt(args) => ft::serve(args),
+        Command::Study(cmd) => study::run(cmd),
     };
     match result {
         Ok(code) => code,
