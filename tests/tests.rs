@@ -10,4 +10,5 @@ mod ft;
 mod sim;
 mod solvers;
 mod stage;
+mod study;
 mod vision;

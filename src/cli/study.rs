@@ -77,6 +77,7 @@ pub struct AccuracyArgs {
         long,
         value_name = "PCT,...",
         value_delimiter = ',',
+        allow_negative_numbers = true,
         default_value = "1,2,5,10,20"
     )]
     budgets: Vec<f64>,
@@ -130,6 +131,7 @@ pub struct LayerArgs {
         long,
         value_name = "MM,...",
         value_delimiter = ',',
+        allow_negative_numbers = true,
         default_value = "0,1,2,3,4,5,6,8,13"
     )]
     separations: Vec<f64>,
@@ -138,6 +140,7 @@ pub struct LayerArgs {
         long,
         value_name = "PX,...",
         value_delimiter = ',',
+        allow_negative_numbers = true,
         default_value = "0,0.1"
     )]
     noise_px: Vec<f64>,
