@@ -12,4 +12,5 @@ mod run;
 mod sim;
 mod solvers;
 mod stage;
+mod study;
 mod vision;

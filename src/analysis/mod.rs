@@ -17,10 +17,17 @@
 //! file, line and column; [`RunAnalysis::new`] dispatches on the plan's sweep kind and
 //! [`RunAnalysis::metrics`] flattens the results into named scalar [`Metric`]s (the
 //! names acceptance criteria refer to, listed in [`METRICS`]).
+//!
+//! The simulation studies live here too: [`accuracy_time`] (force error against time
+//! per frame over solver, force-grid, tracking and averaging choices; Pareto front and
+//! budgets) and [`layer_separation`] (force error against the distance between the two
+//! marker layers, paper Fig. 6, per solver).
 
+pub mod accuracy_time;
 pub mod angle;
 pub mod calibration;
 pub mod displacement;
+pub mod layer_separation;
 pub mod magnitude;
 pub mod spatial;
 pub mod stats;

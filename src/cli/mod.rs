@@ -16,6 +16,7 @@ mod run;
 mod sim;
 mod solver_args;
 mod stage;
+mod study;
 mod track;
 
 pub use solver_args::SolverArgs;
@@ -56,6 +57,9 @@ enum Command {
     /// Serve a force/torque sensor simulator on a pseudo-terminal (test helper).
     #[command(hide = true)]
     SimServeFt(ft::ServeArgs),
+    /// Simulation studies: accuracy against time, layer separation (paper Fig. 6).
+    #[command(subcommand)]
+    Study(study::StudyCommand),
 }
 
 /// Parses arguments, runs the command, prints the error chain on failure.
@@ -74,6 +78,7 @@ pub fn main() -> ExitCode {
         Command::Ft(args) => ft::run(args),
         Command::Camera(cmd) => camera::run(cmd),
         Command::SimServeFt(args) => ft::serve(args),
+        Command::Study(cmd) => study::run(cmd),
     };
     match result {
         Ok(code) => code,

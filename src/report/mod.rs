@@ -15,6 +15,7 @@ pub mod acceptance;
 pub mod figures;
 pub mod html;
 pub mod plot;
+pub mod study_plots;
 
 use std::path::{Path, PathBuf};
 
