@@ -12,6 +12,7 @@ mod model;
 mod ports;
 mod reconstruct;
 mod report;
+mod reproduce;
 mod run;
 mod sim;
 mod solver_args;
@@ -38,6 +39,7 @@ enum Command {
     Run(run::Args),
     Reconstruct(reconstruct::Args),
     Report(report::Args),
+    ReproducePaper(reproduce::Args),
     Track(track::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
@@ -69,6 +71,7 @@ pub fn main() -> ExitCode {
         Command::Run(args) => run::run(args),
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Report(args) => report::run(args),
+        Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),
