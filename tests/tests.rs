@@ -8,6 +8,7 @@ mod cli;
 mod fourier;
 mod ft;
 mod report;
+mod reproduce;
 mod run;
 mod sim;
 mod solvers;

@@ -1,0 +1,106 @@
+//! `tactbench reproduce-paper` on its short variant: every step runs (runs on the
+//! simulated bench, reports, both studies) and the README puts a figure of ours beside
+//! each of the paper's.
+
+use crate::util;
+
+#[test]
+fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("paper");
+    let o = util::run_in(
+        &util::root(""),
+        &[
+            "reproduce-paper",
+            "--out",
+            out.to_str().unwrap(),
+            "--quick",
+            "2",
+        ],
+    );
+    assert!(
+        o.status.success(),
+        "reproduce-paper failed:\n{}",
+        util::stderr(&o)
+    );
+
+    for run in [
+        "table1_displacement",
+        "fig7_magnitude",
+        "fig8_angle",
+        "fig9_spatial",
+    ] {
+        let d = out.join("runs").join(run);
+        for f in ["manifest.json", "journal.csv", "report.html", "summary.csv"] {
+            assert!(d.join(f).is_file(), "{run}: {f} missing");
+        }
+        let plots: Vec<_> = std::fs::read_dir(d.join("plots"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "png"))
+            .collect();
+        assert!(!plots.is_empty(), "{run}: no plots");
+        for p in plots {
+            image::open(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        }
+    }
+    for f in [
+        "fig6_layer_separation/layer_separation.csv",
+        "fig6_layer_separation/layer_separation.png",
+        "accuracy_vs_time/accuracy_vs_time.csv",
+        "accuracy_vs_time/budgets.csv",
+        "accuracy_vs_time/accuracy_vs_time.png",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+
+    let readme = std::fs::read_to_string(out.join("README.md")).unwrap();
+    assert!(
+        readme.contains("SHORT VARIANT"),
+        "quick run not labelled:\n{readme}"
+    );
+    // Every row of the comparison table has a number of ours (not n/a) beside the
+    // paper's figure, except the Fig. 6 row, which points at its plot.
+    let rows: Vec<&str> = readme
+        .lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| quantity"))
+        .collect();
+    assert_eq!(rows.len(), 8, "table rows:\n{readme}");
+    for row in &rows[..7] {
+        let ours = row.split('|').nth(3).unwrap().trim();
+        let number: String = ours
+            .chars()
+            .take_while(|c| !c.is_whitespace() && *c != '°')
+            .collect();
+        assert!(
+            number.parse::<f64>().is_ok_and(f64::is_finite),
+            "no figure of ours in {row:?}"
+        );
+    }
+}
+
+#[test]
+fn reproduce_paper_refuses_to_replace_a_directory_that_is_not_a_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("paper");
+    let precious = out.join("runs").join("table1_displacement");
+    std::fs::create_dir_all(&precious).unwrap();
+    std::fs::write(precious.join("notes.txt"), "keep me").unwrap();
+    let o = util::run_in(
+        &util::root(""),
+        &[
+            "reproduce-paper",
+            "--out",
+            out.to_str().unwrap(),
+            "--quick",
+            "1",
+        ],
+    );
+    assert!(!o.status.success());
+    let err = util::stderr(&o);
+    assert!(err.contains("is not a run directory"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(precious.join("notes.txt")).unwrap(),
+        "keep me"
+    );
+}
