@@ -37,6 +37,8 @@ const MAGNITUDE: &str =
     "[sweep]\nkind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\ntrials = 3\n";
 /// From force node (4, 3) to node (5, 3) of the paper grid in 6 steps.
 const SPATIAL: &str = "[sweep]\nkind = \"spatial\"\nforce = 200.0\nstart_mm = [7.9, 5.65]\nend_mm = [10.1, 5.65]\nsubdivisions = 6\n";
+/// 400 gf at 0, 15, 30, 45° from the normal, tangential part along +y, two trials.
+const ANGLE: &str = "[sweep]\nkind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 15.0\ndirection_deg = 90.0\ntrials = 2\n";
 /// 3 px at 0.05 mm/px along x.
 const DISPLACEMENT: &str = "[sweep]\nkind = \"displacement\"\nshift_mm = [0.15, 0.0]\ntrials = 2\n";
 
@@ -460,4 +462,35 @@ fn displacement_run_reports_table_one_in_pixels() {
     // No forces files: the quiver is drawn, the force field is not.
     assert!(dir.join("plots/displacements.png").is_file());
     assert!(!dir.join("plots/force_field.png").exists());
+}
+
+#[test]
+fn angle_run_reports_bias_and_resolution() {
+    // The F/T reads the target wrench; F^sum is 0.9 of it, turned 1° further from the
+    // normal in trial 0 and 3° in trial 1: bias 2°, per-level residual SD sqrt(2)°,
+    // resolution 2·sqrt(2)° (slope 1).
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let plan = Plan::from_toml_str(&format!("{PLAN_HEAD}{ANGLE}"), "p.toml").unwrap();
+    let sps = plan.setpoints();
+    write_run(dir, ANGLE, |dir, r| {
+        let sp = sps[r.index];
+        (r.fx_n, r.fy_n, r.fz_n) = (sp.tangential_n[0], sp.tangential_n[1], sp.normal_n);
+        let f = r.fz_n.hypot(r.fy_n);
+        let m = (sp.swept_value + if r.trial == 0 { 1.0 } else { 3.0 }).to_radians();
+        (r.fsum_y_n, r.fsum_z_n) = (0.9 * f * m.sin(), 0.9 * f * m.cos());
+        write_displacements(dir, r.index, |_, _, _| [0.0, 0.001]);
+        write_forces(dir, r.index, |_| 0.01);
+    });
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!((metric(dir, "angle.bias_deg") - 2.0).abs() < 1e-9);
+    assert!((metric(dir, "angle.bias_vs_target_deg") - 2.0).abs() < 1e-9);
+    assert!((metric(dir, "angle.slope") - 1.0).abs() < 1e-9);
+    let res = metric(dir, "angle.resolution_deg");
+    assert!((res - 2.0 * 2f64.sqrt()).abs() < 1e-9, "{res}");
+    let img = image::open(dir.join("plots/angle.png")).unwrap();
+    assert_eq!(image::GenericImageView::dimensions(&img), (900, 680));
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("Force angle (paper Fig. 8)"));
 }

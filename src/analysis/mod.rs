@@ -633,6 +633,7 @@ impl RunAnalysis {
         if let Some(s) = &self.spatial {
             push("spatial.fwhm_mm".into(), s.fwhm_mm, "mm");
             push("spatial.peak_offset_mm".into(), s.peak_distance_mm, "mm");
+            push("spatial.line_offset_mm".into(), s.line_offset_mm, "mm");
         }
         if let Some(d) = &self.displacement {
             for a in &d.axes {
