@@ -153,7 +153,14 @@ pub fn render(
         ("build id", opt(&m.build_id)),
         ("software version", escape(&m.software_version)),
         ("started", escape(&m.started_at)),
-        ("resumed", escape(&m.resumed_at.join(", "))),
+        (
+            "resumed",
+            if m.resumed_at.is_empty() {
+                "&mdash;".to_string()
+            } else {
+                escape(&m.resumed_at.join(", "))
+            },
+        ),
         ("ended", opt(&m.ended_at)),
         ("status", escape(&format!("{:?}", m.status).to_lowercase())),
         ("end reason", opt(&m.end_reason)),
