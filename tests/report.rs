@@ -557,3 +557,15 @@ fn spatial_resolution_of_the_paper_geometry_through_model_and_solvers() {
     eprintln!("FWHM tikhonov gcv, 0.1 px noise: {tik:.3} mm");
     assert!(tik >= pinv - 1e-9 && tik < 4.4, "{tik}");
 }
+
+#[test]
+fn the_example_criteria_file_is_valid() {
+    let c = tactbench::report::acceptance::Criteria::from_path(&crate::util::root(
+        "experiments/acceptance_example.toml",
+    ))
+    .unwrap();
+    assert!(c
+        .criteria
+        .iter()
+        .any(|c| c.metric == "magnitude.resolution_gf"));
+}
