@@ -498,24 +498,16 @@ impl RunAnalysis {
             message,
         };
         let rows = &run.rows;
-        let mut out = RunAnalysis {
-            magnitude: None,
-            angle: None,
-            spatial: None,
-            displacement: None,
-            timing: timing::analyze(rows),
-            snapshot: None,
-            run: run.clone(),
-        };
+        let (mut magnitude, mut angle, mut spatial, mut displacement) = (None, None, None, None);
         match &run.plan.sweep {
             Sweep::Magnitude { .. } => {
-                out.magnitude = Some(
+                magnitude = Some(
                     magnitude::analyze(rows)
                         .map_err(|e| insufficient(format!("force magnitude: {e}")))?,
                 );
             }
             Sweep::Angle { .. } => {
-                out.angle = Some(
+                angle = Some(
                     angle::analyze(rows).map_err(|e| insufficient(format!("force angle: {e}")))?,
                 );
             }
@@ -532,7 +524,7 @@ impl RunAnalysis {
                 }
                 let dir = [end_mm[0] - start_mm[0], end_mm[1] - start_mm[1]];
                 let tol = 0.25 * run.sensor.force_grid.pitch_mm;
-                out.spatial = Some(
+                spatial = Some(
                     spatial::analyze(&loads, dir, tol).map_err(|e| insufficient(e.to_string()))?,
                 );
             }
@@ -546,13 +538,22 @@ impl RunAnalysis {
                     });
                 }
                 let names: Vec<String> = run.sensor.layers.iter().map(|l| l.name.clone()).collect();
-                out.displacement = Some(
+                displacement = Some(
                     displacement::analyze(&ms, &names, run.sensor.camera.mm_per_px)
                         .map_err(|e| insufficient(e.to_string()))?,
                 );
             }
             Sweep::Setpoints(_) => {}
         }
+        let mut out = RunAnalysis {
+            magnitude,
+            angle,
+            spatial,
+            displacement,
+            timing: timing::analyze(&run.rows),
+            snapshot: None,
+            run,
+        };
         out.snapshot = out.load_snapshot(options.snapshot_index)?;
         Ok(out)
     }
@@ -640,6 +641,7 @@ impl RunAnalysis {
         if let Some(s) = &self.spatial {
             push("spatial.fwhm_mm".into(), s.fwhm_mm, "mm");
             push("spatial.peak_offset_mm".into(), s.peak_distance_mm, "mm");
+            push("spatial.line_offset_mm".into(), s.line_offset_mm, "mm");
         }
         if let Some(d) = &self.displacement {
             for a in &d.axes {

@@ -2,10 +2,14 @@
 //!
 //! A point load of fixed normal force is applied at `n + 1` positions `p_i` stepping
 //! from one force-grid node to its neighbour (plan sweep `spatial`, interval
-//! `pitch / n`). For each load, every force node `q` on the line through the segment
-//! (perpendicular distance below a tolerance, a quarter pitch by default) contributes
-//! one profile sample: abscissa `d = (q − p_i)·ê` (signed distance from the load, ê the
-//! segment direction), ordinate its reconstructed `f_z`. Taking each load as the
+//! `pitch / n`). For each load, every force node `q` on the grid line nearest to the
+//! load line (perpendicular distance within a tolerance, a quarter pitch in
+//! [`crate::analysis::RunAnalysis`], of the nearest node's) contributes one profile
+//! sample. When the load line runs between grid lines, the nodes of the nearest ones
+//! are used and [`SpatialAnalysis::line_offset_mm`] says how far off they are (the
+//! paper loads along a grid line: offset 0). Each sample has abscissa
+//! `d = (q − p_i)·ê` (signed distance from the load, ê the segment direction) and
+//! ordinate its reconstructed `f_z`. Taking each load as the
 //! origin interleaves the samples, so the profile is sampled `n` times more densely
 //! than the grid. Samples at the same `d` (within 1 µm) are averaged. The profile is
 //! normalised by its maximum, as in Fig. 9.
@@ -58,6 +62,9 @@ pub struct SpatialAnalysis {
     pub peak_distance_mm: f64,
     /// The profile maximum, N.
     pub peak_fz_n: f64,
+    /// Perpendicular distance of the used grid nodes from the load line, mm (0 when
+    /// the loads run along a grid line, as in the paper).
+    pub line_offset_mm: f64,
 }
 
 /// Why the profile could not be evaluated.
@@ -72,8 +79,8 @@ pub enum SpatialError {
 }
 
 /// Builds the profile from `loads` applied along direction `direction` (need not be
-/// unit length) and measures its FWHM. Nodes farther than `line_tolerance_mm` from the
-/// load line are ignored.
+/// unit length) and measures its FWHM. Nodes farther than `line_tolerance_mm` beyond
+/// the nearest node's distance from the load line are ignored.
 pub fn analyze(
     loads: &[PointLoad],
     direction: [f64; 2],
@@ -90,23 +97,32 @@ pub fn analyze(
         return Err(SpatialError::Insufficient("no loads in the run".into()));
     }
     let e = [direction[0] / len, direction[1] / len];
+    // (along, across) of a node relative to a load.
+    let coords = |load: &PointLoad, r: &ForceRecord| {
+        let d = [
+            r.position_mm[0] - load.position_mm[0],
+            r.position_mm[1] - load.position_mm[1],
+        ];
+        (d[0] * e[0] + d[1] * e[1], (d[0] * e[1] - d[1] * e[0]).abs())
+    };
+    // Every load lies on the same line, so the nearest grid line is the same for all.
+    let line_offset_mm = loads
+        .iter()
+        .flat_map(|l| l.forces.iter().map(move |r| coords(l, r).1))
+        .fold(f64::INFINITY, f64::min);
     let mut samples: Vec<(f64, f64)> = Vec::new();
     for load in loads {
         for r in &load.forces {
-            let d = [
-                r.position_mm[0] - load.position_mm[0],
-                r.position_mm[1] - load.position_mm[1],
-            ];
-            let along = d[0] * e[0] + d[1] * e[1];
-            let across = (d[0] * e[1] - d[1] * e[0]).abs();
-            if across <= line_tolerance_mm && r.f_n[2].is_finite() {
+            let (along, across) = coords(load, r);
+            if across <= line_offset_mm + line_tolerance_mm && r.f_n[2].is_finite() {
                 samples.push((along, r.f_n[2]));
             }
         }
     }
     if samples.len() < 3 {
         return Err(SpatialError::Insufficient(format!(
-            "only {} force node sample(s) lie within {line_tolerance_mm} mm of the load line",
+            "only {} force node sample(s) lie within {line_tolerance_mm} mm of the grid line \
+             nearest the load line",
             samples.len()
         )));
     }
@@ -170,6 +186,7 @@ pub fn analyze(
         half_right_mm: right,
         peak_distance_mm: dpk,
         peak_fz_n: fpk,
+        line_offset_mm,
     })
 }
 
@@ -219,11 +236,25 @@ mod tests {
         assert!((s.fwhm_mm - 3.0).abs() < 1e-9, "{}", s.fwhm_mm);
         assert!(s.peak_distance_mm.abs() < 1e-9);
         assert!((s.peak_fz_n - 2.0).abs() < 1e-12);
+        assert_eq!(s.line_offset_mm, 0.0);
         // 6 subdivisions of 2.2 mm: samples every 0.3667 mm; d = 0 appears twice per
         // grid step covered by both end loads (i = 0 and i = 6 coincide shifted).
         let spacing = s.profile[1].distance_mm - s.profile[0].distance_mm;
         assert!((spacing - 2.2 / 6.0).abs() < 1e-9, "{spacing}");
         assert!(s.profile.iter().all(|p| p.normalized <= 1.0 + 1e-12));
+    }
+
+    #[test]
+    fn a_load_line_between_grid_rows_uses_the_nearest_row_and_reports_the_offset() {
+        // Loads 0.7 mm above row 0 (row 1 is 1.5 mm away and must not be mixed in):
+        // the row-0 profile is still the triangle of width 3 mm.
+        let mut l = loads(6, |d| 2.0 * (1.0 - d.abs() / 3.0).max(0.0));
+        for load in &mut l {
+            load.position_mm[1] += 0.7;
+        }
+        let s = analyze(&l, [1.0, 0.0], 0.55).unwrap();
+        assert!((s.line_offset_mm - 0.7).abs() < 1e-12);
+        assert!((s.fwhm_mm - 3.0).abs() < 1e-9, "{}", s.fwhm_mm);
     }
 
     #[test]

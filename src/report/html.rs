@@ -153,7 +153,14 @@ pub fn render(
         ("build id", opt(&m.build_id)),
         ("software version", escape(&m.software_version)),
         ("started", escape(&m.started_at)),
-        ("resumed", escape(&m.resumed_at.join(", "))),
+        (
+            "resumed",
+            if m.resumed_at.is_empty() {
+                "&mdash;".to_string()
+            } else {
+                escape(&m.resumed_at.join(", "))
+            },
+        ),
         ("ended", opt(&m.ended_at)),
         ("status", escape(&format!("{:?}", m.status).to_lowercase())),
         ("end reason", opt(&m.end_reason)),
@@ -225,12 +232,14 @@ pub fn render(
             o,
             "<h2>Spatial resolution (paper Fig. 9)</h2>\n<p>Full width at half maximum of the \
              normalised fz profile: <b>{} mm</b> (half-maximum crossings at {} and {} mm; maximum \
-             {} N at {} mm from the load).</p>\n<details><summary>profile</summary><table>",
+             {} N at {} mm from the load; profiled grid nodes {} mm from the load line).</p>\n\
+             <details><summary>profile</summary><table>",
             fmt_value(s.fwhm_mm),
             fmt_value(s.half_left_mm),
             fmt_value(s.half_right_mm),
             fmt_value(s.peak_fz_n),
-            fmt_value(s.peak_distance_mm)
+            fmt_value(s.peak_distance_mm),
+            fmt_value(s.line_offset_mm)
         );
         header(&mut o, &["distance (mm)", "fz (N)", "fz / max", "samples"]);
         for p in &s.profile {
