@@ -560,3 +560,57 @@ fn scene_bench_effects_are_validated() {
     .to_string();
     assert!(e.contains("bench.force_relaxation.time_constant_s"), "{e}");
 }
+
+#[test]
+fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let mut child = Command::new(util::bin())
+        .args([
+            "run",
+            "experiments/fig7_magnitude.toml",
+            "--sim",
+            "experiments/scenes/fig7_hemisphere_ramp.toml",
+            "--limit",
+            "6",
+            "--no-progress",
+            "--out",
+        ])
+        .arg(&out)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    while rows_or_zero(&out) < 2 {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "run made no progress"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let _ = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status();
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(
+        o.status.code(),
+        Some(4),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Interrupted);
+    let reason = m.end_reason.unwrap();
+    assert!(reason.contains("retracted"), "{reason}");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--resume"));
+    let done = rows(&out).len();
+    assert!(done >= 2 && done < 6, "{done}");
+}
+
+fn rows_or_zero(dir: &Path) -> usize {
+    std::fs::read_to_string(dir.join("journal.csv"))
+        .map(|s| s.lines().count().saturating_sub(1))
+        .unwrap_or(0)
+}
