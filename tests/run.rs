@@ -565,7 +565,7 @@ fn scene_bench_effects_are_validated() {
 fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("run");
-    let mut child = Command::new(util::bin())
+    let child = Command::new(util::bin())
         .args([
             "run",
             "experiments/fig7_magnitude.toml",
@@ -606,7 +606,7 @@ fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
     assert!(reason.contains("retracted"), "{reason}");
     assert!(String::from_utf8_lossy(&o.stderr).contains("--resume"));
     let done = rows(&out).len();
-    assert!(done >= 2 && done < 6, "{done}");
+    assert!((2..6).contains(&done), "{done}");
 }
 
 fn rows_or_zero(dir: &Path) -> usize {
