@@ -560,3 +560,102 @@ fn scene_bench_effects_are_validated() {
     .to_string();
     assert!(e.contains("bench.force_relaxation.time_constant_s"), "{e}");
 }
+
+#[test]
+fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let child = Command::new(util::bin())
+        .args([
+            "run",
+            "experiments/fig7_magnitude.toml",
+            "--sim",
+            "experiments/scenes/fig7_hemisphere_ramp.toml",
+            "--limit",
+            "6",
+            "--no-progress",
+            "--out",
+        ])
+        .arg(&out)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    while rows_or_zero(&out) < 2 {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "run made no progress"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let _ = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status();
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(
+        o.status.code(),
+        Some(4),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Interrupted);
+    let reason = m.end_reason.unwrap();
+    assert!(reason.contains("retracted"), "{reason}");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--resume"));
+    let done = rows(&out).len();
+    assert!((2..6).contains(&done), "{done}");
+}
+
+fn rows_or_zero(dir: &Path) -> usize {
+    std::fs::read_to_string(dir.join("journal.csv"))
+        .map(|s| s.lines().count().saturating_sub(1))
+        .unwrap_or(0)
+}
+
+#[test]
+fn a_bench_file_with_a_zaber_stage_and_an_ft300_runs_the_same_plan() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+    let bench = write(
+        tmp.path(),
+        "bench.toml",
+        &format!(
+            "[sim]\nscene = {:?}\nstage = \"zaber\"\nforce_sensor = \"ft300\"\n",
+            scene.display().to_string()
+        ),
+    );
+    let out = tmp.path().join("run");
+    let o = run_cli(&[
+        "run",
+        "experiments/fig7_magnitude.toml",
+        "--bench",
+        bench.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--limit",
+        "3",
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    let plan = Plan::from_path(util::root("experiments/fig7_magnitude.toml")).unwrap();
+    let rows = check_run_dir(&out, &plan);
+    assert_eq!(rows.len(), 3);
+    // The FT 300 reports 0.01 N steps: within the tolerance plus one step.
+    for (r, target_gf) in rows.iter().zip([0.0, 50.0, 100.0]) {
+        let target = target_gf * 9.80665e-3;
+        assert!(
+            (r.fz_n - target).abs() <= plan.force_tolerance_n + 0.01,
+            "#{}: fz {} N vs {target} N",
+            r.index,
+            r.fz_n
+        );
+    }
+    // Zaber stages are homed at the start (the simulator starts unreferenced).
+    assert!(util::stderr(&o).contains("homing the stage"));
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.devices["stage"]["protocol"], "zaber");
+    assert_eq!(m.devices["force_sensor"]["protocol"], "ft300");
+}

@@ -959,7 +959,9 @@ impl Runner<'_, '_, '_, '_> {
             ((f[0] - target[0]).powi(2) + (f[1] - target[1]).powi(2) + (f[2] - target[2]).powi(2))
                 .sqrt()
         });
-        let deadline = Instant::now() + Duration::from_secs_f64(distance / speed) * 2 + MOVE_GRACE;
+        let mut deadline =
+            Instant::now() + Duration::from_secs_f64(distance / speed) * 2 + MOVE_GRACE;
+        let mut read_failures = 0;
         loop {
             if self.stopped() {
                 let _ = self.dev.stop();
@@ -968,9 +970,29 @@ impl Runner<'_, '_, '_, '_> {
             let w = match self.dev.read() {
                 Ok(w) => w,
                 Err(e) => {
-                    // Blind while moving: stop first, then decide.
+                    // Blind while moving: stop first, then try to recover the sensor
+                    // and finish the move from where the stage stopped.
                     let _ = self.dev.stop();
-                    return Err(dev_abort("reading the force sensor while moving", &e));
+                    if e.kind() == ErrorKind::Disconnected || read_failures >= READ_RETRIES {
+                        return Err(dev_abort("reading the force sensor while moving", &e));
+                    }
+                    read_failures += 1;
+                    (self.events)(&RunEvent::Retry {
+                        index: self.index,
+                        attempt: read_failures,
+                        reason: format!(
+                            "force sensor read failed while moving ({e}): stage stopped, resuming the move"
+                        ),
+                    });
+                    let w = self.read_retry()?;
+                    if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                        return Err(self.trip(format!("{trip}"), Instant::now()));
+                    }
+                    self.dev.move_to(target, speed).map_err(|e| {
+                        dev_abort(&format!("resuming the move to {target:?} mm"), &e)
+                    })?;
+                    deadline += MOVE_GRACE;
+                    continue;
                 }
             };
             if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
