@@ -364,12 +364,13 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         let t = summary.timings;
         let n = t.setpoints.max(1) as f64;
         eprintln!(
-            "timings over {} setpoints: wall {:.2} s; device waits {:.2} s; tracking {:.3} s; solving {:.3} s; file writes {:.3} s; controller overhead {:.3} ms mean, {:.3} ms max per setpoint",
+            "timings over {} setpoints: wall {:.2} s; device waits {:.2} s; tracking {:.3} s; solving {:.3} s (+ {:.3} s one-off solver precompute); file writes {:.3} s; controller overhead {:.3} ms mean, {:.3} ms max per setpoint",
             t.setpoints,
             t.wall_s,
             t.device_s,
             t.track_s,
             t.solve_s,
+            t.precompute_s,
             t.io_s,
             t.overhead_s / n * 1e3,
             t.max_overhead_s * 1e3
