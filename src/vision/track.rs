@@ -149,6 +149,9 @@ pub struct Tracker {
     neighbour_count: Vec<u8>,
     last_px: Vec<[f64; 2]>,
     velocity_px: Vec<[f64; 2]>,
+    /// Each marker's window start of the current frame before the neighbour hint
+    /// (reference or last position plus velocity), px.
+    predicted_px: Vec<[f64; 2]>,
     out: Vec<MarkerTrack>,
 }
 
@@ -213,6 +216,7 @@ impl Tracker {
         let last_px = m.iter().map(|r| r.centroid_px).collect();
         Tracker {
             velocity_px: vec![[0.0; 2]; m.len()],
+            predicted_px: vec![[0.0; 2]; m.len()],
             out: vec![MarkerTrack::LOST; m.len()],
             reference,
             config,
@@ -320,6 +324,7 @@ impl Tracker {
         let cfg = self.config;
         let ls = &self.layers[layer];
         let range = ls.markers.clone();
+        let search_half2 = (ls.search_half * ls.search_half) as f64;
         for i in range {
             let r = &self.reference.markers[i];
             let start = match cfg.mode {
@@ -329,6 +334,21 @@ impl Tracker {
                     self.last_px[i][1] + self.velocity_px[i][1],
                 ],
             };
+            self.predicted_px[i] = start;
+            // Where the nearest already-measured neighbour ended up relative to its own
+            // prediction, this marker probably did too (displacement fields are smooth):
+            // starting the window there usually saves a re-centring pass. Only the
+            // first window moves; acceptance stays relative to `start`.
+            let hint = self.neighbours[i][..self.neighbour_count[i] as usize]
+                .iter()
+                .map(|&j| j as usize)
+                .find(|&j| j < i && self.out[j].status == MarkerStatus::Ok)
+                .map(|j| {
+                    let (c, p) = (self.out[j].centroid_px, self.predicted_px[j]);
+                    [c[0] - p[0], c[1] - p[1]]
+                })
+                .filter(|d| d[0] * d[0] + d[1] * d[1] <= search_half2)
+                .map(|d| [start[0] + d[0], start[1] + d[1]]);
             let min_signal = cfg.min_signal_ratio * r.signal;
             let max_jump2 = ls.max_jump_px * ls.max_jump_px;
             let max_background_change = 0.05 * r.peak;
@@ -366,7 +386,13 @@ impl Tracker {
                 }
                 _ => None,
             };
-            let mut found = accept(locate(start));
+            let mut found = None;
+            if let Some(h) = hint {
+                found = accept(locate(h));
+            }
+            if found.is_none() && hint.is_none_or(|h| !same_pixel(h, start)) {
+                found = accept(locate(start));
+            }
             if found.is_none() {
                 let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
                 if let Some(seed) =
@@ -432,6 +458,19 @@ impl Tracker {
             if n < 3 {
                 continue;
             }
+            let u = self.out[i].displacement_px;
+            // The median lies in the box spanned by the neighbours' displacements: if
+            // the box's farthest corner from `u` is within `tol` (≤ tol + 3·spread), `u`
+            // is no outlier whatever the medians. Exact, and the usual case: it skips
+            // three small sorts per marker.
+            let far = |v: &[f64], x: f64| {
+                let (lo, hi) = v.iter().fold((x, x), |(lo, hi), &a| (lo.min(a), hi.max(a)));
+                (x - lo).max(hi - x)
+            };
+            let (fx, fy) = (far(&ux[..n], u[0]), far(&uy[..n], u[1]));
+            if fx * fx + fy * fy <= tol * tol {
+                continue;
+            }
             let mx = median(&mut ux[..n]);
             let my = median(&mut uy[..n]);
             let mut dev = [0.0f64; MAX_NEIGHBOURS];
@@ -439,7 +478,6 @@ impl Tracker {
                 dev[k] = dist2([ux[k], uy[k]], [mx, my]).sqrt();
             }
             let spread = median(&mut dev[..n]);
-            let u = self.out[i].displacement_px;
             if dist2(u, [mx, my]).sqrt() > tol + 3.0 * spread {
                 self.out[i].status = MarkerStatus::Outlier;
             }
@@ -451,6 +489,12 @@ impl Tracker {
 #[inline]
 fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1])
+}
+
+/// Whether two positions round to the same pixel (the window would start there).
+#[inline]
+fn same_pixel(a: [f64; 2], b: [f64; 2]) -> bool {
+    a[0].round() == b[0].round() && a[1].round() == b[1].round()
 }
 
 /// Median of a small slice (reorders it). Insertion sort with a plain `>`: the slices
