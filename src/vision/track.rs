@@ -442,32 +442,40 @@ impl Tracker {
             if self.out[i].status != MarkerStatus::Ok {
                 continue;
             }
+            let u = self.out[i].displacement_px;
             let mut ux = [0.0f64; MAX_NEIGHBOURS];
             let mut uy = [0.0f64; MAX_NEIGHBOURS];
             let mut n = 0;
+            // Box spanned by `u` and the neighbours' displacements (plain comparisons:
+            // the values are finite, `f64::min` would add NaN handling).
+            let (mut lo, mut hi) = (u, u);
             for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
                 let t = &self.out[j as usize];
                 // Outliers flagged earlier in this loop still count: the decision must
                 // not depend on marker order.
                 if matches!(t.status, MarkerStatus::Ok | MarkerStatus::Outlier) {
-                    ux[n] = t.displacement_px[0];
-                    uy[n] = t.displacement_px[1];
+                    let [x, y] = t.displacement_px;
+                    ux[n] = x;
+                    uy[n] = y;
                     n += 1;
+                    lo = [
+                        if x < lo[0] { x } else { lo[0] },
+                        if y < lo[1] { y } else { lo[1] },
+                    ];
+                    hi = [
+                        if x > hi[0] { x } else { hi[0] },
+                        if y > hi[1] { y } else { hi[1] },
+                    ];
                 }
             }
             if n < 3 {
                 continue;
             }
-            let u = self.out[i].displacement_px;
-            // The median lies in the box spanned by the neighbours' displacements: if
-            // the box's farthest corner from `u` is within `tol` (≤ tol + 3·spread), `u`
-            // is no outlier whatever the medians. Exact, and the usual case: it skips
-            // three small sorts per marker.
-            let far = |v: &[f64], x: f64| {
-                let (lo, hi) = v.iter().fold((x, x), |(lo, hi), &a| (lo.min(a), hi.max(a)));
-                (x - lo).max(hi - x)
-            };
-            let (fx, fy) = (far(&ux[..n], u[0]), far(&uy[..n], u[1]));
+            // The medians lie in that box: if its farthest corner from `u` is within
+            // `tol` (≤ tol + 3·spread), `u` is no outlier whatever the medians. Exact,
+            // and the usual case: it skips three small sorts per marker.
+            let fx = (u[0] - lo[0]).max(hi[0] - u[0]);
+            let fy = (u[1] - lo[1]).max(hi[1] - u[1]);
             if fx * fx + fy * fy <= tol * tol {
                 continue;
             }
