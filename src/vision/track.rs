@@ -26,7 +26,7 @@
 
 use super::detect::{with_raw, Reference};
 use super::image::FrameView;
-use super::window::{search, Located, Raw, Sample, Window};
+use super::window::{search, Foreign, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::CameraMapping;
@@ -129,15 +129,45 @@ impl StatusCounts {
 
 const MAX_NEIGHBOURS: usize = 8;
 
+/// Other-layer markers checked for overlap per marker (the nearest at rest).
+const MAX_FOREIGN: usize = 4;
+
+/// Below this fraction of its aperture left visible by other layers' markers (with
+/// the mirror images of the hidden part), a marker is merged.
+const MIN_VISIBLE: f64 = 0.2;
+
+/// Markers of two layers closer than this fraction of the sum of their radii are
+/// merged: with a quarter of the diameters overlapping (e.g. 9 px apart for two 6 px
+/// discs) the masked centroid's error grows past 0.1 px on the `sim` renders
+/// (`tests/vision.rs`, overlapping layers).
+const MIN_CROSS_LAYER_DISTANCE: f64 = 0.8;
+
 struct LayerState {
     window: Window,
     weights: [i32; 3],
     search_half: i32,
     max_jump_px: f64,
     merge_distance_px: f64,
+    /// Aperture radius, px: a marker of this layer colours at most this far.
+    aperture_px: f64,
+    /// Marker radius, px.
+    marker_radius_px: f64,
+    /// Square of the distance within which another layer's marker may reach into
+    /// this layer's aperture, px² (see [`Tracker::resolve_overlaps`]).
+    overlap_reach2_px: f64,
     search_threshold_base: i32,
     /// This layer's markers in `Reference::markers`.
     markers: std::ops::Range<usize>,
+}
+
+impl LayerState {
+    /// How far a marker of this layer colours another layer's window, px: its
+    /// measured extent (the aperture less its 1.5 px margin, see `detect`) plus 1 px,
+    /// so that no pixel whose gradient stencil (±1 px) touches it is used — the edge
+    /// a covering marker draws does not move with the covered one.
+    fn foreign_support_px(&self) -> f64 {
+        self.aperture_px - 1.5 + 1.0 + 0.5
+    }
 }
 
 /// Tracks the markers of a [`Reference`] in frames of the same size.
@@ -147,6 +177,9 @@ pub struct Tracker {
     layers: Vec<LayerState>,
     neighbours: Vec<[u32; MAX_NEIGHBOURS]>,
     neighbour_count: Vec<u8>,
+    /// The nearest other-layer markers at rest, for the overlap check.
+    foreign: Vec<[u32; MAX_FOREIGN]>,
+    foreign_count: Vec<u8>,
     last_px: Vec<[f64; 2]>,
     velocity_px: Vec<[f64; 2]>,
     /// Each marker's window start of the current frame before the neighbour hint
@@ -161,7 +194,7 @@ impl Tracker {
     /// are indexed like [`Tracker::reference`]'s markers.
     pub fn new(mut reference: Reference, config: TrackConfig) -> Tracker {
         reference.markers.sort_by_key(|m| (m.layer, m.id));
-        let layers = reference
+        let mut layers: Vec<LayerState> = reference
             .layers
             .iter()
             .enumerate()
@@ -181,6 +214,9 @@ impl Tracker {
                     search_half: search_half.round() as i32,
                     max_jump_px: search_half + l.aperture_radius_px,
                     merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
+                    aperture_px: l.aperture_radius_px,
+                    marker_radius_px: l.marker_radius_px,
+                    overlap_reach2_px: 0.0,
                     search_threshold_base: l.background_score.round() as i32,
                     markers: {
                         let m = &reference.markers;
@@ -190,6 +226,13 @@ impl Tracker {
                 }
             })
             .collect();
+        let max_support = layers
+            .iter()
+            .map(LayerState::foreign_support_px)
+            .fold(0.0, f64::max);
+        for l in &mut layers {
+            l.overlap_reach2_px = (l.aperture_px + max_support).powi(2);
+        }
         let m = &reference.markers;
         let mut neighbours = vec![[0u32; MAX_NEIGHBOURS]; m.len()];
         let mut neighbour_count = vec![0u8; m.len()];
@@ -213,6 +256,21 @@ impl Tracker {
                 neighbour_count[i] = k as u8 + 1;
             }
         }
+        let mut foreign = vec![[0u32; MAX_FOREIGN]; m.len()];
+        let mut foreign_count = vec![0u8; m.len()];
+        for (i, a) in m.iter().enumerate() {
+            let mut near: Vec<(f64, usize)> = m
+                .iter()
+                .enumerate()
+                .filter(|(_, b)| b.layer != a.layer)
+                .map(|(j, b)| (dist2(a.centroid_px, b.centroid_px), j))
+                .collect();
+            near.sort_by(|x, y| x.0.total_cmp(&y.0));
+            for (k, (_, j)) in near.iter().take(MAX_FOREIGN).enumerate() {
+                foreign[i][k] = *j as u32;
+                foreign_count[i] = k as u8 + 1;
+            }
+        }
         let last_px = m.iter().map(|r| r.centroid_px).collect();
         Tracker {
             velocity_px: vec![[0.0; 2]; m.len()],
@@ -223,6 +281,8 @@ impl Tracker {
             layers,
             neighbours,
             neighbour_count,
+            foreign,
+            foreign_count,
             last_px,
         }
     }
@@ -258,7 +318,10 @@ impl Tracker {
                 expected: [self.reference.width_px, self.reference.height_px],
             });
         }
-        with_raw!(frame, img => self.measure_all(img));
+        with_raw!(frame, img => {
+            self.measure_all(img);
+            self.resolve_overlaps(img);
+        });
         self.flag_merged();
         self.flag_outliers();
         if self.config.mode == TrackMode::FrameToFrame {
@@ -410,6 +473,94 @@ impl Tracker {
                 },
                 None => MarkerTrack::LOST,
             };
+        }
+    }
+
+    /// Re-measures markers that overlap another layer's marker in this frame with
+    /// [`Window::locate_masked`] (the other markers' discs and their mirror images left
+    /// out), or flags them merged when too little of them is visible. Two sweeps: the
+    /// second uses the other layer's corrected positions.
+    fn resolve_overlaps<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
+        for _sweep in 0..2 {
+            let mut any = false;
+            for i in 0..self.out.len() {
+                if self.out[i].status != MarkerStatus::Ok {
+                    continue;
+                }
+                let r = &self.reference.markers[i];
+                let ls = &self.layers[r.layer];
+                let c = self.out[i].centroid_px;
+                // Cheap test first (the usual case: no other-layer marker near);
+                // a lost marker's NaN centroid compares false.
+                if !self.foreign[i][..self.foreign_count[i] as usize]
+                    .iter()
+                    .any(|&j| dist2(c, self.out[j as usize].centroid_px) < ls.overlap_reach2_px)
+                {
+                    continue;
+                }
+                let reach = ls.window.ring_radius_px() + 1.0;
+                let mut masks = [Foreign {
+                    centre_px: [0.0; 2],
+                    radius2_px: 0.0,
+                }; MAX_FOREIGN];
+                let (mut n, mut overlap, mut too_close) = (0, false, false);
+                for &j in &self.foreign[i][..self.foreign_count[i] as usize] {
+                    let (j, fl) = (j as usize, self.reference.markers[j as usize].layer);
+                    if self.out[j].status == MarkerStatus::Lost {
+                        continue;
+                    }
+                    let support = self.layers[fl].foreign_support_px();
+                    let d2 = dist2(c, self.out[j].centroid_px);
+                    if d2 < (reach + support) * (reach + support) {
+                        masks[n] = Foreign {
+                            centre_px: self.out[j].centroid_px,
+                            radius2_px: support * support,
+                        };
+                        n += 1;
+                        overlap |= d2 < (ls.aperture_px + support) * (ls.aperture_px + support);
+                        let close = MIN_CROSS_LAYER_DISTANCE
+                            * (ls.marker_radius_px + self.layers[fl].marker_radius_px);
+                        too_close |= d2 < close * close;
+                    }
+                }
+                if !overlap {
+                    continue;
+                }
+                any = true;
+                let found = if too_close {
+                    None
+                } else {
+                    ls.window
+                        .locate_masked::<T, C>(img, c, self.config.max_iterations, &masks[..n])
+                };
+                let start = self.predicted_px[i];
+                let max_jump2 = ls.max_jump_px * ls.max_jump_px;
+                self.out[i] = match found {
+                    Some(f)
+                        if !too_close
+                            && f.visible >= MIN_VISIBLE
+                            && f.m0 >= self.config.min_signal_ratio * f.visible * r.signal
+                            && dist2(f.centroid_px, start) <= max_jump2 =>
+                    {
+                        let c = f.centroid_px;
+                        MarkerTrack {
+                            centroid_px: c,
+                            displacement_px: [c[0] - r.centroid_px[0], c[1] - r.centroid_px[1]],
+                            status: MarkerStatus::Ok,
+                            signal_ratio: f.m0 / (f.visible * r.signal),
+                        }
+                    }
+                    // Too much of it hidden or mirrored away: its position is not
+                    // measurable, it merged with the other layer's marker.
+                    _ => MarkerTrack {
+                        status: MarkerStatus::Merged,
+                        ..self.out[i]
+                    },
+                };
+            }
+            if !any {
+                break;
+            }
         }
     }
 
