@@ -473,10 +473,11 @@ fn sim_ideal_render_tracked_to_0_005_px() {
 // ---- overlapping layers -------------------------------------------------------------
 
 /// The blue layer (3 mm, drawn under the red 6 mm layer by the `sim` renderer) slid
-/// diagonally towards its red neighbours until each blue disc (radius 6 px) lies
-/// `gap_px` from the centre of the red disc half a pitch away, which covers part of
-/// it. Returns the reference and loaded frames (8-bit, σ = 2 noise when `noisy`, else
-/// 16-bit noise-free) and the true displacements, px, in reference order.
+/// diagonally towards its red neighbours until each blue disc's centre (radius 6 px)
+/// lies `gap_px` from the centre of the red disc half a pitch away, which covers part
+/// of it when `gap_px` < 12. Returns the reference and loaded frames' samples (8-bit
+/// with σ = 2 noise when `noisy`, else noise-free 16-bit as native-endian bytes), the
+/// true displacements, px, in reference order, and whether the frames are 8-bit.
 fn overlap_frames(gap_px: f64, noisy: bool, seed: u64) -> (Vec<u8>, Vec<u8>, Vec<[f64; 2]>, bool) {
     use tactbench::sim::render::{reference_markers, render_sensor, to_rgb16, to_rgb8};
     let s = paper_sensor();
@@ -520,18 +521,15 @@ fn overlap_frames(gap_px: f64, noisy: bool, seed: u64) -> (Vec<u8>, Vec<u8>, Vec
     }
 }
 
-fn overlap_view(bytes: &[u8], eight_bit: bool) -> (Vec<u16>, bool) {
+/// The 16-bit samples of `overlap_frames`' native-endian bytes (empty for 8-bit).
+fn overlap_u16(bytes: &[u8], eight_bit: bool) -> Vec<u16> {
     if eight_bit {
-        (Vec::new(), true)
-    } else {
-        (
-            bytes
-                .chunks_exact(2)
-                .map(|c| u16::from_ne_bytes([c[0], c[1]]))
-                .collect(),
-            false,
-        )
+        return Vec::new();
     }
+    bytes
+        .chunks_exact(2)
+        .map(|c| u16::from_ne_bytes([c[0], c[1]]))
+        .collect()
 }
 
 /// Per-layer errors of tracking the overlap frames of `gap_px`: (worst |error|,
@@ -539,8 +537,8 @@ fn overlap_view(bytes: &[u8], eight_bit: bool) -> (Vec<u16>, bool) {
 fn overlap_errors(gap_px: f64, noisy: bool, seed: u64) -> [(f64, f64, f64, usize); 2] {
     let s = paper_sensor();
     let (rb, fb, u_px, eight) = overlap_frames(gap_px, noisy, seed);
-    let (r16, _) = overlap_view(&rb, eight);
-    let (f16, _) = overlap_view(&fb, eight);
+    let r16 = overlap_u16(&rb, eight);
+    let f16 = overlap_u16(&fb, eight);
     let (w, h) = (s.camera.width_px, s.camera.height_px);
     fn view<'a>(b: &'a [u8], v: &'a [u16], eight: bool, w: u32, h: u32) -> FrameView<'a> {
         if eight {
@@ -554,14 +552,14 @@ fn overlap_errors(gap_px: f64, noisy: bool, seed: u64) -> [(f64, f64, f64, usize
     let mut t = Tracker::new(r.clone(), config(TrackMode::PerWindow));
     let tracks = t.track(&view(&fb, &f16, eight, w, h)).unwrap();
     let mut out = [(0.0, 0.0, 0.0, 0); 2];
-    for layer in 0..2 {
+    for (layer, o) in out.iter_mut().enumerate() {
         let mut ex = Vec::new();
         for (k, (m, tr)) in r.markers.iter().zip(tracks).enumerate() {
             if m.layer != layer {
                 continue;
             }
             if tr.status == MarkerStatus::Merged {
-                out[layer].3 += 1;
+                o.3 += 1;
                 continue;
             }
             assert_eq!(tr.status, MarkerStatus::Ok, "gap {gap_px} px: marker {k}");
@@ -569,13 +567,13 @@ fn overlap_errors(gap_px: f64, noisy: bool, seed: u64) -> [(f64, f64, f64, usize
                 tr.displacement_px[0] - u_px[k][0],
                 tr.displacement_px[1] - u_px[k][1],
             ];
-            out[layer].0 = f64::max(out[layer].0, e[0].abs().max(e[1].abs()));
+            o.0 = f64::max(o.0, e[0].abs().max(e[1].abs()));
             ex.push(e[0]);
         }
         if ex.len() > 1 {
             let (m, sd) = mean_sd(&ex);
-            out[layer].1 = m;
-            out[layer].2 = sd;
+            o.1 = m;
+            o.2 = sd;
         }
     }
     out
