@@ -7,15 +7,25 @@
 //!   window starts at the marker's last position plus its last velocity, so markers
 //!   can travel 40 px and more over a sequence of frames.
 //!
-//! Per marker: iterated window centroid from the start (`window.rs`); when that finds
+//! Per marker: iterated window centroid (`window.rs`) from the start — the predicted
+//! position (reference, or last position plus velocity) moved by the nearest
+//! already-measured same-layer neighbour's correction of its own prediction, which
+//! usually leaves one pass per marker (when that finds nothing acceptable, again from
+//! the prediction itself); when that finds
 //! no marker (too weak or nothing there), the paper's window search (centre of mass of
 //! the score above 40 % of the marker's reference peak within the search radius)
 //! acquires it and the window centroid refines it. Then, per frame:
 //! * **lost** — nothing found, signal below `min_signal_ratio` of the reference
 //!   signal, window outside the image, or the result farther than search radius +
 //!   aperture from the start;
+//! * **overlap** — a marker whose aperture another layer's marker reaches (layers
+//!   at different depths slide over one another) is measured again with that
+//!   marker's disc and its mirror image left out (`Window::locate_masked`), two sweeps
+//!   so both use each other's corrected positions;
 //! * **merged** — two same-layer neighbours closer than `merge_distance` (default:
-//!   the marker radius), or a signal above `merge_signal_ratio` × reference;
+//!   the marker radius), a signal above `merge_signal_ratio` × reference, or a marker
+//!   of another layer closer than 0.8 × the sum of the radii (or hiding over 80 % of
+//!   the aperture);
 //! * **outlier** — displacement farther than `outlier_px + 3·spread` from the median
 //!   of its (ok) neighbours' displacements, where `spread` is the median distance of
 //!   the neighbours' displacements from that median (needs ≥ 3 neighbours).

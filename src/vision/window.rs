@@ -37,6 +37,12 @@
 //! centroid = (cx + Mx/M0, cy + My/M0)
 //! ```
 //!
+//! **Overlaps.** [`Window::locate_masked`] measures a marker that another layer's
+//! marker partly covers (or that partly covers one): the foreign disc and its mirror
+//! image through the window centre are left out, which keeps the pixel set
+//! point-symmetric, and the offset is a Gauss–Newton step with the measured Jacobian
+//! of the first moment (equal to the plain centroid when nothing is left out).
+//!
 //! **Re-centring.** The window is moved to the rounded centroid and the moments taken
 //! again until the rounded centroid stays put (or a two-cycle is detected). At the
 //! fixed point the aperture is centred within half a pixel of the marker, so a 3 px
