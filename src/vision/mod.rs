@@ -117,7 +117,8 @@ pub enum MarkerStatus {
     /// Not found: no signal, too weak, outside the image, or missing from the reference.
     Lost,
     /// Its window converged onto the same blob as a neighbour's (or onto a blob with
-    /// about twice the reference signal): two markers merged in the image.
+    /// about twice the reference signal), or another layer's marker overlaps it too
+    /// much: two markers merged in the image.
     Merged,
     /// Found, but its displacement disagrees with its neighbours'.
     Outlier,

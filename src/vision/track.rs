@@ -7,15 +7,25 @@
 //!   window starts at the marker's last position plus its last velocity, so markers
 //!   can travel 40 px and more over a sequence of frames.
 //!
-//! Per marker: iterated window centroid from the start (`window.rs`); when that finds
+//! Per marker: iterated window centroid (`window.rs`) from the start — the predicted
+//! position (reference, or last position plus velocity) moved by the nearest
+//! already-measured same-layer neighbour's correction of its own prediction, which
+//! usually leaves one pass per marker (when that finds nothing acceptable, again from
+//! the prediction itself); when that finds
 //! no marker (too weak or nothing there), the paper's window search (centre of mass of
 //! the score above 40 % of the marker's reference peak within the search radius)
 //! acquires it and the window centroid refines it. Then, per frame:
 //! * **lost** — nothing found, signal below `min_signal_ratio` of the reference
 //!   signal, window outside the image, or the result farther than search radius +
 //!   aperture from the start;
+//! * **overlap** — a marker whose aperture another layer's marker reaches (layers
+//!   at different depths slide over one another) is measured again with that
+//!   marker's disc and its mirror image left out (`Window::locate_masked`), two sweeps
+//!   so both use each other's corrected positions;
 //! * **merged** — two same-layer neighbours closer than `merge_distance` (default:
-//!   the marker radius), or a signal above `merge_signal_ratio` × reference;
+//!   the marker radius), a signal above `merge_signal_ratio` × reference, or a marker
+//!   of another layer closer than 0.8 × the sum of the radii (or hiding over 80 % of
+//!   the aperture);
 //! * **outlier** — displacement farther than `outlier_px + 3·spread` from the median
 //!   of its (ok) neighbours' displacements, where `spread` is the median distance of
 //!   the neighbours' displacements from that median (needs ≥ 3 neighbours).
@@ -26,7 +36,7 @@
 
 use super::detect::{with_raw, Reference};
 use super::image::FrameView;
-use super::window::{search, Located, Raw, Sample, Window};
+use super::window::{search, Foreign, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::CameraMapping;
@@ -129,15 +139,45 @@ impl StatusCounts {
 
 const MAX_NEIGHBOURS: usize = 8;
 
+/// Other-layer markers checked for overlap per marker (the nearest at rest).
+const MAX_FOREIGN: usize = 4;
+
+/// Below this fraction of its aperture left visible by other layers' markers (with
+/// the mirror images of the hidden part), a marker is merged.
+const MIN_VISIBLE: f64 = 0.2;
+
+/// Markers of two layers closer than this fraction of the sum of their radii are
+/// merged: with a quarter of the diameters overlapping (e.g. 9 px apart for two 6 px
+/// discs) the masked centroid's error grows past 0.1 px on the `sim` renders
+/// (`tests/vision.rs`, overlapping layers).
+const MIN_CROSS_LAYER_DISTANCE: f64 = 0.8;
+
 struct LayerState {
     window: Window,
     weights: [i32; 3],
     search_half: i32,
     max_jump_px: f64,
     merge_distance_px: f64,
+    /// Aperture radius, px: a marker of this layer colours at most this far.
+    aperture_px: f64,
+    /// Marker radius, px.
+    marker_radius_px: f64,
+    /// Square of the distance within which another layer's marker may reach into
+    /// this layer's aperture, px² (see [`Tracker::resolve_overlaps`]).
+    overlap_reach2_px: f64,
     search_threshold_base: i32,
     /// This layer's markers in `Reference::markers`.
     markers: std::ops::Range<usize>,
+}
+
+impl LayerState {
+    /// How far a marker of this layer colours another layer's window, px: its
+    /// measured extent (the aperture less its 1.5 px margin, see `detect`) plus 1 px,
+    /// so that no pixel whose gradient stencil (±1 px) touches it is used — the edge
+    /// a covering marker draws does not move with the covered one.
+    fn foreign_support_px(&self) -> f64 {
+        self.aperture_px - 1.5 + 1.0 + 0.5
+    }
 }
 
 /// Tracks the markers of a [`Reference`] in frames of the same size.
@@ -147,8 +187,14 @@ pub struct Tracker {
     layers: Vec<LayerState>,
     neighbours: Vec<[u32; MAX_NEIGHBOURS]>,
     neighbour_count: Vec<u8>,
+    /// The nearest other-layer markers at rest, for the overlap check.
+    foreign: Vec<[u32; MAX_FOREIGN]>,
+    foreign_count: Vec<u8>,
     last_px: Vec<[f64; 2]>,
     velocity_px: Vec<[f64; 2]>,
+    /// Each marker's window start of the current frame before the neighbour hint
+    /// (reference or last position plus velocity), px.
+    predicted_px: Vec<[f64; 2]>,
     out: Vec<MarkerTrack>,
 }
 
@@ -158,7 +204,7 @@ impl Tracker {
     /// are indexed like [`Tracker::reference`]'s markers.
     pub fn new(mut reference: Reference, config: TrackConfig) -> Tracker {
         reference.markers.sort_by_key(|m| (m.layer, m.id));
-        let layers = reference
+        let mut layers: Vec<LayerState> = reference
             .layers
             .iter()
             .enumerate()
@@ -178,6 +224,9 @@ impl Tracker {
                     search_half: search_half.round() as i32,
                     max_jump_px: search_half + l.aperture_radius_px,
                     merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
+                    aperture_px: l.aperture_radius_px,
+                    marker_radius_px: l.marker_radius_px,
+                    overlap_reach2_px: 0.0,
                     search_threshold_base: l.background_score.round() as i32,
                     markers: {
                         let m = &reference.markers;
@@ -187,6 +236,13 @@ impl Tracker {
                 }
             })
             .collect();
+        let max_support = layers
+            .iter()
+            .map(LayerState::foreign_support_px)
+            .fold(0.0, f64::max);
+        for l in &mut layers {
+            l.overlap_reach2_px = (l.aperture_px + max_support).powi(2);
+        }
         let m = &reference.markers;
         let mut neighbours = vec![[0u32; MAX_NEIGHBOURS]; m.len()];
         let mut neighbour_count = vec![0u8; m.len()];
@@ -210,15 +266,33 @@ impl Tracker {
                 neighbour_count[i] = k as u8 + 1;
             }
         }
+        let mut foreign = vec![[0u32; MAX_FOREIGN]; m.len()];
+        let mut foreign_count = vec![0u8; m.len()];
+        for (i, a) in m.iter().enumerate() {
+            let mut near: Vec<(f64, usize)> = m
+                .iter()
+                .enumerate()
+                .filter(|(_, b)| b.layer != a.layer)
+                .map(|(j, b)| (dist2(a.centroid_px, b.centroid_px), j))
+                .collect();
+            near.sort_by(|x, y| x.0.total_cmp(&y.0));
+            for (k, (_, j)) in near.iter().take(MAX_FOREIGN).enumerate() {
+                foreign[i][k] = *j as u32;
+                foreign_count[i] = k as u8 + 1;
+            }
+        }
         let last_px = m.iter().map(|r| r.centroid_px).collect();
         Tracker {
             velocity_px: vec![[0.0; 2]; m.len()],
+            predicted_px: vec![[0.0; 2]; m.len()],
             out: vec![MarkerTrack::LOST; m.len()],
             reference,
             config,
             layers,
             neighbours,
             neighbour_count,
+            foreign,
+            foreign_count,
             last_px,
         }
     }
@@ -254,7 +328,10 @@ impl Tracker {
                 expected: [self.reference.width_px, self.reference.height_px],
             });
         }
-        with_raw!(frame, img => self.measure_all(img));
+        with_raw!(frame, img => {
+            self.measure_all(img);
+            self.resolve_overlaps(img);
+        });
         self.flag_merged();
         self.flag_outliers();
         if self.config.mode == TrackMode::FrameToFrame {
@@ -320,6 +397,7 @@ impl Tracker {
         let cfg = self.config;
         let ls = &self.layers[layer];
         let range = ls.markers.clone();
+        let search_half2 = (ls.search_half * ls.search_half) as f64;
         for i in range {
             let r = &self.reference.markers[i];
             let start = match cfg.mode {
@@ -329,6 +407,21 @@ impl Tracker {
                     self.last_px[i][1] + self.velocity_px[i][1],
                 ],
             };
+            self.predicted_px[i] = start;
+            // Where the nearest already-measured neighbour ended up relative to its own
+            // prediction, this marker probably did too (displacement fields are smooth):
+            // starting the window there usually saves a re-centring pass. Only the
+            // first window moves; acceptance stays relative to `start`.
+            let hint = self.neighbours[i][..self.neighbour_count[i] as usize]
+                .iter()
+                .map(|&j| j as usize)
+                .find(|&j| j < i && self.out[j].status == MarkerStatus::Ok)
+                .map(|j| {
+                    let (c, p) = (self.out[j].centroid_px, self.predicted_px[j]);
+                    [c[0] - p[0], c[1] - p[1]]
+                })
+                .filter(|d| d[0] * d[0] + d[1] * d[1] <= search_half2)
+                .map(|d| [start[0] + d[0], start[1] + d[1]]);
             let min_signal = cfg.min_signal_ratio * r.signal;
             let max_jump2 = ls.max_jump_px * ls.max_jump_px;
             let max_background_change = 0.05 * r.peak;
@@ -366,7 +459,13 @@ impl Tracker {
                 }
                 _ => None,
             };
-            let mut found = accept(locate(start));
+            let mut found = None;
+            if let Some(h) = hint {
+                found = accept(locate(h));
+            }
+            if found.is_none() && hint.is_none_or(|h| !same_pixel(h, start)) {
+                found = accept(locate(start));
+            }
             if found.is_none() {
                 let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
                 if let Some(seed) =
@@ -384,6 +483,94 @@ impl Tracker {
                 },
                 None => MarkerTrack::LOST,
             };
+        }
+    }
+
+    /// Re-measures markers that overlap another layer's marker in this frame with
+    /// [`Window::locate_masked`] (the other markers' discs and their mirror images left
+    /// out), or flags them merged when too little of them is visible. Two sweeps: the
+    /// second uses the other layer's corrected positions.
+    fn resolve_overlaps<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
+        for _sweep in 0..2 {
+            let mut any = false;
+            for i in 0..self.out.len() {
+                if self.out[i].status != MarkerStatus::Ok {
+                    continue;
+                }
+                let r = &self.reference.markers[i];
+                let ls = &self.layers[r.layer];
+                let c = self.out[i].centroid_px;
+                // Cheap test first (the usual case: no other-layer marker near);
+                // a lost marker's NaN centroid compares false.
+                if !self.foreign[i][..self.foreign_count[i] as usize]
+                    .iter()
+                    .any(|&j| dist2(c, self.out[j as usize].centroid_px) < ls.overlap_reach2_px)
+                {
+                    continue;
+                }
+                let reach = ls.window.ring_radius_px() + 1.0;
+                let mut masks = [Foreign {
+                    centre_px: [0.0; 2],
+                    radius2_px: 0.0,
+                }; MAX_FOREIGN];
+                let (mut n, mut overlap, mut too_close) = (0, false, false);
+                for &j in &self.foreign[i][..self.foreign_count[i] as usize] {
+                    let (j, fl) = (j as usize, self.reference.markers[j as usize].layer);
+                    if self.out[j].status == MarkerStatus::Lost {
+                        continue;
+                    }
+                    let support = self.layers[fl].foreign_support_px();
+                    let d2 = dist2(c, self.out[j].centroid_px);
+                    if d2 < (reach + support) * (reach + support) {
+                        masks[n] = Foreign {
+                            centre_px: self.out[j].centroid_px,
+                            radius2_px: support * support,
+                        };
+                        n += 1;
+                        overlap |= d2 < (ls.aperture_px + support) * (ls.aperture_px + support);
+                        let close = MIN_CROSS_LAYER_DISTANCE
+                            * (ls.marker_radius_px + self.layers[fl].marker_radius_px);
+                        too_close |= d2 < close * close;
+                    }
+                }
+                if !overlap {
+                    continue;
+                }
+                any = true;
+                let found = if too_close {
+                    None
+                } else {
+                    ls.window
+                        .locate_masked::<T, C>(img, c, self.config.max_iterations, &masks[..n])
+                };
+                let start = self.predicted_px[i];
+                let max_jump2 = ls.max_jump_px * ls.max_jump_px;
+                self.out[i] = match found {
+                    Some(f)
+                        if !too_close
+                            && f.visible >= MIN_VISIBLE
+                            && f.m0 >= self.config.min_signal_ratio * f.visible * r.signal
+                            && dist2(f.centroid_px, start) <= max_jump2 =>
+                    {
+                        let c = f.centroid_px;
+                        MarkerTrack {
+                            centroid_px: c,
+                            displacement_px: [c[0] - r.centroid_px[0], c[1] - r.centroid_px[1]],
+                            status: MarkerStatus::Ok,
+                            signal_ratio: f.m0 / (f.visible * r.signal),
+                        }
+                    }
+                    // Too much of it hidden or mirrored away: its position is not
+                    // measurable, it merged with the other layer's marker.
+                    _ => MarkerTrack {
+                        status: MarkerStatus::Merged,
+                        ..self.out[i]
+                    },
+                };
+            }
+            if !any {
+                break;
+            }
         }
     }
 
@@ -416,20 +603,41 @@ impl Tracker {
             if self.out[i].status != MarkerStatus::Ok {
                 continue;
             }
+            let u = self.out[i].displacement_px;
             let mut ux = [0.0f64; MAX_NEIGHBOURS];
             let mut uy = [0.0f64; MAX_NEIGHBOURS];
             let mut n = 0;
+            // Box spanned by `u` and the neighbours' displacements (plain comparisons:
+            // the values are finite, `f64::min` would add NaN handling).
+            let (mut lo, mut hi) = (u, u);
             for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
                 let t = &self.out[j as usize];
                 // Outliers flagged earlier in this loop still count: the decision must
                 // not depend on marker order.
                 if matches!(t.status, MarkerStatus::Ok | MarkerStatus::Outlier) {
-                    ux[n] = t.displacement_px[0];
-                    uy[n] = t.displacement_px[1];
+                    let [x, y] = t.displacement_px;
+                    ux[n] = x;
+                    uy[n] = y;
                     n += 1;
+                    lo = [
+                        if x < lo[0] { x } else { lo[0] },
+                        if y < lo[1] { y } else { lo[1] },
+                    ];
+                    hi = [
+                        if x > hi[0] { x } else { hi[0] },
+                        if y > hi[1] { y } else { hi[1] },
+                    ];
                 }
             }
             if n < 3 {
+                continue;
+            }
+            // The medians lie in that box: if its farthest corner from `u` is within
+            // `tol` (≤ tol + 3·spread), `u` is no outlier whatever the medians. Exact,
+            // and the usual case: it skips three small sorts per marker.
+            let fx = (u[0] - lo[0]).max(hi[0] - u[0]);
+            let fy = (u[1] - lo[1]).max(hi[1] - u[1]);
+            if fx * fx + fy * fy <= tol * tol {
                 continue;
             }
             let mx = median(&mut ux[..n]);
@@ -439,7 +647,6 @@ impl Tracker {
                 dev[k] = dist2([ux[k], uy[k]], [mx, my]).sqrt();
             }
             let spread = median(&mut dev[..n]);
-            let u = self.out[i].displacement_px;
             if dist2(u, [mx, my]).sqrt() > tol + 3.0 * spread {
                 self.out[i].status = MarkerStatus::Outlier;
             }
@@ -451,6 +658,12 @@ impl Tracker {
 #[inline]
 fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1])
+}
+
+/// Whether two positions round to the same pixel (the window would start there).
+#[inline]
+fn same_pixel(a: [f64; 2], b: [f64; 2]) -> bool {
+    a[0].round() == b[0].round() && a[1].round() == b[1].round()
 }
 
 /// Median of a small slice (reorders it). Insertion sort with a plain `>`: the slices

@@ -37,6 +37,12 @@
 //! centroid = (cx + Mx/M0, cy + My/M0)
 //! ```
 //!
+//! **Overlaps.** [`Window::locate_masked`] measures a marker that another layer's
+//! marker partly covers (or that partly covers one): the foreign disc and its mirror
+//! image through the window centre are left out, which keeps the pixel set
+//! point-symmetric, and the offset is a Gauss–Newton step with the measured Jacobian
+//! of the first moment (equal to the plain centroid when nothing is left out).
+//!
 //! **Re-centring.** The window is moved to the rounded centroid and the moments taken
 //! again until the rounded centroid stays put (or a two-cycle is detected). At the
 //! fixed point the aperture is centred within half a pixel of the marker, so a 3 px
@@ -238,6 +244,25 @@ pub(crate) enum Located {
     OutOfImage,
     /// No positive signal in the aperture.
     NoSignal,
+}
+
+/// Another layer's marker that a window must leave out: its centre and the square
+/// of the radius it may colour, px.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Foreign {
+    pub centre_px: [f64; 2],
+    pub radius2_px: f64,
+}
+
+/// Outcome of [`Window::locate_masked`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct MaskedFound {
+    /// Sub-pixel centroid, px.
+    pub centroid_px: [f64; 2],
+    /// Net signal of the pixels used (score units × pixels).
+    pub m0: f64,
+    /// Fraction of the aperture's pixels used.
+    pub visible: f64,
 }
 
 impl Window {
@@ -558,6 +583,173 @@ impl Window {
             // half-pixel boundary): either window is centred within ~0.5 px.
             if next == c || next == prev {
                 return last;
+            }
+            prev = c;
+            c = next;
+        }
+        last
+    }
+
+    /// Linear colour score `w · (R, G, B)` of pixel `(x, y)` (not clamped).
+    #[inline(always)]
+    fn linear_score<T: Sample, const C: usize>(&self, img: Raw<'_, T, C>, x: i32, y: i32) -> i32 {
+        let i = (y as usize * img.width + x as usize) * C;
+        let w = &self.weights;
+        w[0] * img.data[i].value() + w[1] * img.data[i + 1].value() + w[2] * img.data[i + 2].value()
+    }
+
+    /// Offset, net signal and visible fraction of the window centred on `(cx, cy)`
+    /// with the pixels of `foreign` discs — and their mirror images through the
+    /// centre — left out (see [`Self::locate_masked`]). `None` when the window does not
+    /// fit, too little ring or signal is left, or the Jacobian is singular.
+    fn masked_moments<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        cx: i32,
+        cy: i32,
+        foreign: &[Foreign],
+    ) -> Option<([f64; 2], f64, f64)> {
+        let h = self.half;
+        if cx <= h || cy <= h || cx + h + 1 >= img.width as i32 || cy + h + 1 >= img.height as i32 {
+            return None;
+        }
+        let hidden = |x: i32, y: i32| {
+            foreign.iter().any(|f| {
+                let (dx, dy) = (x as f64 - f.centre_px[0], y as f64 - f.centre_px[1]);
+                dx * dx + dy * dy <= f.radius2_px
+            })
+        };
+        let keep = |dx: i32, dy: i32| !hidden(cx + dx, cy + dy) && !hidden(cx - dx, cy - dy);
+        let score = |dx: i32, dy: i32| self.linear_score::<T, C>(img, cx + dx, cy + dy) as f64;
+        // Background plane over the kept ring pixels. The kept set is point-symmetric,
+        // so the level decouples from the slopes, but the slopes couple through Σdx·dy.
+        let (mut n, mut s0, mut sx, mut sy) = (0.0, 0.0, 0.0, 0.0);
+        let (mut xx, mut xy, mut yy) = (0.0, 0.0, 0.0);
+        for (k, row) in self.rows.iter().enumerate() {
+            let dy = k as i32 - h;
+            for dx in -row.outer..=row.outer {
+                if dx.abs() <= row.inner || !keep(dx, dy) {
+                    continue;
+                }
+                let (s, fx, fy) = (score(dx, dy), dx as f64, dy as f64);
+                n += 1.0;
+                s0 += s;
+                sx += s * fx;
+                sy += s * fy;
+                xx += fx * fx;
+                xy += fx * fy;
+                yy += fy * fy;
+            }
+        }
+        let det_bg = xx * yy - xy * xy;
+        if n < 0.25 * self.n_bg || det_bg <= 0.0 {
+            return None;
+        }
+        let a = s0 / n;
+        let gx = (sx * yy - sy * xy) / det_bg;
+        let gy = (sy * xx - sx * xy) / det_bg;
+        // Aperture: moments N of the background-corrected score s' and the Jacobian
+        // J = −Σ (dx, dy)ᵀ ∇s' (central differences) of N with respect to a shift,
+        // with its first-order change when ∇s' is sampled `h` px away:
+        // J(h) = J + hx·Kx + hy·Ky, Kx = −Σ (dx, dy)ᵀ ∂x∇s, Ky = −Σ (dx, dy)ᵀ ∂y∇s.
+        let (mut kept, mut m0, mut mx, mut my) = (0.0, 0.0, 0.0, 0.0);
+        let mut j = [[0.0f64; 2]; 2];
+        let mut kx = [[0.0f64; 2]; 2];
+        let mut ky = [[0.0f64; 2]; 2];
+        for (k, row) in self.rows.iter().enumerate() {
+            let dy = k as i32 - h;
+            for dx in -row.ap..=row.ap {
+                if !keep(dx, dy) {
+                    continue;
+                }
+                let (fx, fy) = (dx as f64, dy as f64);
+                let s_c = score(dx, dy);
+                let (s_l, s_r) = (score(dx - 1, dy), score(dx + 1, dy));
+                let (s_u, s_d) = (score(dx, dy - 1), score(dx, dy + 1));
+                let s = s_c - (a + gx * fx + gy * fy);
+                let ex = 0.5 * (s_r - s_l) - gx;
+                let ey = 0.5 * (s_d - s_u) - gy;
+                let exx = s_r - 2.0 * s_c + s_l;
+                let eyy = s_d - 2.0 * s_c + s_u;
+                let exy = 0.25
+                    * (score(dx + 1, dy + 1) - score(dx + 1, dy - 1) - score(dx - 1, dy + 1)
+                        + score(dx - 1, dy - 1));
+                kept += 1.0;
+                m0 += s;
+                mx += fx * s;
+                my += fy * s;
+                for (a_, w) in [fx, fy].into_iter().enumerate() {
+                    j[a_][0] -= w * ex;
+                    j[a_][1] -= w * ey;
+                    kx[a_][0] -= w * exx;
+                    kx[a_][1] -= w * exy;
+                    ky[a_][0] -= w * exy;
+                    ky[a_][1] -= w * eyy;
+                }
+            }
+        }
+        // NaN-safe: anything but a positive signal is no measurement.
+        if m0.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        // N(δ) = ∫₀¹ J(tδ) dt · δ exactly; J is measured at the marker's offset δ, so
+        // J⁻¹N has an O(δ²) error. The midpoint rule (J sampled at offset δ/2, i.e.
+        // ∇s' taken h = δ/2 px away) leaves O(δ³): two refinements from J⁻¹N.
+        let solve = |hx: f64, hy: f64| -> Option<[f64; 2]> {
+            let m = |a: usize, b: usize| j[a][b] + hx * kx[a][b] + hy * ky[a][b];
+            let det = m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0);
+            (det > 0.0).then(|| {
+                [
+                    (m(1, 1) * mx - m(0, 1) * my) / det,
+                    (m(0, 0) * my - m(1, 0) * mx) / det,
+                ]
+            })
+        };
+        let mut offset = solve(0.0, 0.0)?;
+        for _ in 0..2 {
+            offset = solve(0.5 * offset[0], 0.5 * offset[1])?;
+        }
+        Some((offset, m0, kept / self.n_ap))
+    }
+
+    /// Centroid of a marker partly covered by, or covering, other layers' markers
+    /// `foreign` (each a disc that may hold any colour).
+    ///
+    /// A disc of any radial profile is point-symmetric about its centre, so any
+    /// point-symmetric set of pixels around the window centre `c` keeps the marker's
+    /// moment `N(δ) = Σ (p − c)·s'(p)` zero when the marker sits at `c` (`δ = 0`). The
+    /// pixels of the foreign discs and their mirror images through `c` are left out, the
+    /// rest is used as in [`Self::moments`] (ring plane fit, background-corrected
+    /// score `s'`). The full-window centroid `N/M0` would be biased by the missing
+    /// pixels, so the offset is the Gauss–Newton step `δ = J⁻¹·N` with the measured
+    /// `J = ∂N/∂δ = −Σ (p − c)·∇s'(p)ᵀ` (central differences). With nothing left out
+    /// `J = M0·I` (summation by parts) and `δ = N/M0`, the plain centroid. Re-centred on
+    /// the rounded estimate like [`Self::locate`]; `visible` is the fraction of the
+    /// aperture used. `None` when nothing usable is left.
+    pub fn locate_masked<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        start_px: [f64; 2],
+        max_iterations: u32,
+        foreign: &[Foreign],
+    ) -> Option<MaskedFound> {
+        if !(start_px[0].is_finite() && start_px[1].is_finite()) {
+            return None;
+        }
+        let mut c = [round_px(start_px[0]), round_px(start_px[1])];
+        let mut prev = [i32::MIN, i32::MIN];
+        let mut last = None;
+        for _ in 0..max_iterations.max(1) {
+            let (offset, m0, visible) = self.masked_moments::<T, C>(img, c[0], c[1], foreign)?;
+            let est = [c[0] as f64 + offset[0], c[1] as f64 + offset[1]];
+            last = Some(MaskedFound {
+                centroid_px: est,
+                m0,
+                visible,
+            });
+            let next = [round_px(est[0]), round_px(est[1])];
+            if next == c || next == prev {
+                break;
             }
             prev = c;
             c = next;
