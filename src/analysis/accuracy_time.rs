@@ -657,16 +657,13 @@ pub fn run_study(
     let mut rows = Vec::new();
     let mut skipped = Vec::new();
     for (index, setting) in options.settings.iter().enumerate() {
-        match measure(
-            setting,
-            sensor,
-            &reference_frame,
-            &frames,
-            &contact,
+        let rendered = Rendered {
+            reference: &reference_frame,
+            frames: &frames,
+            contact: &contact,
             applied_n,
-            options.reps,
-            options.realisations,
-        ) {
+        };
+        match measure(setting, sensor, &rendered, options) {
             Ok(row) => {
                 progress(StudyEvent::Measured {
                     index,
@@ -739,21 +736,27 @@ pub fn force_errors(f_n: &[f64], truth_n: &[f64], applied_n: [f64; 3]) -> (f64, 
     (e_sum, e_field)
 }
 
+/// The rendered frames and their truth, shared by every setting.
+struct Rendered<'a> {
+    reference: &'a Frame,
+    frames: &'a [Frame],
+    contact: &'a Contact,
+    applied_n: [f64; 3],
+}
+
 /// Measures one setting; an `Err` is the reason it could not run (reported, not fatal).
 fn measure(
     setting: &Setting,
     sensor: &Sensor,
-    reference_frame: &Frame,
-    frames: &[Frame],
-    contact: &Contact,
-    applied_n: [f64; 3],
-    reps: usize,
-    realisations: usize,
+    rendered: &Rendered<'_>,
+    options: &StudyOptions,
 ) -> Result<StudyRow, String> {
+    let (reps, realisations) = (options.reps, options.realisations);
+    let (contact, applied_n) = (rendered.contact, rendered.applied_n);
     let t_pre = Instant::now();
     // Reference detection with the default aperture, then again with the scaled one
     // (the measured aperture is the unit of the scale).
-    let view = reference_frame.view();
+    let view = rendered.reference.view();
     let mut reference =
         detect(&view, sensor, &DetectConfig::default()).map_err(|e| e.to_string())?;
     if setting.aperture_scale != 1.0 {
@@ -783,7 +786,7 @@ fn measure(
         },
     );
     let n = setting.frames_averaged;
-    let all_frames = &frames[..n * realisations];
+    let all_frames = &rendered.frames[..n * realisations];
 
     // Untimed pass: which markers are ok in every frame used (the solver's marker set).
     let mut ok_all = vec![true; n_ref];
