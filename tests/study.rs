@@ -94,6 +94,15 @@ fn study_on_a_tiny_configuration_gives_finite_errors_and_skips_what_cannot_run()
         // Tracking + solve are the parts of the total (medians of separate passes,
         // so allow the medians' slack of one part).
         assert!(row.total_s <= 2.0 * (row.track_s + row.solve_s));
+        // Per repetition CPU time ≤ wall time over the same interval, so the medians
+        // keep that order (1 µs for the two clocks' granularity).
+        #[cfg(target_os = "linux")]
+        assert!(
+            row.total_cpu_s > 0.0 && row.total_cpu_s <= row.total_s + 1e-6,
+            "cpu {} s, wall {} s",
+            row.total_cpu_s,
+            row.total_s
+        );
     }
     // The applied force is the scene's: 400 gf normal, 100 gf along +x.
     let gf = 9.80665e-3;
