@@ -40,7 +40,7 @@ fn exact_data_pinv_f64_recovers_a_point_load_on_a_node_within_0_1_percent() {
     };
     let mut events = 0;
     let r = run_study(&scene, &options, &mut |_| events += 1).unwrap();
-    assert_eq!(events, 2, "one render event and one measured event");
+    assert_eq!(events, 3, "render, prepared and measured events");
     let row = &r.rows[0];
     assert_eq!(row.label, "pinv");
     // Measured 0.017 % (sum) and 0.037 % (field): the residual is the tracker's.
@@ -202,7 +202,11 @@ fn cli_accuracy_vs_time_writes_table_budgets_and_decodable_plots() {
     assert_eq!((img.width(), img.height()), (1400, 900));
     let svg = std::fs::read_to_string(out.join("accuracy_vs_time.svg")).unwrap();
     assert!(svg.contains("avg 2"), "point labels missing from the SVG");
-    assert!(util::stderr(&o).contains("[ 2/2]"), "progress on stderr");
+    let err = util::stderr(&o);
+    assert!(
+        err.contains("[ 2/2] tikhonov gcv | avg 2: tracked"),
+        "progress: {err}"
+    );
 }
 
 #[test]

@@ -39,14 +39,15 @@
 //! # Time
 //!
 //! Time per force frame = tracking the `N` frames + averaging + one `FrameSolver::apply`,
-//! wall clock on this machine, the median over `reps` repetitions; tracking and solve
-//! medians are also given separately. Rendering (the camera) is not counted. The
-//! The same total is also measured in this thread's CPU time (Linux
-//! `CLOCK_THREAD_CPUTIME_ID`; NaN elsewhere): on a shared machine the wall clock
-//! includes waiting for a core, the CPU time does not. The
-//! precompute (reference detection + solver precompute, once per sensor and marker set)
-//! is reported separately: it is paid once, not per frame. Automatic λ and rank are
-//! chosen on the first realisation and kept for the others, as a running sensor would.
+//! wall clock on this machine, the median over `reps` repetitions taken round-robin over
+//! the settings (so load changes on a shared machine hit all alike); tracking and solve
+//! medians are also given separately. Rendering (the camera) is not counted. The same
+//! total is also measured in this thread's CPU time (Linux `CLOCK_THREAD_CPUTIME_ID`;
+//! NaN elsewhere): on a shared machine the wall clock includes waiting for a core, the
+//! CPU time does not. The precompute (reference detection + solver precompute, once
+//! per sensor and marker set) is reported separately: it is paid once, not per frame.
+//! Automatic λ and rank are chosen on the first realisation and kept for the others,
+//! as a running sensor would.
 //!
 //! The solver's marker sites are the markers' nominal grid positions from the sensor
 //! file (marker id = row-major grid index; the design positions a user knows without a
@@ -572,6 +573,16 @@ pub enum StudyEvent<'a> {
         /// Wall time, s.
         seconds: f64,
     },
+    /// Setting `index` (0-based) of `total` was tracked, solved and scored; its timing
+    /// follows (all settings are timed together, round-robin).
+    Prepared {
+        /// Index.
+        index: usize,
+        /// Number of settings.
+        total: usize,
+        /// Its label.
+        label: &'a str,
+    },
     /// Setting `index` (0-based) of `total` was measured.
     Measured {
         /// Index.
@@ -660,38 +671,59 @@ pub fn run_study(
 
     let sensor = &scene.sensor;
     let total = options.settings.len();
-    let mut rows = Vec::new();
+    let rendered = Rendered {
+        reference: &reference_frame,
+        frames: &frames,
+        contact: &contact,
+        applied_n,
+    };
+    let mut prepared = Vec::new();
     let mut skipped = Vec::new();
     for (index, setting) in options.settings.iter().enumerate() {
-        let rendered = Rendered {
-            reference: &reference_frame,
-            frames: &frames,
-            contact: &contact,
-            applied_n,
-        };
-        match measure(setting, sensor, &rendered, options) {
-            Ok(row) => {
-                progress(StudyEvent::Measured {
+        match prepare(setting, sensor, &rendered, options) {
+            Ok(p) => {
+                progress(StudyEvent::Prepared {
                     index,
                     total,
-                    row: &row,
+                    label: &p.row.label,
                 });
-                rows.push(row);
+                prepared.push((index, p));
             }
-            Err(reason) => {
-                let s = Skipped {
-                    setting: *setting,
-                    label: setting.label(),
-                    reason,
-                };
-                progress(StudyEvent::Skipped {
-                    index,
-                    total,
-                    skipped: &s,
-                });
-                skipped.push(s);
+            Err(reason) => skip(progress, (index, total), setting, reason, &mut skipped),
+        }
+    }
+    // Timing round-robin: repetition r of every setting before repetition r + 1 of
+    // any, so a change of machine load during the study affects all settings alike.
+    let mut failed: Vec<(usize, String)> = Vec::new();
+    for _ in 0..options.reps {
+        for (index, p) in prepared.iter_mut() {
+            if failed.iter().any(|(i, _)| i == index) {
+                continue;
+            }
+            if let Err(reason) = p.time_once(&frames) {
+                failed.push((*index, reason));
             }
         }
+    }
+    let mut rows = Vec::new();
+    for (index, p) in prepared {
+        if let Some((_, reason)) = failed.iter().find(|(i, _)| *i == index) {
+            skip(
+                progress,
+                (index, total),
+                &options.settings[index],
+                reason.clone(),
+                &mut skipped,
+            );
+            continue;
+        }
+        let row = p.finish();
+        progress(StudyEvent::Measured {
+            index,
+            total,
+            row: &row,
+        });
+        rows.push(row);
     }
     Ok(StudyResult {
         rows,
@@ -700,6 +732,27 @@ pub fn run_study(
         reps: options.reps,
         realisations: options.realisations,
     })
+}
+
+/// Records a setting that could not run and reports it.
+fn skip(
+    progress: &mut dyn FnMut(StudyEvent<'_>),
+    (index, total): (usize, usize),
+    setting: &Setting,
+    reason: String,
+    skipped: &mut Vec<Skipped>,
+) {
+    let s = Skipped {
+        setting: *setting,
+        label: setting.label(),
+        reason,
+    };
+    progress(StudyEvent::Skipped {
+        index,
+        total,
+        skipped: &s,
+    });
+    skipped.push(s);
 }
 
 fn norm(v: &[f64]) -> f64 {
@@ -750,13 +803,14 @@ struct Rendered<'a> {
     applied_n: [f64; 3],
 }
 
-/// Measures one setting; an `Err` is the reason it could not run (reported, not fatal).
-fn measure(
+/// Tracks, solves and scores one setting (untimed); an `Err` is the reason it could
+/// not run (reported, not fatal).
+fn prepare(
     setting: &Setting,
     sensor: &Sensor,
     rendered: &Rendered<'_>,
     options: &StudyOptions,
-) -> Result<StudyRow, String> {
+) -> Result<Prepared, String> {
     let (reps, realisations) = (options.reps, options.realisations);
     let (contact, applied_n) = (rendered.contact, rendered.applied_n);
     let t_pre = Instant::now();
@@ -827,24 +881,8 @@ fn measure(
         .collect();
     let mm_per_px = sensor.camera.mm_per_px;
     let mut u = vec![0.0; 2 * used.len()];
-    let track_and_average =
-        |tracker: &mut Tracker, group: &[Frame], u: &mut [f64]| -> Result<(), String> {
-            u.iter_mut().for_each(|v| *v = 0.0);
-            for f in group {
-                let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
-                for (k, &i) in used.iter().enumerate() {
-                    // Every used marker was ok in every frame of the untimed pass, and
-                    // the frames are fixed, so the marker set cannot change here.
-                    u[2 * k] += tracks[i].displacement_px[0];
-                    u[2 * k + 1] += tracks[i].displacement_px[1];
-                }
-            }
-            let s = mm_per_px / group.len() as f64;
-            u.iter_mut().for_each(|v| *v *= s);
-            Ok(())
-        };
     let first = &all_frames[..n];
-    track_and_average(&mut tracker, first, &mut u)?;
+    track_average(&mut tracker, first, &used, mm_per_px, &mut u)?;
 
     // The problem on the setting's force grid; automatic choices on realisation 0.
     let mut grid_sensor = sensor.clone();
@@ -860,7 +898,7 @@ fn measure(
     let (mut sum_sq, mut field_sq) = (0.0, 0.0);
     let mut fsum_n = [0.0; 3];
     for group in all_frames.chunks(n) {
-        track_and_average(&mut tracker, group, &mut u)?;
+        track_average(&mut tracker, group, &used, mm_per_px, &mut u)?;
         solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
         let (e_sum, e_field) = force_errors(&f, &truth, applied_n);
         sum_sq += e_sum * e_sum;
@@ -872,43 +910,111 @@ fn measure(
     let sum_error = (sum_sq / realisations as f64).sqrt();
     let field_error = (field_sq / realisations as f64).sqrt();
 
-    // Timed passes.
-    let mut t_track = Vec::with_capacity(reps);
-    let mut t_solve = Vec::with_capacity(reps);
-    let mut t_total = Vec::with_capacity(reps);
-    let mut t_cpu = Vec::with_capacity(reps);
-    for _ in 0..reps {
-        // The CPU interval lies inside the wall interval, so CPU ≤ wall per repetition.
-        let a = Instant::now();
-        let cpu0 = thread_cpu_s();
-        track_and_average(&mut tracker, first, &mut u)?;
-        let b = Instant::now();
-        solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
-        let cpu1 = thread_cpu_s();
-        let c = Instant::now();
-        t_cpu.push(cpu1 - cpu0);
-        t_track.push((b - a).as_secs_f64());
-        t_solve.push((c - b).as_secs_f64());
-        t_total.push((c - a).as_secs_f64());
-    }
     let d = solver.diagnostics();
-    Ok(StudyRow {
+    let row = StudyRow {
         setting: *setting,
         label: setting.label(),
         sum_error,
         field_error,
         fsum_n,
-        total_s: median(&mut t_total),
-        total_cpu_s: median(&mut t_cpu),
-        track_s: median(&mut t_track),
-        solve_s: median(&mut t_solve),
+        total_s: f64::NAN,
+        total_cpu_s: f64::NAN,
+        track_s: f64::NAN,
+        solve_s: f64::NAN,
         precompute_s,
         markers_used: (used.len(), n_ref),
         force_points: grid_sensor.force_grid.len(),
         aperture_px,
         lambda: d.lambda,
         rank: d.rank,
+    };
+    Ok(Prepared {
+        row,
+        tracker,
+        solver,
+        used,
+        mm_per_px,
+        frames: n,
+        u,
+        f,
+        times: std::array::from_fn(|_| Vec::with_capacity(reps)),
     })
+}
+
+/// Tracks `group`, averages the displacements of the `used` markers into `u` (mm).
+fn track_average(
+    tracker: &mut Tracker,
+    group: &[Frame],
+    used: &[usize],
+    mm_per_px: f64,
+    u: &mut [f64],
+) -> Result<(), String> {
+    u.iter_mut().for_each(|v| *v = 0.0);
+    for f in group {
+        let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
+        for (k, &i) in used.iter().enumerate() {
+            // Every used marker was ok in every frame of the untimed pass, and the
+            // frames are fixed, so the marker set cannot change here.
+            u[2 * k] += tracks[i].displacement_px[0];
+            u[2 * k + 1] += tracks[i].displacement_px[1];
+        }
+    }
+    let s = mm_per_px / group.len() as f64;
+    u.iter_mut().for_each(|v| *v *= s);
+    Ok(())
+}
+
+/// A setting ready to be timed: its errors are known, its tracker and solver built.
+struct Prepared {
+    row: StudyRow,
+    tracker: Tracker,
+    solver: Box<dyn FrameSolver>,
+    used: Vec<usize>,
+    mm_per_px: f64,
+    /// Frames averaged.
+    frames: usize,
+    u: Vec<f64>,
+    f: Vec<f64>,
+    /// Per repetition: tracking, solve, total (wall, s), total (thread CPU, s).
+    times: [Vec<f64>; 4],
+}
+
+impl Prepared {
+    /// One timed repetition on the first realisation's frames.
+    fn time_once(&mut self, frames: &[Frame]) -> Result<(), String> {
+        let group = &frames[..self.frames];
+        // The CPU interval lies inside the wall interval, so CPU ≤ wall per repetition.
+        let a = Instant::now();
+        let cpu0 = thread_cpu_s();
+        track_average(
+            &mut self.tracker,
+            group,
+            &self.used,
+            self.mm_per_px,
+            &mut self.u,
+        )?;
+        let b = Instant::now();
+        self.solver
+            .apply(&self.u, &mut self.f)
+            .map_err(|e| e.to_string())?;
+        let cpu1 = thread_cpu_s();
+        let c = Instant::now();
+        self.times[0].push((b - a).as_secs_f64());
+        self.times[1].push((c - b).as_secs_f64());
+        self.times[2].push((c - a).as_secs_f64());
+        self.times[3].push(cpu1 - cpu0);
+        Ok(())
+    }
+
+    /// The row with the median times.
+    fn finish(mut self) -> StudyRow {
+        let [t_track, t_solve, t_total, t_cpu] = &mut self.times;
+        self.row.track_s = median(t_track);
+        self.row.solve_s = median(t_solve);
+        self.row.total_s = median(t_total);
+        self.row.total_cpu_s = median(t_cpu);
+        self.row
+    }
 }
 
 /// This thread's CPU time, s (Linux: `CLOCK_THREAD_CPUTIME_ID`); NaN elsewhere or when

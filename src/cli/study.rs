@@ -192,6 +192,11 @@ fn accuracy(a: AccuracyArgs) -> Result<ExitCode> {
         StudyEvent::Rendered { frames, seconds } => eprintln!(
             "study: rendered the reference and {frames} loaded frame(s) in {seconds:.2} s"
         ),
+        StudyEvent::Prepared {
+            index,
+            total,
+            label,
+        } => eprintln!("study: [{:>2}/{total}] {label}: tracked, solved, scored", index + 1),
         StudyEvent::Measured { index, total, row } => eprintln!(
             "study: [{:>2}/{total}] {:<40} sum {:>8.3} %  field {:>8.3} %  {:>9.1} µs/frame (cpu {:.1}; track {:.1}, solve {:.1}), precompute {:.1} ms",
             index + 1,
