@@ -1203,7 +1203,7 @@ impl StudyResult {
                     Precision::F32 => "f32".to_string(),
                 },
                 s.solver.refine_iterations.to_string(),
-                opt(s.force_pitch_mm.map(|p| p.to_string())),
+                opt(s.force_pitch_mm.map(short)),
                 r.force_points.to_string(),
                 format!("{:.3}", r.aperture_px),
                 s.max_iterations.to_string(),
