@@ -39,11 +39,16 @@
 //! # Time
 //!
 //! Time per force frame = tracking the `N` frames + averaging + one `FrameSolver::apply`,
-//! wall clock on this machine, the median over `reps` repetitions; tracking and solve
-//! medians are also given separately. Rendering (the camera) is not counted. The
-//! precompute (reference detection + solver precompute, once per sensor and marker set)
-//! is reported separately: it is paid once, not per frame. Automatic λ and rank are
-//! chosen on the first realisation and kept for the others, as a running sensor would.
+//! wall clock on this machine, the median over `reps` repetitions taken round-robin over
+//! the settings (so load changes on a shared machine hit all alike), each timed pass
+//! right after an untimed one (warm caches, as at camera rate); tracking and solve
+//! medians are also given separately. Rendering (the camera) is not counted. The same
+//! total is also measured in this thread's CPU time (Linux `CLOCK_THREAD_CPUTIME_ID`;
+//! NaN elsewhere): on a shared machine the wall clock includes waiting for a core, the
+//! CPU time does not. The precompute (reference detection + solver precompute, once
+//! per sensor and marker set) is reported separately: it is paid once, not per frame.
+//! Automatic λ and rank are chosen on the first realisation and kept for the others,
+//! as a running sensor would.
 //!
 //! The solver's marker sites are the markers' nominal grid positions from the sensor
 //! file (marker id = row-major grid index; the design positions a user knows without a
@@ -502,6 +507,9 @@ pub struct StudyRow {
     pub fsum_n: [f64; 3],
     /// Median time per force frame: tracking `N` frames + averaging + solve, s.
     pub total_s: f64,
+    /// Median thread CPU time per force frame (same work as `total_s`), s; NaN where
+    /// the platform has no thread CPU clock.
+    pub total_cpu_s: f64,
     /// Median time of the tracking part (all `N` frames and the averaging), s.
     pub track_s: f64,
     /// Median time of the solve, s.
@@ -565,6 +573,16 @@ pub enum StudyEvent<'a> {
         frames: usize,
         /// Wall time, s.
         seconds: f64,
+    },
+    /// Setting `index` (0-based) of `total` was tracked, solved and scored; its timing
+    /// follows (all settings are timed together, round-robin).
+    Prepared {
+        /// Index.
+        index: usize,
+        /// Number of settings.
+        total: usize,
+        /// Its label.
+        label: &'a str,
     },
     /// Setting `index` (0-based) of `total` was measured.
     Measured {
@@ -654,41 +672,59 @@ pub fn run_study(
 
     let sensor = &scene.sensor;
     let total = options.settings.len();
-    let mut rows = Vec::new();
+    let rendered = Rendered {
+        reference: &reference_frame,
+        frames: &frames,
+        contact: &contact,
+        applied_n,
+    };
+    let mut prepared = Vec::new();
     let mut skipped = Vec::new();
     for (index, setting) in options.settings.iter().enumerate() {
-        match measure(
-            setting,
-            sensor,
-            &reference_frame,
-            &frames,
-            &contact,
-            applied_n,
-            options.reps,
-            options.realisations,
-        ) {
-            Ok(row) => {
-                progress(StudyEvent::Measured {
+        match prepare(setting, sensor, &rendered, options) {
+            Ok(p) => {
+                progress(StudyEvent::Prepared {
                     index,
                     total,
-                    row: &row,
+                    label: &p.row.label,
                 });
-                rows.push(row);
+                prepared.push((index, p));
             }
-            Err(reason) => {
-                let s = Skipped {
-                    setting: *setting,
-                    label: setting.label(),
-                    reason,
-                };
-                progress(StudyEvent::Skipped {
-                    index,
-                    total,
-                    skipped: &s,
-                });
-                skipped.push(s);
+            Err(reason) => skip(progress, (index, total), setting, reason, &mut skipped),
+        }
+    }
+    // Timing round-robin: repetition r of every setting before repetition r + 1 of
+    // any, so a change of machine load during the study affects all settings alike.
+    let mut failed: Vec<(usize, String)> = Vec::new();
+    for _ in 0..options.reps {
+        for (index, p) in prepared.iter_mut() {
+            if failed.iter().any(|(i, _)| i == index) {
+                continue;
+            }
+            if let Err(reason) = p.time_once(&frames) {
+                failed.push((*index, reason));
             }
         }
+    }
+    let mut rows = Vec::new();
+    for (index, p) in prepared {
+        if let Some((_, reason)) = failed.iter().find(|(i, _)| *i == index) {
+            skip(
+                progress,
+                (index, total),
+                &options.settings[index],
+                reason.clone(),
+                &mut skipped,
+            );
+            continue;
+        }
+        let row = p.finish();
+        progress(StudyEvent::Measured {
+            index,
+            total,
+            row: &row,
+        });
+        rows.push(row);
     }
     Ok(StudyResult {
         rows,
@@ -697,6 +733,27 @@ pub fn run_study(
         reps: options.reps,
         realisations: options.realisations,
     })
+}
+
+/// Records a setting that could not run and reports it.
+fn skip(
+    progress: &mut dyn FnMut(StudyEvent<'_>),
+    (index, total): (usize, usize),
+    setting: &Setting,
+    reason: String,
+    skipped: &mut Vec<Skipped>,
+) {
+    let s = Skipped {
+        setting: *setting,
+        label: setting.label(),
+        reason,
+    };
+    progress(StudyEvent::Skipped {
+        index,
+        total,
+        skipped: &s,
+    });
+    skipped.push(s);
 }
 
 fn norm(v: &[f64]) -> f64 {
@@ -739,21 +796,28 @@ pub fn force_errors(f_n: &[f64], truth_n: &[f64], applied_n: [f64; 3]) -> (f64, 
     (e_sum, e_field)
 }
 
-/// Measures one setting; an `Err` is the reason it could not run (reported, not fatal).
-fn measure(
+/// The rendered frames and their truth, shared by every setting.
+struct Rendered<'a> {
+    reference: &'a Frame,
+    frames: &'a [Frame],
+    contact: &'a Contact,
+    applied_n: [f64; 3],
+}
+
+/// Tracks, solves and scores one setting (untimed); an `Err` is the reason it could
+/// not run (reported, not fatal).
+fn prepare(
     setting: &Setting,
     sensor: &Sensor,
-    reference_frame: &Frame,
-    frames: &[Frame],
-    contact: &Contact,
-    applied_n: [f64; 3],
-    reps: usize,
-    realisations: usize,
-) -> Result<StudyRow, String> {
+    rendered: &Rendered<'_>,
+    options: &StudyOptions,
+) -> Result<Prepared, String> {
+    let (reps, realisations) = (options.reps, options.realisations);
+    let (contact, applied_n) = (rendered.contact, rendered.applied_n);
     let t_pre = Instant::now();
     // Reference detection with the default aperture, then again with the scaled one
     // (the measured aperture is the unit of the scale).
-    let view = reference_frame.view();
+    let view = rendered.reference.view();
     let mut reference =
         detect(&view, sensor, &DetectConfig::default()).map_err(|e| e.to_string())?;
     if setting.aperture_scale != 1.0 {
@@ -783,7 +847,7 @@ fn measure(
         },
     );
     let n = setting.frames_averaged;
-    let all_frames = &frames[..n * realisations];
+    let all_frames = &rendered.frames[..n * realisations];
 
     // Untimed pass: which markers are ok in every frame used (the solver's marker set).
     let mut ok_all = vec![true; n_ref];
@@ -818,24 +882,8 @@ fn measure(
         .collect();
     let mm_per_px = sensor.camera.mm_per_px;
     let mut u = vec![0.0; 2 * used.len()];
-    let track_and_average =
-        |tracker: &mut Tracker, group: &[Frame], u: &mut [f64]| -> Result<(), String> {
-            u.iter_mut().for_each(|v| *v = 0.0);
-            for f in group {
-                let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
-                for (k, &i) in used.iter().enumerate() {
-                    // Every used marker was ok in every frame of the untimed pass, and
-                    // the frames are fixed, so the marker set cannot change here.
-                    u[2 * k] += tracks[i].displacement_px[0];
-                    u[2 * k + 1] += tracks[i].displacement_px[1];
-                }
-            }
-            let s = mm_per_px / group.len() as f64;
-            u.iter_mut().for_each(|v| *v *= s);
-            Ok(())
-        };
     let first = &all_frames[..n];
-    track_and_average(&mut tracker, first, &mut u)?;
+    track_average(&mut tracker, first, &used, mm_per_px, &mut u)?;
 
     // The problem on the setting's force grid; automatic choices on realisation 0.
     let mut grid_sensor = sensor.clone();
@@ -851,7 +899,7 @@ fn measure(
     let (mut sum_sq, mut field_sq) = (0.0, 0.0);
     let mut fsum_n = [0.0; 3];
     for group in all_frames.chunks(n) {
-        track_and_average(&mut tracker, group, &mut u)?;
+        track_average(&mut tracker, group, &used, mm_per_px, &mut u)?;
         solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
         let (e_sum, e_field) = force_errors(&f, &truth, applied_n);
         sum_sq += e_sum * e_sum;
@@ -863,37 +911,155 @@ fn measure(
     let sum_error = (sum_sq / realisations as f64).sqrt();
     let field_error = (field_sq / realisations as f64).sqrt();
 
-    // Timed passes.
-    let mut t_track = Vec::with_capacity(reps);
-    let mut t_solve = Vec::with_capacity(reps);
-    let mut t_total = Vec::with_capacity(reps);
-    for _ in 0..reps {
-        let a = Instant::now();
-        track_and_average(&mut tracker, first, &mut u)?;
-        let b = Instant::now();
-        solver.apply(&u, &mut f).map_err(|e| e.to_string())?;
-        let c = Instant::now();
-        t_track.push((b - a).as_secs_f64());
-        t_solve.push((c - b).as_secs_f64());
-        t_total.push((c - a).as_secs_f64());
-    }
     let d = solver.diagnostics();
-    Ok(StudyRow {
+    let row = StudyRow {
         setting: *setting,
         label: setting.label(),
         sum_error,
         field_error,
         fsum_n,
-        total_s: median(&mut t_total),
-        track_s: median(&mut t_track),
-        solve_s: median(&mut t_solve),
+        total_s: f64::NAN,
+        total_cpu_s: f64::NAN,
+        track_s: f64::NAN,
+        solve_s: f64::NAN,
         precompute_s,
         markers_used: (used.len(), n_ref),
         force_points: grid_sensor.force_grid.len(),
         aperture_px,
         lambda: d.lambda,
         rank: d.rank,
+    };
+    Ok(Prepared {
+        row,
+        tracker,
+        solver,
+        used,
+        mm_per_px,
+        frames: n,
+        u,
+        f,
+        times: std::array::from_fn(|_| Vec::with_capacity(reps)),
     })
+}
+
+/// Tracks `group`, averages the displacements of the `used` markers into `u` (mm).
+fn track_average(
+    tracker: &mut Tracker,
+    group: &[Frame],
+    used: &[usize],
+    mm_per_px: f64,
+    u: &mut [f64],
+) -> Result<(), String> {
+    u.iter_mut().for_each(|v| *v = 0.0);
+    for f in group {
+        let tracks = tracker.track(&f.view()).map_err(|e| e.to_string())?;
+        for (k, &i) in used.iter().enumerate() {
+            // Every used marker was ok in every frame of the untimed pass, and the
+            // frames are fixed, so the marker set cannot change here.
+            u[2 * k] += tracks[i].displacement_px[0];
+            u[2 * k + 1] += tracks[i].displacement_px[1];
+        }
+    }
+    let s = mm_per_px / group.len() as f64;
+    u.iter_mut().for_each(|v| *v *= s);
+    Ok(())
+}
+
+/// A setting ready to be timed: its errors are known, its tracker and solver built.
+struct Prepared {
+    row: StudyRow,
+    tracker: Tracker,
+    solver: Box<dyn FrameSolver>,
+    used: Vec<usize>,
+    mm_per_px: f64,
+    /// Frames averaged.
+    frames: usize,
+    u: Vec<f64>,
+    f: Vec<f64>,
+    /// Per repetition: tracking, solve, total (wall, s), total (thread CPU, s).
+    times: [Vec<f64>; 4],
+}
+
+impl Prepared {
+    /// One timed repetition on the first realisation's frames.
+    fn time_once(&mut self, frames: &[Frame]) -> Result<(), String> {
+        let group = &frames[..self.frames];
+        // An untimed pass first: round-robin leaves this setting's operator and
+        // buffers cold, while a running sensor applies the same solver every frame.
+        track_average(
+            &mut self.tracker,
+            group,
+            &self.used,
+            self.mm_per_px,
+            &mut self.u,
+        )?;
+        self.solver
+            .apply(&self.u, &mut self.f)
+            .map_err(|e| e.to_string())?;
+        // The CPU interval lies inside the wall interval, so CPU ≤ wall per repetition.
+        let a = Instant::now();
+        let cpu0 = thread_cpu_s();
+        track_average(
+            &mut self.tracker,
+            group,
+            &self.used,
+            self.mm_per_px,
+            &mut self.u,
+        )?;
+        let b = Instant::now();
+        self.solver
+            .apply(&self.u, &mut self.f)
+            .map_err(|e| e.to_string())?;
+        let cpu1 = thread_cpu_s();
+        let c = Instant::now();
+        self.times[0].push((b - a).as_secs_f64());
+        self.times[1].push((c - b).as_secs_f64());
+        self.times[2].push((c - a).as_secs_f64());
+        self.times[3].push(cpu1 - cpu0);
+        Ok(())
+    }
+
+    /// The row with the median times.
+    fn finish(mut self) -> StudyRow {
+        let [t_track, t_solve, t_total, t_cpu] = &mut self.times;
+        self.row.track_s = median(t_track);
+        self.row.solve_s = median(t_solve);
+        self.row.total_s = median(t_total);
+        self.row.total_cpu_s = median(t_cpu);
+        self.row
+    }
+}
+
+/// This thread's CPU time, s (Linux: `CLOCK_THREAD_CPUTIME_ID`); NaN elsewhere or when
+/// the clock fails.
+#[cfg(target_os = "linux")]
+fn thread_cpu_s() -> f64 {
+    #[repr(C)]
+    struct Timespec {
+        tv_sec: i64,
+        tv_nsec: i64,
+    }
+    extern "C" {
+        // From the C library std already links (Linux 64-bit `timespec` layout).
+        fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
+    }
+    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
+    let mut t = Timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid, writable timespec for the duration of the call.
+    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    if rc != 0 {
+        return f64::NAN;
+    }
+    t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+}
+
+/// This thread's CPU time: not available on this platform.
+#[cfg(not(target_os = "linux"))]
+fn thread_cpu_s() -> f64 {
+    f64::NAN
 }
 
 /// Precomputes the solver of a study choice; `frame` feeds automatic λ / rank.
@@ -1037,7 +1203,7 @@ impl StudyResult {
                     Precision::F32 => "f32".to_string(),
                 },
                 s.solver.refine_iterations.to_string(),
-                opt(s.force_pitch_mm.map(|p| p.to_string())),
+                opt(s.force_pitch_mm.map(short)),
                 r.force_points.to_string(),
                 format!("{:.3}", r.aperture_px),
                 s.max_iterations.to_string(),
@@ -1052,6 +1218,7 @@ impl StudyResult {
                 format!("{:.3}", r.track_s * 1e6),
                 format!("{:.3}", r.solve_s * 1e6),
                 format!("{:.3}", r.total_s * 1e6),
+                format!("{:.3}", r.total_cpu_s * 1e6),
                 format!("{:.3}", r.precompute_s * 1e3),
                 opt(r.lambda.map(|l| format!("{l:.6e}"))),
                 opt(r.rank.map(|k| k.to_string())),
@@ -1064,8 +1231,8 @@ impl StudyResult {
 }
 
 /// Columns of `accuracy_vs_time.csv`: errors are relative (0.05 = 5 %), times in µs
-/// per force frame (medians), precompute in ms, forces in N, λ in mm/N.
-pub const STUDY_COLUMNS: [&str; 24] = [
+/// per force frame (medians; `total_cpu_us` in thread CPU time), precompute in ms, forces in N, λ in mm/N.
+pub const STUDY_COLUMNS: [&str; 25] = [
     "label",
     "sweep",
     "solver",
@@ -1086,6 +1253,7 @@ pub const STUDY_COLUMNS: [&str; 24] = [
     "track_us",
     "solve_us",
     "total_us",
+    "total_cpu_us",
     "precompute_ms",
     "lambda_mm_per_n",
     "rank",

@@ -192,13 +192,19 @@ fn accuracy(a: AccuracyArgs) -> Result<ExitCode> {
         StudyEvent::Rendered { frames, seconds } => eprintln!(
             "study: rendered the reference and {frames} loaded frame(s) in {seconds:.2} s"
         ),
+        StudyEvent::Prepared {
+            index,
+            total,
+            label,
+        } => eprintln!("study: [{:>2}/{total}] {label}: tracked, solved, scored", index + 1),
         StudyEvent::Measured { index, total, row } => eprintln!(
-            "study: [{:>2}/{total}] {:<40} sum {:>8.3} %  field {:>8.3} %  {:>9.1} µs/frame (track {:.1}, solve {:.1}), precompute {:.1} ms",
+            "study: [{:>2}/{total}] {:<40} sum {:>8.3} %  field {:>8.3} %  {:>9.1} µs/frame (cpu {:.1}; track {:.1}, solve {:.1}), precompute {:.1} ms",
             index + 1,
             row.label,
             row.sum_error * 100.0,
             row.field_error * 100.0,
             row.total_s * 1e6,
+            row.total_cpu_s * 1e6,
             row.track_s * 1e6,
             row.solve_s * 1e6,
             row.precompute_s * 1e3

@@ -197,6 +197,15 @@ impl Figure for ParetoFigure {
     }
 }
 
+/// One panel of [`LayerSeparationFigure`]: one noise level.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LayerPanel {
+    /// Displacement noise σ, px (0 = exact data).
+    pub noise_px: f64,
+    /// One series per solver: (label, error in gf per case, NaN where missing).
+    pub series: Vec<(String, Vec<f64>)>,
+}
+
 /// The layer-separation plot (paper Fig. 6).
 #[derive(Debug, Clone, PartialEq)]
 pub struct LayerSeparationFigure {
@@ -204,8 +213,8 @@ pub struct LayerSeparationFigure {
     pub title: String,
     /// Cases in plot order (x positions 0, 1, …).
     pub cases: Vec<LayerCase>,
-    /// Panels: (noise σ px, series of (solver, error gf per case; NaN = missing)).
-    pub panels: Vec<(f64, Vec<(String, Vec<f64>)>)>,
+    /// One panel per noise level.
+    pub panels: Vec<LayerPanel>,
     /// A sentence on the load, shown under the title.
     pub load_note: String,
 }
@@ -236,7 +245,10 @@ impl LayerSeparationFigure {
                         (s.clone(), ys)
                     })
                     .collect();
-                (n, series)
+                LayerPanel {
+                    noise_px: n,
+                    series,
+                }
             })
             .collect();
         LayerSeparationFigure {
@@ -267,7 +279,8 @@ impl Figure for LayerSeparationFigure {
                 LayerCase::Separation(d) => format!("{d}"),
             })
             .collect();
-        for (area, (noise, series)) in areas.iter().zip(&self.panels) {
+        for (area, panel) in areas.iter().zip(&self.panels) {
+            let (noise, series) = (&panel.noise_px, &panel.series);
             let (y0, y1) = log_range(series.iter().flat_map(|(_, ys)| ys.iter().copied()));
             let caption = if *noise == 0.0 {
                 "exact displacements".to_string()
