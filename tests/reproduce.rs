@@ -77,6 +77,29 @@ fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
             "no figure of ours in {row:?}"
         );
     }
+
+    // --readme-only rewrites the README from the outputs already there.
+    std::fs::remove_file(out.join("README.md")).unwrap();
+    let o = util::run_in(
+        &util::root(""),
+        &[
+            "reproduce-paper",
+            "--out",
+            out.to_str().unwrap(),
+            "--quick",
+            "2",
+            "--readme-only",
+        ],
+    );
+    assert!(
+        o.status.success(),
+        "--readme-only failed:\n{}",
+        util::stderr(&o)
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("README.md")).unwrap(),
+        readme
+    );
 }
 
 #[test]
