@@ -89,7 +89,7 @@ fn bench(c: &mut Criterion) {
     // The same applies timed by on-CPU time of this thread (`/proc/thread-self/schedstat`,
     // ns) instead of wall time: on a shared, overloaded machine wall time includes the
     // time the scheduler gives to other processes.
-    if thread_cpu_ns().is_some() {
+    if tactbench::clock::thread_cpu_ns().is_some() {
         let mut g = c.benchmark_group("fourier_apply_oncpu");
         g.sample_size(30).measurement_time(Duration::from_secs(4));
         for (name, sensor) in cases() {
@@ -100,22 +100,20 @@ fn bench(c: &mut Criterion) {
             let mut f = vec![0.0; solver.n_outputs()];
             g.bench_function(format!("{name}/direct"), |b| {
                 b.iter_custom(|iters| {
-                    let t0 = thread_cpu_ns().unwrap_or(0);
+                    let t0 = tactbench::clock::thread_cpu_ns().unwrap_or(0);
                     for _ in 0..iters {
                         solver.apply(black_box(&u), &mut f).expect("apply");
                     }
-                    Duration::from_nanos(thread_cpu_ns().unwrap_or(0).saturating_sub(t0))
+                    Duration::from_nanos(
+                        tactbench::clock::thread_cpu_ns()
+                            .unwrap_or(0)
+                            .saturating_sub(t0),
+                    )
                 })
             });
         }
         g.finish();
     }
-}
-
-/// Time this thread has spent on a CPU, ns (Linux), from `/proc/thread-self/schedstat`.
-fn thread_cpu_ns() -> Option<u64> {
-    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    s.split_whitespace().next()?.parse().ok()
 }
 
 criterion_group!(benches, bench);

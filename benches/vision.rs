@@ -45,28 +45,9 @@ fn frame(shift_px: f64, seed: u64) -> RgbImage {
 /// core. Read once per sample of many iterations.
 struct CpuTime;
 
-#[repr(C)]
-struct Timespec {
-    tv_sec: i64,
-    tv_nsec: i64,
-}
-
-extern "C" {
-    // From the C library std already links (Linux x86-64 `timespec` layout).
-    fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
-}
-
 /// This thread's CPU time, ns.
 fn thread_cpu_ns() -> u64 {
-    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
-    let mut t = Timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `t` is a valid, writable timespec for the call's duration.
-    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut t) };
-    assert_eq!(rc, 0, "clock_gettime(CLOCK_THREAD_CPUTIME_ID) failed");
-    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+    tactbench::clock::thread_cpu_ns().expect("thread CPU clock (Linux)")
 }
 
 impl Measurement for CpuTime {

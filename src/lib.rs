@@ -9,6 +9,7 @@
 
 pub mod analysis;
 pub mod bench;
+pub mod clock;
 pub mod config;
 pub mod device;
 pub mod formats;

@@ -998,7 +998,7 @@ impl Prepared {
             .map_err(|e| e.to_string())?;
         // The CPU interval lies inside the wall interval, so CPU ≤ wall per repetition.
         let a = Instant::now();
-        let cpu0 = thread_cpu_s();
+        let cpu0 = crate::clock::thread_cpu_s();
         track_average(
             &mut self.tracker,
             group,
@@ -1010,7 +1010,7 @@ impl Prepared {
         self.solver
             .apply(&self.u, &mut self.f)
             .map_err(|e| e.to_string())?;
-        let cpu1 = thread_cpu_s();
+        let cpu1 = crate::clock::thread_cpu_s();
         let c = Instant::now();
         self.times[0].push((b - a).as_secs_f64());
         self.times[1].push((c - b).as_secs_f64());
@@ -1028,38 +1028,6 @@ impl Prepared {
         self.row.total_cpu_s = median(t_cpu);
         self.row
     }
-}
-
-/// This thread's CPU time, s (Linux: `CLOCK_THREAD_CPUTIME_ID`); NaN elsewhere or when
-/// the clock fails.
-#[cfg(target_os = "linux")]
-fn thread_cpu_s() -> f64 {
-    #[repr(C)]
-    struct Timespec {
-        tv_sec: i64,
-        tv_nsec: i64,
-    }
-    extern "C" {
-        // From the C library std already links (Linux 64-bit `timespec` layout).
-        fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
-    }
-    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
-    let mut t = Timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `t` is a valid, writable timespec for the duration of the call.
-    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut t) };
-    if rc != 0 {
-        return f64::NAN;
-    }
-    t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
-}
-
-/// This thread's CPU time: not available on this platform.
-#[cfg(not(target_os = "linux"))]
-fn thread_cpu_s() -> f64 {
-    f64::NAN
 }
 
 /// Precomputes the solver of a study choice; `frame` feeds automatic λ / rank.

@@ -241,13 +241,11 @@ fn read_summary(path: &Path) -> anyhow::Result<BTreeMap<String, (f64, String)>> 
 
 /// The reproduction README: our figures beside the paper's, from the reports just written.
 fn paper_readme(out: &Path, quick: Option<usize>) -> anyhow::Result<String> {
-    let summary = |name: &str| read_summary(&out.join("runs").join(name).join("summary.csv"));
-    let table1 = summary("table1_displacement")?;
-    let fig7 = summary("fig7_magnitude")?;
-    let fig7n = summary("fig7_magnitude_camera_noise")?;
-    let fig8 = summary("fig8_angle")?;
-    let fig9 = summary("fig9_spatial")?;
-    let get = |m: &BTreeMap<String, (f64, String)>, k: &str| m.get(k).map(|v| v.0);
+    let mut summaries = BTreeMap::new();
+    for e in EXPERIMENTS {
+        let path = out.join("runs").join(e.name).join("summary.csv");
+        summaries.insert(e.name, read_summary(&path)?);
+    }
     let fmt = |v: Option<f64>, digits: usize| match v {
         Some(v) if v.is_finite() => format!("{v:.digits$}"),
         _ => "n/a".to_string(),
@@ -277,46 +275,81 @@ fn paper_readme(out: &Path, quick: Option<usize>) -> anyhow::Result<String> {
     );
     let _ = writeln!(s, "| quantity | paper | ours | from |");
     let _ = writeln!(s, "|---|---|---|---|");
-    let _ = writeln!(
-        s,
-        "| displacement SD (Table I) | 0.1 px (50 µm) | {} px | [runs/table1_displacement](runs/table1_displacement/report.html) |",
-        fmt(get(&table1, "displacement.max_sd_px"), 4)
-    );
-    let _ = writeln!(
-        s,
-        "| displacement bias (Table I) | — | {} px | [runs/table1_displacement](runs/table1_displacement/report.html) |",
-        fmt(get(&table1, "displacement.max_abs_bias_px"), 4)
-    );
-    let _ = writeln!(
-        s,
-        "| magnitude resolution (Fig. 7) | ~30 gf | {} gf | [runs/fig7_magnitude](runs/fig7_magnitude/report.html) |",
-        fmt(get(&fig7, "magnitude.resolution_gf"), 1)
-    );
-    let _ = writeln!(
-        s,
-        "| magnitude resolution, camera noise σ = 2/255 (Fig. 7) | ~30 gf | {} gf | [runs/fig7_magnitude_camera_noise](runs/fig7_magnitude_camera_noise/report.html) |",
-        fmt(get(&fig7n, "magnitude.resolution_gf"), 1)
-    );
-    let _ = writeln!(
-        s,
-        "| magnitude linearity R² (Fig. 7) | \"linear\" | {} | [runs/fig7_magnitude](runs/fig7_magnitude/report.html) |",
-        fmt(get(&fig7, "magnitude.r2"), 4)
-    );
-    let _ = writeln!(
-        s,
-        "| angle resolution (Fig. 8) | ~5° | {}° | [runs/fig8_angle](runs/fig8_angle/report.html) |",
-        fmt(get(&fig8, "angle.resolution_deg"), 2)
-    );
-    let _ = writeln!(
-        s,
-        "| spatial resolution, half width (Fig. 9) | ~4 mm | {} mm | [runs/fig9_spatial](runs/fig9_spatial/report.html) |",
-        fmt(get(&fig9, "spatial.fwhm_mm"), 2)
-    );
-    let _ = writeln!(
-        s,
-        "| tracking + reconstruction per frame (Table II) | 2.9 ms | {} ms | [runs/fig7_magnitude](runs/fig7_magnitude/report.html) |",
-        fmt(get(&fig7, "timing.forces_ms"), 3)
-    );
+    // (quantity, paper's figure, run, metric, decimals, unit suffix)
+    let rows: [(&str, &str, &str, &str, usize, &str); 8] = [
+        (
+            "displacement SD (Table I)",
+            "0.1 px (50 µm)",
+            "table1_displacement",
+            "displacement.max_sd_px",
+            4,
+            " px",
+        ),
+        (
+            "displacement bias (Table I)",
+            "—",
+            "table1_displacement",
+            "displacement.max_abs_bias_px",
+            4,
+            " px",
+        ),
+        (
+            "magnitude resolution (Fig. 7)",
+            "~30 gf",
+            "fig7_magnitude",
+            "magnitude.resolution_gf",
+            1,
+            " gf",
+        ),
+        (
+            "magnitude resolution, camera noise σ = 2/255 (Fig. 7)",
+            "~30 gf",
+            "fig7_magnitude_camera_noise",
+            "magnitude.resolution_gf",
+            1,
+            " gf",
+        ),
+        (
+            "magnitude linearity R² (Fig. 7)",
+            "\"linear\"",
+            "fig7_magnitude",
+            "magnitude.r2",
+            4,
+            "",
+        ),
+        (
+            "angle resolution (Fig. 8)",
+            "~5°",
+            "fig8_angle",
+            "angle.resolution_deg",
+            2,
+            "°",
+        ),
+        (
+            "spatial resolution, half width (Fig. 9)",
+            "~4 mm",
+            "fig9_spatial",
+            "spatial.fwhm_mm",
+            2,
+            " mm",
+        ),
+        (
+            "tracking + reconstruction per frame (Table II)",
+            "2.9 ms",
+            "fig7_magnitude",
+            "timing.forces_ms",
+            3,
+            " ms",
+        ),
+    ];
+    for (quantity, paper, run, metric, digits, unit) in rows {
+        let value = summaries.get(run).and_then(|m| m.get(metric)).map(|v| v.0);
+        let _ = writeln!(
+            s,
+            "| {quantity} | {paper} | {}{unit} | [runs/{run}](runs/{run}/report.html) |",
+            fmt(value, digits)
+        );
+    }
     let best = best_layer_distance(&out.join("fig6_layer_separation/layer_separation.csv"))?;
     let _ = writeln!(
         s,
