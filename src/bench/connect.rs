@@ -3,6 +3,7 @@
 //! open (`tactbench run --sim` is the hardware code path against simulators).
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use serde_json::json;
 use thiserror::Error;
@@ -103,15 +104,24 @@ fn open_stage(
     })
 }
 
+/// Reply deadline for the simulated DynPick: its simulator thread shares the host's
+/// CPU with the runner, the renderer and whatever else runs (tests run in parallel), so
+/// the real sensor's 50 ms would fail spuriously under load.
+const SIM_DYNPICK_REPLY_TIMEOUT: Duration = Duration::from_millis(500);
+
 fn open_ft(
     kind: FtKind,
     port: &str,
     baud: u32,
+    simulated: bool,
 ) -> Result<(Box<dyn ForceSensor>, serde_json::Value), ConnectError> {
     Ok(match kind {
         FtKind::DynPick => {
             let p = open_serial(dynpick::DEVICE, port, baud).map_err(dev("force sensor"))?;
             let mut d = DynPick::connect(p).map_err(dev("force sensor"))?;
+            if simulated {
+                d.set_reply_timeout(SIM_DYNPICK_REPLY_TIMEOUT);
+            }
             let fw = d.firmware_version().ok();
             (
                 Box::new(d),
@@ -155,7 +165,12 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 stage.zaber_devices,
                 stage.zaber_mm_per_step,
             )?;
-            let (f, fid) = open_ft(force_sensor.protocol, &force_sensor.port, force_sensor.baud)?;
+            let (f, fid) = open_ft(
+                force_sensor.protocol,
+                &force_sensor.port,
+                force_sensor.baud,
+                false,
+            )?;
             let c = camera::open(spec).map_err(dev("camera"))?;
             Ok(Connected {
                 stage: s,
@@ -216,7 +231,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 FtKind::DynPick => dynpick::BAUD,
                 FtKind::Ft300 => ft300::BAUD,
             };
-            let (f, fid) = open_ft(cfg.force_sensor, &ft_port, baud)?;
+            let (f, fid) = open_ft(cfg.force_sensor, &ft_port, baud, true)?;
             let c = SocketCamera::connect(vb.camera_socket()).map_err(dev("camera"))?;
             Ok(Connected {
                 stage: s,

@@ -44,6 +44,7 @@ pub struct DynPick<P> {
     rx: Vec<u8>,
     stats: LinkStats,
     last_counter: Option<u8>,
+    reply_timeout: Duration,
 }
 
 impl<P: Read + Write> DynPick<P> {
@@ -62,11 +63,19 @@ impl<P: Read + Write> DynPick<P> {
             rx: Vec::new(),
             stats: LinkStats::default(),
             last_counter: None,
+            reply_timeout: REPLY_TIMEOUT,
         };
         d.sensitivities = d.transact(Command::Sensitivities, |l| {
             Sensitivities::decode(l).map(|s| (s, false))
         })?;
         Ok(d)
+    }
+
+    /// Sets the reply deadline (default [`REPLY_TIMEOUT`]; also the quiet time before a
+    /// retry). A simulated sensor shares the host's CPU with everything else, so the
+    /// simulated bench allows more than a real sensor on its own cable needs.
+    pub fn set_reply_timeout(&mut self, timeout: Duration) {
+        self.reply_timeout = timeout;
     }
 
     /// The sensitivities read at connect (LSB per N, LSB per N·m).
@@ -173,12 +182,19 @@ impl<P: Read + Write> DynPick<P> {
         for attempt in 0..MAX_ATTEMPTS {
             if attempt > 0 {
                 self.stats.retries += 1;
-                ft_common::drain(&mut self.port, DRAIN_QUIET, DRAIN_MAX, DEVICE, &text)?;
+                let quiet = DRAIN_QUIET.max(self.reply_timeout);
+                ft_common::drain(
+                    &mut self.port,
+                    quiet,
+                    DRAIN_MAX.max(quiet * 4),
+                    DEVICE,
+                    &text,
+                )?;
             }
             // Bytes already buffered before the command cannot be its reply.
             self.rx.clear();
             ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
-            let deadline = Instant::now() + REPLY_TIMEOUT;
+            let deadline = Instant::now() + self.reply_timeout;
             let mut bad: Option<String> = None;
             loop {
                 match self.read_line(deadline, &text) {
@@ -205,7 +221,10 @@ impl<P: Read + Write> DynPick<P> {
                                     ErrorKind::Timeout,
                                     DEVICE,
                                     &text,
-                                    format!("no reply within {} ms", REPLY_TIMEOUT.as_millis()),
+                                    format!(
+                                        "no reply within {} ms",
+                                        self.reply_timeout.as_millis()
+                                    ),
                                 )
                             }
                         });
