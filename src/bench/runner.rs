@@ -1540,13 +1540,7 @@ impl Runner<'_, '_, '_, '_> {
 /// Mean wrench and per-component force SD (sample SD; 0 for one sample).
 fn mean_sd(samples: &[Wrench]) -> (Wrench, [f64; 3]) {
     let n = samples.len().max(1) as f64;
-    let mut m = Wrench::default();
-    for w in samples {
-        for i in 0..3 {
-            m.force_n[i] += w.force_n[i] / n;
-            m.torque_nm[i] += w.torque_nm[i] / n;
-        }
-    }
+    let m = Wrench::mean(samples);
     let mut sd = [0.0; 3];
     if samples.len() > 1 {
         for (i, s) in sd.iter_mut().enumerate() {

@@ -143,18 +143,6 @@ fn show(w: &Wrench) -> String {
     )
 }
 
-fn mean(ws: &[Wrench]) -> Wrench {
-    let n = ws.len().max(1) as f64;
-    let mut m = Wrench::default();
-    for w in ws {
-        for i in 0..3 {
-            m.force_n[i] += w.force_n[i] / n;
-            m.torque_nm[i] += w.torque_nm[i] / n;
-        }
-    }
-    m
-}
-
 /// Runs `tactbench ft`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let protocol = args
@@ -196,7 +184,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     }
                 }
             };
-            let m = mean(&ws);
+            let m = Wrench::mean(&ws);
             if json {
                 #[derive(Serialize)]
                 struct Out {

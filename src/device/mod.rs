@@ -194,6 +194,21 @@ pub struct Wrench {
     pub torque_nm: [f64; 3],
 }
 
+impl Wrench {
+    /// Component-wise mean of `samples` (the zero wrench for none).
+    pub fn mean(samples: &[Wrench]) -> Wrench {
+        let n = samples.len().max(1) as f64;
+        let mut m = Wrench::default();
+        for w in samples {
+            for i in 0..3 {
+                m.force_n[i] += w.force_n[i] / n;
+                m.torque_nm[i] += w.torque_nm[i] / n;
+            }
+        }
+        m
+    }
+}
+
 /// A 6-axis force/torque sensor.
 pub trait ForceSensor {
     /// One reading (polled, or the newest streamed sample).
