@@ -546,6 +546,48 @@ fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
 }
 
 #[test]
+fn ft300_and_dynpick_reply_deadlines_are_set_at_connect() {
+    // Every reply 150 ms late: past the FT 300's default 100 ms deadline (the test
+    // above shows the retries), inside the 500 ms the simulated bench allows.
+    let late = FaultConfig {
+        late_by: Duration::from_millis(150),
+        ..faults(0, &[FaultKind::LateReply], 1.0)
+    };
+    let (server, c) = ft300_sim(late.clone(), SharedWrench::new(LOAD));
+    let slow = Duration::from_millis(500);
+    let mut d = Ft300::connect_with(open("ft300", server.path(), ft::BAUD), 9, slow)
+        .expect("a 150 ms late reply is within a 500 ms deadline");
+    for _ in 0..3 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+    }
+    assert_eq!(d.stats().timeouts, 0, "{:?}", d.stats());
+    assert!(get(&c.late) >= 4);
+    // The same late device with the default deadline: every attempt times out.
+    let (server, _) = ft300_sim(late, SharedWrench::new(LOAD));
+    let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
+        .err()
+        .expect("150 ms late is past the default deadline");
+    assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
+    assert!(e.message.contains("within 100 ms"), "{e}");
+
+    // DynPick: 75 ms late, past its 50 ms default.
+    let late = FaultConfig {
+        late_by: dp::REPLY_TIMEOUT * 3 / 2,
+        ..faults(0, &[FaultKind::LateReply], 1.0)
+    };
+    let (server, _) = dynpick_sim(late.clone(), SharedWrench::new(LOAD));
+    let mut d = DynPick::connect_with(open("dynpick", server.path(), dp::BAUD), slow)
+        .expect("within 500 ms");
+    assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    assert_eq!(d.stats().timeouts, 0, "{:?}", d.stats());
+    let (server, _) = dynpick_sim(late, SharedWrench::new(LOAD));
+    let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD))
+        .err()
+        .expect("past the default deadline");
+    assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
+}
+
+#[test]
 fn ft300_always_bad_crc_is_a_protocol_error() {
     let (server, _) = ft300_sim(
         faults(0, &[FaultKind::Garbled], 1.0),

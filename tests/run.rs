@@ -318,14 +318,23 @@ fn an_overly_stiff_contact_trips_the_force_limit_and_the_stage_stops() {
         "stiff.toml",
         "sensor = \"stiff_sensor.toml\"\n[indenter]\nkind = \"flat\"\ndiameter_mm = 5.0\n[load]\nposition_mm = [9.0, 6.75]\nnormal_force_n = 0.0\n",
     );
+    // Setpoints 0 and 750 gf, ± 1 gf. The force at contact detection depends on how
+    // far the stage moved between two watchdog reads (1 mm/s times the machine's
+    // read period, about 0.7 N per millisecond on this contact), so with 50 gf steps
+    // ± 5 gf a loaded machine could land the approach on the 50 gf setpoint by
+    // chance (CI did once). 750 gf ± 1 gf is a 0.02 N window 7 N above contact:
+    // the first control step (≤ 0.5 mm at 4 N/mm assumed) must overshoot to the trip.
     let plan_text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
         .unwrap()
         .replace(
             "sensor = \"paper_sensor.toml\"",
             "sensor = \"stiff_sensor.toml\"",
-        );
+        )
+        .replace("step = 50.0", "step = 750.0")
+        .replace("force_tolerance = 5.0", "force_tolerance = 1.0");
     let plan_path = write(tmp.path(), "plan.toml", &plan_text);
     let plan = Plan::from_path(&plan_path).unwrap();
+    assert!((plan.force_tolerance_n - 9.80665e-3).abs() < 1e-12);
     let out = tmp.path().join("run");
     let (summary, events, stage, fz) =
         run_in_process(&plan, &scene, &out, false, Some(4), None, None);

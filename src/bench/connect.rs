@@ -104,10 +104,12 @@ fn open_stage(
     })
 }
 
-/// Reply deadline for the simulated DynPick: its simulator thread shares the host's
-/// CPU with the runner, the renderer and whatever else runs (tests run in parallel), so
-/// the real sensor's 50 ms would fail spuriously under load.
-const SIM_DYNPICK_REPLY_TIMEOUT: Duration = Duration::from_millis(500);
+/// Reply deadline of the force-sensor drivers on the simulated bench. The simulators
+/// share the host's CPU with the runner, the renderer and whatever else runs (tests run
+/// in parallel), so the real sensors' deadlines (DynPick 50 ms, FT 300 100 ms) would
+/// fail spuriously under load. The stage drivers' defaults (GRBL 2 s per line and
+/// 500 ms per status report, Zaber 500 ms) already allow for this and are kept.
+pub const SIM_FT_REPLY_TIMEOUT: Duration = Duration::from_millis(500);
 
 fn open_ft(
     kind: FtKind,
@@ -115,13 +117,15 @@ fn open_ft(
     baud: u32,
     simulated: bool,
 ) -> Result<(Box<dyn ForceSensor>, serde_json::Value), ConnectError> {
+    let reply_timeout = match (simulated, kind) {
+        (true, _) => SIM_FT_REPLY_TIMEOUT,
+        (false, FtKind::DynPick) => dynpick::REPLY_TIMEOUT,
+        (false, FtKind::Ft300) => ft300::REPLY_TIMEOUT,
+    };
     Ok(match kind {
         FtKind::DynPick => {
             let p = open_serial(dynpick::DEVICE, port, baud).map_err(dev("force sensor"))?;
-            let mut d = DynPick::connect(p).map_err(dev("force sensor"))?;
-            if simulated {
-                d.set_reply_timeout(SIM_DYNPICK_REPLY_TIMEOUT);
-            }
+            let mut d = DynPick::connect_with(p, reply_timeout).map_err(dev("force sensor"))?;
             let fw = d.firmware_version().ok();
             (
                 Box::new(d),
@@ -130,7 +134,9 @@ fn open_ft(
         }
         FtKind::Ft300 => {
             let p = open_serial(ft300::DEVICE, port, baud).map_err(dev("force sensor"))?;
-            let mut d = Ft300::connect(p).map_err(dev("force sensor"))?;
+            let mut d =
+                Ft300::connect_with(p, crate::device::ft300::codec::SLAVE_ADDRESS, reply_timeout)
+                    .map_err(dev("force sensor"))?;
             let info = d.info().ok().map(|i| format!("{i:?}"));
             (
                 Box::new(d),

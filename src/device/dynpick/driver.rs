@@ -49,7 +49,13 @@ pub struct DynPick<P> {
 
 impl<P: Read + Write> DynPick<P> {
     /// Connects: discards pending input, then reads the sensitivities (`p`).
-    pub fn connect(mut port: P) -> DeviceResult<Self> {
+    pub fn connect(port: P) -> DeviceResult<Self> {
+        Self::connect_with(port, REPLY_TIMEOUT)
+    }
+
+    /// [`DynPick::connect`] with another reply deadline (see
+    /// [`DynPick::set_reply_timeout`]), used from the first command on.
+    pub fn connect_with(mut port: P, reply_timeout: Duration) -> DeviceResult<Self> {
         ft_common::drain(
             &mut port,
             Duration::from_millis(10),
@@ -63,7 +69,7 @@ impl<P: Read + Write> DynPick<P> {
             rx: Vec::new(),
             stats: LinkStats::default(),
             last_counter: None,
-            reply_timeout: REPLY_TIMEOUT,
+            reply_timeout,
         };
         d.sensitivities = d.transact(Command::Sensitivities, |l| {
             Sensitivities::decode(l).map(|s| (s, false))

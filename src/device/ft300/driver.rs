@@ -77,6 +77,8 @@ pub struct Ft300<P> {
     slave: u8,
     offset: Wrench,
     stats: LinkStats,
+    /// Reply deadline (see [`Ft300::connect_with`]).
+    reply_timeout: Duration,
 }
 
 fn sub(a: Wrench, b: Wrench) -> Wrench {
@@ -122,7 +124,14 @@ impl<P: Read + Write> Ft300<P> {
     }
 
     /// Connects to another slave address.
-    pub fn connect_slave(mut port: P, slave: u8) -> DeviceResult<Self> {
+    pub fn connect_slave(port: P, slave: u8) -> DeviceResult<Self> {
+        Self::connect_with(port, slave, REPLY_TIMEOUT)
+    }
+
+    /// Connects to `slave` with another reply deadline (default [`REPLY_TIMEOUT`]; also
+    /// the quiet time before a retry). A simulated sensor shares the host's CPU with
+    /// everything else, so the simulated bench allows more than a real sensor needs.
+    pub fn connect_with(mut port: P, slave: u8, reply_timeout: Duration) -> DeviceResult<Self> {
         ft_common::send(&mut port, DEVICE, "stop stream", &STOP_STREAM)?;
         ft_common::drain(
             &mut port,
@@ -136,6 +145,7 @@ impl<P: Read + Write> Ft300<P> {
             slave,
             offset: Wrench::default(),
             stats: LinkStats::default(),
+            reply_timeout,
         };
         d.read_raw_wrench()?;
         Ok(d)
@@ -237,7 +247,8 @@ impl<P: Read + Write> Ft300<P> {
         for attempt in 0..MAX_ATTEMPTS {
             if attempt > 0 {
                 self.stats.retries += 1;
-                ft_common::drain(&mut self.port, DRAIN_QUIET, DRAIN_MAX, DEVICE, &text)?;
+                let quiet = DRAIN_QUIET.max(self.reply_timeout);
+                ft_common::drain(&mut self.port, quiet, DRAIN_MAX.max(quiet), DEVICE, &text)?;
             }
             ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
             match self.read_reply(&text) {
@@ -279,7 +290,8 @@ impl<P: Read + Write> Ft300<P> {
     /// garbage: the result is Timeout if nothing framed arrived, Protocol if only
     /// frames with a bad CRC did.
     fn read_reply(&mut self, text: &str) -> DeviceResult<Response> {
-        let deadline = Instant::now() + REPLY_TIMEOUT;
+        let timeout = self.reply_timeout;
+        let deadline = Instant::now() + timeout;
         let mut buf: Vec<u8> = Vec::with_capacity(64);
         let mut chunk = [0u8; 64];
         let mut bad: Option<String> = None;
@@ -325,7 +337,7 @@ impl<P: Read + Write> Ft300<P> {
                             text,
                             format!(
                                 "incomplete reply within {} ms: `{}`",
-                                REPLY_TIMEOUT.as_millis(),
+                                timeout.as_millis(),
                                 show_bytes_hex(&buf)
                             ),
                         ),
@@ -333,7 +345,7 @@ impl<P: Read + Write> Ft300<P> {
                             ErrorKind::Timeout,
                             DEVICE,
                             text,
-                            format!("no reply within {} ms", REPLY_TIMEOUT.as_millis()),
+                            format!("no reply within {} ms", timeout.as_millis()),
                         ),
                     })
                 }
@@ -404,6 +416,7 @@ pub struct Ft300Stream<P: Send + 'static> {
     slave: u8,
     offset: Wrench,
     stats: LinkStats,
+    reply_timeout: Duration,
     last_seq: u64,
 }
 
@@ -426,6 +439,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             slave,
             offset: d.offset,
             stats: d.stats,
+            reply_timeout: d.reply_timeout,
             last_seq: 0,
         }
     }
@@ -539,6 +553,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             slave: self.slave,
             offset: self.offset,
             stats: self.stats,
+            reply_timeout: self.reply_timeout,
         };
         Ok((d, summary))
     }
