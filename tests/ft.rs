@@ -588,6 +588,47 @@ fn ft300_and_dynpick_reply_deadlines_are_set_at_connect() {
 }
 
 #[test]
+fn read_once_makes_one_attempt_and_the_next_read_discards_its_late_reply() {
+    // DynPick: replies 1 (`p` at connect), 2 and 3 on time, reply 4 late by 1.5
+    // deadlines, the rest on time.
+    let late = FaultConfig {
+        late_by: dp::REPLY_TIMEOUT * 3 / 2,
+        ..FaultConfig::once(FaultKind::LateReply, FaultTarget::Any, 3)
+    };
+    let (server, c) = dynpick_sim(late, SharedWrench::new(LOAD));
+    let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
+    for _ in 0..2 {
+        assert_wrench_near(&d.read_once().unwrap(), &LOAD, DP_LSB);
+    }
+    assert_eq!(d.last_counter(), Some(1));
+    let e = d.read_once().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
+    assert!(e.message.contains("after 1 attempt)"), "{e}");
+    assert_eq!((d.stats().timeouts, d.stats().retries), (1, 0));
+    // The late record (counter 2) arrives after the deadline; the next read drains it
+    // and takes a fresh one (counter 3), not the stale reply.
+    assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    assert_eq!(d.last_counter(), Some(3));
+    assert_eq!(get(&c.late), 1);
+
+    // FT 300: reply 1 is the connect's read; reply 2 late.
+    let late = FaultConfig {
+        late_by: ft::REPLY_TIMEOUT * 3 / 2,
+        ..FaultConfig::once(FaultKind::LateReply, FaultTarget::Any, 1)
+    };
+    let (server, c) = ft300_sim(late, SharedWrench::new(LOAD));
+    let mut d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
+    let e = d.read_once().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
+    assert_eq!((d.stats().timeouts, d.stats().retries), (1, 0));
+    for _ in 0..3 {
+        assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+    }
+    assert_eq!(d.stats().retries, 0, "{:?}", d.stats());
+    assert_eq!(get(&c.late), 1);
+}
+
+#[test]
 fn ft300_always_bad_crc_is_a_protocol_error() {
     let (server, _) = ft300_sim(
         faults(0, &[FaultKind::Garbled], 1.0),

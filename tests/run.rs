@@ -144,7 +144,11 @@ fn every_plan_in_experiments_runs_end_to_end_on_the_simulated_bench() {
                     sp.tangential_n
                 );
             }
-            assert!(r.settled);
+            assert!(
+                r.settled,
+                "{plan_path} #{}: not settled within the plan's timeout",
+                r.index
+            );
             // The reconstruction sees the same load: F_sum z within 25 % + 0.05 N.
             assert!(
                 (r.fsum_z_n - r.fz_n).abs() <= 0.25 * r.fz_n + 0.05

@@ -57,30 +57,29 @@ impl SettleDetector {
         self.samples.push_back((t_s, force_n));
         self.sum += x;
         self.sum_sq += x * x;
-        while let Some(&(t0, f0)) = self.samples.front() {
-            if t_s - t0 > self.window_s {
-                self.samples.pop_front();
+        // Keep one sample at or before the window's start (t − window): then the
+        // samples span the whole window whatever the sampling interval. (Dropping every
+        // sample older than the window instead made a slow reader, 0.1 window or more
+        // between readings on a loaded host, never see a full window.)
+        while self.samples.len() >= 2 && t_s - self.samples[1].0 >= self.window_s {
+            if let Some((_, f0)) = self.samples.pop_front() {
                 let y = f0 - self.offset;
                 self.sum -= y;
                 self.sum_sq -= y * y;
-            } else {
-                break;
             }
         }
         self.is_settled()
     }
 
-    /// The window is full (spans at least `window_s`, ≥ 3 samples) and its SD is
-    /// below the threshold.
+    /// The window is full (its samples span at least `window_s`) and its SD is below
+    /// the threshold.
     pub fn is_settled(&self) -> bool {
         let n = self.samples.len();
-        if n < 3 {
+        if n < 2 {
             return false;
         }
         let span = self.samples[n - 1].0 - self.samples[0].0;
-        // The front sample is within the window, so a full window spans nearly
-        // `window_s`; accept 90 % to be robust to sample jitter.
-        span >= 0.9 * self.window_s && self.sd_n() < self.max_sd_n
+        span >= self.window_s && self.sd_n() < self.max_sd_n
     }
 
     /// Standard deviation of the window, N.
@@ -216,6 +215,29 @@ mod tests {
     }
 
     #[test]
+    fn a_slow_reader_still_sees_a_full_window() {
+        // A constant force read every 0.2 s, 0.3 s window: settled at the third
+        // reading (0.4 s of history), whatever the sampling interval.
+        let mut d = SettleDetector::new(0.3, 0.01);
+        assert!(!d.push(0.0, 1.0));
+        assert!(!d.push(0.2, 1.0), "0.2 s of history is not a 0.3 s window");
+        assert!(d.push(0.4, 1.0));
+        assert!(d.push(0.6, 1.0));
+        // A step inside the window is seen until it has left it.
+        assert!(!d.push(0.8, 1.5));
+        assert!(!d.push(1.0, 1.5));
+        assert!(d.push(1.2, 1.5) || d.push(1.4, 1.5));
+        // Readings 1 s apart: every window holds the previous reading (the anchor)
+        // and this one; a quiet force settles at the second reading, a moving one not.
+        let mut d = SettleDetector::new(0.3, 0.01);
+        let settled: Vec<bool> = (0..4).map(|i| d.push(i as f64, 2.0)).collect();
+        assert_eq!(settled, [false, true, true, true]);
+        let mut d = SettleDetector::new(0.3, 0.01);
+        let settled: Vec<bool> = (0..4).map(|i| d.push(i as f64, i as f64)).collect();
+        assert_eq!(settled, [false; 4]);
+    }
+
+    #[test]
     fn running_sd_matches_the_two_pass_sd_of_the_window() {
         let mut d = SettleDetector::new(0.05, 1e-3);
         let mut all = Vec::new();
@@ -226,11 +248,10 @@ mod tests {
             d.push(t, f);
             all.push((t, f));
         }
-        let w: Vec<f64> = all
-            .iter()
-            .filter(|(t, _)| 0.999 - t <= 0.05)
-            .map(|s| s.1)
-            .collect();
+        // The window: from the last sample at or before 0.999 − 0.05 s on.
+        let t_last = all.last().unwrap().0;
+        let start = all.iter().rposition(|(t, _)| t_last - t >= 0.05).unwrap();
+        let w: Vec<f64> = all[start..].iter().map(|s| s.1).collect();
         let n = w.len() as f64;
         let m = w.iter().sum::<f64>() / n;
         let sd = (w.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();

@@ -500,6 +500,9 @@ impl Timed<'_, '_> {
     fn read(&mut self) -> DeviceResult<Wrench> {
         timed!(self, self.dev.ft.read())
     }
+    fn read_once(&mut self) -> DeviceResult<Wrench> {
+        timed!(self, self.dev.ft.read_once())
+    }
     fn tare(&mut self) -> DeviceResult<()> {
         timed!(self, self.dev.ft.tare())
     }
@@ -976,7 +979,9 @@ impl Runner<'_, '_, '_, '_> {
                 let _ = self.dev.stop();
                 return Err(Halt::Interrupted);
             }
-            let w = match self.dev.read() {
+            // One attempt per reading: the driver's retries would keep the stage
+            // moving blind for several reply deadlines.
+            let w = match self.dev.read_once() {
                 Ok(w) => w,
                 Err(e) => {
                     // Blind while moving: stop first, then try to recover the sensor

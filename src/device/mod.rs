@@ -213,6 +213,12 @@ impl Wrench {
 pub trait ForceSensor {
     /// One reading (polled, or the newest streamed sample).
     fn read(&mut self) -> DeviceResult<Wrench>;
+    /// One reading in a single attempt, without the driver's own retries: for a
+    /// watchdog, which must stop the stage at the first failed reading instead of
+    /// moving blind while the driver retries. Default: [`ForceSensor::read`].
+    fn read_once(&mut self) -> DeviceResult<Wrench> {
+        self.read()
+    }
     /// Zeroes the sensor's offset at the current load.
     fn tare(&mut self) -> DeviceResult<()>;
     /// Nominal sample rate in Hz of [`ForceSensor::read`] at full speed.

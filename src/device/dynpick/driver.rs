@@ -45,6 +45,9 @@ pub struct DynPick<P> {
     stats: LinkStats,
     last_counter: Option<u8>,
     reply_timeout: Duration,
+    /// An attempt failed and was not retried ([`ForceSensor::read_once`]): its reply
+    /// may still arrive, so the next command drains the input first.
+    dirty: bool,
 }
 
 impl<P: Read + Write> DynPick<P> {
@@ -70,6 +73,7 @@ impl<P: Read + Write> DynPick<P> {
             stats: LinkStats::default(),
             last_counter: None,
             reply_timeout,
+            dirty: false,
         };
         d.sensitivities = d.transact(Command::Sensitivities, |l| {
             Sensitivities::decode(l).map(|s| (s, false))
@@ -102,6 +106,13 @@ impl<P: Read + Write> DynPick<P> {
     /// One raw record (`R`).
     pub fn read_record(&mut self) -> DeviceResult<Record> {
         let r = self.transact(Command::Read, decode_record_resync)?;
+        self.last_counter = Some(r.counter);
+        Ok(r)
+    }
+
+    /// One raw record in a single attempt (see [`ForceSensor::read_once`]).
+    pub fn read_record_once(&mut self) -> DeviceResult<Record> {
+        let r = self.transact_n(Command::Read, decode_record_resync, 1)?;
         self.last_counter = Some(r.counter);
         Ok(r)
     }
@@ -181,13 +192,25 @@ impl<P: Read + Write> DynPick<P> {
         cmd: Command,
         parse: impl Fn(&[u8]) -> Result<(T, bool), CodecError>,
     ) -> DeviceResult<T> {
+        self.transact_n(cmd, parse, MAX_ATTEMPTS)
+    }
+
+    /// [`DynPick::transact`] with `attempts` attempts.
+    fn transact_n<T>(
+        &mut self,
+        cmd: Command,
+        parse: impl Fn(&[u8]) -> Result<(T, bool), CodecError>,
+        attempts: u32,
+    ) -> DeviceResult<T> {
         let text = cmd.text();
         let bytes = cmd.encode();
         self.stats.commands += 1;
         let mut last_err = None;
-        for attempt in 0..MAX_ATTEMPTS {
-            if attempt > 0 {
-                self.stats.retries += 1;
+        for attempt in 0..attempts {
+            if attempt > 0 || std::mem::take(&mut self.dirty) {
+                if attempt > 0 {
+                    self.stats.retries += 1;
+                }
                 let quiet = DRAIN_QUIET.max(self.reply_timeout);
                 ft_common::drain(
                     &mut self.port,
@@ -240,11 +263,16 @@ impl<P: Read + Write> DynPick<P> {
                 }
             }
         }
+        self.dirty = true;
         let e = last_err.unwrap_or_else(|| {
             DeviceError::new(ErrorKind::Other, DEVICE, &text, "no attempt was made")
         });
         Err(DeviceError {
-            message: format!("{} (after {MAX_ATTEMPTS} attempts)", e.message),
+            message: format!(
+                "{} (after {attempts} attempt{})",
+                e.message,
+                if attempts == 1 { "" } else { "s" }
+            ),
             ..e
         }
         .with_hint("check baud rate (921600) and cable; the device may be resetting"))
@@ -267,6 +295,11 @@ impl<P: Read + Write> ForceSensor for DynPick<P> {
     fn read(&mut self) -> DeviceResult<Wrench> {
         let s = self.sensitivities;
         Ok(self.read_record()?.to_wrench(&s))
+    }
+
+    fn read_once(&mut self) -> DeviceResult<Wrench> {
+        let s = self.sensitivities;
+        Ok(self.read_record_once()?.to_wrench(&s))
     }
 
     /// Zeroes the device's offset (`O`). The device does not answer; the next record

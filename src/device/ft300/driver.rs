@@ -79,6 +79,9 @@ pub struct Ft300<P> {
     stats: LinkStats,
     /// Reply deadline (see [`Ft300::connect_with`]).
     reply_timeout: Duration,
+    /// An attempt failed and was not retried ([`ForceSensor::read_once`]): its reply
+    /// may still arrive, so the next command drains the input first.
+    dirty: bool,
 }
 
 fn sub(a: Wrench, b: Wrench) -> Wrench {
@@ -146,6 +149,7 @@ impl<P: Read + Write> Ft300<P> {
             offset: Wrench::default(),
             stats: LinkStats::default(),
             reply_timeout,
+            dirty: false,
         };
         d.read_raw_wrench()?;
         Ok(d)
@@ -168,12 +172,21 @@ impl<P: Read + Write> Ft300<P> {
 
     /// Reads `count` holding registers from `start` (function 03).
     pub fn read_registers(&mut self, start: u16, count: u16) -> DeviceResult<Vec<u16>> {
+        self.read_registers_n(start, count, MAX_ATTEMPTS)
+    }
+
+    fn read_registers_n(
+        &mut self,
+        start: u16,
+        count: u16,
+        attempts: u32,
+    ) -> DeviceResult<Vec<u16>> {
         let req = Request::ReadHolding {
             slave: self.slave,
             start,
             count,
         };
-        match self.transact(&req)? {
+        match self.transact_n(&req, attempts)? {
             Response::ReadHolding { values, .. } if values.len() == count as usize => Ok(values),
             other => Err(DeviceError::new(
                 ErrorKind::Protocol,
@@ -206,7 +219,11 @@ impl<P: Read + Write> Ft300<P> {
 
     /// The wrench without the tare offset.
     pub fn read_raw_wrench(&mut self) -> DeviceResult<Wrench> {
-        let v = self.read_registers(REG_WRENCH, 6)?;
+        self.read_raw_wrench_n(MAX_ATTEMPTS)
+    }
+
+    fn read_raw_wrench_n(&mut self, attempts: u32) -> DeviceResult<Wrench> {
+        let v = self.read_registers_n(REG_WRENCH, 6, attempts)?;
         let raw: [i16; 6] = [0, 1, 2, 3, 4, 5].map(|i| v[i] as i16);
         Ok(wrench_from_raw(raw))
     }
@@ -240,13 +257,20 @@ impl<P: Read + Write> Ft300<P> {
 
     /// Sends `req` and reads its reply, retrying timeouts and malformed replies.
     fn transact(&mut self, req: &Request) -> DeviceResult<Response> {
+        self.transact_n(req, MAX_ATTEMPTS)
+    }
+
+    /// [`Ft300::transact`] with `attempts` attempts.
+    fn transact_n(&mut self, req: &Request, attempts: u32) -> DeviceResult<Response> {
         let text = req.text();
         let bytes = req.encode();
         self.stats.commands += 1;
         let mut last_err = None;
-        for attempt in 0..MAX_ATTEMPTS {
-            if attempt > 0 {
-                self.stats.retries += 1;
+        for attempt in 0..attempts {
+            if attempt > 0 || std::mem::take(&mut self.dirty) {
+                if attempt > 0 {
+                    self.stats.retries += 1;
+                }
                 let quiet = DRAIN_QUIET.max(self.reply_timeout);
                 ft_common::drain(&mut self.port, quiet, DRAIN_MAX.max(quiet), DEVICE, &text)?;
             }
@@ -276,11 +300,16 @@ impl<P: Read + Write> Ft300<P> {
                 Err(e) => return Err(e),
             }
         }
+        self.dirty = true;
         let e = last_err.unwrap_or_else(|| {
             DeviceError::new(ErrorKind::Other, DEVICE, &text, "no attempt was made")
         });
         Err(DeviceError {
-            message: format!("{} (after {MAX_ATTEMPTS} attempts)", e.message),
+            message: format!(
+                "{} (after {attempts} attempt{})",
+                e.message,
+                if attempts == 1 { "" } else { "s" }
+            ),
             ..e
         }
         .with_hint("check baud rate (19200), slave address (9) and cable"))
@@ -358,6 +387,10 @@ impl<P: Read + Write> Ft300<P> {
 impl<P: Read + Write> ForceSensor for Ft300<P> {
     fn read(&mut self) -> DeviceResult<Wrench> {
         Ok(sub(self.read_raw_wrench()?, self.offset))
+    }
+
+    fn read_once(&mut self) -> DeviceResult<Wrench> {
+        Ok(sub(self.read_raw_wrench_n(1)?, self.offset))
     }
 
     /// Software tare: the mean of [`TARE_SAMPLES`] raw readings becomes the offset.
@@ -554,6 +587,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             offset: self.offset,
             stats: self.stats,
             reply_timeout: self.reply_timeout,
+            dirty: false,
         };
         Ok((d, summary))
     }
