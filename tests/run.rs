@@ -229,7 +229,12 @@ fn a_run_killed_mid_sweep_resumes_to_a_complete_journal() {
     let before = rows(&out).len();
     assert!(before >= 3 && before < n, "{before} rows before the kill");
 
-    let o = run_cli(&["run", "--resume", out.to_str().unwrap(), "--no-progress"]);
+    // Resumed from another working directory: the bench comes from the manifest,
+    // its relative scene path from the directory the run started in.
+    let o = util::run_in(
+        tmp.path(),
+        &["run", "--resume", out.to_str().unwrap(), "--no-progress"],
+    );
     assert!(o.status.success(), "{}", util::stderr(&o));
     let rows = rows(&out);
     assert_eq!(

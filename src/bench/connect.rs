@@ -186,7 +186,10 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 home: bench.home,
                 tare: bench.tare,
                 identities: json!({"stage": sid, "force_sensor": fid, "camera": format!("{spec:?}")}),
-                description: json!({"file": bench.path.display().to_string()}),
+                description: json!({
+                    "file": bench.path.display().to_string(),
+                    "cwd": working_dir(),
+                }),
                 sim: None,
             })
         }
@@ -257,11 +260,20 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                         "friction": world.friction,
                     },
                     "file": bench.path.display().to_string(),
+                    "cwd": working_dir(),
                 }),
                 sim: Some(vb),
             })
         }
     }
+}
+
+/// The working directory the bench description's relative paths are relative to
+/// (recorded so `run --resume` works from any directory).
+fn working_dir() -> Option<String> {
+    std::env::current_dir()
+        .ok()
+        .map(|d| d.display().to_string())
 }
 
 /// A temporary-directory-free default for the links of an in-process simulated bench:

@@ -78,18 +78,32 @@ pub struct Args {
     no_progress: bool,
 }
 
-/// What the manifest says about the bench, to reopen it on resume.
+/// What the manifest says about the bench, to reopen it on resume. Relative paths
+/// are taken from the directory the run started in (`bench.cwd`), so a run resumes
+/// from any working directory.
 fn bench_from_manifest(m: &Manifest) -> anyhow::Result<BenchConfig> {
+    let cwd = m.bench["cwd"].as_str().map(std::path::Path::new);
+    let resolve = |p: &str| match cwd {
+        Some(d) if std::path::Path::new(p).is_relative() => d.join(p),
+        _ => std::path::PathBuf::from(p),
+    };
     if let Some(scene) = m.bench["sim"]["scene"].as_str() {
         if let Some(file) = m.bench["file"].as_str() {
-            if file != scene && std::path::Path::new(file).exists() {
-                return Ok(BenchConfig::from_path(file)?);
+            if file != scene && resolve(file).exists() {
+                return Ok(BenchConfig::from_path(resolve(file))?);
             }
         }
-        return Ok(BenchConfig::sim(std::path::Path::new(scene)));
+        let scene = resolve(scene);
+        if !scene.exists() {
+            bail!(
+                "the run's scene {} is gone; give --sim SCENE.toml (or --bench) to resume",
+                scene.display()
+            );
+        }
+        return Ok(BenchConfig::sim(&scene));
     }
     if let Some(file) = m.bench["file"].as_str() {
-        return Ok(BenchConfig::from_path(file)?);
+        return Ok(BenchConfig::from_path(resolve(file))?);
     }
     bail!("the manifest does not say which bench ran; give --bench or --sim")
 }
