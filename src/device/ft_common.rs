@@ -414,6 +414,105 @@ pub fn show_bytes(bytes: &[u8]) -> String {
     s
 }
 
+/// The retry policy of the polled F/T drivers (DynPick, FT 300). A command is sent
+/// and its reply read before [`Retry::reply_timeout`]; a timeout or a malformed reply
+/// is retried (reads are idempotent) after draining the input until it has been
+/// quiet for a reply deadline, so a late reply is not taken for the next command's.
+/// After a command failed for good its reply may still come, so the next command
+/// drains first. Any other error (a closed port, a rejection) is returned at once.
+#[derive(Debug, Clone)]
+pub struct Retry {
+    /// Device name in errors.
+    pub device: &'static str,
+    /// Deadline for a complete reply after the command was written.
+    pub reply_timeout: Duration,
+    /// Least quiet time of a drain (raised to the reply deadline).
+    pub drain_quiet: Duration,
+    /// Least upper bound on one drain (raised to four quiet times): a device spewing
+    /// garbage must not hang the driver.
+    pub drain_max: Duration,
+    /// Hint added to a command that failed for good.
+    pub hint: &'static str,
+    /// What happened on the link.
+    pub stats: LinkStats,
+    /// A command failed for good: drain before the next one.
+    dirty: bool,
+}
+
+impl Retry {
+    /// A policy for `device` with the given deadline, drain bounds and hint.
+    pub fn new(
+        device: &'static str,
+        reply_timeout: Duration,
+        drain_quiet: Duration,
+        drain_max: Duration,
+        hint: &'static str,
+    ) -> Self {
+        Retry {
+            device,
+            reply_timeout,
+            drain_quiet,
+            drain_max,
+            hint,
+            stats: LinkStats::default(),
+            dirty: false,
+        }
+    }
+
+    /// Sends `bytes` (the command `text`) and returns what `reply` reads before the
+    /// deadline it is given, in up to `attempts` attempts. `reply` reports a late or
+    /// missing reply as [`ErrorKind::Timeout`] and a malformed one as
+    /// [`ErrorKind::Protocol`] (both retried), and counts its resyncs in the stats.
+    pub fn transact<P: Read + Write, T>(
+        &mut self,
+        port: &mut P,
+        text: &str,
+        bytes: &[u8],
+        attempts: u32,
+        mut reply: impl FnMut(&mut P, Instant, &mut LinkStats) -> DeviceResult<T>,
+    ) -> DeviceResult<T> {
+        let device = self.device;
+        self.stats.commands += 1;
+        let mut last_err = None;
+        for attempt in 0..attempts {
+            if attempt > 0 || std::mem::take(&mut self.dirty) {
+                if attempt > 0 {
+                    self.stats.retries += 1;
+                }
+                let quiet = self.drain_quiet.max(self.reply_timeout);
+                drain(port, quiet, self.drain_max.max(quiet * 4), device, text)?;
+            }
+            send(port, device, text, bytes)?;
+            let deadline = Instant::now() + self.reply_timeout;
+            match reply(port, deadline, &mut self.stats) {
+                Ok(v) => return Ok(v),
+                Err(e) if matches!(e.kind, ErrorKind::Timeout | ErrorKind::Protocol) => {
+                    if e.kind == ErrorKind::Timeout {
+                        self.stats.timeouts += 1;
+                    } else {
+                        self.stats.protocol_errors += 1;
+                    }
+                    last_err = Some(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        self.dirty = true;
+        let e = last_err.unwrap_or_else(|| {
+            DeviceError::new(ErrorKind::Other, device, text, "no attempt was made")
+        });
+        Err(DeviceError {
+            message: format!(
+                "{} (after {attempts} attempt{})",
+                e.message,
+                if attempts == 1 { "" } else { "s" }
+            ),
+            ..e
+        }
+        .with_hint(self.hint))
+    }
+}
+
 /// Link statistics a driver keeps (for the runner's journal and the tests).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct LinkStats {

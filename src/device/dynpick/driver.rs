@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use super::codec::{
     decode_filter, CodecError, Command, FilterDivider, Record, Sensitivities, RECORD_LEN,
 };
-use crate::device::ft_common::{self, show_bytes, LinkStats};
+use crate::device::ft_common::{self, show_bytes, LinkStats, Retry};
 use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
 
 /// Device name in errors.
@@ -42,13 +42,12 @@ pub struct DynPick<P> {
     port: P,
     sensitivities: Sensitivities,
     rx: Vec<u8>,
-    stats: LinkStats,
+    retry: Retry,
     last_counter: Option<u8>,
-    reply_timeout: Duration,
-    /// An attempt failed and was not retried ([`ForceSensor::read_once`]): its reply
-    /// may still arrive, so the next command drains the input first.
-    dirty: bool,
 }
+
+/// Hint on a command that failed for good.
+const HINT: &str = "check baud rate (921600) and cable; the device may be resetting";
 
 impl<P: Read + Write> DynPick<P> {
     /// Connects: discards pending input, then reads the sensitivities (`p`).
@@ -70,10 +69,8 @@ impl<P: Read + Write> DynPick<P> {
             port,
             sensitivities: Sensitivities([1.0; 6]),
             rx: Vec::new(),
-            stats: LinkStats::default(),
+            retry: Retry::new(DEVICE, reply_timeout, DRAIN_QUIET, DRAIN_MAX, HINT),
             last_counter: None,
-            reply_timeout,
-            dirty: false,
         };
         d.sensitivities = d.transact(Command::Sensitivities, |l| {
             Sensitivities::decode(l).map(|s| (s, false))
@@ -85,7 +82,7 @@ impl<P: Read + Write> DynPick<P> {
     /// retry). A simulated sensor shares the host's CPU with everything else, so the
     /// simulated bench allows more than a real sensor on its own cable needs.
     pub fn set_reply_timeout(&mut self, timeout: Duration) {
-        self.reply_timeout = timeout;
+        self.retry.reply_timeout = timeout;
     }
 
     /// The sensitivities read at connect (LSB per N, LSB per N·m).
@@ -95,7 +92,7 @@ impl<P: Read + Write> DynPick<P> {
 
     /// Link statistics (retries, timeouts, protocol errors, resyncs).
     pub fn stats(&self) -> LinkStats {
-        self.stats
+        self.retry.stats
     }
 
     /// Counter digit of the last record.
@@ -154,37 +151,6 @@ impl<P: Read + Write> DynPick<P> {
         self.port
     }
 
-    /// Reads one line (LF-terminated, LF included) before `deadline`.
-    fn read_line(&mut self, deadline: Instant, command: &str) -> DeviceResult<Vec<u8>> {
-        let mut buf = [0u8; 64];
-        loop {
-            if let Some(pos) = self.rx.iter().position(|&b| b == b'\n') {
-                let rest = self.rx.split_off(pos + 1);
-                return Ok(std::mem::replace(&mut self.rx, rest));
-            }
-            if self.rx.len() > MAX_LINE {
-                let bytes = std::mem::take(&mut self.rx);
-                return Err(DeviceError::new(
-                    ErrorKind::Protocol,
-                    DEVICE,
-                    command,
-                    format!(
-                        "no line end within {MAX_LINE} bytes: `{}`",
-                        show_bytes(&bytes)
-                    ),
-                ));
-            }
-            let n = ft_common::read_until_deadline(
-                &mut self.port,
-                &mut buf,
-                deadline,
-                DEVICE,
-                command,
-            )?;
-            self.rx.extend_from_slice(&buf[..n]);
-        }
-    }
-
     /// Sends `cmd` and parses its reply line, retrying failed attempts. `parse`
     /// returns the value and whether it had to resync (skip garbage).
     fn transact<T>(
@@ -203,79 +169,77 @@ impl<P: Read + Write> DynPick<P> {
         attempts: u32,
     ) -> DeviceResult<T> {
         let text = cmd.text();
-        let bytes = cmd.encode();
-        self.stats.commands += 1;
-        let mut last_err = None;
-        for attempt in 0..attempts {
-            if attempt > 0 || std::mem::take(&mut self.dirty) {
-                if attempt > 0 {
-                    self.stats.retries += 1;
-                }
-                let quiet = DRAIN_QUIET.max(self.reply_timeout);
-                ft_common::drain(
-                    &mut self.port,
-                    quiet,
-                    DRAIN_MAX.max(quiet * 4),
-                    DEVICE,
-                    &text,
-                )?;
-            }
-            // Bytes already buffered before the command cannot be its reply.
-            self.rx.clear();
-            ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
-            let deadline = Instant::now() + self.reply_timeout;
-            let mut bad: Option<String> = None;
-            loop {
-                match self.read_line(deadline, &text) {
-                    Ok(line) => match parse(&line) {
-                        Ok((v, resynced)) => {
-                            if resynced || bad.is_some() {
-                                self.stats.resyncs += 1;
+        let rx = &mut self.rx;
+        let timeout = self.retry.reply_timeout;
+        self.retry.transact(
+            &mut self.port,
+            &text,
+            &cmd.encode(),
+            attempts,
+            |port, deadline, stats| {
+                // Bytes read before this command cannot be its reply.
+                rx.clear();
+                let mut bad: Option<String> = None;
+                loop {
+                    match read_line(port, rx, deadline, &text) {
+                        Ok(line) => match parse(&line) {
+                            Ok((v, resynced)) => {
+                                if resynced || bad.is_some() {
+                                    stats.resyncs += 1;
+                                }
+                                return Ok(v);
                             }
-                            return Ok(v);
-                        }
-                        // Keep listening: the reply may follow a garbage line.
-                        Err(e) => bad = Some(e.to_string()),
-                    },
-                    Err(e) if e.kind == ErrorKind::Protocol => bad = Some(e.message),
-                    Err(e) if e.kind == ErrorKind::Timeout => {
-                        last_err = Some(match bad {
-                            Some(b) => {
-                                self.stats.protocol_errors += 1;
-                                DeviceError::new(ErrorKind::Protocol, DEVICE, &text, b)
-                            }
-                            None => {
-                                self.stats.timeouts += 1;
-                                DeviceError::new(
+                            // Keep listening: the reply may follow a garbage line.
+                            Err(e) => bad = Some(e.to_string()),
+                        },
+                        Err(e) if e.kind == ErrorKind::Protocol => bad = Some(e.message),
+                        Err(e) if e.kind == ErrorKind::Timeout => {
+                            return Err(match bad {
+                                Some(b) => DeviceError::new(ErrorKind::Protocol, DEVICE, &text, b),
+                                None => DeviceError::new(
                                     ErrorKind::Timeout,
                                     DEVICE,
                                     &text,
-                                    format!(
-                                        "no reply within {} ms",
-                                        self.reply_timeout.as_millis()
-                                    ),
-                                )
-                            }
-                        });
-                        break;
+                                    format!("no reply within {} ms", timeout.as_millis()),
+                                ),
+                            })
+                        }
+                        Err(e) => return Err(e),
                     }
-                    Err(e) => return Err(e),
                 }
-            }
+            },
+        )
+    }
+}
+
+/// Reads one line (LF-terminated, LF included) before `deadline`, keeping what
+/// follows it in `rx`.
+fn read_line<P: Read>(
+    port: &mut P,
+    rx: &mut Vec<u8>,
+    deadline: Instant,
+    command: &str,
+) -> DeviceResult<Vec<u8>> {
+    let mut buf = [0u8; 64];
+    loop {
+        if let Some(pos) = rx.iter().position(|&b| b == b'\n') {
+            let rest = rx.split_off(pos + 1);
+            return Ok(std::mem::replace(rx, rest));
         }
-        self.dirty = true;
-        let e = last_err.unwrap_or_else(|| {
-            DeviceError::new(ErrorKind::Other, DEVICE, &text, "no attempt was made")
-        });
-        Err(DeviceError {
-            message: format!(
-                "{} (after {attempts} attempt{})",
-                e.message,
-                if attempts == 1 { "" } else { "s" }
-            ),
-            ..e
+        if rx.len() > MAX_LINE {
+            let bytes = std::mem::take(rx);
+            return Err(DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                command,
+                format!(
+                    "no line end within {MAX_LINE} bytes: `{}`",
+                    show_bytes(&bytes)
+                ),
+            ));
         }
-        .with_hint("check baud rate (921600) and cable; the device may be resetting"))
+        let n = ft_common::read_until_deadline(port, &mut buf, deadline, DEVICE, command)?;
+        rx.extend_from_slice(&buf[..n]);
     }
 }
 

@@ -25,7 +25,7 @@ use super::codec::{
     REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS, STOP_STREAM,
     STREAM_START,
 };
-use crate::device::ft_common::{self, LinkStats};
+use crate::device::ft_common::{self, LinkStats, Retry};
 use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
 
 /// Device name in errors.
@@ -76,13 +76,11 @@ pub struct Ft300<P> {
     port: P,
     slave: u8,
     offset: Wrench,
-    stats: LinkStats,
-    /// Reply deadline (see [`Ft300::connect_with`]).
-    reply_timeout: Duration,
-    /// An attempt failed and was not retried ([`ForceSensor::read_once`]): its reply
-    /// may still arrive, so the next command drains the input first.
-    dirty: bool,
+    retry: Retry,
 }
+
+/// Hint on a command that failed for good.
+const HINT: &str = "check baud rate (19200), slave address (9) and cable";
 
 fn sub(a: Wrench, b: Wrench) -> Wrench {
     Wrench {
@@ -147,9 +145,7 @@ impl<P: Read + Write> Ft300<P> {
             port,
             slave,
             offset: Wrench::default(),
-            stats: LinkStats::default(),
-            reply_timeout,
-            dirty: false,
+            retry: Retry::new(DEVICE, reply_timeout, DRAIN_QUIET, DRAIN_MAX, HINT),
         };
         d.read_raw_wrench()?;
         Ok(d)
@@ -157,7 +153,7 @@ impl<P: Read + Write> Ft300<P> {
 
     /// Link statistics.
     pub fn stats(&self) -> LinkStats {
-        self.stats
+        self.retry.stats
     }
 
     /// The software tare offset subtracted from readings.
@@ -260,126 +256,102 @@ impl<P: Read + Write> Ft300<P> {
         self.transact_n(req, MAX_ATTEMPTS)
     }
 
-    /// [`Ft300::transact`] with `attempts` attempts.
+    /// [`Ft300::transact`] with `attempts` attempts. A Modbus exception is a
+    /// rejection, never retried.
     fn transact_n(&mut self, req: &Request, attempts: u32) -> DeviceResult<Response> {
         let text = req.text();
-        let bytes = req.encode();
-        self.stats.commands += 1;
-        let mut last_err = None;
-        for attempt in 0..attempts {
-            if attempt > 0 || std::mem::take(&mut self.dirty) {
-                if attempt > 0 {
-                    self.stats.retries += 1;
-                }
-                let quiet = DRAIN_QUIET.max(self.reply_timeout);
-                ft_common::drain(&mut self.port, quiet, DRAIN_MAX.max(quiet), DEVICE, &text)?;
-            }
-            ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
-            match self.read_reply(&text) {
-                Ok(Response::Exception { function, code, .. }) => {
-                    return Err(DeviceError::new(
-                        ErrorKind::Rejected,
-                        DEVICE,
-                        &text,
-                        format!(
-                            "modbus exception {:02x} ({}) to function {function:02x}",
-                            code.byte(),
-                            code.describe()
-                        ),
-                    ))
-                }
-                Ok(r) => return Ok(r),
-                Err(e) if matches!(e.kind, ErrorKind::Timeout | ErrorKind::Protocol) => {
-                    if e.kind == ErrorKind::Timeout {
-                        self.stats.timeouts += 1;
-                    } else {
-                        self.stats.protocol_errors += 1;
-                    }
-                    last_err = Some(e);
-                }
-                Err(e) => return Err(e),
-            }
+        let (slave, timeout) = (self.slave, self.retry.reply_timeout);
+        let r = self.retry.transact(
+            &mut self.port,
+            &text,
+            &req.encode(),
+            attempts,
+            |port, deadline, stats| read_reply(port, slave, deadline, timeout, stats, &text),
+        )?;
+        match r {
+            Response::Exception { function, code, .. } => Err(DeviceError::new(
+                ErrorKind::Rejected,
+                DEVICE,
+                &text,
+                format!(
+                    "modbus exception {:02x} ({}) to function {function:02x}",
+                    code.byte(),
+                    code.describe()
+                ),
+            )),
+            r => Ok(r),
         }
-        self.dirty = true;
-        let e = last_err.unwrap_or_else(|| {
-            DeviceError::new(ErrorKind::Other, DEVICE, &text, "no attempt was made")
-        });
-        Err(DeviceError {
-            message: format!(
-                "{} (after {attempts} attempt{})",
-                e.message,
-                if attempts == 1 { "" } else { "s" }
-            ),
-            ..e
-        }
-        .with_hint("check baud rate (19200), slave address (9) and cable"))
     }
+}
 
-    /// Reads one reply frame addressed to us before the deadline, resynchronising on
-    /// garbage: the result is Timeout if nothing framed arrived, Protocol if only
-    /// frames with a bad CRC did.
-    fn read_reply(&mut self, text: &str) -> DeviceResult<Response> {
-        let timeout = self.reply_timeout;
-        let deadline = Instant::now() + timeout;
-        let mut buf: Vec<u8> = Vec::with_capacity(64);
-        let mut chunk = [0u8; 64];
-        let mut bad: Option<String> = None;
-        let mut skipped = false;
+/// Reads one reply frame addressed to `slave` before `deadline` (`timeout` after the
+/// request), resynchronising on garbage: the result is Timeout if nothing framed
+/// arrived, Protocol if only frames with a bad CRC did.
+fn read_reply<P: Read>(
+    port: &mut P,
+    slave: u8,
+    deadline: Instant,
+    timeout: Duration,
+    stats: &mut LinkStats,
+    text: &str,
+) -> DeviceResult<Response> {
+    let mut buf: Vec<u8> = Vec::with_capacity(64);
+    let mut chunk = [0u8; 64];
+    let mut bad: Option<String> = None;
+    let mut skipped = false;
+    loop {
+        // Frame what we have.
         loop {
-            // Frame what we have.
-            loop {
-                while !buf.is_empty() && buf[0] != self.slave {
+            while !buf.is_empty() && buf[0] != slave {
+                buf.remove(0);
+                skipped = true;
+            }
+            match Response::frame_len(&buf) {
+                None => break,
+                Some(Err(_)) => {
                     buf.remove(0);
                     skipped = true;
                 }
-                match Response::frame_len(&buf) {
-                    None => break,
-                    Some(Err(_)) => {
+                Some(Ok(n)) if buf.len() >= n => match Response::decode(&buf[..n]) {
+                    Ok(r) => {
+                        if skipped || bad.is_some() {
+                            stats.resyncs += 1;
+                        }
+                        return Ok(r);
+                    }
+                    Err(e) => {
+                        bad = Some(e.to_string());
                         buf.remove(0);
                         skipped = true;
                     }
-                    Some(Ok(n)) if buf.len() >= n => match Response::decode(&buf[..n]) {
-                        Ok(r) => {
-                            if skipped || bad.is_some() {
-                                self.stats.resyncs += 1;
-                            }
-                            return Ok(r);
-                        }
-                        Err(e) => {
-                            bad = Some(e.to_string());
-                            buf.remove(0);
-                            skipped = true;
-                        }
-                    },
-                    Some(Ok(_)) => break,
-                }
+                },
+                Some(Ok(_)) => break,
             }
-            match ft_common::read_until_deadline(&mut self.port, &mut chunk, deadline, DEVICE, text)
-            {
-                Ok(n) => buf.extend_from_slice(&chunk[..n]),
-                Err(e) if e.kind == ErrorKind::Timeout => {
-                    return Err(match bad {
-                        Some(b) => DeviceError::new(ErrorKind::Protocol, DEVICE, text, b),
-                        None if !buf.is_empty() => DeviceError::new(
-                            ErrorKind::Timeout,
-                            DEVICE,
-                            text,
-                            format!(
-                                "incomplete reply within {} ms: `{}`",
-                                timeout.as_millis(),
-                                show_bytes_hex(&buf)
-                            ),
+        }
+        match ft_common::read_until_deadline(port, &mut chunk, deadline, DEVICE, text) {
+            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            Err(e) if e.kind == ErrorKind::Timeout => {
+                return Err(match bad {
+                    Some(b) => DeviceError::new(ErrorKind::Protocol, DEVICE, text, b),
+                    None if !buf.is_empty() => DeviceError::new(
+                        ErrorKind::Timeout,
+                        DEVICE,
+                        text,
+                        format!(
+                            "incomplete reply within {} ms: `{}`",
+                            timeout.as_millis(),
+                            show_bytes_hex(&buf)
                         ),
-                        None => DeviceError::new(
-                            ErrorKind::Timeout,
-                            DEVICE,
-                            text,
-                            format!("no reply within {} ms", timeout.as_millis()),
-                        ),
-                    })
-                }
-                Err(e) => return Err(e),
+                    ),
+                    None => DeviceError::new(
+                        ErrorKind::Timeout,
+                        DEVICE,
+                        text,
+                        format!("no reply within {} ms", timeout.as_millis()),
+                    ),
+                })
             }
+            Err(e) => return Err(e),
         }
     }
 }
@@ -448,8 +420,8 @@ pub struct Ft300Stream<P: Send + 'static> {
     thread: Option<JoinHandle<(P, StreamDecoder)>>,
     slave: u8,
     offset: Wrench,
-    stats: LinkStats,
-    reply_timeout: Duration,
+    /// The polled link's retry policy and statistics, restored by [`Ft300Stream::stop`].
+    retry: Retry,
     last_seq: u64,
 }
 
@@ -471,8 +443,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             thread: Some(thread),
             slave,
             offset: d.offset,
-            stats: d.stats,
-            reply_timeout: d.reply_timeout,
+            retry: d.retry,
             last_seq: 0,
         }
     }
@@ -585,9 +556,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             port,
             slave: self.slave,
             offset: self.offset,
-            stats: self.stats,
-            reply_timeout: self.reply_timeout,
-            dirty: false,
+            retry: self.retry.clone(),
         };
         Ok((d, summary))
     }
