@@ -52,7 +52,8 @@ pub enum JournalError {
 }
 
 /// One completed measurement. Forces in N, torques in N·m, positions in mm, times in s.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// `Default` is an all-zero, unsettled row without frames (a base for building rows).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct JournalRow {
     /// Setpoint index in the plan's expanded list.
     pub index: usize,
@@ -424,17 +425,11 @@ mod tests {
     fn row(index: usize) -> JournalRow {
         JournalRow {
             index,
-            trial: 0,
             swept_value: index as f64 * 50.0,
             target_normal_n: 0.49,
-            target_tx_n: 0.0,
-            target_ty_n: 0.0,
             fx_n: 0.001,
             fy_n: -0.002,
             fz_n: 0.488,
-            mx_nm: 0.0,
-            my_nm: 0.0,
-            mz_nm: 0.0,
             fx_sd_n: 1e-3,
             fy_sd_n: 1e-3,
             fz_sd_n: 2e-3,
@@ -443,8 +438,6 @@ mod tests {
             stage_z_mm: 1.25,
             settled: true,
             frames: format!("frames/{index:05}_0.png"),
-            fsum_x_n: 0.0,
-            fsum_y_n: 0.0,
             fsum_z_n: 0.47,
             t_move_s: 0.5,
             t_settle_s: 0.2,
@@ -452,6 +445,7 @@ mod tests {
             t_track_s: 1e-4,
             t_solve_s: 1e-5,
             completed_at: "2026-11-22T00:00:00Z".into(),
+            ..JournalRow::default()
         }
     }
 
