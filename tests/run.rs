@@ -498,6 +498,24 @@ fn malformed_plans_and_bench_files_are_rejected_with_clear_errors() {
 
     let o = run_cli(&["run", "experiments/fig7_magnitude.toml", "--out", "/tmp/x"]);
     assert!(util::stderr(&o).contains("--bench"), "{}", util::stderr(&o));
+
+    // A bench that cannot be opened: a clear error, and no run directory left behind.
+    let out = tmp.path().join("never");
+    let o = run_cli(&[
+        "run",
+        "experiments/fig7_magnitude.toml",
+        "--sim",
+        "experiments/scenes/no_such_scene.toml",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    let e = util::stderr(&o);
+    assert!(
+        e.contains("cannot open the bench") && e.contains("no_such_scene.toml"),
+        "{e}"
+    );
+    assert!(!out.exists(), "a failed start leaves no run directory");
 }
 
 #[test]

@@ -210,6 +210,9 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         (None, Some(d)) => (d.clone(), true),
         _ => bail!("give --out DIR for a new run or --resume DIR to continue one"),
     };
+    // Created here (the simulated bench's links live in it), removed again if the
+    // bench cannot be opened: a failed start leaves nothing behind.
+    let created = !resume && !dir.exists();
     if !resume {
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create run directory {}", dir.display()))?;
@@ -225,7 +228,16 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         start_over_mm: Some(plan.approach_position_mm),
         ..SimOptions::default()
     };
-    let mut c = connect::connect(&bench, &sim_options).context("cannot open the bench")?;
+    let mut c = match connect::connect(&bench, &sim_options) {
+        Ok(c) => c,
+        Err(e) => {
+            if created {
+                let _ = std::fs::remove_dir(&sim_options.links);
+                let _ = std::fs::remove_dir(&dir);
+            }
+            return Err(anyhow::Error::new(e).context("cannot open the bench"));
+        }
+    };
     let options = RunOptions {
         dir: dir.clone(),
         resume,
