@@ -694,4 +694,15 @@ fn a_bench_file_with_a_zaber_stage_and_an_ft300_runs_the_same_plan() {
     let m = Manifest::read(&out).unwrap();
     assert_eq!(m.devices["stage"]["protocol"], "zaber");
     assert_eq!(m.devices["force_sensor"]["protocol"], "ft300");
+    assert_eq!(
+        m.devices["force_sensor"]["mode"], "stream",
+        "runs read the stream"
+    );
+    assert!(
+        m.devices["force_sensor"]["info"]
+            .as_str()
+            .is_some_and(|i| i.contains("serial")),
+        "identity read before the stream started: {}",
+        m.devices["force_sensor"]
+    );
 }

@@ -138,9 +138,12 @@ fn open_ft(
                 Ft300::connect_with(p, crate::device::ft300::codec::SLAVE_ADDRESS, reply_timeout)
                     .map_err(dev("force sensor"))?;
             let info = d.info().ok().map(|i| format!("{i:?}"));
+            // Runs read the stream (100 Hz, the newest frame), as Robotiq recommends for
+            // acquisition: polling at 19200 baud tops out at 77 Hz.
+            let s = d.start_stream().map_err(dev("force sensor"))?;
             (
-                Box::new(d),
-                json!({"protocol": "ft300", "port": port, "info": info}),
+                Box::new(s),
+                json!({"protocol": "ft300", "port": port, "info": info, "mode": "stream"}),
             )
         }
     })

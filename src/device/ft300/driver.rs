@@ -465,10 +465,14 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
         g.samples.drain(..).collect()
     }
 
-    /// The newest sample, waiting up to [`STREAM_READ_TIMEOUT`] for one newer than the
+    /// The newest sample, waiting up to [`STREAM_READ_TIMEOUT`] (or the polled link's
+    /// longer reply deadline, see [`Ft300::connect_with`]) for one newer than the
     /// last returned. Samples in between are skipped (see [`Self::take_samples`]).
     pub fn read_sample(&mut self) -> DeviceResult<StreamSample> {
-        let deadline = Instant::now() + STREAM_READ_TIMEOUT;
+        // A polled link given a longer reply deadline (the simulated bench) waits as
+        // long for a frame.
+        let timeout = STREAM_READ_TIMEOUT.max(self.retry.reply_timeout);
+        let deadline = Instant::now() + timeout;
         let (m, cv) = &*self.shared;
         let mut g = m.lock().unwrap_or_else(|p| p.into_inner());
         loop {
@@ -487,7 +491,7 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
                     ErrorKind::Timeout,
                     DEVICE,
                     "stream",
-                    format!("no new frame within {} ms", STREAM_READ_TIMEOUT.as_millis()),
+                    format!("no new frame within {} ms", timeout.as_millis()),
                 ));
             }
             g = cv
