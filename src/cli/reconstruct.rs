@@ -75,14 +75,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let sites = frame.sites(&sensor);
         let u = frame.u_mm();
         let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
-        if !cache.contains_key(&key) {
-            let problem = Problem::new(&sensor, &sites);
-            let solver = solve::precompute(&problem, &config, Some(&u))
-                .with_context(|| format!("cannot set up the {} solver{label}", config.method))?;
-            report_diagnostics(solver.diagnostics());
-            cache.insert(key.clone(), solver);
-        }
-        let solver = cache.get_mut(&key).expect("inserted above");
+        let solver = match cache.entry(key) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => {
+                let problem = Problem::new(&sensor, &sites);
+                let solver = solve::precompute(&problem, &config, Some(&u)).with_context(|| {
+                    format!("cannot set up the {} solver{label}", config.method)
+                })?;
+                report_diagnostics(solver.diagnostics());
+                e.insert(solver)
+            }
+        };
         let mut f = vec![0.0; solver.n_outputs()];
         solver
             .apply(&u, &mut f)
