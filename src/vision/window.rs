@@ -656,10 +656,11 @@ impl Window {
         let mut j = [[0.0f64; 2]; 2];
         let mut kx = [[0.0f64; 2]; 2];
         let mut ky = [[0.0f64; 2]; 2];
+        let sym = symmetries();
         for (k, row) in self.rows.iter().enumerate() {
             let dy = k as i32 - h;
             for dx in -row.ap..=row.ap {
-                if !keep(dx, dy) {
+                if hidden(cx + dx, cy + dy) {
                     continue;
                 }
                 let (fx, fy) = (dx as f64, dy as f64);
@@ -674,17 +675,26 @@ impl Window {
                 let exy = 0.25
                     * (score(dx + 1, dy + 1) - score(dx + 1, dy - 1) - score(dx - 1, dy + 1)
                         + score(dx - 1, dy - 1));
-                kept += 1.0;
-                m0 += s;
-                mx += fx * s;
-                my += fy * s;
-                for (a_, w) in [fx, fy].into_iter().enumerate() {
-                    j[a_][0] -= w * ex;
-                    j[a_][1] -= w * ey;
-                    kx[a_][0] -= w * exx;
-                    kx[a_][1] -= w * exy;
-                    ky[a_][0] -= w * exy;
-                    ky[a_][1] -= w * eyy;
+                if !hidden(cx - dx, cy - dy) {
+                    kept += 1.0;
+                    m0 += s;
+                }
+                for (sm, wm) in &sym {
+                    let (ix, iy) = (sm[0][0] * dx + sm[0][1] * dy, sm[1][0] * dx + sm[1][1] * dy);
+                    if hidden(cx + ix, cy + iy) {
+                        continue;
+                    }
+                    let w = [wm[0][0] * fx + wm[0][1] * fy, wm[1][0] * fx + wm[1][1] * fy];
+                    mx += w[0] * s;
+                    my += w[1] * s;
+                    for (a_, w) in w.into_iter().enumerate() {
+                        j[a_][0] -= w * ex;
+                        j[a_][1] -= w * ey;
+                        kx[a_][0] -= w * exx;
+                        kx[a_][1] -= w * exy;
+                        ky[a_][0] -= w * exy;
+                        ky[a_][1] -= w * eyy;
+                    }
                 }
             }
         }
@@ -873,6 +883,19 @@ unsafe fn sums_u8_avx512<const C: usize>(
     }
     let hsum = |v: __m512i| -> i64 { _mm512_reduce_add_epi32(v) as i64 };
     [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
+}
+
+/// The pixel-grid symmetries `S` a disc shares (point reflection, reflections about
+/// the axes and the diagonals) with the weights `(p − S·p)/2` of their moments.
+#[inline(always)]
+fn symmetries() -> [([[i32; 2]; 2], [[f64; 2]; 2]); 5] {
+    [
+        ([[-1, 0], [0, -1]], [[1.0, 0.0], [0.0, 1.0]]),
+        ([[-1, 0], [0, 1]], [[1.0, 0.0], [0.0, 0.0]]),
+        ([[1, 0], [0, -1]], [[0.0, 0.0], [0.0, 1.0]]),
+        ([[0, 1], [1, 0]], [[0.5, -0.5], [-0.5, 0.5]]),
+        ([[0, -1], [-1, 0]], [[0.5, 0.5], [0.5, 0.5]]),
+    ]
 }
 
 /// `x.round() as i32` (half away from zero; NaN → 0) without a call: baseline x86-64
