@@ -975,8 +975,9 @@ unsafe fn sums_u8_avx512<const C: usize>(
 }
 
 /// Largest window half-size whose scores and foreign-disc mask
-/// [`Window::locate_masked`] tabulates on the stack (a 65 × 65 score table, 17 kB).
-const MAX_TABLE_HALF: i32 = 31;
+/// [`Window::locate_masked`] tabulates on the stack (a 33 × 33 score table, 4.4 kB,
+/// zeroed per call: the paper sensor's windows have half-size 10–11).
+const MAX_TABLE_HALF: i32 = 15;
 
 /// A pixel-grid symmetry `S` (integer matrix) and its moment weight `W_S = (I − S)/2`.
 type Symmetry = ([[i32; 2]; 2], [[f64; 2]; 2]);
