@@ -1,5 +1,7 @@
 //! Vision benchmarks on the paper geometry (430×340 px, 260 markers in two layers):
-//! reference detection, and tracking one 8-bit frame per-window and frame-to-frame.
+//! reference detection, and tracking one 8-bit frame per-window and frame-to-frame,
+//! and per-window with the two layers slid into one another (every marker partly
+//! covered: the overlap path, `Window::locate_masked`, runs for all 260).
 //! Frames come from the `sim` ideal renderer with σ = 2 pixel noise added here.
 //! Paper (Table II): 2.9 ms for tracking + reconstruction on a 1.8 GHz Pentium 4.
 //!
@@ -119,7 +121,42 @@ fn tracking<M: Measurement + 'static>(c: &mut Criterion<M>, prefix: &str) {
     );
 }
 
-criterion_group!(benches, vision);
+/// The blue layer slid diagonally until each blue marker's centre is 10 px from its
+/// red neighbour's (as `tests/vision.rs`, overlapping layers): 8-bit, noise-free.
+fn overlapping_frame() -> RgbImage {
+    use tactbench::sim::render::{reference_markers, render_sensor, to_rgb8};
+    let s = paper_sensor();
+    let slide = (15.0 * std::f64::consts::SQRT_2 - 10.0) / std::f64::consts::SQRT_2;
+    let u_mm: Vec<f64> = reference_markers(&s)
+        .iter()
+        .flat_map(|m| {
+            let u = if m.layer == 0 { slide } else { 0.0 };
+            [u * s.camera.mm_per_px, u * s.camera.mm_per_px]
+        })
+        .collect();
+    to_rgb8(&render_sensor(&s, Some(&u_mm)).unwrap())
+}
+
+/// Per-window tracking of [`overlapping_frame`]: the overlap path's cost.
+fn overlap(c: &mut Criterion) {
+    let s = paper_sensor();
+    let reference = frame(0.0, 1);
+    let r = detect(&FrameView::rgb8(&reference), &s, &DetectConfig::default()).unwrap();
+    let mut t = Tracker::new(
+        r,
+        TrackConfig {
+            mode: TrackMode::PerWindow,
+            ..TrackConfig::default()
+        },
+    );
+    let f = overlapping_frame();
+    let view = FrameView::rgb8(&f);
+    c.bench_function("vision/track_overlapping_layers_paper_260_markers", |b| {
+        b.iter(|| t.track(black_box(&view)).unwrap().len())
+    });
+}
+
+criterion_group!(benches, vision, overlap);
 criterion_group! {
     name = cpu;
     config = Criterion::default().with_measurement(CpuTime);

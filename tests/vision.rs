@@ -478,7 +478,12 @@ fn sim_ideal_render_tracked_to_0_005_px() {
 /// of it when `gap_px` < 12. Returns the reference and loaded frames' samples (8-bit
 /// with σ = 2 noise when `noisy`, else noise-free 16-bit as native-endian bytes), the
 /// true displacements, px, in reference order, and whether the frames are 8-bit.
-fn overlap_frames(gap_px: f64, noisy: bool, seed: u64) -> (Vec<u8>, Vec<u8>, Vec<[f64; 2]>, bool) {
+fn overlap_frames(
+    gap_px: f64,
+    base_px: [f64; 2],
+    noisy: bool,
+    seed: u64,
+) -> (Vec<u8>, Vec<u8>, Vec<[f64; 2]>, bool) {
     use tactbench::sim::render::{reference_markers, render_sensor, to_rgb16, to_rgb8};
     let s = paper_sensor();
     let markers = reference_markers(&s);
@@ -488,9 +493,9 @@ fn overlap_frames(gap_px: f64, noisy: bool, seed: u64) -> (Vec<u8>, Vec<u8>, Vec
         .iter()
         .map(|m| {
             if m.layer == 0 {
-                [slide, slide]
+                [slide + base_px[0], slide + base_px[1]]
             } else {
-                [0.0, 0.0]
+                base_px
             }
         })
         .collect();
@@ -534,9 +539,14 @@ fn overlap_u16(bytes: &[u8], eight_bit: bool) -> Vec<u16> {
 
 /// Per-layer errors of tracking the overlap frames of `gap_px`: (worst |error|,
 /// mean x error, SD of x error, merged count) per layer, in per-window mode.
-fn overlap_errors(gap_px: f64, noisy: bool, seed: u64) -> [(f64, f64, f64, usize); 2] {
+fn overlap_errors(
+    gap_px: f64,
+    base_px: [f64; 2],
+    noisy: bool,
+    seed: u64,
+) -> [(f64, f64, f64, usize); 2] {
     let s = paper_sensor();
-    let (rb, fb, u_px, eight) = overlap_frames(gap_px, noisy, seed);
+    let (rb, fb, u_px, eight) = overlap_frames(gap_px, base_px, noisy, seed);
     let r16 = overlap_u16(&rb, eight);
     let f16 = overlap_u16(&fb, eight);
     let (w, h) = (s.camera.width_px, s.camera.height_px);
@@ -580,42 +590,57 @@ fn overlap_errors(gap_px: f64, noisy: bool, seed: u64) -> [(f64, f64, f64, usize
 }
 
 /// A blue disc partly covered by a red one (the layers slid 5.8–8.1 px per axis
-/// relative to each other, every blue marker 13 to 10 px from a red marker's centre,
-/// i.e. up to 2 px of the 12 px diameters overlapping): both layers' markers stay ok
-/// with their true displacements. Bounds: noise-free 16-bit, worst error ≤ 0.02 px;
-/// 8-bit with σ = 2 noise, per layer |mean x error| ≤ 0.02 px, SD ≤ 0.03 px, worst
-/// error ≤ 0.1 px (no overlap handling: the blue centroid follows its visible part).
+/// relative to each other, every blue marker 13 to 9.8 px from a red marker's centre,
+/// i.e. up to 2.2 px of the 12 px diameters overlapping): both layers' markers stay ok
+/// with their true displacements, at several sub-pixel phases of the two layers (a
+/// common offset of both; all markers of a frame share one phase, the pitch being a
+/// whole number of pixels). Bounds: noise-free 16-bit, worst error ≤ 0.02 px at the
+/// layers' rest phase and ≤ 0.03 px at the others (measured ≤ 0.027 px over gaps
+/// 9.6–13 px in 0.1 px steps and five phases; the point-mirror-only masking of before
+/// reached 0.054 px); 8-bit with σ = 2 noise, per layer |mean x error| ≤ 0.02 px,
+/// SD ≤ 0.03 px, worst error ≤ 0.1 px.
 #[test]
 fn markers_of_two_layers_partly_overlapping_keep_their_centroids() {
-    for gap in [13.0, 12.0, 11.0, 10.0] {
-        let e = overlap_errors(gap, false, 0);
-        for (layer, (worst, _, _, merged)) in e.into_iter().enumerate() {
-            let what =
-                format!("16-bit, gap {gap} px, layer {layer}: worst {worst} px, {merged} merged");
-            eprintln!("{what}");
-            assert!(merged == 0 && worst <= 0.02, "{what}");
-        }
-        let e = overlap_errors(gap, true, 300 + gap as u64);
-        for (layer, (worst, mean, sd, merged)) in e.into_iter().enumerate() {
-            let what = format!(
-                "8-bit σ=2, gap {gap} px, layer {layer}: x error {mean}±{sd}, worst {worst} px, {merged} merged"
-            );
-            eprintln!("{what}");
-            assert!(
-                merged == 0 && mean.abs() <= 0.02 && sd <= 0.03 && worst <= 0.1,
-                "{what}"
-            );
+    for (base, bound) in [([0.0, 0.0], 0.02), ([0.5, 0.3], 0.03), ([0.4, 0.9], 0.03)] {
+        for gap in [13.0, 12.0, 11.0, 10.0, 9.8] {
+            let e = overlap_errors(gap, base, false, 0);
+            for (layer, (worst, _, _, merged)) in e.into_iter().enumerate() {
+                let what = format!(
+                    "16-bit, phase {base:?}, gap {gap} px, layer {layer}: worst {worst} px, {merged} merged"
+                );
+                eprintln!("{what}");
+                assert!(merged == 0 && worst <= bound, "{what}");
+            }
+            let e = overlap_errors(gap, base, true, 300 + (10.0 * gap) as u64);
+            for (layer, (worst, mean, sd, merged)) in e.into_iter().enumerate() {
+                let what = format!(
+                    "8-bit σ=2, phase {base:?}, gap {gap} px, layer {layer}: x error {mean}±{sd}, worst {worst} px, {merged} merged"
+                );
+                eprintln!("{what}");
+                assert!(
+                    merged == 0 && mean.abs() <= 0.02 && sd <= 0.03 && worst <= 0.1,
+                    "{what}"
+                );
+            }
         }
     }
 }
 
-/// Deeper overlaps (centres 9, 7 and 5 px apart, a quarter of the diameters or more
-/// overlapping) are flagged merged in both layers rather than measured.
+/// Deeper overlaps (centres 9.5, 9, 8, 7 and 5 px apart, a fifth of the diameters or
+/// more overlapping) are flagged merged in both layers rather than measured: at 8–9.5 px
+/// the masked centroid still errs by up to 0.053 px noise-free at some phases (0.11 px
+/// with σ = 2 noise), see `window.rs`.
 #[test]
 fn markers_of_two_layers_overlapping_deeply_are_merged() {
-    for gap in [9.0, 7.0, 5.0] {
-        let e = overlap_errors(gap, true, 400 + gap as u64);
-        assert_eq!((e[0].3, e[1].3), (130, 130), "gap {gap} px: {e:?}");
+    for base in [[0.0, 0.0], [0.5, 0.3]] {
+        for gap in [9.5, 9.0, 8.0, 7.0, 5.0] {
+            let e = overlap_errors(gap, base, true, 400 + gap as u64);
+            assert_eq!(
+                (e[0].3, e[1].3),
+                (130, 130),
+                "phase {base:?}, gap {gap} px: {e:?}"
+            );
+        }
     }
 }
 
