@@ -2,22 +2,23 @@
 //! simulated bench, reports, both studies) and the README puts a figure of ours beside
 //! each of the paper's.
 
+use std::path::Path;
+use std::process::Output;
+
 use crate::util;
+
+/// `tactbench reproduce-paper --out OUT ARGS…` from the crate root.
+fn reproduce(out: &Path, args: &[&str]) -> Output {
+    let mut all = vec!["reproduce-paper", "--out", out.to_str().unwrap()];
+    all.extend_from_slice(args);
+    util::run_in(&util::root(""), &all)
+}
 
 #[test]
 fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("paper");
-    let o = util::run_in(
-        &util::root(""),
-        &[
-            "reproduce-paper",
-            "--out",
-            out.to_str().unwrap(),
-            "--quick",
-            "2",
-        ],
-    );
+    let o = reproduce(&out, &["--quick", "2"]);
     assert!(
         o.status.success(),
         "reproduce-paper failed:\n{}",
@@ -80,17 +81,7 @@ fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
 
     // --readme-only rewrites the README from the outputs already there.
     std::fs::remove_file(out.join("README.md")).unwrap();
-    let o = util::run_in(
-        &util::root(""),
-        &[
-            "reproduce-paper",
-            "--out",
-            out.to_str().unwrap(),
-            "--quick",
-            "2",
-            "--readme-only",
-        ],
-    );
+    let o = reproduce(&out, &["--quick", "2", "--readme-only"]);
     assert!(
         o.status.success(),
         "--readme-only failed:\n{}",
@@ -109,16 +100,7 @@ fn reproduce_paper_refuses_to_replace_a_directory_that_is_not_a_run() {
     let precious = out.join("runs").join("table1_displacement");
     std::fs::create_dir_all(&precious).unwrap();
     std::fs::write(precious.join("notes.txt"), "keep me").unwrap();
-    let o = util::run_in(
-        &util::root(""),
-        &[
-            "reproduce-paper",
-            "--out",
-            out.to_str().unwrap(),
-            "--quick",
-            "1",
-        ],
-    );
+    let o = reproduce(&out, &["--quick", "1"]);
     assert!(!o.status.success());
     let err = util::stderr(&o);
     assert!(err.contains("is not a run directory"), "{err}");

@@ -181,28 +181,34 @@ fn every_plan_in_experiments_runs_end_to_end_on_the_simulated_bench() {
     }
 }
 
-#[test]
-fn a_run_killed_mid_sweep_resumes_to_a_complete_journal() {
-    let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().join("run");
-    let n = 8;
-    let mut child = Command::new(util::bin())
+/// Starts the simulated Fig. 7 run (first `limit` setpoints) into `out` as a child
+/// process, for the tests that kill or interrupt it.
+fn spawn_fig7_run(out: &Path, limit: usize, stderr: Stdio) -> std::process::Child {
+    Command::new(util::bin())
         .args([
             "run",
             "experiments/fig7_magnitude.toml",
             "--sim",
             "experiments/scenes/fig7_hemisphere_ramp.toml",
             "--limit",
-            &n.to_string(),
+            &limit.to_string(),
             "--no-progress",
             "--out",
         ])
-        .arg(&out)
+        .arg(out)
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(stderr)
         .spawn()
-        .unwrap();
+        .unwrap()
+}
+
+#[test]
+fn a_run_killed_mid_sweep_resumes_to_a_complete_journal() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let n = 8;
+    let mut child = spawn_fig7_run(&out, n, Stdio::null());
     let t = Instant::now();
     loop {
         let done = std::fs::read_to_string(out.join("journal.csv"))
@@ -601,23 +607,7 @@ fn scene_bench_effects_are_validated() {
 fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("run");
-    let child = Command::new(util::bin())
-        .args([
-            "run",
-            "experiments/fig7_magnitude.toml",
-            "--sim",
-            "experiments/scenes/fig7_hemisphere_ramp.toml",
-            "--limit",
-            "6",
-            "--no-progress",
-            "--out",
-        ])
-        .arg(&out)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let child = spawn_fig7_run(&out, 6, Stdio::piped());
     let t = Instant::now();
     while rows_or_zero(&out) < 2 {
         assert!(

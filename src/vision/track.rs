@@ -148,7 +148,7 @@ const MAX_FOREIGN: usize = 4;
 const MIN_VISIBLE: f64 = 0.2;
 
 /// Markers of two layers closer than this fraction of the sum of their radii are
-/// merged (9.6 px for two 6 px discs). On the `sim` renders (`tests/vision.rs`,
+/// merged (9.6 px for two discs of radius 6 px). On the `sim` renders (`tests/vision.rs`,
 /// overlapping layers, five sub-pixel phases) the masked centroid errs by ≤ 0.027 px
 /// noise-free above that, but by up to 0.053 px at 8–9.5 px apart, and with σ = 2
 /// noise in 8 bits by 0.11 px (mean 0.033 px) at 9 px: not accurate enough to report.

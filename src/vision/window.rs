@@ -1054,20 +1054,27 @@ mod tests {
     use super::*;
 
     /// An anti-aliased disc (16×16 supersampled) of colour score `amp` in the blue channel.
+    /// Area of pixel `(x, y)` inside the disc of centre `c`, radius `r` (16×16
+    /// supersampled).
+    fn coverage(x: usize, y: usize, c: [f64; 2], r: f64) -> f64 {
+        let mut cov = 0.0;
+        for sy in 0..16 {
+            for sx in 0..16 {
+                let px = x as f64 + (sx as f64 + 0.5) / 16.0 - 0.5 - c[0];
+                let py = y as f64 + (sy as f64 + 0.5) / 16.0 - 0.5 - c[1];
+                if px * px + py * py <= r * r {
+                    cov += 1.0 / 256.0;
+                }
+            }
+        }
+        cov
+    }
+
     fn disc(w: usize, h: usize, c: [f64; 2], r: f64, amp: f64, bg: f64) -> Vec<u16> {
         let mut d = vec![0u16; w * h * 3];
         for y in 0..h {
             for x in 0..w {
-                let mut cov = 0.0;
-                for sy in 0..16 {
-                    for sx in 0..16 {
-                        let px = x as f64 + (sx as f64 + 0.5) / 16.0 - 0.5 - c[0];
-                        let py = y as f64 + (sy as f64 + 0.5) / 16.0 - 0.5 - c[1];
-                        if px * px + py * py <= r * r {
-                            cov += 1.0 / 256.0;
-                        }
-                    }
-                }
+                let cov = coverage(x, y, c, r);
                 let i = (y * w + x) * 3;
                 d[i] = bg as u16;
                 d[i + 1] = bg as u16;
@@ -1149,16 +1156,7 @@ mod tests {
         let mut d = disc(size, size, c, r, 4000.0, 100.0);
         for y in 0..size {
             for x in 0..size {
-                let mut cov = 0.0;
-                for sy in 0..16 {
-                    for sx in 0..16 {
-                        let px = x as f64 + (sx as f64 + 0.5) / 16.0 - 0.5 - occluder[0];
-                        let py = y as f64 + (sy as f64 + 0.5) / 16.0 - 0.5 - occluder[1];
-                        if px * px + py * py <= r * r {
-                            cov += 1.0 / 256.0;
-                        }
-                    }
-                }
+                let cov = coverage(x, y, occluder, r);
                 let i = (y * size + x) * 3;
                 // Over-compositing a grey-scoring marker: B − G → (1 − cov)·(B − G).
                 let b = d[i + 2] as f64;
@@ -1170,8 +1168,8 @@ mod tests {
 
     #[test]
     fn locate_masked_recovers_a_partly_covered_disc_with_small_and_large_windows() {
-        // Scale 1: the paper's 6 px markers (window half 10, tabulated); scale 4.7:
-        // 28 px markers (window half 33, the direct path).
+        // Scale 1: radius 6 px, the paper's 12 px markers (window half 10, tabulated);
+        // scale 4.7: radius 28 px (window half 33, the direct path).
         for (scale, tol) in [(1.0, 0.03), (4.7, 0.03)] {
             let r = 6.0 * scale;
             let size = (60.0 * scale) as usize;
