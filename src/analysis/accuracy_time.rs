@@ -986,30 +986,14 @@ impl Prepared {
         let group = &frames[..self.frames];
         // An untimed pass first: round-robin leaves this setting's operator and
         // buffers cold, while a running sensor applies the same solver every frame.
-        track_average(
-            &mut self.tracker,
-            group,
-            &self.used,
-            self.mm_per_px,
-            &mut self.u,
-        )?;
-        self.solver
-            .apply(&self.u, &mut self.f)
-            .map_err(|e| e.to_string())?;
+        self.track(group)?;
+        self.solve()?;
         // The CPU interval lies inside the wall interval, so CPU ≤ wall per repetition.
         let a = Instant::now();
         let cpu0 = crate::clock::thread_cpu_s();
-        track_average(
-            &mut self.tracker,
-            group,
-            &self.used,
-            self.mm_per_px,
-            &mut self.u,
-        )?;
+        self.track(group)?;
         let b = Instant::now();
-        self.solver
-            .apply(&self.u, &mut self.f)
-            .map_err(|e| e.to_string())?;
+        self.solve()?;
         let cpu1 = crate::clock::thread_cpu_s();
         let c = Instant::now();
         self.times[0].push((b - a).as_secs_f64());
@@ -1017,6 +1001,24 @@ impl Prepared {
         self.times[2].push((c - a).as_secs_f64());
         self.times[3].push(cpu1 - cpu0);
         Ok(())
+    }
+
+    /// Tracks `group` and averages its displacements into `u`.
+    fn track(&mut self, group: &[Frame]) -> Result<(), String> {
+        track_average(
+            &mut self.tracker,
+            group,
+            &self.used,
+            self.mm_per_px,
+            &mut self.u,
+        )
+    }
+
+    /// Solves `u` into `f`.
+    fn solve(&mut self) -> Result<(), String> {
+        self.solver
+            .apply(&self.u, &mut self.f)
+            .map_err(|e| e.to_string())
     }
 
     /// The row with the median times.
