@@ -55,8 +55,10 @@ impl<P: Read + Write> DynPick<P> {
         Self::connect_with(port, REPLY_TIMEOUT)
     }
 
-    /// [`DynPick::connect`] with another reply deadline (see
-    /// [`DynPick::set_reply_timeout`]), used from the first command on.
+    /// [`DynPick::connect`] with another reply deadline (default [`REPLY_TIMEOUT`]; also
+    /// the quiet time before a retry), used from the first command on. A simulated
+    /// sensor shares the host's CPU with everything else, so the simulated bench allows
+    /// more than a real sensor on its own cable needs.
     pub fn connect_with(mut port: P, reply_timeout: Duration) -> DeviceResult<Self> {
         ft_common::drain(
             &mut port,
@@ -76,13 +78,6 @@ impl<P: Read + Write> DynPick<P> {
             Sensitivities::decode(l).map(|s| (s, false))
         })?;
         Ok(d)
-    }
-
-    /// Sets the reply deadline (default [`REPLY_TIMEOUT`]; also the quiet time before a
-    /// retry). A simulated sensor shares the host's CPU with everything else, so the
-    /// simulated bench allows more than a real sensor on its own cable needs.
-    pub fn set_reply_timeout(&mut self, timeout: Duration) {
-        self.retry.reply_timeout = timeout;
     }
 
     /// The sensitivities read at connect (LSB per N, LSB per N·m).
