@@ -6,6 +6,12 @@
 
 pub mod image_dir;
 pub mod socket;
+#[cfg(feature = "v4l")]
+pub mod v4l;
+/// Without the `v4l` feature, V4L2 cameras are not built in: listing and opening say
+/// how to turn them on.
+#[cfg(not(feature = "v4l"))]
+#[path = "v4l_disabled.rs"]
 pub mod v4l;
 
 use std::path::PathBuf;
