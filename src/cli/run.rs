@@ -58,6 +58,14 @@ Examples:
 /// interrupted; `--resume DIR` continues a killed or interrupted run without
 /// repeating or losing a setpoint.
 ///
+/// The plan is validated before anything is expanded: more than 100000 setpoints,
+/// 200000 frames, 100 GB of frames or an estimated 168 h is refused (exit 2), naming
+/// the key. On a terminal a progress bar is drawn; otherwise (nohup, CI, a pipe) and
+/// with --no-progress, plain lines: the set-up steps and one line per setpoint
+/// (index, target, measured, F_sum, settled or not, time). With --dry-run the exit
+/// status is 0 when every check passes, 3 when a limit check fails, 2 when an input
+/// is missing or invalid.
+///
 /// Exit status: 0 when every setpoint was measured, 3 when the run was aborted (device
 /// error, safety trip), 4 when interrupted, 2 on other errors; the reason goes to
 /// stderr and into manifest.json.
