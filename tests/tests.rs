@@ -7,6 +7,7 @@ mod bench;
 mod cli;
 mod fourier;
 mod ft;
+mod plans;
 mod report;
 mod reproduce;
 mod run;
