@@ -99,6 +99,7 @@ mod grid;
 mod lambda;
 mod refine;
 mod transform;
+mod uncertainty;
 
 use nalgebra::DMatrix;
 use rustfft::FftPlanner;
@@ -121,6 +122,12 @@ use transform::{
 /// periodic model noticeably.
 const MAX_PADDING: f64 = 8.0;
 
+/// CGLS refinement iterations a new [`FourierSolver`] runs after the direct periodic
+/// solve. The direct solve alone is not accurate on bounded grids (module docs: 50 %
+/// force-sum errors and a false normal load under shear); 20 iterations bring it within
+/// 1 % (force sums) and 2 % (field) of dense Tikhonov on the tested geometries.
+pub const DEFAULT_REFINE_ITERATIONS: usize = 20;
+
 /// The fine-grid geometry a [`FourierSolver`] found for its problem.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FourierGeometry {
@@ -140,6 +147,10 @@ pub struct FourierGeometry {
 
 /// The `fourier` solver: precomputed per-frequency Tikhonov solutions.
 pub struct FourierSolver {
+    /// Noise figures of the zero-padded direct map (exact; [`uncertainty`]).
+    noise_direct: uncertainty::NoiseFigures,
+    /// Force-sum SDs of the converged refined map (dense Tikhonov), λ > 0 only.
+    noise_refined_sum: Option<[f64; 3]>,
     plan: Plan,
     work: Work,
     /// Per processed block, `cols × rows` solution operator (unitary scaling).
@@ -728,7 +739,14 @@ impl FourierSolver {
             rank: None,
             notes,
         };
+        // ---- noise propagation (per unit σ) ----
+        let noise_direct = uncertainty::direct_map(&plan, &mut work, &pmat, &mut planner);
+        let noise_refined_sum =
+            uncertainty::converged_sums(&plan, &mut work, &amat, &qmat, lambda, n_in, n_out);
+
         Ok(FourierSolver {
+            noise_direct,
+            noise_refined_sum,
             plan,
             work,
             p: pmat,
@@ -739,7 +757,7 @@ impl FourierSolver {
             diag,
             n_in,
             n_out,
-            refine_iterations: 0,
+            refine_iterations: DEFAULT_REFINE_ITERATIONS,
             refine_preconditioned: true,
             bridge_edges: true,
         })
@@ -759,6 +777,17 @@ impl FourierSolver {
     pub fn with_refinement(mut self, iterations: usize) -> Self {
         self.refine_iterations = iterations;
         self
+    }
+}
+
+/// The noise level of the uncertainty figures must be a finite number ≥ 0.
+fn check_sigma(sigma_mm: f64) -> Result<(), SolveError> {
+    if sigma_mm.is_finite() && sigma_mm >= 0.0 {
+        Ok(())
+    } else {
+        Err(SolveError::InvalidOption(format!(
+            "displacement noise σ = {sigma_mm} mm must be a finite number >= 0"
+        )))
     }
 }
 
@@ -800,5 +829,153 @@ impl FrameSolver for FourierSolver {
 
     fn diagnostics(&self) -> &Diagnostics {
         &self.diag
+    }
+
+    fn force_sd(&self, sigma_mm: f64, out: &mut [f64]) -> Result<(), SolveError> {
+        check_sigma(sigma_mm)?;
+        check_output(out, self.n_out)?;
+        for (o, s) in out.iter_mut().zip(&self.noise_direct.force) {
+            *o = sigma_mm * s;
+        }
+        Ok(())
+    }
+
+    fn sum_sd(&self, sigma_mm: f64) -> Result<[f64; 3], SolveError> {
+        check_sigma(sigma_mm)?;
+        let unit = match self.noise_refined_sum {
+            Some(s) if self.refine_iterations > 0 => s,
+            _ => self.noise_direct.sum,
+        };
+        Ok(unit.map(|s| sigma_mm * s))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The periodic problem, where the Fourier method is exact: separates kernel, sign,
+    //! phase and transform errors from the boundary model.
+    use super::transform::fft2_transposed;
+    use super::*;
+    use crate::model::MarkerSite;
+    use crate::sensor::grid_sensor;
+    use nalgebra::{DMatrix, DVector};
+
+    fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
+        let mut x = seed;
+        (0..n)
+            .map(|_| {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (x >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+            })
+            .collect()
+    }
+
+    /// Dense Tikhonov with the periodised `H` (every marker of the periodic marker
+    /// lattice against every node of the periodic force lattice, the kernel sampled at
+    /// the lattice offset's representative in the documented window `[lo, lo + N)`),
+    /// against the solver's per-frequency solve of the same whole-lattice data.
+    fn periodic_case(nx: usize, ny: usize, pf: f64, pm: f64, offset: [f64; 2]) {
+        let mut s = grid_sensor(nx, ny, pf, pm);
+        s.layers[1].markers.as_mut().unwrap().grid.origin_mm = offset;
+        let sites = MarkerSite::from_sensor_grids(&s);
+        let p = Problem::new(&s, &sites);
+        let lambda = 0.05;
+        let cfg = SolverConfig {
+            method: Method::Fourier,
+            lambda: Lambda::Fixed(lambda),
+            fourier_padding: 0.0,
+            ..SolverConfig::default()
+        };
+        let solver = FourierSolver::precompute(&p, &cfg, None).unwrap();
+        let g = solver.geometry();
+        let (a, b, h, period) = (g.force_factor, g.marker_factor, g.fine_pitch_mm, g.period);
+        let (mm, mf) = (solver.plan.mm, solver.plan.mf);
+        let fg = s.force_grid;
+        let nf = [fg.nx, fg.ny];
+        let nl = s.layers.len();
+        let (nrow, ncol) = (2 * nl * mm[0] * mm[1], 3 * mf[0] * mf[1]);
+        let mut c = DMatrix::<f64>::zeros(nrow, ncol);
+        for (li, layer) in s.layers.iter().enumerate() {
+            let grid = layer.markers.unwrap().grid;
+            let nm = [grid.nx, grid.ny];
+            let mut lo = [0i64; 2];
+            for ax in 0..2 {
+                let span = a * (nf[ax] - 1) + b * (nm[ax] - 1) + 1;
+                lo[ax] = -((a * (nf[ax] - 1)) as i64) - ((period[ax] - span) / 2) as i64;
+            }
+            for iy in 0..mm[1] {
+                for ix in 0..mm[0] {
+                    for jy in 0..mf[1] {
+                        for jx in 0..mf[0] {
+                            let t = [
+                                (b * ix) as i64 - (a * jx) as i64,
+                                (b * iy) as i64 - (a * jy) as i64,
+                            ];
+                            let w: Vec<f64> = (0..2)
+                                .map(|ax| {
+                                    (lo[ax] + (t[ax] - lo[ax]).rem_euclid(period[ax] as i64)) as f64
+                                })
+                                .collect();
+                            let dx = grid.origin_mm[0] - fg.origin_mm[0] + h * w[0];
+                            let dy = grid.origin_mm[1] - fg.origin_mm[1] + h * w[1];
+                            let r = p.model.point_response(dx, dy, layer.depth_mm);
+                            let row = ((li * mm[1] + iy) * mm[0] + ix) * 2;
+                            let col = (jy * mf[0] + jx) * 3;
+                            for i in 0..2 {
+                                for k in 0..3 {
+                                    c[(row + i, col + k)] = r[i][k];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let u = pseudo_random(nrow, 11);
+        let ct = c.transpose();
+        let lhs = &ct * &c + DMatrix::<f64>::identity(ncol, ncol) * (lambda * lambda);
+        let want = lhs
+            .lu()
+            .solve(&(&ct * DVector::from_column_slice(&u)))
+            .unwrap();
+        // The solver's per-frequency solve of the same data.
+        let mut planner = FftPlanner::<f64>::new();
+        let spec: Vec<Vec<C64>> = (0..nl)
+            .map(|li| {
+                let base = li * mm[0] * mm[1] * 2;
+                let mut z: Vec<C64> = (0..mm[0] * mm[1])
+                    .map(|k| C64::new(u[base + 2 * k], u[base + 2 * k + 1]))
+                    .collect();
+                fft2_transposed(&mut planner, &mut z, mm[0], mm[1])
+            })
+            .collect();
+        let got = uncertainty::solve_lattice(&solver.plan, &spec, &solver.p, &mut planner);
+        let got: Vec<f64> = got.iter().flatten().copied().collect();
+        let scale = want.amax();
+        let err = got
+            .iter()
+            .zip(want.iter())
+            .map(|(g, w)| (g - w).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            err <= 1e-10 * scale,
+            "{nx}x{ny} pitches {pf}/{pm}, layer offset {offset:?}: periodic solve differs \
+             from dense periodic Tikhonov by {err:e} (scale {scale:e})"
+        );
+    }
+
+    #[test]
+    fn periodic_problem_is_solved_exactly_with_a_half_pitch_layer_offset() {
+        periodic_case(4, 4, 1.1, 1.1, [0.55, 0.55]);
+    }
+
+    #[test]
+    fn periodic_problem_is_solved_exactly_on_multi_rate_grids() {
+        // Forces every 2.2 mm on 1.1 mm markers (a = 2), and markers every 2.2 mm on
+        // 1.1 mm forces (b = 2), with arbitrary sub-pitch layer offsets.
+        periodic_case(3, 3, 2.2, 1.1, [0.37, -0.21]);
+        periodic_case(5, 4, 1.1, 2.2, [0.9, 0.3]);
     }
 }

@@ -158,7 +158,7 @@ impl FourierSolver {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solve::{FrameSolver, Lambda, Problem, SolverConfig};
+    use crate::solve::{Lambda, Problem, SolverConfig};
 
     /// A 2.2 / 1.1 mm sensor whose red layer is offset by an arbitrary sub-pitch amount.
     fn offset_problem() -> (crate::sensor::Sensor, Vec<crate::model::MarkerSite>) {
