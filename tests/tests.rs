@@ -6,6 +6,7 @@ mod util;
 mod bench;
 mod cli;
 mod fourier;
+mod layer;
 mod ft;
 mod plans;
 mod report;
