@@ -464,10 +464,7 @@ pub fn run(
         sensor,
         geom: *geometry,
         dir: dir.clone(),
-        dev: Timed {
-            dev: devices,
-            blocked: Duration::ZERO,
-        },
+        dev: Timed::new(devices),
         events,
         stop: Arc::clone(&options.stop),
         stage_limits,
