@@ -37,6 +37,16 @@
 //!                                     # elastomer, < 0 above it); bench-independent
 //! max_speed_mm_s = 5.0
 //!
+//! [quality]                         # optional: tracking quality gates (defaults shown)
+//! reference_min_found_fraction = 0.9  # the reference frame must show this fraction of
+//!                                   # the sensor file's markers, else the run stops
+//!                                   # before any setpoint (with a diagnosis)
+//! min_ok_fraction = 0.9             # a setpoint whose frames leave fewer markers ok
+//!                                   # (ok in every frame) is re-acquired ...
+//! max_reacquire = 2                 # ... at most this many times (new frames, 0..=10)
+//! on_fail = "flag"                  # then: flag (journal quality = "flagged", go on)
+//!                                   # | abort (stop the run)
+//!
 //! [reconstruct]                     # optional: the solver run on every setpoint
 //! solver = "pinv"                   # pinv (default) | tikhonov | tsvd | fourier
 //! lambda = "gcv"                    # tikhonov / fourier: gcv | lcurve | number (mm/N)
@@ -195,6 +205,61 @@ pub struct Settle {
     pub dwell_s: f64,
 }
 
+/// What a run does with a setpoint that stays below the tracking gate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OnFail {
+    /// Journal the row with `quality = flagged` and go on.
+    Flag,
+    /// Stop the run (aborted); the row is not journalled.
+    Abort,
+}
+
+impl OnFail {
+    /// The name used in plans.
+    pub fn name(self) -> &'static str {
+        match self {
+            OnFail::Flag => "flag",
+            OnFail::Abort => "abort",
+        }
+    }
+}
+
+/// Tracking quality gates (`[quality]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Quality {
+    /// Fraction of the sensor file's markers the reference frame must show, else the
+    /// run stops before any setpoint (default 0.9).
+    pub reference_min_found_fraction: f64,
+    /// Fraction of the sensor file's markers that must be ok in every frame of a
+    /// setpoint, else its frames are re-acquired (default 0.9).
+    pub min_ok_fraction: f64,
+    /// Re-acquisitions (new frames at the same setpoint) before the row is flagged or
+    /// the run aborts (default 2).
+    pub max_reacquire: usize,
+    /// What happens then (default flag).
+    pub on_fail: OnFail,
+}
+
+/// Default of `quality.reference_min_found_fraction`.
+pub const DEFAULT_REFERENCE_MIN_FOUND_FRACTION: f64 = 0.9;
+/// Default of `quality.min_ok_fraction`.
+pub const DEFAULT_MIN_OK_FRACTION: f64 = 0.9;
+/// Default of `quality.max_reacquire`.
+pub const DEFAULT_MAX_REACQUIRE: usize = 2;
+/// Largest `quality.max_reacquire`.
+pub const MAX_REACQUIRE: i64 = 10;
+
+impl Default for Quality {
+    fn default() -> Self {
+        Quality {
+            reference_min_found_fraction: DEFAULT_REFERENCE_MIN_FOUND_FRACTION,
+            min_ok_fraction: DEFAULT_MIN_OK_FRACTION,
+            max_reacquire: DEFAULT_MAX_REACQUIRE,
+            on_fail: OnFail::Flag,
+        }
+    }
+}
+
 /// A validated plan.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plan {
@@ -232,6 +297,8 @@ pub struct Plan {
     pub sweep: Sweep,
     /// Solver for the per-setpoint reconstruction (`[reconstruct]`, default pinv).
     pub solver: SolverConfig,
+    /// Tracking quality gates (`[quality]`, defaults when absent).
+    pub quality: Quality,
 }
 
 impl Plan {
@@ -401,6 +468,71 @@ struct RawPlan {
     sweep: RawSweep,
     #[serde(default)]
     reconstruct: RawReconstruct,
+    #[serde(default)]
+    quality: RawQuality,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawQuality {
+    reference_min_found_fraction: Option<f64>,
+    min_ok_fraction: Option<f64>,
+    max_reacquire: Option<i64>,
+    on_fail: Option<String>,
+}
+
+impl RawQuality {
+    fn validate(&self, c: &Checker<'_>) -> Result<Quality, PlanError> {
+        let d = Quality::default();
+        let fraction = |key: &str, v: Option<f64>, default: f64| {
+            let v = v.unwrap_or(default);
+            if v.is_finite() && (0.0..=1.0).contains(&v) {
+                Ok(v)
+            } else {
+                Err(c.invalid(
+                    key,
+                    v,
+                    "must be a fraction in [0, 1] of the sensor file's markers",
+                ))
+            }
+        };
+        let max_reacquire = match self.max_reacquire {
+            None => d.max_reacquire,
+            Some(v) if (0..=MAX_REACQUIRE).contains(&v) => v as usize,
+            Some(v) => {
+                return Err(c.invalid(
+                    "quality.max_reacquire",
+                    v,
+                    format!("must be an integer in [0, {MAX_REACQUIRE}] (re-acquisitions)"),
+                ))
+            }
+        };
+        let on_fail = match self.on_fail.as_deref() {
+            None | Some("flag") => OnFail::Flag,
+            Some("abort") => OnFail::Abort,
+            Some(other) => {
+                return Err(c.invalid(
+                    "quality.on_fail",
+                    format!("{other:?}"),
+                    "expected \"flag\" or \"abort\"",
+                ))
+            }
+        };
+        Ok(Quality {
+            reference_min_found_fraction: fraction(
+                "quality.reference_min_found_fraction",
+                self.reference_min_found_fraction,
+                d.reference_min_found_fraction,
+            )?,
+            min_ok_fraction: fraction(
+                "quality.min_ok_fraction",
+                self.min_ok_fraction,
+                d.min_ok_fraction,
+            )?,
+            max_reacquire,
+            on_fail,
+        })
+    }
 }
 
 #[derive(Deserialize, Default)]
@@ -823,7 +955,9 @@ impl RawPlan {
             ..SolverConfig::default()
         };
 
+        let quality = self.quality.validate(&c)?;
         let plan = Plan {
+            quality,
             solver,
             path: path.to_path_buf(),
             name: self.name,

@@ -1416,6 +1416,7 @@ impl Runner<'_, '_, '_, '_> {
             t_track_s: t_track,
             t_solve_s: t_solve,
             completed_at: String::new(),
+            ..JournalRow::default()
         })
     }
 
