@@ -596,6 +596,60 @@ mod tests {
     }
 
     #[test]
+    fn a_journal_without_the_quality_columns_resumes_and_is_upgraded() {
+        let dir = tempfile::tempdir().unwrap();
+        // A journal as written before the marker-count columns: the first 29 columns.
+        let mut w = csv::Writer::from_writer(Vec::new());
+        w.write_record(&header()[..LEGACY_COLUMNS]).unwrap();
+        for i in 0..2 {
+            let mut full = csv::WriterBuilder::new()
+                .has_headers(false)
+                .from_writer(Vec::new());
+            full.serialize(row(i)).unwrap();
+            let text = String::from_utf8(full.into_inner().unwrap()).unwrap();
+            let fields: Vec<&str> = text.trim_end().split(',').collect();
+            w.write_record(&fields[..LEGACY_COLUMNS]).unwrap();
+        }
+        let old = String::from_utf8(w.into_inner().unwrap()).unwrap();
+        std::fs::write(dir.path().join(JOURNAL_FILE), &old).unwrap();
+        // Reports read it as it is: the new columns are absent.
+        let rows = read_rows(dir.path()).unwrap();
+        assert_eq!(rows.len(), 2);
+        assert_eq!((rows[1].markers_ok, rows[1].quality), (None, None));
+        assert_eq!(rows[1].ok_fraction(), None);
+        // Resume: rows kept, the file rewritten with the current header, new rows line up.
+        let r = Journal::open_resume(dir.path()).unwrap();
+        assert_eq!(r.rows, vec![row(0), row(1)]);
+        let mut j = r.journal;
+        let mut new = row(2);
+        new.markers_ok = Some(250);
+        new.markers_lost = Some(6);
+        new.markers_merged = Some(3);
+        new.markers_outlier = Some(1);
+        new.reacquired = Some(1);
+        new.quality = Some(RowQuality::Ok);
+        j.append(&new).unwrap();
+        drop(j);
+        let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], header().join(","));
+        assert!(lines[1].ends_with(",,,,,,"), "{}", lines[1]);
+        assert!(lines[3].ends_with(",250,6,3,1,1,ok"), "{}", lines[3]);
+        assert_eq!(
+            old.lines().nth(1).unwrap(),
+            &lines[1][..lines[1].len() - 6],
+            "old rows keep their bytes"
+        );
+        let rows = read_rows(dir.path()).unwrap();
+        assert_eq!(rows, vec![row(0), row(1), new.clone()]);
+        assert_eq!(rows[2].ok_fraction(), Some(250.0 / 260.0));
+        assert!(!dir.path().join(".journal.csv.tmp").exists());
+        // A second resume sees the current header: nothing to upgrade.
+        let r = Journal::open_resume(dir.path()).unwrap();
+        assert_eq!(r.rows.len(), 3);
+    }
+
+    #[test]
     fn create_never_overwrites_an_existing_run() {
         let dir = tempfile::tempdir().unwrap();
         Journal::create(dir.path()).unwrap();

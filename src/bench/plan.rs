@@ -1061,6 +1061,56 @@ trials = 10
     }
 
     #[test]
+    fn quality_section_has_documented_defaults_and_checked_values() {
+        let p = parse(FIG7).unwrap();
+        assert_eq!(
+            p.quality,
+            Quality {
+                reference_min_found_fraction: 0.9,
+                min_ok_fraction: 0.9,
+                max_reacquire: 2,
+                on_fail: OnFail::Flag,
+            }
+        );
+        let q = parse(&format!(
+            "{FIG7}[quality]\nreference_min_found_fraction = 0.5\nmin_ok_fraction = 0.75\nmax_reacquire = 0\non_fail = \"abort\"\n"
+        ))
+        .unwrap()
+        .quality;
+        assert_eq!(
+            q,
+            Quality {
+                reference_min_found_fraction: 0.5,
+                min_ok_fraction: 0.75,
+                max_reacquire: 0,
+                on_fail: OnFail::Abort,
+            }
+        );
+        for (line, key, value) in [
+            ("min_ok_fraction = 1.5", "quality.min_ok_fraction", "1.5"),
+            (
+                "reference_min_found_fraction = -0.1",
+                "quality.reference_min_found_fraction",
+                "-0.1",
+            ),
+            ("max_reacquire = 11", "quality.max_reacquire", "11"),
+            ("on_fail = \"retry\"", "quality.on_fail", "\"retry\""),
+        ] {
+            let e = parse(&format!("{FIG7}[quality]\n{line}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("experiments/p.toml") && e.contains(key) && e.contains(value),
+                "{line}: {e}"
+            );
+        }
+        let e = parse(&format!("{FIG7}[quality]\nmin_ok = 0.5\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("min_ok"), "{e}");
+    }
+
+    #[test]
     fn angle_sweep_splits_the_force_into_normal_and_tangential_parts() {
         let t = FIG7.replace(
             "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",

@@ -136,6 +136,43 @@ impl StatusCounts {
         }
         c
     }
+
+    /// Counts over several frames of the same markers: each marker counts once, with
+    /// its worst status (lost, then merged, then outlier, then ok: ok only when ok in
+    /// every frame), plus `missing` always-lost markers.
+    pub fn of_frames<'a>(
+        frames: impl IntoIterator<Item = &'a [MarkerTrack]>,
+        missing: usize,
+    ) -> StatusCounts {
+        let rank = |s: MarkerStatus| match s {
+            MarkerStatus::Ok => 0,
+            MarkerStatus::Outlier => 1,
+            MarkerStatus::Merged => 2,
+            MarkerStatus::Lost => 3,
+        };
+        let mut worst: Vec<u8> = Vec::new();
+        for tracks in frames {
+            if worst.len() < tracks.len() {
+                worst.resize(tracks.len(), 0);
+            }
+            for (w, t) in worst.iter_mut().zip(tracks) {
+                *w = (*w).max(rank(t.status));
+            }
+        }
+        let mut c = StatusCounts {
+            lost: missing,
+            ..Default::default()
+        };
+        for w in worst {
+            match w {
+                0 => c.ok += 1,
+                1 => c.outlier += 1,
+                2 => c.merged += 1,
+                _ => c.lost += 1,
+            }
+        }
+        c
+    }
 }
 
 const MAX_NEIGHBOURS: usize = 8;
