@@ -78,7 +78,11 @@ fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
             "row {}",
             r.index
         );
-        assert!(r.quality.is_some() && r.reacquired.is_some(), "row {}", r.index);
+        assert!(
+            r.quality.is_some() && r.reacquired.is_some(),
+            "row {}",
+            r.index
+        );
     }
     rows
 }
@@ -778,18 +782,20 @@ fn a_scale_mismatched_sensor_file_stops_the_run_before_any_setpoint() {
     // In process: the stage never pressed (no setpoint started, no contact, at the
     // clearance height above the approach position).
     let out = tmp.path().join("lib");
-    let (summary, events, stage, fz) =
-        run_in_process(&plan, &scene, &out, false, None, None, None);
+    let (summary, events, stage, fz) = run_in_process(&plan, &scene, &out, false, None, None, None);
     assert_eq!(summary.status, RunStatus::Aborted);
     assert_eq!(summary.done, 0);
     assert!(
-        !events
-            .iter()
-            .any(|e| matches!(e, RunEvent::SetpointStarted { .. } | RunEvent::Contact { .. })),
+        !events.iter().any(|e| matches!(
+            e,
+            RunEvent::SetpointStarted { .. } | RunEvent::Contact { .. }
+        )),
         "{events:?}"
     );
     let found = events.iter().find_map(|e| match e {
-        RunEvent::Reference { markers, missing, .. } => Some((*markers, *missing)),
+        RunEvent::Reference {
+            markers, missing, ..
+        } => Some((*markers, *missing)),
         _ => None,
     });
     let (markers, missing) = found.expect("the reference event");
@@ -810,25 +816,31 @@ fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
     let occlusion = |frames: &str| {
         format!("[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 215.0, 340.0]\nframes = {frames}\n")
     };
-    let scene_text = std::fs::read_to_string(util::root(
-        "experiments/scenes/fig7_hemisphere_ramp.toml",
-    ))
-    .unwrap()
-    .replace(
-        "sensor = \"../paper_sensor.toml\"",
-        &format!("sensor = {:?}", sensor.display().to_string()),
-    );
+    let scene_text =
+        std::fs::read_to_string(util::root("experiments/scenes/fig7_hemisphere_ramp.toml"))
+            .unwrap()
+            .replace(
+                "sensor = \"../paper_sensor.toml\"",
+                &format!("sensor = {:?}", sensor.display().to_string()),
+            );
     let scene = write(
         tmp.path(),
         "occluded.toml",
-        &format!("{scene_text}\n{}\n{}", occlusion("[3, 3]"), occlusion("[6, 1000]")),
+        &format!(
+            "{scene_text}\n{}\n{}",
+            occlusion("[3, 3]"),
+            occlusion("[6, 1000]")
+        ),
     );
     let plan = short_fig7_plan(tmp.path(), sensor.to_str().unwrap(), "");
     let out = tmp.path().join("flag");
     let (summary, events, _, _) = run_in_process(&plan, &scene, &out, false, None, None, None);
     assert_eq!(summary.status, RunStatus::Completed, "{:?}", summary.reason);
     let rows = rows(&out);
-    let got: Vec<_> = rows.iter().map(|r| (r.index, r.reacquired, r.quality)).collect();
+    let got: Vec<_> = rows
+        .iter()
+        .map(|r| (r.index, r.reacquired, r.quality))
+        .collect();
     assert_eq!(
         got,
         vec![
@@ -840,7 +852,11 @@ fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
     );
     let (ok, total) = rows[3].marker_total().unwrap();
     assert_eq!(total, 260);
-    assert!(ok < 160 && rows[3].markers_lost.unwrap() > 100, "{:?}", rows[3]);
+    assert!(
+        ok < 160 && rows[3].markers_lost.unwrap() > 100,
+        "{:?}",
+        rows[3]
+    );
     assert_eq!(rows[1].marker_total(), Some((260, 260)));
     let retries = events
         .iter()
@@ -875,12 +891,21 @@ fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
             .unwrap_or_else(|| panic!("{name} not in {summary_csv}"))
     };
     let min_ok = metric("tracking.min_ok_fraction");
-    assert!((min_ok - rows[3].ok_fraction().unwrap()).abs() < 1e-9, "{min_ok}");
+    assert!(
+        (min_ok - rows[3].ok_fraction().unwrap()).abs() < 1e-9,
+        "{min_ok}"
+    );
     assert_eq!(metric("tracking.flagged_rows"), 1.0);
     assert_eq!(metric("tracking.reacquired_rows"), 2.0);
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
-    assert!(html.contains("<h2>Marker health</h2>"), "marker health section");
-    assert!(html.contains("class=\"health flagged\""), "the flagged row is marked");
+    assert!(
+        html.contains("<h2>Marker health</h2>"),
+        "marker health section"
+    );
+    assert!(
+        html.contains("class=\"health flagged\""),
+        "the flagged row is marked"
+    );
     assert!(out.join("plots/marker_health.png").exists());
 
     // on_fail = "abort": the run stops at setpoint 3 without journalling it.

@@ -1052,7 +1052,10 @@ fn save_palette_png(img: &RgbImage, path: &std::path::Path) {
                     .clamp(0.0, 1.0);
                 let k = (a * STEPS as f64).round() as usize;
                 let q = if k == 0 { 0 } else { 1 + li * STEPS + (k - 1) };
-                let e: f64 = [0, 1, 2].map(|i| (v[i] - palette[q][i]).powi(2)).iter().sum();
+                let e: f64 = [0, 1, 2]
+                    .map(|i| (v[i] - palette[q][i]).powi(2))
+                    .iter()
+                    .sum();
                 if e < best.0 {
                     best = (e, q as u8);
                 }
@@ -1075,7 +1078,10 @@ fn save_palette_png(img: &RgbImage, path: &std::path::Path) {
 }
 
 /// The 8-bit variants of a 16-bit render: `(label, file)`.
-fn eight_bit_variants(src16: &std::path::Path, stem: &str) -> Vec<(&'static str, std::path::PathBuf)> {
+fn eight_bit_variants(
+    src16: &std::path::Path,
+    stem: &str,
+) -> Vec<(&'static str, std::path::PathBuf)> {
     let img16 = image::open(src16).unwrap().into_rgb16();
     let img8 = narrow(&img16);
     let dir = src16.parent().unwrap();
@@ -1155,7 +1161,10 @@ fn mixed_bit_depth_pairs_track_like_matched_pairs() {
     // frame "260 merged", exit 0.
     let dir = tempfile::tempdir().unwrap();
     let sensor = sim_render_pair(dir.path());
-    let (ref16, frame16) = (dir.path().join("reference.png"), dir.path().join("frame_000.png"));
+    let (ref16, frame16) = (
+        dir.path().join("reference.png"),
+        dir.path().join("frame_000.png"),
+    );
     let out = dir.path().join("d.csv");
     let (code, err, matched16) = track_pair(&sensor, &ref16, &frame16, &out, &[]);
     assert_eq!(code, 0, "{err}");
@@ -1171,7 +1180,10 @@ fn mixed_bit_depth_pairs_track_like_matched_pairs() {
         // Measured: JPEG (quality 95) differs by up to 0.033 px, the lossless 8-bit
         // files by 0.0016 px and the 254-colour palette by 0.003 px.
         let tol = if *label == "jpeg" { 0.1 } else { 0.02 };
-        for (pair, r, f) in [("16-bit reference", &ref16, frame8), ("16-bit frame", ref8, &frame16)] {
+        for (pair, r, f) in [
+            ("16-bit reference", &ref16, frame8),
+            ("16-bit frame", ref8, &frame16),
+        ] {
             let (code, err, mixed) = track_pair(&sensor, r, f, &out, &[]);
             assert_eq!(code, 0, "{label}, {pair}: {err}");
             assert!(
@@ -1218,14 +1230,29 @@ fn track_fails_with_exit_1_on_an_all_white_frame() {
         "{err}"
     );
     assert!(err.contains("tracking failed in 1 of 2 frames"), "{err}");
-    assert!(!err.contains("frame_000.png: 2"), "the good frame passes: {err}");
+    assert!(
+        !err.contains("frame_000.png: 2"),
+        "the good frame passes: {err}"
+    );
     // The CSV is written all the same, with both frames.
     let text = std::fs::read_to_string(&out).unwrap();
     assert_eq!(text.lines().count(), 1 + 2 * 260);
     // The documented override.
-    let (code, err, _) = track_pair(&sensor, &reference, &white, &out, &["--max-lost-fraction", "1"]);
+    let (code, err, _) = track_pair(
+        &sensor,
+        &reference,
+        &white,
+        &out,
+        &["--max-lost-fraction", "1"],
+    );
     assert_eq!(code, 0, "{err}");
-    let (code, err, _) = track_pair(&sensor, &reference, &white, &out, &["--max-lost-fraction", "1.5"]);
+    let (code, err, _) = track_pair(
+        &sensor,
+        &reference,
+        &white,
+        &out,
+        &["--max-lost-fraction", "1.5"],
+    );
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("outside 0..=1"), "{err}");
 }
@@ -1256,12 +1283,17 @@ fn reference_health_names_scale_origin_colour_and_exposure() {
             && d.contains("mm_per_px is probably 0.0500"),
         "{d}"
     );
-    assert!(h.measurements().contains("blue marker pitch 30.0 px (sensor file: 33.3 px)"));
+    assert!(h
+        .measurements()
+        .contains("blue marker pitch 30.0 px (sensor file: 33.3 px)"));
 
     // Origin 12 px off in x.
     let h = health(&text.replace("origin_px = [25.0, 25.0]", "origin_px = [37.0, 25.0]"));
     let d = h.diagnosis().join("\n");
-    assert!(d.contains("origin:") && d.contains("off by (-12.0, 0.0) px"), "{h}: {d}");
+    assert!(
+        d.contains("origin:") && d.contains("off by (-12.0, 0.0) px"),
+        "{h}: {d}"
+    );
 
     // The red layer declared green.
     let toml = text.replacen("color = \"red\"", "color = \"green\"", 1);
@@ -1269,7 +1301,9 @@ fn reference_health_names_scale_origin_colour_and_exposure() {
     let d = h.diagnosis().join("\n");
     // Its green score (G - R) picks up the blue markers.
     assert!(
-        d.contains("colour: 130 of the 130 blobs found for layer red (green) sit on layer blue's markers"),
+        d.contains(
+            "colour: 130 of the 130 blobs found for layer red (green) sit on layer blue's markers"
+        ),
         "{d}"
     );
     assert!(!d.contains("origin"), "{d}");
@@ -1279,5 +1313,10 @@ fn reference_health_names_scale_origin_colour_and_exposure() {
     let s = paper_sensor();
     let h = ReferenceHealth::of(None, &s, &FrameView::rgb8(&white));
     assert_eq!(h.found(), 0);
-    assert!(h.diagnosis()[0].starts_with("exposure: the frame is over-exposed (100 % of pixels saturated"), "{:?}", h.diagnosis());
+    assert!(
+        h.diagnosis()[0]
+            .starts_with("exposure: the frame is over-exposed (100 % of pixels saturated"),
+        "{:?}",
+        h.diagnosis()
+    );
 }

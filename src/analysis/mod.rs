@@ -696,7 +696,11 @@ impl RunAnalysis {
         }
         if let Some(t) = &self.tracking {
             push("tracking.min_ok_fraction".into(), t.min_ok_fraction(), "1");
-            push("tracking.mean_ok_fraction".into(), t.mean_ok_fraction(), "1");
+            push(
+                "tracking.mean_ok_fraction".into(),
+                t.mean_ok_fraction(),
+                "1",
+            );
             push(
                 "tracking.flagged_rows".into(),
                 t.flagged().count() as f64,

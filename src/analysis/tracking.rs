@@ -102,18 +102,16 @@ pub fn analyze(rows: &[JournalRow], min_ok_fraction: f64) -> Option<TrackingAnal
             r.markers_merged,
             r.markers_outlier,
         ) {
-            (Some(ok), Some(lost), Some(merged), Some(outlier)) => {
-                setpoints.push(SetpointHealth {
-                    index: r.index,
-                    swept_value: r.swept_value,
-                    ok,
-                    lost,
-                    merged,
-                    outlier,
-                    reacquired: r.reacquired.unwrap_or(0),
-                    flagged: r.flagged(),
-                })
-            }
+            (Some(ok), Some(lost), Some(merged), Some(outlier)) => setpoints.push(SetpointHealth {
+                index: r.index,
+                swept_value: r.swept_value,
+                ok,
+                lost,
+                merged,
+                outlier,
+                reacquired: r.reacquired.unwrap_or(0),
+                flagged: r.flagged(),
+            }),
             _ => without += 1,
         }
     }

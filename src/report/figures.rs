@@ -21,7 +21,7 @@ use plotters::prelude::*;
 use super::plot::{Figure, FigureResult, FONT};
 use crate::analysis::calibration::Calibration;
 use crate::analysis::spatial::SpatialAnalysis;
-use crate::analysis::tracking::TrackingAnalysis;
+use crate::analysis::tracking::{SetpointHealth, TrackingAnalysis};
 use crate::formats::{DisplacementFrame, ForceRecord};
 use crate::sensor::{MarkerColor, Sensor};
 
@@ -392,6 +392,9 @@ mod tests {
     }
 }
 
+/// One status count of a setpoint (for the stacked bands of [`MarkerHealthFigure`]).
+type CountOf = fn(&SetpointHealth) -> usize;
+
 /// Marker health per setpoint: stacked fractions ok / outlier / merged / lost (bottom
 /// to top), the `min_ok_fraction` gate as a dashed line, flagged rows as red crosses
 /// above their bar.
@@ -411,13 +414,24 @@ impl Figure for MarkerHealthFigure {
             .x_label_area_size(40)
             .y_label_area_size(60)
             .build_cartesian_2d(-0.5..(n as f64 - 0.5).max(0.5), 0.0..1.08)?;
+        // Bars in journal order, labelled with their setpoint index.
+        let label = |x: &f64| {
+            let k = x.round();
+            match t.setpoints.get(k as usize) {
+                Some(s) if k >= 0.0 && (x - k).abs() < 1e-6 => s.index.to_string(),
+                _ => String::new(),
+            }
+        };
         chart
             .configure_mesh()
-            .x_desc("row (journal order)")
+            .x_desc("setpoint (journal order)")
             .y_desc("fraction of the sensor's markers")
+            .x_labels(n.clamp(1, 20))
+            .x_label_formatter(&label)
+            .disable_x_mesh()
             .label_style((FONT, 13))
             .draw()?;
-        let bands: [(&str, RGBColor, fn(&crate::analysis::tracking::SetpointHealth) -> usize); 4] = [
+        let bands: [(&str, RGBColor, CountOf); 4] = [
             ("ok", RGBColor(60, 150, 60), |s| s.ok),
             ("outlier", RGBColor(230, 160, 30), |s| s.outlier),
             ("merged", RGBColor(140, 80, 170), |s| s.merged),
@@ -440,10 +454,9 @@ impl Figure for MarkerHealthFigure {
                     )
                 })
                 .collect();
-            chart
-                .draw_series(rects)?
-                .label(name)
-                .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], color.filled()));
+            chart.draw_series(rects)?.label(name).legend(move |(x, y)| {
+                Rectangle::new([(x, y - 5), (x + 14, y + 5)], color.filled())
+            });
         }
         let gate = t.gate;
         chart

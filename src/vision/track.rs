@@ -495,7 +495,8 @@ impl Tracker {
                         ..
                     } if (loc_background - background).abs()
                         + ring_px
-                            * ((loc_slope[0] - slope[0]).abs() + (loc_slope[1] - slope[1]).abs())
+                            * ((loc_slope[0] - slope[0]).abs()
+                                + (loc_slope[1] - slope[1]).abs())
                         > max_background_change =>
                     {
                         ls.window

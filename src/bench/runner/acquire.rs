@@ -438,13 +438,8 @@ impl Runner<'_, '_, '_, '_> {
             .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
         let t_io = Instant::now();
         let dpath = format!("displacements/{index:05}.csv");
-        vision::write_tracks(
-            &self.dir.join(&dpath),
-            sensor,
-            tracker.reference(),
-            tracked,
-        )
-        .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
+        vision::write_tracks(&self.dir.join(&dpath), sensor, tracker.reference(), tracked)
+            .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
         self.io_s += t_io.elapsed().as_secs_f64();
 
         // Mean displacement over the frames; a marker lost in any frame is lost.
