@@ -643,6 +643,10 @@ fn a_partial_run_is_incomplete_whatever_its_metrics_unless_graded_on_purpose() {
         !html.contains("class=\"PASS\""),
         "no green banner on a partial run"
     );
+    assert!(
+        html.contains("criteria alone: <span class=\"\">PASS</span>"),
+        "no green overall PASS on a partial run"
+    );
     assert!(html.contains("<div class=\"outcome\">INCOMPLETE</div>"));
 
     let out = report(

@@ -188,12 +188,18 @@ pub fn render(
 
     if let Some(vs) = verdicts {
         let worst = vs.iter().map(|v| v.outcome).max().unwrap_or(Outcome::Pass);
+        // On an INCOMPLETE run the criteria are shown but are not the verdict: no
+        // coloured PASS next to them.
+        let class = if verdict.outcome == Outcome::Incomplete {
+            ""
+        } else {
+            class_of(worst)
+        };
         let _ = write!(
             o,
-            "<h2>Acceptance</h2>\n<p>criteria: {} &mdash; criteria alone: <span class=\"{}\">{}</span> \
+            "<h2>Acceptance</h2>\n<p>criteria: {} &mdash; criteria alone: <span class=\"{class}\">{}</span> \
              ({} of {} passed, {} marginal){}</p>\n<table>\n",
             escape(criteria_path.unwrap_or("")),
-            class_of(worst),
             worst.word(),
             vs.iter().filter(|v| v.outcome == Outcome::Pass).count(),
             vs.len(),
