@@ -119,7 +119,7 @@ fn quick_below_its_minimum_is_refused_when_parsing_and_help_states_the_minimum()
         let err = util::stderr(&o);
         assert_eq!(o.status.code(), Some(2), "{err}");
         assert!(
-            err.contains("--quick") && err.contains(&format!("{n} is not in 2..")),
+            err.contains("--quick") && err.contains(&format!("N = {n} is below the minimum 2")),
             "{err}"
         );
         assert!(!out.exists(), "refused before anything was created");

@@ -40,7 +40,7 @@ pub struct Args {
     out: PathBuf,
     /// Short variant: only the first N setpoints of each plan, small studies. N is at
     /// least 2: the Fig. 7 and Fig. 8 line fits need two distinct levels.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(QUICK_MIN..))]
+    #[arg(long, value_name = "N", value_parser = parse_quick)]
     quick: Option<u64>,
     /// Only rewrite OUT/README.md from the runs and studies already in OUT.
     #[arg(long)]
@@ -53,6 +53,21 @@ pub struct Args {
 /// Smallest `--quick N`: with one setpoint per plan the magnitude and angle fits (a
 /// line through the levels) have a single level.
 pub const QUICK_MIN: u64 = 2;
+
+/// `--quick N`, refused below [`QUICK_MIN`] when the arguments are parsed.
+fn parse_quick(text: &str) -> Result<u64, String> {
+    let n: u64 = text
+        .trim()
+        .parse()
+        .map_err(|e| format!("{text:?} is not a whole number: {e}"))?;
+    if n < QUICK_MIN {
+        return Err(format!(
+            "N = {n} is below the minimum {QUICK_MIN}: the Fig. 7 and Fig. 8 line fits need \
+             two distinct levels, so each plan keeps at least {QUICK_MIN} setpoints"
+        ));
+    }
+    Ok(n)
+}
 
 /// One paper experiment on the simulated bench.
 struct Experiment {
