@@ -121,9 +121,15 @@ fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mut JournalRo
         started_at: "2026-11-22T01:00:00Z".into(),
         resumed_at: vec![],
         setpoints: setpoints.len(),
+        planned_setpoints: Some(setpoints.len()),
+        limit: None,
+        measured_setpoints: setpoints.len(),
         status: RunStatus::Completed,
         end_reason: None,
+        stop_signal: None,
+        incomplete_reason: None,
         ended_at: Some("2026-11-22T01:10:00Z".into()),
+        software_commit: Some("0123abcd".into()),
     }
     .write(dir)
     .unwrap();
@@ -550,4 +556,447 @@ fn the_example_criteria_file_is_valid() {
         .criteria
         .iter()
         .any(|c| c.metric == "magnitude.resolution_gf"));
+}
+
+/// Every file under `dir` (relative path -> bytes), to prove a report changed nothing.
+fn snapshot(dir: &Path) -> std::collections::BTreeMap<std::path::PathBuf, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    out
+}
+
+/// Keeps the first `keep` journal rows of a complete synthetic run and records in the
+/// manifest how the run ended.
+fn cut_run(dir: &Path, keep: usize, status: RunStatus, reason: Option<&str>) {
+    let j = dir.join("journal.csv");
+    let text = std::fs::read_to_string(&j).unwrap();
+    let kept: Vec<&str> = text.lines().take(keep + 1).collect();
+    std::fs::write(&j, kept.join("\n") + "\n").unwrap();
+    let mut m = Manifest::read(dir).unwrap();
+    m.finish(
+        status,
+        reason.map(String::from),
+        keep,
+        (status == RunStatus::Interrupted).then_some(2),
+        "2026-11-22T01:05:00Z".into(),
+    );
+    m.write(dir).unwrap();
+}
+
+fn verdict_json(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("verdict.json")).unwrap()).unwrap()
+}
+
+const PASSING: &str = "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99\n";
+
+#[test]
+fn a_partial_run_is_incomplete_whatever_its_metrics_unless_graded_on_purpose() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("run");
+    std::fs::create_dir(&dir).unwrap();
+    magnitude_run(&dir);
+    // 8 of 12 rows: every level present, the fit perfect, r2 passes by far.
+    cut_run(
+        &dir,
+        8,
+        RunStatus::Interrupted,
+        Some("interrupted by SIGINT (Ctrl-C)"),
+    );
+    let c = tmp.path().join("c.toml");
+    std::fs::write(&c, PASSING).unwrap();
+    let out = report(&dir, &["--acceptance", c.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(5), "{}", stderr(&out));
+    let so = stdout(&out);
+    assert!(
+        so.contains("PASS magnitude.r2"),
+        "the criterion itself passes: {so}"
+    );
+    assert!(
+        so.contains("acceptance: INCOMPLETE (8 of 12 planned setpoints measured; not graded)"),
+        "{so}"
+    );
+    let v = verdict_json(&dir);
+    assert_eq!(v["outcome"], "INCOMPLETE");
+    assert_eq!(v["exit_code"], 5);
+    assert_eq!(v["graded_partial"], false);
+    assert_eq!(v["criteria"][0]["outcome"], "PASS");
+    let why = v["run"]["incomplete_reason"].as_str().unwrap();
+    assert!(
+        why.contains("interrupted by SIGINT") && why.contains("8 of the plan's 12"),
+        "{why}"
+    );
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(
+        !html.contains("class=\"PASS\""),
+        "no green banner on a partial run"
+    );
+    assert!(
+        html.contains("criteria alone: <span class=\"\">PASS</span>"),
+        "no green overall PASS on a partial run"
+    );
+    assert!(html.contains("<div class=\"outcome\">INCOMPLETE</div>"));
+
+    let out = report(
+        &dir,
+        &["--acceptance", c.to_str().unwrap(), "--allow-partial"],
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(
+        stdout(&out)
+            .contains("acceptance: PASS (1 criteria, PARTIAL RUN graded with --allow-partial)"),
+        "{}",
+        stdout(&out)
+    );
+    let v = verdict_json(&dir);
+    assert_eq!(v["outcome"], "PASS");
+    assert_eq!(v["graded_partial"], true);
+
+    // Without criteria a partial run is INCOMPLETE too (the exit code gates a build).
+    let out = report(&dir, &[]);
+    assert_eq!(out.status.code(), Some(5), "{}", stderr(&out));
+}
+
+#[test]
+fn a_value_in_the_marginal_band_is_marginal_with_exit_code_zero() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    // slope is 0.95: within [0.9, 1.1], at or below marginal_min 0.96.
+    let c = dir.join("m.toml");
+    std::fs::write(
+        &c,
+        "[[criterion]]\nmetric = \"magnitude.slope\"\nmin = 0.9\nmax = 1.1\nmarginal_min = 0.96\n\
+         [[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99\n",
+    )
+    .unwrap();
+    let out = report(dir, &["--acceptance", c.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let so = stdout(&out);
+    assert!(
+        so.contains("MARGINAL magnitude.slope = 0.95 (in [0.9, 1.1], marginal <= 0.96)"),
+        "{so}"
+    );
+    assert!(
+        so.contains("acceptance: MARGINAL (1 of 2 criteria marginal)"),
+        "{so}"
+    );
+    let v = verdict_json(dir);
+    assert_eq!(v["outcome"], "MARGINAL");
+    assert_eq!(v["criteria"][0]["outcome"], "MARGINAL");
+    assert_eq!(v["criteria"][0]["marginal_min"], 0.96);
+    assert_eq!(v["criteria"][1]["outcome"], "PASS");
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("<section id=\"verdict\" class=\"MARGINAL\">"));
+    assert!(html.contains("<td class=\"l marginal\">MARGINAL</td>"));
+}
+
+#[test]
+fn require_build_id_fails_a_run_that_recorded_none() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let c = dir.join("b.toml");
+    std::fs::write(&c, format!("require_build_id = true\n{PASSING}")).unwrap();
+    let out = report(dir, &["--acceptance", c.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(stdout(&out).contains("PASS provenance: build_id = elastomer-<x>"));
+    assert_eq!(
+        verdict_json(dir)["requirements"][0]["value"],
+        "elastomer-<x>"
+    );
+
+    let mut m = Manifest::read(dir).unwrap();
+    m.build_id = None;
+    m.write(dir).unwrap();
+    let out = report(dir, &["--acceptance", c.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    let so = stdout(&out);
+    assert!(
+        so.contains("FAIL provenance: build_id = (none recorded)"),
+        "{so}"
+    );
+    assert!(
+        so.contains("acceptance: FAIL (1 of 2 criteria failed)"),
+        "{so}"
+    );
+    let v = verdict_json(dir);
+    assert_eq!(v["outcome"], "FAIL");
+    assert_eq!(v["requirements"][0]["outcome"], "FAIL");
+    assert!(v["requirements"][0]["value"].is_null());
+}
+
+/// Asserts `v[key]` exists and has the JSON type `ty` (`string`, `number`, `bool`,
+/// `array`, `object`, `null`, or `a|b` alternatives).
+fn has(v: &serde_json::Value, path: &str, ty: &str) {
+    let mut x = v;
+    for k in path.split('.') {
+        x = x
+            .get(k)
+            .unwrap_or_else(|| panic!("verdict.json: `{path}` missing in {v:#}"));
+    }
+    let actual = match x {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "bool",
+        serde_json::Value::Number(_) => "number",
+        serde_json::Value::String(_) => "string",
+        serde_json::Value::Array(_) => "array",
+        serde_json::Value::Object(_) => "object",
+    };
+    assert!(
+        ty.split('|').any(|t| t == actual),
+        "verdict.json: `{path}` is {actual}, expected {ty}"
+    );
+}
+
+#[test]
+fn verdict_json_has_every_documented_field_with_its_type() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let c = dir.join("c.toml");
+    std::fs::write(
+        &c,
+        format!("require_build_id = true\n{PASSING}marginal_min = 0.995\n"),
+    )
+    .unwrap();
+    let out = report(dir, &["--acceptance", c.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let v = verdict_json(dir);
+    for (path, ty) in [
+        ("schema", "string"),
+        ("outcome", "string"),
+        ("exit_code", "number"),
+        ("summary", "string"),
+        ("graded_partial", "bool"),
+        ("criteria_file", "string"),
+        ("criteria", "array"),
+        ("requirements", "array"),
+        ("run.dir", "string"),
+        ("run.status", "string"),
+        ("run.in_progress", "bool"),
+        ("run.writer", "null"),
+        ("run.planned_setpoints", "number"),
+        ("run.run_setpoints", "number"),
+        ("run.measured_setpoints", "number"),
+        ("run.limit", "null"),
+        ("run.stop_signal", "null"),
+        ("run.end_reason", "null"),
+        ("run.complete", "bool"),
+        ("run.incomplete_reason", "null"),
+        ("run.torn_journal_line", "null"),
+        ("provenance.plan_name", "string"),
+        ("provenance.plan_path", "string"),
+        ("provenance.plan_sha256", "string"),
+        ("provenance.sensor_path", "string"),
+        ("provenance.sensor_sha256", "string"),
+        ("provenance.build_id", "string"),
+        ("provenance.software_version", "string"),
+        ("provenance.git_commit", "string"),
+        ("provenance.devices", "object"),
+        ("provenance.bench", "object"),
+        ("provenance.started_at", "string"),
+        ("provenance.resumed_at", "array"),
+        ("provenance.ended_at", "string"),
+        ("report.software_version", "string"),
+        ("report.git_commit", "string"),
+        ("report.generated_at", "string"),
+    ] {
+        has(&v, path, ty);
+    }
+    assert_eq!(v["schema"], "tactbench-verdict/1");
+    assert_eq!(v["outcome"], "PASS");
+    assert_eq!(v["run"]["status"], "completed");
+    assert_eq!(v["run"]["planned_setpoints"], 12);
+    assert_eq!(v["provenance"]["git_commit"], "0123abcd");
+    // The plan hash is the SHA-256 of the plan text recorded in the manifest.
+    let m = Manifest::read(dir).unwrap();
+    assert_eq!(
+        v["provenance"]["plan_sha256"],
+        tactbench::report::sha256::sha256_hex(m.plan_toml.as_bytes())
+    );
+    assert_eq!(v["provenance"]["plan_sha256"].as_str().unwrap().len(), 64);
+    let crit = &v["criteria"][0];
+    for (k, ty) in [
+        ("metric", "string"),
+        ("value", "number"),
+        ("unit", "string"),
+        ("min", "number"),
+        ("max", "null"),
+        ("marginal_min", "number"),
+        ("marginal_max", "null"),
+        ("outcome", "string"),
+        ("note", "null"),
+    ] {
+        has(crit, k, ty);
+    }
+    let req = &v["requirements"][0];
+    has(req, "requirement", "string");
+    has(req, "value", "string");
+    has(req, "outcome", "string");
+    // The report binary's commit: 40 hex digits, or `unknown` outside git.
+    let commit = v["report"]["git_commit"].as_str().unwrap();
+    assert!(
+        commit == "unknown"
+            || (commit.len() == 40 && commit.chars().all(|c| c.is_ascii_hexdigit())),
+        "{commit}"
+    );
+}
+
+#[test]
+fn reports_of_empty_one_row_and_torn_runs_leave_the_run_directory_untouched() {
+    let tmp = tempfile::tempdir().unwrap();
+    let c = tmp.path().join("c.toml");
+    std::fs::write(&c, PASSING).unwrap();
+    for (name, keep, torn) in [("empty", 0, false), ("one", 1, false), ("torn", 5, true)] {
+        let dir = tmp.path().join(name);
+        std::fs::create_dir(&dir).unwrap();
+        magnitude_run(&dir);
+        cut_run(&dir, keep, RunStatus::Aborted, Some("stage: limit switch"));
+        if torn {
+            // What a kill in the middle of appending row 5 leaves.
+            use std::io::Write as _;
+            let mut f = std::fs::OpenOptions::new()
+                .append(true)
+                .open(dir.join("journal.csv"))
+                .unwrap();
+            f.write_all(b"5,2,100,0.98,0,0,0.0").unwrap();
+        }
+        let before = snapshot(&dir);
+        // Into another directory: the run directory stays byte-identical.
+        let elsewhere = tmp.path().join(format!("{name}_report"));
+        let out = report(
+            &dir,
+            &[
+                "--acceptance",
+                c.to_str().unwrap(),
+                "--out",
+                elsewhere.to_str().unwrap(),
+            ],
+        );
+        assert_eq!(out.status.code(), Some(5), "{name}: {}", stderr(&out));
+        assert_eq!(snapshot(&dir), before, "{name}: the run directory changed");
+        let v = verdict_json(&elsewhere);
+        assert_eq!(v["outcome"], "INCOMPLETE", "{name}");
+        assert_eq!(v["run"]["status"], "aborted");
+        assert_eq!(v["run"]["measured_setpoints"], keep);
+        assert_eq!(v["run"]["end_reason"], "stage: limit switch");
+        let html = std::fs::read_to_string(elsewhere.join("report.html")).unwrap();
+        assert!(html.contains("stage: limit switch"), "{name}: stop reason");
+        assert!(html.contains("elastomer-&lt;x&gt;"), "{name}: provenance");
+        if keep <= 1 {
+            // One level (or none): no line fit, and the report says why.
+            let e = stderr(&out);
+            assert!(e.contains("no magnitude analysis"), "{name}: {e}");
+            assert!(html.contains("Analyses not computed"), "{name}");
+            assert_eq!(v["criteria"][0]["outcome"], "FAIL");
+            assert!(v["criteria"][0]["value"].is_null());
+            assert!(
+                v["criteria"][0]["note"]
+                    .as_str()
+                    .unwrap()
+                    .starts_with("not computed:"),
+                "{name}"
+            );
+        }
+        if torn {
+            assert_eq!(v["run"]["torn_journal_line"]["line"], 7);
+            assert_eq!(v["run"]["torn_journal_line"]["bytes"], 20);
+            assert!(stderr(&out).contains("line 7 is torn"), "{}", stderr(&out));
+            assert!(html.contains("torn journal"));
+        } else {
+            assert!(v["run"]["torn_journal_line"].is_null());
+        }
+        // In place: only the report's own files are added; the record is unchanged.
+        let out = report(&dir, &["--allow-partial"]);
+        assert_eq!(out.status.code(), Some(0), "{name}: {}", stderr(&out));
+        let after = snapshot(&dir);
+        for (path, bytes) in &before {
+            assert_eq!(
+                after.get(path),
+                Some(bytes),
+                "{name}: {} changed",
+                path.display()
+            );
+        }
+        for path in after.keys().filter(|p| !before.contains_key(*p)) {
+            let first = path
+                .components()
+                .next()
+                .unwrap()
+                .as_os_str()
+                .to_string_lossy();
+            assert!(
+                ["report.html", "verdict.json", "summary.csv", "plots"].contains(&first.as_ref()),
+                "{name}: report wrote {}",
+                path.display()
+            );
+        }
+    }
+}
+
+#[test]
+fn a_run_whose_writer_is_live_is_reported_in_progress_and_incomplete() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let mut m = Manifest::read(dir).unwrap();
+    m.status = RunStatus::Running;
+    m.ended_at = None;
+    m.write(dir).unwrap();
+    // This test process plays the live writer.
+    let lock = tactbench::bench::lock::RunLock::acquire(dir, "run").unwrap();
+    let lock_text = std::fs::read(lock.path()).unwrap();
+    let out = report(dir, &[]);
+    assert_eq!(out.status.code(), Some(5), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("still in progress"),
+        "{}",
+        stderr(&out)
+    );
+    let v = verdict_json(dir);
+    assert_eq!(v["run"]["status"], "in_progress");
+    assert_eq!(v["run"]["in_progress"], true);
+    assert!(v["run"]["writer"]
+        .as_str()
+        .unwrap()
+        .contains(&format!("PID {}", std::process::id())));
+    assert_eq!(
+        std::fs::read(lock.path()).unwrap(),
+        lock_text,
+        "report only reads"
+    );
+    drop(lock);
+    // The writer died without recording an end: killed, not in progress.
+    let out = report(dir, &[]);
+    let v = verdict_json(dir);
+    assert_eq!(v["run"]["status"], "killed");
+    // Every planned setpoint is in the journal, so the run is complete all the same.
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+}
+
+#[test]
+fn caused_by_lines_do_not_repeat_the_message() {
+    // An empty directory: the manifest is missing. The error travels through three
+    // wrappers that each print it (transparent, `{path}: {source}`, the OS error).
+    let tmp = tempfile::tempdir().unwrap();
+    let out = report(tmp.path(), &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let e = stderr(&out);
+    assert_eq!(e.matches("No such file or directory").count(), 1, "{e}");
+    assert_eq!(e.matches("manifest.json").count(), 1, "{e}");
+    assert!(e.starts_with("error: analysing run directory"), "{e}");
+    assert!(e.contains("  caused by: "), "{e}");
 }

@@ -100,7 +100,7 @@ fn reproduce_paper_refuses_to_replace_a_directory_that_is_not_a_run() {
     let precious = out.join("runs").join("table1_displacement");
     std::fs::create_dir_all(&precious).unwrap();
     std::fs::write(precious.join("notes.txt"), "keep me").unwrap();
-    let o = reproduce(&out, &["--quick", "1"]);
+    let o = reproduce(&out, &["--quick", "2"]);
     assert!(!o.status.success());
     let err = util::stderr(&o);
     assert!(err.contains("is not a run directory"), "{err}");
@@ -108,4 +108,23 @@ fn reproduce_paper_refuses_to_replace_a_directory_that_is_not_a_run() {
         std::fs::read_to_string(precious.join("notes.txt")).unwrap(),
         "keep me"
     );
+}
+
+#[test]
+fn quick_below_its_minimum_is_refused_when_parsing_and_help_states_the_minimum() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("paper");
+    for n in ["1", "0"] {
+        let o = reproduce(&out, &["--quick", n]);
+        let err = util::stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.contains("--quick") && err.contains(&format!("N = {n} is below the minimum 2")),
+            "{err}"
+        );
+        assert!(!out.exists(), "refused before anything was created");
+    }
+    let o = util::run(&["reproduce-paper", "--help"]);
+    let help = util::stdout(&o);
+    assert!(help.contains("N is at least 2"), "{help}");
 }

@@ -310,6 +310,7 @@ fn run_in_process(
         tare: c.tare,
         limit,
         stop: Arc::new(AtomicBool::new(false)),
+        stop_signal: Default::default(),
     };
     let mut events = Vec::new();
     let summary = {
@@ -648,11 +649,187 @@ fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
     );
     let m = Manifest::read(&out).unwrap();
     assert_eq!(m.status, RunStatus::Interrupted);
-    let reason = m.end_reason.unwrap();
+    let reason = m.end_reason.clone().unwrap();
     assert!(reason.contains("retracted"), "{reason}");
+    assert!(
+        reason.contains("SIGINT (Ctrl-C)"),
+        "the signal is named: {reason}"
+    );
     assert!(String::from_utf8_lossy(&o.stderr).contains("--resume"));
     let done = rows(&out).len();
     assert!((2..6).contains(&done), "{done}");
+    // The manifest says what was planned, what was measured and why they differ.
+    assert_eq!(m.stop_signal.as_deref(), Some("SIGINT"));
+    assert_eq!((m.planned(), m.setpoints, m.limit), (160, 6, Some(6)));
+    assert_eq!(m.measured_setpoints, done);
+    let why = m.incomplete_reason.clone().unwrap();
+    assert!(
+        why.contains("interrupted by SIGINT") && why.contains(&format!("{done} of the plan's 160")),
+        "{why}"
+    );
+
+    // An interrupted run is INCOMPLETE whatever its metrics, with its own exit code...
+    let pass = tmp.path().join("pass.toml");
+    std::fs::write(
+        &pass,
+        "[[criterion]]\nmetric = \"run.unsettled\"\nmax = 1000\n",
+    )
+    .unwrap();
+    let report = |extra: &[&str]| {
+        let mut args = vec![
+            "report",
+            out.to_str().unwrap(),
+            "--acceptance",
+            pass.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        run_cli(&args)
+    };
+    let o = report(&[]);
+    assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
+    let so = util::stdout(&o);
+    assert!(so.contains("PASS run.unsettled"), "{so}");
+    assert!(so.contains("acceptance: INCOMPLETE"), "{so}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("verdict.json")).unwrap()).unwrap();
+    assert_eq!(v["outcome"], "INCOMPLETE");
+    assert_eq!(v["run"]["status"], "interrupted");
+    assert_eq!(v["run"]["stop_signal"], "SIGINT");
+    assert_eq!(v["run"]["measured_setpoints"], done);
+    assert_eq!(v["run"]["planned_setpoints"], 160);
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let banner = html.find("id=\"verdict\"").unwrap();
+    assert!(
+        banner < html.find("<h1>").unwrap()
+            && html[banner..].starts_with("id=\"verdict\" class=\"INCOMPLETE\""),
+        "the verdict banner opens the page"
+    );
+    // ... unless graded on purpose, and then the verdict says so.
+    let o = report(&["--allow-partial"]);
+    assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("verdict.json")).unwrap()).unwrap();
+    assert_eq!(v["outcome"], "PASS");
+    assert_eq!(v["graded_partial"], true);
+    assert!(
+        v["summary"]
+            .as_str()
+            .unwrap()
+            .contains("PARTIAL RUN graded with --allow-partial"),
+        "{}",
+        v["summary"]
+    );
+}
+
+#[test]
+fn sigterm_is_recorded_as_sigterm_not_as_ctrl_c() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let child = spawn_fig7_run(&out, 4, Stdio::piped());
+    let t = Instant::now();
+    while rows_or_zero(&out) < 1 {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "run made no progress"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(4), "{err}");
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Interrupted);
+    assert_eq!(m.stop_signal.as_deref(), Some("SIGTERM"));
+    let reason = m.end_reason.unwrap();
+    assert!(
+        reason.contains("SIGTERM") && !reason.contains("Ctrl-C"),
+        "{reason}"
+    );
+    assert!(err.contains("SIGTERM") && !err.contains("Ctrl-C"), "{err}");
+}
+
+#[test]
+fn a_second_writer_is_refused_while_a_run_is_live_and_the_journal_stays_intact() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let n = 8;
+    let mut child = spawn_fig7_run(&out, n, Stdio::null());
+    let t = Instant::now();
+    while rows_or_zero(&out) < 1 {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "run made no progress"
+        );
+        assert!(child.try_wait().unwrap().is_none(), "run ended early");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let journal_before = std::fs::read(out.join("journal.csv")).unwrap();
+    // A resume while the run is live: refused at once, naming the directory and the
+    // holder, before anything is written.
+    let o = util::run_in(
+        tmp.path(),
+        &["run", "--resume", out.to_str().unwrap(), "--no-progress"],
+    );
+    let e = util::stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(
+        e.contains(out.to_str().unwrap())
+            && e.contains(&format!("PID {}", child.id()))
+            && e.contains("host ")
+            && e.contains("since 20"),
+        "{e}"
+    );
+    assert!(e.contains("in use by another tactbench process"), "{e}");
+    // A new run into the live directory: refused too.
+    let o = run_cli(&[
+        "run",
+        "experiments/fig7_magnitude.toml",
+        "--sim",
+        "experiments/scenes/fig7_hemisphere_ramp.toml",
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", util::stderr(&o));
+    // `report` only reads, and says the run is still in progress.
+    let o = run_cli(&["report", out.to_str().unwrap()]);
+    let live = child.try_wait().unwrap().is_none();
+    if live {
+        assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
+        assert!(util::stderr(&o).contains("still in progress"));
+    }
+    let status = child.wait().unwrap();
+    assert!(status.success(), "the first writer finishes undisturbed");
+    let after = std::fs::read(out.join("journal.csv")).unwrap();
+    assert!(
+        after.starts_with(&journal_before),
+        "rows written before the refused attempts are untouched"
+    );
+    let rows = rows(&out);
+    assert_eq!(
+        rows.iter().map(|r| r.index).collect::<Vec<_>>(),
+        (0..n).collect::<Vec<_>>(),
+        "every setpoint exactly once, in order, from one writer"
+    );
+    assert!(
+        !out.join("frames/reference_resume1.png").exists(),
+        "the refused resume took no reference frame"
+    );
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Completed);
+    assert!(m.resumed_at.is_empty());
+    // A --limit run measured what it was asked, not its plan: INCOMPLETE, and why.
+    assert_eq!((m.planned(), m.measured_setpoints), (160, n));
+    let why = m.incomplete_reason.unwrap();
+    assert!(why.contains("--limit 8"), "{why}");
+    let o = run_cli(&["report", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
+    assert!(util::stdout(&o).contains("limited by --limit 8"));
+    let o = run_cli(&["report", out.to_str().unwrap(), "--allow-partial"]);
+    assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
 }
 
 fn rows_or_zero(dir: &Path) -> usize {

@@ -15,9 +15,13 @@
 //!
 //! [`RunData::load`] reads a run directory (`manifest.json` with the embedded plan and
 //! sensor, `journal.csv`), validating every value it uses with errors that name the
-//! file, line and column; [`RunAnalysis::new`] dispatches on the plan's sweep kind and
+//! file, line and column; it only reads (a torn last journal line, what a crash
+//! mid-write leaves, is skipped and reported in [`RunData::torn`], never cut off).
+//! [`RunAnalysis::new`] dispatches on the plan's sweep kind and
 //! [`RunAnalysis::metrics`] flattens the results into named scalar [`Metric`]s (the
-//! names acceptance criteria refer to, listed in [`METRICS`]).
+//! names acceptance criteria refer to, listed in [`METRICS`]). An analysis the run's
+//! rows cannot support (0 or 1 rows, a single level) is left out and listed in
+//! [`RunAnalysis::absent`] with the reason, so every run gets a report.
 //!
 //! The simulation studies live here too: [`accuracy_time`] (force error against time
 //! per frame over solver, force-grid, tracking and averaging choices; Pareto front and
@@ -40,7 +44,7 @@ use std::path::{Path, PathBuf};
 
 use thiserror::Error;
 
-use crate::bench::journal::{self, JournalError, JournalRow, Manifest, JOURNAL_FILE};
+use crate::bench::journal::{self, JournalError, JournalRow, Manifest, TornLine, JOURNAL_FILE};
 use crate::bench::plan::{Plan, Setpoint, Sweep};
 use crate::config::ConfigError;
 use crate::formats::{self, DisplacementFrame, ForceRecord, FormatError};
@@ -118,8 +122,10 @@ pub struct RunData {
     pub sensor: Sensor,
     /// Every setpoint of the plan (the journal's `index` refers to these).
     pub setpoints: Vec<Setpoint>,
-    /// The journal rows, in file order.
+    /// The journal rows, in file order (complete lines only).
     pub rows: Vec<JournalRow>,
+    /// A torn last journal line that was skipped (the file is left as it is).
+    pub torn: Option<TornLine>,
 }
 
 /// `displacements/NNNNN.csv` of setpoint `index`.
@@ -150,7 +156,8 @@ impl RunData {
                 source,
             },
         )?;
-        let rows = journal::read_rows(dir)?;
+        let contents = journal::read_journal(dir)?;
+        let (rows, torn) = (contents.rows, contents.torn);
         let setpoints = plan.setpoints();
         let jpath = dir.join(JOURNAL_FILE);
         let mut seen = BTreeSet::new();
@@ -189,6 +196,7 @@ impl RunData {
             sensor,
             setpoints,
             rows,
+            torn,
         })
     }
 
@@ -300,6 +308,9 @@ pub struct RunAnalysis {
     pub snapshot: Option<Snapshot>,
     /// Marker health per setpoint (rows with marker counts).
     pub tracking: Option<tracking::TrackingAnalysis>,
+    /// Analyses left out because the rows cannot support them: (metric prefix, e.g.
+    /// `magnitude`, and why). Their metrics are absent.
+    pub absent: Vec<(String, String)>,
 }
 
 /// A named scalar result.
@@ -517,24 +528,23 @@ impl RunAnalysis {
 
     /// Analyses a loaded run according to its sweep kind.
     pub fn new(run: RunData, options: &AnalysisOptions) -> Result<RunAnalysis, AnalysisError> {
-        let insufficient = |message: String| AnalysisError::Insufficient {
-            path: run.dir.clone(),
-            message,
-        };
         let rows = &run.rows;
         let (mut magnitude, mut angle, mut spatial, mut displacement) = (None, None, None, None);
+        let mut absent: Vec<(String, String)> = Vec::new();
+        let n_rows = format!(
+            "{} journal row{}",
+            rows.len(),
+            if rows.len() == 1 { "" } else { "s" }
+        );
         match &run.plan.sweep {
-            Sweep::Magnitude { .. } => {
-                magnitude = Some(
-                    magnitude::analyze(rows)
-                        .map_err(|e| insufficient(format!("force magnitude: {e}")))?,
-                );
-            }
-            Sweep::Angle { .. } => {
-                angle = Some(
-                    angle::analyze(rows).map_err(|e| insufficient(format!("force angle: {e}")))?,
-                );
-            }
+            Sweep::Magnitude { .. } => match magnitude::analyze(rows) {
+                Ok(m) => magnitude = Some(m),
+                Err(e) => absent.push(("magnitude".into(), format!("{n_rows}: {e}"))),
+            },
+            Sweep::Angle { .. } => match angle::analyze(rows) {
+                Ok(a) => angle = Some(a),
+                Err(e) => absent.push(("angle".into(), format!("{n_rows}: {e}"))),
+            },
             Sweep::Spatial {
                 start_mm, end_mm, ..
             } => {
@@ -548,9 +558,10 @@ impl RunAnalysis {
                 }
                 let dir = [end_mm[0] - start_mm[0], end_mm[1] - start_mm[1]];
                 let tol = 0.25 * run.sensor.force_grid.pitch_mm;
-                spatial = Some(
-                    spatial::analyze(&loads, dir, tol).map_err(|e| insufficient(e.to_string()))?,
-                );
+                match spatial::analyze(&loads, dir, tol) {
+                    Ok(s) => spatial = Some(s),
+                    Err(e) => absent.push(("spatial".into(), format!("{n_rows}: {e}"))),
+                }
             }
             Sweep::Displacement { .. } => {
                 let mut ms = Vec::with_capacity(rows.len());
@@ -562,21 +573,26 @@ impl RunAnalysis {
                     });
                 }
                 let names: Vec<String> = run.sensor.layers.iter().map(|l| l.name.clone()).collect();
-                displacement = Some(
-                    displacement::analyze(&ms, &names, run.sensor.camera.mm_per_px)
-                        .map_err(|e| insufficient(e.to_string()))?,
-                );
+                match displacement::analyze(&ms, &names, run.sensor.camera.mm_per_px) {
+                    Ok(d) => displacement = Some(d),
+                    Err(e) => absent.push(("displacement".into(), format!("{n_rows}: {e}"))),
+                }
             }
             Sweep::Setpoints(_) => {}
+        }
+        let timing = timing::analyze(&run.rows);
+        if timing.is_none() {
+            absent.push(("timing".into(), format!("{n_rows}: nothing was timed")));
         }
         let mut out = RunAnalysis {
             magnitude,
             angle,
             spatial,
             displacement,
-            timing: timing::analyze(&run.rows),
+            timing,
             tracking: tracking::analyze(&run.rows, run.plan.quality.min_ok_fraction),
             snapshot: None,
+            absent,
             run,
         };
         out.snapshot = out.load_snapshot(options.snapshot_index)?;

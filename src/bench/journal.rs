@@ -207,19 +207,88 @@ pub struct Manifest {
     /// Times the run was resumed, RFC 3339 UTC.
     #[serde(default)]
     pub resumed_at: Vec<String>,
-    /// Number of setpoints in the plan.
+    /// Setpoints this run measures: the plan's, or the first `limit` of them.
     pub setpoints: usize,
+    /// Setpoints in the plan, before any `--limit` (`None` in manifests written before
+    /// it was recorded; [`Manifest::planned`] falls back to `setpoints`).
+    #[serde(default)]
+    pub planned_setpoints: Option<usize>,
+    /// The `--limit N` the run was started with, if any.
+    #[serde(default)]
+    pub limit: Option<usize>,
+    /// Setpoints in the journal when the manifest was last written (at the start and
+    /// the end of each session; after a kill, the journal is the authority).
+    #[serde(default)]
+    pub measured_setpoints: usize,
     /// How it ended.
     pub status: RunStatus,
     /// Why it ended that way (abort reason, safety trip), if not completed.
     #[serde(default)]
     pub end_reason: Option<String>,
+    /// The signal that interrupted the run (`SIGINT`, `SIGTERM`, `SIGHUP`), if one did.
+    #[serde(default)]
+    pub stop_signal: Option<String>,
+    /// Why fewer setpoints than planned were measured (`--limit`, interrupted by a
+    /// signal, aborted with its reason); `None` when the whole plan was measured or the
+    /// run is still going.
+    #[serde(default)]
+    pub incomplete_reason: Option<String>,
     /// End time, RFC 3339 UTC.
     #[serde(default)]
     pub ended_at: Option<String>,
+    /// The git commit the `tactbench` binary that ran (or last resumed) the run was
+    /// built from (`unknown` when built outside git).
+    #[serde(default)]
+    pub software_commit: Option<String>,
 }
 
+/// The git commit this binary was built from (`git rev-parse HEAD` at build time,
+/// `unknown` when built outside a git checkout).
+pub const GIT_COMMIT: &str = env!("TACTBENCH_GIT_COMMIT");
+
 impl Manifest {
+    /// Setpoints in the plan (before any `--limit`).
+    pub fn planned(&self) -> usize {
+        self.planned_setpoints.unwrap_or(self.setpoints)
+    }
+
+    /// Records how a session ended: status, reason, end time, the journal's row count,
+    /// the interrupting signal, and why the run measured less than its plan
+    /// (`incomplete_reason`, `None` when it measured every planned setpoint).
+    pub fn finish(
+        &mut self,
+        status: RunStatus,
+        end_reason: Option<String>,
+        measured: usize,
+        signal: Option<i32>,
+        ended_at: String,
+    ) {
+        let planned = self.planned();
+        self.status = status;
+        self.measured_setpoints = measured;
+        self.stop_signal = signal.map(signal_name);
+        self.ended_at = Some(ended_at);
+        self.incomplete_reason = if measured >= planned {
+            None
+        } else {
+            let of = format!("{measured} of the plan's {planned} setpoints measured");
+            Some(match status {
+                RunStatus::Completed | RunStatus::Running => match self.limit {
+                    Some(n) => format!("limited by --limit {n}: {of}"),
+                    None => of,
+                },
+                RunStatus::Interrupted => {
+                    format!("interrupted by {}: {of}", stop_cause(signal.unwrap_or(0)))
+                }
+                RunStatus::Aborted => format!(
+                    "aborted: {of}: {}",
+                    end_reason.as_deref().unwrap_or("no reason recorded")
+                ),
+            })
+        };
+        self.end_reason = end_reason;
+    }
+
     /// Writes `manifest.json` atomically (temp file + rename) and syncs it.
     pub fn write(&self, dir: &Path) -> Result<(), JournalError> {
         let path = dir.join(MANIFEST_FILE);
@@ -251,6 +320,28 @@ impl Manifest {
             path,
             message: e.to_string(),
         })
+    }
+}
+
+/// A signal's name (`SIGINT`, `SIGTERM`, `SIGHUP`, `SIGQUIT`, else `signal N`).
+pub fn signal_name(signal: i32) -> String {
+    match signal {
+        1 => "SIGHUP".into(),
+        2 => "SIGINT".into(),
+        3 => "SIGQUIT".into(),
+        15 => "SIGTERM".into(),
+        n => format!("signal {n}"),
+    }
+}
+
+/// What stopped a run, for messages: `SIGINT (Ctrl-C)`, `SIGTERM`, ... (0: a stop
+/// request that was not a signal).
+pub fn stop_cause(signal: i32) -> String {
+    match signal {
+        0 => "a stop request".into(),
+        2 => "SIGINT (Ctrl-C)".into(),
+        15 => "SIGTERM (a termination request, e.g. `kill` or a service manager)".into(),
+        n => signal_name(n),
     }
 }
 
@@ -455,18 +546,72 @@ fn upgrade_legacy(dir: &Path, text: &[u8]) -> Result<File, JournalError> {
         .map_err(io)
 }
 
-/// Reads every row of a run's journal (for analysis and reports).
+/// Reads every row of a run's journal (for analysis and reports); a torn last line
+/// is an error here (see [`read_journal`] to skip it).
 pub fn read_rows(dir: &Path) -> Result<Vec<JournalRow>, JournalError> {
-    let path = dir.join(JOURNAL_FILE);
-    let mut rdr = csv::Reader::from_path(&path).map_err(|e| corrupt(&path, 0, e.to_string()))?;
-    let mut rows = Vec::new();
-    for rec in rdr.deserialize::<JournalRow>() {
-        rows.push(rec.map_err(|e| {
-            let line = e.position().map(|p| p.line()).unwrap_or(0);
-            corrupt(&path, line, e.to_string())
-        })?);
+    let j = read_journal(dir)?;
+    if let Some(t) = j.torn {
+        return Err(corrupt(
+            &dir.join(JOURNAL_FILE),
+            t.line,
+            format!(
+                "torn last line ({} bytes without a line end: the writer died mid-write)",
+                t.bytes
+            ),
+        ));
     }
-    Ok(rows)
+    Ok(j.rows)
+}
+
+/// A journal's last line cut mid-write (what a crash or kill during the append
+/// leaves): everything after the last line end.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TornLine {
+    /// 1-based line number of the torn line.
+    pub line: u64,
+    /// Its length in bytes.
+    pub bytes: u64,
+}
+
+/// A journal as read by [`read_journal`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct JournalContents {
+    /// The complete rows, in file order.
+    pub rows: Vec<JournalRow>,
+    /// A torn last line that was skipped (never a row), if any.
+    pub torn: Option<TornLine>,
+}
+
+/// Reads a run's journal without changing it: the complete rows, and a torn last
+/// line (no line end) reported instead of parsed. Any other malformed line is an
+/// error naming its line. Unlike [`Journal::open_resume`] the file is never
+/// truncated, so readers (`report`) leave the run directory as they found it.
+pub fn read_journal(dir: &Path) -> Result<JournalContents, JournalError> {
+    let path = dir.join(JOURNAL_FILE);
+    let bytes = std::fs::read(&path).map_err(|source| JournalError::Io {
+        path: path.clone(),
+        source,
+    })?;
+    let keep = bytes
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .map(|i| i + 1)
+        .unwrap_or(0);
+    let torn = (keep < bytes.len()).then(|| TornLine {
+        line: bytes[..keep].iter().filter(|&&b| b == b'\n').count() as u64 + 1,
+        bytes: (bytes.len() - keep) as u64,
+    });
+    let mut rows = Vec::new();
+    if keep > 0 {
+        let mut rdr = csv::Reader::from_reader(&bytes[..keep]);
+        for rec in rdr.deserialize::<JournalRow>() {
+            rows.push(rec.map_err(|e| {
+                let line = e.position().map(|p| p.line()).unwrap_or(0);
+                corrupt(&path, line, e.to_string())
+            })?);
+        }
+    }
+    Ok(JournalContents { rows, torn })
 }
 
 /// The journal's column names, in order (the serde field order of [`JournalRow`]).
@@ -653,6 +798,111 @@ mod tests {
     }
 
     #[test]
+    fn read_journal_skips_a_torn_last_line_without_changing_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut j = Journal::create(dir.path()).unwrap();
+        j.append(&row(0)).unwrap();
+        drop(j);
+        let path = dir.path().join(JOURNAL_FILE);
+        let mut f = OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(b"1,0,50,0.49,0,0,0.0").unwrap();
+        drop(f);
+        let before = std::fs::read(&path).unwrap();
+        let c = read_journal(dir.path()).unwrap();
+        assert_eq!(c.rows, vec![row(0)]);
+        assert_eq!(c.torn, Some(TornLine { line: 3, bytes: 19 }));
+        assert_eq!(std::fs::read(&path).unwrap(), before, "never truncated");
+        let e = read_rows(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("torn"), "{e}");
+        // A header cut mid-write: no rows, the torn line is line 1.
+        std::fs::write(&path, b"index,tri").unwrap();
+        let c = read_journal(dir.path()).unwrap();
+        assert!(c.rows.is_empty());
+        assert_eq!(c.torn, Some(TornLine { line: 1, bytes: 9 }));
+    }
+
+    #[test]
+    fn finish_says_why_the_run_measured_less_than_its_plan() {
+        let dir = tempfile::tempdir().unwrap();
+        Journal::create(dir.path()).unwrap();
+        let mut m = Manifest {
+            plan_path: "p.toml".into(),
+            plan_name: "p".into(),
+            plan_toml: String::new(),
+            sensor_path: "s.toml".into(),
+            sensor_toml: String::new(),
+            bench: serde_json::Value::Null,
+            devices: serde_json::Value::Null,
+            build_id: None,
+            software_version: "0".into(),
+            started_at: "t0".into(),
+            resumed_at: vec![],
+            setpoints: 8,
+            planned_setpoints: Some(160),
+            limit: Some(8),
+            measured_setpoints: 0,
+            status: RunStatus::Running,
+            end_reason: None,
+            stop_signal: None,
+            incomplete_reason: None,
+            ended_at: None,
+            software_commit: None,
+        };
+        m.finish(RunStatus::Completed, None, 8, None, "t1".into());
+        assert_eq!(
+            m.incomplete_reason.as_deref(),
+            Some("limited by --limit 8: 8 of the plan's 160 setpoints measured")
+        );
+        m.limit = None;
+        m.finish(
+            RunStatus::Interrupted,
+            Some("x".into()),
+            18,
+            Some(15),
+            "t2".into(),
+        );
+        assert_eq!(m.stop_signal.as_deref(), Some("SIGTERM"));
+        let r = m.incomplete_reason.clone().unwrap();
+        assert!(
+            r.starts_with("interrupted by SIGTERM") && !r.contains("Ctrl-C"),
+            "{r}"
+        );
+        m.finish(RunStatus::Interrupted, None, 18, Some(2), "t2".into());
+        assert!(m
+            .incomplete_reason
+            .clone()
+            .unwrap()
+            .contains("SIGINT (Ctrl-C)"));
+        m.finish(
+            RunStatus::Aborted,
+            Some("safety trip".into()),
+            3,
+            None,
+            "t3".into(),
+        );
+        assert_eq!(m.stop_signal, None);
+        assert!(m
+            .incomplete_reason
+            .clone()
+            .unwrap()
+            .ends_with(": safety trip"));
+        m.finish(RunStatus::Completed, None, 160, None, "t4".into());
+        assert_eq!(m.incomplete_reason, None);
+    }
+
+    #[test]
+    fn manifests_written_before_the_counts_were_recorded_still_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let old = r#"{"plan_path":"p.toml","plan_name":"p","plan_toml":"","sensor_path":"s.toml",
+            "sensor_toml":"","bench":null,"devices":null,"build_id":null,"software_version":"0.1.0",
+            "started_at":"2026-11-22T00:00:00Z","setpoints":12,"status":"completed"}"#;
+        std::fs::write(dir.path().join(MANIFEST_FILE), old).unwrap();
+        let m = Manifest::read(dir.path()).unwrap();
+        assert_eq!((m.planned(), m.measured_setpoints, m.limit), (12, 0, None));
+        assert_eq!(m.software_commit, None);
+    }
+
+    #[test]
     fn create_never_overwrites_an_existing_run() {
         let dir = tempfile::tempdir().unwrap();
         Journal::create(dir.path()).unwrap();
@@ -693,9 +943,15 @@ mod tests {
             started_at: "2026-11-22T00:00:00Z".into(),
             resumed_at: vec![],
             setpoints: 160,
+            planned_setpoints: Some(160),
+            limit: None,
+            measured_setpoints: 0,
             status: RunStatus::Running,
             end_reason: None,
+            stop_signal: None,
+            incomplete_reason: None,
             ended_at: None,
+            software_commit: Some(GIT_COMMIT.into()),
         };
         m.write(dir.path()).unwrap();
         assert_eq!(Manifest::read(dir.path()).unwrap(), m);

@@ -1,12 +1,14 @@
 //! The bench runner and its inputs and record: experiment plans ([`plan`]), the bench
 //! file ([`config`]), the runner's pure decision logic ([`control`]: settle detection,
 //! force limits, force control), the runner itself ([`runner`]: setpoints, safety
-//! watchdog, resume) and the crash-safe run directory ([`journal`]). Nothing here
-//! prints or draws: the runner emits [`runner::RunEvent`]s.
+//! watchdog, resume), the crash-safe run directory ([`journal`]) and its one-writer
+//! lock ([`lock`]). Nothing here prints or draws: the runner emits
+//! [`runner::RunEvent`]s.
 
 pub mod config;
 pub mod connect;
 pub mod control;
 pub mod journal;
+pub mod lock;
 pub mod plan;
 pub mod runner;

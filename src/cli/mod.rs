@@ -86,11 +86,70 @@ pub fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(err) => {
-            eprintln!("error: {err}");
-            for cause in err.chain().skip(1) {
-                eprintln!("  caused by: {cause}");
-            }
+            eprint!("{}", error_report(&err));
             ExitCode::from(2)
         }
+    }
+}
+
+/// `error: MESSAGE` and one `  caused by: CAUSE` line per cause in the chain, leaving
+/// out causes whose text an earlier line already shows (many errors print their
+/// source inside their own message, e.g. `{path}: {source}`; `#[error(transparent)]`
+/// repeats it verbatim).
+fn error_report(err: &anyhow::Error) -> String {
+    let mut shown: Vec<String> = Vec::new();
+    let mut out = String::new();
+    for (i, cause) in err.chain().enumerate() {
+        let text = cause.to_string();
+        if i > 0 && shown.iter().any(|s| s.contains(&text)) {
+            continue;
+        }
+        if i == 0 {
+            out.push_str(&format!("error: {text}\n"));
+        } else {
+            out.push_str(&format!("  caused by: {text}\n"));
+        }
+        shown.push(text);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, thiserror::Error)]
+    enum Inner {
+        #[error("{path}: {source}")]
+        Io {
+            path: String,
+            source: std::io::Error,
+        },
+    }
+
+    #[derive(Debug, thiserror::Error)]
+    enum Outer {
+        #[error(transparent)]
+        Inner(#[from] Inner),
+    }
+
+    #[test]
+    fn caused_by_lines_never_repeat_a_message_already_shown() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "No such file");
+        let err = anyhow::Error::new(Outer::from(Inner::Io {
+            path: "runs/x/manifest.json".into(),
+            source: io,
+        }))
+        .context("cannot resume runs/x");
+        let text = error_report(&err);
+        assert_eq!(
+            text,
+            "error: cannot resume runs/x\n  caused by: runs/x/manifest.json: No such file\n"
+        );
+        let plain = anyhow::anyhow!("root").context("middle").context("top");
+        assert_eq!(
+            error_report(&plain),
+            "error: top\n  caused by: middle\n  caused by: root\n"
+        );
     }
 }

@@ -1,5 +1,5 @@
-//! `tactbench report`: run directory -> report.html, summary.csv, plots/, with optional
-//! acceptance verdicts and an exit code that gates a build.
+//! `tactbench report`: run directory -> report.html, verdict.json, summary.csv,
+//! plots/, with optional acceptance verdicts and an exit code that gates a build.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -7,52 +7,80 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 
 use tactbench::analysis::{AnalysisOptions, RunAnalysis};
-use tactbench::report::{self, acceptance::Criteria};
+use tactbench::bench::journal::JOURNAL_FILE;
+use tactbench::bench::lock;
+use tactbench::report::acceptance::{Criteria, Outcome, Verdict};
+use tactbench::report::verdict::{VerdictDoc, EXIT_FAIL, EXIT_INCOMPLETE, EXIT_PASS};
+use tactbench::report::{self, ReportOptions};
 
-/// Exit code when at least one acceptance criterion fails.
-pub const EXIT_FAIL: u8 = 1;
-
-/// Analyse a run directory and write its report.
+/// Analyse a run directory, write its report and judge it.
 ///
 /// Reads RUN_DIR (manifest.json, journal.csv, displacements/, forces/), computes the
 /// paper's evaluation for the plan's sweep kind (magnitude: Fig. 7; angle: Fig. 8;
 /// spatial: Fig. 9; displacement: Table I; timing of every run: Table II) and writes
-/// RUN_DIR/report.html (self-contained, figures embedded), RUN_DIR/summary.csv
-/// (metric,value,unit) and RUN_DIR/plots/*.png|svg.
+/// OUT/report.html (self-contained, figures embedded, opening with the verdict
+/// banner), OUT/verdict.json (the machine-readable verdict, schema in the README),
+/// OUT/summary.csv (metric,value,unit) and OUT/plots/*.png|svg, where OUT is RUN_DIR
+/// unless --out is given.
 ///
-/// With --acceptance, each criterion of CRITERIA.toml is judged and printed as a
-/// PASS/FAIL line with the value and the threshold; the verdicts are also in the report.
+/// The report only reads the run: it never changes manifest.json, journal.csv or the
+/// frames, so it works on a run still in progress (and says so), on runs with 0 or 1
+/// rows (analyses that need more data say why they are absent) and on a journal whose
+/// last line was torn by a crash (the complete rows are used; the cut line is named).
 ///
-/// Exit codes: 0 = report written and every criterion passed (or none given);
-/// 1 = report written and at least one criterion FAILED; 2 = error (unreadable or
-/// invalid run directory or criteria file, a criterion naming a metric the run does not
-/// have); nothing is judged then.
+/// Verdict: a run that did not measure its whole plan (--limit, interrupted, aborted,
+/// killed, in progress) is INCOMPLETE whatever its metrics, unless --allow-partial
+/// grades it anyway (the verdict then says so). Otherwise, with --acceptance, each
+/// criterion of CRITERIA.toml is PASS, MARGINAL (within limits, in the marginal band)
+/// or FAIL, printed with the value and the threshold; the verdict is the worst of them.
+///
+/// Exit codes: 0 = PASS or MARGINAL (also: no criteria given, complete run);
+/// 1 = FAIL (a criterion or a provenance requirement failed); 5 = INCOMPLETE (the run
+/// did not measure its whole plan; not graded); 2 = error (unreadable or invalid run
+/// directory or criteria file, a criterion naming a metric the run's sweep kind does
+/// not have); nothing is judged then.
 #[derive(clap::Args)]
 #[command(after_long_help = after_help())]
 pub struct Args {
     /// The run directory written by `tactbench run`.
     #[arg(value_name = "RUN_DIR")]
     run_dir: PathBuf,
-    /// Acceptance criteria (TOML, `[[criterion]]` with metric and min and/or max).
+    /// Acceptance criteria (TOML, `[[criterion]]` with metric, min and/or max,
+    /// optional marginal_min / marginal_max; optional top-level require_build_id).
     #[arg(long, value_name = "CRITERIA.toml")]
     acceptance: Option<PathBuf>,
+    /// Grade a run that did not measure its whole plan instead of calling it
+    /// INCOMPLETE (the verdict says it graded a partial run).
+    #[arg(long)]
+    allow_partial: bool,
+    /// Write the report files into DIR instead of RUN_DIR.
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
     /// Setpoint index for the displacement and force-field figures (default: the row
     /// with the largest reconstructed force sum).
     #[arg(long, value_name = "INDEX")]
     setpoint: Option<usize>,
 }
 
-/// Examples, the criteria format and the metric names (from the library's table).
+/// Examples, the criteria format, the exit codes and the metric names (from the
+/// library's table).
 fn after_help() -> String {
     format!(
         "Examples:\n  \
          tactbench report runs/fig7\n  \
          tactbench report runs/fig7 --acceptance experiments/acceptance_example.toml\n  \
+         tactbench report runs/try --allow-partial   # grade a --limit / interrupted run\n  \
          tactbench report runs/fig7 --setpoint 15    # field figures of setpoint 15\n\n\
          Criteria file (bounds inclusive, at least one of min / max):\n  \
-         [[criterion]]\n  metric = \"magnitude.r2\"\n  min = 0.99\n\n  \
+         require_build_id = true     # optional: no build id recorded -> FAIL\n\n  \
+         [[criterion]]\n  metric = \"magnitude.r2\"\n  min = 0.99\n  \
+         marginal_min = 0.995        # optional: r2 <= 0.995 (but >= 0.99) is MARGINAL\n\n  \
          [[criterion]]\n  metric = \"timing.forces_ms\"\n  max = 2.9\n\n\
-         Exit codes: 0 all criteria pass (or none given), {EXIT_FAIL} a criterion FAILED, 2 error.\n\n\
+         Exit codes:\n  \
+         {EXIT_PASS}  PASS or MARGINAL (or no criteria given, complete run)\n  \
+         {EXIT_FAIL}  FAIL: a criterion or a provenance requirement failed\n  \
+         2  error: nothing judged (bad run directory or criteria file)\n  \
+         {EXIT_INCOMPLETE}  INCOMPLETE: the run did not measure its whole plan (--allow-partial grades it)\n\n\
          Metrics (<layer> = a layer name of the sensor):\n{}",
         report::acceptance::known_metrics_text()
     )
@@ -67,30 +95,87 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let options = AnalysisOptions {
         snapshot_index: args.setpoint,
     };
+    // Before reading: a writer that ends meanwhile leaves a complete record, one that
+    // is live keeps the run INCOMPLETE either way.
+    let lock = lock::probe(&args.run_dir)
+        .with_context(|| format!("checking for a live writer of {}", args.run_dir.display()))?;
     let analysis = RunAnalysis::load(&args.run_dir, &options)
         .with_context(|| format!("analysing run directory {}", args.run_dir.display()))?;
-    let outcome = report::write_report(&analysis, criteria.as_ref())
+    let report_options = ReportOptions {
+        allow_partial: args.allow_partial,
+        lock,
+    };
+    let out_dir = args.out.as_deref().unwrap_or(&args.run_dir);
+    let outcome = report::write_report_to(&analysis, criteria.as_ref(), &report_options, out_dir)
         .with_context(|| format!("writing the report of {}", args.run_dir.display()))?;
+    let v = &outcome.verdict;
+    if let Some(t) = &v.run.torn_journal_line {
+        eprintln!(
+            "warning: {}: line {} is torn ({} bytes cut mid-write); using the {} complete rows, the file is left as it is",
+            analysis.run.dir.join(JOURNAL_FILE).display(),
+            t.line,
+            t.bytes,
+            v.run.measured_setpoints
+        );
+    }
+    if let Some(w) = &v.run.writer {
+        eprintln!("note: the run is still in progress ({w})");
+    }
+    for (name, why) in &analysis.absent {
+        eprintln!("note: no {name} analysis: {why}");
+    }
     println!("wrote {}", outcome.html.display());
+    println!("wrote {}", outcome.verdict_file.display());
     println!("wrote {}", outcome.summary.display());
     for f in &outcome.figures {
         println!("wrote {} and .svg", f.png.display());
     }
-    for v in &outcome.verdicts {
-        println!("{v}");
+    for c in &outcome.verdicts {
+        println!("{c}");
     }
-    if criteria.is_none() {
-        return Ok(ExitCode::SUCCESS);
-    }
-    let failed = outcome.verdicts.iter().filter(|v| !v.pass).count();
-    if failed == 0 {
-        println!("acceptance: PASS ({} criteria)", outcome.verdicts.len());
-        Ok(ExitCode::SUCCESS)
-    } else {
+    for r in &v.requirements {
         println!(
-            "acceptance: FAIL ({failed} of {} criteria failed)",
-            outcome.verdicts.len()
+            "{} provenance: {} = {}",
+            r.outcome,
+            r.requirement,
+            r.value.as_deref().unwrap_or("(none recorded)")
         );
-        Ok(ExitCode::from(EXIT_FAIL))
+    }
+    println!(
+        "run: {}, {} of {} planned setpoints measured",
+        v.run.status, v.run.measured_setpoints, v.run.planned_setpoints
+    );
+    if criteria.is_some() {
+        println!("acceptance: {}", acceptance_line(v, &outcome.verdicts));
+    }
+    println!("verdict: {}", v.summary);
+    Ok(ExitCode::from(v.exit_code))
+}
+
+/// `PASS (3 criteria)`, `FAIL (1 of 2 criteria failed)`, `INCOMPLETE (...)`.
+fn acceptance_line(v: &VerdictDoc, verdicts: &[Verdict]) -> String {
+    let n = verdicts.len() + v.requirements.len();
+    let failed = verdicts.iter().filter(|c| !c.pass()).count()
+        + v.requirements
+            .iter()
+            .filter(|r| r.outcome == Outcome::Fail)
+            .count();
+    let marginal = verdicts
+        .iter()
+        .filter(|c| c.outcome == Outcome::Marginal)
+        .count();
+    let partial = if v.graded_partial {
+        ", PARTIAL RUN graded with --allow-partial"
+    } else {
+        ""
+    };
+    match v.outcome {
+        Outcome::Pass => format!("PASS ({n} criteria{partial})"),
+        Outcome::Marginal => format!("MARGINAL ({marginal} of {n} criteria marginal{partial})"),
+        Outcome::Fail => format!("FAIL ({failed} of {n} criteria failed{partial})"),
+        Outcome::Incomplete => format!(
+            "INCOMPLETE ({} of {} planned setpoints measured; not graded)",
+            v.run.measured_setpoints, v.run.planned_setpoints
+        ),
     }
 }

@@ -5,8 +5,8 @@
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -15,6 +15,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
 use tactbench::bench::journal::{Manifest, RunStatus};
+use tactbench::bench::lock::RunLock;
 use tactbench::bench::plan::{self, Plan};
 use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions};
 use tactbench::sensor::Sensor;
@@ -69,9 +70,15 @@ Examples:
 /// status is 0 when every check passes, 3 when a limit check fails, 2 when an input
 /// is missing or invalid.
 ///
-/// Exit status: 0 when every setpoint was measured, 3 when the run was aborted (device
-/// error, safety trip), 4 when interrupted, 2 on other errors; the reason goes to
-/// stderr and into manifest.json.
+/// One writer per run directory: `run` and `run --resume` hold an exclusive lock on
+/// DIR/run.lock for the whole run (released by the kernel when the process ends, even
+/// on SIGKILL); a second writer is refused at once (exit 2) naming the holder's PID,
+/// host and start time.
+///
+/// Exit status: 0 when every setpoint of the run was measured, 3 when the run was
+/// aborted (device error, safety trip), 4 when interrupted (SIGINT, SIGTERM, SIGHUP),
+/// 2 on other errors (including a run directory another process is writing); the
+/// reason goes to stderr and into manifest.json.
 #[derive(clap::Args)]
 #[command(after_long_help = RUN_EXAMPLES)]
 pub struct Args {
@@ -147,8 +154,56 @@ fn bench_from_manifest(m: &Manifest) -> anyhow::Result<BenchConfig> {
     bail!("the manifest does not say which bench ran; give --bench or --sim")
 }
 
+/// The flags the signal handler sets: (stop requested, which signal).
+static STOP: OnceLock<(Arc<AtomicBool>, Arc<AtomicI32>)> = OnceLock::new();
+
+/// SIGINT / SIGTERM / SIGHUP handler: records the first signal and asks the runner to
+/// stop. Async-signal-safe: atomic loads and stores only.
+extern "C" fn on_stop_signal(signal: libc::c_int) {
+    if let Some((stop, which)) = STOP.get() {
+        let _ = which.compare_exchange(0, signal, Ordering::SeqCst, Ordering::SeqCst);
+        stop.store(true, Ordering::SeqCst);
+    }
+}
+
+/// Installs [`on_stop_signal`] for SIGINT, SIGTERM and SIGHUP; returns the flags.
+fn install_stop_handlers() -> anyhow::Result<(Arc<AtomicBool>, Arc<AtomicI32>)> {
+    let flags = STOP
+        .get_or_init(|| {
+            (
+                Arc::new(AtomicBool::new(false)),
+                Arc::new(AtomicI32::new(0)),
+            )
+        })
+        .clone();
+    for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
+        // SAFETY: `action` is fully initialised (zeroed, then handler, empty mask,
+        // SA_RESTART) before sigaction reads it; the handler only touches atomics.
+        let rc = unsafe {
+            let mut action: libc::sigaction = std::mem::zeroed();
+            action.sa_sigaction = on_stop_signal as extern "C" fn(libc::c_int) as usize;
+            action.sa_flags = libc::SA_RESTART;
+            libc::sigemptyset(&mut action.sa_mask);
+            libc::sigaction(signal, &action, std::ptr::null_mut())
+        };
+        if rc != 0 {
+            bail!(
+                "cannot install the {} handler: {}",
+                tactbench::bench::journal::signal_name(signal),
+                std::io::Error::last_os_error()
+            );
+        }
+    }
+    Ok(flags)
+}
+
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let limit = a.limit.map(|n| usize::try_from(n).unwrap_or(usize::MAX));
+    // One writer per run directory: a resume locks before it reads or writes anything.
+    let mut run_lock = match (&a.resume, a.dry_run) {
+        (Some(dir), false) if dir.is_dir() => Some(RunLock::acquire(dir, "run --resume")?),
+        _ => None,
+    };
     // Plan: from the command line, or (resume) from the manifest.
     let manifest =
         match &a.resume {
@@ -206,14 +261,30 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     // bench cannot be opened: a failed start leaves nothing behind.
     let created = !resume && !dir.exists();
     if !resume {
+        let journal = dir.join(tactbench::bench::journal::JOURNAL_FILE);
+        if journal.exists() || dir.join(tactbench::bench::journal::MANIFEST_FILE).exists() {
+            // Refused before anything in it is touched (the lock file included).
+            let live = match tactbench::bench::lock::probe(&dir) {
+                Ok(tactbench::bench::lock::LockState::Held(h)) => {
+                    format!(" (in progress: {h})")
+                }
+                _ => String::new(),
+            };
+            bail!(
+                "{} already holds a run{live}: choose another --out, or continue it with --resume {}",
+                dir.display(),
+                dir.display()
+            );
+        }
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create run directory {}", dir.display()))?;
+        // Before anything else is written (the simulated bench's links live in DIR).
+        run_lock = Some(RunLock::acquire(&dir, "run")?);
     }
+    // Held until this function returns (or the process dies).
+    let run_lock = run_lock.context("cannot resume: no such run directory")?;
 
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = Arc::clone(&stop);
-    ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst))
-        .context("cannot install the Ctrl-C handler")?;
+    let (stop, stop_signal) = install_stop_handlers()?;
 
     let sim_options = SimOptions {
         links: connect::default_links(&dir),
@@ -225,6 +296,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         Err(e) => {
             if created {
                 let _ = std::fs::remove_dir(&sim_options.links);
+                let _ = std::fs::remove_file(run_lock.path());
                 let _ = std::fs::remove_dir(&dir);
             }
             return Err(anyhow::Error::new(e).context("cannot open the bench"));
@@ -242,6 +314,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         tare: c.tare,
         limit,
         stop,
+        stop_signal,
     };
 
     // A progress bar only on a terminal: indicatif hides itself (and the lines printed

@@ -1,11 +1,16 @@
 //! Acceptance criteria (`--acceptance CRITERIA.toml`) and their verdicts.
 //!
 //! ```toml
+//! # Optional: the run must record an elastomer build id (`--build-id` or the plan's
+//! # `build_id`), else the verdict is FAIL.
+//! require_build_id = true
+//!
 //! # Each criterion bounds one metric of the run (names: `tactbench report --help`,
 //! # the README, or analysis::METRICS). At least one of min / max; bounds inclusive.
 //! [[criterion]]
 //! metric = "magnitude.r2"
 //! min = 0.99
+//! marginal_min = 0.995   # optional: 0.99 <= r2 <= 0.995 is MARGINAL
 //!
 //! [[criterion]]
 //! metric = "magnitude.resolution_gf"
@@ -17,12 +22,19 @@
 //! max = 2.9
 //! ```
 //!
+//! Outcome of one criterion: FAIL outside `[min, max]` (or not a finite number);
+//! MARGINAL inside the limits but at or beyond a marginal bound (`value <= marginal_min`
+//! or `value >= marginal_max`, OpenHTF's marginal band: within limits, close to them);
+//! PASS otherwise.
+//!
 //! Rejected when loading (naming the file and the criterion): TOML errors and unknown
 //! keys, no criterion, a criterion with neither bound, non-finite bounds, `min > max`,
+//! a marginal bound outside the limits (`min <= marginal_min <= marginal_max <= max`),
 //! and metric names the analyses never produce (the message lists the known ones).
-//! A known metric that this run does not have (e.g. `spatial.fwhm_mm` on a magnitude
-//! run) is an error when evaluating, never a silent pass. A metric value that is not a
-//! finite number fails its criterion.
+//! A known metric that this run's sweep kind never has (e.g. `spatial.fwhm_mm` on a
+//! magnitude run) is an error when evaluating, never a silent pass. A metric whose
+//! analysis could not run on this run's data (too few rows) FAILs its criterion, with
+//! the reason. A metric value that is not a finite number fails its criterion.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -68,6 +80,42 @@ pub struct Criterion {
     pub min: Option<f64>,
     /// Inclusive upper bound.
     pub max: Option<f64>,
+    /// Values at or below it (within the limits) are MARGINAL.
+    pub marginal_min: Option<f64>,
+    /// Values at or above it (within the limits) are MARGINAL.
+    pub marginal_max: Option<f64>,
+}
+
+/// The outcome of a criterion, a requirement or a whole verdict.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "UPPERCASE")]
+pub enum Outcome {
+    /// Within the limits and outside any marginal band.
+    Pass,
+    /// Within the limits but in a marginal band (exit 0, shown).
+    Marginal,
+    /// Outside the limits, not a number, or a requirement not met.
+    Fail,
+    /// The run did not measure its whole plan (verdicts only).
+    Incomplete,
+}
+
+impl Outcome {
+    /// `PASS`, `MARGINAL`, `FAIL`, `INCOMPLETE`.
+    pub fn word(self) -> &'static str {
+        match self {
+            Outcome::Pass => "PASS",
+            Outcome::Marginal => "MARGINAL",
+            Outcome::Fail => "FAIL",
+            Outcome::Incomplete => "INCOMPLETE",
+        }
+    }
+}
+
+impl fmt::Display for Outcome {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.word())
+    }
 }
 
 impl fmt::Display for Criterion {
@@ -78,6 +126,12 @@ impl fmt::Display for Criterion {
             (Some(lo), None) => write!(f, ">= {lo}"),
             (None, Some(hi)) => write!(f, "<= {hi}"),
             (None, None) => f.write_str("(no bound)"),
+        }?;
+        match (self.marginal_min, self.marginal_max) {
+            (Some(lo), Some(hi)) => write!(f, ", marginal outside ({lo}, {hi})"),
+            (Some(lo), None) => write!(f, ", marginal <= {lo}"),
+            (None, Some(hi)) => write!(f, ", marginal >= {hi}"),
+            (None, None) => Ok(()),
         }
     }
 }
@@ -89,11 +143,15 @@ pub struct Criteria {
     pub path: PathBuf,
     /// Criteria in file order.
     pub criteria: Vec<Criterion>,
+    /// `require_build_id = true`: a run without a build id FAILs.
+    pub require_build_id: bool,
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawCriteria {
+    #[serde(default)]
+    require_build_id: bool,
     #[serde(default)]
     criterion: Vec<RawCriterion>,
 }
@@ -104,6 +162,8 @@ struct RawCriterion {
     metric: String,
     min: Option<f64>,
     max: Option<f64>,
+    marginal_min: Option<f64>,
+    marginal_max: Option<f64>,
 }
 
 /// The known metric names, one per line, for messages and `--help`.
@@ -151,34 +211,73 @@ impl Criteria {
                 }
                 _ => {}
             }
-            for (key, v) in [("min", c.min), ("max", c.max)] {
+            let bounds = [
+                ("min", c.min),
+                ("marginal_min", c.marginal_min),
+                ("marginal_max", c.marginal_max),
+                ("max", c.max),
+            ];
+            for (key, v) in bounds {
                 if let Some(v) = v {
                     if !v.is_finite() {
                         return Err(invalid(format!("{key} = {v} is not a finite number")));
                     }
                 }
             }
+            // min <= marginal_min <= marginal_max <= max, for the bounds given.
+            let given: Vec<(&str, f64)> = bounds
+                .iter()
+                .filter_map(|(k, v)| v.map(|v| (*k, v)))
+                .collect();
+            for w in given.windows(2) {
+                let ((ka, a), (kb, b)) = (w[0], w[1]);
+                if a > b && !(ka == "min" && kb == "max") {
+                    return Err(invalid(format!(
+                        "{ka} = {a} is greater than {kb} = {b}; the marginal band lies within \
+                         the limits (min <= marginal_min <= marginal_max <= max)"
+                    )));
+                }
+            }
             criteria.push(Criterion {
                 metric: c.metric,
                 min: c.min,
                 max: c.max,
+                marginal_min: c.marginal_min,
+                marginal_max: c.marginal_max,
             });
         }
         Ok(Criteria {
             path: path.to_path_buf(),
             criteria,
+            require_build_id: raw.require_build_id,
         })
     }
 
     /// Judges `metrics` (a run's [`crate::analysis::RunAnalysis::metrics`]); `sweep`
-    /// names the run's sweep kind in messages.
+    /// names the run's sweep kind in messages; `absent` lists the analyses that could
+    /// not run on this run's data as (metric prefix, reason): their criteria FAIL
+    /// with the reason instead of being errors.
     pub fn evaluate(
         &self,
         metrics: &[Metric],
         sweep: &str,
+        absent: &[(String, String)],
     ) -> Result<Vec<Verdict>, AcceptanceError> {
         let mut out = Vec::with_capacity(self.criteria.len());
         for (i, c) in self.criteria.iter().enumerate() {
+            let prefix = c.metric.split('.').next().unwrap_or_default();
+            if let Some((_, why)) = absent.iter().find(|(p, _)| p == prefix) {
+                if !metrics.iter().any(|m| m.name == c.metric) {
+                    out.push(Verdict {
+                        criterion: c.clone(),
+                        value: f64::NAN,
+                        unit: metric_unit(&c.metric),
+                        outcome: Outcome::Fail,
+                        note: Some(format!("not computed: {why}")),
+                    });
+                    continue;
+                }
+            }
             let Some(m) = metrics.iter().find(|m| m.name == c.metric) else {
                 let have: Vec<&str> = metrics.iter().map(|m| m.name.as_str()).collect();
                 return Err(AcceptanceError::Invalid {
@@ -191,18 +290,47 @@ impl Criteria {
                     ),
                 });
             };
-            let pass = m.value.is_finite()
-                && c.min.is_none_or(|lo| m.value >= lo)
-                && c.max.is_none_or(|hi| m.value <= hi);
             out.push(Verdict {
                 criterion: c.clone(),
                 value: m.value,
                 unit: m.unit,
-                pass,
+                outcome: c.judge(m.value),
+                note: None,
             });
         }
         Ok(out)
     }
+}
+
+impl Criterion {
+    /// FAIL outside `[min, max]` or not finite; MARGINAL at or beyond a marginal
+    /// bound; PASS otherwise.
+    pub fn judge(&self, value: f64) -> Outcome {
+        if !value.is_finite()
+            || self.min.is_some_and(|lo| value < lo)
+            || self.max.is_some_and(|hi| value > hi)
+        {
+            Outcome::Fail
+        } else if self.marginal_min.is_some_and(|lo| value <= lo)
+            || self.marginal_max.is_some_and(|hi| value >= hi)
+        {
+            Outcome::Marginal
+        } else {
+            Outcome::Pass
+        }
+    }
+}
+
+/// The unit of a metric name from [`METRICS`] (`1` when unknown).
+fn metric_unit(name: &str) -> &'static str {
+    METRICS
+        .iter()
+        .find(|(pattern, _, _)| {
+            let p: Vec<&str> = pattern.split('.').collect();
+            let n: Vec<&str> = name.split('.').collect();
+            p.len() == n.len() && p.iter().zip(&n).all(|(a, b)| *a == "<layer>" || a == b)
+        })
+        .map_or("1", |(_, unit, _)| unit)
 }
 
 /// The outcome of one criterion.
@@ -210,12 +338,21 @@ impl Criteria {
 pub struct Verdict {
     /// The criterion.
     pub criterion: Criterion,
-    /// The run's value.
+    /// The run's value (NaN when it could not be computed, see `note`).
     pub value: f64,
     /// Its unit.
     pub unit: &'static str,
-    /// Whether the value is within the bounds.
-    pub pass: bool,
+    /// PASS, MARGINAL or FAIL.
+    pub outcome: Outcome,
+    /// Why there is no value (the analysis that could not run), if so.
+    pub note: Option<String>,
+}
+
+impl Verdict {
+    /// True unless FAIL (MARGINAL passes, visibly).
+    pub fn pass(&self) -> bool {
+        self.outcome != Outcome::Fail
+    }
 }
 
 impl fmt::Display for Verdict {
@@ -225,13 +362,14 @@ impl fmt::Display for Verdict {
             "1" | "count" => String::new(),
             u => format!(" {u}"),
         };
+        let value = match &self.note {
+            Some(n) => format!("? ({n})"),
+            None => format!("{}{unit}", fmt_value(self.value)),
+        };
         write!(
             f,
-            "{} {} = {}{unit} ({}{unit})",
-            if self.pass { "PASS" } else { "FAIL" },
-            self.criterion.metric,
-            fmt_value(self.value),
-            self.criterion
+            "{} {} = {value} ({}{unit})",
+            self.outcome, self.criterion.metric, self.criterion
         )
     }
 }
@@ -287,10 +425,11 @@ mod tests {
                     metric("magnitude.linearity_pct", f64::NAN),
                 ],
                 "magnitude",
+                &[],
             )
             .unwrap();
         assert_eq!(
-            v.iter().map(|v| v.pass).collect::<Vec<_>>(),
+            v.iter().map(|v| v.pass()).collect::<Vec<_>>(),
             [true, false, false]
         );
         assert_eq!(
@@ -347,11 +486,82 @@ mod tests {
         )
         .unwrap();
         let e = c
-            .evaluate(&[metric("magnitude.r2", 1.0)], "magnitude")
+            .evaluate(&[metric("magnitude.r2", 1.0)], "magnitude", &[])
             .unwrap_err()
             .to_string();
         assert!(
             e.contains("has no such metric") && e.contains("magnitude.r2"),
+            "{e}"
+        );
+        // An analysis that could not run on this run's data: FAIL with the reason.
+        let absent = [("spatial".to_string(), "needs 3 loads, has 1".to_string())];
+        let v = c
+            .evaluate(&[metric("magnitude.r2", 1.0)], "spatial", &absent)
+            .unwrap();
+        assert_eq!(v[0].outcome, Outcome::Fail);
+        assert_eq!(v[0].unit, "mm");
+        assert!(
+            v[0].to_string().contains("not computed: needs 3 loads"),
+            "{}",
+            v[0]
+        );
+    }
+
+    #[test]
+    fn a_marginal_band_inside_the_limits_gives_marginal() {
+        let c = Criteria::from_toml_str(
+            "require_build_id = true\n\
+             [[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99\nmarginal_min = 0.995\n\
+             [[criterion]]\nmetric = \"timing.forces_ms\"\nmax = 2.9\nmarginal_max = 2.5\n",
+            Path::new("c.toml"),
+        )
+        .unwrap();
+        assert!(c.require_build_id);
+        let r2 = &c.criteria[0];
+        assert_eq!(r2.judge(0.989), Outcome::Fail);
+        assert_eq!(r2.judge(0.99), Outcome::Marginal);
+        assert_eq!(r2.judge(0.995), Outcome::Marginal);
+        assert_eq!(r2.judge(0.996), Outcome::Pass);
+        let t = &c.criteria[1];
+        assert_eq!(t.judge(2.6), Outcome::Marginal);
+        assert_eq!(t.judge(2.4), Outcome::Pass);
+        assert_eq!(t.judge(3.0), Outcome::Fail);
+        assert_eq!(t.judge(f64::NAN), Outcome::Fail);
+        assert_eq!(r2.to_string(), ">= 0.99, marginal <= 0.995");
+        let v = c
+            .evaluate(
+                &[
+                    metric("magnitude.r2", 0.993),
+                    metric("timing.forces_ms", 1.0),
+                ],
+                "magnitude",
+                &[],
+            )
+            .unwrap();
+        assert_eq!(
+            v[0].to_string(),
+            "MARGINAL magnitude.r2 = 0.993 (>= 0.99, marginal <= 0.995)"
+        );
+        assert!(v[0].pass());
+        // The band must lie within the limits.
+        let e = Criteria::from_toml_str(
+            "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99\nmarginal_min = 0.98\n",
+            Path::new("c.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("min = 0.99 is greater than marginal_min = 0.98"),
+            "{e}"
+        );
+        let e = Criteria::from_toml_str(
+            "[[criterion]]\nmetric = \"magnitude.r2\"\nmax = 1\nmarginal_max = 1.5\n",
+            Path::new("c.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("marginal_max = 1.5 is greater than max = 1"),
             "{e}"
         );
     }

@@ -1,12 +1,15 @@
-//! The self-contained HTML report: provenance, acceptance verdicts, metrics, the
-//! analysis tables and the figures embedded as base64 PNG data URIs (one file, no
-//! external resources). Everything taken from the run's files is HTML-escaped.
+//! The self-contained HTML report: one large verdict banner first (outcome, run
+//! status, measured/planned setpoints, build id), then the acceptance verdicts,
+//! provenance, metrics, the analysis tables (or why an analysis is absent) and the
+//! figures embedded as base64 PNG data URIs (one file, no external resources).
+//! Everything taken from the run's files is HTML-escaped.
 
 use std::fmt::Write;
 
 use base64::Engine;
 
-use super::acceptance::{fmt_value, Verdict};
+use super::acceptance::{fmt_value, Outcome, Verdict};
+use super::verdict::VerdictDoc;
 use crate::analysis::calibration::Calibration;
 use crate::analysis::tracking::TrackingAnalysis;
 use crate::analysis::{Metric, RunAnalysis};
@@ -41,7 +44,77 @@ pub struct EmbeddedFigure {
 const STYLE: &str = "body{font-family:sans-serif;max-width:70em;margin:1em auto;padding:0 1em;color:#222}\
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}\
 th{background:#eee}td.l,th.l{text-align:left}.pass{color:#070;font-weight:bold}.fail{color:#b00;font-weight:bold}\
-pre{background:#f6f6f6;padding:.5em;overflow:auto}figure{margin:1em 0}img{max-width:100%}";
+pre{background:#f6f6f6;padding:.5em;overflow:auto}figure{margin:1em 0}img{max-width:100%}\
+.marginal{color:#a60;font-weight:bold}\
+#verdict{border:4px solid;border-radius:8px;padding:.6em 1em;margin:.5em 0 1em}\
+#verdict .outcome{font-size:3em;font-weight:bold;line-height:1.1}\
+#verdict.PASS{border-color:#070;background:#efe}#verdict.PASS .outcome{color:#070}\
+#verdict.MARGINAL{border-color:#c80;background:#fff6e0}#verdict.MARGINAL .outcome{color:#a60}\
+#verdict.FAIL{border-color:#b00;background:#fee}#verdict.FAIL .outcome{color:#b00}\
+#verdict.INCOMPLETE{border-color:#555;background:#eee}#verdict.INCOMPLETE .outcome{color:#333}\
+#verdict table{margin:.3em 0}#verdict td,#verdict th{border:none;padding:1px 8px 1px 0}";
+
+/// The verdict banner: the first thing on the page.
+fn banner(o: &mut String, v: &VerdictDoc) {
+    let r = &v.run;
+    let status = if r.in_progress {
+        format!(
+            "in progress: {}",
+            r.writer.as_deref().unwrap_or("a live writer holds the run")
+        )
+    } else {
+        r.status.clone()
+    };
+    let _ = write!(
+        o,
+        "<section id=\"verdict\" class=\"{}\">\n<div class=\"outcome\">{}</div>\n\
+         <p>{}</p>\n<table>\n",
+        v.outcome.word(),
+        v.outcome.word(),
+        escape(&v.summary)
+    );
+    let items = [
+        ("run status", escape(&status)),
+        (
+            "setpoints measured / planned",
+            format!(
+                "{} / {}{}",
+                r.measured_setpoints,
+                r.planned_setpoints,
+                r.limit.map_or(String::new(), |n| format!(" (--limit {n})"))
+            ),
+        ),
+        (
+            "build id",
+            v.provenance
+                .build_id
+                .as_deref()
+                .map_or("&mdash; (none recorded)".to_string(), escape),
+        ),
+    ];
+    for (k, val) in items {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">{k}</th><td class=\"l\">{val}</td></tr>"
+        );
+    }
+    if let Some(why) = &r.incomplete_reason {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">incomplete</th><td class=\"l\">{}</td></tr>",
+            escape(why)
+        );
+    }
+    if let Some(t) = &r.torn_journal_line {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">torn journal</th><td class=\"l\">line {} ({} bytes) was cut \
+             mid-write and is not used; the journal file is left as it is</td></tr>",
+            t.line, t.bytes
+        );
+    }
+    o.push_str("</table>\n</section>\n");
+}
 
 fn row(out: &mut String, cells: &[String]) {
     out.push_str("<tr>");
@@ -95,6 +168,7 @@ fn calibration_table(out: &mut String, c: &Calibration, unit: &str, scale: f64) 
 /// Renders the report. `verdicts` is `None` without `--acceptance`.
 pub fn render(
     analysis: &RunAnalysis,
+    verdict: &VerdictDoc,
     metrics: &[Metric],
     verdicts: Option<&[Verdict]>,
     criteria_path: Option<&str>,
@@ -107,38 +181,62 @@ pub fn render(
     let _ = write!(
         o,
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <title>{}</title><style>{STYLE}</style></head><body>\n<h1>{}</h1>\n",
-        escape(&title),
+         <title>{}</title><style>{STYLE}</style></head><body>\n",
         escape(&title)
     );
+    banner(&mut o, verdict);
+    let _ = writeln!(o, "<h1>{}</h1>", escape(&title));
 
     if let Some(vs) = verdicts {
-        let all = vs.iter().all(|v| v.pass);
+        let worst = vs.iter().map(|v| v.outcome).max().unwrap_or(Outcome::Pass);
+        // On an INCOMPLETE run the criteria are shown but are not the verdict: no
+        // coloured PASS next to them.
+        let class = if verdict.outcome == Outcome::Incomplete {
+            ""
+        } else {
+            class_of(worst)
+        };
         let _ = write!(
             o,
-            "<h2>Acceptance</h2>\n<p>criteria: {} &mdash; <span class=\"{}\">{}</span> \
-             ({} of {} passed)</p>\n<table>\n",
+            "<h2>Acceptance</h2>\n<p>criteria: {} &mdash; criteria alone: <span class=\"{class}\">{}</span> \
+             ({} of {} passed, {} marginal){}</p>\n<table>\n",
             escape(criteria_path.unwrap_or("")),
-            if all { "pass" } else { "fail" },
-            if all { "PASS" } else { "FAIL" },
-            vs.iter().filter(|v| v.pass).count(),
-            vs.len()
+            worst.word(),
+            vs.iter().filter(|v| v.outcome == Outcome::Pass).count(),
+            vs.len(),
+            vs.iter().filter(|v| v.outcome == Outcome::Marginal).count(),
+            if verdict.outcome == Outcome::Incomplete {
+                " &mdash; not the verdict: the run is INCOMPLETE"
+            } else {
+                ""
+            }
         );
         header(&mut o, &["verdict", "metric", "value", "unit", "threshold"]);
         for v in vs {
-            let (class, word) = if v.pass {
-                ("pass", "PASS")
-            } else {
-                ("fail", "FAIL")
+            let value = match &v.note {
+                Some(n) => escape(n),
+                None => fmt_value(v.value),
             };
             let _ = writeln!(
                 o,
-                "<tr class=\"verdict\"><td class=\"l {class}\">{word}</td><td class=\"l\">{}</td>\
-                 <td>{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td></tr>",
+                "<tr class=\"verdict\"><td class=\"l {}\">{}</td><td class=\"l\">{}</td>\
+                 <td>{value}</td><td class=\"l\">{}</td><td class=\"l\">{}</td></tr>",
+                class_of(v.outcome),
+                v.outcome.word(),
                 escape(&v.criterion.metric),
-                fmt_value(v.value),
                 escape(v.unit),
                 escape(&v.criterion.to_string())
+            );
+        }
+        for r in &verdict.requirements {
+            let _ = writeln!(
+                o,
+                "<tr class=\"requirement\"><td class=\"l {}\">{}</td><td class=\"l\">provenance: {}</td>\
+                 <td>{}</td><td class=\"l\"></td><td class=\"l\">required</td></tr>",
+                class_of(r.outcome),
+                r.outcome.word(),
+                escape(&r.requirement),
+                r.value.as_deref().map_or("(none)".to_string(), escape)
             );
         }
         o.push_str("</table>\n");
@@ -163,12 +261,22 @@ pub fn render(
             },
         ),
         ("ended", opt(&m.ended_at)),
-        ("status", escape(&format!("{:?}", m.status).to_lowercase())),
+        ("status", escape(&verdict.run.status)),
         ("end reason", opt(&m.end_reason)),
+        ("stop signal", opt(&m.stop_signal)),
         (
             "measurements",
-            format!("{} of {} setpoints", run.rows.len(), m.setpoints),
+            format!(
+                "{} of {} setpoints ({} planned{})",
+                run.rows.len(),
+                m.setpoints,
+                m.planned(),
+                m.limit.map_or(String::new(), |n| format!(", --limit {n}"))
+            ),
         ),
+        ("plan SHA-256", escape(&verdict.provenance.plan_sha256)),
+        ("sensor SHA-256", escape(&verdict.provenance.sensor_sha256)),
+        ("software commit", opt(&m.software_commit)),
     ];
     for (k, v) in items {
         let _ = writeln!(
@@ -188,6 +296,14 @@ pub fn render(
         escape(&m.plan_toml),
         escape(&m.sensor_toml)
     );
+
+    if !analysis.absent.is_empty() {
+        o.push_str("<h2>Analyses not computed</h2>\n<ul class=\"absent\">\n");
+        for (name, why) in &analysis.absent {
+            let _ = writeln!(o, "<li><b>{}</b>: {}</li>", escape(name), escape(why));
+        }
+        o.push_str("</ul>\n");
+    }
 
     o.push_str("<h2>Metrics</h2>\n<table>\n");
     header(&mut o, &["metric", "value", "unit"]);
@@ -419,6 +535,14 @@ fn marker_health(o: &mut String, t: &TrackingAnalysis) {
         );
     }
     o.push_str("</table>\n");
+}
+
+fn class_of(o: Outcome) -> &'static str {
+    match o {
+        Outcome::Pass => "pass",
+        Outcome::Marginal => "marginal",
+        Outcome::Fail | Outcome::Incomplete => "fail",
+    }
 }
 
 #[cfg(test)]

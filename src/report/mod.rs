@@ -3,30 +3,40 @@
 //! [`plot`] is the shared figure output used by reports and studies: one drawing
 //! routine per figure, written to PNG and SVG from the same code. [`figures`] holds the
 //! report's figures, [`html`] the HTML page, [`acceptance`] the criteria file and its
-//! verdicts. [`write_report`] puts them together for one analysed run directory:
+//! verdicts, [`verdict`] the run's overall outcome and `verdict.json`. [`write_report`]
+//! puts them together for one analysed run directory:
 //!
 //! ```text
-//! RUN_DIR/report.html          self-contained (PNG figures embedded as data URIs)
+//! RUN_DIR/report.html          self-contained (PNG figures embedded as data URIs),
+//!                              opening with the verdict banner
+//! RUN_DIR/verdict.json         outcome, criteria, run state, provenance (README schema)
 //! RUN_DIR/summary.csv          metric,value,unit (every metric of the run)
 //! RUN_DIR/plots/STEM.png|svg   each figure
 //! ```
+//!
+//! A report only adds these files: it never changes the run's own record (manifest,
+//! journal, frames), so it can run while the run is still going, or on a torn journal.
 
 pub mod acceptance;
 pub mod figures;
 pub mod html;
 pub mod plot;
+pub mod sha256;
 pub mod study_plots;
+pub mod verdict;
 
 use std::path::{Path, PathBuf};
 
 use thiserror::Error;
 
 use crate::analysis::{Metric, RunAnalysis};
-use acceptance::{AcceptanceError, Criteria, Verdict};
+use crate::bench::lock::LockState;
+use acceptance::{AcceptanceError, Criteria, Outcome, Verdict};
 use figures::{
     CalibrationFigure, ForceFieldFigure, MarkerHealthFigure, ProfileFigure, QuiverFigure,
 };
 use plot::{Figure, FigureFiles, FigureResult, PlotError};
+use verdict::{RunState, VerdictDoc, VERDICT_FILE};
 
 /// File name of the HTML report inside the run directory.
 pub const REPORT_FILE: &str = "report.html";
@@ -64,6 +74,10 @@ pub struct ReportOutcome {
     pub html: PathBuf,
     /// `summary.csv`.
     pub summary: PathBuf,
+    /// `verdict.json`.
+    pub verdict_file: PathBuf,
+    /// The overall verdict (also in `verdict.json`).
+    pub verdict: VerdictDoc,
     /// The figure files.
     pub figures: Vec<FigureFiles>,
     /// The run's metrics.
@@ -73,9 +87,27 @@ pub struct ReportOutcome {
 }
 
 impl ReportOutcome {
-    /// True when every criterion passed (also when there were none).
-    pub fn passed(&self) -> bool {
-        self.verdicts.iter().all(|v| v.pass)
+    /// The overall outcome.
+    pub fn outcome(&self) -> Outcome {
+        self.verdict.outcome
+    }
+}
+
+/// How to judge a run.
+#[derive(Debug, Clone)]
+pub struct ReportOptions {
+    /// Grade a run that did not measure its whole plan (else it is INCOMPLETE).
+    pub allow_partial: bool,
+    /// Whether a live writer holds the run ([`crate::bench::lock::probe`]).
+    pub lock: LockState,
+}
+
+impl Default for ReportOptions {
+    fn default() -> Self {
+        ReportOptions {
+            allow_partial: false,
+            lock: LockState::NoLockFile,
+        }
     }
 }
 
@@ -197,28 +229,36 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
     out
 }
 
-/// Writes `report.html`, `summary.csv` and `plots/` into the analysed run's directory
-/// and judges `criteria` (if any) against its metrics.
+/// Writes `report.html`, `verdict.json`, `summary.csv` and `plots/` into the analysed
+/// run's directory and judges `criteria` (if any) against its metrics.
 pub fn write_report(
     analysis: &RunAnalysis,
     criteria: Option<&Criteria>,
+    options: &ReportOptions,
 ) -> Result<ReportOutcome, ReportError> {
-    write_report_to(analysis, criteria, &analysis.run.dir)
+    write_report_to(analysis, criteria, options, &analysis.run.dir)
 }
 
-/// As [`write_report`], into `out_dir`.
+/// As [`write_report`], into `out_dir` (created if missing).
 pub fn write_report_to(
     analysis: &RunAnalysis,
     criteria: Option<&Criteria>,
+    options: &ReportOptions,
     out_dir: &Path,
 ) -> Result<ReportOutcome, ReportError> {
     let metrics = analysis.metrics();
     // Judge first: a criterion the run cannot answer is an error before anything is
     // written.
     let verdicts = match criteria {
-        Some(c) => c.evaluate(&metrics, analysis.run.sweep_kind())?,
+        Some(c) => c.evaluate(&metrics, analysis.run.sweep_kind(), &analysis.absent)?,
         None => Vec::new(),
     };
+    let state = RunState::of(analysis, &options.lock);
+    let verdict = VerdictDoc::judge(analysis, criteria, &verdicts, state, options.allow_partial);
+    std::fs::create_dir_all(out_dir).map_err(|source| ReportError::Io {
+        path: out_dir.to_path_buf(),
+        source,
+    })?;
     let plots = out_dir.join(PLOTS_DIR);
     let mut files = Vec::new();
     let mut embedded = Vec::new();
@@ -253,6 +293,7 @@ pub fn write_report_to(
     let criteria_path = criteria.map(|c| c.path.display().to_string());
     let page = html::render(
         analysis,
+        &verdict,
         &metrics,
         criteria.map(|_| verdicts.as_slice()),
         criteria_path.as_deref(),
@@ -260,9 +301,17 @@ pub fn write_report_to(
     );
     let html_path = out_dir.join(REPORT_FILE);
     write(&html_path, page.as_bytes())?;
+    let verdict_file = out_dir.join(VERDICT_FILE);
+    let json = serde_json::to_string_pretty(&verdict).map_err(|e| ReportError::Io {
+        path: verdict_file.clone(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
+    write(&verdict_file, format!("{json}\n").as_bytes())?;
     Ok(ReportOutcome {
         html: html_path,
         summary,
+        verdict_file,
+        verdict,
         figures: files,
         metrics,
         verdicts,

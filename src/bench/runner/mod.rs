@@ -49,8 +49,9 @@
 //! measured (stop latency), the stage retracts, and the run aborts with the reason
 //! and latency in the manifest. Settling and acquisition check the limits as well.
 //!
-//! **Stop flag.** When the caller's flag (Ctrl-C) is set, motion stops, the stage
-//! retracts, the journal is already durable, and the manifest says `interrupted`.
+//! **Stop flag.** When the caller's flag (SIGINT, SIGTERM, SIGHUP) is set, motion
+//! stops, the stage retracts, the journal is already durable, and the manifest says
+//! `interrupted` and by which signal.
 //!
 //! **Resume.** [`run`] with `resume = true` reopens the journal (a torn last line is
 //! cut), skips completed indices, homes / tares as the bench requires, and takes a new
@@ -59,7 +60,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -162,6 +163,9 @@ pub struct RunOptions {
     pub limit: Option<usize>,
     /// Set by the caller (Ctrl-C) to stop the run cleanly.
     pub stop: Arc<AtomicBool>,
+    /// The signal number that set `stop` (0: none, or not a signal), recorded in the
+    /// manifest and the stop reason (SIGINT and SIGTERM are told apart).
+    pub stop_signal: Arc<AtomicI32>,
 }
 
 /// Progress, for the CLI's progress bar and logs.
@@ -393,6 +397,7 @@ pub fn run(
 ) -> Result<RunSummary, RunError> {
     let dir = options.dir.clone();
     let mut setpoints = plan.setpoints();
+    let planned = setpoints.len();
     let (mut journal, mut manifest, truncated_bytes, resume_no) = if options.resume {
         let manifest = Manifest::read(&dir)?;
         if manifest.plan_toml != options.plan_toml {
@@ -440,9 +445,15 @@ pub fn run(
             started_at: rfc3339_now(),
             resumed_at: Vec::new(),
             setpoints: setpoints.len(),
+            planned_setpoints: Some(planned),
+            limit: options.limit,
+            measured_setpoints: 0,
             status: RunStatus::Running,
             end_reason: None,
+            stop_signal: None,
+            incomplete_reason: None,
             ended_at: None,
+            software_commit: Some(super::journal::GIT_COMMIT.to_string()),
         };
         manifest.write(&dir)?;
         (Journal::create(&dir)?, manifest, 0, 0)
@@ -455,6 +466,11 @@ pub fn run(
         manifest.status = RunStatus::Running;
         manifest.end_reason = None;
         manifest.ended_at = None;
+        manifest.stop_signal = None;
+        manifest.incomplete_reason = None;
+        manifest.planned_setpoints.get_or_insert(planned);
+        manifest.measured_setpoints = journal.completed().len();
+        manifest.software_commit = Some(super::journal::GIT_COMMIT.to_string());
         if options.devices != serde_json::Value::Null {
             manifest.devices = options.devices.clone();
         }
@@ -562,17 +578,17 @@ pub fn run(
         Ok(())
     })();
 
+    let signal = options.stop_signal.load(Ordering::SeqCst);
     let (status, reason) = match outcome {
         Ok(()) => (RunStatus::Completed, None),
         Err(Halt::Interrupted) => {
             // Stop motion first, then leave the contact; the journal is already durable.
             let _ = r.dev.stop();
             let retract = r.retract_unguarded();
+            let by = super::journal::stop_cause(signal);
             let reason = match retract {
-                Ok(()) => {
-                    "interrupted by the user (Ctrl-C): motion stopped, stage retracted".to_string()
-                }
-                Err(e) => format!("interrupted by the user (Ctrl-C); retract failed: {e:?}"),
+                Ok(()) => format!("interrupted by {by}: motion stopped, stage retracted"),
+                Err(e) => format!("interrupted by {by}; retract failed: {e:?}"),
             };
             (RunStatus::Interrupted, Some(reason))
         }
@@ -585,9 +601,13 @@ pub fn run(
             (RunStatus::Aborted, Some(reason))
         }
     };
-    manifest.status = status;
-    manifest.end_reason = reason.clone();
-    manifest.ended_at = Some(rfc3339_now());
+    manifest.finish(
+        status,
+        reason.clone(),
+        journal.completed().len(),
+        (status == RunStatus::Interrupted && signal != 0).then_some(signal),
+        rfc3339_now(),
+    );
     manifest.write(&dir)?;
     (r.events)(&RunEvent::Finished {
         status,

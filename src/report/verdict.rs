@@ -1,0 +1,382 @@
+//! The verdict of a report: one outcome for the whole run (PASS, MARGINAL, FAIL,
+//! INCOMPLETE), the state of the run it judges, and `verdict.json`, the
+//! machine-readable record a build gate reads (schema in the README).
+//!
+//! Rules, in order:
+//! 1. A run that did not measure its whole plan (`--limit`, interrupted, aborted,
+//!    killed, still in progress) is **INCOMPLETE**, whatever its metrics, unless the
+//!    caller grades it anyway (`--allow-partial`; the verdict then says so).
+//! 2. Otherwise the worst outcome over the criteria and the provenance requirements:
+//!    any FAIL gives **FAIL**, else any MARGINAL gives **MARGINAL**, else **PASS**
+//!    (also with no criteria: nothing was required).
+
+use serde::Serialize;
+
+use super::acceptance::{Criteria, Outcome, Verdict};
+use super::sha256::sha256_hex;
+use crate::analysis::RunAnalysis;
+use crate::bench::journal::{RunStatus, GIT_COMMIT};
+use crate::bench::lock::{Holder, LockState};
+
+/// File name of the verdict inside the report's output directory.
+pub const VERDICT_FILE: &str = "verdict.json";
+
+/// `verdict.json`'s schema identifier (bumped on incompatible changes).
+pub const SCHEMA: &str = "tactbench-verdict/1";
+
+/// Exit code of `report` for PASS and MARGINAL.
+pub const EXIT_PASS: u8 = 0;
+/// Exit code of `report` for FAIL.
+pub const EXIT_FAIL: u8 = 1;
+/// Exit code of `report` for INCOMPLETE (a run that did not measure its whole plan).
+pub const EXIT_INCOMPLETE: u8 = 5;
+
+/// The exit code of an outcome (errors, exit 2, never get this far).
+pub fn exit_code(outcome: Outcome) -> u8 {
+    match outcome {
+        Outcome::Pass | Outcome::Marginal => EXIT_PASS,
+        Outcome::Fail => EXIT_FAIL,
+        Outcome::Incomplete => EXIT_INCOMPLETE,
+    }
+}
+
+/// What the report knows about the state of the run it judges.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunState {
+    /// The run directory.
+    pub dir: String,
+    /// `completed`, `interrupted`, `aborted` (as the manifest records), `in_progress`
+    /// (a live process holds the run's lock), `killed` (the manifest says running
+    /// but no process holds the lock: the writer died without recording an end), or
+    /// `running` (a run from before locking: live or killed cannot be told).
+    pub status: String,
+    /// A live process is writing the run.
+    pub in_progress: bool,
+    /// The live writer, as it recorded itself (`PID .. on host .., since ..`).
+    pub writer: Option<String>,
+    /// Setpoints in the plan.
+    pub planned_setpoints: usize,
+    /// Setpoints the run set out to measure (the plan's, or the first `--limit`).
+    pub run_setpoints: usize,
+    /// Setpoints in the journal (complete lines).
+    pub measured_setpoints: usize,
+    /// The run's `--limit`, if any.
+    pub limit: Option<usize>,
+    /// The signal that interrupted the run, if one did.
+    pub stop_signal: Option<String>,
+    /// The manifest's end reason (abort reason, safety trip, interruption).
+    pub end_reason: Option<String>,
+    /// Whether every planned setpoint was measured and no writer is live.
+    pub complete: bool,
+    /// Why not, in words (`None` when complete).
+    pub incomplete_reason: Option<String>,
+    /// A torn last journal line that was skipped: `{line, bytes}`.
+    pub torn_journal_line: Option<TornLineJson>,
+}
+
+/// A torn journal line in `verdict.json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TornLineJson {
+    /// 1-based line number.
+    pub line: u64,
+    /// Bytes cut off.
+    pub bytes: u64,
+}
+
+fn status_word(s: RunStatus) -> &'static str {
+    match s {
+        RunStatus::Running => "running",
+        RunStatus::Interrupted => "interrupted",
+        RunStatus::Aborted => "aborted",
+        RunStatus::Completed => "completed",
+    }
+}
+
+impl RunState {
+    /// The state of the analysed run, given what [`crate::bench::lock::probe`] found.
+    pub fn of(analysis: &RunAnalysis, lock: &LockState) -> RunState {
+        let run = &analysis.run;
+        let m = &run.manifest;
+        let planned = m.planned();
+        let measured = run.rows.len();
+        let holder: Option<&Holder> = match lock {
+            LockState::Held(h) => Some(h),
+            _ => None,
+        };
+        let in_progress = holder.is_some();
+        let status = match (m.status, lock) {
+            (_, LockState::Held(_)) => "in_progress",
+            (RunStatus::Running, LockState::Free) => "killed",
+            (s, _) => status_word(s),
+        };
+        let of = format!("{measured} of the plan's {planned} setpoints measured");
+        let incomplete_reason = if in_progress {
+            Some(format!(
+                "the run is still in progress ({}): {of} so far",
+                holder.map(|h| h.to_string()).unwrap_or_default()
+            ))
+        } else if measured >= planned {
+            None
+        } else {
+            Some(match (status, &m.incomplete_reason) {
+                ("killed", _) => format!(
+                    "the run ended without recording why (killed, or the machine stopped): \
+                     {of}; continue it with `tactbench run --resume {}`",
+                    run.dir.display()
+                ),
+                (_, Some(r)) => r.clone(),
+                ("running", None) => format!(
+                    "the manifest says running (a run from before run locks: still going or \
+                     killed): {of}"
+                ),
+                (_, None) => match (m.limit, m.end_reason.as_deref()) {
+                    (Some(n), _) => format!("limited by --limit {n}: {of}"),
+                    (None, Some(r)) => format!("{status}: {of}: {r}"),
+                    (None, None) => format!("{status}: {of}"),
+                },
+            })
+        };
+        RunState {
+            dir: run.dir.display().to_string(),
+            status: status.to_string(),
+            in_progress,
+            writer: holder.map(|h| h.to_string()),
+            planned_setpoints: planned,
+            run_setpoints: m.setpoints,
+            measured_setpoints: measured,
+            limit: m.limit,
+            stop_signal: m.stop_signal.clone(),
+            end_reason: m.end_reason.clone(),
+            complete: incomplete_reason.is_none(),
+            incomplete_reason,
+            torn_journal_line: run.torn.as_ref().map(|t| TornLineJson {
+                line: t.line,
+                bytes: t.bytes,
+            }),
+        }
+    }
+}
+
+/// One criterion in `verdict.json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CriterionJson {
+    /// Metric name.
+    pub metric: String,
+    /// The run's value (`null` when it could not be computed or is not finite).
+    pub value: Option<f64>,
+    /// Its unit.
+    pub unit: String,
+    /// Inclusive lower limit.
+    pub min: Option<f64>,
+    /// Inclusive upper limit.
+    pub max: Option<f64>,
+    /// Marginal at or below.
+    pub marginal_min: Option<f64>,
+    /// Marginal at or above.
+    pub marginal_max: Option<f64>,
+    /// PASS, MARGINAL or FAIL.
+    pub outcome: Outcome,
+    /// Why there is no value, if so.
+    pub note: Option<String>,
+}
+
+/// A provenance requirement in `verdict.json` (e.g. `require_build_id`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RequirementJson {
+    /// What is required (`build_id`).
+    pub requirement: String,
+    /// What the run recorded (`null`: nothing).
+    pub value: Option<String>,
+    /// PASS or FAIL.
+    pub outcome: Outcome,
+}
+
+/// Where the run and its inputs came from, in `verdict.json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ProvenanceJson {
+    /// Plan name.
+    pub plan_name: String,
+    /// Plan file as given to `run`.
+    pub plan_path: String,
+    /// SHA-256 of the plan text recorded in the manifest.
+    pub plan_sha256: String,
+    /// Sensor file as resolved by `run`.
+    pub sensor_path: String,
+    /// SHA-256 of the sensor text recorded in the manifest.
+    pub sensor_sha256: String,
+    /// Elastomer build id (`null`: none recorded).
+    pub build_id: Option<String>,
+    /// `tactbench` version that ran the measurement.
+    pub software_version: String,
+    /// Git commit of the binary that ran (or last resumed) the measurement (`null`
+    /// for runs from before it was recorded).
+    pub git_commit: Option<String>,
+    /// Identities the devices reported.
+    pub devices: serde_json::Value,
+    /// The bench description.
+    pub bench: serde_json::Value,
+    /// Start, RFC 3339 UTC.
+    pub started_at: String,
+    /// Resumptions, RFC 3339 UTC.
+    pub resumed_at: Vec<String>,
+    /// End (`null`: not recorded: in progress or killed).
+    pub ended_at: Option<String>,
+}
+
+/// The software that wrote the report.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReportJson {
+    /// `tactbench` version of the report.
+    pub software_version: String,
+    /// Git commit the report's binary was built from.
+    pub git_commit: String,
+    /// When the report was written, RFC 3339 UTC.
+    pub generated_at: String,
+}
+
+/// `verdict.json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct VerdictDoc {
+    /// [`SCHEMA`].
+    pub schema: String,
+    /// PASS, MARGINAL, FAIL or INCOMPLETE.
+    pub outcome: Outcome,
+    /// The exit code `report` returns for it.
+    pub exit_code: u8,
+    /// One line: the outcome and why.
+    pub summary: String,
+    /// A partial run graded anyway (`--allow-partial`).
+    pub graded_partial: bool,
+    /// The criteria file (`null` without `--acceptance`).
+    pub criteria_file: Option<String>,
+    /// Each criterion, in file order.
+    pub criteria: Vec<CriterionJson>,
+    /// Provenance requirements of the criteria file.
+    pub requirements: Vec<RequirementJson>,
+    /// The run's state and counts.
+    pub run: RunState,
+    /// Where the run came from.
+    pub provenance: ProvenanceJson,
+    /// The report's own software.
+    pub report: ReportJson,
+}
+
+impl VerdictDoc {
+    /// Judges a run: criteria verdicts (already evaluated), provenance requirements,
+    /// completeness; `allow_partial` grades a partial run anyway.
+    pub fn judge(
+        analysis: &RunAnalysis,
+        criteria: Option<&Criteria>,
+        verdicts: &[Verdict],
+        run: RunState,
+        allow_partial: bool,
+    ) -> VerdictDoc {
+        let m = &analysis.run.manifest;
+        let mut requirements = Vec::new();
+        if criteria.is_some_and(|c| c.require_build_id) {
+            let value = m.build_id.clone().filter(|b| !b.trim().is_empty());
+            requirements.push(RequirementJson {
+                requirement: "build_id".into(),
+                outcome: if value.is_some() {
+                    Outcome::Pass
+                } else {
+                    Outcome::Fail
+                },
+                value,
+            });
+        }
+        let graded = verdicts
+            .iter()
+            .map(|v| v.outcome)
+            .chain(requirements.iter().map(|r| r.outcome))
+            .max()
+            .unwrap_or(Outcome::Pass);
+        let partial = !run.complete;
+        let outcome = if partial && !allow_partial {
+            Outcome::Incomplete
+        } else {
+            graded
+        };
+        let counts = format!(
+            "{} of {} planned setpoints",
+            run.measured_setpoints, run.planned_setpoints
+        );
+        let failed = verdicts
+            .iter()
+            .filter(|v| v.outcome == Outcome::Fail)
+            .count()
+            + requirements
+                .iter()
+                .filter(|r| r.outcome == Outcome::Fail)
+                .count();
+        let marginal = verdicts
+            .iter()
+            .filter(|v| v.outcome == Outcome::Marginal)
+            .count();
+        let judged = verdicts.len() + requirements.len();
+        let detail = match outcome {
+            Outcome::Incomplete => format!(
+                "{}; not graded (grade a partial run with --allow-partial)",
+                run.incomplete_reason.clone().unwrap_or_default()
+            ),
+            _ if criteria.is_none() => "no acceptance criteria given".to_string(),
+            Outcome::Fail => format!("{failed} of {judged} criteria failed"),
+            Outcome::Marginal => format!("{marginal} of {judged} criteria marginal"),
+            Outcome::Pass => format!("{judged} criteria"),
+        };
+        let mut summary = format!("{outcome}: {detail}");
+        if partial && allow_partial {
+            summary.push_str(&format!(
+                "; PARTIAL RUN graded with --allow-partial ({counts}: {})",
+                run.incomplete_reason.clone().unwrap_or_default()
+            ));
+        }
+        let criteria_json = verdicts
+            .iter()
+            .map(|v| CriterionJson {
+                metric: v.criterion.metric.clone(),
+                value: v.value.is_finite().then_some(v.value),
+                unit: v.unit.to_string(),
+                min: v.criterion.min,
+                max: v.criterion.max,
+                marginal_min: v.criterion.marginal_min,
+                marginal_max: v.criterion.marginal_max,
+                outcome: v.outcome,
+                note: v.note.clone().or_else(|| {
+                    (!v.value.is_finite()).then(|| format!("value {} is not finite", v.value))
+                }),
+            })
+            .collect();
+        VerdictDoc {
+            schema: SCHEMA.into(),
+            outcome,
+            exit_code: exit_code(outcome),
+            summary,
+            graded_partial: partial && allow_partial,
+            criteria_file: criteria.map(|c| c.path.display().to_string()),
+            criteria: criteria_json,
+            requirements,
+            run,
+            provenance: ProvenanceJson {
+                plan_name: m.plan_name.clone(),
+                plan_path: m.plan_path.clone(),
+                plan_sha256: sha256_hex(m.plan_toml.as_bytes()),
+                sensor_path: m.sensor_path.clone(),
+                sensor_sha256: sha256_hex(m.sensor_toml.as_bytes()),
+                build_id: m.build_id.clone(),
+                software_version: m.software_version.clone(),
+                git_commit: m.software_commit.clone(),
+                devices: m.devices.clone(),
+                bench: m.bench.clone(),
+                started_at: m.started_at.clone(),
+                resumed_at: m.resumed_at.clone(),
+                ended_at: m.ended_at.clone(),
+            },
+            report: ReportJson {
+                software_version: env!("CARGO_PKG_VERSION").into(),
+                git_commit: GIT_COMMIT.into(),
+                generated_at: crate::bench::runner::rfc3339_now(),
+            },
+        }
+    }
+}
