@@ -163,7 +163,7 @@ pub(super) fn direct_map(
 }
 
 /// Relative residual at which the force-sum solves stop.
-const SUM_TOLERANCE: f64 = 1e-10;
+const SUM_TOLERANCE: f64 = 1e-6;
 /// Iteration cap of the force-sum solves.
 const SUM_MAX_ITERATIONS: usize = 2000;
 
