@@ -6,7 +6,7 @@ use std::process::Command;
 
 use tactbench::model::{self, layer::scalar_kernels, ElasticModel, ForwardModel, MarkerSite};
 use tactbench::sensor::{paper_sensor, ModelKind, Sensor};
-use tactbench::solve::{self, Method, Problem, SolverConfig, SolveError};
+use tactbench::solve::{self, Method, Problem, SolveError, SolverConfig};
 
 /// Compares one line `h z nu k ll tt lz zl zz` of `tests/numpy_ref/layer_check.py`.
 fn check_reference_line(line: &str, tol: f64) {
@@ -18,7 +18,10 @@ fn check_reference_line(line: &str, tol: f64) {
     let (h, z, nu, k) = (v[0], v[1], v[2], v[3]);
     let g = scalar_kernels(k, z, h, 1.0, nu);
     let got = [g.ll, g.tt, g.lz, g.zl, g.zz];
-    let scale = got.iter().chain(&v[4..]).fold(0.0f64, |m, x| m.max(x.abs()));
+    let scale = got
+        .iter()
+        .chain(&v[4..])
+        .fold(0.0f64, |m, x| m.max(x.abs()));
     for (i, (a, b)) in got.iter().zip(&v[4..]).enumerate() {
         assert!(
             (a - b).abs() <= tol * scale,
@@ -51,8 +54,15 @@ fn thin_layer_kernels_match_numpy_ode_values() {
 fn numpy_reference_kernels_agree() {
     let python = std::env::var("TACTBENCH_PYTHON").expect("set TACTBENCH_PYTHON to a python");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/numpy_ref/layer_check.py");
-    let out = Command::new(python).arg(script).output().expect("python runs");
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(python)
+        .arg(script)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = String::from_utf8(out.stdout).expect("utf-8");
     let mut n = 0;
     for line in text.lines().filter(|l| !l.trim().is_empty()) {
@@ -78,7 +88,9 @@ fn rel_err(a: &[f64], b: &[f64]) -> f64 {
 /// A smooth load over the force grid (N).
 fn smooth_load(sensor: &Sensor) -> Vec<f64> {
     let pts = sensor.force_points_mm();
-    let c = pts.iter().fold([0.0, 0.0], |a, p| [a[0] + p[0], a[1] + p[1]]);
+    let c = pts
+        .iter()
+        .fold([0.0, 0.0], |a, p| [a[0] + p[0], a[1] + p[1]]);
     let c = [c[0] / pts.len() as f64, c[1] / pts.len() as f64];
     pts.iter()
         .flat_map(|p| {
@@ -96,7 +108,11 @@ fn bonded_layer_solver_recovers_forces_like_the_half_space_solver() {
         ..SolverConfig::default()
     };
     let mut errs = Vec::new();
-    for sensor in [paper_sensor(), bonded(&paper_sensor(), 40.0), bonded(&paper_sensor(), 8.0)] {
+    for sensor in [
+        paper_sensor(),
+        bonded(&paper_sensor(), 40.0),
+        bonded(&paper_sensor(), 8.0),
+    ] {
         let sites = MarkerSite::from_sensor_grids(&sensor);
         let p = Problem::new(&sensor, &sites);
         let truth = smooth_load(&sensor);
@@ -115,7 +131,10 @@ fn bonded_layer_solver_recovers_forces_like_the_half_space_solver() {
         s.apply(&u, &mut f).unwrap();
         errs.push(rel_err(&f, &truth));
     }
-    eprintln!("relative force error: half-space {:.2e}, layer 40 mm {:.2e}, 8 mm {:.2e}", errs[0], errs[1], errs[2]);
+    eprintln!(
+        "relative force error: half-space {:.2e}, layer 40 mm {:.2e}, 8 mm {:.2e}",
+        errs[0], errs[1], errs[2]
+    );
     // Noise-free data of the solver's own model: recovered to the accuracy the
     // half-space solver reaches on half-space data (within a factor 10, all tiny).
     for e in &errs[1..] {
@@ -125,7 +144,13 @@ fn bonded_layer_solver_recovers_forces_like_the_half_space_solver() {
     let layer = bonded(&paper_sensor(), 8.0);
     let sites = MarkerSite::from_sensor_grids(&layer);
     let truth = smooth_load(&layer);
-    let u = model::forward(&ForwardModel::from_elastomer(&layer.elastomer), &sites, &layer.force_points_mm(), &truth).unwrap();
+    let u = model::forward(
+        &ForwardModel::from_elastomer(&layer.elastomer),
+        &sites,
+        &layer.force_points_mm(),
+        &truth,
+    )
+    .unwrap();
     let hs = paper_sensor();
     let mut s = solve::precompute(&Problem::new(&hs, &sites), &cfg, Some(&u)).unwrap();
     let mut f = vec![0.0; s.n_outputs()];
@@ -141,8 +166,13 @@ fn fourier_solver_refuses_a_bonded_layer_sensor() {
         method: Method::Fourier,
         ..SolverConfig::default()
     };
-    let err = solve::precompute(&Problem::new(&sensor, &sites), &cfg, None).err().expect("refused");
-    assert!(matches!(&err, SolveError::Incompatible(m) if m.contains("bonded-layer")), "{err}");
+    let err = solve::precompute(&Problem::new(&sensor, &sites), &cfg, None)
+        .err()
+        .expect("refused");
+    assert!(
+        matches!(&err, SolveError::Incompatible(m) if m.contains("bonded-layer")),
+        "{err}"
+    );
 }
 
 #[test]
@@ -158,7 +188,11 @@ fn half_space_sensor_builds_the_same_h_as_before() {
 #[test]
 fn bonded_layer_rejects_markers_below_the_plate() {
     let l = model::BondedLayer::new(1.0, 0.5, 2.0).unwrap();
-    let m = [MarkerSite { layer: 0, position_mm: [0.0, 0.0], depth_mm: 3.0 }];
+    let m = [MarkerSite {
+        layer: 0,
+        position_mm: [0.0, 0.0],
+        depth_mm: 3.0,
+    }];
     assert!(matches!(
         model::transfer_matrix(&l, &m, &[[0.0, 0.0]]),
         Err(model::ModelError::BelowLayer { .. })
@@ -175,22 +209,48 @@ fn model_forward_cli_uses_the_sensor_files_model() {
     let sp = dir.join("s.toml");
     std::fs::write(&sp, sensor.to_toml_string()).unwrap();
     let fp = dir.join("f.csv");
-    std::fs::write(&fp, "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n\n0,0,9.0,7.0,0.3,0.0,1.0\n").unwrap();
+    std::fs::write(
+        &fp,
+        "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n\n0,0,9.0,7.0,0.3,0.0,1.0\n",
+    )
+    .unwrap();
     let out = dir.join("d.csv");
     let o = crate::util::run(&[
-        "model", "forward", "--sensor", sp.to_str().unwrap(), "--forces", fp.to_str().unwrap(),
-        "--out", out.to_str().unwrap(),
+        "model",
+        "forward",
+        "--sensor",
+        sp.to_str().unwrap(),
+        "--forces",
+        fp.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", crate::util::stderr(&o));
     let text = std::fs::read_to_string(&out).unwrap();
     let sites = MarkerSite::from_sensor_grids(&sensor);
-    let want = model::forward(&ForwardModel::from_elastomer(&sensor.elastomer), &sites, &[[9.0, 7.0]], &[0.3, 0.0, 1.0]).unwrap();
-    let hs = model::forward(&model::HalfSpace::from_elastomer(&sensor.elastomer), &sites, &[[9.0, 7.0]], &[0.3, 0.0, 1.0]).unwrap();
+    let want = model::forward(
+        &ForwardModel::from_elastomer(&sensor.elastomer),
+        &sites,
+        &[[9.0, 7.0]],
+        &[0.3, 0.0, 1.0],
+    )
+    .unwrap();
+    let hs = model::forward(
+        &model::HalfSpace::from_elastomer(&sensor.elastomer),
+        &sites,
+        &[[9.0, 7.0]],
+        &[0.3, 0.0, 1.0],
+    )
+    .unwrap();
     let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
     let ux = header.iter().position(|h| *h == "ux_mm").unwrap();
-    let rows: Vec<f64> = text.lines().skip(1).map(|l| l.split(',').nth(ux).unwrap().parse().unwrap()).collect();
+    let rows: Vec<f64> = text
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(ux).unwrap().parse().unwrap())
+        .collect();
     assert_eq!(rows.len(), sites.len());
-    let got: Vec<f64> = rows.iter().copied().collect();
+    let got = rows;
     let want_x: Vec<f64> = want.iter().step_by(2).copied().collect();
     let hs_x: Vec<f64> = hs.iter().step_by(2).copied().collect();
     assert!(rel_err(&got, &want_x) < 1e-6, "{}", rel_err(&got, &want_x));
@@ -219,8 +279,13 @@ fn scene_physics_selects_the_rendered_model_and_defaults_to_today() {
     let layer = Scene::from_toml_str(&text, "s.toml", paper_sensor()).unwrap();
     assert_eq!(layer.physics, ModelKind::BondedLayer);
     let bad = format!("{SCENE}[physics]\nmodel = \"fem\"\n");
-    let e = Scene::from_toml_str(&bad, "s.toml", paper_sensor()).unwrap_err().to_string();
-    assert!(e.contains("s.toml") && e.contains("physics.model") && e.contains("\"fem\""), "{e}");
+    let e = Scene::from_toml_str(&bad, "s.toml", paper_sensor())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("s.toml") && e.contains("physics.model") && e.contains("\"fem\""),
+        "{e}"
+    );
 
     // No [physics]: bit-identical to a simulation built without the key.
     let mut a = Simulation::from_scene(&plain);
@@ -238,7 +303,10 @@ fn scene_physics_selects_the_rendered_model_and_defaults_to_today() {
     let mut fc = c.blank_frame();
     let tc = c.render_load(&layer.load, 1, &mut fc).unwrap();
     let d = rel_err(&tc.elastic_u_mm, &ta.elastic_u_mm);
-    eprintln!("scene: bonded-layer vs half-space marker displacements differ by {:.1} %", 100.0 * d);
+    eprintln!(
+        "scene: bonded-layer vs half-space marker displacements differ by {:.1} %",
+        100.0 * d
+    );
     assert!(d > 1e-3);
     assert_ne!(fc.as_raw(), fa.as_raw());
 }
