@@ -8,6 +8,7 @@ mod cli;
 mod fourier;
 mod ft;
 mod layer;
+mod plans;
 mod report;
 mod reproduce;
 mod run;

@@ -306,6 +306,13 @@ pub trait FrameSolver: Send {
     fn apply(&mut self, u_mm: &[f64], f_n: &mut [f64]) -> Result<(), SolveError>;
     /// What the precompute found.
     fn diagnostics(&self) -> &Diagnostics;
+    /// Standard deviation (N) of every reconstructed force component (length
+    /// `n_outputs`, order fx, fy, fz per force point) when every displacement input
+    /// carries independent zero-mean noise of standard deviation `sigma_mm`.
+    fn force_sd(&self, sigma_mm: f64, out: &mut [f64]) -> Result<(), SolveError>;
+    /// Standard deviation (N) of the force sum (ΣFx, ΣFy, ΣFz) for the same noise,
+    /// correlations between nodes included.
+    fn sum_sd(&self, sigma_mm: f64) -> Result<[f64; 3], SolveError>;
 }
 
 /// Precomputes the configured solver for a problem. `frame` (displacements, mm) is used
