@@ -250,7 +250,7 @@ fn model_forward_cli_uses_the_sensor_files_model() {
         .map(|l| l.split(',').nth(ux).unwrap().parse().unwrap())
         .collect();
     assert_eq!(rows.len(), sites.len());
-    let got: Vec<f64> = rows.iter().copied().collect();
+    let got = rows;
     let want_x: Vec<f64> = want.iter().step_by(2).copied().collect();
     let hs_x: Vec<f64> = hs.iter().step_by(2).copied().collect();
     assert!(rel_err(&got, &want_x) < 1e-6, "{}", rel_err(&got, &want_x));
