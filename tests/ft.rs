@@ -1257,8 +1257,8 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
     );
     assert_eq!(image::open(&out_png).unwrap().to_rgb8(), img);
 
-    // No camera on this machine: V4L2 index 0 must fail clearly (skipped where one exists;
-    // the default build without the `v4l` feature is covered in tests/cli.rs).
+    // No camera on this machine: V4L2 index 0 must fail clearly (skipped where one exists).
+    // Only with the `v4l` feature; the default build's refusal is tested in `cli`.
     if cfg!(feature = "v4l") && !Path::new("/dev/video0").exists() {
         let out = tactbench()
             .args(["camera", "grab", "--device", "0", "--out"])
