@@ -199,11 +199,7 @@ impl DynPickSim {
             }
             b'O' if self.tare_ignored > 0 => self.tare_ignored -= 1,
             b'O' => self.offset_lsb = self.load_lsb(now),
-            b'S' => {
-                if self.continuous_next.is_none() {
-                    self.continuous_next = Some(now);
-                }
-            }
+            b'S' if self.continuous_next.is_none() => self.continuous_next = Some(now),
             b'E' => self.continuous_next = None,
             b'V' => {
                 let l = format!("{}\r\n", self.config.firmware).into_bytes();
