@@ -1526,6 +1526,18 @@ impl FrameSolver for FourierSolver {
     fn diagnostics(&self) -> &Diagnostics {
         &self.diag
     }
+
+    fn force_sd(&self, _sigma_mm: f64, _out: &mut [f64]) -> Result<(), SolveError> {
+        Err(SolveError::InvalidOption(
+            "per-node uncertainty is not available for the fourier solver yet: use pinv, tikhonov or tsvd".into(),
+        ))
+    }
+
+    fn sum_sd(&self, _sigma_mm: f64) -> Result<[f64; 3], SolveError> {
+        Err(SolveError::InvalidOption(
+            "force-sum uncertainty is not available for the fourier solver yet: use pinv, tikhonov or tsvd".into(),
+        ))
+    }
 }
 
 #[cfg(test)]
