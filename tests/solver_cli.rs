@@ -7,7 +7,7 @@ use std::path::Path;
 
 use tactbench::model::{self, HalfSpace, MarkerSite};
 use tactbench::sensor::Sensor;
-use tactbench::solve::{self, FrameSolver, Lambda, Method, Problem, SolverConfig};
+use tactbench::solve::{self, Lambda, Method, Problem, SolverConfig};
 
 use crate::util::{self, Rng};
 
@@ -107,14 +107,34 @@ fn run_in(dir: &Path, args: &[&str]) -> std::process::Output {
 fn flags_that_do_not_apply_are_errors_naming_solver_and_flag() {
     let dir = tempfile::tempdir().unwrap();
     let s = paper();
-    write_frames(&dir.path().join("d.csv"), &s, &[("a", pairs(&press(&s, [9.0, 7.0], 0.3, 0.0, 1)))]);
+    write_frames(
+        &dir.path().join("d.csv"),
+        &s,
+        &[("a", pairs(&press(&s, [9.0, 7.0], 0.3, 0.0, 1)))],
+    );
     let cases: [(&[&str], &str, &str); 6] = [
         (&["--solver", "pinv", "--rank", "5"], "--rank", "pinv"),
-        (&["--solver", "tikhonov", "--rank", "5"], "--rank", "tikhonov"),
-        (&["--solver", "tsvd", "--lambda", "0.01"], "--lambda", "tsvd"),
+        (
+            &["--solver", "tikhonov", "--rank", "5"],
+            "--rank",
+            "tikhonov",
+        ),
+        (
+            &["--solver", "tsvd", "--lambda", "0.01"],
+            "--lambda",
+            "tsvd",
+        ),
         (&["--solver", "pinv", "--lambda", "gcv"], "--lambda", "pinv"),
-        (&["--solver", "fourier", "--precision", "f32"], "--precision f32", "fourier"),
-        (&["--solver", "pinv", "--lambda-per", "frame"], "--lambda-per", "pinv"),
+        (
+            &["--solver", "fourier", "--precision", "f32"],
+            "--precision f32",
+            "fourier",
+        ),
+        (
+            &["--solver", "pinv", "--lambda-per", "frame"],
+            "--lambda-per",
+            "pinv",
+        ),
     ];
     for (args, flag, solver) in cases {
         let o = run_in(dir.path(), args);
@@ -126,14 +146,26 @@ fn flags_that_do_not_apply_are_errors_naming_solver_and_flag() {
             let mut a = vec!["model", "inspect", "--sensor", SENSOR];
             a.extend_from_slice(args);
             let o = util::run(&a);
-            assert_eq!(o.status.code(), Some(2), "inspect {args:?}: {}", util::stderr(&o));
+            assert_eq!(
+                o.status.code(),
+                Some(2),
+                "inspect {args:?}: {}",
+                util::stderr(&o)
+            );
             assert!(util::stderr(&o).contains(flag), "{}", util::stderr(&o));
         }
     }
     // The flags that do apply still work.
     for args in [
         &["--solver", "tsvd", "--rank", "40"][..],
-        &["--solver", "tikhonov", "--lambda", "0.01", "--precision", "f32"],
+        &[
+            "--solver",
+            "tikhonov",
+            "--lambda",
+            "0.01",
+            "--precision",
+            "f32",
+        ],
         &["--solver", "pinv", "--precision", "f32", "--rcond", "1e-6"],
     ] {
         let o = run_in(dir.path(), args);
@@ -161,7 +193,11 @@ fn a_zero_or_all_lost_frame_does_not_stop_a_multi_frame_file() {
             ("p2", pairs(&loaded2)),
         ],
     );
-    for solver in [&["--solver", "tikhonov"][..], &["--solver", "tsvd"], &["--solver", "tikhonov", "--lambda", "lcurve"]] {
+    for solver in [
+        &["--solver", "tikhonov"][..],
+        &["--solver", "tsvd"],
+        &["--solver", "tikhonov", "--lambda", "lcurve"],
+    ] {
         for per in ["file", "frame"] {
             let mut args = solver.to_vec();
             args.extend_from_slice(&["--lambda-per", per]);
@@ -181,20 +217,46 @@ fn a_zero_or_all_lost_frame_does_not_stop_a_multi_frame_file() {
             // Per file: λ chosen on p1 (the first loaded frame) serves p2; per frame:
             // each frame on its own. Either way p1 is p1 reconstructed alone.
             let cfg = SolverConfig {
-                method: if solver[1] == "tsvd" { Method::Tsvd } else { Method::Tikhonov },
-                lambda: if solver.contains(&"lcurve") { Lambda::LCurve } else { Lambda::Gcv },
+                method: if solver[1] == "tsvd" {
+                    Method::Tsvd
+                } else {
+                    Method::Tikhonov
+                },
+                lambda: if solver.contains(&"lcurve") {
+                    Lambda::LCurve
+                } else {
+                    Lambda::Gcv
+                },
                 ..SolverConfig::default()
             };
             let sites = MarkerSite::from_sensor_grids(&s);
             let p = Problem::new(&s, &sites);
-            for (label, u, chooser) in [("p1", &loaded, &loaded), ("p2", &loaded2, if per == "file" { &loaded } else { &loaded2 })] {
+            for (label, u, chooser) in [
+                ("p1", &loaded, &loaded),
+                (
+                    "p2",
+                    &loaded2,
+                    if per == "file" { &loaded } else { &loaded2 },
+                ),
+            ] {
                 let mut sv = solve::precompute(&p, &cfg, Some(chooser.as_slice())).unwrap();
                 let mut want = vec![0.0; 240];
                 sv.apply(u, &mut want).unwrap();
-                let got: Vec<f64> = rows.iter().filter(|r| r.0 == label).flat_map(|r| r.1.clone()).collect();
-                let err = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+                let got: Vec<f64> = rows
+                    .iter()
+                    .filter(|r| r.0 == label)
+                    .flat_map(|r| r.1.clone())
+                    .collect();
+                let err = got
+                    .iter()
+                    .zip(&want)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
                 let scale = want.iter().map(|v| v.abs()).fold(0.0, f64::max);
-                assert!(err <= 1e-9 * scale, "{args:?} {label}: {err:e} of {scale:e}");
+                assert!(
+                    err <= 1e-9 * scale,
+                    "{args:?} {label}: {err:e} of {scale:e}"
+                );
             }
         }
     }
@@ -212,7 +274,10 @@ fn uncertainty_adds_sd_columns_and_the_sd_of_the_force_sum() {
     let s = paper();
     let u = press(&s, [9.0, 7.0], 0.3, 0.005, 4);
     write_frames(&dir.path().join("d.csv"), &s, &[("a", pairs(&u))]);
-    let o = run_in(dir.path(), &["--solver", "tikhonov", "--uncertainty", "--noise-px", "0.1"]);
+    let o = run_in(
+        dir.path(),
+        &["--solver", "tikhonov", "--uncertainty", "--noise-px", "0.1"],
+    );
     let e = util::stderr(&o);
     assert!(o.status.success(), "{e}");
     assert!(e.contains("0.1 px = 0.005 mm"), "{e}");
@@ -236,11 +301,18 @@ fn uncertainty_adds_sd_columns_and_the_sd_of_the_force_sum() {
     }
     let sums = solve::force_sum_sd(sv.as_ref(), 0.005).unwrap();
     let line = e.lines().find(|l| l.contains("sd of F_sum")).expect(&e);
-    assert!(line.contains(&format!("{:.6}", sums[2])), "{line} vs {sums:?}");
+    assert!(
+        line.contains(&format!("{:.6}", sums[2])),
+        "{line} vs {sums:?}"
+    );
 
     let o = run_in(dir.path(), &["--solver", "tikhonov", "--uncertainty"]);
     assert_eq!(o.status.code(), Some(2), "{}", util::stderr(&o));
-    assert!(util::stderr(&o).contains("--noise-px"), "{}", util::stderr(&o));
+    assert!(
+        util::stderr(&o).contains("--noise-px"),
+        "{}",
+        util::stderr(&o)
+    );
 }
 
 /// Obs. 4 and 7 of issue 12: `model inspect --rcond 0.5` printed "condition inf" (κ
@@ -257,7 +329,10 @@ fn model_inspect_condition_is_that_of_h_whatever_rcond() {
         util::stdout(&o)
     };
     let cond = |s: &str| -> String {
-        s.lines().find(|l| l.starts_with("condition")).unwrap().to_string()
+        s.lines()
+            .find(|l| l.starts_with("condition"))
+            .unwrap()
+            .to_string()
     };
     let full = text(&[]);
     let cut = text(&["--rcond", "0.5"]);

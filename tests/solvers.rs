@@ -755,7 +755,10 @@ proptest! {
 fn noisy_single_layer_frame() -> (Case, Vec<f64>) {
     let case = single_layer();
     let mut rng = Rng(120);
-    let u = with_noise(&case.forward(&smooth_forces(&case.sensor, [9.0, 7.0])), &mut rng);
+    let u = with_noise(
+        &case.forward(&smooth_forces(&case.sensor, [9.0, 7.0])),
+        &mut rng,
+    );
     (case, u)
 }
 
@@ -873,7 +876,11 @@ fn a_search_ending_on_its_boundary_is_a_warning_not_a_noise_free_claim() {
             cfg.method,
             d.notes
         );
-        assert!(!d.notes.iter().any(|n| n.contains("noise-free")), "{:?}", d.notes);
+        assert!(
+            !d.notes.iter().any(|n| n.contains("noise-free")),
+            "{:?}",
+            d.notes
+        );
     }
 }
 
@@ -898,7 +905,12 @@ fn condition_number_describes_h_whatever_rcond() {
     assert_eq!(d0.condition_number, kappa);
     assert_eq!(d.condition_number, kappa);
     assert_eq!(d.condition_of_h(), kappa);
-    assert!(d.rank.unwrap() < d0.rank.unwrap(), "{:?} vs {:?}", d.rank, d0.rank);
+    assert!(
+        d.rank.unwrap() < d0.rank.unwrap(),
+        "{:?} vs {:?}",
+        d.rank,
+        d0.rank
+    );
     assert!(d.effective_rank < d0.effective_rank);
 }
 
@@ -911,7 +923,10 @@ fn condition_number_is_finite_whenever_the_smallest_singular_value_is_positive()
         l.depth_mm = depth;
     }
     let case = Case::from_sensor(s);
-    let d = case.solver(&config(Method::Pinv), None).diagnostics().clone();
+    let d = case
+        .solver(&config(Method::Pinv), None)
+        .diagnostics()
+        .clone();
     let smin = *d.singular_values.last().unwrap();
     assert!(smin > 0.0);
     assert!(d.condition_number.is_finite(), "{:?}", d.condition_number);
@@ -920,7 +935,12 @@ fn condition_number_is_finite_whenever_the_smallest_singular_value_is_positive()
 
 /// Empirical standard deviation of every force component and of the force sums over
 /// `trials` seeded noise draws of σ = `sigma` mm.
-fn monte_carlo_sd(s: &mut DenseSolver, sigma: f64, trials: usize, seed: u64) -> (Vec<f64>, [f64; 3]) {
+fn monte_carlo_sd(
+    s: &mut DenseSolver,
+    sigma: f64,
+    trials: usize,
+    seed: u64,
+) -> (Vec<f64>, [f64; 3]) {
     let (m, n) = (s.n_inputs(), s.n_outputs());
     let mut rng = Rng(seed);
     let mut sq = vec![0.0; n];
@@ -1016,7 +1036,11 @@ fn tikhonov_force_sd_matches_the_normal_equation_operator() {
     s.force_sd(1.0, &mut sd).unwrap();
     for j in 0..n {
         let want = p.row(j).norm();
-        assert!((sd[j] - want).abs() <= 1e-8 * want, "row {j}: {} vs {want}", sd[j]);
+        assert!(
+            (sd[j] - want).abs() <= 1e-8 * want,
+            "row {j}: {} vs {want}",
+            sd[j]
+        );
     }
     let sums = s.sum_sd(1.0).unwrap();
     for (ax, got) in sums.iter().enumerate() {
@@ -1025,11 +1049,20 @@ fn tikhonov_force_sd_matches_the_normal_equation_operator() {
             row += p.row(j).transpose();
         }
         let want = row.norm();
-        assert!((got - want).abs() <= 1e-8 * want, "axis {ax}: {got} vs {want}");
+        assert!(
+            (got - want).abs() <= 1e-8 * want,
+            "axis {ax}: {got} vs {want}"
+        );
     }
     // Bad σ: an error, not a panic or NaN.
-    assert!(matches!(s.sum_sd(f64::NAN), Err(SolveError::InvalidOption(_))));
-    assert!(matches!(s.force_sd(-1.0, &mut sd), Err(SolveError::InvalidOption(_))));
+    assert!(matches!(
+        s.sum_sd(f64::NAN),
+        Err(SolveError::InvalidOption(_))
+    ));
+    assert!(matches!(
+        s.force_sd(-1.0, &mut sd),
+        Err(SolveError::InvalidOption(_))
+    ));
     assert!(matches!(
         s.force_sd(1.0, &mut [0.0; 3]),
         Err(SolveError::DimensionMismatch { .. })
@@ -1045,8 +1078,9 @@ fn tikhonov_force_sd_matches_the_normal_equation_operator() {
 #[test]
 #[ignore = "needs Python with NumPy: set TACTBENCH_PYTHON and run with --ignored"]
 fn numpy_reference_checks_lambda_rank_and_uncertainty() {
-    let python = std::env::var("TACTBENCH_PYTHON")
-        .expect("set TACTBENCH_PYTHON to a python with numpy (see tests/numpy_ref/lambda_check.py)");
+    let python = std::env::var("TACTBENCH_PYTHON").expect(
+        "set TACTBENCH_PYTHON to a python with numpy (see tests/numpy_ref/lambda_check.py)",
+    );
     let (case, u) = noisy_single_layer_frame();
     let p = case.problem();
     let markers: Vec<[f64; 3]> = case
@@ -1092,7 +1126,10 @@ fn numpy_reference_checks_lambda_rank_and_uncertainty() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("case.json");
     std::fs::write(&path, json.to_string()).unwrap();
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/numpy_ref/lambda_check.py");
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/numpy_ref/lambda_check.py"
+    );
     let o = std::process::Command::new(python)
         .arg(script)
         .arg(&path)
@@ -1113,8 +1150,14 @@ fn f32_apply_matches_f64_to_the_figures_stated_in_the_readme() {
     let mut rng = Rng(130);
     let frames = [
         case.forward(&random_forces(80, &mut rng)),
-        with_noise(&case.forward(&smooth_forces(&case.sensor, [9.0, 7.0])), &mut rng),
-        with_noise(&case.forward(&smooth_forces(&case.sensor, [4.0, 12.0])), &mut rng),
+        with_noise(
+            &case.forward(&smooth_forces(&case.sensor, [9.0, 7.0])),
+            &mut rng,
+        ),
+        with_noise(
+            &case.forward(&smooth_forces(&case.sensor, [4.0, 12.0])),
+            &mut rng,
+        ),
     ];
     for (cfg, bound) in [
         (config(Method::Pinv), 3e-5),
@@ -1131,7 +1174,10 @@ fn f32_apply_matches_f64_to_the_figures_stated_in_the_readme() {
             s32.apply(u, &mut f32v).unwrap();
             worst = worst.max(rel_err(&f32v, &f64v));
         }
-        eprintln!("{:?}: f32 vs f64 relative difference {worst:.2e}", cfg.method);
+        eprintln!(
+            "{:?}: f32 vs f64 relative difference {worst:.2e}",
+            cfg.method
+        );
         assert!(worst < bound, "{:?}: {worst:e}", cfg.method);
     }
 }

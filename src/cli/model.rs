@@ -53,8 +53,9 @@ pub struct InspectArgs {
     /// Sensor description (sensor.toml).
     #[arg(long, value_name = "S.toml")]
     sensor: PathBuf,
-    /// Displacement CSV: its first frame defines the marker set (lost markers dropped)
-    /// and feeds automatic lambda / rank selection.
+    /// Displacement CSV: its first frame defines the marker set (lost markers dropped);
+    /// the first frame with those markers and nonzero displacements feeds automatic
+    /// lambda / rank selection.
     #[arg(long, value_name = "D.csv")]
     displacements: Option<PathBuf>,
     /// Print every singular value instead of a summary.
@@ -126,7 +127,21 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
         Some(path) => {
             let frames = formats::read_displacements(path, &sensor)?;
             let first = &frames[0];
-            (first.sites(&sensor), Some(first.u_mm()))
+            // Automatic lambda / rank needs a loaded frame: the first frame whose
+            // displacements are not all zero among those with the first frame's markers
+            // (an unloaded reference often comes first).
+            let present = |f: &formats::DisplacementFrame| {
+                f.records
+                    .iter()
+                    .map(|r| (r.layer, r.marker, r.u_mm.is_some()))
+                    .collect::<Vec<_>>()
+            };
+            let key = present(first);
+            let chooser = frames
+                .iter()
+                .find(|f| present(f) == key && f.u_mm().iter().any(|&v| v != 0.0))
+                .unwrap_or(first);
+            (first.sites(&sensor), Some(chooser.u_mm()))
         }
         None => {
             let sites = MarkerSite::from_sensor_grids(&sensor);
@@ -234,7 +249,10 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     }
     // κ describes H, whatever the cut-off (--rcond) or regularisation: those change
     // the solution, reported as the rank used / effective rank below.
-    println!("condition    {:.4e} (sigma_max / sigma_min of H)", d.condition_of_h());
+    println!(
+        "condition    {:.4e} (sigma_max / sigma_min of H)",
+        d.condition_of_h()
+    );
     println!("eff. rank    {:.1}", d.effective_rank);
     println!(
         "noise gain   {:.4e} N/mm: 0.1 px ({} mm) of displacement noise -> up to {:.4e} N ({:.3} gf) per force component",

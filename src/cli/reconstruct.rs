@@ -183,8 +183,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
             } else {
                 format!(" ({what} chosen on frame {})", frames[c].frame)
             };
-            solve::precompute(&problem, &config, Some(&uc))
-                .with_context(|| format!("cannot set up the {} solver{label}{chosen_on}", config.method))
+            solve::precompute(&problem, &config, Some(&uc)).with_context(|| {
+                format!(
+                    "cannot set up the {} solver{label}{chosen_on}",
+                    config.method
+                )
+            })
         };
         let mut fresh: Box<dyn FrameSolver>;
         let solver: &mut Box<dyn FrameSolver> = if per == LambdaPer::Frame && config.needs_frame() {

@@ -23,8 +23,8 @@ pub struct SolverArgs {
     #[arg(long, value_parser = parse_rank)]
     rank: Option<Rank>,
     /// Arithmetic of the per-frame solve of the dense solvers: `f64` (default), or
-    /// `f32` (about twice as fast; measured relative error ~1e-5 for pinv, ~1e-7 for
-    /// tikhonov at the paper size). `f32` is an error with fourier (f64 only).
+    /// `f32` (about twice as fast; measured relative difference 1e-5 for pinv, 3e-7
+    /// for tikhonov at the paper size). `f32` is an error with fourier (f64 only).
     #[arg(long, value_parser = parse_precision)]
     precision: Option<Precision>,
     /// pinv: singular values below rcond * sigma_max are dropped
@@ -50,7 +50,8 @@ impl SolverArgs {
                 "--rank does not apply to the {m} solver: only tsvd truncates at a rank{}",
                 match m {
                     Method::Pinv => "; pinv drops singular values below --rcond * sigma_max",
-                    Method::Tikhonov | Method::Fourier => "; tikhonov and fourier are tuned with --lambda",
+                    Method::Tikhonov | Method::Fourier =>
+                        "; tikhonov and fourier are tuned with --lambda",
                     Method::Tsvd => "",
                 }
             ));

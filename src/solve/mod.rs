@@ -190,7 +190,9 @@ pub enum Precision {
     /// Double precision: exact to ~1e-12 relative.
     #[default]
     F64,
-    /// Single precision: about twice as fast, ~1e-6 relative.
+    /// Single precision: about twice as fast; measured at the paper size
+    /// ‖f32 − f64‖/‖f64‖ = 9.9e-6 (pinv), 2.7e-7 (tikhonov, GCV λ), 1.3e-7 (tsvd, GCV
+    /// rank): the error grows with the largest filter factor φ_i/σ_i kept.
     F32,
 }
 
