@@ -14,7 +14,7 @@ use crate::util::{self, Rng};
 const SENSOR: &str = "experiments/paper_sensor.toml";
 
 fn paper() -> Sensor {
-    Sensor::from_path(&util::root(SENSOR)).unwrap()
+    Sensor::from_path(util::root(SENSOR)).unwrap()
 }
 
 /// Displacements (mm, interleaved, in the order of `MarkerSite::from_sensor_grids`) of

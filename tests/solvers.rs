@@ -1034,12 +1034,11 @@ fn tikhonov_force_sd_matches_the_normal_equation_operator() {
     let p = a.cholesky().expect("SPD").solve(&h.transpose());
     let mut sd = vec![0.0; n];
     s.force_sd(1.0, &mut sd).unwrap();
-    for j in 0..n {
+    for (j, got) in sd.iter().enumerate() {
         let want = p.row(j).norm();
         assert!(
-            (sd[j] - want).abs() <= 1e-8 * want,
-            "row {j}: {} vs {want}",
-            sd[j]
+            (got - want).abs() <= 1e-8 * want,
+            "row {j}: {got} vs {want}"
         );
     }
     let sums = s.sum_sd(1.0).unwrap();
