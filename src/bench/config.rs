@@ -10,6 +10,11 @@
 //! port = "/dev/ttyUSB0"
 //! baud = 115200                     # optional (grbl, zaber: 115200)
 //! # zaber only: devices = [1, 2, 3] (x, y, z addresses), mm_per_step = 0.000047625
+//! travel_min_mm = [-200.0, -200.0, -200.0]  # optional, stage machine coordinates:
+//! travel_max_mm = [0.0, 0.0, 0.0]           # what `run --dry-run` checks targets
+//!                                   # against (the run itself checks the limits the
+//!                                   # controller reports: GRBL $130-$132, Zaber
+//!                                   # limit.min / limit.max)
 //!
 //! [force_sensor]
 //! protocol = "dynpick"              # dynpick | ft300
@@ -51,6 +56,7 @@ use serde::Deserialize;
 
 use crate::config::{self, Checker, ConfigError};
 use crate::device::camera::CameraSpec;
+use crate::device::TravelLimits;
 
 /// Which stage protocol.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -83,6 +89,9 @@ pub struct StageConfig {
     pub zaber_devices: [u8; 3],
     /// Zaber: resolution, mm per microstep.
     pub zaber_mm_per_step: f64,
+    /// The stage's travel box as the bench file states it (`travel_min_mm`,
+    /// `travel_max_mm`), for dry runs; `None` when not given.
+    pub travel: Option<TravelLimits>,
 }
 
 /// A real force sensor.
@@ -240,6 +249,8 @@ struct RawStage {
     baud: Option<i64>,
     devices: Option<[i64; 3]>,
     mm_per_step: Option<f64>,
+    travel_min_mm: Option<[f64; 3]>,
+    travel_max_mm: Option<[f64; 3]>,
 }
 
 #[derive(Deserialize)]
@@ -440,12 +451,44 @@ impl RawBench {
             StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
             StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
         };
+        let travel = match (s.travel_min_mm, s.travel_max_mm) {
+            (None, None) => None,
+            (Some(lo), Some(hi)) => {
+                let mut axes_mm = [[0.0; 2]; 3];
+                for i in 0..3 {
+                    let lo = c.finite(&format!("stage.travel_min_mm[{i}]"), lo[i], "mm")?;
+                    let hi = c.finite(&format!("stage.travel_max_mm[{i}]"), hi[i], "mm")?;
+                    if lo >= hi {
+                        return Err(c.invalid(
+                            &format!("stage.travel_max_mm[{i}]"),
+                            format!("{hi} mm"),
+                            format!("must exceed stage.travel_min_mm[{i}] = {lo} mm"),
+                        ));
+                    }
+                    axes_mm[i] = [lo, hi];
+                }
+                Some(TravelLimits { axes_mm })
+            }
+            (Some(_), None) | (None, Some(_)) => {
+                let key = if s.travel_min_mm.is_none() {
+                    "stage.travel_min_mm"
+                } else {
+                    "stage.travel_max_mm"
+                };
+                return Err(c.invalid(
+                    key,
+                    "(missing)",
+                    "give both stage.travel_min_mm and stage.travel_max_mm, or neither",
+                ));
+            }
+        };
         let stage = StageConfig {
             protocol,
             port: non_empty(&c, "stage.port", s.port)?,
             baud: baud(&c, "stage.baud", s.baud, stage_default_baud)?,
             zaber_devices,
             zaber_mm_per_step,
+            travel,
         };
         let ft_protocol = ft_kind(&c, "force_sensor.protocol", &f.protocol)?;
         let ft_default_baud = match ft_protocol {
@@ -585,5 +628,31 @@ press_direction = -1
         .unwrap_err()
         .to_string();
         assert!(e.contains("force_sensor.baud = 7"), "{e}");
+    }
+
+    #[test]
+    fn stage_travel_limits_are_optional_and_checked_in_pairs() {
+        let with = HW.replace(
+            "port = \"/dev/ttyUSB0\"",
+            "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [-200.0, -200.0, -50.0]\ntravel_max_mm = [0.0, 0.0, 0.0]",
+        );
+        let BenchDevices::Hardware { stage, .. } = parse(&with).unwrap().devices else {
+            panic!("hardware expected")
+        };
+        assert_eq!(
+            stage.travel.unwrap().axes_mm,
+            [[-200.0, 0.0], [-200.0, 0.0], [-50.0, 0.0]]
+        );
+        let e = parse(&HW.replace(
+            "port = \"/dev/ttyUSB0\"",
+            "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [0.0, 0.0, 0.0]",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("stage.travel_max_mm = (missing)"), "{e}");
+        let e = parse(&with.replace("[0.0, 0.0, 0.0]", "[0.0, -300.0, 0.0]"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stage.travel_max_mm[1] = -300 mm"), "{e}");
     }
 }

@@ -27,7 +27,7 @@ use super::SolverArgs;
 /// forces (a flagged row, warned on stderr); the file goes on either way.
 #[derive(clap::Args)]
 #[command(
-    after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements tests/fixtures/paper_point_load.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --uncertainty --noise-px 0.1 --out F.csv"
+    after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements experiments/examples/fig6_displacements.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --uncertainty --noise-px 0.1 --out F.csv"
 )]
 pub struct Args {
     /// Sensor description (sensor.toml).

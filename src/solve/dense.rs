@@ -443,7 +443,7 @@ impl DenseSolver {
             return Err(SolveError::Empty("the force grid has no points".into()));
         }
         let h = model::transfer_matrix(
-            &problem.model,
+            &problem.forward_model(),
             problem.sites,
             &problem.sensor.force_points_mm(),
         )?;

@@ -264,6 +264,16 @@ impl<'a> Problem<'a> {
         }
     }
 
+    /// The forward model the sensor file selects (`[elastomer] model`) on this
+    /// problem's material: what builds `H` for the dense solvers.
+    pub fn forward_model(&self) -> crate::model::ForwardModel {
+        crate::model::ForwardModel::with_material(
+            self.sensor.elastomer.model,
+            self.model,
+            self.sensor.elastomer.thickness_mm,
+        )
+    }
+
     /// Length of the displacement vector.
     pub fn n_inputs(&self) -> usize {
         2 * self.sites.len()
@@ -365,6 +375,15 @@ pub fn precompute(
         check_input(u, problem.n_inputs())?;
     }
     match config.method {
+        Method::Fourier
+            if problem.sensor.elastomer.model != crate::sensor::ModelKind::HalfSpace =>
+        {
+            Err(SolveError::Incompatible(format!(
+                "the fourier solver inverts the half-space model only; the sensor's \
+                 [elastomer] model = \"{}\" needs a dense method (pinv, tikhonov, tsvd)",
+                problem.sensor.elastomer.model
+            )))
+        }
         Method::Fourier => Ok(Box::new(fourier::FourierSolver::precompute(
             problem, config, frame,
         )?)),
