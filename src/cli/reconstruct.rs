@@ -51,7 +51,7 @@ pub struct Args {
     lambda_per: Option<LambdaPer>,
     /// Also write the standard deviation of every force component (`sfx_n, sfy_n,
     /// sfz_n`, N) for independent displacement noise of --noise-px per value, and
-    /// print the standard deviation of F_sum on stderr (dense solvers).
+    /// print the standard deviation of F_sum on stderr.
     #[arg(long, requires = "noise_px")]
     uncertainty: bool,
     /// Displacement noise (standard deviation per ux / uy value) in camera pixels,
