@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
-use tactbench::bench::journal::{self, JournalRow, Manifest, RunStatus};
+use tactbench::bench::journal::{self, JournalRow, Manifest, RowQuality, RunStatus};
 use tactbench::bench::plan::Plan;
 use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions, RunSummary};
 use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
@@ -71,6 +71,18 @@ fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
         let f = std::fs::read_to_string(dir.join(format!("forces/{:05}.csv", r.index))).unwrap();
         assert_eq!(f.lines().next().unwrap(), "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n");
         assert_eq!(f.lines().count(), 1 + 80);
+        // Per-setpoint marker counts: they add up to the sensor's 260 markers.
+        assert_eq!(
+            r.marker_total().map(|(_, total)| total),
+            Some(260),
+            "row {}",
+            r.index
+        );
+        assert!(
+            r.quality.is_some() && r.reacquired.is_some(),
+            "row {}",
+            r.index
+        );
     }
     rows
 }
@@ -124,6 +136,14 @@ fn every_plan_in_experiments_runs_end_to_end_on_the_simulated_bench() {
         );
         let sps = plan.setpoints();
         for r in &rows {
+            // The paper's scenes track cleanly: nothing re-acquired or flagged.
+            assert_eq!(
+                (r.reacquired, r.quality),
+                (Some(0), Some(RowQuality::Ok)),
+                "{plan_path} #{}: {:?} markers ok",
+                r.index,
+                r.marker_total()
+            );
             let sp = sps[r.index];
             // The measured wrench (not the target) is recorded; force control holds
             // it within the plan's tolerance (+ one DynPick count, 1/82 N... ≤ 0.013 N).
@@ -695,4 +715,218 @@ fn a_bench_file_with_a_zaber_stage_and_an_ft300_runs_the_same_plan() {
         "identity read before the stream started: {}",
         m.devices["force_sensor"]
     );
+}
+
+// ---- tracking quality gates ([quality]) -------------------------------------------
+
+/// The Fig. 7 plan with its first four levels (0, 50, 100, 150 gf, one trial), the
+/// sensor file `sensor` and extra `[quality]` lines, written into `dir`.
+fn short_fig7_plan(dir: &Path, sensor: &str, quality: &str) -> Plan {
+    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {sensor:?}"),
+        )
+        .replace("to = 750.0", "to = 150.0")
+        .replace("trials = 10", "trials = 1");
+    let path = write(dir, "plan.toml", &format!("{text}\n[quality]\n{quality}\n"));
+    Plan::from_path(&path).unwrap()
+}
+
+#[test]
+fn a_scale_mismatched_sensor_file_stops_the_run_before_any_setpoint() {
+    // Observation 4 of issue 10: a sensor file with mm_per_px = 0.045 against a scene
+    // rendered at 0.05 found 104 markers, the run went on, recorded F_sum z -1470 gf
+    // for a 49.7 gf load and exited 0.
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
+        .unwrap()
+        .replace("mm_per_px = 0.05", "mm_per_px = 0.045");
+    let sensor_path = write(tmp.path(), "sensor_0045.toml", &sensor);
+    let plan = short_fig7_plan(tmp.path(), sensor_path.to_str().unwrap(), "");
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+
+    // The binary: aborted (exit 3) with the diagnosis and the measured numbers.
+    let out = tmp.path().join("cli");
+    let o = run_cli(&[
+        "run",
+        plan.path.to_str().unwrap(),
+        "--sim",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+    ]);
+    let err = util::stderr(&o);
+    assert_eq!(o.status.code(), Some(3), "{err}");
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Aborted);
+    let reason = m.end_reason.unwrap();
+    for needle in [
+        "reference frame frames/reference.png does not match the sensor file",
+        "sensor_0045.toml",
+        "below [quality] reference_min_found_fraction 0.9",
+        "stopped before any setpoint motion",
+        "scale: the markers are 30.0 px apart but the sensor file expects 33.3 px",
+        "mm_per_px is probably 0.0500",
+        "blue marker pitch 30.0 px (sensor file: 33.3 px)",
+        "frame mean level",
+    ] {
+        assert!(reason.contains(needle), "{needle:?} not in {reason}");
+        assert!(err.contains(needle), "{needle:?} not on stderr: {err}");
+    }
+    assert!(rows(&out).is_empty(), "no setpoint was journalled");
+    assert!(!out.join("frames/00000_0.png").exists());
+
+    // In process: the stage never pressed (no setpoint started, no contact, at the
+    // clearance height above the approach position).
+    let out = tmp.path().join("lib");
+    let (summary, events, stage, fz) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Aborted);
+    assert_eq!(summary.done, 0);
+    assert!(
+        !events.iter().any(|e| matches!(
+            e,
+            RunEvent::SetpointStarted { .. } | RunEvent::Contact { .. }
+        )),
+        "{events:?}"
+    );
+    let found = events.iter().find_map(|e| match e {
+        RunEvent::Reference {
+            markers, missing, ..
+        } => Some((*markers, *missing)),
+        _ => None,
+    });
+    let (markers, missing) = found.expect("the reference event");
+    assert_eq!(markers + missing, 260);
+    assert!(markers < 234, "{markers} markers matched");
+    assert_eq!(fz, 0.0);
+    // GRBL sim: surface at z = -30 mm, 1 mm clearance.
+    assert!((stage[2] - -29.0).abs() < 1e-3, "stage z {} mm", stage[2]);
+}
+
+#[test]
+fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = util::root("experiments/paper_sensor.toml");
+    // The virtual camera counts every grab: 1 = the reference, 2 = setpoint 0, 3 =
+    // setpoint 1 (occluded once: its re-acquisition, 4, is clean), 5 = setpoint 2, 6
+    // on = setpoint 3 (occluded in every acquisition: flagged after 2 re-acquisitions).
+    let occlusion = |frames: &str| {
+        format!("[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 215.0, 340.0]\nframes = {frames}\n")
+    };
+    let scene_text =
+        std::fs::read_to_string(util::root("experiments/scenes/fig7_hemisphere_ramp.toml"))
+            .unwrap()
+            .replace(
+                "sensor = \"../paper_sensor.toml\"",
+                &format!("sensor = {:?}", sensor.display().to_string()),
+            );
+    let scene = write(
+        tmp.path(),
+        "occluded.toml",
+        &format!(
+            "{scene_text}\n{}\n{}",
+            occlusion("[3, 3]"),
+            occlusion("[6, 1000]")
+        ),
+    );
+    let plan = short_fig7_plan(tmp.path(), sensor.to_str().unwrap(), "");
+    let out = tmp.path().join("flag");
+    let (summary, events, _, _) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Completed, "{:?}", summary.reason);
+    let rows = rows(&out);
+    let got: Vec<_> = rows
+        .iter()
+        .map(|r| (r.index, r.reacquired, r.quality))
+        .collect();
+    assert_eq!(
+        got,
+        vec![
+            (0, Some(0), Some(RowQuality::Ok)),
+            (1, Some(1), Some(RowQuality::Ok)),
+            (2, Some(0), Some(RowQuality::Ok)),
+            (3, Some(2), Some(RowQuality::Flagged)),
+        ]
+    );
+    let (ok, total) = rows[3].marker_total().unwrap();
+    assert_eq!(total, 260);
+    assert!(
+        ok < 160 && rows[3].markers_lost.unwrap() > 100,
+        "{:?}",
+        rows[3]
+    );
+    assert_eq!(rows[1].marker_total(), Some((260, 260)));
+    let retries = events
+        .iter()
+        .filter(|e| matches!(e, RunEvent::Retry { reason, .. } if reason.contains("re-acquiring the frames")))
+        .count();
+    assert_eq!(retries, 3);
+    assert!(events.iter().any(|e| matches!(
+        e,
+        RunEvent::Warning { index: 3, message } if message.contains("quality = flagged")
+    )));
+
+    // The report: marker health section, figure, metrics; acceptance on them.
+    let criteria = write(
+        tmp.path(),
+        "criteria.toml",
+        "[[criterion]]\nmetric = \"tracking.min_ok_fraction\"\nmin = 0.9\n\n[[criterion]]\nmetric = \"tracking.flagged_rows\"\nmax = 0\n\n[[criterion]]\nmetric = \"tracking.reacquired_rows\"\nmax = 2\n",
+    );
+    let o = run_cli(&[
+        "report",
+        out.to_str().unwrap(),
+        "--acceptance",
+        criteria.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", util::stderr(&o));
+    let summary_csv = std::fs::read_to_string(out.join("summary.csv")).unwrap();
+    let metric = |name: &str| {
+        summary_csv
+            .lines()
+            .find_map(|l| l.strip_prefix(&format!("{name},")))
+            .and_then(|v| v.split(',').next())
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or_else(|| panic!("{name} not in {summary_csv}"))
+    };
+    let min_ok = metric("tracking.min_ok_fraction");
+    assert!(
+        (min_ok - rows[3].ok_fraction().unwrap()).abs() < 1e-9,
+        "{min_ok}"
+    );
+    assert_eq!(metric("tracking.flagged_rows"), 1.0);
+    assert_eq!(metric("tracking.reacquired_rows"), 2.0);
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(
+        html.contains("<h2>Marker health</h2>"),
+        "marker health section"
+    );
+    assert!(
+        html.contains("class=\"health flagged\""),
+        "the flagged row is marked"
+    );
+    assert!(out.join("plots/marker_health.png").exists());
+
+    // on_fail = "abort": the run stops at setpoint 3 without journalling it.
+    let plan = short_fig7_plan(
+        tmp.path(),
+        sensor.to_str().unwrap(),
+        "max_reacquire = 1\non_fail = \"abort\"",
+    );
+    let out = tmp.path().join("abort");
+    let (summary, _, _, fz) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Aborted);
+    let reason = summary.reason.unwrap();
+    assert!(
+        reason.contains("setpoint 3: tracking")
+            && reason.contains("after 1 re-acquisition(s), below [quality] min_ok_fraction 0.9")
+            && reason.contains("on_fail = \"abort\""),
+        "{reason}"
+    );
+    assert_eq!(
+        self::rows(&out).iter().map(|r| r.index).collect::<Vec<_>>(),
+        vec![0, 1, 2]
+    );
+    assert_eq!(fz, 0.0, "retracted after the abort");
 }

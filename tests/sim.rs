@@ -250,6 +250,56 @@ fn quantize8_rounds_to_code_values_within_half_a_level() {
 }
 
 #[test]
+fn occlusion_greys_out_its_rectangle_in_its_frames_only() {
+    let ideal = ideal();
+    let occlusion = Effect::Occlusion {
+        rect_px: [10.0, 20.0, 100.5, 60.0],
+        level: 0.5,
+        first_frame: 2,
+        last_frame: Some(3),
+    };
+    for frame in [0, 1, 4] {
+        let (f, _) = through(vec![occlusion.clone()], frame);
+        assert_eq!(f.as_raw(), ideal.as_raw(), "frame {frame} untouched");
+    }
+    for frame in [2, 3] {
+        let (f, _) = through(vec![occlusion.clone()], frame);
+        for (i, j, p) in f.enumerate_pixels() {
+            // Pixel centres 10..=100 x 20..=59 are covered.
+            if (10..=100).contains(&i) && (20..60).contains(&j) {
+                assert_eq!(p.0, [0.5; 3], "({i},{j}) frame {frame}");
+            } else {
+                assert_eq!(p.0, ideal.get_pixel(i, j).0, "({i},{j}) frame {frame}");
+            }
+        }
+    }
+    // From a scene file: default level 0.5, every loaded frame (1 on), checked keys.
+    let ok = Scene::from_toml_str(
+        &format!("{BASE}[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 215.0, 340.0]\n"),
+        "s.toml",
+        paper_sensor(),
+    )
+    .unwrap();
+    assert_eq!(
+        ok.pipeline.effects(),
+        &[Effect::Occlusion {
+            rect_px: [0.0, 0.0, 215.0, 340.0],
+            level: 0.5,
+            first_frame: 1,
+            last_frame: None,
+        }]
+    );
+    let e = scene_err(&format!(
+        "{BASE}[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 10.0, 10.0]\nframes = [5, 2]\n"
+    ));
+    assert!(e.contains("effects[0] (occlusion): frames = [5, 2]"), "{e}");
+    let e = scene_err(&format!(
+        "{BASE}[[effects]]\nkind = \"occlusion\"\nrect_px = [20.0, 0.0, 10.0, 10.0]\n"
+    ));
+    assert!(e.contains("rect_px") && e.contains("x0 < x1"), "{e}");
+}
+
+#[test]
 fn illumination_and_vignetting_multiply_by_their_gain_only() {
     let s = paper_sensor();
     let (w, h) = (s.camera.width_px as f64, s.camera.height_px as f64);

@@ -985,3 +985,338 @@ fn tracking_a_frame_allocates_nothing() {
         assert_eq!(after - before, 0, "{mode:?}: track() allocated");
     }
 }
+
+// ---- bit depths, tracking gate and reference health of `track` (sim renders) -------
+
+/// Renders the paper sensor under a 300 gf hemisphere with `tactbench sim render`
+/// (16-bit PNG: `reference.png`, `frame_000.png`) into `dir`; returns the sensor file.
+fn sim_render_pair(dir: &std::path::Path) -> std::path::PathBuf {
+    let sensor = crate::util::root("experiments/paper_sensor.toml");
+    let scene = dir.join("scene.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "sensor = {:?}\n[indenter]\nkind = \"hemisphere\"\nradius_mm = 2.5\n\
+             [load]\nposition_mm = [9.0, 6.75]\nnormal_force_gf = 300.0\n",
+            sensor.display().to_string()
+        ),
+    )
+    .unwrap();
+    let o = crate::util::run(&[
+        "sim",
+        "render",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    assert!(crate::util::stdout(&o).contains("16-bit PNG"));
+    sensor
+}
+
+/// 8 bits per channel the way PNG narrows: `round(v / 257)`.
+fn narrow(img: &ImageBuffer<Rgb<u16>, Vec<u16>>) -> RgbImage {
+    let data = img
+        .as_raw()
+        .iter()
+        .map(|&v| ((v as u32 + 128) / 257) as u8)
+        .collect();
+    RgbImage::from_raw(img.width(), img.height(), data).unwrap()
+}
+
+/// Writes `img` as an indexed (palette) PNG: 254 colours on the lines from the
+/// background to the blue and to the red marker colour (the sim palette), each pixel
+/// mapped to the nearest one.
+fn save_palette_png(img: &RgbImage, path: &std::path::Path) {
+    let p = tactbench::sim::render::Palette::default();
+    let to8 = |c: [f32; 3]| c.map(|v| (v * 255.0) as f64);
+    let (bg, lines) = (to8(p.background), [to8(p.blue), to8(p.red)]);
+    const STEPS: usize = 127;
+    let mut palette = vec![bg];
+    for c in lines {
+        for k in 1..=STEPS {
+            let a = k as f64 / STEPS as f64;
+            palette.push([0, 1, 2].map(|i| bg[i] + a * (c[i] - bg[i])));
+        }
+    }
+    let indices: Vec<u8> = img
+        .pixels()
+        .map(|px| {
+            let v = px.0.map(f64::from);
+            let mut best = (f64::INFINITY, 0u8);
+            for (li, c) in lines.iter().enumerate() {
+                let d: [f64; 3] = [0, 1, 2].map(|i| c[i] - bg[i]);
+                let dd = d.iter().map(|x| x * x).sum::<f64>();
+                let a = ([0, 1, 2].map(|i| (v[i] - bg[i]) * d[i]).iter().sum::<f64>() / dd)
+                    .clamp(0.0, 1.0);
+                let k = (a * STEPS as f64).round() as usize;
+                let q = if k == 0 { 0 } else { 1 + li * STEPS + (k - 1) };
+                let e: f64 = [0, 1, 2]
+                    .map(|i| (v[i] - palette[q][i]).powi(2))
+                    .iter()
+                    .sum();
+                if e < best.0 {
+                    best = (e, q as u8);
+                }
+            }
+            best.1
+        })
+        .collect();
+    let file = std::fs::File::create(path).unwrap();
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), img.width(), img.height());
+    enc.set_color(png::ColorType::Indexed);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_palette(
+        palette
+            .iter()
+            .flat_map(|c| c.map(|v| v.round() as u8))
+            .collect::<Vec<u8>>(),
+    );
+    let mut w = enc.write_header().unwrap();
+    w.write_image_data(&indices).unwrap();
+}
+
+/// The 8-bit variants of a 16-bit render: `(label, file)`.
+fn eight_bit_variants(
+    src16: &std::path::Path,
+    stem: &str,
+) -> Vec<(&'static str, std::path::PathBuf)> {
+    let img16 = image::open(src16).unwrap().into_rgb16();
+    let img8 = narrow(&img16);
+    let dir = src16.parent().unwrap();
+    let png8 = dir.join(format!("{stem}_8.png"));
+    img8.save(&png8).unwrap();
+    let bmp = dir.join(format!("{stem}_8.bmp"));
+    img8.save(&bmp).unwrap();
+    let jpg = dir.join(format!("{stem}_8.jpg"));
+    let mut out = std::io::BufWriter::new(std::fs::File::create(&jpg).unwrap());
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95)
+        .encode_image(&img8)
+        .unwrap();
+    drop(out);
+    let rgba = dir.join(format!("{stem}_8_rgba.png"));
+    image::DynamicImage::ImageRgb8(img8.clone())
+        .into_rgba8()
+        .save(&rgba)
+        .unwrap();
+    let pal = dir.join(format!("{stem}_8_palette.png"));
+    save_palette_png(&img8, &pal);
+    vec![
+        ("png", png8),
+        ("bmp", bmp),
+        ("jpeg", jpg),
+        ("rgba", rgba),
+        ("palette", pal),
+    ]
+}
+
+/// Runs `track` on one pair; returns (exit code, stderr, per-marker (status, ux, uy)).
+fn track_pair(
+    sensor: &std::path::Path,
+    reference: &std::path::Path,
+    frame: &std::path::Path,
+    out: &std::path::Path,
+    extra: &[&str],
+) -> (i32, String, Vec<(String, f64, f64)>) {
+    let mut args = vec![
+        "track",
+        "--sensor",
+        sensor.to_str().unwrap(),
+        "--reference",
+        reference.to_str().unwrap(),
+        frame.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    let o = crate::util::run(&args);
+    let stderr = crate::util::stderr(&o);
+    let rows = std::fs::read_to_string(out)
+        .unwrap_or_default()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let c: Vec<&str> = l.split(',').collect();
+            let num = |s: &str| s.parse::<f64>().unwrap_or(f64::NAN);
+            (c[11].to_string(), num(c[9]), num(c[10]))
+        })
+        .collect();
+    (o.status.code().unwrap_or(-1), stderr, rows)
+}
+
+/// Largest |Δu| (px) between two tracks of the same markers.
+fn max_diff(a: &[(String, f64, f64)], b: &[(String, f64, f64)]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x.1 - y.1).abs().max((x.2 - y.2).abs()))
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn mixed_bit_depth_pairs_track_like_matched_pairs() {
+    // Observation 5 of issue 10: a 16-bit reference with an 8-bit frame gave "0 ok,
+    // 260 lost", an 8-bit reference (PNG, BMP, JPEG, RGBA, palette PNG) with a 16-bit
+    // frame "260 merged", exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let sensor = sim_render_pair(dir.path());
+    let (ref16, frame16) = (
+        dir.path().join("reference.png"),
+        dir.path().join("frame_000.png"),
+    );
+    let out = dir.path().join("d.csv");
+    let (code, err, matched16) = track_pair(&sensor, &ref16, &frame16, &out, &[]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(matched16.len(), 260);
+    assert!(matched16.iter().all(|m| m.0 == "ok"), "{err}");
+    let moved = matched16.iter().map(|m| m.1.hypot(m.2)).fold(0.0, f64::max);
+    assert!(moved > 1.0, "the load moves markers ({moved} px)");
+    let refs = eight_bit_variants(&ref16, "reference");
+    let frames = eight_bit_variants(&frame16, "frame");
+    for ((label, ref8), (_, frame8)) in refs.iter().zip(&frames) {
+        let (code, err, matched8) = track_pair(&sensor, ref8, frame8, &out, &[]);
+        assert_eq!(code, 0, "{label} 8+8: {err}");
+        // Measured: JPEG (quality 95) differs by up to 0.033 px, the lossless 8-bit
+        // files by 0.0016 px and the 254-colour palette by 0.003 px.
+        let tol = if *label == "jpeg" { 0.1 } else { 0.02 };
+        for (pair, r, f) in [
+            ("16-bit reference", &ref16, frame8),
+            ("16-bit frame", ref8, &frame16),
+        ] {
+            let (code, err, mixed) = track_pair(&sensor, r, f, &out, &[]);
+            assert_eq!(code, 0, "{label}, {pair}: {err}");
+            assert!(
+                err.contains("compared on a common scale"),
+                "{label}, {pair}: the mixed depth is noted: {err}"
+            );
+            let ok = mixed.iter().filter(|m| m.0 == "ok").count();
+            assert_eq!(ok, 260, "{label}, {pair}: {ok} ok: {err}");
+            let d8 = max_diff(&mixed, &matched8);
+            let d16 = max_diff(&mixed, &matched16);
+            eprintln!("{label}, {pair}: max |Δu| {d8:.4} px vs the 8-bit pair, {d16:.4} px vs the 16-bit pair");
+            assert!(d8 < tol && d16 < tol, "{label}, {pair}: {d8} / {d16} px");
+        }
+    }
+}
+
+#[test]
+fn track_fails_with_exit_1_on_an_all_white_frame() {
+    // Observation 4 of issue 10: an all-white frame gave "260 lost", exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let sensor = sim_render_pair(dir.path());
+    let reference = dir.path().join("reference.png");
+    let white = dir.path().join("white.png");
+    RgbImage::from_pixel(430, 340, Rgb([255, 255, 255]))
+        .save(&white)
+        .unwrap();
+    let good = dir.path().join("frame_000.png");
+    let out = dir.path().join("d.csv");
+    let o = crate::util::run(&[
+        "track",
+        "--sensor",
+        sensor.to_str().unwrap(),
+        "--reference",
+        reference.to_str().unwrap(),
+        good.to_str().unwrap(),
+        white.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = crate::util::stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("white.png: 260 of 260 markers lost or merged (100 %), more than --max-lost-fraction 0.25"),
+        "{err}"
+    );
+    assert!(err.contains("tracking failed in 1 of 2 frames"), "{err}");
+    assert!(
+        !err.contains("frame_000.png: 2"),
+        "the good frame passes: {err}"
+    );
+    // The CSV is written all the same, with both frames.
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert_eq!(text.lines().count(), 1 + 2 * 260);
+    // The documented override.
+    let (code, err, _) = track_pair(
+        &sensor,
+        &reference,
+        &white,
+        &out,
+        &["--max-lost-fraction", "1"],
+    );
+    assert_eq!(code, 0, "{err}");
+    let (code, err, _) = track_pair(
+        &sensor,
+        &reference,
+        &white,
+        &out,
+        &["--max-lost-fraction", "1.5"],
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("outside 0..=1"), "{err}");
+}
+
+#[test]
+fn reference_health_names_scale_origin_colour_and_exposure() {
+    use tactbench::vision::ReferenceHealth;
+    let dir = tempfile::tempdir().unwrap();
+    let sensor_path = sim_render_pair(dir.path());
+    let text = std::fs::read_to_string(&sensor_path).unwrap();
+    let frame = load_frame(&dir.path().join("reference.png"), &paper_sensor().camera).unwrap();
+    let view = frame.view();
+    let health = |toml: &str| {
+        let s = Sensor::from_toml_str(toml, "s.toml").unwrap();
+        let r = detect(&view, &s, &DetectConfig::default()).ok();
+        ReferenceHealth::of(r.as_ref(), &s, &view)
+    };
+    let good = health(&text);
+    assert_eq!((good.found(), good.expected()), (260, 260));
+    assert!(good.diagnosis().is_empty(), "{:?}", good.diagnosis());
+
+    // The scene is at 0.05 mm/px: a sensor file saying 0.045 expects 33.3 px pitches.
+    let h = health(&text.replace("mm_per_px = 0.05", "mm_per_px = 0.045"));
+    assert!(h.found_fraction() < 0.9, "{h}");
+    let d = h.diagnosis().join("\n");
+    assert!(
+        d.starts_with("scale: the markers are 30.0 px apart but the sensor file expects 33.3 px")
+            && d.contains("mm_per_px is probably 0.0500"),
+        "{d}"
+    );
+    assert!(h
+        .measurements()
+        .contains("blue marker pitch 30.0 px (sensor file: 33.3 px)"));
+
+    // Origin 12 px off in x.
+    let h = health(&text.replace("origin_px = [25.0, 25.0]", "origin_px = [37.0, 25.0]"));
+    let d = h.diagnosis().join("\n");
+    assert!(
+        d.contains("origin:") && d.contains("off by (-12.0, 0.0) px"),
+        "{h}: {d}"
+    );
+
+    // The red layer declared green.
+    let toml = text.replacen("color = \"red\"", "color = \"green\"", 1);
+    let h = health(&toml);
+    let d = h.diagnosis().join("\n");
+    // Its green score (G - R) picks up the blue markers.
+    assert!(
+        d.contains(
+            "colour: 130 of the 130 blobs found for layer red (green) sit on layer blue's markers"
+        ),
+        "{d}"
+    );
+    assert!(!d.contains("origin"), "{d}");
+
+    // Over-exposed: all white.
+    let white = RgbImage::from_pixel(430, 340, Rgb([255, 255, 255]));
+    let s = paper_sensor();
+    let h = ReferenceHealth::of(None, &s, &FrameView::rgb8(&white));
+    assert_eq!(h.found(), 0);
+    assert!(
+        h.diagnosis()[0]
+            .starts_with("exposure: the frame is over-exposed (100 % of pixels saturated"),
+        "{:?}",
+        h.diagnosis()
+    );
+}

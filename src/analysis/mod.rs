@@ -8,6 +8,7 @@
 //! | [`spatial`] | Fig. 9 | `forces/NNNNN.csv` of a `spatial` sweep |
 //! | [`displacement`] | Table I | `displacements/NNNNN.csv` of a `displacement` sweep |
 //! | [`timing`] | Table II | journal `t_*` columns |
+//! | [`tracking`] | — | journal `markers_*`, `reacquired`, `quality` columns (marker health) |
 //!
 //! [`calibration`] holds the definitions shared by Fig. 7 and 8 (fit, resolution,
 //! linearity, hysteresis); [`stats`] the small statistics they use.
@@ -32,6 +33,7 @@ pub mod magnitude;
 pub mod spatial;
 pub mod stats;
 pub mod timing;
+pub mod tracking;
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -296,6 +298,8 @@ pub struct RunAnalysis {
     pub timing: Option<timing::TimingAnalysis>,
     /// Fig. 4 and 5 data (every run with rows).
     pub snapshot: Option<Snapshot>,
+    /// Marker health per setpoint (rows with marker counts).
+    pub tracking: Option<tracking::TrackingAnalysis>,
 }
 
 /// A named scalar result.
@@ -471,6 +475,26 @@ pub const METRICS: &[(&str, &str, &str)] = &[
         "ms",
         "mean move + settle + acquire per frame",
     ),
+    (
+        "tracking.min_ok_fraction",
+        "1",
+        "smallest fraction of the markers ok (in every frame) at any setpoint",
+    ),
+    (
+        "tracking.mean_ok_fraction",
+        "1",
+        "mean fraction of the markers ok over the setpoints",
+    ),
+    (
+        "tracking.flagged_rows",
+        "count",
+        "rows flagged below [quality] min_ok_fraction after every re-acquisition",
+    ),
+    (
+        "tracking.reacquired_rows",
+        "count",
+        "rows whose frames were re-acquired at least once",
+    ),
 ];
 
 /// Whether `name` is one of [`METRICS`] (`<layer>` matching any one dot-free word).
@@ -551,6 +575,7 @@ impl RunAnalysis {
             spatial,
             displacement,
             timing: timing::analyze(&run.rows),
+            tracking: tracking::analyze(&run.rows, run.plan.quality.min_ok_fraction),
             snapshot: None,
             run,
         };
@@ -668,6 +693,24 @@ impl RunAnalysis {
             let max = t.stage("forces").map_or(f64::NAN, |s| s.max_s * 1e3);
             push("timing.forces_max_ms".into(), max, "ms");
             push("timing.rest_ms".into(), ms("rest"), "ms");
+        }
+        if let Some(t) = &self.tracking {
+            push("tracking.min_ok_fraction".into(), t.min_ok_fraction(), "1");
+            push(
+                "tracking.mean_ok_fraction".into(),
+                t.mean_ok_fraction(),
+                "1",
+            );
+            push(
+                "tracking.flagged_rows".into(),
+                t.flagged().count() as f64,
+                "count",
+            );
+            push(
+                "tracking.reacquired_rows".into(),
+                t.reacquired_rows() as f64,
+                "count",
+            );
         }
         v
     }

@@ -113,6 +113,58 @@ pub struct JournalRow {
     pub t_solve_s: f64,
     /// Completion time, RFC 3339 UTC.
     pub completed_at: String,
+    /// Markers ok in every frame of the setpoint (of the sensor file's markers; the
+    /// four counts add up to that number). Empty in rows written before these columns.
+    #[serde(default)]
+    pub markers_ok: Option<usize>,
+    /// Markers lost in some frame (reference-missing markers included).
+    #[serde(default)]
+    pub markers_lost: Option<usize>,
+    /// Markers merged in some frame (and lost in none).
+    #[serde(default)]
+    pub markers_merged: Option<usize>,
+    /// Markers that were outliers in some frame (and neither lost nor merged).
+    #[serde(default)]
+    pub markers_outlier: Option<usize>,
+    /// Times the frames were re-acquired because too few markers were ok.
+    #[serde(default)]
+    pub reacquired: Option<usize>,
+    /// Tracking quality against the plan's `[quality] min_ok_fraction`: `ok`, or
+    /// `flagged` when still below it after `max_reacquire` re-acquisitions.
+    #[serde(default)]
+    pub quality: Option<RowQuality>,
+}
+
+/// The tracking-quality verdict of one journal row.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RowQuality {
+    /// At or above the plan's `min_ok_fraction`.
+    Ok,
+    /// Below it after every re-acquisition: kept, but not to be trusted.
+    Flagged,
+}
+
+impl JournalRow {
+    /// Markers ok / all markers of the sensor file, when the row has the counts.
+    pub fn ok_fraction(&self) -> Option<f64> {
+        let (ok, total) = self.marker_total()?;
+        (total > 0).then(|| ok as f64 / total as f64)
+    }
+
+    /// `(ok, ok + lost + merged + outlier)`, when the row has the counts.
+    pub fn marker_total(&self) -> Option<(usize, usize)> {
+        let ok = self.markers_ok?;
+        Some((
+            ok,
+            ok + self.markers_lost? + self.markers_merged? + self.markers_outlier?,
+        ))
+    }
+
+    /// True when the row is flagged for tracking quality.
+    pub fn flagged(&self) -> bool {
+        self.quality == Some(RowQuality::Flagged)
+    }
 }
 
 /// How a run ended (or that it is still going).
@@ -281,7 +333,9 @@ impl Journal {
             .headers()
             .map_err(|e| corrupt(&path, 1, e.to_string()))?
             .clone();
-        if headers.iter().collect::<Vec<_>>() != header() {
+        let found: Vec<&str> = headers.iter().collect();
+        let legacy = found == header()[..LEGACY_COLUMNS];
+        if found != header() && !legacy {
             return Err(corrupt(
                 &path,
                 1,
@@ -303,6 +357,13 @@ impl Journal {
                 ));
             }
             rows.push(row);
+        }
+        if legacy {
+            // A journal from before the tracking-quality columns: rewrite it with the
+            // current header and those columns empty in the old rows (atomically:
+            // temp file, sync, rename), so the rows appended now line up.
+            drop(file);
+            file = upgrade_legacy(dir, &bytes[..keep])?;
         }
         file.seek(SeekFrom::End(0)).map_err(io)?;
         Ok(Resumed {
@@ -356,6 +417,44 @@ impl Journal {
     }
 }
 
+/// Columns of journals written before the tracking-quality columns (`markers_ok` on).
+pub const LEGACY_COLUMNS: usize = 29;
+
+/// Rewrites a legacy journal (`text`: header and complete lines) with the current
+/// header, appending empty new columns to every old row; returns it open for append.
+fn upgrade_legacy(dir: &Path, text: &[u8]) -> Result<File, JournalError> {
+    let path = dir.join(JOURNAL_FILE);
+    let tmp = dir.join(".journal.csv.tmp");
+    let io = |source| JournalError::Io {
+        path: path.clone(),
+        source,
+    };
+    let empty = ",".repeat(header().len() - LEGACY_COLUMNS);
+    let mut out = Vec::with_capacity(text.len() + 64);
+    for (i, line) in text.split_inclusive(|&b| b == b'\n').enumerate() {
+        let body = line.strip_suffix(b"\n").unwrap_or(line);
+        let body = body.strip_suffix(b"\r").unwrap_or(body);
+        if i == 0 {
+            out.extend_from_slice(header().join(",").as_bytes());
+        } else {
+            out.extend_from_slice(body);
+            out.extend_from_slice(empty.as_bytes());
+        }
+        out.push(b'\n');
+    }
+    let mut f = File::create(&tmp).map_err(io)?;
+    f.write_all(&out).map_err(io)?;
+    f.sync_all().map_err(io)?;
+    drop(f);
+    std::fs::rename(&tmp, &path).map_err(io)?;
+    sync_dir(dir);
+    OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&path)
+        .map_err(io)
+}
+
 /// Reads every row of a run's journal (for analysis and reports).
 pub fn read_rows(dir: &Path) -> Result<Vec<JournalRow>, JournalError> {
     let path = dir.join(JOURNAL_FILE);
@@ -402,6 +501,12 @@ pub fn header() -> Vec<&'static str> {
         "t_track_s",
         "t_solve_s",
         "completed_at",
+        "markers_ok",
+        "markers_lost",
+        "markers_merged",
+        "markers_outlier",
+        "reacquired",
+        "quality",
     ]
 }
 
@@ -491,6 +596,60 @@ mod tests {
             rows.iter().map(|r| r.index).collect::<Vec<_>>(),
             vec![0, 1, 2, 3]
         );
+    }
+
+    #[test]
+    fn a_journal_without_the_quality_columns_resumes_and_is_upgraded() {
+        let dir = tempfile::tempdir().unwrap();
+        // A journal as written before the marker-count columns: the first 29 columns.
+        let mut w = csv::Writer::from_writer(Vec::new());
+        w.write_record(&header()[..LEGACY_COLUMNS]).unwrap();
+        for i in 0..2 {
+            let mut full = csv::WriterBuilder::new()
+                .has_headers(false)
+                .from_writer(Vec::new());
+            full.serialize(row(i)).unwrap();
+            let text = String::from_utf8(full.into_inner().unwrap()).unwrap();
+            let fields: Vec<&str> = text.trim_end().split(',').collect();
+            w.write_record(&fields[..LEGACY_COLUMNS]).unwrap();
+        }
+        let old = String::from_utf8(w.into_inner().unwrap()).unwrap();
+        std::fs::write(dir.path().join(JOURNAL_FILE), &old).unwrap();
+        // Reports read it as it is: the new columns are absent.
+        let rows = read_rows(dir.path()).unwrap();
+        assert_eq!(rows.len(), 2);
+        assert_eq!((rows[1].markers_ok, rows[1].quality), (None, None));
+        assert_eq!(rows[1].ok_fraction(), None);
+        // Resume: rows kept, the file rewritten with the current header, new rows line up.
+        let r = Journal::open_resume(dir.path()).unwrap();
+        assert_eq!(r.rows, vec![row(0), row(1)]);
+        let mut j = r.journal;
+        let mut new = row(2);
+        new.markers_ok = Some(250);
+        new.markers_lost = Some(6);
+        new.markers_merged = Some(3);
+        new.markers_outlier = Some(1);
+        new.reacquired = Some(1);
+        new.quality = Some(RowQuality::Ok);
+        j.append(&new).unwrap();
+        drop(j);
+        let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], header().join(","));
+        assert!(lines[1].ends_with(",,,,,,"), "{}", lines[1]);
+        assert!(lines[3].ends_with(",250,6,3,1,1,ok"), "{}", lines[3]);
+        assert_eq!(
+            old.lines().nth(1).unwrap(),
+            &lines[1][..lines[1].len() - 6],
+            "old rows keep their bytes"
+        );
+        let rows = read_rows(dir.path()).unwrap();
+        assert_eq!(rows, vec![row(0), row(1), new.clone()]);
+        assert_eq!(rows[2].ok_fraction(), Some(250.0 / 260.0));
+        assert!(!dir.path().join(".journal.csv.tmp").exists());
+        // A second resume sees the current header: nothing to upgrade.
+        let r = Journal::open_resume(dir.path()).unwrap();
+        assert_eq!(r.rows.len(), 3);
     }
 
     #[test]

@@ -37,6 +37,16 @@
 //!                                     # elastomer, < 0 above it); bench-independent
 //! max_speed_mm_s = 5.0
 //!
+//! [quality]                         # optional: tracking quality gates (defaults shown)
+//! reference_min_found_fraction = 0.9  # the reference frame must show this fraction of
+//!                                   # the sensor file's markers, else the run stops
+//!                                   # before any setpoint (with a diagnosis)
+//! min_ok_fraction = 0.9             # a setpoint whose frames leave fewer markers ok
+//!                                   # (ok in every frame) is re-acquired ...
+//! max_reacquire = 2                 # ... at most this many times (new frames, 0..=10)
+//! on_fail = "flag"                  # then: flag (journal quality = "flagged", go on)
+//!                                   # | abort (stop the run)
+//!
 //! [reconstruct]                     # optional: the solver run on every setpoint
 //! solver = "pinv"                   # pinv (default) | tikhonov | tsvd | fourier
 //! lambda = "gcv"                    # tikhonov / fourier: gcv | lcurve | number (mm/N)
@@ -226,6 +236,61 @@ pub struct Settle {
     pub dwell_s: f64,
 }
 
+/// What a run does with a setpoint that stays below the tracking gate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OnFail {
+    /// Journal the row with `quality = flagged` and go on.
+    Flag,
+    /// Stop the run (aborted); the row is not journalled.
+    Abort,
+}
+
+impl OnFail {
+    /// The name used in plans.
+    pub fn name(self) -> &'static str {
+        match self {
+            OnFail::Flag => "flag",
+            OnFail::Abort => "abort",
+        }
+    }
+}
+
+/// Tracking quality gates (`[quality]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Quality {
+    /// Fraction of the sensor file's markers the reference frame must show, else the
+    /// run stops before any setpoint (default 0.9).
+    pub reference_min_found_fraction: f64,
+    /// Fraction of the sensor file's markers that must be ok in every frame of a
+    /// setpoint, else its frames are re-acquired (default 0.9).
+    pub min_ok_fraction: f64,
+    /// Re-acquisitions (new frames at the same setpoint) before the row is flagged or
+    /// the run aborts (default 2).
+    pub max_reacquire: usize,
+    /// What happens then (default flag).
+    pub on_fail: OnFail,
+}
+
+/// Default of `quality.reference_min_found_fraction`.
+pub const DEFAULT_REFERENCE_MIN_FOUND_FRACTION: f64 = 0.9;
+/// Default of `quality.min_ok_fraction`.
+pub const DEFAULT_MIN_OK_FRACTION: f64 = 0.9;
+/// Default of `quality.max_reacquire`.
+pub const DEFAULT_MAX_REACQUIRE: usize = 2;
+/// Largest `quality.max_reacquire`.
+pub const MAX_REACQUIRE: i64 = 10;
+
+impl Default for Quality {
+    fn default() -> Self {
+        Quality {
+            reference_min_found_fraction: DEFAULT_REFERENCE_MIN_FOUND_FRACTION,
+            min_ok_fraction: DEFAULT_MIN_OK_FRACTION,
+            max_reacquire: DEFAULT_MAX_REACQUIRE,
+            on_fail: OnFail::Flag,
+        }
+    }
+}
+
 /// A validated plan.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plan {
@@ -266,6 +331,8 @@ pub struct Plan {
     /// The keys the plan left out and the defaults used for them, `(key, value with
     /// unit)`, in schema order (echoed by `run --dry-run`).
     pub defaults: Vec<(String, String)>,
+    /// Tracking quality gates (`[quality]`, defaults when absent).
+    pub quality: Quality,
 }
 
 impl Plan {
@@ -556,6 +623,71 @@ struct RawPlan {
     sweep: RawSweep,
     #[serde(default)]
     reconstruct: RawReconstruct,
+    #[serde(default)]
+    quality: RawQuality,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawQuality {
+    reference_min_found_fraction: Option<f64>,
+    min_ok_fraction: Option<f64>,
+    max_reacquire: Option<i64>,
+    on_fail: Option<String>,
+}
+
+impl RawQuality {
+    fn validate(&self, c: &Checker<'_>) -> Result<Quality, PlanError> {
+        let d = Quality::default();
+        let fraction = |key: &str, v: Option<f64>, default: f64| {
+            let v = v.unwrap_or(default);
+            if v.is_finite() && (0.0..=1.0).contains(&v) {
+                Ok(v)
+            } else {
+                Err(c.invalid(
+                    key,
+                    v,
+                    "must be a fraction in [0, 1] of the sensor file's markers",
+                ))
+            }
+        };
+        let max_reacquire = match self.max_reacquire {
+            None => d.max_reacquire,
+            Some(v) if (0..=MAX_REACQUIRE).contains(&v) => v as usize,
+            Some(v) => {
+                return Err(c.invalid(
+                    "quality.max_reacquire",
+                    v,
+                    format!("must be an integer in [0, {MAX_REACQUIRE}] (re-acquisitions)"),
+                ))
+            }
+        };
+        let on_fail = match self.on_fail.as_deref() {
+            None | Some("flag") => OnFail::Flag,
+            Some("abort") => OnFail::Abort,
+            Some(other) => {
+                return Err(c.invalid(
+                    "quality.on_fail",
+                    format!("{other:?}"),
+                    "expected \"flag\" or \"abort\"",
+                ))
+            }
+        };
+        Ok(Quality {
+            reference_min_found_fraction: fraction(
+                "quality.reference_min_found_fraction",
+                self.reference_min_found_fraction,
+                d.reference_min_found_fraction,
+            )?,
+            min_ok_fraction: fraction(
+                "quality.min_ok_fraction",
+                self.min_ok_fraction,
+                d.min_ok_fraction,
+            )?,
+            max_reacquire,
+            on_fail,
+        })
+    }
 }
 
 #[derive(Deserialize, Default)]
@@ -1133,7 +1265,32 @@ impl RawPlan {
             ..SolverConfig::default()
         };
 
+        let quality = self.quality.validate(&c)?;
+        // The tracking gates the plan left at their defaults, echoed like the others.
+        let q = &self.quality;
+        if q.reference_min_found_fraction.is_none() {
+            defaults.push(
+                "quality.reference_min_found_fraction",
+                format!("{}", quality.reference_min_found_fraction),
+            );
+        }
+        if q.min_ok_fraction.is_none() {
+            defaults.push(
+                "quality.min_ok_fraction",
+                format!("{}", quality.min_ok_fraction),
+            );
+        }
+        if q.max_reacquire.is_none() {
+            defaults.push(
+                "quality.max_reacquire",
+                format!("{}", quality.max_reacquire),
+            );
+        }
+        if q.on_fail.is_none() {
+            defaults.push("quality.on_fail", "\"flag\"".into());
+        }
         let plan = Plan {
+            quality,
             solver,
             path: path.to_path_buf(),
             name: self.name,
@@ -1255,6 +1412,56 @@ trials = 10
         assert_eq!(s[159].index, 159);
         assert_eq!(p.sensor_path, Path::new("experiments/paper_sensor.toml"));
         assert_eq!(p.force_tolerance_n, gf_to_n(5.0));
+    }
+
+    #[test]
+    fn quality_section_has_documented_defaults_and_checked_values() {
+        let p = parse(FIG7).unwrap();
+        assert_eq!(
+            p.quality,
+            Quality {
+                reference_min_found_fraction: 0.9,
+                min_ok_fraction: 0.9,
+                max_reacquire: 2,
+                on_fail: OnFail::Flag,
+            }
+        );
+        let q = parse(&format!(
+            "{FIG7}[quality]\nreference_min_found_fraction = 0.5\nmin_ok_fraction = 0.75\nmax_reacquire = 0\non_fail = \"abort\"\n"
+        ))
+        .unwrap()
+        .quality;
+        assert_eq!(
+            q,
+            Quality {
+                reference_min_found_fraction: 0.5,
+                min_ok_fraction: 0.75,
+                max_reacquire: 0,
+                on_fail: OnFail::Abort,
+            }
+        );
+        for (line, key, value) in [
+            ("min_ok_fraction = 1.5", "quality.min_ok_fraction", "1.5"),
+            (
+                "reference_min_found_fraction = -0.1",
+                "quality.reference_min_found_fraction",
+                "-0.1",
+            ),
+            ("max_reacquire = 11", "quality.max_reacquire", "11"),
+            ("on_fail = \"retry\"", "quality.on_fail", "\"retry\""),
+        ] {
+            let e = parse(&format!("{FIG7}[quality]\n{line}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("experiments/p.toml") && e.contains(key) && e.contains(value),
+                "{line}: {e}"
+            );
+        }
+        let e = parse(&format!("{FIG7}[quality]\nmin_ok = 0.5\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("min_ok"), "{e}");
     }
 
     #[test]
@@ -1408,7 +1615,11 @@ trials = 10
                 "settle.dwell_s",
                 "acquire.samples",
                 "acquire.frames",
-                "reconstruct.solver"
+                "reconstruct.solver",
+                "quality.reference_min_found_fraction",
+                "quality.min_ok_fraction",
+                "quality.max_reacquire",
+                "quality.on_fail"
             ]
         );
         assert_eq!(p.defaults[0].1, "5 gf (approach.contact_force)");

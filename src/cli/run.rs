@@ -54,9 +54,12 @@ Examples:
 /// The run directory (--out) receives manifest.json, journal.csv (one row per
 /// setpoint, synced before the next move), frames/reference.png, frames/NNNNN_K.png,
 /// displacements/NNNNN.csv (as `tactbench track` writes) and forces/NNNNN.csv (as
-/// `tactbench reconstruct` writes). Ctrl-C stops motion, retracts and marks the run
-/// interrupted; `--resume DIR` continues a killed or interrupted run without
-/// repeating or losing a setpoint.
+/// `tactbench reconstruct` writes). The plan's [quality] gates: a reference frame that
+/// does not show the sensor file's markers aborts the run before any setpoint (with the
+/// likely cause: scale, origin, colour, exposure); a setpoint whose frames track too
+/// few markers is re-acquired, then flagged in the journal or aborted. Ctrl-C stops
+/// motion, retracts and marks the run interrupted; `--resume DIR` continues a killed
+/// or interrupted run without repeating or losing a setpoint.
 ///
 /// The plan is validated before anything is expanded: more than 100000 setpoints,
 /// 200000 frames, 100 GB of frames or an estimated 168 h is refused (exit 2), naming

@@ -7,7 +7,8 @@ use std::process::ExitCode;
 use anyhow::Context;
 use tactbench::sensor::Sensor;
 use tactbench::vision::{
-    detect, load_frame, write_tracks, DetectConfig, StatusCounts, TrackConfig, TrackMode, Tracker,
+    detect, load_frame, write_tracks, DetectConfig, ReferenceHealth, StatusCounts, TrackConfig,
+    TrackMode, Tracker,
 };
 
 /// Track markers: images -> marker displacements (CSV).
@@ -16,9 +17,11 @@ use tactbench::vision::{
 /// layer grids of the sensor file (marker id = row-major grid index), then measures
 /// each FRAME against it and writes one row per marker per frame.
 ///
-/// Images: PNG, JPEG or BMP, 8-bit RGB/RGBA or 16-bit RGB/RGBA, of the size given in
-/// the sensor's [camera] section. Grayscale images are rejected (layers are told apart
-/// by colour: blue, red, green).
+/// Images: PNG (RGB, RGBA or palette), JPEG or BMP, 8-bit or 16-bit, of the size given
+/// in the sensor's [camera] section; the reference and the frames may differ in bit
+/// depth (8-bit samples count as 257 × their value on a 16-bit scale, so a mixed pair
+/// tracks like a matched one). Grayscale images are rejected (layers are told apart by
+/// colour: blue, red, green).
 ///
 /// Output columns: layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,status.
 /// x_mm, y_mm: reference position in the sensor frame (mm); ux_mm, uy_mm: displacement
@@ -29,6 +32,12 @@ use tactbench::vision::{
 /// is the input of `tactbench reconstruct`, which drops rows without ux_mm.
 ///
 /// A summary of lost, merged and outlier markers is printed on stderr.
+///
+/// Exit status: 0 when every frame tracked; 1 when a frame lost more than
+/// --max-lost-fraction of the sensor's markers (lost or merged, reference-missing ones
+/// included: typically the wrong sensor file, a blank or over-exposed frame, or another
+/// scene) — the CSV is still written and each failing frame is named on stderr; 2 on
+/// errors (unreadable or mismatched files, no marker in the reference).
 #[derive(clap::Args)]
 pub struct Args {
     /// Sensor description (sensor.toml: layers, marker grids, camera mapping).
@@ -48,6 +57,25 @@ pub struct Args {
     /// around the reference positions (the paper's method, small motion).
     #[arg(long, value_enum, default_value_t = Mode::FrameToFrame)]
     mode: Mode,
+    /// Largest fraction of the sensor's markers a frame may lose (status lost or
+    /// merged, reference-missing markers included) before the command fails with exit
+    /// status 1; 1 disables the check.
+    #[arg(long, value_name = "F", default_value_t = DEFAULT_MAX_LOST_FRACTION, value_parser = fraction)]
+    max_lost_fraction: f64,
+}
+
+/// Default of `--max-lost-fraction`: a quarter of the markers.
+pub const DEFAULT_MAX_LOST_FRACTION: f64 = 0.25;
+
+fn fraction(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number (a fraction between 0 and 1)"))?;
+    if (0.0..=1.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v} is outside 0..=1 (a fraction of the markers)"))
+    }
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -59,8 +87,20 @@ enum Mode {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
     let reference_image = load_frame(&args.reference, &sensor.camera)?;
-    let reference = detect(&reference_image.view(), &sensor, &DetectConfig::default())
-        .with_context(|| format!("reference image {}", args.reference.display()))?;
+    let detected = detect(&reference_image.view(), &sensor, &DetectConfig::default());
+    let health = ReferenceHealth::of(detected.as_ref().ok(), &sensor, &reference_image.view());
+    if detected.is_err() || 1.0 - health.found_fraction() > args.max_lost_fraction {
+        eprintln!(
+            "reference {} does not match the sensor file: {health}; {}",
+            args.reference.display(),
+            health.measurements()
+        );
+        for d in health.diagnosis() {
+            eprintln!("  likely {d}");
+        }
+    }
+    let reference =
+        detected.with_context(|| format!("reference image {}", args.reference.display()))?;
     eprintln!(
         "reference {}: {} markers found, {} grid nodes without a marker, {} blobs without a grid node",
         args.reference.display(),
@@ -88,13 +128,31 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         ..TrackConfig::default()
     };
     let missing = reference.missing.len();
+    let expected = reference.markers.len() + missing;
+    let reference_bits = reference.bit_depth;
     let mut tracker = Tracker::new(reference, config);
     let mut frames = Vec::with_capacity(args.frames.len());
     let mut total = StatusCounts::default();
+    let mut mixed_noted = false;
+    // Frames that lost too many markers: (path, lost or merged).
+    let mut failed: Vec<(String, usize)> = Vec::new();
     for path in &args.frames {
         let image = load_frame(path, &sensor.camera)?;
-        let tracks = tracker.track(&image.view())?;
+        let view = image.view();
+        if view.bit_depth() != reference_bits && !mixed_noted {
+            mixed_noted = true;
+            eprintln!(
+                "note: the reference is {reference_bits}-bit and {} is {}-bit: compared on a common scale (8-bit value × 257 = 16-bit value)",
+                path.display(),
+                view.bit_depth()
+            );
+        }
+        let tracks = tracker.track(&view)?;
         let c = StatusCounts::of(tracks, missing);
+        let gone = c.lost + c.merged;
+        if expected > 0 && gone as f64 > args.max_lost_fraction * expected as f64 {
+            failed.push((path.display().to_string(), gone));
+        }
         if c.lost + c.merged + c.outlier > 0 {
             eprintln!(
                 "{}: {} ok, {} lost, {} merged, {} outlier",
@@ -121,5 +179,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         total.outlier,
         args.out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    if failed.is_empty() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    for (path, gone) in &failed {
+        eprintln!(
+            "error: {path}: {gone} of {expected} markers lost or merged ({:.0} %), more than --max-lost-fraction {} ({:.0} %)",
+            100.0 * *gone as f64 / expected as f64,
+            args.max_lost_fraction,
+            100.0 * args.max_lost_fraction
+        );
+    }
+    eprintln!(
+        "tracking failed in {} of {} frames: check that the frames show this sensor (sensor file, [camera] mm_per_px and origin_px), that they are not blank or over-exposed, and that the reference is unloaded",
+        failed.len(),
+        frames.len()
+    );
+    Ok(ExitCode::from(1))
 }

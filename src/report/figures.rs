@@ -7,7 +7,9 @@
 //!   half-maximum crossings (Fig. 9);
 //! - [`QuiverFigure`]: tracked marker displacements as arrows, coloured by layer (Fig. 4);
 //! - [`ForceFieldFigure`]: tangential force arrows (fx, fy) on the force grid with a disc
-//!   per node whose area and colour give fz (Fig. 5).
+//!   per node whose area and colour give fz (Fig. 5);
+//! - [`MarkerHealthFigure`]: the fractions of markers ok / lost / merged / outlier per
+//!   setpoint, the plan's `min_ok_fraction` gate, flagged rows marked.
 //!
 //! Arrow lengths in the two field figures are scaled so the longest arrow spans 90 % of
 //! the grid pitch; the scale factor is printed in the caption (the paper draws Fig. 4
@@ -19,6 +21,7 @@ use plotters::prelude::*;
 use super::plot::{Figure, FigureResult, FONT};
 use crate::analysis::calibration::Calibration;
 use crate::analysis::spatial::SpatialAnalysis;
+use crate::analysis::tracking::{SetpointHealth, TrackingAnalysis};
 use crate::formats::{DisplacementFrame, ForceRecord};
 use crate::sensor::{MarkerColor, Sensor};
 
@@ -386,5 +389,105 @@ mod tests {
         // Both barbs 2 back along x and ±1 across.
         assert!((a[2].0 - 8.0).abs() < 1e-12 && (a[2].1.abs() - 1.0).abs() < 1e-12);
         assert!((a[4].0 - 8.0).abs() < 1e-12 && (a[4].1 + a[2].1).abs() < 1e-12);
+    }
+}
+
+/// One status count of a setpoint (for the stacked bands of [`MarkerHealthFigure`]).
+type CountOf = fn(&SetpointHealth) -> usize;
+
+/// Marker health per setpoint: stacked fractions ok / outlier / merged / lost (bottom
+/// to top), the `min_ok_fraction` gate as a dashed line, flagged rows as red crosses
+/// above their bar.
+#[derive(Debug, Clone)]
+pub struct MarkerHealthFigure {
+    /// The analysis.
+    pub tracking: TrackingAnalysis,
+}
+
+impl Figure for MarkerHealthFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let t = &self.tracking;
+        let n = t.setpoints.len();
+        let mut chart = ChartBuilder::on(root)
+            .caption("marker health per setpoint", (FONT, 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(-0.5..(n as f64 - 0.5).max(0.5), 0.0..1.08)?;
+        // Bars in journal order, labelled with their setpoint index.
+        let label = |x: &f64| {
+            let k = x.round();
+            match t.setpoints.get(k as usize) {
+                Some(s) if k >= 0.0 && (x - k).abs() < 1e-6 => s.index.to_string(),
+                _ => String::new(),
+            }
+        };
+        chart
+            .configure_mesh()
+            .x_desc("setpoint (journal order)")
+            .y_desc("fraction of the sensor's markers")
+            .x_labels(n.clamp(1, 20))
+            .x_label_formatter(&label)
+            .disable_x_mesh()
+            .label_style((FONT, 13))
+            .draw()?;
+        let bands: [(&str, RGBColor, CountOf); 4] = [
+            ("ok", RGBColor(60, 150, 60), |s| s.ok),
+            ("outlier", RGBColor(230, 160, 30), |s| s.outlier),
+            ("merged", RGBColor(140, 80, 170), |s| s.merged),
+            ("lost", RGBColor(200, 40, 40), |s| s.lost),
+        ];
+        let half = 0.4;
+        let mut base = vec![0.0f64; n];
+        for (name, color, count) in bands {
+            let rects: Vec<_> = t
+                .setpoints
+                .iter()
+                .enumerate()
+                .map(|(i, s)| {
+                    let lo = base[i];
+                    let hi = lo + s.fraction(count(s));
+                    base[i] = hi;
+                    Rectangle::new(
+                        [(i as f64 - half, lo), (i as f64 + half, hi)],
+                        color.filled(),
+                    )
+                })
+                .collect();
+            chart.draw_series(rects)?.label(name).legend(move |(x, y)| {
+                Rectangle::new([(x, y - 5), (x + 14, y + 5)], color.filled())
+            });
+        }
+        let gate = t.gate;
+        chart
+            .draw_series(DashedLineSeries::new(
+                [(-0.5, gate), (n as f64 - 0.5, gate)],
+                6,
+                4,
+                BLACK.stroke_width(2),
+            ))?
+            .label(format!("min_ok_fraction {gate}"))
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.stroke_width(2)));
+        let flagged: Vec<_> = t
+            .setpoints
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.flagged)
+            .map(|(i, _)| Cross::new((i as f64, 1.04), 6, RED.stroke_width(3)))
+            .collect();
+        if !flagged.is_empty() {
+            chart
+                .draw_series(flagged)?
+                .label("flagged row")
+                .legend(|(x, y)| Cross::new((x + 10, y), 5, RED.stroke_width(3)));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerLeft)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
     }
 }

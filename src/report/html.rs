@@ -8,6 +8,7 @@ use base64::Engine;
 
 use super::acceptance::{fmt_value, Verdict};
 use crate::analysis::calibration::Calibration;
+use crate::analysis::tracking::TrackingAnalysis;
 use crate::analysis::{Metric, RunAnalysis};
 
 /// Escapes `& < > " '` for HTML text and attribute values.
@@ -324,6 +325,10 @@ pub fn render(
         o.push_str("</table>\n");
     }
 
+    if let Some(t) = &analysis.tracking {
+        marker_health(&mut o, t);
+    }
+
     if !figures.is_empty() {
         o.push_str("<h2>Figures</h2>\n");
     }
@@ -345,6 +350,75 @@ pub fn render(
         escape(env!("CARGO_PKG_VERSION"))
     );
     o
+}
+
+/// The marker-health section: a summary line, and a table of the rows that were
+/// re-acquired, flagged or below the gate (flagged rows marked).
+fn marker_health(o: &mut String, t: &TrackingAnalysis) {
+    let flagged = t.flagged().count();
+    let _ = writeln!(
+        o,
+        "<h2>Marker health</h2>\n<p>Fraction of the sensor's markers ok in every frame of a \
+         setpoint: min {}, mean {} over {} rows; gate [quality] min_ok_fraction {}; \
+         <span class=\"{}\">{flagged} flagged row(s)</span>, {} re-acquired.{}</p>",
+        fmt_value(t.min_ok_fraction()),
+        fmt_value(t.mean_ok_fraction()),
+        t.setpoints.len(),
+        fmt_value(t.gate),
+        if flagged > 0 { "fail" } else { "pass" },
+        t.reacquired_rows(),
+        if t.rows_without_counts > 0 {
+            format!(
+                " {} row(s) have no marker counts (journalled before these columns).",
+                t.rows_without_counts
+            )
+        } else {
+            String::new()
+        }
+    );
+    let notable: Vec<_> = t
+        .setpoints
+        .iter()
+        .filter(|s| s.flagged || s.reacquired > 0 || s.ok_fraction() < t.gate)
+        .collect();
+    if notable.is_empty() {
+        return;
+    }
+    o.push_str("<table>\n");
+    header(
+        o,
+        &[
+            "setpoint",
+            "ok",
+            "lost",
+            "merged",
+            "outlier",
+            "ok fraction",
+            "re-acquired",
+            "quality",
+        ],
+    );
+    for s in notable {
+        let quality = if s.flagged {
+            "<span class=\"fail\">FLAGGED</span>"
+        } else {
+            "ok"
+        };
+        let _ = writeln!(
+            o,
+            "<tr class=\"health{}\"><td class=\"l\">{}</td><td>{}</td><td>{}</td><td>{}</td>\
+             <td>{}</td><td>{}</td><td>{}</td><td class=\"l\">{quality}</td></tr>",
+            if s.flagged { " flagged" } else { "" },
+            s.index,
+            s.ok,
+            s.lost,
+            s.merged,
+            s.outlier,
+            fmt_value(s.ok_fraction()),
+            s.reacquired
+        );
+    }
+    o.push_str("</table>\n");
 }
 
 #[cfg(test)]

@@ -23,7 +23,9 @@ use thiserror::Error;
 
 use crate::analysis::{Metric, RunAnalysis};
 use acceptance::{AcceptanceError, Criteria, Verdict};
-use figures::{CalibrationFigure, ForceFieldFigure, ProfileFigure, QuiverFigure};
+use figures::{
+    CalibrationFigure, ForceFieldFigure, MarkerHealthFigure, ProfileFigure, QuiverFigure,
+};
 use plot::{Figure, FigureFiles, FigureResult, PlotError};
 
 /// File name of the HTML report inside the run directory.
@@ -88,6 +90,8 @@ pub enum ReportFigure {
     Quiver(QuiverFigure),
     /// Fig. 5.
     ForceField(ForceFieldFigure),
+    /// Marker health per setpoint.
+    MarkerHealth(MarkerHealthFigure),
 }
 
 impl Figure for ReportFigure {
@@ -100,6 +104,7 @@ impl Figure for ReportFigure {
             ReportFigure::Profile(f) => f.draw(root),
             ReportFigure::Quiver(f) => f.draw(root),
             ReportFigure::ForceField(f) => f.draw(root),
+            ReportFigure::MarkerHealth(f) => f.draw(root),
         }
     }
 }
@@ -175,6 +180,19 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
                 }),
             ));
         }
+    }
+    if let Some(t) = &analysis.tracking {
+        out.push((
+            "marker_health".to_string(),
+            format!(
+                "Fraction of the sensor's markers ok / outlier / merged / lost per setpoint (ok = ok in every frame); dashed: [quality] min_ok_fraction {}; {} flagged row(s) marked with a red cross",
+                t.gate,
+                t.flagged().count()
+            ),
+            ReportFigure::MarkerHealth(MarkerHealthFigure {
+                tracking: t.clone(),
+            }),
+        ));
     }
     out
 }

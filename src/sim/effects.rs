@@ -17,7 +17,7 @@
 //!    it is composited behind the deeper ones).
 //! 3. **Image** (per frame, on the float RGB frame, in list order):
 //!    [`Effect::Illumination`], [`Effect::Vignetting`], [`Effect::ShotNoise`],
-//!    [`Effect::PixelNoise`], [`Effect::Quantize8`].
+//!    [`Effect::PixelNoise`], [`Effect::Quantize8`], [`Effect::Occlusion`].
 //!
 //! Because of this, build and scene effects must be listed before image effects
 //! ([`Pipeline::new`] rejects other orders rather than silently reordering).
@@ -135,6 +135,19 @@ pub enum Effect {
         /// Seed (used only when `random_walk_px > 0`).
         seed: u64,
     },
+    /// Something in front of the markers (a finger, dust, a cable) in some frames:
+    /// the pixels whose centres lie in the rectangle become a flat grey `level`, so
+    /// the markers under it are lost.
+    Occlusion {
+        /// `[x0, y0, x1, y1]`, px: pixel centres with `x0 ≤ x < x1`, `y0 ≤ y < y1`.
+        rect_px: [f64; 4],
+        /// Grey level in [0, 1].
+        level: f64,
+        /// First frame occluded (0 = the reference).
+        first_frame: u64,
+        /// Last frame occluded, inclusive (`None`: every frame from `first_frame` on).
+        last_frame: Option<u64>,
+    },
 }
 
 /// Stage of an effect (see the module docs).
@@ -162,6 +175,7 @@ impl Effect {
             Effect::PlacementJitter { .. } => "placement_jitter",
             Effect::Shift { .. } => "shift",
             Effect::Drift { .. } => "drift",
+            Effect::Occlusion { .. } => "occlusion",
         }
     }
 
@@ -271,6 +285,38 @@ impl Effect {
             } => {
                 finite2("px_per_frame", *px_per_frame, "px per frame")?;
                 nonneg("random_walk_px", *random_walk_px, "px")
+            }
+            Effect::Occlusion {
+                rect_px,
+                level,
+                first_frame,
+                last_frame,
+            } => {
+                if !(rect_px.iter().all(|v| v.is_finite())
+                    && rect_px[0] < rect_px[2]
+                    && rect_px[1] < rect_px[3])
+                {
+                    return Err(bad(
+                        "rect_px",
+                        format!("{rect_px:?}"),
+                        "must be [x0, y0, x1, y1] px with x0 < x1 and y0 < y1",
+                    ));
+                }
+                if !(level.is_finite() && (0.0..=1.0).contains(level)) {
+                    return Err(bad(
+                        "level",
+                        level.to_string(),
+                        "must be a grey level in [0, 1]",
+                    ));
+                }
+                match last_frame {
+                    Some(l) if l < first_frame => Err(bad(
+                        "frames",
+                        format!("[{first_frame}, {l}]"),
+                        "must be [first, last] with first <= last (frame indices, 0 = reference)",
+                    )),
+                    _ => Ok(()),
+                }
             }
         }
     }
@@ -614,6 +660,23 @@ pub fn apply_image_effect(e: &Effect, out: &mut Rgb32FImage, frame: u64) {
                 let rho2 = (i as f64 - c[0]).powi(2) + (j as f64 - c[1]).powi(2);
                 let g = 1.0 - strength * rho2 / rho2_max;
                 p.0.iter_mut().for_each(|v| *v *= g as f32);
+            }
+        }
+        Effect::Occlusion {
+            rect_px,
+            level,
+            first_frame,
+            last_frame,
+        } => {
+            if frame < first_frame || last_frame.is_some_and(|l| frame > l) {
+                return;
+            }
+            let v = level as f32;
+            for (i, j, p) in out.enumerate_pixels_mut() {
+                let (x, y) = (i as f64, j as f64);
+                if x >= rect_px[0] && x < rect_px[2] && y >= rect_px[1] && y < rect_px[3] {
+                    p.0 = [v; 3];
+                }
             }
         }
         _ => {}

@@ -51,10 +51,11 @@
 //! | `placement_jitter` | `sigma_mm` (per-axis marker position σ), `seed` |
 //! | `shift` | `shift_px = [dx, dy]` (whole image, loaded frames only) |
 //! | `drift` | `px_per_frame = [dx, dy]`, optional `random_walk_px` (σ per frame) and `seed` |
+//! | `occlusion` | `rect_px = [x0, y0, x1, y1]` (pixel centres covered), optional `level` (grey, default 0.5) and `frames = [first, last]` (inclusive; default every loaded frame, 1 on; 0 = the reference) |
 //!
 //! Marker-level effects (`size_jitter`, `placement_jitter`, `shift`, `drift`, `blur`)
 //! must come before image effects (`illumination`, `vignetting`, `shot_noise`,
-//! `pixel_noise`, `quantize8`).
+//! `pixel_noise`, `quantize8`, `occlusion`).
 //!
 //! Effects of the simulated bench (`tactbench sim bench`, `tactbench run --sim`), all
 //! optional and off unless listed (models in [`super::world`]):
@@ -365,6 +366,11 @@ enum RawEffect {
         random_walk_px: Option<f64>,
         seed: Option<u64>,
     },
+    Occlusion {
+        rect_px: [f64; 4],
+        level: Option<f64>,
+        frames: Option<[u64; 2]>,
+    },
 }
 
 impl RawScene {
@@ -648,6 +654,16 @@ impl RawScene {
                         seed: seed.unwrap_or(0),
                     }
                 }
+                RawEffect::Occlusion {
+                    rect_px,
+                    level,
+                    frames,
+                } => Effect::Occlusion {
+                    rect_px,
+                    level: level.unwrap_or(0.5),
+                    first_frame: frames.map_or(1, |f| f[0]),
+                    last_frame: frames.map(|f| f[1]),
+                },
             });
         }
         let pipeline =

@@ -118,6 +118,10 @@ pub struct Reference {
     pub missing: Vec<MissingMarker>,
     /// Blobs without a grid node (not tracked).
     pub unmatched: Vec<UnmatchedBlob>,
+    /// Bits per sample of the image the reference was found in (8 or 16). Signals,
+    /// peaks and background scores above are in that image's levels; the tracker
+    /// rescales them (× 257 or ÷ 257) for a frame of the other depth.
+    pub bit_depth: u32,
 }
 
 macro_rules! with_raw {
@@ -289,6 +293,7 @@ pub fn detect(
         markers,
         missing,
         unmatched,
+        bit_depth: view.bit_depth(),
     })
 }
 

@@ -77,6 +77,15 @@ impl<'a> FrameView<'a> {
         }
     }
 
+    /// Bits per sample: 8 or 16. The colour scores of a 16-bit image are 257 times
+    /// those of the same image in 8 bits (`v16 = 257 · v8`, as PNG widens samples).
+    pub fn bit_depth(&self) -> u32 {
+        match self.pixels {
+            Pixels::Rgb8(_) | Pixels::Rgba8(_) => 8,
+            Pixels::Rgb16(_) | Pixels::Rgba16(_) => 16,
+        }
+    }
+
     /// The samples.
     pub fn pixels(&self) -> Pixels<'a> {
         self.pixels

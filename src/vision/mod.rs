@@ -11,7 +11,12 @@
 //!    The result is a [`Reference`]; grid nodes without a marker and blobs without a
 //!    node are listed in it.
 //! 3. [`Tracker::track`] measures one frame against the reference, allocation-free,
-//!    and gives every marker a [`MarkerStatus`].
+//!    and gives every marker a [`MarkerStatus`]. Reference and frames may differ in
+//!    bit depth (the reference's levels are rescaled to the frame's).
+//!
+//! [`ReferenceHealth`] measures a reference against the sensor file (found markers per
+//! layer, marker pitch, centre, frame levels) and names the likely cause when markers
+//! are missing (scale, origin, colour, exposure).
 //!
 //! Centroids are the centre of mass of a colour score after local background
 //! removal, in a window re-centred on the marker (see `window.rs` for the equations).
@@ -24,6 +29,7 @@ use std::path::PathBuf;
 use thiserror::Error;
 
 mod detect;
+mod health;
 mod image;
 mod output;
 mod track;
@@ -32,6 +38,7 @@ mod window;
 pub use self::detect::{
     detect, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker, UnmatchedBlob,
 };
+pub use self::health::{LayerHealth, ReferenceHealth, ORIGIN_TOLERANCE, SCALE_TOLERANCE};
 pub use self::image::{load_frame, Frame, FrameView, Pixels};
 pub use self::output::{write_tracks, write_tracks_to, TRACK_EXTRA_COLUMNS};
 pub use self::track::{MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker};

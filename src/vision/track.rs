@@ -136,6 +136,43 @@ impl StatusCounts {
         }
         c
     }
+
+    /// Counts over several frames of the same markers: each marker counts once, with
+    /// its worst status (lost, then merged, then outlier, then ok: ok only when ok in
+    /// every frame), plus `missing` always-lost markers.
+    pub fn of_frames<'a>(
+        frames: impl IntoIterator<Item = &'a [MarkerTrack]>,
+        missing: usize,
+    ) -> StatusCounts {
+        let rank = |s: MarkerStatus| match s {
+            MarkerStatus::Ok => 0,
+            MarkerStatus::Outlier => 1,
+            MarkerStatus::Merged => 2,
+            MarkerStatus::Lost => 3,
+        };
+        let mut worst: Vec<u8> = Vec::new();
+        for tracks in frames {
+            if worst.len() < tracks.len() {
+                worst.resize(tracks.len(), 0);
+            }
+            for (w, t) in worst.iter_mut().zip(tracks) {
+                *w = (*w).max(rank(t.status));
+            }
+        }
+        let mut c = StatusCounts {
+            lost: missing,
+            ..Default::default()
+        };
+        for w in worst {
+            match w {
+                0 => c.ok += 1,
+                1 => c.outlier += 1,
+                2 => c.merged += 1,
+                _ => c.lost += 1,
+            }
+        }
+        c
+    }
 }
 
 const MAX_NEIGHBOURS: usize = 8;
@@ -167,7 +204,8 @@ struct LayerState {
     /// Square of the distance within which another layer's marker may reach into
     /// this layer's aperture, px² (see [`Tracker::resolve_overlaps`]).
     overlap_reach2_px: f64,
-    search_threshold_base: i32,
+    /// The layer's background score in the reference's levels (search threshold base).
+    background_score: f64,
     /// This layer's markers in `Reference::markers`.
     markers: std::ops::Range<usize>,
 }
@@ -198,6 +236,9 @@ pub struct Tracker {
     /// (reference or last position plus velocity), px.
     predicted_px: Vec<[f64; 2]>,
     out: Vec<MarkerTrack>,
+    /// The current frame's sample levels per reference level: 1, or 257 / (1/257)
+    /// when the frame's bit depth differs from the reference image's.
+    level_scale: f64,
 }
 
 impl Tracker {
@@ -229,7 +270,7 @@ impl Tracker {
                     aperture_px: l.aperture_radius_px,
                     marker_radius_px: l.marker_radius_px,
                     overlap_reach2_px: 0.0,
-                    search_threshold_base: l.background_score.round() as i32,
+                    background_score: l.background_score,
                     markers: {
                         let m = &reference.markers;
                         let lo = m.partition_point(|r| r.layer < li);
@@ -296,6 +337,7 @@ impl Tracker {
             foreign,
             foreign_count,
             last_px,
+            level_scale: 1.0,
         }
     }
 
@@ -321,6 +363,11 @@ impl Tracker {
 
     /// Measures one frame; the result's indexes match [`Reference::markers`].
     /// Fails only when the frame size differs from the reference's.
+    ///
+    /// 8- and 16-bit frames are both accepted whatever the reference's depth: the
+    /// reference's signals and background scores are compared in the frame's levels
+    /// (× 257 from 8 to 16 bits, ÷ 257 the other way, exact for PNG-widened samples),
+    /// so a mixed pair tracks like a matched one.
     pub fn track(&mut self, frame: &FrameView<'_>) -> Result<&[MarkerTrack], VisionError> {
         if frame.width_px() != self.reference.width_px
             || frame.height_px() != self.reference.height_px
@@ -330,6 +377,7 @@ impl Tracker {
                 expected: [self.reference.width_px, self.reference.height_px],
             });
         }
+        self.level_scale = level_scale(self.reference.bit_depth, frame.bit_depth());
         with_raw!(frame, img => {
             self.measure_all(img);
             self.resolve_overlaps(img);
@@ -397,6 +445,7 @@ impl Tracker {
     /// Measures the markers of one layer (a contiguous range: markers are sorted by layer).
     fn measure_layer<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>, layer: usize) {
         let cfg = self.config;
+        let k = self.level_scale;
         let ls = &self.layers[layer];
         let range = ls.markers.clone();
         let search_half2 = (ls.search_half * ls.search_half) as f64;
@@ -424,9 +473,12 @@ impl Tracker {
                 })
                 .filter(|d| d[0] * d[0] + d[1] * d[1] <= search_half2)
                 .map(|d| [start[0] + d[0], start[1] + d[1]]);
-            let min_signal = cfg.min_signal_ratio * r.signal;
+            // The reference's levels in the frame's (k = 1 for a matched bit depth).
+            let (signal, peak, background) = (r.signal * k, r.peak * k, r.background * k);
+            let slope = [r.background_slope[0] * k, r.background_slope[1] * k];
+            let min_signal = cfg.min_signal_ratio * signal;
             let max_jump2 = ls.max_jump_px * ls.max_jump_px;
-            let max_background_change = 0.05 * r.peak;
+            let max_background_change = 0.05 * peak;
             let ring_px = ls.window.ring_radius_px();
             // Linear score first (fast); when the ring's background plane moved away
             // from the reference's (another layer's marker entering the window), again
@@ -438,13 +490,13 @@ impl Tracker {
                 match loc {
                     Located::Found {
                         centroid_px,
-                        background,
-                        slope,
+                        background: loc_background,
+                        slope: loc_slope,
                         ..
-                    } if (background - r.background).abs()
+                    } if (loc_background - background).abs()
                         + ring_px
-                            * ((slope[0] - r.background_slope[0]).abs()
-                                + (slope[1] - r.background_slope[1]).abs())
+                            * ((loc_slope[0] - slope[0]).abs()
+                                + (loc_slope[1] - slope[1]).abs())
                         > max_background_change =>
                     {
                         ls.window
@@ -469,7 +521,8 @@ impl Tracker {
                 found = accept(locate(start));
             }
             if found.is_none() {
-                let threshold = ls.search_threshold_base + (0.4 * r.peak).round() as i32;
+                let threshold =
+                    (ls.background_score * k).round() as i32 + (0.4 * peak).round() as i32;
                 if let Some(seed) =
                     search::<T, C>(img, &ls.weights, start, ls.search_half, threshold)
                 {
@@ -481,7 +534,7 @@ impl Tracker {
                     centroid_px: c,
                     displacement_px: [c[0] - r.centroid_px[0], c[1] - r.centroid_px[1]],
                     status: MarkerStatus::Ok,
-                    signal_ratio: m0 / r.signal,
+                    signal_ratio: m0 / signal,
                 },
                 None => MarkerTrack::LOST,
             };
@@ -500,6 +553,7 @@ impl Tracker {
                     continue;
                 }
                 let r = &self.reference.markers[i];
+                let signal = r.signal * self.level_scale;
                 let ls = &self.layers[r.layer];
                 let c = self.out[i].centroid_px;
                 // Cheap test first (the usual case: no other-layer marker near);
@@ -551,7 +605,7 @@ impl Tracker {
                     Some(f)
                         if !too_close
                             && f.visible >= MIN_VISIBLE
-                            && f.m0 >= self.config.min_signal_ratio * f.visible * r.signal
+                            && f.m0 >= self.config.min_signal_ratio * f.visible * signal
                             && dist2(f.centroid_px, start) <= max_jump2 =>
                     {
                         let c = f.centroid_px;
@@ -559,7 +613,7 @@ impl Tracker {
                             centroid_px: c,
                             displacement_px: [c[0] - r.centroid_px[0], c[1] - r.centroid_px[1]],
                             status: MarkerStatus::Ok,
-                            signal_ratio: f.m0 / (f.visible * r.signal),
+                            signal_ratio: f.m0 / (f.visible * signal),
                         }
                     }
                     // Too much of it hidden or mirrored away: its position is not
@@ -653,6 +707,15 @@ impl Tracker {
                 self.out[i].status = MarkerStatus::Outlier;
             }
         }
+    }
+}
+
+/// Frame levels per reference level: samples widen from 8 to 16 bits as `v · 257`.
+fn level_scale(reference_bits: u32, frame_bits: u32) -> f64 {
+    match (reference_bits, frame_bits) {
+        (8, 16) => 257.0,
+        (16, 8) => 1.0 / 257.0,
+        _ => 1.0,
     }
 }
 

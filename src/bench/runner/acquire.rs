@@ -1,5 +1,7 @@
 //! One setpoint's measurement: force control, settling, F/T averaging, frames,
-//! tracking against the reference and reconstruction.
+//! tracking against the reference and reconstruction; and the tracking quality gates
+//! of the plan's `[quality]`: the reference frame against the sensor file, and per
+//! setpoint the markers ok (re-acquire the frames, then flag the row or abort).
 
 use std::time::{Duration, Instant};
 
@@ -8,12 +10,15 @@ use super::{
     MAX_CONTROL_STEP_MM, READ_RETRIES, SETTLE_RETRIES,
 };
 use crate::bench::control::{check_force_limits, ForceController, SettleDetector};
-use crate::bench::journal::JournalRow;
-use crate::bench::plan::Setpoint;
+use crate::bench::journal::{JournalRow, RowQuality};
+use crate::bench::plan::{OnFail, Setpoint};
 use crate::device::{CameraFrame, ErrorKind, Wrench};
 use crate::formats::{self, DisplacementFrame};
 use crate::solve::{self, Problem};
-use crate::vision::{self, FrameView, MarkerTrack};
+use crate::vision::{self, FrameView, MarkerTrack, Reference, ReferenceHealth, StatusCounts};
+
+/// One setpoint's frames: `(relative path, tracks)` per frame.
+type Tracked = Vec<(String, Vec<MarkerTrack>)>;
 
 impl Runner<'_, '_, '_, '_> {
     pub(super) fn read_retry(&mut self) -> Step<Wrench> {
@@ -251,13 +256,63 @@ impl Runner<'_, '_, '_, '_> {
             .dev
             .position()
             .map_err(|e| dev_abort("reading the position", &e))?;
-        let mut frames = Vec::with_capacity(self.plan.frames);
-        for _ in 0..self.plan.frames {
-            frames.push(self.grab_retry()?);
-        }
-        let t_acquire = t_acq.elapsed().as_secs_f64();
+        let mut t_acquire = t_acq.elapsed().as_secs_f64();
 
-        let (rel, fsum, t_track, t_solve) = self.process_frames(sp.index, &frames)?;
+        // Frames and tracking; below [quality] min_ok_fraction the frames are grabbed
+        // again (at most max_reacquire times), then the row is flagged or the run stops.
+        let q = self.plan.quality;
+        let mut reacquired = 0;
+        let (tracked, t_track, counts) = loop {
+            let t_f = Instant::now();
+            let mut frames = Vec::with_capacity(self.plan.frames);
+            for _ in 0..self.plan.frames {
+                frames.push(self.grab_retry()?);
+            }
+            t_acquire += t_f.elapsed().as_secs_f64();
+            let (tracked, t_track) = self.track_frames(sp.index, &frames)?;
+            let counts = self.setpoint_counts(&tracked);
+            if ok_fraction(&counts) >= q.min_ok_fraction || reacquired >= q.max_reacquire {
+                break (tracked, t_track, counts);
+            }
+            reacquired += 1;
+            (self.events)(&RunEvent::Retry {
+                index: Some(sp.index),
+                attempt: reacquired,
+                reason: format!(
+                    "tracking: {}; below [quality] min_ok_fraction {}: re-acquiring the frames ({reacquired} of at most {})",
+                    describe(&counts),
+                    q.min_ok_fraction,
+                    q.max_reacquire
+                ),
+            });
+        };
+        let quality = if ok_fraction(&counts) >= q.min_ok_fraction {
+            RowQuality::Ok
+        } else {
+            let what = format!(
+                "tracking {} after {reacquired} re-acquisition(s), below [quality] min_ok_fraction {}",
+                describe(&counts),
+                q.min_ok_fraction
+            );
+            match q.on_fail {
+                OnFail::Flag => {
+                    (self.events)(&RunEvent::Warning {
+                        index: sp.index,
+                        message: format!("{what}: row journalled with quality = flagged"),
+                    });
+                    RowQuality::Flagged
+                }
+                OnFail::Abort => {
+                    return Err(Halt::Abort(format!(
+                        "setpoint {}: {what} ([quality] on_fail = \"abort\"); the row is not journalled (its last frames are frames/{:05}_K.png)",
+                        sp.index,
+                        sp.index
+                    )))
+                }
+            }
+        };
+        let rel: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
+        let (fsum, t_solve) = self.reconstruct(sp.index, &tracked)?;
         Ok(JournalRow {
             index: sp.index,
             trial: sp.trial,
@@ -288,20 +343,67 @@ impl Runner<'_, '_, '_, '_> {
             t_track_s: t_track,
             t_solve_s: t_solve,
             completed_at: String::new(),
+            markers_ok: Some(counts.ok),
+            markers_lost: Some(counts.lost),
+            markers_merged: Some(counts.merged),
+            markers_outlier: Some(counts.outlier),
+            reacquired: Some(reacquired),
+            quality: Some(quality),
         })
     }
 
-    /// Saves, tracks and reconstructs a setpoint's frames. Returns the frame paths
-    /// (relative), the force sums and the tracking / solving times.
-    #[allow(clippy::type_complexity)]
-    pub(super) fn process_frames(
-        &mut self,
-        index: usize,
-        frames: &[CameraFrame],
-    ) -> Step<(Vec<String>, [f64; 3], f64, f64)> {
-        let sensor = self.sensor;
-        let mut rel = Vec::with_capacity(frames.len());
-        let mut tracked: Vec<(String, Vec<MarkerTrack>)> = Vec::with_capacity(frames.len());
+    /// Per-setpoint marker counts: each marker's worst status over the frames (lost
+    /// before merged before outlier before ok), reference-missing markers lost.
+    fn setpoint_counts(&self, tracked: &Tracked) -> StatusCounts {
+        let missing = self
+            .tracker
+            .as_ref()
+            .map_or(0, |t| t.reference().missing.len());
+        StatusCounts::of_frames(tracked.iter().map(|(_, t)| t.as_slice()), missing)
+    }
+
+    /// Detects the reference layout in the reference frame `name` and checks it against
+    /// the sensor file: below `[quality] reference_min_found_fraction` of the expected
+    /// markers the run stops here, before any setpoint, with the measured numbers and
+    /// the likely cause.
+    pub(super) fn reference_layout(&mut self, name: &str, frame: &CameraFrame) -> Step<Reference> {
+        let view = FrameView::rgb8(&frame.image);
+        let detected = vision::detect(&view, self.sensor, &vision::DetectConfig::default());
+        let health = ReferenceHealth::of(detected.as_ref().ok(), self.sensor, &view);
+        if let Ok(r) = &detected {
+            (self.events)(&RunEvent::Reference {
+                path: name.to_string(),
+                markers: r.markers.len(),
+                missing: r.missing.len(),
+            });
+        }
+        let gate = self.plan.quality.reference_min_found_fraction;
+        match detected {
+            Ok(r) if health.found_fraction() >= gate => Ok(r),
+            other => {
+                let found = match &other {
+                    Ok(_) => health.to_string(),
+                    Err(e) => format!("{health} ({e})"),
+                };
+                let diagnosis = health.diagnosis();
+                Err(Halt::Abort(format!(
+                    "reference frame {name} does not match the sensor file {}: {found}, below [quality] reference_min_found_fraction {gate}; stopped before any setpoint motion (nothing was pressed). Likely cause: {}. Measured: {}",
+                    self.plan.sensor_path.display(),
+                    if diagnosis.is_empty() {
+                        "unclear (scale, origin, colours and exposure look right: is the sensor occluded or loaded?)".to_string()
+                    } else {
+                        diagnosis.join("; ")
+                    },
+                    health.measurements()
+                )))
+            }
+        }
+    }
+
+    /// Saves and tracks a setpoint's frames (`frames/NNNNN_K.png`, overwriting an
+    /// earlier acquisition's). Returns the tracks and the tracking time.
+    fn track_frames(&mut self, index: usize, frames: &[CameraFrame]) -> Step<(Tracked, f64)> {
+        let mut tracked: Tracked = Vec::with_capacity(frames.len());
         let mut t_track = 0.0;
         for (k, f) in frames.iter().enumerate() {
             let name = format!("frames/{index:05}_{k}.png");
@@ -320,22 +422,24 @@ impl Runner<'_, '_, '_, '_> {
                 .map_err(|e| Halt::Abort(format!("tracking {name}: {e}")))?
                 .to_vec();
             t_track += t0.elapsed().as_secs_f64();
-            tracked.push((name.clone(), tracks));
-            rel.push(name);
+            tracked.push((name, tracks));
         }
+        self.track_s += t_track;
+        Ok((tracked, t_track))
+    }
+
+    /// Writes a setpoint's displacement file and reconstructs its forces from the mean
+    /// displacement over the frames. Returns the force sums and the solving time.
+    fn reconstruct(&mut self, index: usize, tracked: &Tracked) -> Step<([f64; 3], f64)> {
+        let sensor = self.sensor;
         let tracker = self
             .tracker
             .as_ref()
             .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
         let t_io = Instant::now();
         let dpath = format!("displacements/{index:05}.csv");
-        vision::write_tracks(
-            &self.dir.join(&dpath),
-            sensor,
-            tracker.reference(),
-            &tracked,
-        )
-        .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
+        vision::write_tracks(&self.dir.join(&dpath), sensor, tracker.reference(), tracked)
+            .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
         self.io_s += t_io.elapsed().as_secs_f64();
 
         // Mean displacement over the frames; a marker lost in any frame is lost.
@@ -408,10 +512,32 @@ impl Runner<'_, '_, '_, '_> {
         )
         .map_err(|e| Halt::Abort(format!("cannot write {fpath}: {e}")))?;
         self.io_s += t_io.elapsed().as_secs_f64();
-        self.track_s += t_track;
         self.solve_s += t_solve;
-        Ok((rel, fsum, t_track, t_solve))
+        Ok((fsum, t_solve))
     }
+}
+
+/// Markers ok / all markers of the sensor file.
+fn ok_fraction(c: &StatusCounts) -> f64 {
+    let total = c.ok + c.lost + c.merged + c.outlier;
+    if total == 0 {
+        0.0
+    } else {
+        c.ok as f64 / total as f64
+    }
+}
+
+/// `"200 of 260 markers ok (77 %; 50 lost, 8 merged, 2 outliers)"`.
+fn describe(c: &StatusCounts) -> String {
+    format!(
+        "{} of {} markers ok ({:.0} %; {} lost, {} merged, {} outliers)",
+        c.ok,
+        c.ok + c.lost + c.merged + c.outlier,
+        100.0 * ok_fraction(c),
+        c.lost,
+        c.merged,
+        c.outlier
+    )
 }
 
 /// Mean wrench and per-component force SD (sample SD; 0 for one sample).

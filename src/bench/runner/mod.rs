@@ -23,10 +23,20 @@
 //! 5. **Acquire**: mean and SD of `acquire.samples` F/T readings, the stage position,
 //!    `acquire.frames` frames (`frames/NNNNN_K.png`).
 //! 6. **Track and reconstruct**: every frame against the run's reference frame
-//!    (`displacements/NNNNN.csv`, as `tactbench track` writes it); forces from the
+//!    (`displacements/NNNNN.csv`, as `tactbench track` writes it). When fewer than
+//!    `[quality] min_ok_fraction` of the sensor's markers are ok in every frame, the
+//!    frames are grabbed again (at most `max_reacquire` times); still below, the row
+//!    is journalled `quality = flagged` or the run aborts (`on_fail`). Forces from the
 //!    mean displacement over the frames (`forces/NNNNN.csv`) with the plan's solver,
 //!    precomputed once per set of tracked markers.
-//! 7. **Journal**: the row is appended and synced before the next move.
+//! 7. **Journal**: the row (with its marker counts) is appended and synced before the
+//!    next move.
+//!
+//! **Reference gate.** The reference frame (taken at the clearance height above the
+//! approach position, after homing and taring) must show `[quality]
+//! reference_min_found_fraction` of the sensor file's markers; otherwise the run
+//! aborts before any setpoint with the measured numbers (found per layer, marker
+//! pitch, centre, frame levels) and the likely cause (scale, origin, colour, exposure).
 //!
 //! Code layout: this file holds the public types, [`run`] and set-up (`prepare`);
 //! `motion` the timed device calls, travel checks, guarded moves with the safety
@@ -62,7 +72,7 @@ use super::plan::{Plan, Setpoint, Sweep};
 use crate::device::{Camera, DeviceError, ForceSensor, Stage, StagePositionMm, TravelLimits};
 use crate::sensor::Sensor;
 use crate::solve::FrameSolver;
-use crate::vision::{self, FrameView, TrackConfig, Tracker};
+use crate::vision::{TrackConfig, Tracker};
 
 /// Times control and settling are redone when the force left the tolerance while
 /// settling (elastomer creep).
@@ -639,17 +649,7 @@ impl Runner<'_, '_, '_, '_> {
             .save(self.dir.join(&name))
             .map_err(|e| Halt::Abort(format!("cannot write {name}: {e}")))?;
         self.io_s += t_io.elapsed().as_secs_f64();
-        let reference = vision::detect(
-            &FrameView::rgb8(&frame.image),
-            self.sensor,
-            &vision::DetectConfig::default(),
-        )
-        .map_err(|e| Halt::Abort(format!("reference frame {name}: {e}")))?;
-        (self.events)(&RunEvent::Reference {
-            path: name,
-            markers: reference.markers.len(),
-            missing: reference.missing.len(),
-        });
+        let reference = self.reference_layout(&name, &frame)?;
         self.tracker = Some(Tracker::new(reference, TrackConfig::default()));
         Ok(())
     }
