@@ -11,7 +11,8 @@
 //!
 //! **Forces** (output of `reconstruct`): `ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n`, one row per
 //! force-grid node in row-major order; with several frames a trailing `frame` column is
-//! added.
+//! added. `reconstruct --uncertainty` inserts `sfx_n,sfy_n,sfz_n` (standard deviation
+//! of each component, N) after `fz_n`.
 //!
 //! **Numbers** in every CSV the project writes (these two, `journal.csv`,
 //! `summary.csv`) go through [`Num`]: rounded to [`CSV_SIGNIFICANT_DIGITS`]
@@ -111,6 +112,8 @@ pub fn tidy_csv_records(bytes: &[u8]) -> Result<Vec<u8>, csv::Error> {
 pub const DISPLACEMENT_COLUMNS: [&str; 6] = ["layer", "marker", "x_mm", "y_mm", "ux_mm", "uy_mm"];
 /// The forces CSV's columns.
 pub const FORCE_COLUMNS: [&str; 7] = ["ix", "iy", "x_mm", "y_mm", "fx_n", "fy_n", "fz_n"];
+/// The standard-deviation columns `reconstruct --uncertainty` adds after `fz_n`, N.
+pub const FORCE_SD_COLUMNS: [&str; 3] = ["sfx_n", "sfy_n", "sfz_n"];
 
 /// An error reading or writing a CSV file. Data errors name file, line and column.
 #[derive(Debug, Error)]
@@ -435,16 +438,47 @@ pub fn write_forces(
     w.flush().map_err(io)
 }
 
+/// As [`write_forces`], with the standard deviation of every force component (`sd`,
+/// one vector per frame, same layout as the forces, N) in the columns
+/// [`FORCE_SD_COLUMNS`] after `fz_n` (before `frame`).
+pub fn write_forces_sd(
+    path: &Path,
+    grid: &Grid,
+    frames: &[(String, Vec<f64>)],
+    sd: &[Vec<f64>],
+) -> Result<(), FormatError> {
+    let io = |source| FormatError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
+    write_forces_sd_to(&mut w, grid, frames, Some(sd)).map_err(io)?;
+    w.flush().map_err(io)
+}
+
 /// As [`write_forces`], to any writer.
 pub fn write_forces_to(
     w: &mut impl Write,
     grid: &Grid,
     frames: &[(String, Vec<f64>)],
 ) -> std::io::Result<()> {
+    write_forces_sd_to(w, grid, frames, None)
+}
+
+/// As [`write_forces_sd`] (`sd: Some`) or [`write_forces`] (`None`), to any writer.
+pub fn write_forces_sd_to(
+    w: &mut impl Write,
+    grid: &Grid,
+    frames: &[(String, Vec<f64>)],
+    sd: Option<&[Vec<f64>]>,
+) -> std::io::Result<()> {
     let multi = frames.len() > 1;
     write!(w, "{}", FORCE_COLUMNS.join(","))?;
+    if sd.is_some() {
+        write!(w, ",{}", FORCE_SD_COLUMNS.join(","))?;
+    }
     writeln!(w, "{}", if multi { ",frame" } else { "" })?;
-    for (label, f) in frames {
+    for (fi, (label, f)) in frames.iter().enumerate() {
         for iy in 0..grid.ny {
             for ix in 0..grid.nx {
                 let j = iy * grid.nx + ix;
@@ -458,6 +492,15 @@ pub fn write_forces_to(
                     Num(f[3 * j + 1]),
                     Num(f[3 * j + 2])
                 )?;
+                if let Some(s) = sd.and_then(|s| s.get(fi)) {
+                    write!(
+                        w,
+                        ",{},{},{}",
+                        Num(s[3 * j]),
+                        Num(s[3 * j + 1]),
+                        Num(s[3 * j + 2])
+                    )?;
+                }
                 if multi {
                     write!(w, ",{label}")?;
                 }

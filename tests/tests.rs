@@ -13,6 +13,7 @@ mod report;
 mod reproduce;
 mod run;
 mod sim;
+mod solver_cli;
 mod solvers;
 mod stage;
 mod study;

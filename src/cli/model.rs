@@ -54,8 +54,9 @@ pub struct InspectArgs {
     /// Sensor description (sensor.toml).
     #[arg(long, value_name = "S.toml")]
     sensor: PathBuf,
-    /// Displacement CSV: its first frame defines the marker set (lost markers dropped)
-    /// and feeds automatic lambda / rank selection.
+    /// Displacement CSV: its first frame defines the marker set (lost markers dropped);
+    /// the first frame with those markers and nonzero displacements feeds automatic
+    /// lambda / rank selection.
     #[arg(long, value_name = "D.csv")]
     displacements: Option<PathBuf>,
     /// Print every singular value instead of a summary.
@@ -128,7 +129,21 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
         Some(path) => {
             let frames = formats::read_displacements(path, &sensor)?;
             let first = &frames[0];
-            (first.sites(&sensor), Some(first.u_mm()))
+            // Automatic lambda / rank needs a loaded frame: the first frame whose
+            // displacements are not all zero among those with the first frame's markers
+            // (an unloaded reference often comes first).
+            let present = |f: &formats::DisplacementFrame| {
+                f.records
+                    .iter()
+                    .map(|r| (r.layer, r.marker, r.u_mm.is_some()))
+                    .collect::<Vec<_>>()
+            };
+            let key = present(first);
+            let chooser = frames
+                .iter()
+                .find(|f| present(f) == key && f.u_mm().iter().any(|&v| v != 0.0))
+                .unwrap_or(first);
+            (first.sites(&sensor), Some(chooser.u_mm()))
         }
         None => {
             let sites = MarkerSite::from_sensor_grids(&sensor);
@@ -141,7 +156,7 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
             (sites, None)
         }
     };
-    let config = args.solver.config();
+    let config = args.solver.config().map_err(anyhow::Error::msg)?;
     let problem = Problem::new(&sensor, &sites);
     let solver = solve::precompute(&problem, &config, frame.as_deref()).with_context(|| {
         format!(
@@ -171,13 +186,14 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
             "columns": d.shape.1,
             "solver": d.method.name(),
             "singular_values_mm_per_n": d.singular_values,
-            "condition_number": finite_or_null(d.condition_number),
+            "condition_number": finite_or_null(d.condition_of_h()),
             "effective_rank": d.effective_rank,
             "noise_gain_n_per_mm": d.noise_gain,
             "force_error_per_0_1px_noise_n": d.noise_gain * noise_mm,
             "lambda_mm_per_n": d.lambda,
             "rank": d.rank,
             "notes": d.notes,
+            "warnings": d.warnings().collect::<Vec<_>>(),
             "fourier_compatible": fourier.is_ok(),
             "fourier_reason": fourier.as_ref().err().map(|e| e.to_string()),
         });
@@ -233,12 +249,17 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
             );
         }
     }
-    println!("condition    {:.4e}", d.condition_number);
+    // κ describes H, whatever the cut-off (--rcond) or regularisation: those change
+    // the solution, reported as the rank used / effective rank below.
+    println!(
+        "condition    {:.4e} (sigma_max / sigma_min of H)",
+        d.condition_of_h()
+    );
     println!("eff. rank    {:.1}", d.effective_rank);
     println!(
         "noise gain   {:.4e} N/mm: 0.1 px ({} mm) of displacement noise -> up to {:.4e} N ({:.3} gf) per force component",
         d.noise_gain,
-        noise_mm,
+        solve::fmt_num(noise_mm),
         d.noise_gain * noise_mm,
         units::n_to_gf(d.noise_gain * noise_mm)
     );
@@ -246,10 +267,19 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
         println!("lambda       {l:.4e} mm/N");
     }
     if let Some(k) = d.rank {
-        println!("rank         {k}");
+        println!(
+            "rank used    {k} of {} singular values",
+            d.singular_values.len()
+        );
     }
     for n in &d.notes {
-        println!("note         {n}");
+        match n.strip_prefix(solve::WARNING_PREFIX) {
+            Some(w) => println!("warning      {w}"),
+            None => println!("note         {n}"),
+        }
+    }
+    for w in d.warnings() {
+        eprintln!("model inspect: warning: {w}");
     }
     match fourier {
         Ok(()) => println!("fourier      compatible with this geometry"),

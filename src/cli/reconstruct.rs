@@ -4,11 +4,11 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 
-use tactbench::formats;
+use tactbench::formats::{self, DisplacementFrame};
 use tactbench::sensor::Sensor;
-use tactbench::solve::{self, Problem};
+use tactbench::solve::{self, fmt_num, FrameSolver, Problem, SolverConfig};
 
 use super::SolverArgs;
 
@@ -17,12 +17,17 @@ use super::SolverArgs;
 /// Reads the sensor file and a displacement CSV (`layer,marker,x_mm,y_mm,ux_mm,uy_mm`,
 /// extra columns allowed; a `frame` column groups rows into frames), solves `u = H f`
 /// for the forces on the sensor's force grid and writes `ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n`
-/// (plus `frame` when there are several frames). Displacements in mm, forces in N,
-/// fz > 0 pressing into the elastomer. Lost markers (empty or NaN displacement) are
-/// dropped from the system and counted on stderr.
+/// (then `sfx_n,sfy_n,sfz_n` with --uncertainty, then `frame` when there are several
+/// frames). Displacements in mm, forces in N, fz > 0 pressing into the elastomer. Lost
+/// markers (empty or NaN displacement) are dropped from the system and counted on
+/// stderr.
+///
+/// Multi-frame files: a frame whose displacements are all exactly zero (e.g. the
+/// unloaded reference) gives zero force; a frame whose markers are all lost gives NaN
+/// forces (a flagged row, warned on stderr); the file goes on either way.
 #[derive(clap::Args)]
 #[command(
-    after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements experiments/examples/fig6_displacements.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv"
+    after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements experiments/examples/fig6_displacements.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --uncertainty --noise-px 0.1 --out F.csv"
 )]
 pub struct Args {
     /// Sensor description (sensor.toml).
@@ -36,70 +41,205 @@ pub struct Args {
     out: PathBuf,
     #[command(flatten)]
     solver: SolverArgs,
+    /// Where automatic lambda (tikhonov / fourier with gcv or lcurve) and the automatic
+    /// tsvd rank are chosen: `file` (default) chooses once per set of present markers,
+    /// on the first frame of the file with that set whose displacements are not all
+    /// zero, and keeps it for every frame of the set (cheap: one decomposition per
+    /// set; forces of different frames are comparable); `frame` chooses on every frame
+    /// (one decomposition per frame). An error with pinv or a fixed lambda / rank.
+    #[arg(long, value_enum, value_name = "file|frame")]
+    lambda_per: Option<LambdaPer>,
+    /// Also write the standard deviation of every force component (`sfx_n, sfy_n,
+    /// sfz_n`, N) for independent displacement noise of --noise-px per value, and
+    /// print the standard deviation of F_sum on stderr.
+    #[arg(long, requires = "noise_px")]
+    uncertainty: bool,
+    /// Displacement noise (standard deviation per ux / uy value) in camera pixels,
+    /// converted to mm with the sensor's [camera] mm_per_px. Needs --uncertainty.
+    #[arg(long, value_name = "PX", requires = "uncertainty")]
+    noise_px: Option<f64>,
+}
+
+/// `--lambda-per`.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, clap::ValueEnum)]
+enum LambdaPer {
+    /// Once per marker set, on its first loaded frame.
+    File,
+    /// On every frame.
+    Frame,
+}
+
+/// A solver per set of present markers: `(layer, marker id, present)` per row.
+type MarkerKey = Vec<(usize, u64, bool)>;
+
+fn marker_key(frame: &DisplacementFrame) -> MarkerKey {
+    frame
+        .records
+        .iter()
+        .map(|r| (r.layer, r.marker, r.u_mm.is_some()))
+        .collect()
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
     let frames = formats::read_displacements(&args.displacements, &sensor)?;
-    let config = args.solver.config();
+    let config = args.solver.config().map_err(anyhow::Error::msg)?;
+    if let Some(per) = args.lambda_per {
+        if !config.needs_frame() {
+            bail!(
+                "--lambda-per {} does not apply to the {} solver with {}: only an automatic lambda (gcv, lcurve) or an automatic tsvd rank is chosen from the data",
+                if per == LambdaPer::File { "file" } else { "frame" },
+                config.method,
+                match config.method {
+                    solve::Method::Pinv => "its fixed cut-off",
+                    solve::Method::Tsvd => "a fixed --rank",
+                    _ => "a fixed --lambda",
+                }
+            );
+        }
+    }
+    let per = args.lambda_per.unwrap_or(LambdaPer::File);
+    let sigma_mm = match (args.uncertainty, args.noise_px) {
+        (true, Some(px)) => {
+            if !(px.is_finite() && px >= 0.0) {
+                bail!(
+                    "--noise-px {}: the displacement noise must be a finite number >= 0 px",
+                    fmt_num(px)
+                );
+            }
+            let mm = solve::noise_px_to_mm(&sensor, px);
+            eprintln!(
+                "reconstruct: displacement noise {} px = {} mm (mm_per_px {}) per ux / uy value",
+                fmt_num(px),
+                fmt_num(mm),
+                fmt_num(sensor.camera.mm_per_px)
+            );
+            Some(mm)
+        }
+        _ => None,
+    };
 
-    // One precompute per distinct set of present markers: frames that lost the same
-    // markers share a solver. Automatic λ / rank is chosen on the first frame of a set.
-    let mut cache: HashMap<Vec<bool>, Box<dyn solve::FrameSolver>> = HashMap::new();
+    let n_out = 3 * sensor.force_grid.len();
+    let keys: Vec<MarkerKey> = frames.iter().map(marker_key).collect();
+    let zero: Vec<bool> = frames
+        .iter()
+        .map(|f| f.u_mm().iter().all(|&v| v == 0.0))
+        .collect();
+    let what = if config.method == solve::Method::Tsvd {
+        "rank"
+    } else {
+        "lambda"
+    };
+
+    // `file`: one precompute per distinct set of present markers, parameters chosen on
+    // the set's first loaded frame. `frame`: one precompute per frame.
+    let mut cache: HashMap<MarkerKey, Box<dyn FrameSolver>> = HashMap::new();
     let mut outputs = Vec::with_capacity(frames.len());
-    for frame in &frames {
+    let mut sds = Vec::with_capacity(frames.len());
+    let mut reported = false;
+    for (i, frame) in frames.iter().enumerate() {
         let label = if frame.frame.is_empty() {
             String::new()
         } else {
             format!(" (frame {})", frame.frame)
         };
-        let lost = frame.lost();
-        if !lost.is_empty() {
-            let mut per_layer = vec![0usize; sensor.layers.len()];
-            for (layer, _) in &lost {
-                per_layer[*layer] += 1;
-            }
-            let detail: Vec<String> = per_layer
-                .iter()
-                .zip(&sensor.layers)
-                .filter(|(n, _)| **n > 0)
-                .map(|(n, l)| format!("{}: {n}", l.name))
-                .collect();
-            eprintln!(
-                "reconstruct: {} of {} markers lost{label} ({}); their rows were dropped",
-                lost.len(),
-                frame.records.len(),
-                detail.join(", ")
-            );
-        }
+        report_lost(frame, &sensor, &label);
         let sites = frame.sites(&sensor);
+        if sites.is_empty() {
+            eprintln!(
+                "reconstruct: warning: all {} markers lost{label}: no force can be reconstructed, its rows are written as NaN",
+                frame.records.len()
+            );
+            outputs.push((frame.frame.clone(), vec![f64::NAN; n_out]));
+            sds.push(vec![f64::NAN; n_out]);
+            continue;
+        }
         let u = frame.u_mm();
-        let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
-        let solver = match cache.entry(key) {
-            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::hash_map::Entry::Vacant(e) => {
-                let problem = Problem::new(&sensor, &sites);
-                let solver = solve::precompute(&problem, &config, Some(&u)).with_context(|| {
-                    format!("cannot set up the {} solver{label}", config.method)
-                })?;
-                report_diagnostics(solver.diagnostics());
-                e.insert(solver)
+        // The frame that chooses automatic parameters (any frame of the set when
+        // none are automatic).
+        let chooser = if !config.needs_frame() {
+            Some(i)
+        } else {
+            match per {
+                LambdaPer::File => (0..frames.len()).find(|&j| keys[j] == keys[i] && !zero[j]),
+                LambdaPer::Frame => (!zero[i]).then_some(i),
+            }
+        };
+        let Some(c) = chooser else {
+            eprintln!(
+                "reconstruct: note: all displacements are zero{label}: the forces are zero (no loaded frame{} to choose the {what} from{})",
+                if per == LambdaPer::File { " with these markers" } else { "" },
+                if sigma_mm.is_some() { ", so no uncertainty: sd columns are NaN" } else { "" }
+            );
+            outputs.push((frame.frame.clone(), vec![0.0; n_out]));
+            sds.push(vec![f64::NAN; n_out]);
+            continue;
+        };
+        let build = |c: usize| -> Result<Box<dyn FrameSolver>> {
+            let problem = Problem::new(&sensor, &sites);
+            let uc = frames[c].u_mm();
+            let chosen_on = if c == i || frames[c].frame.is_empty() {
+                String::new()
+            } else {
+                format!(" ({what} chosen on frame {})", frames[c].frame)
+            };
+            solve::precompute(&problem, &config, Some(&uc)).with_context(|| {
+                format!(
+                    "cannot set up the {} solver{label}{chosen_on}",
+                    config.method
+                )
+            })
+        };
+        let mut fresh: Box<dyn FrameSolver>;
+        let solver: &mut Box<dyn FrameSolver> = if per == LambdaPer::Frame && config.needs_frame() {
+            fresh = build(c)?;
+            report(fresh.diagnostics(), &config, &label, &mut reported);
+            &mut fresh
+        } else {
+            match cache.entry(keys[i].clone()) {
+                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    let s = build(c)?;
+                    if config.needs_frame() && c != i && !frames[c].frame.is_empty() {
+                        eprintln!(
+                            "reconstruct: {what} for this marker set chosen on frame {} (the first with nonzero displacements)",
+                            frames[c].frame
+                        );
+                    }
+                    report(s.diagnostics(), &config, "", &mut reported);
+                    e.insert(s)
+                }
             }
         };
         let mut f = vec![0.0; solver.n_outputs()];
         solver
             .apply(&u, &mut f)
             .with_context(|| format!("reconstruction failed{label}"))?;
-        let sum = (0..3)
-            .map(|a| f.iter().skip(a).step_by(3).sum::<f64>())
-            .collect::<Vec<_>>();
+        let sum = axis_sums(&f);
         eprintln!(
             "reconstruct: F_sum{label} = ({:.6}, {:.6}, {:.6}) N",
             sum[0], sum[1], sum[2]
         );
+        if let Some(s) = sigma_mm {
+            let mut sd = vec![0.0; solver.n_outputs()];
+            solver
+                .force_sd(s, &mut sd)
+                .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
+            let ssd = solve::force_sum_sd(&**solver, s)
+                .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
+            eprintln!(
+                "reconstruct: sd of F_sum{label} = ({:.6}, {:.6}, {:.6}) N",
+                ssd[0], ssd[1], ssd[2]
+            );
+            sds.push(sd);
+        }
         outputs.push((frame.frame.clone(), f));
     }
-    formats::write_forces(&args.out, &sensor.force_grid, &outputs)?;
+    if sigma_mm.is_some() {
+        formats::write_forces_sd(&args.out, &sensor.force_grid, &outputs, &sds)?;
+    } else {
+        formats::write_forces(&args.out, &sensor.force_grid, &outputs)?;
+    }
     eprintln!(
         "reconstruct: wrote {} force points x {} frame(s) to {}",
         sensor.force_grid.len(),
@@ -109,11 +249,70 @@ pub fn run(args: Args) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// One stderr line on what the precompute found.
+/// ΣFx, ΣFy, ΣFz of an interleaved force vector.
+fn axis_sums(f: &[f64]) -> [f64; 3] {
+    let mut s = [0.0; 3];
+    for (k, v) in f.iter().enumerate() {
+        s[k % 3] += v;
+    }
+    s
+}
+
+/// Counts lost markers per layer on stderr.
+fn report_lost(frame: &DisplacementFrame, sensor: &Sensor, label: &str) {
+    let lost = frame.lost();
+    if lost.is_empty() {
+        return;
+    }
+    let mut per_layer = vec![0usize; sensor.layers.len()];
+    for (layer, _) in &lost {
+        per_layer[*layer] += 1;
+    }
+    let detail: Vec<String> = per_layer
+        .iter()
+        .zip(&sensor.layers)
+        .filter(|(n, _)| **n > 0)
+        .map(|(n, l)| format!("{}: {n}", l.name))
+        .collect();
+    eprintln!(
+        "reconstruct: {} of {} markers lost{label} ({}); their rows were dropped",
+        lost.len(),
+        frame.records.len(),
+        detail.join(", ")
+    );
+}
+
+/// The diagnostics of a precompute on stderr: in full the first time, then (per-frame
+/// choices) one line with the λ / rank chosen and any warning.
+fn report(d: &solve::Diagnostics, config: &SolverConfig, label: &str, reported: &mut bool) {
+    if !*reported {
+        report_diagnostics(d);
+        *reported = true;
+        return;
+    }
+    let mut line = format!("reconstruct: {}{label}:", config.method);
+    if let Some(l) = d.lambda {
+        line.push_str(&format!(" lambda {l:.3e} mm/N"));
+    }
+    if let Some(k) = d.rank {
+        line.push_str(&format!(" rank {k}"));
+    }
+    eprintln!("{line}");
+    for w in d.warnings() {
+        eprintln!("reconstruct: warning{label}: {w}");
+    }
+}
+
+/// One stderr line on what the precompute found, then its notes (warnings as such).
 fn report_diagnostics(d: &solve::Diagnostics) {
     let mut line = format!(
         "reconstruct: {} on a {}x{} system, condition number {:.3e}, effective rank {:.1}, noise gain {:.3e} N/mm",
-        d.method, d.shape.0, d.shape.1, d.condition_number, d.effective_rank, d.noise_gain
+        d.method,
+        d.shape.0,
+        d.shape.1,
+        d.condition_of_h(),
+        d.effective_rank,
+        d.noise_gain
     );
     if let Some(l) = d.lambda {
         line.push_str(&format!(", lambda {l:.3e} mm/N"));
@@ -123,6 +322,9 @@ fn report_diagnostics(d: &solve::Diagnostics) {
     }
     eprintln!("{line}");
     for n in &d.notes {
-        eprintln!("reconstruct: note: {n}");
+        match n.strip_prefix(solve::WARNING_PREFIX) {
+            Some(w) => eprintln!("reconstruct: warning: {w}"),
+            None => eprintln!("reconstruct: note: {n}"),
+        }
     }
 }

@@ -14,16 +14,19 @@ pub struct SolverArgs {
     /// `lcurve` (L-curve corner), a fixed value in mm/N (the units of H's singular
     /// values; filter factor sigma^2 / (sigma^2 + lambda^2)), or `auto`: gcv for
     /// tikhonov, lcurve for fourier (whose zero padding looks like noise-free data to
-    /// GCV, which then picks lambda about 10x too small).
-    #[arg(long, default_value = "auto", value_parser = parse_lambda)]
-    lambda: LambdaArg,
+    /// GCV, which then picks lambda about 10x too small). Default: auto. An error with
+    /// pinv and tsvd, which have no lambda.
+    #[arg(long, value_parser = parse_lambda)]
+    lambda: Option<LambdaArg>,
     /// Rank for tsvd: `auto` (chosen by GCV) or the number of singular values kept.
-    #[arg(long, default_value = "auto", value_parser = parse_rank)]
-    rank: Rank,
-    /// Arithmetic of the per-frame solve: `f64`, or `f32` (about twice as fast,
-    /// ~1e-6 relative error).
-    #[arg(long, default_value = "f64", value_parser = parse_precision)]
-    precision: Precision,
+    /// Default: auto. An error with the other solvers.
+    #[arg(long, value_parser = parse_rank)]
+    rank: Option<Rank>,
+    /// Arithmetic of the per-frame solve of the dense solvers: `f64` (default), or
+    /// `f32` (about twice as fast; measured relative difference 1e-5 for pinv, 3e-7
+    /// for tikhonov at the paper size). `f32` is an error with fourier (f64 only).
+    #[arg(long, value_parser = parse_precision)]
+    precision: Option<Precision>,
     /// pinv: singular values below rcond * sigma_max are dropped
     /// [default: max(rows, cols) * machine epsilon].
     #[arg(long)]
@@ -31,20 +34,46 @@ pub struct SolverArgs {
 }
 
 impl SolverArgs {
-    /// The library configuration these flags select.
-    pub fn config(&self) -> SolverConfig {
-        SolverConfig {
-            method: self.solver,
-            lambda: match (self.lambda, self.solver) {
+    /// The library configuration these flags select. A flag that does not apply to the
+    /// chosen solver (`--lambda` with pinv or tsvd, `--rank` with anything but tsvd,
+    /// `--precision f32` with fourier) is an error naming both, not silently ignored.
+    pub fn config(&self) -> Result<SolverConfig, String> {
+        let m = self.solver;
+        if self.lambda.is_some() && matches!(m, Method::Pinv | Method::Tsvd) {
+            return Err(format!(
+                "--lambda does not apply to the {m} solver, which has no regularisation parameter lambda (tikhonov and fourier use it{})",
+                if m == Method::Tsvd { "; tsvd is tuned with --rank" } else { "" }
+            ));
+        }
+        if self.rank.is_some() && m != Method::Tsvd {
+            return Err(format!(
+                "--rank does not apply to the {m} solver: only tsvd truncates at a rank{}",
+                match m {
+                    Method::Pinv => "; pinv drops singular values below --rcond * sigma_max",
+                    Method::Tikhonov | Method::Fourier =>
+                        "; tikhonov and fourier are tuned with --lambda",
+                    Method::Tsvd => "",
+                }
+            ));
+        }
+        if self.precision == Some(Precision::F32) && m == Method::Fourier {
+            return Err(
+                "--precision f32 does not apply to the fourier solver: its per-frame solve runs in f64 only (f32 is for pinv, tikhonov and tsvd)"
+                    .into(),
+            );
+        }
+        Ok(SolverConfig {
+            method: m,
+            lambda: match (self.lambda.unwrap_or(LambdaArg::Auto), m) {
                 (LambdaArg::Given(l), _) => l,
                 (LambdaArg::Auto, Method::Fourier) => Lambda::LCurve,
                 (LambdaArg::Auto, _) => Lambda::Gcv,
             },
-            rank: self.rank,
-            precision: self.precision,
+            rank: self.rank.unwrap_or_default(),
+            precision: self.precision.unwrap_or_default(),
             rcond: self.rcond,
             ..SolverConfig::default()
-        }
+        })
     }
 }
 
