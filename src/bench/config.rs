@@ -10,6 +10,10 @@
 //! port = "/dev/ttyUSB0"
 //! baud = 115200                     # optional (grbl, zaber: 115200)
 //! # zaber only: devices = [1, 2, 3] (x, y, z addresses), mm_per_step = 0.000047625
+//! # grbl only, optional: the travel box (machine mm) the driver enforces; GRBL's own
+//! # [-$13x, 0] applies too where homing ($22=1) and soft limits ($20=1) are on
+//! # travel_min_mm = [-200.0, -200.0, -50.0]
+//! # travel_max_mm = [0.0, 0.0, 0.0]
 //!
 //! [force_sensor]
 //! protocol = "dynpick"              # dynpick | ft300
@@ -83,6 +87,9 @@ pub struct StageConfig {
     pub zaber_devices: [u8; 3],
     /// Zaber: resolution, mm per microstep.
     pub zaber_mm_per_step: f64,
+    /// GRBL: travel box in machine coordinates, mm (`travel_min_mm`,
+    /// `travel_max_mm`); `None`: only GRBL's own box where it enforces one.
+    pub travel: Option<crate::device::TravelLimits>,
 }
 
 /// A real force sensor.
@@ -240,6 +247,8 @@ struct RawStage {
     baud: Option<i64>,
     devices: Option<[i64; 3]>,
     mm_per_step: Option<f64>,
+    travel_min_mm: Option<[f64; 3]>,
+    travel_max_mm: Option<[f64; 3]>,
 }
 
 #[derive(Deserialize)]
@@ -440,12 +449,44 @@ impl RawBench {
             StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
             StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
         };
+        let travel = match (s.travel_min_mm, s.travel_max_mm) {
+            (None, None) => None,
+            (Some(lo), Some(hi)) => {
+                if protocol != StageKind::Grbl {
+                    return Err(c.invalid(
+                        "stage.travel_min_mm",
+                        "(given)",
+                        "travel_min_mm and travel_max_mm apply to grbl stages only (Zaber devices keep their own limit.min/limit.max)",
+                    ));
+                }
+                for i in 0..3 {
+                    if !(lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
+                        return Err(c.invalid(
+                            &format!("stage.travel_max_mm[{i}]"),
+                            format!("{} mm (min {} mm)", hi[i], lo[i]),
+                            "finite, and above stage.travel_min_mm on every axis",
+                        ));
+                    }
+                }
+                Some(crate::device::TravelLimits {
+                    axes_mm: [[lo[0], hi[0]], [lo[1], hi[1]], [lo[2], hi[2]]],
+                })
+            }
+            _ => {
+                return Err(c.invalid(
+                    "stage.travel_min_mm",
+                    "(only one of the pair given)",
+                    "give both travel_min_mm and travel_max_mm, or neither",
+                ))
+            }
+        };
         let stage = StageConfig {
             protocol,
             port: non_empty(&c, "stage.port", s.port)?,
             baud: baud(&c, "stage.baud", s.baud, stage_default_baud)?,
             zaber_devices,
             zaber_mm_per_step,
+            travel,
         };
         let ft_protocol = ft_kind(&c, "force_sensor.protocol", &f.protocol)?;
         let ft_default_baud = match ft_protocol {

@@ -613,7 +613,10 @@ mod tests {
     #[test]
     fn build_version_from_the_ver_line_of_dollar_i() {
         assert_eq!(build_version("VER:1.1h.20190830:"), Some("1.1h.20190830"));
-        assert_eq!(build_version("VER:1.1f.20170801:My machine"), Some("1.1f.20170801"));
+        assert_eq!(
+            build_version("VER:1.1f.20170801:My machine"),
+            Some("1.1f.20170801")
+        );
         assert_eq!(build_version("OPT:V,15,128"), None);
         assert_eq!(build_version("VER::"), None);
         assert_eq!(Command::BuildInfo.encode(), "$I");

@@ -303,7 +303,10 @@ impl<P: Read + Write> Grbl<P> {
     /// awaited instead).
     fn read_configuration(&mut self, state: MachineState) -> DeviceResult<()> {
         self.resync_within(self.config.reply_timeout.min(CONNECT_RESYNC_TIMEOUT))?;
-        self.read_build_info()?;
+        // Check mode refuses `$I` and `$#` (error:8), as the real firmware does.
+        if state != MachineState::Check {
+            self.read_build_info()?;
+        }
         self.read_settings()?;
         self.update_limits();
         if self.reports_wpos() && self.wco_mm.is_none() {
@@ -487,7 +490,7 @@ impl<P: Read + Write> Grbl<P> {
                 ),
             )
             .with_hint(
-                "resume with `~` (cycle start: `tactbench stage ... resume`),                  or abort the held motion with `tactbench stage ... stop` (feed hold + soft reset)",
+                "resume with `~` (cycle start: `tactbench stage ... resume`), or abort the held motion with `tactbench stage ... stop` (feed hold + soft reset)",
             ),
             MachineState::Door(n) => DeviceError::new(
                 ErrorKind::Held,
@@ -504,7 +507,7 @@ impl<P: Read + Write> Grbl<P> {
                 ),
             )
             .with_hint(
-                "close the door, then resume with `~` (`tactbench stage ... resume`),                  or abort with `tactbench stage ... stop`",
+                "close the door, then resume with `~` (`tactbench stage ... resume`), or abort with `tactbench stage ... stop`",
             ),
             MachineState::Alarm => self.alarm_error(command, self.alarm.unwrap_or(0)),
             MachineState::Check => DeviceError::new(
@@ -632,11 +635,7 @@ impl<P: Read + Write> Grbl<P> {
 
     /// Sends a query line (retried on a timeout or garbled reply) and passes every
     /// line before its `ok` to `take`.
-    fn query_lines(
-        &mut self,
-        cmd: &Command,
-        mut take: impl FnMut(&Response),
-    ) -> DeviceResult<()> {
+    fn query_lines(&mut self, cmd: &Command, mut take: impl FnMut(&Response)) -> DeviceResult<()> {
         let text = cmd.encode();
         let mut last = None;
         for _ in 0..=QUERY_RETRIES {
@@ -692,7 +691,15 @@ impl<P: Read + Write> Grbl<P> {
                 }
                 // A banner means a reset mid-query: the `?` may have been flushed
                 // or answered; if no report comes, `status` asks again.
-                Ok(r) => self.note_pushed(&r),
+                Ok(r) => {
+                    self.note_pushed(&r);
+                    // A critical alarm: GRBL will not answer `?` until a reset.
+                    if self.needs_reset {
+                        if let Response::Message(_) | Response::Alarm(_) = r {
+                            return Err(self.alarm_error("?", self.alarm.unwrap_or(0)));
+                        }
+                    }
+                }
                 Err(e) => {
                     return Err(DeviceError::new(
                         ErrorKind::Protocol,
@@ -711,7 +718,9 @@ impl<P: Read + Write> Grbl<P> {
         for _ in 0..=QUERY_RETRIES {
             match self.status_once(self.config.status_timeout) {
                 Ok(s) => return Ok(s),
-                Err(e) if e.kind() == ErrorKind::Disconnected => return Err(e),
+                Err(e) if matches!(e.kind(), ErrorKind::Disconnected | ErrorKind::Limit) => {
+                    return Err(e)
+                }
                 Err(e) => last = Some(e),
             }
         }
@@ -1152,7 +1161,9 @@ impl<P: Read + Write> Grbl<P> {
     /// Reads the current state as the bench sees it.
     fn map_state(s: MachineState) -> StageState {
         match s {
-            MachineState::Idle | MachineState::Check | MachineState::Sleep => StageState::Idle,
+            MachineState::Idle | MachineState::Check => StageState::Idle,
+            // Asleep, GRBL moves nothing until a reset, after which it is in alarm.
+            MachineState::Sleep => StageState::Alarm,
             MachineState::Run | MachineState::Jog => StageState::Moving,
             MachineState::Hold(_) | MachineState::Door(_) => StageState::Held,
             MachineState::Home => StageState::Homing,

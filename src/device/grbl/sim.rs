@@ -710,9 +710,7 @@ impl GrblSim {
                 if self.moving() || self.mode == Mode::Check {
                     return Err(8);
                 }
-                let f = |v: [f64; 3]| {
-                    v.iter().map(|x| fmt_num(*x)).collect::<Vec<_>>().join(",")
-                };
+                let f = |v: [f64; 3]| v.iter().map(|x| fmt_num(*x)).collect::<Vec<_>>().join(",");
                 for (i, c) in self.systems.iter().enumerate() {
                     push_line(out, &format!("[G5{}:{}]", 4 + i, f(*c)));
                 }
@@ -1298,7 +1296,10 @@ mod tests {
         // |(-50,-50,-25)| = 75 mm at $25 = 3000 mm/min -> 1.5 s.
         assert_eq!(run(&mut sim, 1.4, ""), "", "still homing");
         let out = run(&mut sim, 1.51, "");
-        assert!(out.starts_with("ok\r\n<Idle|MPos:-1.000,-1.000,-1.000|"), "{out:?}");
+        assert!(
+            out.starts_with("ok\r\n<Idle|MPos:-1.000,-1.000,-1.000|"),
+            "{out:?}"
+        );
         assert_eq!(sim.mpos_mm(), [-1.0; 3], "pull-off $27 = 1 mm");
     }
 
@@ -1363,8 +1364,7 @@ mod tests {
         assert_eq!(run(&mut sim, 0.2, "$G\n?"), "");
         let out = run(&mut sim, 0.3, "\u{18}");
         assert_eq!(
-            out,
-            "ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n",
+            out, "ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n",
             "the lines sent while locked were flushed by the reset"
         );
         assert!(run(&mut sim, 0.4, "?").starts_with("<Alarm|"));
@@ -1387,7 +1387,9 @@ mod tests {
     #[test]
     fn wco_reported_with_grbls_refresh_counters_and_on_change() {
         let mut sim = quiet();
-        let reports: Vec<String> = (0..12).map(|i| run(&mut sim, f64::from(i) * 0.01, "?")).collect();
+        let reports: Vec<String> = (0..12)
+            .map(|i| run(&mut sim, f64::from(i) * 0.01, "?"))
+            .collect();
         // As recorded from GRBL 1.1h: WCO on reports 1 and 11, Ov on 2 and 12.
         for (i, r) in reports.iter().enumerate() {
             assert_eq!(r.contains("|WCO:"), i == 0 || i == 10, "report {i}: {r}");
@@ -1414,8 +1416,14 @@ mod tests {
         assert_eq!(run(&mut sim, 0.0, "G92 X1\n"), "ok\r\n");
         assert_eq!(sim.wco_mm(), [4.0, -3.0, -1.0]);
         let out = run(&mut sim, 0.0, "$#\n");
-        assert!(out.starts_with("[G54:-2.000,-3.000,-1.000]\r\n[G55:0.000,0.000,0.000]"), "{out}");
-        assert!(out.contains("[G92:6.000,0.000,0.000]\r\n[TLO:0.000]\r\n"), "{out}");
+        assert!(
+            out.starts_with("[G54:-2.000,-3.000,-1.000]\r\n[G55:0.000,0.000,0.000]"),
+            "{out}"
+        );
+        assert!(
+            out.contains("[G92:6.000,0.000,0.000]\r\n[TLO:0.000]\r\n"),
+            "{out}"
+        );
         assert!(out.ends_with("ok\r\n"));
         // Absolute moves without G53 are in work coordinates.
         run(&mut sim, 0.0, "G92.1\nG0 X0 Y0 Z0\n");
@@ -1448,7 +1456,10 @@ mod tests {
         assert!(run(&mut sim, 1.0, "?").starts_with("<Check|MPos:0.000,0.000,0.000|"));
         assert_eq!(run(&mut sim, 1.0, "$#\n"), "error:8\r\n");
         let out = run(&mut sim, 1.0, "$C\n");
-        assert!(out.starts_with("[MSG:Disabled]\r\nok\r\n\r\nGrbl 1.1h"), "{out:?}");
+        assert!(
+            out.starts_with("[MSG:Disabled]\r\nok\r\n\r\nGrbl 1.1h"),
+            "{out:?}"
+        );
         assert!(run(&mut sim, 1.1, "?").starts_with("<Idle|"));
     }
 
