@@ -257,6 +257,24 @@ fn grbl_fault_garbled_status_report_is_retried_and_recovers() {
 }
 
 #[test]
+fn grbl_fault_garbled_status_report_during_a_wait_is_requeried_not_fatal() {
+    // Queries after connect: `?` before the move, `?` at the start of wait_idle,
+    // then the `?` polls while `G4 P0` waits: garble the second poll.
+    let (server, mut g) = grbl_with_fault(
+        FaultKind::Garbled,
+        FaultTarget::Queries,
+        AFTER_CONNECT + 3,
+        0,
+    );
+    g.move_to([-1.0, 0.0, 0.0], Some(2.0)).unwrap();
+    g.wait_idle(Duration::from_secs(5)).unwrap();
+    assert_pos(g.position().unwrap(), [-1.0, 0.0, 0.0]);
+    let sim = server.stop().unwrap();
+    assert_eq!(sim.faults_injected(), 1);
+    assert_eq!(sim.motions_accepted(), 1);
+}
+
+#[test]
 fn grbl_fault_unsolicited_messages_are_ignored() {
     let mut fault = FaultConfig::once(FaultKind::Unsolicited, FaultTarget::Any, 0);
     fault.max_faults = 1000;
@@ -1174,11 +1192,15 @@ impl<P> Recorder<P> {
             };
             for c in chunks {
                 out.push_str(prefix);
-                for &b in c {
+                // Spaces are written as such, except at the end of a line (the
+                // transcript parser trims trailing whitespace).
+                let trailing = c.len() - c.iter().rev().take_while(|b| **b == b' ').count();
+                for (i, &b) in c.iter().enumerate() {
                     match b {
                         b'\r' => out.push_str("\\r"),
                         b'\n' => out.push_str("\\n"),
                         b'\\' => out.push_str("\\\\"),
+                        b' ' if i < trailing => out.push(' '),
                         0x21..=0x7e => out.push(b as char),
                         _ => out.push_str(&format!("\\x{b:02X}")),
                     }
@@ -1230,7 +1252,7 @@ fn recorder_escapes_so_that_the_transcript_parses_back_to_the_same_bytes() {
         b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n\r\nGrbl 1.1h ['$' for help]\r\n",
     );
     r.push(true, b"\x18 \\");
-    r.push(false, b"ok \xFE");
+    r.push(false, b"ok \xFE ok  ");
     let t = Transcript::parse(&r.transcript("header\nline 2")).unwrap();
     assert_eq!(
         t.steps,
@@ -1242,7 +1264,7 @@ fn recorder_escapes_so_that_the_transcript_parses_back_to_the_same_bytes() {
                     .to_vec()
             ),
             (Dir::Host, b"\x18 \\".to_vec()),
-            (Dir::Device, b"ok \xFE".to_vec()),
+            (Dir::Device, b"ok \xFE ok  ".to_vec()),
         ]
     );
 }
@@ -1475,6 +1497,44 @@ mod real_firmware {
             grbl_states::check_mode,
         );
     }
+}
+
+#[test]
+fn bench_file_travel_box_reaches_the_grbl_driver_and_is_validated() {
+    use tactbench::bench::config::BenchConfig;
+    let dir = tempfile::tempdir().unwrap();
+    let bench = |stage_extra: &str| {
+        let p = dir.path().join("bench.toml");
+        std::fs::write(
+            &p,
+            format!(
+                "[stage]\nprotocol = \"grbl\"\nport = \"/dev/null\"\n{stage_extra}\n\
+                 [force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/null\"\n\
+                 [camera]\ndevice = \"dir:frames\"\n\
+                 [geometry]\nsensor_origin_in_stage_mm = [-100.0, -100.0]\nsurface_z_mm = -30.0\n\
+                 press_direction = -1\n"
+            ),
+        )
+        .unwrap();
+        BenchConfig::from_path(&p)
+    };
+    let c =
+        bench("travel_min_mm = [-200.0, -200.0, -50.0]\ntravel_max_mm = [10.0, 0.0, 5.0]").unwrap();
+    let tactbench::bench::config::BenchDevices::Hardware { stage, .. } = c.devices else {
+        panic!("a hardware bench");
+    };
+    assert_eq!(
+        stage.travel.unwrap().axes_mm,
+        [[-200.0, 10.0], [-200.0, 0.0], [-50.0, 5.0]]
+    );
+    let e = bench("travel_min_mm = [0.0, 0.0, 0.0]")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("both travel_min_mm and travel_max_mm"), "{e}");
+    let e = bench("travel_min_mm = [0.0, 0.0, 0.0]\ntravel_max_mm = [1.0, -1.0, 1.0]")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("stage.travel_max_mm[1]"), "{e}");
 }
 
 /// Runs that start from a stage left held, alarmed, or with a work offset and WPos
