@@ -435,3 +435,22 @@ fn help_explains_units_and_formats() {
     );
     assert!(s.contains("mm/N"));
 }
+
+/// The default build has no V4L2 backend (it needs libclang at build time): a camera
+/// index is refused with the way to enable it, exit 2, and no file is written.
+#[cfg(not(feature = "v4l"))]
+#[test]
+fn camera_index_without_the_v4l_feature_says_how_to_rebuild() {
+    let dir = tempfile::tempdir().unwrap();
+    for args in [
+        &["camera", "grab", "--device", "0", "--out", "f.png"][..],
+        &["camera", "list"][..],
+    ] {
+        let out = util::run_in(dir.path(), args);
+        let err = util::stderr(&out);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("--features v4l"), "{args:?}: {err}");
+        assert!(err.contains("libclang-dev"), "{args:?}: {err}");
+    }
+    assert!(!dir.path().join("f.png").exists());
+}

@@ -83,3 +83,48 @@ pub fn open(spec: &CameraSpec) -> DeviceResult<Box<dyn Camera>> {
         CameraSpec::Sim(p) => Ok(Box::new(SocketCamera::connect(p)?)),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[cfg(not(feature = "v4l"))]
+    #[test]
+    fn a_v4l_index_without_the_feature_names_the_feature_and_its_system_package() {
+        let Err(e) = open(&CameraSpec::V4l(0)) else {
+            panic!("a build without `v4l` opened a V4L2 camera");
+        };
+        let msg = e.to_string();
+        assert!(msg.contains("--features v4l"), "{msg}");
+        assert!(msg.contains("libclang-dev"), "{msg}");
+        assert!(v4l::list().is_err());
+    }
+
+    /// With the feature, a machine without cameras gets a clear error, not a panic.
+    #[cfg(feature = "v4l")]
+    #[test]
+    fn a_missing_v4l_camera_is_a_disconnected_error() {
+        if std::path::Path::new("/dev/video99").exists() {
+            return;
+        }
+        let Err(e) = open(&CameraSpec::V4l(99)) else {
+            panic!("opened /dev/video99, which does not exist");
+        };
+        assert_eq!(e.kind(), ErrorKind::Disconnected, "{e}");
+    }
+
+    #[test]
+    fn specs_parse_to_their_kinds() {
+        assert_eq!(CameraSpec::parse("3").unwrap(), CameraSpec::V4l(3));
+        assert_eq!(
+            CameraSpec::parse("dir:frames").unwrap(),
+            CameraSpec::Dir(PathBuf::from("frames"))
+        );
+        assert_eq!(
+            CameraSpec::parse("sim:links/camera.sock").unwrap(),
+            CameraSpec::Sim(PathBuf::from("links/camera.sock"))
+        );
+        assert!(CameraSpec::parse("sim:").is_err());
+        assert!(CameraSpec::parse("usb").is_err());
+    }
+}

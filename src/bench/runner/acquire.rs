@@ -1,0 +1,432 @@
+//! One setpoint's measurement: force control, settling, F/T averaging, frames,
+//! tracking against the reference and reconstruction.
+
+use std::time::{Duration, Instant};
+
+use super::{
+    dev_abort, Halt, RunEvent, Runner, Step, CONTROL_SAMPLES, INITIAL_STIFFNESS_N_PER_MM,
+    MAX_CONTROL_STEP_MM, READ_RETRIES, SETTLE_RETRIES,
+};
+use crate::bench::control::{check_force_limits, ForceController, SettleDetector};
+use crate::bench::journal::JournalRow;
+use crate::bench::plan::Setpoint;
+use crate::device::{CameraFrame, ErrorKind, Wrench};
+use crate::formats::{self, DisplacementFrame};
+use crate::solve::{self, Problem};
+use crate::vision::{self, FrameView, MarkerTrack};
+
+impl Runner<'_, '_, '_, '_> {
+    pub(super) fn read_retry(&mut self) -> Step<Wrench> {
+        let mut attempt = 0;
+        loop {
+            match self.dev.read() {
+                Ok(w) => return Ok(w),
+                Err(e) if attempt < READ_RETRIES && e.kind() != ErrorKind::Disconnected => {
+                    attempt += 1;
+                    (self.events)(&RunEvent::Retry {
+                        index: self.index,
+                        attempt,
+                        reason: format!("force sensor read failed: {e}"),
+                    });
+                }
+                Err(e) => return Err(dev_abort("reading the force sensor", &e)),
+            }
+        }
+    }
+
+    pub(super) fn grab_retry(&mut self) -> Step<CameraFrame> {
+        let mut attempt = 0;
+        loop {
+            match self.dev.grab() {
+                Ok(f) => return Ok(f),
+                Err(e) if attempt < READ_RETRIES && e.kind() != ErrorKind::Disconnected => {
+                    attempt += 1;
+                    (self.events)(&RunEvent::Retry {
+                        index: self.index,
+                        attempt,
+                        reason: format!("camera grab failed: {e}"),
+                    });
+                }
+                Err(e) => return Err(dev_abort("grabbing a frame", &e)),
+            }
+        }
+    }
+
+    pub(super) fn mean_force(&mut self, n: usize) -> Step<Wrench> {
+        let mut m = Wrench::default();
+        for _ in 0..n {
+            let w = self.read_retry()?;
+            if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                return Err(self.trip(format!("{trip}"), Instant::now()));
+            }
+            for i in 0..3 {
+                m.force_n[i] += w.force_n[i] / n as f64;
+                m.torque_nm[i] += w.torque_nm[i] / n as f64;
+            }
+        }
+        Ok(m)
+    }
+
+    /// Normal (and tangential) force control at the setpoint.
+    pub(super) fn control(&mut self, sp: &Setpoint, lateral: &mut [f64; 2]) -> Step<()> {
+        let tol = self.plan.force_tolerance_n;
+        let t_mag = sp.tangential_n[0].hypot(sp.tangential_n[1]);
+        let dir = if t_mag > 0.0 {
+            [sp.tangential_n[0] / t_mag, sp.tangential_n[1] / t_mag]
+        } else {
+            [0.0, 0.0]
+        };
+        let max_t = self.plan.safety.max_force_n[0].min(self.plan.safety.max_force_n[1]);
+        let mut tan_ctl =
+            ForceController::new(INITIAL_STIFFNESS_N_PER_MM, MAX_CONTROL_STEP_MM, max_t);
+        let max_depth = self.plan.safety.travel_max_mm[2];
+        for _ in 0..self.plan.max_control_steps {
+            let w = self.mean_force(CONTROL_SAMPLES)?;
+            let f = w.force_n;
+            let q = f[0] * dir[0] + f[1] * dir[1];
+            let normal_ok = (f[2] - sp.normal_n).abs() <= tol;
+            let tangential_ok = t_mag == 0.0 || (q - t_mag).abs() <= tol;
+            if normal_ok && tangential_ok {
+                return Ok(());
+            }
+            let here = self
+                .commanded
+                .unwrap_or(self.geom.stage_point(sp.position_mm, 0.0));
+            let xy = self.geom.sensor_xy(here);
+            if !normal_ok {
+                let depth = self.geom.depth(here[2]);
+                let next = self
+                    .normal_ctl
+                    .next_z(depth, f[2], sp.normal_n)
+                    .min(max_depth);
+                if next <= depth + 1e-9 && f[2] < sp.normal_n - tol {
+                    return Err(Halt::Abort(format!(
+                        "cannot reach fz = {:.4} N: {:.4} N at the deepest allowed indentation {max_depth} mm",
+                        sp.normal_n, f[2]
+                    )));
+                }
+                let target = self.geom.stage_point(xy, next);
+                self.guarded_move(target, self.plan.approach_speed_mm_s, None)?;
+            } else {
+                // Lateral travel s along the direction; Q grows with s (Mindlin).
+                let s = lateral[0] * dir[0] + lateral[1] * dir[1];
+                let next = tan_ctl.next_z(s, q, t_mag);
+                let d = next - s;
+                let target_xy = [xy[0] + d * dir[0], xy[1] + d * dir[1]];
+                lateral[0] += d * dir[0];
+                lateral[1] += d * dir[1];
+                let target = [
+                    self.geom.stage_xy(target_xy)[0],
+                    self.geom.stage_xy(target_xy)[1],
+                    here[2],
+                ];
+                self.guarded_move(target, self.plan.approach_speed_mm_s, None)?;
+            }
+        }
+        let w = self.mean_force(CONTROL_SAMPLES)?;
+        Err(Halt::Abort(format!(
+            "force control did not converge in {} steps (control.max_steps): measured ({:.4}, {:.4}, {:.4}) N, target ({:.4}, {:.4}, {:.4}) N ± {:.4} N",
+            self.plan.max_control_steps,
+            w.force_n[0],
+            w.force_n[1],
+            w.force_n[2],
+            sp.tangential_n[0],
+            sp.tangential_n[1],
+            sp.normal_n,
+            tol
+        )))
+    }
+
+    /// Waits for the force to settle (or the fixed dwell). Returns whether it settled.
+    pub(super) fn settle(&mut self) -> Step<bool> {
+        let st = self.plan.settle;
+        let t0 = Instant::now();
+        if st.dwell_s > 0.0 {
+            while t0.elapsed().as_secs_f64() < st.dwell_s {
+                if self.stopped() {
+                    return Err(Halt::Interrupted);
+                }
+                let left = st.dwell_s - t0.elapsed().as_secs_f64();
+                self.dev
+                    .sleep(Duration::from_secs_f64(left.clamp(0.0, 0.05)));
+            }
+            return Ok(true);
+        }
+        let mut det = SettleDetector::new(st.window_s, st.max_sd_n);
+        loop {
+            if self.stopped() {
+                return Err(Halt::Interrupted);
+            }
+            let w = self.read_retry()?;
+            if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                return Err(self.trip(format!("{trip}"), Instant::now()));
+            }
+            let f = w.force_n;
+            let t = t0.elapsed().as_secs_f64();
+            if det.push(t, (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt()) {
+                return Ok(true);
+            }
+            if t >= st.timeout_s {
+                return Ok(false);
+            }
+        }
+    }
+
+    /// One setpoint, from motion to the journal row (not yet appended).
+    pub(super) fn measure(&mut self, sp: &Setpoint, retract: bool) -> Step<JournalRow> {
+        let t_move0 = Instant::now();
+        let target_xy = [
+            sp.position_mm[0] + sp.shift_mm[0],
+            sp.position_mm[1] + sp.shift_mm[1],
+        ];
+        // Checks before any motion: the lateral target at the retract height and the
+        // deepest allowed indentation there.
+        if sp.normal_n > 0.0 {
+            let deepest = self
+                .geom
+                .stage_point(target_xy, self.plan.safety.travel_max_mm[2]);
+            self.check_target(deepest)?;
+        }
+        let safe = self.geom.stage_point(target_xy, -self.geom.clearance_mm);
+        self.check_target(safe)?;
+
+        let mut lateral = [0.0; 2];
+        if retract || !self.in_contact {
+            if sp.shift_mm != [0.0, 0.0] {
+                // Displacement trials start from the unshifted position.
+                self.move_lateral_at_clearance(sp.position_mm)?;
+            }
+            self.move_lateral_at_clearance(target_xy)?;
+            if sp.normal_n > 0.0 {
+                self.approach(target_xy)?;
+            }
+        }
+        let mut settled = true;
+        let mut t_settle = 0.0;
+        let mut t_move = 0.0;
+        for attempt in 0..=SETTLE_RETRIES {
+            let t_c = Instant::now();
+            if sp.normal_n > 0.0 {
+                self.control(sp, &mut lateral)?;
+            }
+            t_move += if attempt == 0 {
+                t_move0.elapsed().as_secs_f64()
+            } else {
+                t_c.elapsed().as_secs_f64()
+            };
+            let t_s = Instant::now();
+            settled = self.settle()?;
+            t_settle += t_s.elapsed().as_secs_f64();
+            if sp.normal_n <= 0.0 || attempt == SETTLE_RETRIES {
+                break;
+            }
+            let f = self.mean_force(CONTROL_SAMPLES)?.force_n;
+            let dz = (f[2] - sp.normal_n).abs();
+            if dz <= self.plan.force_tolerance_n {
+                break;
+            }
+            (self.events)(&RunEvent::Retry {
+                index: Some(sp.index),
+                attempt: attempt + 1,
+                reason: format!(
+                    "fz drifted to {:.4} N while settling (target {:.4} N ± {:.4} N): controlling again",
+                    f[2], sp.normal_n, self.plan.force_tolerance_n
+                ),
+            });
+        }
+
+        // Acquire.
+        let t_acq = Instant::now();
+        let n = self.plan.samples;
+        let mut samples = Vec::with_capacity(n);
+        for _ in 0..n {
+            let w = self.read_retry()?;
+            if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                return Err(self.trip(format!("{trip}"), Instant::now()));
+            }
+            samples.push(w);
+        }
+        let (mean, sd) = mean_sd(&samples);
+        let stage = self
+            .dev
+            .position()
+            .map_err(|e| dev_abort("reading the position", &e))?;
+        let mut frames = Vec::with_capacity(self.plan.frames);
+        for _ in 0..self.plan.frames {
+            frames.push(self.grab_retry()?);
+        }
+        let t_acquire = t_acq.elapsed().as_secs_f64();
+
+        let (rel, fsum, t_track, t_solve) = self.process_frames(sp.index, &frames)?;
+        Ok(JournalRow {
+            index: sp.index,
+            trial: sp.trial,
+            swept_value: sp.swept_value,
+            target_normal_n: sp.normal_n,
+            target_tx_n: sp.tangential_n[0],
+            target_ty_n: sp.tangential_n[1],
+            fx_n: mean.force_n[0],
+            fy_n: mean.force_n[1],
+            fz_n: mean.force_n[2],
+            mx_nm: mean.torque_nm[0],
+            my_nm: mean.torque_nm[1],
+            mz_nm: mean.torque_nm[2],
+            fx_sd_n: sd[0],
+            fy_sd_n: sd[1],
+            fz_sd_n: sd[2],
+            stage_x_mm: stage[0],
+            stage_y_mm: stage[1],
+            stage_z_mm: stage[2],
+            settled,
+            frames: rel.join(";"),
+            fsum_x_n: fsum[0],
+            fsum_y_n: fsum[1],
+            fsum_z_n: fsum[2],
+            t_move_s: t_move,
+            t_settle_s: t_settle,
+            t_acquire_s: t_acquire,
+            t_track_s: t_track,
+            t_solve_s: t_solve,
+            completed_at: String::new(),
+        })
+    }
+
+    /// Saves, tracks and reconstructs a setpoint's frames. Returns the frame paths
+    /// (relative), the force sums and the tracking / solving times.
+    #[allow(clippy::type_complexity)]
+    pub(super) fn process_frames(
+        &mut self,
+        index: usize,
+        frames: &[CameraFrame],
+    ) -> Step<(Vec<String>, [f64; 3], f64, f64)> {
+        let sensor = self.sensor;
+        let mut rel = Vec::with_capacity(frames.len());
+        let mut tracked: Vec<(String, Vec<MarkerTrack>)> = Vec::with_capacity(frames.len());
+        let mut t_track = 0.0;
+        for (k, f) in frames.iter().enumerate() {
+            let name = format!("frames/{index:05}_{k}.png");
+            let t_io = Instant::now();
+            f.image
+                .save(self.dir.join(&name))
+                .map_err(|e| Halt::Abort(format!("cannot write {name}: {e}")))?;
+            self.io_s += t_io.elapsed().as_secs_f64();
+            let t0 = Instant::now();
+            let tracker = self
+                .tracker
+                .as_mut()
+                .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
+            let tracks = tracker
+                .track(&FrameView::rgb8(&f.image))
+                .map_err(|e| Halt::Abort(format!("tracking {name}: {e}")))?
+                .to_vec();
+            t_track += t0.elapsed().as_secs_f64();
+            tracked.push((name.clone(), tracks));
+            rel.push(name);
+        }
+        let tracker = self
+            .tracker
+            .as_ref()
+            .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
+        let t_io = Instant::now();
+        let dpath = format!("displacements/{index:05}.csv");
+        vision::write_tracks(
+            &self.dir.join(&dpath),
+            sensor,
+            tracker.reference(),
+            &tracked,
+        )
+        .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
+        self.io_s += t_io.elapsed().as_secs_f64();
+
+        // Mean displacement over the frames; a marker lost in any frame is lost.
+        let t0 = Instant::now();
+        let mut records = Vec::new();
+        for (k, (_, tracks)) in tracked.iter().enumerate() {
+            let r = tracker.displacement_records(tracks, &sensor.camera);
+            if k == 0 {
+                records = r;
+            } else {
+                for (acc, x) in records.iter_mut().zip(r) {
+                    acc.u_mm = match (acc.u_mm, x.u_mm) {
+                        (Some(a), Some(b)) => Some([a[0] + b[0], a[1] + b[1]]),
+                        _ => None,
+                    };
+                }
+            }
+        }
+        let nf = tracked.len().max(1) as f64;
+        for r in &mut records {
+            if let Some(u) = r.u_mm.as_mut() {
+                u[0] /= nf;
+                u[1] /= nf;
+            }
+        }
+        let frame = DisplacementFrame {
+            frame: String::new(),
+            records,
+        };
+        let sites = frame.sites(sensor);
+        let u = frame.u_mm();
+        let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
+        let n_out = 3 * sensor.force_grid.len();
+        let mut f = vec![f64::NAN; n_out];
+        let mut precompute_s = 0.0;
+        let solved: Result<(), String> = (|| {
+            if !self.solvers.contains_key(&key) {
+                let tp = Instant::now();
+                let problem = Problem::new(sensor, &sites);
+                let s = solve::precompute(&problem, &self.plan.solver, Some(&u))
+                    .map_err(|e| e.to_string())?;
+                self.solvers.insert(key.clone(), s);
+                precompute_s = tp.elapsed().as_secs_f64();
+            }
+            let s = self
+                .solvers
+                .get_mut(&key)
+                .ok_or_else(|| "solver cache".to_string())?;
+            s.apply(&u, &mut f).map_err(|e| e.to_string())
+        })();
+        if let Err(e) = solved {
+            f.iter_mut().for_each(|v| *v = f64::NAN);
+            (self.events)(&RunEvent::Warning {
+                index,
+                message: format!("reconstruction failed ({e}); force sums recorded as NaN"),
+            });
+        }
+        let t_solve = (t0.elapsed().as_secs_f64() - precompute_s).max(0.0);
+        self.precompute_s += precompute_s;
+        let mut fsum = [0.0; 3];
+        for (j, v) in f.iter().enumerate() {
+            fsum[j % 3] += v;
+        }
+        let t_io = Instant::now();
+        let fpath = format!("forces/{index:05}.csv");
+        formats::write_forces(
+            &self.dir.join(&fpath),
+            &sensor.force_grid,
+            &[(String::new(), f)],
+        )
+        .map_err(|e| Halt::Abort(format!("cannot write {fpath}: {e}")))?;
+        self.io_s += t_io.elapsed().as_secs_f64();
+        self.track_s += t_track;
+        self.solve_s += t_solve;
+        Ok((rel, fsum, t_track, t_solve))
+    }
+}
+
+/// Mean wrench and per-component force SD (sample SD; 0 for one sample).
+pub(super) fn mean_sd(samples: &[Wrench]) -> (Wrench, [f64; 3]) {
+    let n = samples.len().max(1) as f64;
+    let m = Wrench::mean(samples);
+    let mut sd = [0.0; 3];
+    if samples.len() > 1 {
+        for (i, s) in sd.iter_mut().enumerate() {
+            let ss: f64 = samples
+                .iter()
+                .map(|w| (w.force_n[i] - m.force_n[i]).powi(2))
+                .sum();
+            *s = (ss / (n - 1.0)).sqrt();
+        }
+    }
+    (m, sd)
+}

@@ -1,0 +1,727 @@
+//! The bench runner: drives a stage, a force/torque sensor and a camera through a
+//! plan's setpoints and records each measurement in a crash-safe run directory. It
+//! works on the capability traits only (`&mut dyn Stage`, `&mut dyn ForceSensor`,
+//! `&mut dyn Camera`), so the same code runs a real bench and the simulated one, and
+//! it never prints: progress goes to a callback as [`RunEvent`]s.
+//!
+//! Per setpoint (index `NNNNN`):
+//! 1. **Checks before motion**: every target (stage xy, deepest allowed indentation,
+//!    retract height) against the plan's sensor-frame travel box and the stage's own
+//!    travel limits.
+//! 2. **Position**: retract to `clearance_mm` above the surface when the contact must
+//!    be renewed (new position or trial, a tangential load before or now, no load),
+//!    move laterally, then approach at the plan's speed until the normal force exceeds
+//!    `approach.contact_force` (contact detection on the force reading).
+//! 3. **Force control**: closed-loop z steps ([`ForceController`], secant stiffness,
+//!    never planning past the safety limit) until `|fz − target| ≤ tolerance`;
+//!    tangential targets by lateral steps along the target direction, alternating
+//!    with the normal loop until both hold.
+//! 4. **Settle**: force SD over `settle.window_s` below `settle.max_sd` (timeout
+//!    `settle.timeout_s`, the row is flagged `settled = false`), or a fixed
+//!    `settle.dwell_s`. If the force drifted out of tolerance while settling (creep),
+//!    control and settling are retried (at most [`SETTLE_RETRIES`] times).
+//! 5. **Acquire**: mean and SD of `acquire.samples` F/T readings, the stage position,
+//!    `acquire.frames` frames (`frames/NNNNN_K.png`).
+//! 6. **Track and reconstruct**: every frame against the run's reference frame
+//!    (`displacements/NNNNN.csv`, as `tactbench track` writes it); forces from the
+//!    mean displacement over the frames (`forces/NNNNN.csv`) with the plan's solver,
+//!    precomputed once per set of tracked markers.
+//! 7. **Journal**: the row is appended and synced before the next move.
+//!
+//! Code layout: this file holds the public types, [`run`] and set-up (`prepare`);
+//! `motion` the timed device calls, travel checks, guarded moves with the safety
+//! watchdog, retract and approach; `acquire` force control, settling, acquisition,
+//! tracking and reconstruction of one setpoint; `dry_run` planning without devices.
+//!
+//! **Safety watchdog.** While the stage moves, the runner reads the force sensor in a
+//! loop; any component beyond `safety.max_force` stops the stage (GRBL feed hold,
+//! Zaber `stop`), the time from the offending reading to the stage standing still is
+//! measured (stop latency), the stage retracts, and the run aborts with the reason
+//! and latency in the manifest. Settling and acquisition check the limits as well.
+//!
+//! **Stop flag.** When the caller's flag (Ctrl-C) is set, motion stops, the stage
+//! retracts, the journal is already durable, and the manifest says `interrupted`.
+//!
+//! **Resume.** [`run`] with `resume = true` reopens the journal (a torn last line is
+//! cut), skips completed indices, homes / tares as the bench requires, and takes a new
+//! reference frame (`frames/reference_resumeN.png`; `frames/reference.png` stays the
+//! first run's).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use thiserror::Error;
+
+use super::config::BenchGeometry;
+use super::control::ForceController;
+use super::journal::{Journal, JournalError, Manifest, RunStatus};
+use super::plan::{Plan, Setpoint, Sweep};
+use crate::device::{Camera, DeviceError, ForceSensor, Stage, StagePositionMm, TravelLimits};
+use crate::sensor::Sensor;
+use crate::solve::FrameSolver;
+use crate::vision::{self, FrameView, TrackConfig, Tracker};
+
+/// Times control and settling are redone when the force left the tolerance while
+/// settling (elastomer creep).
+pub const SETTLE_RETRIES: usize = 2;
+
+/// Retries of a failed F/T read or camera grab before the run aborts.
+pub const READ_RETRIES: usize = 3;
+
+/// F/T readings averaged per force-control step (the control input).
+pub const CONTROL_SAMPLES: usize = 3;
+
+/// Largest z step of the force controller, mm.
+pub const MAX_CONTROL_STEP_MM: f64 = 0.5;
+
+/// Initial contact stiffness estimate of the force controller, N/mm (stiff enough
+/// that the first step undershoots on the paper's elastomer; the secant takes over).
+pub const INITIAL_STIFFNESS_N_PER_MM: f64 = 4.0;
+
+/// Position tolerance for "the stage reached its target", mm.
+pub const POSITION_TOLERANCE_MM: f64 = 0.005;
+
+/// Longest wait for a stage to finish a move beyond its nominal duration.
+pub const MOVE_GRACE: Duration = Duration::from_secs(5);
+
+mod acquire;
+mod dry_run;
+mod motion;
+
+pub use dry_run::{dry_run, estimate_duration, needs_retract, DryRun};
+use motion::Timed;
+
+/// An error that prevents a run from starting or recording (device and safety
+/// problems during the run end it as `aborted` instead, see [`RunSummary`]).
+#[derive(Debug, Error)]
+pub enum RunError {
+    /// The run directory or its journal / manifest.
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+    /// A file in the run directory.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The run cannot start as asked (existing run, resume of another plan).
+    #[error("{0}")]
+    Setup(String),
+}
+
+/// The devices a run drives.
+pub struct Devices<'a> {
+    /// The stage.
+    pub stage: &'a mut dyn Stage,
+    /// The force/torque sensor.
+    pub ft: &'a mut dyn ForceSensor,
+    /// The camera.
+    pub camera: &'a mut dyn Camera,
+}
+
+/// How to run.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// The run directory.
+    pub dir: PathBuf,
+    /// Continue the run in `dir` (else `dir` must not hold a run).
+    pub resume: bool,
+    /// Elastomer build id (overrides the plan's).
+    pub build_id: Option<String>,
+    /// The plan file's text (for the manifest).
+    pub plan_toml: String,
+    /// The sensor file's text (for the manifest).
+    pub sensor_toml: String,
+    /// Bench description for the manifest.
+    pub bench: serde_json::Value,
+    /// Device identities for the manifest.
+    pub devices: serde_json::Value,
+    /// Run the homing cycle before the first setpoint.
+    pub home: bool,
+    /// Tare the force sensor unloaded before the reference frame.
+    pub tare: bool,
+    /// Only the first `limit` setpoints of the plan (a new run records the count in
+    /// the manifest; a resume takes it from there).
+    pub limit: Option<usize>,
+    /// Set by the caller (Ctrl-C) to stop the run cleanly.
+    pub stop: Arc<AtomicBool>,
+}
+
+/// Progress, for the CLI's progress bar and logs.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RunEvent {
+    /// The run starts: `done` of `total` setpoints are already in the journal.
+    Started {
+        /// Setpoints in the run.
+        total: usize,
+        /// Already completed (resume).
+        done: usize,
+        /// A torn journal line was cut on resume (bytes).
+        truncated_bytes: u64,
+    },
+    /// The stage is homing.
+    Homing,
+    /// The force sensor was tared; `residual_n` = |F| right after.
+    Tared {
+        /// |F| after taring, N.
+        residual_n: f64,
+    },
+    /// The reference frame was taken.
+    Reference {
+        /// Its file, relative to the run directory.
+        path: String,
+        /// Markers found.
+        markers: usize,
+        /// Grid nodes without a marker.
+        missing: usize,
+    },
+    /// A setpoint starts.
+    SetpointStarted {
+        /// The setpoint.
+        setpoint: Setpoint,
+        /// Completed so far.
+        done: usize,
+        /// Setpoints in the run.
+        total: usize,
+    },
+    /// Contact found during the approach.
+    Contact {
+        /// Setpoint index.
+        index: usize,
+        /// Indentation depth at contact (from the bench geometry), mm.
+        depth_mm: f64,
+        /// Normal force at contact, N.
+        fz_n: f64,
+    },
+    /// Something was retried.
+    Retry {
+        /// Setpoint index, when in a setpoint.
+        index: Option<usize>,
+        /// Attempt number (1 = first retry).
+        attempt: usize,
+        /// Why.
+        reason: String,
+    },
+    /// A non-fatal problem (e.g. a reconstruction that failed; the row keeps NaN).
+    Warning {
+        /// Setpoint index.
+        index: usize,
+        /// What happened.
+        message: String,
+    },
+    /// A setpoint was measured and journalled.
+    SetpointMeasured {
+        /// Setpoint index.
+        index: usize,
+        /// Completed so far (including this one).
+        done: usize,
+        /// Setpoints in the run.
+        total: usize,
+        /// Target force (fx, fy, fz), N.
+        target_n: [f64; 3],
+        /// Measured mean force, N.
+        force_n: [f64; 3],
+        /// Reconstructed force sums, N.
+        fsum_n: [f64; 3],
+        /// Settle criterion met.
+        settled: bool,
+        /// Wall time of the setpoint, s.
+        elapsed_s: f64,
+        /// Time blocked in device calls and waits, s.
+        device_s: f64,
+        /// Controller overhead: wall − device − tracking − solving − file writes, s.
+        overhead_s: f64,
+    },
+    /// The safety watchdog stopped the stage.
+    SafetyTrip {
+        /// Setpoint index, when in a setpoint.
+        index: Option<usize>,
+        /// What exceeded which limit.
+        reason: String,
+        /// Time from the offending reading to the stage standing still, s.
+        stop_latency_s: f64,
+    },
+    /// The run ended.
+    Finished {
+        /// How.
+        status: RunStatus,
+        /// Why, when not completed.
+        reason: Option<String>,
+    },
+}
+
+/// Where the time of the measured setpoints went (this session only).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Timings {
+    /// Setpoints measured.
+    pub setpoints: usize,
+    /// Wall time of those setpoints, s.
+    pub wall_s: f64,
+    /// Blocked in device calls (moves, reads, grabs, waits) and dwell sleeps, s.
+    pub device_s: f64,
+    /// Tracking, s.
+    pub track_s: f64,
+    /// Reconstruction per setpoint (averaging + solver apply), s.
+    pub solve_s: f64,
+    /// One-off solver precomputes (first setpoint, and whenever the set of tracked
+    /// markers changes), s; kept out of `solve_s` and the journal's `t_solve_s`, which
+    /// are per-frame costs (paper Table II).
+    pub precompute_s: f64,
+    /// Writing frames, CSVs and the journal, s.
+    pub io_s: f64,
+    /// Controller overhead (the rest), summed, s.
+    pub overhead_s: f64,
+    /// Largest controller overhead of one setpoint, s.
+    pub max_overhead_s: f64,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunSummary {
+    /// Final status (also in the manifest).
+    pub status: RunStatus,
+    /// Why, when not completed.
+    pub reason: Option<String>,
+    /// Setpoints in the run.
+    pub total: usize,
+    /// Setpoints in the journal now.
+    pub done: usize,
+    /// Setpoints measured in this session.
+    pub measured: usize,
+    /// Where the time went.
+    pub timings: Timings,
+}
+
+/// Why the run stops early.
+#[derive(Debug, Clone, PartialEq)]
+enum Halt {
+    Interrupted,
+    Abort(String),
+}
+
+type Step<T> = Result<T, Halt>;
+
+fn dev_abort(context: &str, e: &DeviceError) -> Halt {
+    Halt::Abort(format!("{context}: {e}"))
+}
+
+/// Current time as RFC 3339 UTC (seconds).
+pub fn rfc3339_now() -> String {
+    let secs = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs() as i64)
+        .unwrap_or(0);
+    rfc3339(secs)
+}
+
+/// Seconds since the Unix epoch as RFC 3339 UTC (civil-from-days, H. Hinnant).
+pub fn rfc3339(secs: i64) -> String {
+    let days = secs.div_euclid(86_400);
+    let sod = secs.rem_euclid(86_400);
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let y = yoe + era * 400;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = if m <= 2 { y + 1 } else { y };
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        sod / 3600,
+        (sod / 60) % 60,
+        sod % 60
+    )
+}
+
+/// The run's mutable state.
+struct Runner<'p, 'd, 'a, 'e> {
+    plan: &'p Plan,
+    sensor: &'p Sensor,
+    geom: BenchGeometry,
+    dir: PathBuf,
+    dev: Timed<'d, 'a>,
+    events: &'e mut dyn FnMut(&RunEvent),
+    stop: Arc<AtomicBool>,
+    stage_limits: TravelLimits,
+    /// Stage position commanded last (the runner's belief), mm.
+    commanded: Option<StagePositionMm>,
+    /// In contact at the current setpoint's position.
+    in_contact: bool,
+    normal_ctl: ForceController,
+    tracker: Option<Tracker>,
+    solvers: HashMap<Vec<bool>, Box<dyn FrameSolver>>,
+    index: Option<usize>,
+    /// Per-setpoint accounting.
+    track_s: f64,
+    solve_s: f64,
+    precompute_s: f64,
+    io_s: f64,
+}
+
+/// Runs (or resumes) a plan on the given devices, writing the run directory.
+///
+/// Returns `Ok` with the final status whenever the run directory could be written,
+/// including aborts (device errors, safety trips) and interruptions: the reason is in
+/// the summary and the manifest. `Err` only when the run could not start or record.
+pub fn run(
+    plan: &Plan,
+    sensor: &Sensor,
+    geometry: &BenchGeometry,
+    devices: &mut Devices<'_>,
+    options: &RunOptions,
+    events: &mut dyn FnMut(&RunEvent),
+) -> Result<RunSummary, RunError> {
+    let dir = options.dir.clone();
+    let mut setpoints = plan.setpoints();
+    let (mut journal, mut manifest, truncated_bytes, resume_no) = if options.resume {
+        let manifest = Manifest::read(&dir)?;
+        if manifest.plan_toml != options.plan_toml {
+            return Err(RunError::Setup(format!(
+                "{}: the run was made with another plan (manifest plan {:?}); resume with the plan it was started with",
+                dir.display(),
+                manifest.plan_path
+            )));
+        }
+        if manifest.status == RunStatus::Completed {
+            return Err(RunError::Setup(format!(
+                "{}: the run is already completed ({} setpoints)",
+                dir.display(),
+                manifest.setpoints
+            )));
+        }
+        setpoints.truncate(manifest.setpoints);
+        let r = Journal::open_resume(&dir)?;
+        let resume_no = manifest.resumed_at.len() + 1;
+        (r.journal, manifest, r.truncated_bytes, resume_no)
+    } else {
+        if dir.join(super::journal::JOURNAL_FILE).exists()
+            || dir.join(super::journal::MANIFEST_FILE).exists()
+        {
+            return Err(RunError::Setup(format!(
+                "{} already holds a run: choose another --out, or continue it with --resume {}",
+                dir.display(),
+                dir.display()
+            )));
+        }
+        if let Some(n) = options.limit {
+            setpoints.truncate(n);
+        }
+        create_dir(&dir)?;
+        let manifest = Manifest {
+            plan_path: plan.path.display().to_string(),
+            plan_name: plan.name.clone(),
+            plan_toml: options.plan_toml.clone(),
+            sensor_path: plan.sensor_path.display().to_string(),
+            sensor_toml: options.sensor_toml.clone(),
+            bench: options.bench.clone(),
+            devices: options.devices.clone(),
+            build_id: options.build_id.clone().or_else(|| plan.build_id.clone()),
+            software_version: env!("CARGO_PKG_VERSION").to_string(),
+            started_at: rfc3339_now(),
+            resumed_at: Vec::new(),
+            setpoints: setpoints.len(),
+            status: RunStatus::Running,
+            end_reason: None,
+            ended_at: None,
+        };
+        manifest.write(&dir)?;
+        (Journal::create(&dir)?, manifest, 0, 0)
+    };
+    for sub in ["frames", "displacements", "forces"] {
+        create_dir(&dir.join(sub))?;
+    }
+    if options.resume {
+        manifest.resumed_at.push(rfc3339_now());
+        manifest.status = RunStatus::Running;
+        manifest.end_reason = None;
+        manifest.ended_at = None;
+        if options.devices != serde_json::Value::Null {
+            manifest.devices = options.devices.clone();
+        }
+        manifest.write(&dir)?;
+    }
+    let total = setpoints.len();
+    let mut done = journal.completed().len();
+    events(&RunEvent::Started {
+        total,
+        done,
+        truncated_bytes,
+    });
+
+    let stage_limits = devices.stage.limits();
+    let mut r = Runner {
+        plan,
+        sensor,
+        geom: *geometry,
+        dir: dir.clone(),
+        dev: Timed {
+            dev: devices,
+            blocked: Duration::ZERO,
+        },
+        events,
+        stop: Arc::clone(&options.stop),
+        stage_limits,
+        commanded: None,
+        in_contact: false,
+        normal_ctl: ForceController::new(
+            INITIAL_STIFFNESS_N_PER_MM,
+            MAX_CONTROL_STEP_MM,
+            plan.safety.max_force_n[2],
+        ),
+        tracker: None,
+        solvers: HashMap::new(),
+        index: None,
+        track_s: 0.0,
+        solve_s: 0.0,
+        precompute_s: 0.0,
+        io_s: 0.0,
+    };
+    let mut timings = Timings::default();
+    let mut measured = 0;
+
+    let outcome: Step<()> = (|| {
+        r.prepare(options, resume_no)?;
+        let mut prev: Option<Setpoint> = None;
+        for sp in &setpoints {
+            if journal.completed().contains(&sp.index) {
+                continue;
+            }
+            if r.stop.load(Ordering::SeqCst) {
+                return Err(Halt::Interrupted);
+            }
+            // After a skip (resume) the previous setpoint's contact is gone.
+            let fresh = prev.is_some_and(|p| p.index + 1 != sp.index);
+            let retract = needs_retract(if fresh { None } else { prev.as_ref() }, sp);
+            (r.events)(&RunEvent::SetpointStarted {
+                setpoint: *sp,
+                done,
+                total,
+            });
+            let t0 = Instant::now();
+            let blocked0 = r.dev.blocked;
+            r.track_s = 0.0;
+            r.solve_s = 0.0;
+            r.precompute_s = 0.0;
+            r.io_s = 0.0;
+            r.index = Some(sp.index);
+            let mut row = r.measure(sp, retract)?;
+            let t_io = Instant::now();
+            row.completed_at = rfc3339_now();
+            journal
+                .append(&row)
+                .map_err(|e| Halt::Abort(format!("cannot write the journal: {e}")))?;
+            r.io_s += t_io.elapsed().as_secs_f64();
+            done += 1;
+            measured += 1;
+            let elapsed_s = t0.elapsed().as_secs_f64();
+            let device_s = (r.dev.blocked - blocked0).as_secs_f64();
+            let overhead_s =
+                (elapsed_s - device_s - r.track_s - r.solve_s - r.precompute_s - r.io_s).max(0.0);
+            timings.setpoints += 1;
+            timings.wall_s += elapsed_s;
+            timings.device_s += device_s;
+            timings.track_s += r.track_s;
+            timings.solve_s += r.solve_s;
+            timings.precompute_s += r.precompute_s;
+            timings.io_s += r.io_s;
+            timings.overhead_s += overhead_s;
+            timings.max_overhead_s = timings.max_overhead_s.max(overhead_s);
+            (r.events)(&RunEvent::SetpointMeasured {
+                index: sp.index,
+                done,
+                total,
+                target_n: [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n],
+                force_n: [row.fx_n, row.fy_n, row.fz_n],
+                fsum_n: [row.fsum_x_n, row.fsum_y_n, row.fsum_z_n],
+                settled: row.settled,
+                elapsed_s,
+                device_s,
+                overhead_s,
+            });
+            prev = Some(*sp);
+        }
+        r.index = None;
+        r.retract()?;
+        Ok(())
+    })();
+
+    let (status, reason) = match outcome {
+        Ok(()) => (RunStatus::Completed, None),
+        Err(Halt::Interrupted) => {
+            // Stop motion first, then leave the contact; the journal is already durable.
+            let _ = r.dev.stop();
+            let retract = r.retract_unguarded();
+            let reason = match retract {
+                Ok(()) => {
+                    "interrupted by the user (Ctrl-C): motion stopped, stage retracted".to_string()
+                }
+                Err(e) => format!("interrupted by the user (Ctrl-C); retract failed: {e:?}"),
+            };
+            (RunStatus::Interrupted, Some(reason))
+        }
+        Err(Halt::Abort(reason)) => {
+            let _ = r.dev.stop();
+            let reason = match r.retract_unguarded() {
+                Ok(()) => reason,
+                Err(e) => format!("{reason}; retract after abort failed: {e:?}"),
+            };
+            (RunStatus::Aborted, Some(reason))
+        }
+    };
+    manifest.status = status;
+    manifest.end_reason = reason.clone();
+    manifest.ended_at = Some(rfc3339_now());
+    manifest.write(&dir)?;
+    (r.events)(&RunEvent::Finished {
+        status,
+        reason: reason.clone(),
+    });
+    Ok(RunSummary {
+        status,
+        reason,
+        total,
+        done: journal.completed().len(),
+        measured,
+        timings,
+    })
+}
+
+fn create_dir(p: &Path) -> Result<(), RunError> {
+    std::fs::create_dir_all(p).map_err(|source| RunError::Io {
+        path: p.to_path_buf(),
+        source,
+    })
+}
+
+impl Runner<'_, '_, '_, '_> {
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::SeqCst)
+    }
+
+    /// Homing, retract, tare and the reference frame.
+    fn prepare(&mut self, options: &RunOptions, resume_no: usize) -> Step<()> {
+        // Leave any contact a killed run left behind before anything else moves.
+        self.retract()?;
+        if options.home {
+            (self.events)(&RunEvent::Homing);
+            self.dev.home().map_err(|e| dev_abort("homing", &e))?;
+            self.commanded = None;
+        }
+        let xy = self.plan.approach_position_mm;
+        self.move_lateral_at_clearance(xy)?;
+        if options.tare {
+            self.dev.tare().map_err(|e| dev_abort("taring", &e))?;
+            // The next samples reflect the new offset (DynPick applies it to the next
+            // record; FT 300 at once).
+            self.dev.sleep(Duration::from_millis(20));
+            let w = self.read_retry()?;
+            let f = w.force_n;
+            (self.events)(&RunEvent::Tared {
+                residual_n: (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt(),
+            });
+        }
+        let frame = self.grab_retry()?;
+        let name = if resume_no == 0 {
+            "frames/reference.png".to_string()
+        } else {
+            format!("frames/reference_resume{resume_no}.png")
+        };
+        let t_io = Instant::now();
+        frame
+            .image
+            .save(self.dir.join(&name))
+            .map_err(|e| Halt::Abort(format!("cannot write {name}: {e}")))?;
+        self.io_s += t_io.elapsed().as_secs_f64();
+        let reference = vision::detect(
+            &FrameView::rgb8(&frame.image),
+            self.sensor,
+            &vision::DetectConfig::default(),
+        )
+        .map_err(|e| Halt::Abort(format!("reference frame {name}: {e}")))?;
+        (self.events)(&RunEvent::Reference {
+            path: name,
+            markers: reference.markers.len(),
+            missing: reference.missing.len(),
+        });
+        self.tracker = Some(Tracker::new(reference, TrackConfig::default()));
+        Ok(())
+    }
+}
+
+/// The planned sweep kind's name (for messages and the CLI).
+pub fn sweep_name(plan: &Plan) -> &'static str {
+    match plan.sweep {
+        Sweep::Magnitude { .. } => "magnitude",
+        Sweep::Angle { .. } => "angle",
+        Sweep::Spatial { .. } => "spatial",
+        Sweep::Displacement { .. } => "displacement",
+        Sweep::Setpoints(_) => "setpoints",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::acquire::mean_sd;
+    use super::*;
+    use crate::device::Wrench;
+
+    #[test]
+    fn rfc3339_matches_known_instants() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00Z");
+        // 2000-02-29 (leap day) 12:34:56 UTC = 951827696.
+        assert_eq!(rfc3339(951_827_696), "2000-02-29T12:34:56Z");
+        assert_eq!(rfc3339(1_795_305_600), "2026-11-22T00:00:00Z");
+    }
+
+    fn sp(index: usize, trial: usize, normal_n: f64, tangential_n: [f64; 2]) -> Setpoint {
+        Setpoint {
+            index,
+            trial,
+            position_mm: [9.0, 6.75],
+            normal_n,
+            tangential_n,
+            shift_mm: [0.0; 2],
+            swept_value: 0.0,
+        }
+    }
+
+    #[test]
+    fn contact_is_kept_only_along_a_normal_ramp() {
+        let a = sp(1, 0, 0.5, [0.0; 2]);
+        let b = sp(2, 0, 1.0, [0.0; 2]);
+        assert!(!needs_retract(Some(&a), &b), "ramp continues in contact");
+        assert!(needs_retract(None, &b), "first setpoint");
+        assert!(
+            needs_retract(Some(&a), &sp(2, 1, 1.0, [0.0; 2])),
+            "new trial"
+        );
+        assert!(
+            needs_retract(Some(&a), &sp(2, 0, 1.0, [0.1, 0.0])),
+            "tangential"
+        );
+        assert!(needs_retract(Some(&a), &sp(2, 0, 0.0, [0.0; 2])), "unload");
+        let mut c = b;
+        c.position_mm = [9.5, 6.75];
+        assert!(needs_retract(Some(&a), &c), "new position");
+    }
+
+    #[test]
+    fn mean_and_sample_sd_of_readings() {
+        let w = |fz| Wrench {
+            force_n: [0.0, 0.0, fz],
+            torque_nm: [0.0; 3],
+        };
+        let (m, sd) = mean_sd(&[w(1.0), w(2.0), w(3.0)]);
+        assert!((m.force_n[2] - 2.0).abs() < 1e-15);
+        assert!((sd[2] - 1.0).abs() < 1e-15);
+        assert_eq!(sd[0], 0.0);
+    }
+}

@@ -1,0 +1,363 @@
+//! Motion: device calls with their time accounted ([`Timed`]), travel checks, guarded
+//! moves under the force watchdog, retract, lateral moves and the approach with contact
+//! detection.
+
+use std::time::{Duration, Instant};
+
+use super::{
+    dev_abort, Devices, Halt, RunEvent, Runner, Step, MOVE_GRACE, POSITION_TOLERANCE_MM,
+    READ_RETRIES,
+};
+use crate::bench::control::check_force_limits;
+use crate::device::{CameraFrame, DeviceResult, ErrorKind, StagePositionMm, StageState, Wrench};
+
+/// Device calls with the time spent in them accounted.
+pub(super) struct Timed<'d, 'a> {
+    pub(super) dev: &'d mut Devices<'a>,
+    pub(super) blocked: Duration,
+}
+
+macro_rules! timed {
+    ($self:ident, $e:expr) => {{
+        let t0 = Instant::now();
+        let r = $e;
+        $self.blocked += t0.elapsed();
+        r
+    }};
+}
+
+impl Timed<'_, '_> {
+    pub(super) fn read(&mut self) -> DeviceResult<Wrench> {
+        timed!(self, self.dev.ft.read())
+    }
+    pub(super) fn read_once(&mut self) -> DeviceResult<Wrench> {
+        timed!(self, self.dev.ft.read_once())
+    }
+    pub(super) fn tare(&mut self) -> DeviceResult<()> {
+        timed!(self, self.dev.ft.tare())
+    }
+    pub(super) fn move_to(&mut self, p: StagePositionMm, v: f64) -> DeviceResult<()> {
+        timed!(self, self.dev.stage.move_to(p, Some(v)))
+    }
+    pub(super) fn position(&mut self) -> DeviceResult<StagePositionMm> {
+        timed!(self, self.dev.stage.position())
+    }
+    pub(super) fn state(&mut self) -> DeviceResult<StageState> {
+        timed!(self, self.dev.stage.state())
+    }
+    pub(super) fn stop(&mut self) -> DeviceResult<()> {
+        timed!(self, self.dev.stage.stop())
+    }
+    pub(super) fn wait_idle(&mut self, t: Duration) -> DeviceResult<()> {
+        timed!(self, self.dev.stage.wait_idle(t))
+    }
+    pub(super) fn home(&mut self) -> DeviceResult<()> {
+        timed!(self, self.dev.stage.home())
+    }
+    pub(super) fn grab(&mut self) -> DeviceResult<CameraFrame> {
+        timed!(self, self.dev.camera.grab())
+    }
+    pub(super) fn sleep(&mut self, d: Duration) {
+        timed!(self, std::thread::sleep(d))
+    }
+}
+
+impl Runner<'_, '_, '_, '_> {
+    /// Checks a stage target against the plan's sensor-frame box and the stage box.
+    pub(super) fn check_target(&self, target: StagePositionMm) -> Step<()> {
+        let s = &self.plan.safety;
+        let xy = self.geom.sensor_xy(target);
+        let depth = self.geom.depth(target[2]);
+        let p = [xy[0], xy[1], depth];
+        for (i, name) in ["x", "y", "depth z"].iter().enumerate() {
+            let v = p[i];
+            if !(v.is_finite() && v >= s.travel_min_mm[i] - 1e-9 && v <= s.travel_max_mm[i] + 1e-9)
+            {
+                return Err(Halt::Abort(format!(
+                    "refused before moving: sensor-frame {name} = {v:.4} mm is outside the plan's travel box {}..{} mm",
+                    s.travel_min_mm[i], s.travel_max_mm[i]
+                )));
+            }
+        }
+        self.stage_limits
+            .check(target)
+            .map_err(|e| Halt::Abort(format!("refused before moving: stage {e}")))
+    }
+
+    /// The watchdog fired at `detected`: stop, measure the latency, retract, abort.
+    pub(super) fn trip(&mut self, what: String, detected: Instant) -> Halt {
+        let stop = self.dev.stop();
+        // Standing still: the stop call returned and the stage reports no motion.
+        let deadline = Instant::now() + Duration::from_secs(2);
+        while let Ok(StageState::Moving) = self.dev.state() {
+            if Instant::now() > deadline {
+                break;
+            }
+        }
+        let latency = detected.elapsed().as_secs_f64();
+        let stop_note = match stop {
+            Ok(()) => String::new(),
+            Err(e) => format!(" (stop command failed: {e})"),
+        };
+        let reason = format!(
+            "safety limit: {what}{}; stage stopped {:.1} ms after the reading{stop_note}",
+            self.index
+                .map(|i| format!(" at setpoint {i}"))
+                .unwrap_or_default(),
+            latency * 1e3
+        );
+        (self.events)(&RunEvent::SafetyTrip {
+            index: self.index,
+            reason: reason.clone(),
+            stop_latency_s: latency,
+        });
+        self.commanded = None;
+        Halt::Abort(reason)
+    }
+
+    /// A move under the watchdog. With `contact_n`, stops as soon as fz ≥ it and
+    /// returns `true` (contact); otherwise returns once the target is reached.
+    pub(super) fn guarded_move(
+        &mut self,
+        target: StagePositionMm,
+        speed_mm_s: f64,
+        contact_n: Option<f64>,
+    ) -> Step<bool> {
+        self.check_target(target)?;
+        if self.stopped() {
+            return Err(Halt::Interrupted);
+        }
+        let speed = speed_mm_s.min(self.plan.safety.max_speed_mm_s);
+        let from = self.commanded;
+        self.dev
+            .move_to(target, speed)
+            .map_err(|e| dev_abort(&format!("moving to {target:?} mm"), &e))?;
+        self.commanded = Some(target);
+        let distance = from.map_or(100.0, |f| {
+            ((f[0] - target[0]).powi(2) + (f[1] - target[1]).powi(2) + (f[2] - target[2]).powi(2))
+                .sqrt()
+        });
+        let mut deadline =
+            Instant::now() + Duration::from_secs_f64(distance / speed) * 2 + MOVE_GRACE;
+        let mut read_failures = 0;
+        loop {
+            if self.stopped() {
+                let _ = self.dev.stop();
+                return Err(Halt::Interrupted);
+            }
+            // One attempt per reading: the driver's retries would keep the stage
+            // moving blind for several reply deadlines.
+            let w = match self.dev.read_once() {
+                Ok(w) => w,
+                Err(e) => {
+                    // Blind while moving: stop first, then try to recover the sensor
+                    // and finish the move from where the stage stopped.
+                    let _ = self.dev.stop();
+                    if e.kind() == ErrorKind::Disconnected || read_failures >= READ_RETRIES {
+                        return Err(dev_abort("reading the force sensor while moving", &e));
+                    }
+                    read_failures += 1;
+                    (self.events)(&RunEvent::Retry {
+                        index: self.index,
+                        attempt: read_failures,
+                        reason: format!(
+                            "force sensor read failed while moving ({e}): stage stopped, resuming the move"
+                        ),
+                    });
+                    let w = self.read_retry()?;
+                    if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                        return Err(self.trip(format!("{trip}"), Instant::now()));
+                    }
+                    self.dev.move_to(target, speed).map_err(|e| {
+                        dev_abort(&format!("resuming the move to {target:?} mm"), &e)
+                    })?;
+                    deadline += MOVE_GRACE;
+                    continue;
+                }
+            };
+            if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                return Err(self.trip(format!("{trip}"), Instant::now()));
+            }
+            if let Some(c) = contact_n {
+                if w.force_n[2] >= c {
+                    self.dev
+                        .stop()
+                        .map_err(|e| dev_abort("stopping at contact", &e))?;
+                    let p = self
+                        .dev
+                        .position()
+                        .map_err(|e| dev_abort("reading the position at contact", &e))?;
+                    self.commanded = Some(p);
+                    (self.events)(&RunEvent::Contact {
+                        index: self.index.unwrap_or(0),
+                        depth_mm: self.geom.depth(p[2]),
+                        fz_n: w.force_n[2],
+                    });
+                    return Ok(true);
+                }
+            }
+            let state = self
+                .dev
+                .state()
+                .map_err(|e| dev_abort("polling the stage", &e))?;
+            match state {
+                StageState::Idle => {
+                    let p = self
+                        .dev
+                        .position()
+                        .map_err(|e| dev_abort("reading the position", &e))?;
+                    let off = (0..3).map(|i| (p[i] - target[i]).abs()).fold(0.0, f64::max);
+                    if off <= POSITION_TOLERANCE_MM {
+                        return Ok(false);
+                    }
+                }
+                StageState::Alarm => {
+                    return Err(Halt::Abort(format!(
+                        "the stage entered its alarm state while moving to {target:?} mm"
+                    )))
+                }
+                _ => {}
+            }
+            if Instant::now() > deadline {
+                let _ = self.dev.stop();
+                return Err(Halt::Abort(format!(
+                    "the stage did not reach {target:?} mm within {:.1} s",
+                    (distance / speed) * 2.0 + MOVE_GRACE.as_secs_f64()
+                )));
+            }
+        }
+    }
+
+    /// Stage z of the retract height.
+    pub(super) fn safe_z(&self) -> f64 {
+        self.geom.stage_z(-self.geom.clearance_mm)
+    }
+
+    /// Moves up to the retract height (z only) under the watchdog, unless already there.
+    pub(super) fn retract(&mut self) -> Step<()> {
+        let here = match self.commanded {
+            Some(p) => p,
+            None => {
+                let p = self
+                    .dev
+                    .position()
+                    .map_err(|e| dev_abort("reading the position", &e))?;
+                self.commanded = Some(p);
+                p
+            }
+        };
+        self.in_contact = false;
+        self.normal_ctl.reset();
+        if let Some(t) = self.tracker.as_mut() {
+            t.reset();
+        }
+        if self.geom.depth(here[2]) <= -self.geom.clearance_mm + 1e-6 {
+            return Ok(());
+        }
+        let target = [here[0], here[1], self.safe_z()];
+        // Only the stage box applies to a retract (the plan box may not contain the
+        // position a killed run or a homing cycle left).
+        self.stage_limits
+            .check(target)
+            .map_err(|e| Halt::Abort(format!("refused before moving: stage {e}")))?;
+        let v = self.plan.safety.max_speed_mm_s;
+        self.dev
+            .move_to(target, v)
+            .map_err(|e| dev_abort("retracting", &e))?;
+        self.commanded = Some(target);
+        self.wait_reached(target)
+    }
+
+    /// Retract after a stop or abort: no watchdog (the force only falls), best effort.
+    pub(super) fn retract_unguarded(&mut self) -> Result<(), String> {
+        let here = self.dev.position().map_err(|e| e.to_string())?;
+        self.commanded = Some(here);
+        if self.geom.depth(here[2]) <= -self.geom.clearance_mm + 1e-6 {
+            return Ok(());
+        }
+        let target = [here[0], here[1], self.safe_z()];
+        self.stage_limits.check(target)?;
+        // A stop may have left the controller held or locked.
+        if let Ok(StageState::Alarm) = self.dev.state() {
+            let _ = self.dev.dev.stage.unlock();
+        }
+        self.dev
+            .move_to(target, self.plan.safety.max_speed_mm_s)
+            .map_err(|e| e.to_string())?;
+        self.dev
+            .wait_idle(Duration::from_secs(30))
+            .map_err(|e| e.to_string())?;
+        self.commanded = Some(target);
+        self.in_contact = false;
+        Ok(())
+    }
+
+    /// Waits for a move the watchdog need not see (retract): polls state and force.
+    pub(super) fn wait_reached(&mut self, target: StagePositionMm) -> Step<()> {
+        let deadline = Instant::now() + MOVE_GRACE * 4;
+        loop {
+            if self.stopped() {
+                let _ = self.dev.stop();
+                return Err(Halt::Interrupted);
+            }
+            let s = self
+                .dev
+                .state()
+                .map_err(|e| dev_abort("polling the stage", &e))?;
+            if s == StageState::Idle {
+                let p = self
+                    .dev
+                    .position()
+                    .map_err(|e| dev_abort("reading the position", &e))?;
+                if (0..3).all(|i| (p[i] - target[i]).abs() <= POSITION_TOLERANCE_MM) {
+                    return Ok(());
+                }
+            }
+            if s == StageState::Alarm {
+                return Err(Halt::Abort(format!(
+                    "the stage entered its alarm state while moving to {target:?} mm"
+                )));
+            }
+            if Instant::now() > deadline {
+                return Err(Halt::Abort(format!(
+                    "the stage did not reach {target:?} mm in time"
+                )));
+            }
+            self.dev.sleep(Duration::from_millis(2));
+        }
+    }
+
+    /// Retract (if needed) and move to a sensor-frame point at the retract height.
+    pub(super) fn move_lateral_at_clearance(&mut self, xy_mm: [f64; 2]) -> Step<()> {
+        self.retract()?;
+        let target = self.geom.stage_point(xy_mm, -self.geom.clearance_mm);
+        if let Some(c) = self.commanded {
+            if (0..3).all(|i| (c[i] - target[i]).abs() <= 1e-9) {
+                return Ok(());
+            }
+        }
+        self.guarded_move(target, self.plan.safety.max_speed_mm_s, None)?;
+        Ok(())
+    }
+
+    /// Approach until contact at `xy_mm`.
+    pub(super) fn approach(&mut self, xy_mm: [f64; 2]) -> Step<()> {
+        let deepest = self
+            .geom
+            .stage_point(xy_mm, self.plan.safety.travel_max_mm[2]);
+        let contact = self.guarded_move(
+            deepest,
+            self.plan.approach_speed_mm_s,
+            Some(self.plan.contact_force_n),
+        )?;
+        if !contact {
+            return Err(Halt::Abort(format!(
+                "no contact (fz < {:.4} N) down to the deepest allowed indentation {} mm (safety.travel_max_mm[2]): check the bench geometry's surface_z_mm",
+                self.plan.contact_force_n, self.plan.safety.travel_max_mm[2]
+            )));
+        }
+        self.in_contact = true;
+        self.normal_ctl.reset();
+        Ok(())
+    }
+}
