@@ -2,7 +2,9 @@
 //! synthetic regular-grid sensors (`sensor::grid_sensor`): the paper-sized 10×8 force
 //! grid every 2.2 mm with markers every 1.1 mm, and 32×32 / 64×64 force grids with
 //! markers every 1.1 mm (two layers each). Targets (issue 2): 64×64 apply ≤ 2 ms,
-//! precompute ≤ 5 s.
+//! precompute ≤ 5 s. `direct` is the periodic solve alone (the solver before issue 12);
+//! `default` adds the default CGLS refinement ([`DEFAULT_REFINE_ITERATIONS`]), which is
+//! what makes the output agree with dense Tikhonov (issue 12).
 //!
 //! `cargo bench --bench fourier`
 
@@ -12,7 +14,7 @@ use std::time::Duration;
 use criterion::{criterion_group, criterion_main, Criterion};
 use tactbench::model::{self, MarkerSite};
 use tactbench::sensor::{grid_sensor, Sensor};
-use tactbench::solve::fourier::FourierSolver;
+use tactbench::solve::fourier::{FourierSolver, DEFAULT_REFINE_ITERATIONS};
 use tactbench::solve::{FrameSolver, Lambda, Method, Problem, SolverConfig};
 
 /// λ (mm/N) used by the fixed-λ benches: about 1 % of the largest singular value.
@@ -76,11 +78,12 @@ fn bench(c: &mut Criterion) {
         let u = frame(&sensor, &sites);
         let mut solver = FourierSolver::precompute(&problem, &fixed, None).expect("precompute");
         let mut f = vec![0.0; solver.n_outputs()];
+        solver.refine_iterations = 0;
         g.bench_function(format!("{name}/direct"), |b| {
             b.iter(|| solver.apply(black_box(&u), &mut f).expect("apply"))
         });
-        solver.refine_iterations = 10;
-        g.bench_function(format!("{name}/refine10"), |b| {
+        solver.refine_iterations = DEFAULT_REFINE_ITERATIONS;
+        g.bench_function(format!("{name}/default"), |b| {
             b.iter(|| solver.apply(black_box(&u), &mut f).expect("apply"))
         });
     }
@@ -97,6 +100,7 @@ fn bench(c: &mut Criterion) {
             let problem = Problem::new(&sensor, &sites);
             let u = frame(&sensor, &sites);
             let mut solver = FourierSolver::precompute(&problem, &fixed, None).expect("precompute");
+            solver.refine_iterations = 0;
             let mut f = vec![0.0; solver.n_outputs()];
             g.bench_function(format!("{name}/direct"), |b| {
                 b.iter_custom(|iters| {

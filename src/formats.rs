@@ -12,6 +12,16 @@
 //! **Forces** (output of `reconstruct`): `ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n`, one row per
 //! force-grid node in row-major order; with several frames a trailing `frame` column is
 //! added.
+//!
+//! **Numbers** in every CSV the project writes (these two, `journal.csv`,
+//! `summary.csv`) go through [`Num`]: rounded to [`CSV_SIGNIFICANT_DIGITS`]
+//! significant digits and written in the shortest form that reads back as that value
+//! (`7.85`, not the `7.8500000000000005` binary arithmetic leaves), and a magnitude
+//! below [`CSV_ZERO_BELOW`] is written as `0`. Every column is in N, mm, N·m, s, px or
+//! a unit of that order, where 1e-12 is far below any instrument's resolution: such
+//! values are the residue of arithmetic (`cos 90° = 6.1e-17`), not measurements.
+//! Twelve digits keep every value within a relative 5e-12 of what was computed,
+//! several orders below the noise of any measured quantity. NaN stays `NaN`.
 
 use std::collections::HashSet;
 use std::io::Write;
@@ -21,6 +31,81 @@ use thiserror::Error;
 
 use crate::model::MarkerSite;
 use crate::sensor::{Grid, Sensor};
+
+/// Significant digits kept in CSV numbers (see the module docs).
+pub const CSV_SIGNIFICANT_DIGITS: usize = 12;
+
+/// Magnitudes below this are written as `0` in CSVs (arithmetic residue; see the
+/// module docs).
+pub const CSV_ZERO_BELOW: f64 = 1e-12;
+
+/// `v` rounded to [`CSV_SIGNIFICANT_DIGITS`] significant digits, with a magnitude
+/// below [`CSV_ZERO_BELOW`] as 0 (non-finite values unchanged).
+pub fn csv_round(v: f64) -> f64 {
+    if !v.is_finite() {
+        return v;
+    }
+    if v.abs() < CSV_ZERO_BELOW {
+        return 0.0;
+    }
+    // Scientific notation with 11 digits after the point = 12 significant digits;
+    // the decimal text reads back as the nearest double.
+    format!("{:.*e}", CSV_SIGNIFICANT_DIGITS - 1, v)
+        .parse()
+        .unwrap_or(v)
+}
+
+/// A number as the CSVs write it: [`csv_round`], then the shortest decimal that reads
+/// back as that value (exponent notation below 1e-5 and from 1e15 on).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Num(pub f64);
+
+impl std::fmt::Display for Num {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v = csv_round(self.0);
+        if v == 0.0 {
+            f.write_str("0")
+        } else if v.is_nan() {
+            f.write_str("NaN")
+        } else if v.is_finite() && (v.abs() < 1e-5 || v.abs() >= 1e15) {
+            write!(f, "{v:e}")
+        } else {
+            write!(f, "{v}")
+        }
+    }
+}
+
+/// Rewrites one CSV field the way [`Num`] writes numbers when it is a decimal number
+/// with a fraction or an exponent (what serde writes for an `f64`); integers, text
+/// and empty fields are returned unchanged.
+pub fn tidy_csv_field(field: &str) -> std::borrow::Cow<'_, str> {
+    let numeric = field.contains(['.', 'e', 'E'])
+        && field
+            .bytes()
+            .all(|b| b.is_ascii_digit() || matches!(b, b'.' | b'e' | b'E' | b'-' | b'+'));
+    match field.parse::<f64>() {
+        Ok(v) if numeric => std::borrow::Cow::Owned(Num(v).to_string()),
+        _ => std::borrow::Cow::Borrowed(field),
+    }
+}
+
+/// Rewrites CSV records (as a serde-driven `csv::Writer` wrote them, no header) with
+/// every number field through [`tidy_csv_field`].
+pub fn tidy_csv_records(bytes: &[u8]) -> Result<Vec<u8>, csv::Error> {
+    let mut rdr = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .from_reader(bytes);
+    let mut w = csv::WriterBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .from_writer(Vec::new());
+    for rec in rdr.records() {
+        let rec = rec?;
+        w.write_record(rec.iter().map(|f| tidy_csv_field(f).into_owned()))?;
+    }
+    w.into_inner().map_err(|e| csv::Error::from(e.into_error()))
+}
 
 /// The displacement CSV's required leading columns.
 pub const DISPLACEMENT_COLUMNS: [&str; 6] = ["layer", "marker", "x_mm", "y_mm", "ux_mm", "uy_mm"];
@@ -314,12 +399,18 @@ pub fn write_displacements(
             Some(u) => writeln!(
                 w,
                 "{name},{},{},{},{},{}",
-                r.marker, r.position_mm[0], r.position_mm[1], u[0], u[1]
+                r.marker,
+                Num(r.position_mm[0]),
+                Num(r.position_mm[1]),
+                Num(u[0]),
+                Num(u[1])
             ),
             None => writeln!(
                 w,
                 "{name},{},{},{},,",
-                r.marker, r.position_mm[0], r.position_mm[1]
+                r.marker,
+                Num(r.position_mm[0]),
+                Num(r.position_mm[1])
             ),
         }
         .map_err(io)?;
@@ -361,11 +452,11 @@ pub fn write_forces_to(
                 write!(
                     w,
                     "{ix},{iy},{},{},{},{},{}",
-                    p[0],
-                    p[1],
-                    f[3 * j],
-                    f[3 * j + 1],
-                    f[3 * j + 2]
+                    Num(p[0]),
+                    Num(p[1]),
+                    Num(f[3 * j]),
+                    Num(f[3 * j + 1]),
+                    Num(f[3 * j + 2])
                 )?;
                 if multi {
                     write!(w, ",{label}")?;
@@ -504,5 +595,36 @@ mod tests {
         assert_eq!(back[11].ix, 1);
         assert_eq!(back[11].iy, 1);
         assert_eq!(back[11].f_n, [f[33], f[34], f[35]]);
+    }
+
+    #[test]
+    fn csv_numbers_drop_binary_noise_and_keep_measured_digits() {
+        let show = |v: f64| Num(v).to_string();
+        assert_eq!(show(7.8500000000000005), "7.85");
+        assert_eq!(show(29.999000000000002), "29.999");
+        assert_eq!(show(-2.220446049250313e-16), "0");
+        assert_eq!(show(0.1 + 0.2), "0.3");
+        assert_eq!(show(-0.0), "0");
+        assert_eq!(show(f64::NAN), "NaN");
+        assert_eq!(show(50.0), "50");
+        assert_eq!(show(-100.0), "-100");
+        assert_eq!(show(0.049033249999999996), "0.04903325");
+        assert_eq!(show(1.5e-9), "1.5e-9");
+        assert_eq!(show(123_456.789_012_345), "123456.789012");
+        // A value read back is within 5e-12 relative of what was computed.
+        for v in [std::f64::consts::PI, 1e-7 / 3.0, -2.0 / 3.0 * 1e6] {
+            let back: f64 = show(v).parse().unwrap();
+            assert!(((back - v) / v).abs() <= 5e-12, "{v} -> {back}");
+        }
+        assert_eq!(tidy_csv_field("7.8500000000000005"), "7.85");
+        assert_eq!(tidy_csv_field("-2.22e-16"), "0");
+        assert_eq!(tidy_csv_field("12"), "12");
+        assert_eq!(tidy_csv_field("frames/00001_0.png"), "frames/00001_0.png");
+        assert_eq!(
+            tidy_csv_field("2026-11-24T00:00:00Z"),
+            "2026-11-24T00:00:00Z"
+        );
+        assert_eq!(tidy_csv_field("NaN"), "NaN");
+        assert_eq!(tidy_csv_field("true"), "true");
     }
 }

@@ -9,6 +9,8 @@
 //! young_modulus_kpa = 1000.0   # > 0
 //! poisson_ratio = 0.5          # in [0, 0.5]
 //! thickness_mm = 40.0          # > 0, deeper than every layer
+//! model = "half-space"         # optional: "half-space" (default, paper Eq. 1–2) or
+//!                              # "bonded-layer" (layer of thickness_mm on a rigid plate)
 //!
 //! [[layers]]                   # one per marker layer, at least one
 //! name = "blue"                # unique
@@ -96,6 +98,42 @@ pub struct Elastomer {
     pub poisson_ratio: f64,
     /// Thickness in mm (the half-space model ignores it; layers must lie within it).
     pub thickness_mm: f64,
+    /// The elastic model the solvers invert (`[elastomer] model`).
+    pub model: ModelKind,
+}
+
+/// The elastic model of `[elastomer] model` (see [`crate::model`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ModelKind {
+    /// `"half-space"`: paper Eq. 1–2 (the default).
+    #[default]
+    HalfSpace,
+    /// `"bonded-layer"`: a layer of `thickness_mm` bonded to a rigid plate.
+    BondedLayer,
+}
+
+impl ModelKind {
+    /// Every kind, in the order of the docs.
+    pub const ALL: [ModelKind; 2] = [ModelKind::HalfSpace, ModelKind::BondedLayer];
+
+    /// The name used in sensor.toml and scene.toml.
+    pub fn name(&self) -> &'static str {
+        match self {
+            ModelKind::HalfSpace => "half-space",
+            ModelKind::BondedLayer => "bonded-layer",
+        }
+    }
+
+    /// Parses a name of [`ModelKind::name`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.name() == name)
+    }
+}
+
+impl fmt::Display for ModelKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 impl Elastomer {
@@ -269,6 +307,11 @@ impl Sensor {
             "[elastomer]\nyoung_modulus_kpa = {:?}\npoisson_ratio = {:?}\nthickness_mm = {:?}\n",
             e.young_modulus_kpa, e.poisson_ratio, e.thickness_mm
         );
+        if e.model != ModelKind::HalfSpace {
+            // Inserted before the blank line ending the section.
+            s.pop();
+            let _ = writeln!(s, "model = \"{}\"\n", e.model);
+        }
         for l in &self.layers {
             let _ = writeln!(
                 s,
@@ -317,6 +360,7 @@ struct RawElastomer {
     young_modulus_kpa: f64,
     poisson_ratio: f64,
     thickness_mm: f64,
+    model: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -391,10 +435,21 @@ impl RawSensor {
             ));
         }
         let thickness = c.positive("elastomer.thickness_mm", e.thickness_mm, "mm")?;
+        let model = match &e.model {
+            None => ModelKind::HalfSpace,
+            Some(name) => ModelKind::from_name(name).ok_or_else(|| {
+                c.invalid(
+                    "elastomer.model",
+                    format!("{name:?}"),
+                    "must be \"half-space\" or \"bonded-layer\"",
+                )
+            })?,
+        };
         let elastomer = Elastomer {
             young_modulus_kpa: young,
             poisson_ratio: nu,
             thickness_mm: thickness,
+            model,
         };
 
         if self.layers.is_empty() {
@@ -526,6 +581,7 @@ pub fn grid_sensor(
             young_modulus_kpa: 1000.0,
             poisson_ratio: 0.5,
             thickness_mm: 40.0,
+            model: ModelKind::HalfSpace,
         },
         layers: vec![
             layer("blue", MarkerColor::Blue, 3.0, 0.0),
@@ -659,5 +715,42 @@ mod tests {
         let p = [3.3, -1.25];
         let back = s.camera.px_to_mm(s.camera.mm_to_px(p));
         assert!((back[0] - p[0]).abs() < 1e-12 && (back[1] - p[1]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn elastomer_model_defaults_to_half_space_and_parses_bonded_layer() {
+        let s = Sensor::from_toml_str(PAPER_SENSOR_TOML, Path::new("s.toml")).unwrap();
+        assert_eq!(s.elastomer.model, ModelKind::HalfSpace);
+        // The default writes no key: today's files round-trip unchanged.
+        assert!(!s.to_toml_string().contains("model"));
+        let t = PAPER_SENSOR_TOML.replace(
+            "thickness_mm = 40.0",
+            "thickness_mm = 40.0\nmodel = \"bonded-layer\"",
+        );
+        let s = Sensor::from_toml_str(&t, Path::new("s.toml")).unwrap();
+        assert_eq!(s.elastomer.model, ModelKind::BondedLayer);
+        let back = Sensor::from_toml_str(&s.to_toml_string(), Path::new("s.toml")).unwrap();
+        assert_eq!(back, s);
+        let t = PAPER_SENSOR_TOML.replace(
+            "thickness_mm = 40.0",
+            "thickness_mm = 40.0\nmodel = \"half-space\"",
+        );
+        let s = Sensor::from_toml_str(&t, Path::new("s.toml")).unwrap();
+        assert_eq!(s.elastomer.model, ModelKind::HalfSpace);
+    }
+
+    #[test]
+    fn rejects_unknown_elastomer_model_naming_file_key_and_value() {
+        let t = PAPER_SENSOR_TOML.replace(
+            "thickness_mm = 40.0",
+            "thickness_mm = 40.0\nmodel = \"layered\"",
+        );
+        let e = err(&t);
+        assert!(
+            e.contains("s.toml")
+                && e.contains("elastomer.model = \"layered\"")
+                && e.contains("bonded-layer"),
+            "{e}"
+        );
     }
 }

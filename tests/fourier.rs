@@ -246,6 +246,7 @@ fn recovers_a_compact_interior_load_on_both_grids() {
         let p = Problem::new(&s, &sites);
         let mut solver =
             FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+        solver.refine_iterations = 0;
         let mut f = vec![0.0; p.n_outputs()];
         solver.apply(&u, &mut f).unwrap();
         let e_int = rel_err(&interior(&s, &f, 4.0), &interior(&s, &f_true, 4.0));
@@ -275,6 +276,7 @@ fn agrees_with_dense_tikhonov_at_the_same_lambda() {
         let p = Problem::new(&s, &sites);
         let mut solver =
             FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+        solver.refine_iterations = 0;
         let mut f = vec![0.0; p.n_outputs()];
         solver.apply(&u, &mut f).unwrap();
         let e_int = rel_err(&interior(&s, &f, 4.0), &interior(&s, &dense, 4.0));
@@ -337,6 +339,7 @@ fn noisy_frames_give_finite_bounded_forces() {
     assert!(d.lambda.unwrap() > 0.0 && d.noise_gain.is_finite());
     let mut f_noisy = vec![0.0; p.n_outputs()];
     let mut f_clean = vec![0.0; p.n_outputs()];
+    solver.refine_iterations = 0;
     // Without the edge bridge the direct solve is `crop ∘ P ∘ zero-pad`, so the force
     // change is bounded by the periodic noise gain ‖P‖₂ times the noise norm.
     solver.bridge_edges = false;
@@ -453,6 +456,7 @@ fn l_curve_lambda_is_near_the_best_fixed_lambda_on_a_noisy_frame() {
     let p = Problem::new(&s, &sites);
     let error = |l: Lambda| {
         let mut solver = FourierSolver::precompute(&p, &config(l), Some(&noisy)).unwrap();
+        solver.refine_iterations = 0;
         let mut f = vec![0.0; p.n_outputs()];
         solver.apply(&noisy, &mut f).unwrap();
         rel_err(&f, &f_true)
@@ -463,4 +467,318 @@ fn l_curve_lambda_is_near_the_best_fixed_lambda_on_a_noisy_frame() {
         .fold(f64::INFINITY, f64::min);
     let lc = error(Lambda::LCurve);
     assert!(lc <= 1.1 * best, "L-curve error {lc}, best fixed {best}");
+}
+
+// ---- issue 12: agreement with dense Tikhonov, cross-talk, noise, uncertainty --------
+
+fn sums(f: &[f64]) -> [f64; 3] {
+    let mut s = [0.0; 3];
+    for (i, v) in f.iter().enumerate() {
+        s[i % 3] += v;
+    }
+    s
+}
+
+/// Dense Tikhonov operator `P = V diag(σ/(σ²+λ²)) Uᵀ` (rows: forces) at λ = 1e-2·σ₁ of
+/// the dense `H`, the λ of issue 12's observations.
+fn dense_operator(sensor: &Sensor, sites: &[MarkerSite]) -> (DMatrix<f64>, f64) {
+    let p = Problem::new(sensor, sites);
+    let h: DMatrix<f64> = transfer_matrix(&p.model, sites, &sensor.force_points_mm()).unwrap();
+    let svd = h.svd(true, true);
+    let lambda = 1e-2 * svd.singular_values.max();
+    let (uu, vt) = (svd.u.unwrap(), svd.v_t.unwrap());
+    let mut v = vt.transpose();
+    for (i, mut col) in v.column_iter_mut().enumerate() {
+        let s = svd.singular_values[i];
+        col *= s / (s * s + lambda * lambda);
+    }
+    (v * uu.transpose(), lambda)
+}
+
+/// The loads of the acceptance checks: centred fx (observation 1), centred fz, centred
+/// mixed, off-centre fy, off-centre mixed; Gaussians σ = 2 mm, peak 0.1 N (fz) per node.
+fn acceptance_loads(sensor: &Sensor) -> Vec<(&'static str, Vec<f64>)> {
+    let g = sensor.force_grid;
+    let c = 0.5 * g.pitch_mm * (g.nx - 1) as f64;
+    vec![
+        ("centred fx", blob(sensor, [c, c], 2.0, [0.1, 0.0, 0.0])),
+        ("centred fz", blob(sensor, [c, c], 2.0, [0.0, 0.0, 0.1])),
+        (
+            "centred mixed",
+            blob(sensor, [c, c], 2.0, [0.02, -0.01, 0.1]),
+        ),
+        (
+            "off-centre fy",
+            blob(sensor, [c - 3.0, c + 2.0], 2.0, [0.0, 0.1, 0.0]),
+        ),
+        (
+            "off-centre mixed",
+            blob(sensor, [c + 4.0, c + 3.0], 2.0, [0.02, -0.01, 0.1]),
+        ),
+    ]
+}
+
+/// Checks one Fourier solution against the dense one: F_sum per axis within 2 % of the
+/// applied total, cross-talk of single-axis loads ≤ 2 % of the applied total, field within
+/// 10 % overall and 5 % on the interior (≥ 4 mm from the edges).
+fn check_against_dense(s: &Sensor, name: &str, f_true: &[f64], f: &[f64], dense: &[f64]) {
+    let (st, sd, sf) = (sums(f_true), sums(dense), sums(f));
+    let total = st.iter().map(|v| v.abs()).fold(0.0, f64::max);
+    let e_all = rel_err(f, dense);
+    let e_int = rel_err(&interior(s, f, 4.0), &interior(s, dense, 4.0));
+    println!(
+        "{name}: applied {st:.4?}, dense {sd:.4?}, fourier {sf:.4?}; field vs dense: all \
+         {e_all:.4}, interior {e_int:.4}"
+    );
+    for ax in 0..3 {
+        let e = (sf[ax] - sd[ax]).abs() / total;
+        assert!(
+            e <= 0.02,
+            "{name}: ΣF axis {ax} off dense by {e:.4} of the total"
+        );
+        if st[ax] == 0.0 {
+            assert!(
+                sf[ax].abs() <= 0.02 * total,
+                "{name}: cross-talk into axis {ax}: {:.4} N of {total:.4} N",
+                sf[ax]
+            );
+        }
+    }
+    assert!(e_all <= 0.10, "{name}: field error vs dense {e_all:.4}");
+    assert!(
+        e_int <= 0.05,
+        "{name}: interior field error vs dense {e_int:.4}"
+    );
+}
+
+#[test]
+fn shear_load_gives_no_false_normal_force_and_agrees_with_dense_tikhonov() {
+    // Issue 12, observation 1: 16×16 forces and markers at 1.1 mm, layers at 3 and 6 mm
+    // (the second offset by half a pitch), E = 1 MPa, ν = 0.5, λ = 1e-2·σ₁. Before the fix
+    // (direct periodic solve) the centred fx load gave F_sum = (1.09, 0.002, −2.16) N
+    // against dense (2.09, 0.000, −0.002) N.
+    let s = grid_sensor(16, 16, 1.1, 1.1);
+    let sites = MarkerSite::from_sensor_grids(&s);
+    let (pd, lambda) = dense_operator(&s, &sites);
+    let p = Problem::new(&s, &sites);
+    let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+    let mut f = vec![0.0; p.n_outputs()];
+    for (name, f_true) in acceptance_loads(&s) {
+        let u = displacements(&s, &sites, &f_true);
+        let dense = (&pd * DVector::from_column_slice(&u)).as_slice().to_vec();
+        solver.apply(&u, &mut f).unwrap();
+        check_against_dense(&s, name, &f_true, &f, &dense);
+    }
+}
+
+#[test]
+fn refinement_converges_to_dense_tikhonov_on_the_issue_geometry() {
+    let s = grid_sensor(16, 16, 1.1, 1.1);
+    let sites = MarkerSite::from_sensor_grids(&s);
+    let (pd, lambda) = dense_operator(&s, &sites);
+    let p = Problem::new(&s, &sites);
+    let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None)
+        .unwrap()
+        .with_refinement(80);
+    let (_, f_true) = acceptance_loads(&s).swap_remove(0);
+    let u = displacements(&s, &sites, &f_true);
+    let dense = (&pd * DVector::from_column_slice(&u)).as_slice().to_vec();
+    let mut f = vec![0.0; p.n_outputs()];
+    solver.apply(&u, &mut f).unwrap();
+    let e = rel_err(&f, &dense);
+    assert!(e < 1e-6, "80 CGLS iterations vs dense: {e:e}");
+}
+
+#[test]
+fn mixed_load_at_32x32_is_unbiased() {
+    // Issue 12, observation 2: 32×32 at 1.1 mm, mixed load fx : fy : fz = 0.2 : −0.1 : 1.
+    // Before: noise-free ΣFx = 0.263 N against 0.415 N applied. The dense reference here
+    // is the refinement run to convergence (shown equal to dense Tikhonov to 1e-6 on
+    // 16×16 above; a dense SVD at 3072 unknowns is too slow for a test).
+    let s = grid_sensor(32, 32, 1.1, 1.1);
+    let sites = MarkerSite::from_sensor_grids(&s);
+    let p = Problem::new(&s, &sites);
+    let lambda = {
+        let probe = FourierSolver::precompute(&p, &config(Lambda::Fixed(1.0)), None).unwrap();
+        // σ₁ of the dense H is below the periodic σ_max; λ = 1e-2 of the latter / 5.
+        2e-3 * probe.diagnostics().singular_values[0]
+    };
+    let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+    let g = s.force_grid;
+    let c = 0.5 * g.pitch_mm * (g.nx - 1) as f64;
+    for (name, centre) in [("centred", [c, c]), ("off-centre", [c + 6.0, c - 5.0])] {
+        let f_true = blob(&s, centre, 2.0, [0.02, -0.01, 0.1]);
+        let u = displacements(&s, &sites, &f_true);
+        solver.refine_iterations = 400;
+        let mut dense = vec![0.0; p.n_outputs()];
+        solver.apply(&u, &mut dense).unwrap();
+        solver.refine_iterations = tactbench::solve::fourier::DEFAULT_REFINE_ITERATIONS;
+        let mut f = vec![0.0; p.n_outputs()];
+        solver.apply(&u, &mut f).unwrap();
+        check_against_dense(&s, name, &f_true, &f, &dense);
+    }
+}
+
+/// Sample SD of each force component and of the force sums over `n` noise-only frames.
+fn monte_carlo(
+    solver: &mut FourierSolver,
+    n_in: usize,
+    n_out: usize,
+    sigma: f64,
+    n: usize,
+) -> (Vec<f64>, [f64; 3]) {
+    let mut var = vec![0.0; n_out];
+    let mut svar = [0.0; 3];
+    let mut f = vec![0.0; n_out];
+    for k in 0..n {
+        let u = noise(n_in, sigma, 0x9e37_79b9_7f4a_7c15 ^ (k as u64 + 1));
+        solver.apply(&u, &mut f).unwrap();
+        for (v, x) in var.iter_mut().zip(&f) {
+            *v += x * x / n as f64;
+        }
+        for (sv, x) in svar.iter_mut().zip(sums(&f)) {
+            *sv += x * x / n as f64;
+        }
+    }
+    (var.iter().map(|v| v.sqrt()).collect(), svar.map(f64::sqrt))
+}
+
+#[test]
+fn noise_only_force_sums_are_within_1_5x_of_dense_and_uncertainty_matches_monte_carlo() {
+    // 0.1 px = 0.005 mm of noise on every displacement, 16×16 (observation 2's noise
+    // level). Dense: exact SD of ΣF from P (‖Pᵀ 1_c‖·σ). Fourier: 300 seeded noise frames
+    // (sample SD within ~4 % of the truth; the bounds are 1.5× and 10 %).
+    let s = grid_sensor(16, 16, 1.1, 1.1);
+    let sites = MarkerSite::from_sensor_grids(&s);
+    let (pd, lambda) = dense_operator(&s, &sites);
+    let p = Problem::new(&s, &sites);
+    let (n_in, n_out) = (p.n_inputs(), p.n_outputs());
+    let sigma = 0.005;
+    let mut dense_sd = [0.0; 3];
+    for (c, d) in dense_sd.iter_mut().enumerate() {
+        let w: Vec<f64> = (0..n_in)
+            .map(|i| (c..n_out).step_by(3).map(|j| pd[(j, i)]).sum())
+            .collect();
+        *d = sigma * norm(&w);
+    }
+    let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+    let (mc_force, mc_sum) = monte_carlo(&mut solver, n_in, n_out, sigma, 300);
+    let predicted = solver.sum_sd(sigma).unwrap();
+    println!(
+        "ΣF SD: dense {dense_sd:.4?}, fourier MC {mc_sum:.4?}, fourier sum_sd {predicted:.4?}"
+    );
+    for ax in 0..3 {
+        let r = mc_sum[ax] / dense_sd[ax];
+        assert!(
+            (1.0 / 1.5..=1.5).contains(&r),
+            "axis {ax}: fourier/dense ΣF SD {r:.3}"
+        );
+        let e = (predicted[ax] - mc_sum[ax]).abs() / mc_sum[ax];
+        assert!(
+            e <= 0.10,
+            "axis {ax}: sum_sd {} vs Monte Carlo {}",
+            predicted[ax],
+            mc_sum[ax]
+        );
+    }
+    let mut sd = vec![0.0; n_out];
+    solver.force_sd(sigma, &mut sd).unwrap();
+    let e_int = rel_err(&interior(&s, &sd, 4.0), &interior(&s, &mc_force, 4.0));
+    let e_all = rel_err(&sd, &mc_force);
+    println!("refined: per-node force_sd vs Monte Carlo: interior {e_int:.3}, all {e_all:.3}");
+    // For the refined solve the per-node figures are the per-frequency (direct-map) ones,
+    // an approximation (measured: 0.113 interior, 0.268 overall, the edges worst).
+    assert!(
+        e_int <= 0.15,
+        "refined: interior per-node force_sd vs MC {e_int:.3}"
+    );
+    assert!(e_all <= 0.35, "refined: per-node force_sd vs MC {e_all:.3}");
+
+    // The direct solve without the edge bridge is a fixed linear map: exact figures.
+    solver.refine_iterations = 0;
+    solver.bridge_edges = false;
+    let (mc_force, mc_sum) = monte_carlo(&mut solver, n_in, n_out, sigma, 300);
+    let predicted = solver.sum_sd(sigma).unwrap();
+    solver.force_sd(sigma, &mut sd).unwrap();
+    let e_nodes = rel_err(&sd, &mc_force);
+    println!("direct: ΣF SD MC {mc_sum:.4?} vs sum_sd {predicted:.4?}; per node {e_nodes:.3}");
+    assert!(
+        e_nodes <= 0.10,
+        "direct: per-node force_sd vs Monte Carlo {e_nodes:.3}"
+    );
+    for ax in 0..3 {
+        let e = (predicted[ax] - mc_sum[ax]).abs() / mc_sum[ax];
+        assert!(
+            e <= 0.10,
+            "direct axis {ax}: sum_sd {} vs MC {}",
+            predicted[ax],
+            mc_sum[ax]
+        );
+    }
+    assert!(solver.sum_sd(f64::NAN).is_err() && solver.force_sd(-1.0, &mut sd).is_err());
+}
+
+#[test]
+#[ignore = "needs Python with NumPy: TACTBENCH_PYTHON=python3 cargo test --test integration fourier::numpy_reference -- --ignored"]
+fn numpy_reference_agrees_with_fourier_output() {
+    // The independent check of tests/numpy_ref/fourier_check.py (Eq. 1–2 and dense
+    // Tikhonov in NumPy) on several grids, loads and noise levels; see that file.
+    let Ok(python) = std::env::var("TACTBENCH_PYTHON") else {
+        println!("TACTBENCH_PYTHON is not set: skipped (set it to a python with numpy)");
+        return;
+    };
+    let grid = |g: &tactbench::sensor::Grid| serde_json::json!({"nx": g.nx, "ny": g.ny, "pitch_mm": g.pitch_mm, "origin_mm": g.origin_mm});
+    let mut cases = Vec::new();
+    for (n, pf, pm) in [(16, 1.1, 1.1), (12, 2.2, 1.1), (20, 1.1, 1.1)] {
+        let s = grid_sensor(n, n, pf, pm);
+        let sites = MarkerSite::from_sensor_grids(&s);
+        let p = Problem::new(&s, &sites);
+        let h: DMatrix<f64> = transfer_matrix(&p.model, &sites, &s.force_points_mm()).unwrap();
+        let lambda = 1e-2 * h.singular_values().max();
+        let mut solver =
+            FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+        let mut loads = acceptance_loads(&s);
+        loads.truncate(if n == 20 { 5 } else { 3 });
+        for (k, (name, f_true)) in loads.into_iter().enumerate() {
+            let clean = displacements(&s, &sites, &f_true);
+            let sigma = if k == 2 { 0.0005 } else { 0.0 };
+            let nz = noise(clean.len(), sigma, 77 + k as u64);
+            let u: Vec<f64> = clean.iter().zip(&nz).map(|(a, b)| a + b).collect();
+            let mut f = vec![0.0; p.n_outputs()];
+            solver.apply(&u, &mut f).unwrap();
+            let layers: Vec<_> = s
+                .layers
+                .iter()
+                .map(|l| {
+                    let mut g = grid(&l.markers.unwrap().grid);
+                    g["depth_mm"] = serde_json::json!(l.depth_mm);
+                    g
+                })
+                .collect();
+            cases.push(serde_json::json!({
+                "name": format!("{n}x{n} pitch {pf}/{pm} {name} noise {sigma} mm"),
+                "young_mpa": p.model.young_n_per_mm2, "poisson": p.model.poisson,
+                "lambda": lambda, "force_grid": grid(&s.force_grid), "layers": layers,
+                "f_true": f_true, "noise_mm": nz, "fourier": f,
+            }));
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cases.json");
+    std::fs::write(&path, serde_json::json!({ "cases": cases }).to_string()).unwrap();
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/numpy_ref/fourier_check.py"
+    );
+    let out = std::process::Command::new(&python)
+        .arg(script)
+        .arg(&path)
+        .output()
+        .expect("run python");
+    println!("{}", String::from_utf8_lossy(&out.stdout));
+    assert!(
+        out.status.success(),
+        "numpy check failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

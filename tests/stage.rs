@@ -1530,7 +1530,10 @@ fn bench_file_travel_box_reaches_the_grbl_driver_and_is_validated() {
     let e = bench("travel_min_mm = [0.0, 0.0, 0.0]")
         .unwrap_err()
         .to_string();
-    assert!(e.contains("both travel_min_mm and travel_max_mm"), "{e}");
+    assert!(
+        e.contains("give both stage.travel_min_mm and stage.travel_max_mm"),
+        "{e}"
+    );
     let e = bench("travel_min_mm = [0.0, 0.0, 0.0]\ntravel_max_mm = [1.0, -1.0, 1.0]")
         .unwrap_err()
         .to_string();
@@ -1670,6 +1673,9 @@ mod runs_from_a_stage_left_in_a_state {
             tactbench::device::TravelLimits {
                 axes_mm: [[0.0; 2]; 3],
             }
+        }
+        fn status_interval(&self) -> Duration {
+            Duration::from_millis(200)
         }
     }
 

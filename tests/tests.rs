@@ -7,6 +7,8 @@ mod bench;
 mod cli;
 mod fourier;
 mod ft;
+mod layer;
+mod plans;
 mod report;
 mod reproduce;
 mod run;

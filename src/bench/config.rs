@@ -10,10 +10,11 @@
 //! port = "/dev/ttyUSB0"
 //! baud = 115200                     # optional (grbl, zaber: 115200)
 //! # zaber only: devices = [1, 2, 3] (x, y, z addresses), mm_per_step = 0.000047625
-//! # grbl only, optional: the travel box (machine mm) the driver enforces; GRBL's own
-//! # [-$13x, 0] applies too where homing ($22=1) and soft limits ($20=1) are on
-//! # travel_min_mm = [-200.0, -200.0, -50.0]
-//! # travel_max_mm = [0.0, 0.0, 0.0]
+//! travel_min_mm = [-200.0, -200.0, -200.0]  # optional, stage machine coordinates:
+//! travel_max_mm = [0.0, 0.0, 0.0]           # what `run --dry-run` checks targets
+//!                                   # against; a GRBL driver also enforces it on
+//!                                   # every move (with GRBL's own [-$13x, 0] where
+//!                                   # homing $22=1 and soft limits $20=1 are on)
 //!
 //! [force_sensor]
 //! protocol = "dynpick"              # dynpick | ft300
@@ -55,6 +56,7 @@ use serde::Deserialize;
 
 use crate::config::{self, Checker, ConfigError};
 use crate::device::camera::CameraSpec;
+use crate::device::TravelLimits;
 
 /// Which stage protocol.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -87,9 +89,9 @@ pub struct StageConfig {
     pub zaber_devices: [u8; 3],
     /// Zaber: resolution, mm per microstep.
     pub zaber_mm_per_step: f64,
-    /// GRBL: travel box in machine coordinates, mm (`travel_min_mm`,
-    /// `travel_max_mm`); `None`: only GRBL's own box where it enforces one.
-    pub travel: Option<crate::device::TravelLimits>,
+    /// The stage's travel box as the bench file states it (`travel_min_mm`,
+    /// `travel_max_mm`), for dry runs; `None` when not given.
+    pub travel: Option<TravelLimits>,
 }
 
 /// A real force sensor.
@@ -452,32 +454,32 @@ impl RawBench {
         let travel = match (s.travel_min_mm, s.travel_max_mm) {
             (None, None) => None,
             (Some(lo), Some(hi)) => {
-                if protocol != StageKind::Grbl {
-                    return Err(c.invalid(
-                        "stage.travel_min_mm",
-                        "(given)",
-                        "travel_min_mm and travel_max_mm apply to grbl stages only (Zaber devices keep their own limit.min/limit.max)",
-                    ));
-                }
+                let mut axes_mm = [[0.0; 2]; 3];
                 for i in 0..3 {
-                    if !(lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
+                    let lo = c.finite(&format!("stage.travel_min_mm[{i}]"), lo[i], "mm")?;
+                    let hi = c.finite(&format!("stage.travel_max_mm[{i}]"), hi[i], "mm")?;
+                    if lo >= hi {
                         return Err(c.invalid(
                             &format!("stage.travel_max_mm[{i}]"),
-                            format!("{} mm (min {} mm)", hi[i], lo[i]),
-                            "finite, and above stage.travel_min_mm on every axis",
+                            format!("{hi} mm"),
+                            format!("must exceed stage.travel_min_mm[{i}] = {lo} mm"),
                         ));
                     }
+                    axes_mm[i] = [lo, hi];
                 }
-                Some(crate::device::TravelLimits {
-                    axes_mm: [[lo[0], hi[0]], [lo[1], hi[1]], [lo[2], hi[2]]],
-                })
+                Some(TravelLimits { axes_mm })
             }
-            _ => {
+            (Some(_), None) | (None, Some(_)) => {
+                let key = if s.travel_min_mm.is_none() {
+                    "stage.travel_min_mm"
+                } else {
+                    "stage.travel_max_mm"
+                };
                 return Err(c.invalid(
-                    "stage.travel_min_mm",
-                    "(only one of the pair given)",
-                    "give both travel_min_mm and travel_max_mm, or neither",
-                ))
+                    key,
+                    "(missing)",
+                    "give both stage.travel_min_mm and stage.travel_max_mm, or neither",
+                ));
             }
         };
         let stage = StageConfig {
@@ -626,5 +628,31 @@ press_direction = -1
         .unwrap_err()
         .to_string();
         assert!(e.contains("force_sensor.baud = 7"), "{e}");
+    }
+
+    #[test]
+    fn stage_travel_limits_are_optional_and_checked_in_pairs() {
+        let with = HW.replace(
+            "port = \"/dev/ttyUSB0\"",
+            "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [-200.0, -200.0, -50.0]\ntravel_max_mm = [0.0, 0.0, 0.0]",
+        );
+        let BenchDevices::Hardware { stage, .. } = parse(&with).unwrap().devices else {
+            panic!("hardware expected")
+        };
+        assert_eq!(
+            stage.travel.unwrap().axes_mm,
+            [[-200.0, 0.0], [-200.0, 0.0], [-50.0, 0.0]]
+        );
+        let e = parse(&HW.replace(
+            "port = \"/dev/ttyUSB0\"",
+            "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [0.0, 0.0, 0.0]",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("stage.travel_max_mm = (missing)"), "{e}");
+        let e = parse(&with.replace("[0.0, 0.0, 0.0]", "[0.0, -300.0, 0.0]"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stage.travel_max_mm[1] = -300 mm"), "{e}");
     }
 }

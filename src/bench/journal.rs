@@ -330,6 +330,9 @@ impl Journal {
         let bytes = w
             .into_inner()
             .map_err(|e| corrupt(&self.path, 0, e.to_string()))?;
+        // Numbers as every CSV writes them (no `7.8500000000000005`, no `-2.2e-16`).
+        let bytes = crate::formats::tidy_csv_records(&bytes)
+            .map_err(|e| corrupt(&self.path, 0, e.to_string()))?;
         let io = |source| JournalError::Io {
             path: self.path.clone(),
             source,

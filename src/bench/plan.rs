@@ -56,8 +56,22 @@
 //! # kind = "setpoints":    [[sweep.points]] with position_mm, normal, tangential = [tx, ty]
 //! ```
 //!
-//! Every setpoint is expanded up front ([`Plan::setpoints`]) so `--dry-run`, the
-//! journal and resume all see the same numbered list.
+//! Every setpoint is numbered up front ([`Plan::setpoints`], [`Plan::setpoints_iter`])
+//! so `--dry-run`, the journal and resume all see the same numbered list.
+//!
+//! **Required and default keys.** `name`, `sensor`, `[indenter] shape` (+
+//! `diameter_mm` unless `point`), `[approach]`, `[safety]`, `[sweep] kind` and the
+//! keys of that kind are required; so is `sweep.trials` for the kinds that repeat
+//! (`magnitude`, `angle`, `displacement`). Every other key has the default shown in
+//! the README's plan schema; [`Plan::defaults`] lists the ones a plan left out, and
+//! `tactbench run --dry-run` prints them.
+//!
+//! **Caps, checked before anything is expanded.** The number of setpoints, the frames
+//! they write and the estimated duration are computed arithmetically from the sweep's
+//! parameters, and a plan above [`MAX_SETPOINTS`], [`MAX_FRAMES`] or
+//! [`MAX_DURATION_S`] is refused with the file, the key, its value and the cap, so a
+//! typo (`to = 1e9`) costs neither memory nor time. [`Plan::check_frames_on_disk`]
+//! adds [`MAX_FRAME_BYTES`] once the sensor file (the image size) is known.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -69,6 +83,23 @@ use serde::Deserialize;
 
 /// An error reading or validating a plan (file, key, value with unit, allowed range).
 pub type PlanError = ConfigError;
+
+/// Most setpoints a plan may expand to (the paper's largest plan has 160).
+pub const MAX_SETPOINTS: usize = 100_000;
+
+/// Most camera frames a run may write (setpoints × `acquire.frames`).
+pub const MAX_FRAMES: usize = 200_000;
+
+/// Longest estimated duration of a plan, s (7 days).
+pub const MAX_DURATION_S: f64 = 7.0 * 86_400.0;
+
+/// Most bytes of frames a run may write, estimated as width × height × 3 bytes per
+/// frame (uncompressed 8-bit RGB: PNG only makes it smaller), 100 GB.
+pub const MAX_FRAME_BYTES: u64 = 100_000_000_000;
+
+/// Retract height above the surface assumed by the plan's own duration estimate
+/// (the bench file's `geometry.clearance_mm` default), mm.
+pub const DEFAULT_CLEARANCE_MM: f64 = 1.0;
 
 /// The indenter mounted on the stage.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -232,6 +263,9 @@ pub struct Plan {
     pub sweep: Sweep,
     /// Solver for the per-setpoint reconstruction (`[reconstruct]`, default pinv).
     pub solver: SolverConfig,
+    /// The keys the plan left out and the defaults used for them, `(key, value with
+    /// unit)`, in schema order (echoed by `run --dry-run`).
+    pub defaults: Vec<(String, String)>,
 }
 
 impl Plan {
@@ -249,39 +283,42 @@ impl Plan {
         raw.validate(path)
     }
 
-    /// Every setpoint in run order, in internal units.
+    /// Every setpoint in run order, in internal units. Bounded by [`MAX_SETPOINTS`]
+    /// (validation refuses larger plans before anything is expanded).
     pub fn setpoints(&self) -> Vec<Setpoint> {
+        let mut out = Vec::with_capacity(self.setpoint_count());
+        out.extend(self.setpoints_iter());
+        out
+    }
+
+    /// The number of setpoints, computed from the sweep's parameters (nothing is
+    /// expanded).
+    pub fn setpoint_count(&self) -> usize {
+        // Validation bounded the count by MAX_SETPOINTS, so the conversion is exact.
+        self.sweep.count() as usize
+    }
+
+    /// Every setpoint in run order, generated one at a time (no list is built).
+    pub fn setpoints_iter(&self) -> impl Iterator<Item = Setpoint> + '_ {
         let u = self.force_unit;
-        let mut out = Vec::new();
-        let mut push = |trial: usize,
-                        position_mm: [f64; 2],
-                        normal_n: f64,
-                        tangential_n: [f64; 2],
-                        shift_mm: [f64; 2],
-                        swept: f64| {
-            out.push(Setpoint {
-                index: 0,
-                trial,
-                position_mm,
-                normal_n,
-                tangential_n,
-                shift_mm,
-                swept_value: swept,
-            })
-        };
         let pos = self.approach_position_mm;
-        match &self.sweep {
+        // (trial, position, normal, tangential, shift, swept value)
+        type Raw = (usize, [f64; 2], f64, [f64; 2], [f64; 2], f64);
+        let raw: Box<dyn Iterator<Item = Raw> + '_> = match &self.sweep {
             Sweep::Magnitude {
                 from,
                 to,
                 step,
                 trials,
             } => {
-                for t in 0..*trials {
-                    for v in steps(*from, *to, *step) {
-                        push(t, pos, u.to_newtons(v), [0.0; 2], [0.0; 2], v);
-                    }
-                }
+                let (from, step) = (*from, *step);
+                let n = level_count(from, *to, step) as usize;
+                Box::new((0..*trials).flat_map(move |t| {
+                    (0..n).map(move |i| {
+                        let v = from + step * i as f64;
+                        (t, pos, u.to_newtons(v), [0.0; 2], [0.0; 2], v)
+                    })
+                }))
             }
             Sweep::Angle {
                 force,
@@ -292,21 +329,17 @@ impl Plan {
                 trials,
             } => {
                 let f = u.to_newtons(*force);
-                let dir = direction_deg.to_radians();
-                for t in 0..*trials {
-                    for a in steps(*from_deg, *to_deg, *step_deg) {
-                        let r = a.to_radians();
-                        let tan = f * r.sin();
-                        push(
-                            t,
-                            pos,
-                            f * r.cos(),
-                            [tan * dir.cos(), tan * dir.sin()],
-                            [0.0; 2],
-                            a,
-                        );
-                    }
-                }
+                let (from, step) = (*from_deg, *step_deg);
+                let n = level_count(from, *to_deg, step) as usize;
+                let (dcos, dsin) = cos_sin_deg(*direction_deg);
+                Box::new((0..*trials).flat_map(move |t| {
+                    (0..n).map(move |i| {
+                        let a = from + step * i as f64;
+                        let (c, s) = cos_sin_deg(a);
+                        let tan = f * s;
+                        (t, pos, f * c, [tan * dcos, tan * dsin], [0.0; 2], a)
+                    })
+                }))
             }
             Sweep::Spatial {
                 force,
@@ -315,47 +348,153 @@ impl Plan {
                 subdivisions,
             } => {
                 let f = u.to_newtons(*force);
-                let len =
-                    ((end_mm[0] - start_mm[0]).powi(2) + (end_mm[1] - start_mm[1]).powi(2)).sqrt();
-                for i in 0..=*subdivisions {
-                    let s = i as f64 / *subdivisions as f64;
-                    let p = [
-                        start_mm[0] + s * (end_mm[0] - start_mm[0]),
-                        start_mm[1] + s * (end_mm[1] - start_mm[1]),
-                    ];
-                    push(0, p, f, [0.0; 2], [0.0; 2], s * len);
-                }
+                let (a, b, k) = (*start_mm, *end_mm, *subdivisions);
+                let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+                Box::new((0..=k).map(move |i| {
+                    let s = i as f64 / k as f64;
+                    let p = [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])];
+                    (0, p, f, [0.0; 2], [0.0; 2], s * len)
+                }))
             }
             Sweep::Displacement { shift_mm, trials } => {
-                for t in 0..*trials {
-                    push(
-                        t,
-                        pos,
-                        0.0,
-                        [0.0; 2],
-                        *shift_mm,
-                        shift_mm[0].hypot(shift_mm[1]),
-                    );
-                }
+                let shift = *shift_mm;
+                Box::new(
+                    (0..*trials)
+                        .map(move |t| (t, pos, 0.0, [0.0; 2], shift, shift[0].hypot(shift[1]))),
+                )
             }
-            Sweep::Setpoints(points) => {
-                for p in points {
-                    push(
-                        0,
-                        p.position_mm,
-                        u.to_newtons(p.normal),
-                        [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
-                        [0.0; 2],
-                        p.normal,
-                    );
+            Sweep::Setpoints(points) => Box::new(points.iter().map(move |p| {
+                (
+                    0,
+                    p.position_mm,
+                    u.to_newtons(p.normal),
+                    [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
+                    [0.0; 2],
+                    p.normal,
+                )
+            })),
+        };
+        raw.enumerate().map(
+            |(index, (trial, position_mm, normal_n, tangential_n, shift_mm, swept_value))| {
+                Setpoint {
+                    index,
+                    trial,
+                    position_mm,
+                    normal_n,
+                    tangential_n,
+                    shift_mm,
+                    swept_value,
                 }
-            }
-        }
-        for (i, s) in out.iter_mut().enumerate() {
-            s.index = i;
-        }
-        out
+            },
+        )
     }
+
+    /// Camera frames the whole plan writes (the reference frame not counted).
+    pub fn frame_count(&self) -> usize {
+        self.setpoint_count() * self.frames
+    }
+
+    /// A rough duration estimate for the first `limit` setpoints (all when `None`):
+    /// moves at their speeds (retract to `clearance_mm` and back when the contact is
+    /// renewed, lateral moves at the safety speed), four control steps per loaded
+    /// setpoint, the settle window × 1.2 (or the dwell), acquisition at 1 kHz and
+    /// 30 ms per frame. Streams over the setpoints: no list is built.
+    pub fn estimate_duration_s(&self, clearance_mm: f64, limit: Option<usize>) -> f64 {
+        let v = self.approach_speed_mm_s;
+        let vmax = self.safety.max_speed_mm_s;
+        let settle = if self.settle.dwell_s > 0.0 {
+            self.settle.dwell_s
+        } else {
+            self.settle.window_s * 1.2
+        };
+        let per_setpoint = settle + self.samples as f64 * 1e-3 + self.frames as f64 * 0.03;
+        let mut t = 0.0;
+        let mut prev: Option<Setpoint> = None;
+        for sp in self.setpoints_iter().take(limit.unwrap_or(usize::MAX)) {
+            if needs_retract(prev.as_ref(), &sp) {
+                t += 2.0 * clearance_mm / vmax + 0.5;
+                if let Some(p) = prev {
+                    t += (p.position_mm[0] - sp.position_mm[0])
+                        .hypot(p.position_mm[1] - sp.position_mm[1])
+                        / vmax;
+                }
+                if sp.normal_n > 0.0 {
+                    t += clearance_mm / v;
+                }
+            }
+            if sp.normal_n > 0.0 {
+                t += 4.0 * (0.1 / v + 0.02);
+            }
+            t += per_setpoint;
+            prev = Some(sp);
+        }
+        t
+    }
+
+    /// Checks the bytes of frames the run would write against [`MAX_FRAME_BYTES`],
+    /// now that the sensor file gives the image size; returns the estimate (bytes,
+    /// width × height × 3 per frame, the reference frame included).
+    pub fn check_frames_on_disk(&self, sensor: &crate::sensor::Sensor) -> Result<u64, PlanError> {
+        let cam = &sensor.camera;
+        let per_frame = u64::from(cam.width_px) * u64::from(cam.height_px) * 3;
+        let bytes = (self.frame_count() as u64 + 1).saturating_mul(per_frame);
+        if bytes > MAX_FRAME_BYTES {
+            let c = Checker { path: &self.path };
+            return Err(c.invalid(
+                "acquire.frames",
+                self.frames,
+                format!(
+                    "{} setpoints x {} frame(s) of {}x{} px (sensor {}) = about {:.1} GB of frames, above the cap of {:.0} GB per run",
+                    self.setpoint_count(),
+                    self.frames,
+                    cam.width_px,
+                    cam.height_px,
+                    self.sensor_path.display(),
+                    bytes as f64 / 1e9,
+                    MAX_FRAME_BYTES as f64 / 1e9
+                ),
+            ));
+        }
+        Ok(bytes)
+    }
+}
+
+impl Sweep {
+    /// The number of setpoints the sweep expands to, from its parameters alone (as
+    /// f64: a typo can make it astronomically large, which validation refuses).
+    pub fn count(&self) -> f64 {
+        match self {
+            Sweep::Magnitude {
+                from,
+                to,
+                step,
+                trials,
+            } => level_count(*from, *to, *step) * *trials as f64,
+            Sweep::Angle {
+                from_deg,
+                to_deg,
+                step_deg,
+                trials,
+                ..
+            } => level_count(*from_deg, *to_deg, *step_deg) * *trials as f64,
+            Sweep::Spatial { subdivisions, .. } => *subdivisions as f64 + 1.0,
+            Sweep::Displacement { trials, .. } => *trials as f64,
+            Sweep::Setpoints(points) => points.len() as f64,
+        }
+    }
+}
+
+/// Whether the contact must be renewed (retract first) between `prev` and `sp`.
+pub fn needs_retract(prev: Option<&Setpoint>, sp: &Setpoint) -> bool {
+    let Some(p) = prev else { return true };
+    let tangential = |s: &Setpoint| s.tangential_n != [0.0, 0.0];
+    p.trial != sp.trial
+        || p.position_mm != sp.position_mm
+        || tangential(p)
+        || tangential(sp)
+        || sp.normal_n <= 0.0
+        || p.normal_n <= 0.0
+        || sp.shift_mm != [0.0, 0.0]
 }
 
 /// Rounds away unit-conversion noise for messages (1000 gf, not 999.9999999999999 gf).
@@ -363,10 +502,27 @@ fn round9(v: f64) -> f64 {
     (v * 1e9).round() / 1e9
 }
 
-/// `from, from+step, …` up to `to` inclusive (within a small tolerance).
-fn steps(from: f64, to: f64, step: f64) -> Vec<f64> {
-    let n = ((to - from) / step + 1e-9).floor() as usize;
-    (0..=n).map(|i| from + step * i as f64).collect()
+/// The number of values `from, from+step, …` up to `to` inclusive (within a small
+/// tolerance), computed without listing them.
+fn level_count(from: f64, to: f64, step: f64) -> f64 {
+    ((to - from) / step + 1e-9).floor() + 1.0
+}
+
+/// cos and sin of an angle in degrees, exact at multiples of 90° (so a tangential
+/// load along +y has no 6e-17 x component).
+fn cos_sin_deg(deg: f64) -> (f64, f64) {
+    let quarter = deg / 90.0;
+    if quarter.fract() == 0.0 && quarter.abs() < 1e15 {
+        match (quarter as i64).rem_euclid(4) {
+            0 => (1.0, 0.0),
+            1 => (0.0, 1.0),
+            2 => (-1.0, 0.0),
+            _ => (0.0, -1.0),
+        }
+    } else {
+        let r = deg.to_radians();
+        (r.cos(), r.sin())
+    }
 }
 
 impl fmt::Display for IndenterShape {
@@ -387,8 +543,7 @@ struct RawPlan {
     name: String,
     sensor: String,
     build_id: Option<String>,
-    #[serde(default = "default_unit")]
-    force_unit: String,
+    force_unit: Option<String>,
     indenter: RawIndenter,
     approach: RawApproach,
     #[serde(default)]
@@ -411,9 +566,15 @@ struct RawReconstruct {
     rank: Option<toml::Value>,
 }
 
-fn default_unit() -> String {
-    "N".into()
-}
+/// Defaults of the optional keys (README plan schema; echoed by `run --dry-run`).
+const DEFAULT_FORCE_UNIT: &str = "N";
+const DEFAULT_MAX_STEPS: i64 = 40;
+const DEFAULT_WINDOW_S: f64 = 0.5;
+const DEFAULT_TIMEOUT_S: f64 = 10.0;
+const DEFAULT_DWELL_S: f64 = 0.0;
+const DEFAULT_SAMPLES: i64 = 20;
+const DEFAULT_FRAMES: i64 = 1;
+const DEFAULT_DIRECTION_DEG: f64 = 0.0;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -430,82 +591,27 @@ struct RawApproach {
     contact_force: f64,
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct RawControl {
     force_tolerance: Option<f64>,
-    #[serde(default = "default_max_steps")]
-    max_steps: i64,
+    max_steps: Option<i64>,
 }
 
-impl Default for RawControl {
-    fn default() -> Self {
-        RawControl {
-            force_tolerance: None,
-            max_steps: default_max_steps(),
-        }
-    }
-}
-
-fn default_max_steps() -> i64 {
-    40
-}
-
-#[derive(Deserialize)]
+#[derive(Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct RawSettle {
-    #[serde(default = "default_window")]
-    window_s: f64,
+    window_s: Option<f64>,
     max_sd: Option<f64>,
-    #[serde(default = "default_timeout")]
-    timeout_s: f64,
-    #[serde(default)]
-    dwell_s: f64,
+    timeout_s: Option<f64>,
+    dwell_s: Option<f64>,
 }
 
-impl Default for RawSettle {
-    fn default() -> Self {
-        RawSettle {
-            window_s: default_window(),
-            max_sd: None,
-            timeout_s: default_timeout(),
-            dwell_s: 0.0,
-        }
-    }
-}
-
-fn default_window() -> f64 {
-    0.5
-}
-
-fn default_timeout() -> f64 {
-    10.0
-}
-
-#[derive(Deserialize)]
+#[derive(Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct RawAcquire {
-    #[serde(default = "default_samples")]
-    samples: i64,
-    #[serde(default = "default_frames")]
-    frames: i64,
-}
-
-impl Default for RawAcquire {
-    fn default() -> Self {
-        RawAcquire {
-            samples: default_samples(),
-            frames: default_frames(),
-        }
-    }
-}
-
-fn default_samples() -> i64 {
-    20
-}
-
-fn default_frames() -> i64 {
-    1
+    samples: Option<i64>,
+    frames: Option<i64>,
 }
 
 #[derive(Deserialize)]
@@ -542,8 +648,114 @@ struct RawSweep {
 struct RawPoint {
     position_mm: [f64; 2],
     normal: f64,
-    #[serde(default)]
-    tangential: [f64; 2],
+    tangential: Option<[f64; 2]>,
+}
+
+/// The optional keys a plan left out, with the defaults used (for `--dry-run`).
+#[derive(Default)]
+struct Defaults(Vec<(String, String)>);
+
+impl Defaults {
+    /// `v`, or `default` (recorded as `key = show(default)`) when the key is absent.
+    fn take<T: Clone>(
+        &mut self,
+        v: Option<T>,
+        default: T,
+        key: &str,
+        show: impl FnOnce(T) -> String,
+    ) -> T {
+        match v {
+            Some(v) => v,
+            None => {
+                self.push(key, show(default.clone()));
+                default
+            }
+        }
+    }
+
+    fn push(&mut self, key: &str, value: String) {
+        self.0.push((key.to_string(), value));
+    }
+}
+
+/// The setpoint and frame caps, from the sweep's parameters alone (before anything
+/// is expanded). `max_normal` is `safety.max_force[2]` in the plan's force unit.
+fn check_caps(
+    c: &Checker<'_>,
+    sweep: &Sweep,
+    frames: usize,
+    fu: &str,
+    max_normal: f64,
+) -> Result<(), PlanError> {
+    let total = sweep.count();
+    // NaN (cannot happen after the range checks) is refused as well.
+    if total.is_nan() || total > MAX_SETPOINTS as f64 {
+        let (key, value, how) = match sweep {
+            Sweep::Magnitude {
+                from,
+                to,
+                step,
+                trials,
+            } => {
+                let levels = level_count(*from, *to, *step);
+                let how = format!(
+                    "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels x sweep.trials {trials} = {total:.0} setpoints"
+                );
+                if levels <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else if *to > max_normal {
+                    (
+                        "sweep.to",
+                        format!("{to} {fu}"),
+                        format!(
+                            "{how} (and sweep.to is above safety.max_force[2] = {} {fu})",
+                            round9(max_normal)
+                        ),
+                    )
+                } else {
+                    ("sweep.step", format!("{step} {fu}"), how)
+                }
+            }
+            Sweep::Angle {
+                from_deg,
+                to_deg,
+                step_deg,
+                trials,
+                ..
+            } => {
+                let levels = level_count(*from_deg, *to_deg, *step_deg);
+                let how = format!(
+                    "sweep.angle_from_deg {from_deg} to sweep.angle_to_deg {to_deg} deg by sweep.angle_step_deg {step_deg} deg is {levels:.0} angles x sweep.trials {trials} = {total:.0} setpoints"
+                );
+                if levels <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else {
+                    ("sweep.angle_step_deg", format!("{step_deg} deg"), how)
+                }
+            }
+            _ => (
+                "sweep",
+                format!("{total:.0} setpoints"),
+                "the sweep is too long".to_string(),
+            ),
+        };
+        return Err(c.invalid(
+            key,
+            value,
+            format!("{how}, above the cap of {MAX_SETPOINTS} setpoints per plan"),
+        ));
+    }
+    let n_frames = total * frames as f64;
+    if n_frames > MAX_FRAMES as f64 {
+        return Err(c.invalid(
+            "acquire.frames",
+            frames,
+            format!(
+                "{total:.0} setpoints x {frames} frames = {n_frames:.0} frames, above the cap of {MAX_FRAMES} frames per plan"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// A key the chosen sweep kind requires.
@@ -560,10 +772,16 @@ fn need<T>(c: &Checker<'_>, key: &str, v: Option<T>, kind: &str) -> Result<T, Pl
 impl RawPlan {
     fn validate(self, path: &Path) -> Result<Plan, PlanError> {
         let c = Checker { path };
-        let unit: ForceUnit = self
-            .force_unit
+        let mut defaults = Defaults::default();
+        let unit_text = defaults.take(
+            self.force_unit.clone(),
+            DEFAULT_FORCE_UNIT.to_string(),
+            "force_unit",
+            |v| format!("{v:?}"),
+        );
+        let unit: ForceUnit = unit_text
             .parse()
-            .map_err(|e: String| c.invalid("force_unit", format!("{:?}", self.force_unit), e))?;
+            .map_err(|e: String| c.invalid("force_unit", format!("{unit_text:?}"), e))?;
         let fu = unit.symbol();
         let n = |v: f64| unit.to_newtons(v);
 
@@ -642,32 +860,85 @@ impl RawPlan {
             max_speed_mm_s,
         };
 
+        let with_fu = |v: f64| format!("{} {fu}", round9(v));
         let tol_default = unit.from_newtons(contact_force_n);
         let force_tolerance_n = n(c.positive(
             "control.force_tolerance",
-            self.control.force_tolerance.unwrap_or(tol_default),
+            defaults.take(
+                self.control.force_tolerance,
+                tol_default,
+                "control.force_tolerance",
+                |v| format!("{} (approach.contact_force)", with_fu(v)),
+            ),
             fu,
         )?);
-        let max_control_steps = c.count("control.max_steps", self.control.max_steps, 10_000)?;
+        let max_control_steps = c.count(
+            "control.max_steps",
+            defaults.take(
+                self.control.max_steps,
+                DEFAULT_MAX_STEPS,
+                "control.max_steps",
+                |v| v.to_string(),
+            ),
+            10_000,
+        )?;
 
         let st = &self.settle;
+        let secs = |v: f64| format!("{v} s");
         let settle = Settle {
-            window_s: c.positive("settle.window_s", st.window_s, "s")?,
+            window_s: c.positive(
+                "settle.window_s",
+                defaults.take(st.window_s, DEFAULT_WINDOW_S, "settle.window_s", secs),
+                "s",
+            )?,
             max_sd_n: n(c.positive(
                 "settle.max_sd",
-                st.max_sd
-                    .unwrap_or(unit.from_newtons(force_tolerance_n) / 2.0),
+                defaults.take(
+                    st.max_sd,
+                    unit.from_newtons(force_tolerance_n) / 2.0,
+                    "settle.max_sd",
+                    |v| format!("{} (control.force_tolerance / 2)", with_fu(v)),
+                ),
                 fu,
             )?),
-            timeout_s: c.positive("settle.timeout_s", st.timeout_s, "s")?,
-            dwell_s: c.non_negative("settle.dwell_s", st.dwell_s, "s")?,
+            timeout_s: c.positive(
+                "settle.timeout_s",
+                defaults.take(st.timeout_s, DEFAULT_TIMEOUT_S, "settle.timeout_s", secs),
+                "s",
+            )?,
+            dwell_s: c.non_negative(
+                "settle.dwell_s",
+                defaults.take(st.dwell_s, DEFAULT_DWELL_S, "settle.dwell_s", secs),
+                "s",
+            )?,
         };
-        let samples = c.count("acquire.samples", self.acquire.samples, 100_000)?;
-        let frames = c.count("acquire.frames", self.acquire.frames, 1000)?;
+        let samples = c.count(
+            "acquire.samples",
+            defaults.take(
+                self.acquire.samples,
+                DEFAULT_SAMPLES,
+                "acquire.samples",
+                |v| v.to_string(),
+            ),
+            100_000,
+        )?;
+        let frames = c.count(
+            "acquire.frames",
+            defaults.take(self.acquire.frames, DEFAULT_FRAMES, "acquire.frames", |v| {
+                v.to_string()
+            }),
+            1000,
+        )?;
 
         let sw = self.sweep;
         let kind = sw.kind.clone();
-        let trials = |c: &Checker| c.count("sweep.trials", sw.trials.unwrap_or(1), 10_000);
+        let trials = |c: &Checker| {
+            c.count(
+                "sweep.trials",
+                need(c, "sweep.trials", sw.trials, &kind)?,
+                10_000,
+            )
+        };
         let sweep = match kind.as_str() {
             "magnitude" => {
                 let from =
@@ -723,7 +994,12 @@ impl RawPlan {
                     )?,
                     direction_deg: c.finite(
                         "sweep.direction_deg",
-                        sw.direction_deg.unwrap_or(0.0),
+                        defaults.take(
+                            sw.direction_deg,
+                            DEFAULT_DIRECTION_DEG,
+                            "sweep.direction_deg",
+                            |v| format!("{v} deg (+x)"),
+                        ),
                         "deg",
                     )?,
                     trials: trials(&c)?,
@@ -767,8 +1043,18 @@ impl RawPlan {
                         "at least one [[sweep.points]] is required",
                     ));
                 }
+                if points.len() > MAX_SETPOINTS {
+                    return Err(c.invalid(
+                        "sweep.points",
+                        format!("{} points", points.len()),
+                        format!("a plan may have at most {MAX_SETPOINTS} setpoints (cap)"),
+                    ));
+                }
                 let mut out = Vec::with_capacity(points.len());
+                let mut untangential = false;
                 for (i, p) in points.into_iter().enumerate() {
+                    untangential |= p.tangential.is_none();
+                    let tangential = p.tangential.unwrap_or([0.0; 2]);
                     let key = format!("sweep.points[{i}]");
                     c.finite(&format!("{key}.position_mm[0]"), p.position_mm[0], "mm")?;
                     c.finite(&format!("{key}.position_mm[1]"), p.position_mm[1], "mm")?;
@@ -776,10 +1062,16 @@ impl RawPlan {
                         position_mm: p.position_mm,
                         normal: c.non_negative(&format!("{key}.normal"), p.normal, fu)?,
                         tangential: [
-                            c.finite(&format!("{key}.tangential[0]"), p.tangential[0], fu)?,
-                            c.finite(&format!("{key}.tangential[1]"), p.tangential[1], fu)?,
+                            c.finite(&format!("{key}.tangential[0]"), tangential[0], fu)?,
+                            c.finite(&format!("{key}.tangential[1]"), tangential[1], fu)?,
                         ],
                     });
+                }
+                if untangential {
+                    defaults.push(
+                        "sweep.points[].tangential",
+                        format!("[0, 0] {fu} (where not given)"),
+                    );
                 }
                 Sweep::Setpoints(out)
             }
@@ -792,9 +1084,14 @@ impl RawPlan {
             }
         };
 
+        check_caps(&c, &sweep, frames, fu, unit.from_newtons(max_force_n[2]))?;
+
         let r = &self.reconstruct;
         let method: Method = match &r.solver {
-            None => Method::Pinv,
+            None => {
+                defaults.push("reconstruct.solver", "\"pinv\"".into());
+                Method::Pinv
+            }
             Some(m) => m
                 .parse()
                 .map_err(|e: String| c.invalid("reconstruct.solver", format!("{m:?}"), e))?,
@@ -804,14 +1101,27 @@ impl RawPlan {
             other => other.to_string(),
         };
         let lambda: Lambda = match &r.lambda {
-            None if method == Method::Fourier => Lambda::LCurve,
-            None => Lambda::Gcv,
+            None if method == Method::Fourier => {
+                defaults.push("reconstruct.lambda", "\"lcurve\" (fourier)".into());
+                Lambda::LCurve
+            }
+            None => {
+                if matches!(method, Method::Tikhonov) {
+                    defaults.push("reconstruct.lambda", "\"gcv\"".into());
+                }
+                Lambda::Gcv
+            }
             Some(v) => as_text(v)
                 .parse()
                 .map_err(|e: String| c.invalid("reconstruct.lambda", v, e))?,
         };
         let rank: Rank = match &r.rank {
-            None => Rank::Auto,
+            None => {
+                if matches!(method, Method::Tsvd) {
+                    defaults.push("reconstruct.rank", "\"auto\"".into());
+                }
+                Rank::Auto
+            }
             Some(v) => as_text(v)
                 .parse()
                 .map_err(|e: String| c.invalid("reconstruct.rank", v, e))?,
@@ -841,10 +1151,31 @@ impl RawPlan {
             frames,
             safety,
             sweep,
+            defaults: defaults.0,
         };
+        // The duration, from the (bounded) setpoints one at a time.
+        let est = plan.estimate_duration_s(DEFAULT_CLEARANCE_MM, None);
+        if est > MAX_DURATION_S {
+            let (key, value) = if plan.settle.dwell_s > 0.0
+                && plan.settle.dwell_s * plan.setpoint_count() as f64 > MAX_DURATION_S / 2.0
+            {
+                ("settle.dwell_s", format!("{} s", plan.settle.dwell_s))
+            } else {
+                ("sweep", format!("{} setpoints", plan.setpoint_count()))
+            };
+            return Err(c.invalid(
+                key,
+                value,
+                format!(
+                    "the plan's estimated duration is {:.1} h, above the cap of {:.0} h per plan",
+                    est / 3600.0,
+                    MAX_DURATION_S / 3600.0
+                ),
+            ));
+        }
         // Every target must stay within the force limits and the travel box before
         // anything moves.
-        for sp in plan.setpoints() {
+        for sp in plan.setpoints_iter() {
             for i in 0..2 {
                 let v = sp.position_mm[i] + sp.shift_mm[i];
                 let (lo, hi) = (plan.safety.travel_min_mm[i], plan.safety.travel_max_mm[i]);
@@ -930,7 +1261,7 @@ trials = 10
     fn angle_sweep_splits_the_force_into_normal_and_tangential_parts() {
         let t = FIG7.replace(
             "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
-            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 5.0\ndirection_deg = 90.0",
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 5.0\ndirection_deg = 90.0\ntrials = 1",
         );
         let s = parse(&t).unwrap().setpoints();
         assert_eq!(s.len(), 10);
@@ -993,5 +1324,136 @@ trials = 10
             .to_string();
         assert!(e.contains("fz = 1000") || e.contains("fz = 1050"), "{e}");
         assert!(e.contains("safety.max_force[2] = 1000 gf"), "{e}");
+    }
+
+    #[test]
+    fn a_sweep_to_1e9_is_refused_by_the_setpoint_cap_naming_key_value_and_cap() {
+        let e = parse(&FIG7.replace("to = 750.0", "to = 1e9"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("experiments/p.toml")
+                && e.contains("sweep.to = 1000000000 gf")
+                && e.contains("200000010 setpoints")
+                && e.contains(&format!("cap of {MAX_SETPOINTS} setpoints")),
+            "{e}"
+        );
+        // A tiny step within the force limit names the step instead.
+        let e = parse(&FIG7.replace("step = 50.0", "step = 1e-6"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("sweep.step = 0.000001 gf") && e.contains("cap"),
+            "{e}"
+        );
+        let e = parse(&FIG7.replace(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 1e-12\ntrials = 1",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.angle_step_deg") && e.contains("cap"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_frame_and_duration_caps_refuse_plans_that_would_run_for_weeks() {
+        let e = parse(&FIG7.replace("trials = 10", "trials = 20\n[acquire]\nframes = 1000"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("acquire.frames = 1000")
+                && e.contains("320000 frames")
+                && e.contains(&format!("cap of {MAX_FRAMES} frames")),
+            "{e}"
+        );
+        let e = parse(&FIG7.replace("trials = 10", "trials = 10\n[settle]\ndwell_s = 86400.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("settle.dwell_s = 86400 s") && e.contains("cap of 168 h"),
+            "{e}"
+        );
+        let p = parse(FIG7).unwrap();
+        let est = p.estimate_duration_s(DEFAULT_CLEARANCE_MM, None);
+        assert!(est > 0.0 && est < MAX_DURATION_S);
+        assert!(p.estimate_duration_s(DEFAULT_CLEARANCE_MM, Some(16)) < est / 5.0);
+    }
+
+    #[test]
+    fn a_missing_trials_is_refused_instead_of_meaning_one() {
+        let e = parse(&FIG7.replace("trials = 10\n", ""))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("sweep.trials = (missing)") && e.contains("required by sweep kind"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn keys_left_out_are_listed_with_their_defaults() {
+        let p = parse(FIG7).unwrap();
+        let keys: Vec<&str> = p.defaults.iter().map(|(k, _)| k.as_str()).collect();
+        assert_eq!(
+            keys,
+            [
+                "control.force_tolerance",
+                "control.max_steps",
+                "settle.window_s",
+                "settle.max_sd",
+                "settle.timeout_s",
+                "settle.dwell_s",
+                "acquire.samples",
+                "acquire.frames",
+                "reconstruct.solver"
+            ]
+        );
+        assert_eq!(p.defaults[0].1, "5 gf (approach.contact_force)");
+        assert_eq!(p.defaults[3].1, "2.5 gf (control.force_tolerance / 2)");
+        assert_eq!(p.settle.window_s, DEFAULT_WINDOW_S);
+        let p = parse(&FIG7.replace("force_unit = \"gf\"\n", "")).unwrap();
+        assert_eq!(p.force_unit, ForceUnit::Newton);
+        assert_eq!(p.defaults[0], ("force_unit".into(), "\"N\"".into()));
+    }
+
+    #[test]
+    fn a_tangential_load_along_y_has_an_exact_zero_x_part() {
+        let t = FIG7.replace(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+            "kind = \"angle\"\nforce = 200.0\nangle_from_deg = 0.0\nangle_to_deg = 30.0\nangle_step_deg = 30.0\ndirection_deg = 90.0\ntrials = 1",
+        );
+        let s = parse(&t).unwrap().setpoints();
+        assert_eq!(s[1].tangential_n[0], 0.0);
+        assert_eq!(s[0].tangential_n, [0.0, 0.0]);
+        assert_eq!(cos_sin_deg(-90.0), (0.0, -1.0));
+        assert_eq!(cos_sin_deg(180.0), (-1.0, 0.0));
+    }
+
+    #[test]
+    fn the_setpoint_count_matches_the_expansion_for_every_kind() {
+        let kinds = [
+            FIG7.to_string(),
+            FIG7.replace(
+                "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+                "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 5.0\ntrials = 3",
+            ),
+            FIG7.replace(
+                "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+                "kind = \"displacement\"\nshift_mm = [0.1, 0.0]\ntrials = 4",
+            ),
+            FIG7.replace(
+                "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+                "kind = \"magnitude\"\nfrom = 0.1\nto = 0.7\nstep = 0.1\ntrials = 2",
+            ),
+        ];
+        for (t, n) in kinds.iter().zip([160, 30, 4, 14]) {
+            let p = parse(t).unwrap();
+            assert_eq!(p.setpoint_count(), n);
+            assert_eq!(p.setpoints().len(), n);
+            assert_eq!(p.frame_count(), n);
+        }
     }
 }

@@ -1,5 +1,5 @@
-//! `tactbench camera`: list V4L2 cameras, grab one frame to a PNG from a camera or an
-//! image directory (`dir:PATH`).
+//! `tactbench camera`: list V4L2 cameras, grab one frame to a PNG from a camera, an
+//! image directory (`dir:PATH`) or a simulated bench's camera socket (`sim:PATH`).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -15,8 +15,10 @@ pub enum CameraCommand {
     List,
     /// Grab one frame and save it.
     Grab {
-        /// A V4L2 index (0, 1, ...) or dir:PATH (a directory of recorded frames).
-        #[arg(long)]
+        /// A V4L2 index (0, 1, ...), dir:PATH (a directory of recorded frames) or
+        /// sim:PATH (the camera socket of a simulated bench, e.g.
+        /// sim:links/camera.sock from `tactbench sim bench --links links`).
+        #[arg(long, value_name = "N|dir:PATH|sim:PATH")]
         device: String,
         /// Output image (format from the extension, e.g. .png).
         #[arg(long)]

@@ -54,6 +54,16 @@ pub struct ServeArgs {
     /// Replies passed untouched before the fault.
     #[arg(long, default_value_t = 0)]
     fault_skip: u32,
+    /// The sensor is already streaming when the host connects (DynPick: continuous
+    /// output `S`; FT 300: the 100 Hz stream), as left by an earlier program.
+    #[arg(long)]
+    streaming: bool,
+    /// FT 300: the Modbus echo of the stream-start write is lost (the stream starts).
+    #[arg(long)]
+    drop_stream_echo: bool,
+    /// DynPick: the first N tare commands (`O`) do nothing.
+    #[arg(long, default_value_t = 0)]
+    tare_ignored: u32,
 }
 
 /// Fault kinds a force-sensor simulator can inject.
@@ -215,11 +225,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     tactbench::device::dynpick::driver::BAUD,
                 )?;
                 let mut d = DynPick::connect(port)?;
-                d.tare()?;
-                // Read back once so the user sees the zeroed value and the command was
-                // taken (the device does not acknowledge `O`).
+                // Verified: read back after each `O`, repeated until it took.
+                let sent = d.tare_verified()?;
                 let w = d.read()?;
-                println!("tared; now {}", show(&w));
+                println!(
+                    "tared ({sent} `O` command{} sent); now {}",
+                    if sent == 1 { "" } else { "s" },
+                    show(&w)
+                );
             }
             Protocol::Ft300 => bail!(
                 "the ft300 tare is a software offset held by the driver for one run; \
@@ -304,6 +317,9 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         duration_s,
         fault,
         fault_skip,
+        streaming,
+        drop_stream_echo,
+        tare_ignored,
     } = args;
     let link = link.as_path();
     let source = SharedWrench::new(parse_wrench(&wrench)?);
@@ -325,6 +341,8 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         Protocol::Dynpick => {
             let cfg = DynPickSimConfig {
                 faults,
+                streaming_at_start: streaming,
+                tare_ignored,
                 ..Default::default()
             };
             let sim = DynPickSim::new(cfg, source);
@@ -333,6 +351,8 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         Protocol::Ft300 => {
             let cfg = Ft300SimConfig {
                 faults,
+                streaming_at_start: streaming,
+                drop_stream_echo,
                 ..Default::default()
             };
             let sim = Ft300Sim::new(cfg, source);

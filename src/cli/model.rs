@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 
 use tactbench::formats;
-use tactbench::model::{self, HalfSpace, MarkerSite};
+use tactbench::model::{self, ForwardModel, MarkerSite};
 use tactbench::sensor::Sensor;
 use tactbench::solve::{self, Method, Problem, SolverConfig};
 use tactbench::units;
@@ -26,7 +26,8 @@ pub enum ModelCommand {
     /// the first frame of `--displacements` (which automatic lambda / rank also use).
     Inspect(InspectArgs),
     /// Compute marker displacements from surface forces with the forward model
-    /// (paper Eq. 1, 2, 5): reads a forces CSV (`ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n`, N;
+    /// (paper Eq. 1, 2, 5, or the bonded layer the sensor file's `[elastomer] model`
+    /// selects): reads a forces CSV (`ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n`, N;
     /// the positions are used, so any point set works) and writes a displacement CSV
     /// (`layer,marker,x_mm,y_mm,ux_mm,uy_mm`, mm) for every marker of the sensor's layer
     /// grids. Handy for synthetic data and for checking a solver on known forces.
@@ -79,7 +80,8 @@ fn forward(args: ForwardArgs) -> Result<ExitCode> {
     let forces = formats::read_forces(&args.forces)?;
     let points: Vec<[f64; 2]> = forces.iter().map(|r| r.position_mm).collect();
     let f: Vec<f64> = forces.iter().flat_map(|r| r.f_n).collect();
-    let model = HalfSpace::from_elastomer(&sensor.elastomer);
+    // The sensor file's `[elastomer] model` (half-space or bonded layer).
+    let model = ForwardModel::from_elastomer(&sensor.elastomer);
     let mut records = Vec::new();
     for (li, layer) in sensor.layers.iter().enumerate() {
         let Some(m) = &layer.markers else { continue };

@@ -22,7 +22,7 @@ use super::SolverArgs;
 /// dropped from the system and counted on stderr.
 #[derive(clap::Args)]
 #[command(
-    after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements tests/fixtures/paper_point_load.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv"
+    after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements experiments/examples/fig6_displacements.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv"
 )]
 pub struct Args {
     /// Sensor description (sensor.toml).

@@ -2,6 +2,7 @@
 //! or simulated) into a run directory, drawing progress with indicatif (library:
 //! [`tactbench::bench::runner`]).
 
+use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -14,9 +15,31 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
 use tactbench::bench::journal::{Manifest, RunStatus};
-use tactbench::bench::plan::Plan;
+use tactbench::bench::plan::{self, Plan};
 use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions};
 use tactbench::sensor::Sensor;
+use tactbench::units::ForceUnit;
+
+/// `run --help` examples: one command per example, continued with `\` so no line
+/// is longer than 80 columns (clap wraps longer lines mid-command).
+const RUN_EXAMPLES: &str = "\
+Examples:
+  # The paper's Fig. 7 magnitude sweep on the simulated bench (same drivers,
+  # pseudo-terminals):
+  tactbench run experiments/fig7_magnitude.toml \\
+      --sim experiments/scenes/fig7_hemisphere_ramp.toml --out runs/fig7
+  # What a plan will do, without opening any device:
+  tactbench run experiments/fig8_angle.toml \\
+      --bench experiments/bench_example.toml --dry-run
+  # A real bench:
+  tactbench run experiments/fig7_magnitude.toml \\
+      --bench experiments/bench_example.toml --out runs/fig7 \\
+      --build-id E-2026-11
+  # Continue a killed or interrupted run (plan and bench from its manifest):
+  tactbench run --resume runs/fig7
+  # A short trial: the first 5 setpoints only:
+  tactbench run experiments/fig7_magnitude.toml \\
+      --bench experiments/bench_sim.toml --out runs/try --limit 5";
 
 /// Run an experiment plan on the bench: force-controlled setpoints, frames, forces.
 ///
@@ -35,13 +58,19 @@ use tactbench::sensor::Sensor;
 /// interrupted; `--resume DIR` continues a killed or interrupted run without
 /// repeating or losing a setpoint.
 ///
+/// The plan is validated before anything is expanded: more than 100000 setpoints,
+/// 200000 frames, 100 GB of frames or an estimated 168 h is refused (exit 2), naming
+/// the key. On a terminal a progress bar is drawn; otherwise (nohup, CI, a pipe) and
+/// with --no-progress, plain lines: the set-up steps and one line per setpoint
+/// (index, target, measured, F_sum, settled or not, time). With --dry-run the exit
+/// status is 0 when every check passes, 3 when a limit check fails, 2 when an input
+/// is missing or invalid.
+///
 /// Exit status: 0 when every setpoint was measured, 3 when the run was aborted (device
 /// error, safety trip), 4 when interrupted, 2 on other errors; the reason goes to
 /// stderr and into manifest.json.
 #[derive(clap::Args)]
-#[command(
-    after_long_help = "Examples:\n  # The paper's Fig. 7 magnitude sweep on the simulated bench (same drivers, pseudo-terminals):\n  tactbench run experiments/fig7_magnitude.toml --sim experiments/scenes/fig7_hemisphere_ramp.toml --out runs/fig7\n  # What a plan will do, without opening any device:\n  tactbench run experiments/fig8_angle.toml --bench experiments/bench_example.toml --dry-run\n  # A real bench:\n  tactbench run experiments/fig7_magnitude.toml --bench experiments/bench_example.toml --out runs/fig7 --build-id E-2026-11\n  # Continue a killed or interrupted run (plan and bench come from its manifest):\n  tactbench run --resume runs/fig7\n  # A short trial: the first 5 setpoints only:\n  tactbench run experiments/fig7_magnitude.toml --bench experiments/bench_sim.toml --out runs/try --limit 5"
-)]
+#[command(after_long_help = RUN_EXAMPLES)]
 pub struct Args {
     /// Experiment plan (experiments/*.toml). Optional with --resume (taken from the
     /// run's manifest).
@@ -59,21 +88,28 @@ pub struct Args {
     /// Continue the run in DIR.
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
-    /// Print the setpoints, the estimated duration and the limit checks; move nothing
-    /// and open no device.
+    /// Check everything the run would open (plan, sensor, bench file, scene, camera
+    /// directory) and print the defaults used, the setpoints with their stage
+    /// coordinates, the estimated duration and the limit checks (the plan's travel
+    /// box, force limits, the stage's travel limits); move nothing and open no device.
     #[arg(long)]
     dry_run: bool,
+    /// With --dry-run: write every setpoint with its stage coordinates to this CSV
+    /// (the printed table shows the first and last 20 of a long plan).
+    #[arg(long, value_name = "FILE.csv", requires = "dry_run")]
+    setpoints_csv: Option<PathBuf>,
     /// Elastomer build id recorded in the manifest (overrides the plan's build_id).
     #[arg(long, value_name = "ID")]
     build_id: Option<String>,
-    /// Only the first N setpoints of the plan (a short trial run).
-    #[arg(long, value_name = "N")]
-    limit: Option<usize>,
+    /// Only the first N setpoints of the plan (a short trial run; N >= 1).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    limit: Option<u64>,
     /// Print where the time went at the end (device waits, tracking, solving, file
     /// writes, controller overhead per setpoint).
     #[arg(long)]
     timings: bool,
-    /// No progress bar; one line per setpoint on stderr instead.
+    /// No progress bar; one plain line per setpoint on stderr instead (the default
+    /// when stderr is not a terminal: nohup, CI, a pipe).
     #[arg(long)]
     no_progress: bool,
 }
@@ -109,6 +145,7 @@ fn bench_from_manifest(m: &Manifest) -> anyhow::Result<BenchConfig> {
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    let limit = a.limit.map(|n| usize::try_from(n).unwrap_or(usize::MAX));
     // Plan: from the command line, or (resume) from the manifest.
     let manifest =
         match &a.resume {
@@ -149,59 +186,11 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         (None, None, None) => None,
     };
 
+    // The frames the run writes, now that the sensor gives the image size.
+    plan.check_frames_on_disk(&sensor)?;
+
     if a.dry_run {
-        let geometry = bench.as_ref().map(connect::geometry_of);
-        let report = runner::dry_run(&plan, a.limit, geometry.as_ref(), None);
-        let u = plan.force_unit;
-        println!(
-            "plan {} ({}, {} sweep): {} setpoints, {} samples and {} frame(s) each",
-            plan.path.display(),
-            plan.name,
-            runner::sweep_name(&plan),
-            report.setpoints.len(),
-            plan.samples,
-            plan.frames
-        );
-        println!(
-            "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}",
-            "index",
-            "trial",
-            "x_mm",
-            "y_mm",
-            format!("normal_{}", u.symbol()),
-            format!("tx_{}", u.symbol()),
-            format!("ty_{}", u.symbol()),
-            "swept"
-        );
-        for sp in &report.setpoints {
-            println!(
-                "{:>6} {:>5} {:>10.4} {:>10.4} {:>12.4} {:>12.4} {:>12.4} {:>10.4}",
-                sp.index,
-                sp.trial,
-                sp.position_mm[0] + sp.shift_mm[0],
-                sp.position_mm[1] + sp.shift_mm[1],
-                u.from_newtons(sp.normal_n),
-                u.from_newtons(sp.tangential_n[0]),
-                u.from_newtons(sp.tangential_n[1]),
-                sp.swept_value
-            );
-        }
-        println!("limit checks:");
-        let mut ok = true;
-        for (pass, what) in &report.checks {
-            ok &= pass;
-            println!("  [{}] {what}", if *pass { "ok" } else { "FAIL" });
-        }
-        println!(
-            "estimated duration: {:.0} s ({:.1} min); nothing moved, no device opened",
-            report.estimated_s,
-            report.estimated_s / 60.0
-        );
-        return Ok(if ok {
-            ExitCode::SUCCESS
-        } else {
-            ExitCode::from(3)
-        });
+        return dry_run(&a, &plan, bench.as_ref(), limit);
     }
 
     let bench = bench.context("give a bench: --bench bench.toml or --sim SCENE.toml")?;
@@ -248,11 +237,14 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         devices: c.identities.clone(),
         home: c.home,
         tare: c.tare,
-        limit: a.limit,
+        limit,
         stop,
     };
 
-    let bar = if a.no_progress {
+    // A progress bar only on a terminal: indicatif hides itself (and the lines printed
+    // through it) when stderr is not one, so nohup, CI and pipes get plain lines.
+    let plain = a.no_progress || !std::io::stderr().is_terminal();
+    let bar = if plain {
         None
     } else {
         let b = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
@@ -272,6 +264,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         Some(b) => b.println(line),
         None => eprintln!("{line}"),
     };
+    let run_dir = dir.display().to_string();
     let mut on_event = |e: &RunEvent| match e {
         RunEvent::Started {
             total,
@@ -285,13 +278,15 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             }
             if *done > 0 {
                 log(format!(
-                    "resuming: {done} of {total} setpoints already measured{}",
+                    "resuming {run_dir}: {done} of {total} setpoints already measured{}",
                     if *truncated_bytes > 0 {
                         format!(" (cut a torn journal line of {truncated_bytes} bytes)")
                     } else {
                         String::new()
                     }
                 ));
+            } else {
+                log(format!("run {run_dir}: {total} setpoints"));
             }
         }
         RunEvent::Homing => log("homing the stage".into()),
@@ -332,30 +327,27 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             index,
             done,
             total,
+            target_n,
             force_n,
             fsum_n,
             settled,
             elapsed_s,
             ..
-        } => {
-            let line = format!(
-                "#{index:>5} fz {:>9.3} {sym}  F_sum z {:>9.3} {sym}  ({:.2} s{})",
-                unit.from_newtons(force_n[2]),
-                unit.from_newtons(fsum_n[2]),
-                elapsed_s,
-                if *settled { "" } else { ", not settled" }
-            );
-            match &bar {
-                Some(b) => {
-                    b.set_position(*done as u64);
-                    b.set_message(format!(
-                        "last fz {:.1} {sym}",
-                        unit.from_newtons(force_n[2])
-                    ));
-                }
-                None => eprintln!("{done}/{total} {line}"),
+        } => match &bar {
+            Some(b) => {
+                b.set_position(*done as u64);
+                b.set_message(format!(
+                    "last fz {:.1} {sym}",
+                    unit.from_newtons(force_n[2])
+                ));
             }
-        }
+            None => eprintln!(
+                "{}",
+                setpoint_line(
+                    *index, *done, *total, unit, target_n, force_n, fsum_n, *settled, *elapsed_s
+                )
+            ),
+        },
         RunEvent::SafetyTrip { reason, .. } => log(format!("SAFETY STOP: {reason}")),
         RunEvent::Finished { .. } => {}
     };
@@ -431,5 +423,229 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             );
             Ok(ExitCode::from(3))
         }
+    }
+}
+
+/// The plain log line of a measured setpoint (README "Run logs"):
+/// `setpoint INDEX (DONE/TOTAL): target fx/fy/fz X/Y/Z UNIT, measured X/Y/Z UNIT,
+/// F_sum z V UNIT, settled|not settled, T s`.
+#[allow(clippy::too_many_arguments)]
+fn setpoint_line(
+    index: usize,
+    done: usize,
+    total: usize,
+    unit: ForceUnit,
+    target_n: &[f64; 3],
+    force_n: &[f64; 3],
+    fsum_n: &[f64; 3],
+    settled: bool,
+    elapsed_s: f64,
+) -> String {
+    let sym = unit.symbol();
+    let v = |f: &[f64; 3]| {
+        format!(
+            "{:.3}/{:.3}/{:.3}",
+            unit.from_newtons(f[0]),
+            unit.from_newtons(f[1]),
+            unit.from_newtons(f[2])
+        )
+    };
+    format!(
+        "setpoint {index} ({done}/{total}): target fx/fy/fz {} {sym}, measured {} {sym}, F_sum z {:.3} {sym}, {}, {elapsed_s:.2} s",
+        v(target_n),
+        v(force_n),
+        unit.from_newtons(fsum_n[2]),
+        if settled { "settled" } else { "not settled" }
+    )
+}
+
+/// Setpoints printed at each end of a long dry-run table.
+const DRY_RUN_ROWS: usize = 20;
+
+/// `run --dry-run`: checks every file the run would open (plan, sensor and bench file
+/// are parsed before; here the scene and camera directories), prints the defaults the
+/// plan relies on, the setpoints with their stage coordinates, the limit checks and
+/// the estimated duration. Opens no device. Exit 0 when every check passes, 3 when a
+/// limit check fails, 2 (an `Err`) when an input is missing or invalid.
+fn dry_run(
+    a: &Args,
+    plan: &Plan,
+    bench: Option<&BenchConfig>,
+    limit: Option<usize>,
+) -> anyhow::Result<ExitCode> {
+    use std::fmt::Write as _;
+    use std::io::Write as _;
+    // Printed at once at the end: `--dry-run | head` is not an error.
+    let mut out = String::new();
+    macro_rules! outln {
+        ($($t:tt)*) => {{
+            let _ = writeln!(out, $($t)*);
+        }};
+    }
+    let n = plan.setpoint_count().min(limit.unwrap_or(usize::MAX));
+    let mut input_checks = Vec::new();
+    if let Some(b) = bench {
+        input_checks = runner::check_bench_inputs(b, 1 + n * plan.frames)
+            .with_context(|| format!("bench {}", b.path.display()))?;
+    }
+    let geometry = bench.map(connect::geometry_of);
+    let limits = bench.and_then(runner::stage_limits_of);
+    let report = runner::dry_run(
+        plan,
+        limit,
+        geometry.as_ref(),
+        limits.as_ref().map(|l| &l.0),
+    );
+    let u = plan.force_unit;
+    let fu = u.symbol();
+    outln!(
+        "plan {} ({}, {} sweep): {} setpoints{}, {} samples and {} frame(s) each",
+        plan.path.display(),
+        plan.name,
+        runner::sweep_name(plan),
+        report.setpoints.len(),
+        if n < plan.setpoint_count() {
+            format!(" (--limit; the plan has {})", plan.setpoint_count())
+        } else {
+            String::new()
+        },
+        plan.samples,
+        plan.frames
+    );
+    outln!(
+        "caps: {} of {} setpoints, {} of {} frames, an estimated {} of {:.0} h",
+        plan.setpoint_count(),
+        plan::MAX_SETPOINTS,
+        plan.frame_count(),
+        plan::MAX_FRAMES,
+        duration_text(plan.estimate_duration_s(plan::DEFAULT_CLEARANCE_MM, None)),
+        plan::MAX_DURATION_S / 3600.0
+    );
+    if plan.defaults.is_empty() {
+        outln!("defaults used: none (every optional key is given)");
+    } else {
+        outln!("defaults used (keys the plan leaves out):");
+        for (key, value) in &plan.defaults {
+            outln!("  {key} = {value}");
+        }
+    }
+    if let Some(b) = bench {
+        outln!("bench {}:", b.path.display());
+        for (_, what) in &input_checks {
+            outln!("  {what}");
+        }
+        match &limits {
+            Some((_, from)) => outln!("  stage travel limits from {from}"),
+            None => outln!(
+                "  stage travel limits: not in the bench file ([stage] travel_min_mm / travel_max_mm); the run reads them from the controller"
+            ),
+        }
+    }
+    let stage = !report.stage.is_empty();
+    let header = format!(
+        "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}{}",
+        "index",
+        "trial",
+        "x_mm",
+        "y_mm",
+        format!("normal_{fu}"),
+        format!("tx_{fu}"),
+        format!("ty_{fu}"),
+        "swept",
+        if stage {
+            format!(
+                " {:>10} {:>10} {:>11} {:>13}",
+                "stage_x_mm", "stage_y_mm", "stage_z_clr", "stage_z_limit"
+            )
+        } else {
+            String::new()
+        }
+    );
+    let row = |i: usize| {
+        let sp = &report.setpoints[i];
+        let mut line = format!(
+            "{:>6} {:>5} {:>10.4} {:>10.4} {:>12.4} {:>12.4} {:>12.4} {:>10.4}",
+            sp.index,
+            sp.trial,
+            sp.position_mm[0] + sp.shift_mm[0],
+            sp.position_mm[1] + sp.shift_mm[1],
+            u.from_newtons(sp.normal_n),
+            u.from_newtons(sp.tangential_n[0]),
+            u.from_newtons(sp.tangential_n[1]),
+            sp.swept_value
+        );
+        if let Some(t) = report.stage.get(i) {
+            line += &format!(
+                " {:>10.4} {:>10.4} {:>11.4} {:>13.4}",
+                t.xy_mm[0], t.xy_mm[1], t.z_clear_mm, t.z_deepest_mm
+            );
+        }
+        line
+    };
+    if stage {
+        outln!(
+            "stage coordinates (machine mm): x, y over the setpoint; z at the retract height (clearance) and at the deepest indentation the plan allows (safety.travel_max_mm[2])"
+        );
+    }
+    outln!("{header}");
+    let total = report.setpoints.len();
+    if total <= 2 * DRY_RUN_ROWS {
+        for i in 0..total {
+            outln!("{}", row(i));
+        }
+    } else {
+        for i in 0..DRY_RUN_ROWS {
+            outln!("{}", row(i));
+        }
+        outln!(
+            "{:>6} ({} setpoints not shown; --setpoints-csv FILE writes every one)",
+            "...",
+            total - 2 * DRY_RUN_ROWS
+        );
+        for i in total - DRY_RUN_ROWS..total {
+            outln!("{}", row(i));
+        }
+    }
+    if let Some(path) = &a.setpoints_csv {
+        let mut text = header.split_whitespace().collect::<Vec<_>>().join(",") + "\n";
+        for i in 0..total {
+            text += &row(i).split_whitespace().collect::<Vec<_>>().join(",");
+            text.push('\n');
+        }
+        std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+        outln!("every setpoint written to {}", path.display());
+    }
+    outln!("checks:");
+    let mut ok = true;
+    for (pass, what) in input_checks.iter().chain(&report.checks) {
+        ok &= pass;
+        outln!("  [{}] {what}", if *pass { "ok" } else { "FAIL" });
+    }
+    outln!(
+        "estimated duration: {:.0} s ({:.1} min); nothing moved, no device opened",
+        report.estimated_s,
+        report.estimated_s / 60.0
+    );
+    match std::io::stdout().lock().write_all(out.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+            return Err(anyhow::Error::new(e).context("cannot write to stdout"))
+        }
+        _ => {}
+    }
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(3)
+    })
+}
+
+/// A duration for people: seconds, minutes or hours.
+fn duration_text(s: f64) -> String {
+    if s < 120.0 {
+        format!("{s:.0} s")
+    } else if s < 7200.0 {
+        format!("{:.1} min", s / 60.0)
+    } else {
+        format!("{:.1} h", s / 3600.0)
     }
 }

@@ -187,6 +187,11 @@ pub trait Stage {
     fn unlock(&mut self) -> DeviceResult<()>;
     /// The travel box the driver enforces before sending any move.
     fn limits(&self) -> TravelLimits;
+    /// How often a caller may ask for [`Stage::state`] / [`Stage::position`] while a
+    /// move runs: the rate the controller's documentation supports (GRBL: 5 Hz;
+    /// Zaber: its driver's polling interval). The runner's motion loop paces its
+    /// status queries to it (`src/bench/runner/motion.rs`).
+    fn status_interval(&self) -> Duration;
 }
 
 /// A force/torque reading: force in N, torque in N·m, in the sensor's frame.

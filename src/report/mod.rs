@@ -223,8 +223,12 @@ pub fn write_report_to(
     w.write_record(["metric", "value", "unit"])
         .map_err(csv_err)?;
     for m in &metrics {
-        w.write_record([m.name.as_str(), &m.value.to_string(), m.unit])
-            .map_err(csv_err)?;
+        w.write_record([
+            m.name.as_str(),
+            &crate::formats::Num(m.value).to_string(),
+            m.unit,
+        ])
+        .map_err(csv_err)?;
     }
     let bytes = w.into_inner().map_err(|e| csv_err(e.into_error().into()))?;
     write(&summary, &bytes)?;

@@ -70,6 +70,19 @@
 //! carry_zero_mm = [9.0, 6.75]  # the camera; unshifted with the tip over this point
 //! ```
 //!
+//! The elastic model the simulation renders with (independent of the sensor file's
+//! `[elastomer] model`, which is what the solvers invert, so a scene can show the
+//! model error of a solver):
+//!
+//! ```toml
+//! [physics]
+//! model = "bonded-layer"   # "half-space" (default: paper Eq. 1–2) | "bonded-layer"
+//!                          # (the sensor's elastomer.thickness_mm on a rigid plate)
+//! ```
+//!
+//! With no `[physics]` table the simulation renders with the half-space, exactly as
+//! before the key existed.
+//!
 //! With no `[bench]` table the bench is ideal and exact. `[load]` is not used by the
 //! simulated bench (the stage decides the load), except `friction_coefficient`, which
 //! `tactbench run --sim` uses as the indenter/elastomer friction μ.
@@ -83,12 +96,42 @@ use thiserror::Error;
 use super::contact::{Indenter, LoadCase, Normal, Tangential};
 use super::effects::{Effect, EffectError, Pipeline};
 use super::render::PixelFilter;
-use super::world::{BenchEffects, ForceRelaxation, FtNoise};
-use crate::sensor::{Sensor, SensorError};
+use crate::sensor::{ModelKind, Sensor, SensorError};
 use crate::units;
 
 /// Largest number of frames in a sequence.
 pub const MAX_FRAMES: usize = 100_000;
+
+/// Gaussian noise on the force sensor's force components.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FtNoise {
+    /// σ per component per sample, N.
+    pub sigma_n: f64,
+    /// Seed of the noise stream.
+    pub seed: u64,
+}
+
+/// Viscoelastic force relaxation after a change of indentation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ForceRelaxation {
+    /// Excess fraction `a` of a force step that relaxes away (≥ 0).
+    pub fraction: f64,
+    /// Relaxation time constant τ, s (> 0).
+    pub time_constant_s: f64,
+}
+
+/// Opt-in effects of the simulated bench (see the module docs). The default is none:
+/// ideal and exact.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct BenchEffects {
+    /// Noise on F/T samples.
+    pub ft_noise: Option<FtNoise>,
+    /// Force relaxation.
+    pub force_relaxation: Option<ForceRelaxation>,
+    /// The stage carries the sensor: the sensor-frame point where the image is
+    /// unshifted (and where the contact stays), mm.
+    pub carry_zero_mm: Option<[f64; 2]>,
+}
 
 /// An error reading or validating a scene file. Every variant names the file.
 #[derive(Debug, Error)]
@@ -160,6 +203,8 @@ pub struct Scene {
     pub pixel_filter: PixelFilter,
     /// Opt-in effects of the simulated bench (`[bench]`; default none).
     pub bench: BenchEffects,
+    /// The elastic model rendered (`[physics] model`; default the half-space).
+    pub physics: ModelKind,
 }
 
 impl Scene {
@@ -219,6 +264,13 @@ struct RawScene {
     #[serde(default)]
     effects: Vec<RawEffect>,
     bench: Option<RawSceneBench>,
+    physics: Option<RawPhysics>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPhysics {
+    model: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -670,8 +722,18 @@ impl RawScene {
             }
         };
 
+        let physics = match self.physics.and_then(|p| p.model) {
+            None => ModelKind::HalfSpace,
+            Some(name) => ModelKind::from_name(&name).ok_or_else(|| SceneError::Invalid {
+                path: path.to_path_buf(),
+                key: "physics.model".into(),
+                value: format!("{name:?}"),
+                allowed: "must be \"half-space\" or \"bonded-layer\"".into(),
+            })?,
+        };
         Ok(Scene {
             bench,
+            physics,
             pixel_filter,
             path: path.to_path_buf(),
             sensor_path,

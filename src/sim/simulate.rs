@@ -4,8 +4,9 @@
 //! meant for the simulated camera of the virtual bench through [`Simulation::new`] +
 //! [`Simulation::render_load`].
 //!
-//! Per frame: contact model → cell forces → half-space displacements at the (built)
-//! marker positions → image offset (shift, drift) → rasterisation → image effects.
+//! Per frame: contact model → cell forces → elastic displacements (the half-space of
+//! paper Eq. 1–2, or the bonded layer a scene's `[physics] model` selects; with u_z)
+//! at the (built) marker positions → image offset (shift, drift) → rasterisation → image effects.
 
 use image::Rgb32FImage;
 use thiserror::Error;
@@ -14,8 +15,8 @@ use super::contact::{Contact, ContactError, Indenter, LoadCase};
 use super::effects::{Pipeline, Scratch};
 use super::render::{reference_markers, Marker, PixelFilter, RenderError, Renderer};
 use super::scene::Scene;
-use crate::model::{HalfSpace, MarkerSite};
-use crate::sensor::Sensor;
+use crate::model::{ElasticModel, ForwardModel, HalfSpace, MarkerSite};
+use crate::sensor::{ModelKind, Sensor};
 
 /// An error simulating a frame.
 #[derive(Debug, Error, PartialEq)]
@@ -38,6 +39,9 @@ pub struct FrameTruth {
     /// Elastic marker displacements (interleaved `ux, uy`, mm), marker order of
     /// [`Simulation::markers`].
     pub elastic_u_mm: Vec<f64>,
+    /// Elastic out-of-plane displacements `u_z` (mm, positive into the elastomer), one
+    /// per marker in the order of [`Simulation::markers`].
+    pub elastic_uz_mm: Vec<f64>,
     /// Whole-image offset of this frame (shift + drift), px.
     pub offset_px: [f64; 2],
     /// Force-grid truth (interleaved `fx, fy, fz` per node, N; zeros for the reference).
@@ -65,7 +69,10 @@ impl FrameTruth {
 #[derive(Debug)]
 pub struct Simulation {
     sensor: Sensor,
+    /// Material for the contact model (Hertz, punch).
     model: HalfSpace,
+    /// What renders the marker displacements.
+    elastic: ForwardModel,
     indenter: Indenter,
     pipeline: Pipeline,
     renderer: Renderer,
@@ -95,8 +102,10 @@ impl Simulation {
                 depth_mm: sensor.layers[m.layer].depth_mm,
             })
             .collect();
+        let model = HalfSpace::from_elastomer(&sensor.elastomer);
         Simulation {
-            model: HalfSpace::from_elastomer(&sensor.elastomer),
+            model,
+            elastic: ForwardModel::HalfSpace(model),
             renderer: Renderer::new(&sensor),
             sensor,
             indenter,
@@ -113,6 +122,27 @@ impl Simulation {
     pub fn from_scene(scene: &Scene) -> Self {
         Self::new(scene.sensor.clone(), scene.indenter, scene.pipeline.clone())
             .with_pixel_filter(scene.pixel_filter)
+            .with_physics(scene.physics)
+    }
+
+    /// This simulation rendering with the elastic model `kind` on the sensor's
+    /// material and thickness (the default is the half-space).
+    pub fn with_physics(mut self, kind: ModelKind) -> Self {
+        self.elastic = ForwardModel::of_kind(kind, &self.sensor.elastomer);
+        let depths: Vec<f64> = self.sites.iter().map(|s| s.depth_mm).collect();
+        // Tables for the marker depths over the camera's field (built once here).
+        let (w, h) = (
+            self.sensor.camera.width_px as f64,
+            self.sensor.camera.height_px as f64,
+        );
+        let diag = w.hypot(h) * self.sensor.camera.mm_per_px;
+        self.elastic.prepare(&depths, 2.0 * diag);
+        self
+    }
+
+    /// The elastic model that renders the marker displacements.
+    pub fn elastic_model(&self) -> &ForwardModel {
+        &self.elastic
     }
 
     /// This simulation with another pixel response (see [`PixelFilter`]).
@@ -160,6 +190,7 @@ impl Simulation {
             frame: 0,
             contact: None,
             elastic_u_mm: vec![0.0; 2 * self.markers.len()],
+            elastic_uz_mm: vec![0.0; self.markers.len()],
             offset_px: self.pipeline.image_offset_px(0),
             forces_n: vec![0.0; 3 * self.sensor.force_grid.len()],
         })
@@ -186,7 +217,7 @@ impl Simulation {
         out: &mut Rgb32FImage,
     ) -> Result<FrameTruth, SimError> {
         let contact = Contact::solve(&self.model, self.indenter, load)?;
-        let u = contact.marker_displacements_mm(&self.model, &self.sites);
+        let (u, uz) = self.marker_displacements(&contact);
         self.moved.clear();
         self.moved
             .extend(self.markers.iter().enumerate().map(|(k, m)| Marker {
@@ -203,8 +234,35 @@ impl Simulation {
             frame,
             contact: Some(contact),
             elastic_u_mm: u,
+            elastic_uz_mm: uz,
             offset_px: self.pipeline.image_offset_px(frame),
             forces_n,
         })
+    }
+
+    /// Marker displacements of a solved contact: interleaved `ux, uy` and `uz` (mm).
+    /// For the half-space the horizontal part is bit-identical to
+    /// [`Contact::marker_displacements_mm`] (same terms, same order).
+    fn marker_displacements(&self, contact: &Contact) -> (Vec<f64>, Vec<f64>) {
+        let mut u = vec![0.0; 2 * self.sites.len()];
+        let mut uz = vec![0.0; self.sites.len()];
+        for (k, s) in self.sites.iter().enumerate() {
+            let mut acc = [0.0; 3];
+            for l in &contact.loads {
+                let h = self.elastic.point_response3(
+                    s.position_mm[0] - l.position_mm[0],
+                    s.position_mm[1] - l.position_mm[1],
+                    s.depth_mm,
+                );
+                let f = l.force_n;
+                for (a, acc) in acc.iter_mut().enumerate() {
+                    *acc += h[a][0] * f[0] + h[a][1] * f[1] + h[a][2] * f[2];
+                }
+            }
+            u[2 * k] = acc[0];
+            u[2 * k + 1] = acc[1];
+            uz[k] = acc[2];
+        }
+        (u, uz)
     }
 }

@@ -55,6 +55,9 @@ use super::simulate::{FrameTruth, SimError, Simulation};
 use crate::device::Wrench;
 use crate::model::HalfSpace;
 
+// The bench-effect types are scene data; re-exported here under their old paths.
+pub use super::scene::{BenchEffects, ForceRelaxation, FtNoise};
+
 /// Tip radius used for the force law of a point indenter, mm.
 pub const POINT_TIP_RADIUS_MM: f64 = 0.25;
 
@@ -83,37 +86,6 @@ impl Default for WorldGeometry {
             tool_length_mm: 50.0,
         }
     }
-}
-
-/// Gaussian noise on the force sensor's force components.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FtNoise {
-    /// σ per component per sample, N.
-    pub sigma_n: f64,
-    /// Seed of the noise stream.
-    pub seed: u64,
-}
-
-/// Viscoelastic force relaxation after a change of indentation.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ForceRelaxation {
-    /// Excess fraction `a` of a force step that relaxes away (≥ 0).
-    pub fraction: f64,
-    /// Relaxation time constant τ, s (> 0).
-    pub time_constant_s: f64,
-}
-
-/// Opt-in effects of the simulated bench (see the module docs). The default is none:
-/// ideal and exact.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct BenchEffects {
-    /// Noise on F/T samples.
-    pub ft_noise: Option<FtNoise>,
-    /// Force relaxation.
-    pub force_relaxation: Option<ForceRelaxation>,
-    /// The stage carries the sensor: the sensor-frame point where the image is
-    /// unshifted (and where the contact stays), mm.
-    pub carry_zero_mm: Option<[f64; 2]>,
 }
 
 /// The state the devices share.

@@ -430,7 +430,7 @@ impl DenseSolver {
             return Err(SolveError::Empty("the force grid has no points".into()));
         }
         let h = model::transfer_matrix(
-            &problem.model,
+            &problem.forward_model(),
             problem.sites,
             &problem.sensor.force_points_mm(),
         )?;
@@ -744,6 +744,18 @@ impl DenseSolver {
     }
 }
 
+impl DenseSolver {
+    /// Row `j` of `P` (f64), for the uncertainty figures (minimal version: the `solver`
+    /// engineer owns the dense uncertainty).
+    fn p_row(&self, j: usize) -> Vec<f64> {
+        let r = j * self.stride..j * self.stride + self.n_in;
+        match &self.op {
+            Operator::F64 { p, .. } => p.as_slice()[r].to_vec(),
+            Operator::F32 { p, .. } => p.as_slice()[r].iter().map(|&v| v as f64).collect(),
+        }
+    }
+}
+
 impl FrameSolver for DenseSolver {
     fn n_inputs(&self) -> usize {
         self.n_in
@@ -807,5 +819,27 @@ impl FrameSolver for DenseSolver {
 
     fn diagnostics(&self) -> &Diagnostics {
         &self.diag
+    }
+
+    fn force_sd(&self, sigma_mm: f64, out: &mut [f64]) -> Result<(), SolveError> {
+        check_output(out, self.n_out)?;
+        for (j, o) in out.iter_mut().enumerate() {
+            *o = sigma_mm.abs() * self.p_row(j).iter().map(|v| v * v).sum::<f64>().sqrt();
+        }
+        Ok(())
+    }
+
+    fn sum_sd(&self, sigma_mm: f64) -> Result<[f64; 3], SolveError> {
+        let mut w = vec![[0.0f64; 3]; self.n_in];
+        for j in 0..self.n_out {
+            for (wi, v) in w.iter_mut().zip(self.p_row(j)) {
+                wi[j % 3] += v;
+            }
+        }
+        let mut sd = [0.0; 3];
+        for (c, s) in sd.iter_mut().enumerate() {
+            *s = sigma_mm.abs() * w.iter().map(|wi| wi[c] * wi[c]).sum::<f64>().sqrt();
+        }
+        Ok(sd)
     }
 }

@@ -248,6 +248,16 @@ impl<'a> Problem<'a> {
         }
     }
 
+    /// The forward model the sensor file selects (`[elastomer] model`) on this
+    /// problem's material: what builds `H` for the dense solvers.
+    pub fn forward_model(&self) -> crate::model::ForwardModel {
+        crate::model::ForwardModel::with_material(
+            self.sensor.elastomer.model,
+            self.model,
+            self.sensor.elastomer.thickness_mm,
+        )
+    }
+
     /// Length of the displacement vector.
     pub fn n_inputs(&self) -> usize {
         2 * self.sites.len()
@@ -296,6 +306,13 @@ pub trait FrameSolver: Send {
     fn apply(&mut self, u_mm: &[f64], f_n: &mut [f64]) -> Result<(), SolveError>;
     /// What the precompute found.
     fn diagnostics(&self) -> &Diagnostics;
+    /// Standard deviation (N) of every reconstructed force component (length
+    /// `n_outputs`, order fx, fy, fz per force point) when every displacement input
+    /// carries independent zero-mean noise of standard deviation `sigma_mm`.
+    fn force_sd(&self, sigma_mm: f64, out: &mut [f64]) -> Result<(), SolveError>;
+    /// Standard deviation (N) of the force sum (ΣFx, ΣFy, ΣFz) for the same noise,
+    /// correlations between nodes included.
+    fn sum_sd(&self, sigma_mm: f64) -> Result<[f64; 3], SolveError>;
 }
 
 /// Precomputes the configured solver for a problem. `frame` (displacements, mm) is used
@@ -313,6 +330,15 @@ pub fn precompute(
         check_input(u, problem.n_inputs())?;
     }
     match config.method {
+        Method::Fourier
+            if problem.sensor.elastomer.model != crate::sensor::ModelKind::HalfSpace =>
+        {
+            Err(SolveError::Incompatible(format!(
+                "the fourier solver inverts the half-space model only; the sensor's \
+                 [elastomer] model = \"{}\" needs a dense method (pinv, tikhonov, tsvd)",
+                problem.sensor.elastomer.model
+            )))
+        }
         Method::Fourier => Ok(Box::new(fourier::FourierSolver::precompute(
             problem, config, frame,
         )?)),

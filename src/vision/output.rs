@@ -13,7 +13,7 @@ use std::io::Write;
 use std::path::Path;
 
 use super::{MarkerStatus, MarkerTrack, Reference};
-use crate::formats::{FormatError, DISPLACEMENT_COLUMNS};
+use crate::formats::{FormatError, Num, DISPLACEMENT_COLUMNS};
 use crate::sensor::Sensor;
 
 /// The columns `track` writes after [`DISPLACEMENT_COLUMNS`].
@@ -67,7 +67,7 @@ pub fn write_tracks_to(
         let label = csv_field(label);
         for &(layer, id, index, pos) in &rows {
             let name = &sensor.layers[layer].name;
-            write!(w, "{name},{id},{},{},", pos[0], pos[1])?;
+            write!(w, "{name},{id},{},{},", Num(pos[0]), Num(pos[1]))?;
             let Some(i) = index else {
                 writeln!(w, ",,{label},,,,,lost")?;
                 continue;
@@ -78,17 +78,27 @@ pub fn write_tracks_to(
                 write!(
                     w,
                     "{},{}",
-                    t.displacement_px[0] * mm_per_px,
-                    t.displacement_px[1] * mm_per_px
+                    Num(t.displacement_px[0] * mm_per_px),
+                    Num(t.displacement_px[1] * mm_per_px)
                 )?;
             } else {
                 write!(w, ",")?;
             }
-            write!(w, ",{label},{},{},", r.centroid_px[0], r.centroid_px[1])?;
+            write!(
+                w,
+                ",{label},{},{},",
+                Num(r.centroid_px[0]),
+                Num(r.centroid_px[1])
+            )?;
             if t.status == MarkerStatus::Lost {
                 write!(w, ",")?;
             } else {
-                write!(w, "{},{}", t.displacement_px[0], t.displacement_px[1])?;
+                write!(
+                    w,
+                    "{},{}",
+                    Num(t.displacement_px[0]),
+                    Num(t.displacement_px[1])
+                )?;
             }
             writeln!(w, ",{}", t.status)?;
         }

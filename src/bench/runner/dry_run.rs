@@ -1,47 +1,62 @@
-//! `--dry-run`: the setpoints, an estimated duration and the limit checks of a plan,
-//! without touching any device.
+//! `--dry-run`: everything a run would open checked without opening a device (the
+//! scene of a simulated bench, a `dir:PATH` camera's frames), the setpoints with the
+//! stage coordinates they send, an estimated duration and the limit checks (the plan's
+//! travel box and force limits, the stage's travel limits as far as they are known).
 
-use crate::bench::config::BenchGeometry;
-use crate::bench::plan::{Plan, Setpoint};
-use crate::device::TravelLimits;
+use std::path::Path;
 
-/// Whether the contact must be renewed (retract first) between `prev` and `sp`.
-pub fn needs_retract(prev: Option<&Setpoint>, sp: &Setpoint) -> bool {
-    let Some(p) = prev else { return true };
-    let tangential = |s: &Setpoint| s.tangential_n != [0.0, 0.0];
-    p.trial != sp.trial
-        || p.position_mm != sp.position_mm
-        || tangential(p)
-        || tangential(sp)
-        || sp.normal_n <= 0.0
-        || p.normal_n <= 0.0
-        || sp.shift_mm != [0.0, 0.0]
+use crate::bench::config::{BenchConfig, BenchDevices, BenchGeometry, StageKind};
+pub use crate::bench::plan::needs_retract;
+use crate::bench::plan::{Plan, Setpoint, DEFAULT_CLEARANCE_MM};
+use crate::device::camera::image_dir::ImageDirCamera;
+use crate::device::camera::CameraSpec;
+use crate::device::zaber::DEFAULT_MM_PER_STEP;
+use crate::device::{DeviceError, TravelLimits};
+use crate::sim::bench::ZABER_TRAVEL_STEPS;
+use crate::sim::scene::{Scene, SceneError};
+
+/// Stage coordinates one setpoint sends (machine mm), from the bench geometry.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StageTargets {
+    /// Stage x, y over the setpoint (its position plus any shift), mm.
+    pub xy_mm: [f64; 2],
+    /// Stage z of the retract height (lateral moves, start of the approach), mm.
+    pub z_clear_mm: f64,
+    /// Stage z of the deepest indentation the plan allows (`safety.travel_max_mm[2]`;
+    /// force control stops at the target force, usually well above it), mm.
+    pub z_deepest_mm: f64,
 }
 
-/// What `--dry-run` reports: the setpoints, an estimated duration and the limit checks.
+/// What `--dry-run` reports: the setpoints, their stage coordinates, an estimated
+/// duration and the limit checks.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DryRun {
-    /// Every setpoint, in run order.
+    /// Every setpoint, in run order (at most `plan::MAX_SETPOINTS`).
     pub setpoints: Vec<Setpoint>,
+    /// The stage coordinates of each setpoint (same order), when the bench geometry
+    /// is known; empty without a bench.
+    pub stage: Vec<StageTargets>,
     /// Estimated duration, s.
     pub estimated_s: f64,
     /// Checks performed, each `(passed, description)`.
     pub checks: Vec<(bool, String)>,
 }
 
-/// Plans a run without touching any device: setpoints, estimated duration and limit
-/// checks (plan box, force limits, and the stage box when the bench geometry and the
-/// stage limits are known).
+/// Failing setpoints listed one by one before the rest are counted.
+const LISTED_FAILURES: usize = 10;
+
+/// Plans a run without touching any device: setpoints, their stage coordinates,
+/// estimated duration and limit checks (plan box, force limits, and the stage's travel
+/// limits when the bench geometry and the limits are known, see [`stage_limits_of`]).
 pub fn dry_run(
     plan: &Plan,
     limit: Option<usize>,
     geometry: Option<&BenchGeometry>,
     stage_limits: Option<&TravelLimits>,
 ) -> DryRun {
-    let mut setpoints = plan.setpoints();
-    if let Some(n) = limit {
-        setpoints.truncate(n);
-    }
+    // Bounded: validation refused plans above plan::MAX_SETPOINTS.
+    let n = plan.setpoint_count().min(limit.unwrap_or(usize::MAX));
+    let setpoints: Vec<Setpoint> = plan.setpoints_iter().take(n).collect();
     let s = &plan.safety;
     let u = plan.force_unit;
     let fu = u.symbol();
@@ -63,7 +78,7 @@ pub fn dry_run(
             ),
         ));
     }
-    let clearance = geometry.map_or(1.0, |g| g.clearance_mm);
+    let clearance = geometry.map_or(DEFAULT_CLEARANCE_MM, |g| g.clearance_mm);
     checks.push((
         -clearance >= s.travel_min_mm[2],
         format!(
@@ -71,6 +86,9 @@ pub fn dry_run(
             s.travel_min_mm[2]
         ),
     ));
+    let mut stage = Vec::new();
+    let mut box_failures = Vec::new();
+    let mut stage_failures = Vec::new();
     for sp in &setpoints {
         let p = [
             sp.position_mm[0] + sp.shift_mm[0],
@@ -78,77 +96,189 @@ pub fn dry_run(
         ];
         for i in 0..2 {
             if p[i] < s.travel_min_mm[i] || p[i] > s.travel_max_mm[i] {
-                checks.push((
-                    false,
-                    format!(
-                        "setpoint {}: {} = {} mm outside the plan's travel box",
-                        sp.index,
-                        ["x", "y"][i],
-                        p[i]
-                    ),
+                box_failures.push(format!(
+                    "setpoint {}: {} = {} mm outside the plan's travel box",
+                    sp.index,
+                    ["x", "y"][i],
+                    p[i]
                 ));
             }
         }
-        if let (Some(g), Some(lim)) = (geometry, stage_limits) {
-            for depth in [-clearance, s.travel_max_mm[2]] {
-                if let Err(e) = lim.check(g.stage_point(p, depth)) {
-                    checks.push((false, format!("setpoint {}: stage {e}", sp.index)));
+        if let Some(g) = geometry {
+            let t = StageTargets {
+                xy_mm: g.stage_xy(p),
+                z_clear_mm: g.stage_z(-clearance),
+                z_deepest_mm: g.stage_z(s.travel_max_mm[2]),
+            };
+            if let Some(lim) = stage_limits {
+                for (what, z) in [("retract", t.z_clear_mm), ("deepest", t.z_deepest_mm)] {
+                    if let Err(e) = lim.check([t.xy_mm[0], t.xy_mm[1], z]) {
+                        stage_failures
+                            .push(format!("setpoint {} ({what} point): stage {e}", sp.index));
+                    }
                 }
             }
+            stage.push(t);
         }
     }
+    for failures in [box_failures, stage_failures] {
+        let more = failures.len().saturating_sub(LISTED_FAILURES);
+        checks.extend(
+            failures
+                .into_iter()
+                .take(LISTED_FAILURES)
+                .map(|f| (false, f)),
+        );
+        if more > 0 {
+            checks.push((false, format!("... and {more} more like these")));
+        }
+    }
+    let stage_text = match (geometry, stage_limits) {
+        (Some(_), Some(lim)) => {
+            let a = lim.axes_mm;
+            format!(
+                " and the stage's travel limits x {}..{}, y {}..{}, z {}..{} mm (retract and deepest point of each)",
+                a[0][0], a[0][1], a[1][0], a[1][1], a[2][0], a[2][1]
+            )
+        }
+        (Some(_), None) => " (the bench file states no stage travel limits, [stage] travel_min_mm / travel_max_mm: the controller's are checked when the run starts)".to_string(),
+        (None, _) => " (stage limits unknown without a bench: checked when the run starts)".to_string(),
+    };
     checks.push((
         true,
         format!(
-            "{} setpoint positions checked against the plan's travel box x {}..{} mm, y {}..{} mm{}",
+            "{} setpoint positions checked against the plan's travel box x {}..{} mm, y {}..{} mm{stage_text}",
             setpoints.len(),
             s.travel_min_mm[0],
             s.travel_max_mm[0],
             s.travel_min_mm[1],
             s.travel_max_mm[1],
-            if stage_limits.is_some() {
-                " and the stage's travel limits"
-            } else {
-                " (stage limits unknown without a bench: checked when the run starts)"
-            }
         ),
     ));
     DryRun {
-        estimated_s: estimate_duration(plan, &setpoints, clearance),
+        estimated_s: plan.estimate_duration_s(clearance, limit),
         setpoints,
+        stage,
         checks,
     }
 }
 
-/// A rough duration estimate: moves at their speeds, a few control steps per loaded
-/// setpoint, the settle window (or dwell), acquisition at 1 kHz, 30 ms per frame.
-pub fn estimate_duration(plan: &Plan, setpoints: &[Setpoint], clearance_mm: f64) -> f64 {
-    let v = plan.approach_speed_mm_s;
-    let vmax = plan.safety.max_speed_mm_s;
-    let settle = if plan.settle.dwell_s > 0.0 {
-        plan.settle.dwell_s
-    } else {
-        plan.settle.window_s * 1.2
-    };
-    let mut t = 0.0;
-    let mut prev: Option<&Setpoint> = None;
-    for sp in setpoints {
-        if needs_retract(prev, sp) {
-            t += 2.0 * clearance_mm / vmax + 0.5;
-            if let Some(p) = prev {
-                t += (p.position_mm[0] - sp.position_mm[0])
-                    .hypot(p.position_mm[1] - sp.position_mm[1])
-                    / vmax;
+/// Travel of each axis of the simulated GRBL stage: GRBL 1.1's default `$130..$132`
+/// (the simulator's), machine coordinates `[-200, 0]` mm.
+const SIM_GRBL_TRAVEL_MM: f64 = 200.0;
+
+/// The stage's travel limits as far as they are known without opening it: the bench
+/// file's `[stage] travel_min_mm / travel_max_mm`, or the simulated stage's travel.
+/// Returns the limits and where they come from.
+pub fn stage_limits_of(bench: &BenchConfig) -> Option<(TravelLimits, String)> {
+    match &bench.devices {
+        BenchDevices::Hardware { stage, .. } => stage.travel.map(|t| {
+            (
+                t,
+                format!(
+                    "{} [stage] travel_min_mm / travel_max_mm",
+                    bench.path.display()
+                ),
+            )
+        }),
+        BenchDevices::Sim(cfg) => Some(match cfg.stage {
+            StageKind::Grbl => (
+                TravelLimits {
+                    axes_mm: [[-SIM_GRBL_TRAVEL_MM, 0.0]; 3],
+                },
+                "the simulated GRBL stage ($130..$132 = 200 mm)".to_string(),
+            ),
+            StageKind::Zaber => {
+                let hi = ZABER_TRAVEL_STEPS as f64 * DEFAULT_MM_PER_STEP;
+                (
+                    TravelLimits {
+                        axes_mm: [[0.0, hi]; 3],
+                    },
+                    format!("the simulated Zaber stage (0..{hi} mm)"),
+                )
             }
-            if sp.normal_n > 0.0 {
-                t += clearance_mm / v;
-            }
-        }
-        if sp.normal_n > 0.0 {
-            t += 4.0 * (0.1 / v + 0.02);
-        }
-        t += settle + plan.samples as f64 * 1e-3 + plan.frames as f64 * 0.03;
-        prev = Some(sp);
+        }),
     }
-    t
+}
+
+/// An input file a run would open that is missing or invalid (what `--dry-run`
+/// checks besides the plan, the sensor and the bench file, which are parsed before).
+#[derive(Debug, thiserror::Error)]
+pub enum InputError {
+    /// The scene of a simulated bench.
+    #[error("the bench's scene: {0}")]
+    Scene(#[from] SceneError),
+    /// A recorded-frames camera directory.
+    #[error("the bench's camera: {0}")]
+    Camera(#[from] DeviceError),
+}
+
+/// Reads and validates every file the bench would open, without opening a device:
+/// the scene of a simulated bench (and its sensor file), the frames of a `dir:PATH`
+/// camera. Returns one line per file checked (`frames_needed` = frames the run
+/// grabs, compared with a non-looping frame directory).
+pub fn check_bench_inputs(
+    bench: &BenchConfig,
+    frames_needed: usize,
+) -> Result<Vec<(bool, String)>, InputError> {
+    let mut out = Vec::new();
+    match &bench.devices {
+        BenchDevices::Sim(cfg) => {
+            Scene::from_path(&cfg.scene)?;
+            out.push((
+                true,
+                format!("scene {} and its sensor file read", cfg.scene.display()),
+            ));
+        }
+        BenchDevices::Hardware {
+            stage,
+            force_sensor,
+            camera,
+        } => {
+            for (what, port) in [("stage", &stage.port), ("force sensor", &force_sensor.port)] {
+                let present = Path::new(port).exists();
+                out.push((
+                    true,
+                    format!(
+                        "{what} port {port} {} (not opened by a dry run)",
+                        if present {
+                            "present"
+                        } else {
+                            "not present now"
+                        }
+                    ),
+                ));
+            }
+            match camera {
+                CameraSpec::Dir(dir) => {
+                    let cam = ImageDirCamera::open(dir, false)?;
+                    let n = cam.files().len();
+                    out.push((
+                        n >= frames_needed,
+                        format!(
+                            "camera dir:{} holds {n} frames; the run grabs {frames_needed} (reference + setpoints x acquire.frames)",
+                            dir.display()
+                        ),
+                    ));
+                }
+                CameraSpec::Sim(sock) => out.push((
+                    true,
+                    format!(
+                        "camera sim:{} {} (not opened by a dry run)",
+                        sock.display(),
+                        if sock.exists() {
+                            "present"
+                        } else {
+                            "not present now"
+                        }
+                    ),
+                )),
+                CameraSpec::V4l(i) => out.push((
+                    true,
+                    format!("camera V4L2 index {i} (not opened by a dry run)"),
+                )),
+            }
+        }
+    }
+    Ok(out)
 }

@@ -91,7 +91,9 @@ mod acquire;
 mod dry_run;
 mod motion;
 
-pub use dry_run::{dry_run, estimate_duration, needs_retract, DryRun};
+pub use dry_run::{
+    check_bench_inputs, dry_run, needs_retract, stage_limits_of, DryRun, InputError, StageTargets,
+};
 use motion::Timed;
 
 /// An error that prevents a run from starting or recording (device and safety
@@ -462,10 +464,7 @@ pub fn run(
         sensor,
         geom: *geometry,
         dir: dir.clone(),
-        dev: Timed {
-            dev: devices,
-            blocked: Duration::ZERO,
-        },
+        dev: Timed::new(devices),
         events,
         stop: Arc::clone(&options.stop),
         stage_limits,

@@ -1,6 +1,21 @@
 //! Motion: device calls with their time accounted ([`Timed`]), travel checks, guarded
 //! moves under the force watchdog, retract, lateral moves and the approach with contact
 //! detection.
+//!
+//! Pacing (issue 11): the loop blocks on the devices instead of spinning.
+//! - Force/torque reads (everywhere in the run, not only in motion) are paced to the
+//!   sensor's own rate, [`ForceSensor::sample_rate_hz`](crate::device::ForceSensor):
+//!   a read starts at least one sample period after the previous one started
+//!   (DynPick 1 ms, FT 300 stream 10 ms, FT 300 polled 13 ms at 19200 baud). The
+//!   watchdog sees every sample the sensor produces and no duplicate.
+//! - Stage status during a move is paced to the controller's documented rate,
+//!   [`Stage::status_interval`](crate::device::Stage) (GRBL 200 ms = 5 Hz, its
+//!   interface guide's recommendation; Zaber 20 ms), plus one query at the move's
+//!   expected end (distance / speed + [`STATUS_ETA_MARGIN`]): completion is `Idle`
+//!   in a paced report (GRBL) / `IDLE` (Zaber), usually seen at that first query.
+//! - A status query that gets no (or a garbled) answer is tolerated while the force
+//!   is still watched: the move aborts only after [`STATUS_MISSES`] in a row (GRBL
+//!   does not guarantee an answer to every `?`).
 
 use std::time::{Duration, Instant};
 
@@ -11,10 +26,71 @@ use super::{
 use crate::bench::control::check_force_limits;
 use crate::device::{CameraFrame, DeviceResult, ErrorKind, StagePositionMm, StageState, Wrench};
 
-/// Device calls with the time spent in them accounted.
+/// Consecutive unanswered (or garbled) stage status queries a move tolerates.
+pub const STATUS_MISSES: u32 = 3;
+/// The status query at a move's expected end comes this long after it (the
+/// controller starts the move a little after it acknowledged it).
+pub const STATUS_ETA_MARGIN: Duration = Duration::from_millis(5);
+/// Longest pause between force readings, whatever the sensor claims as its rate.
+pub const MAX_FT_PERIOD: Duration = Duration::from_millis(20);
+
+/// One sample period of a sensor delivering `rate_hz` samples per second, at most
+/// [`MAX_FT_PERIOD`]; zero (no pacing) for a rate that is not a positive number.
+pub fn ft_sample_period(rate_hz: f64) -> Duration {
+    if rate_hz.is_finite() && rate_hz > 0.0 {
+        Duration::from_secs_f64((1.0 / rate_hz).min(MAX_FT_PERIOD.as_secs_f64()))
+    } else {
+        Duration::ZERO
+    }
+}
+
+/// When to ask the stage for its status during a move: every `interval`, and once at
+/// the move's expected end `eta`.
+#[derive(Debug, Clone, Copy)]
+pub struct StatusPacer {
+    interval: Duration,
+    eta: Instant,
+    next: Instant,
+}
+
+impl StatusPacer {
+    /// A move starting `now` and expected to end at `eta`.
+    pub fn new(interval: Duration, now: Instant, eta: Instant) -> Self {
+        StatusPacer {
+            interval,
+            eta,
+            next: (now + interval).min(eta.max(now)),
+        }
+    }
+    /// When the next query is due.
+    pub fn next(&self) -> Instant {
+        self.next
+    }
+    /// Whether a query is due at `now`.
+    pub fn due(&self, now: Instant) -> bool {
+        now >= self.next
+    }
+    /// A query was made at `now`: the next one is an interval later, or at the
+    /// expected end if that comes first.
+    pub fn queried(&mut self, now: Instant) {
+        let after = now + self.interval;
+        self.next = if self.eta > now && self.eta < after {
+            self.eta
+        } else {
+            after
+        };
+    }
+}
+
+/// Device calls with the time spent in them accounted; force readings paced to the
+/// sensor's rate.
 pub(super) struct Timed<'d, 'a> {
     pub(super) dev: &'d mut Devices<'a>,
     pub(super) blocked: Duration,
+    /// Shortest interval between the starts of two force readings.
+    ft_period: Duration,
+    /// When the last force reading started.
+    last_ft_read: Option<Instant>,
 }
 
 macro_rules! timed {
@@ -26,11 +102,36 @@ macro_rules! timed {
     }};
 }
 
+impl<'d, 'a> Timed<'d, 'a> {
+    pub(super) fn new(dev: &'d mut Devices<'a>) -> Self {
+        let ft_period = ft_sample_period(dev.ft.sample_rate_hz());
+        Timed {
+            dev,
+            blocked: Duration::ZERO,
+            ft_period,
+            last_ft_read: None,
+        }
+    }
+}
+
 impl Timed<'_, '_> {
+    /// Sleeps until one sample period has passed since the last reading started.
+    fn pace_ft(&mut self) {
+        if let Some(last) = self.last_ft_read {
+            let due = last + self.ft_period;
+            let now = Instant::now();
+            if due > now {
+                timed!(self, std::thread::sleep(due - now));
+            }
+        }
+        self.last_ft_read = Some(Instant::now());
+    }
     pub(super) fn read(&mut self) -> DeviceResult<Wrench> {
+        self.pace_ft();
         timed!(self, self.dev.ft.read())
     }
     pub(super) fn read_once(&mut self) -> DeviceResult<Wrench> {
+        self.pace_ft();
         timed!(self, self.dev.ft.read_once())
     }
     pub(super) fn tare(&mut self) -> DeviceResult<()> {
@@ -137,9 +238,13 @@ impl Runner<'_, '_, '_, '_> {
             ((f[0] - target[0]).powi(2) + (f[1] - target[1]).powi(2) + (f[2] - target[2]).powi(2))
                 .sqrt()
         });
-        let mut deadline =
-            Instant::now() + Duration::from_secs_f64(distance / speed) * 2 + MOVE_GRACE;
+        let expected = Duration::from_secs_f64(distance / speed);
+        let mut deadline = Instant::now() + expected * 2 + MOVE_GRACE;
+        let interval = self.dev.dev.stage.status_interval();
+        let now = Instant::now();
+        let mut pacer = StatusPacer::new(interval, now, now + expected + STATUS_ETA_MARGIN);
         let mut read_failures = 0;
+        let mut misses = 0;
         loop {
             if self.stopped() {
                 let _ = self.dev.stop();
@@ -172,6 +277,8 @@ impl Runner<'_, '_, '_, '_> {
                         dev_abort(&format!("resuming the move to {target:?} mm"), &e)
                     })?;
                     deadline += MOVE_GRACE;
+                    let now = Instant::now();
+                    pacer = StatusPacer::new(interval, now, now + expected + STATUS_ETA_MARGIN);
                     continue;
                 }
             };
@@ -196,27 +303,29 @@ impl Runner<'_, '_, '_, '_> {
                     return Ok(true);
                 }
             }
-            let state = self
-                .dev
-                .state()
-                .map_err(|e| dev_abort("polling the stage", &e))?;
-            match state {
-                StageState::Idle => {
-                    let p = self
-                        .dev
-                        .position()
-                        .map_err(|e| dev_abort("reading the position", &e))?;
-                    let off = (0..3).map(|i| (p[i] - target[i]).abs()).fold(0.0, f64::max);
-                    if off <= POSITION_TOLERANCE_MM {
-                        return Ok(false);
+            let now = Instant::now();
+            if pacer.due(now) {
+                pacer.queried(now);
+                if let Some(state) = self.paced_state(&mut misses, interval)? {
+                    match state {
+                        StageState::Idle => {
+                            let p = self
+                                .dev
+                                .position()
+                                .map_err(|e| dev_abort("reading the position", &e))?;
+                            let off = (0..3).map(|i| (p[i] - target[i]).abs()).fold(0.0, f64::max);
+                            if off <= POSITION_TOLERANCE_MM {
+                                return Ok(false);
+                            }
+                        }
+                        StageState::Alarm => {
+                            return Err(Halt::Abort(format!(
+                                "the stage entered its alarm state while moving to {target:?} mm"
+                            )))
+                        }
+                        _ => {}
                     }
                 }
-                StageState::Alarm => {
-                    return Err(Halt::Abort(format!(
-                        "the stage entered its alarm state while moving to {target:?} mm"
-                    )))
-                }
-                _ => {}
             }
             if Instant::now() > deadline {
                 let _ = self.dev.stop();
@@ -225,6 +334,34 @@ impl Runner<'_, '_, '_, '_> {
                     (distance / speed) * 2.0 + MOVE_GRACE.as_secs_f64()
                 )));
             }
+        }
+    }
+
+    /// A paced status query during a move: the state, or `None` when the controller
+    /// did not answer (or garbled the answer) and fewer than [`STATUS_MISSES`] queries
+    /// in a row went so (reported as a retry; the caller keeps watching the force).
+    fn paced_state(&mut self, misses: &mut u32, interval: Duration) -> Step<Option<StageState>> {
+        match self.dev.state() {
+            Ok(s) => {
+                *misses = 0;
+                Ok(Some(s))
+            }
+            Err(e)
+                if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol)
+                    && *misses + 1 < STATUS_MISSES =>
+            {
+                *misses += 1;
+                (self.events)(&RunEvent::Retry {
+                    index: self.index,
+                    attempt: *misses as usize,
+                    reason: format!(
+                        "stage status query unanswered while moving ({e}): asking again in {} ms",
+                        interval.as_millis()
+                    ),
+                });
+                Ok(None)
+            }
+            Err(e) => Err(dev_abort("polling the stage", &e)),
         }
     }
 
@@ -265,7 +402,8 @@ impl Runner<'_, '_, '_, '_> {
             .move_to(target, v)
             .map_err(|e| dev_abort("retracting", &e))?;
         self.commanded = Some(target);
-        self.wait_reached(target)
+        let expected = Duration::from_secs_f64((here[2] - target[2]).abs() / v);
+        self.wait_reached(target, expected)
     }
 
     /// Retract after a stop or abort: no watchdog (the force only falls), best effort.
@@ -292,38 +430,47 @@ impl Runner<'_, '_, '_, '_> {
         Ok(())
     }
 
-    /// Waits for a move the watchdog need not see (retract): polls state and force.
-    pub(super) fn wait_reached(&mut self, target: StagePositionMm) -> Step<()> {
-        let deadline = Instant::now() + MOVE_GRACE * 4;
+    /// Waits for a move the watchdog need not see (retract, the force only falls),
+    /// expected to take `expected`: blocks until the next paced status query
+    /// ([`StatusPacer`]), done when the stage is idle at the target.
+    pub(super) fn wait_reached(&mut self, target: StagePositionMm, expected: Duration) -> Step<()> {
+        let now = Instant::now();
+        let deadline = now + expected * 2 + MOVE_GRACE * 4;
+        let interval = self.dev.dev.stage.status_interval();
+        let mut pacer = StatusPacer::new(interval, now, now + expected + STATUS_ETA_MARGIN);
+        let mut misses = 0;
         loop {
             if self.stopped() {
                 let _ = self.dev.stop();
                 return Err(Halt::Interrupted);
             }
-            let s = self
-                .dev
-                .state()
-                .map_err(|e| dev_abort("polling the stage", &e))?;
-            if s == StageState::Idle {
-                let p = self
-                    .dev
-                    .position()
-                    .map_err(|e| dev_abort("reading the position", &e))?;
-                if (0..3).all(|i| (p[i] - target[i]).abs() <= POSITION_TOLERANCE_MM) {
-                    return Ok(());
-                }
+            let wait = pacer.next().saturating_duration_since(Instant::now());
+            if !wait.is_zero() {
+                self.dev.sleep(wait);
             }
-            if s == StageState::Alarm {
-                return Err(Halt::Abort(format!(
-                    "the stage entered its alarm state while moving to {target:?} mm"
-                )));
+            pacer.queried(Instant::now());
+            match self.paced_state(&mut misses, interval)? {
+                Some(StageState::Idle) => {
+                    let p = self
+                        .dev
+                        .position()
+                        .map_err(|e| dev_abort("reading the position", &e))?;
+                    if (0..3).all(|i| (p[i] - target[i]).abs() <= POSITION_TOLERANCE_MM) {
+                        return Ok(());
+                    }
+                }
+                Some(StageState::Alarm) => {
+                    return Err(Halt::Abort(format!(
+                        "the stage entered its alarm state while moving to {target:?} mm"
+                    )));
+                }
+                _ => {}
             }
             if Instant::now() > deadline {
                 return Err(Halt::Abort(format!(
                     "the stage did not reach {target:?} mm in time"
                 )));
             }
-            self.dev.sleep(Duration::from_millis(2));
         }
     }
 
@@ -359,5 +506,42 @@ impl Runner<'_, '_, '_, '_> {
         self.in_contact = true;
         self.normal_ctl.reset();
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn status_pacer_queries_every_interval_and_once_at_the_expected_end() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        // GRBL's 200 ms, a move expected to end at 450 ms.
+        let mut p = StatusPacer::new(ms(200), t0, t0 + ms(450));
+        assert_eq!(p.next(), t0 + ms(200));
+        assert!(!p.due(t0 + ms(199)) && p.due(t0 + ms(200)));
+        p.queried(t0 + ms(200));
+        assert_eq!(p.next(), t0 + ms(400));
+        p.queried(t0 + ms(400));
+        assert_eq!(p.next(), t0 + ms(450), "the expected end comes first");
+        p.queried(t0 + ms(450));
+        assert_eq!(p.next(), t0 + ms(650), "then every interval again");
+        // A move shorter than one interval: the first query at its end.
+        let p = StatusPacer::new(ms(200), t0, t0 + ms(30));
+        assert_eq!(p.next(), t0 + ms(30));
+        // Expected end already past: at once.
+        let p = StatusPacer::new(ms(200), t0 + ms(10), t0);
+        assert_eq!(p.next(), t0 + ms(10));
+    }
+
+    #[test]
+    fn force_reads_are_paced_to_one_sample_period() {
+        assert_eq!(ft_sample_period(1000.0), Duration::from_millis(1));
+        assert_eq!(ft_sample_period(100.0), Duration::from_millis(10));
+        assert_eq!(ft_sample_period(1.0), MAX_FT_PERIOD);
+        for bad in [0.0, -5.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(ft_sample_period(bad), Duration::ZERO, "{bad}");
+        }
     }
 }

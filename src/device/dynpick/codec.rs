@@ -71,6 +71,10 @@ pub enum Command {
     SetFilter(FilterDivider),
     /// `0F`: read the filter divider back (one line with the digit).
     GetFilter,
+    /// `S`: start continuous output (a record per internal sample until `E`).
+    StartContinuous,
+    /// `E`: end continuous output (no reply).
+    StopContinuous,
 }
 
 impl Command {
@@ -83,6 +87,8 @@ impl Command {
             Command::Version => b"V".to_vec(),
             Command::SetFilter(d) => format!("{}F", d.n()).into_bytes(),
             Command::GetFilter => b"0F".to_vec(),
+            Command::StartContinuous => b"S".to_vec(),
+            Command::StopContinuous => b"E".to_vec(),
         }
     }
     /// The command as text, for error messages.
@@ -91,7 +97,10 @@ impl Command {
     }
     /// Whether the device answers this command with a line.
     pub fn has_reply(self) -> bool {
-        !matches!(self, Command::ZeroOffset | Command::SetFilter(_))
+        !matches!(
+            self,
+            Command::ZeroOffset | Command::SetFilter(_) | Command::StopContinuous
+        )
     }
 }
 
@@ -121,6 +130,14 @@ pub enum CodecError {
     /// A sensitivity line that does not hold six positive numbers.
     #[error("sensitivity line `{bytes}` is not six positive comma-separated numbers")]
     Sensitivities {
+        /// The bytes, escaped.
+        bytes: String,
+    },
+    /// A reply of the wrong kind (a data record where a text line was expected).
+    #[error("expected another reply, got {what}: `{bytes}`")]
+    Unexpected {
+        /// What arrived.
+        what: &'static str,
         /// The bytes, escaped.
         bytes: String,
     },
@@ -412,6 +429,9 @@ mod tests {
         assert_eq!(Command::Version.encode(), b"V");
         assert_eq!(Command::SetFilter(FilterDivider::D4).encode(), b"4F");
         assert_eq!(Command::GetFilter.encode(), b"0F");
+        assert_eq!(Command::StartContinuous.encode(), b"S");
+        assert_eq!(Command::StopContinuous.encode(), b"E");
+        assert!(!Command::StopContinuous.has_reply());
         assert_eq!(decode_filter(b"8\r\n").unwrap(), FilterDivider::D8);
         assert!(decode_filter(b"3\r\n").is_err());
     }

@@ -1,6 +1,10 @@
 //! WACOH DynPick driver, generic over `Read + Write`: polled records (`R`),
-//! sensitivities read once at connect (`p`), tare by the device's offset zeroing (`O`),
-//! firmware version (`V`) and filter divider (`nF` / `0F`).
+//! sensitivities read once at connect (`p`), tare by the device's offset zeroing (`O`,
+//! verified by reading back and repeated if it did not take), firmware version (`V`)
+//! and filter divider (`nF` / `0F`).
+//!
+//! A sensor may have been left in continuous output (`S`) by an earlier program: connect
+//! first ends it (`E`) and discards what was already sent, until the line is quiet.
 //!
 //! Every reply has a deadline ([`REPLY_TIMEOUT`]). Reads are idempotent, so a failed
 //! attempt (timeout, malformed record) is retried up to [`MAX_ATTEMPTS`] times after
@@ -12,7 +16,7 @@ use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use super::codec::{
-    decode_filter, CodecError, Command, FilterDivider, Record, Sensitivities, RECORD_LEN,
+    decode_filter, CodecError, Command, FilterDivider, Record, Sensitivities, RAW_ZERO, RECORD_LEN,
 };
 use crate::device::ft_common::{self, show_bytes, LinkStats, Retry};
 use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
@@ -33,6 +37,21 @@ pub const DRAIN_QUIET: Duration = REPLY_TIMEOUT;
 pub const DRAIN_MAX: Duration = Duration::from_millis(500);
 /// Longest line accepted; anything longer is garbage.
 pub const MAX_LINE: usize = 128;
+/// At connect, after `E` the line must be quiet this long (a record every 1 ms in
+/// continuous output) before the first command.
+pub const STOP_QUIET: Duration = Duration::from_millis(20);
+/// Rounds of `E` at connect, each waiting up to [`DRAIN_MAX`] for [`STOP_QUIET`],
+/// before a line that keeps sending is an error.
+pub const STOP_ATTEMPTS: u32 = 3;
+/// Times [`ForceSensor::tare`] sends `O` before giving up. The open-source ROS driver
+/// sends it 3 times blindly ("it only works when sent several times"); we read back
+/// after each and stop as soon as it took.
+pub const TARE_ATTEMPTS: u32 = 5;
+/// A tare took when every channel of the record read after `O` is within this many
+/// LSB of zero load (8192): 16 LSB = 0.49 N at 32.8 LSB/N, 0.01 N·m at
+/// 1638.4 LSB/(N·m), 0.2 % of the 14-bit range; a sensor at rest is within a few LSB
+/// (its noise), a load that was not zeroed is far outside.
+pub const TARE_TOLERANCE_LSB: u16 = 16;
 /// The device's internal sampling rate, Hz (what [`ForceSensor::sample_rate_hz`]
 /// reports; the polled rate is lower and is measured, see `protocols/dynpick.md`).
 pub const SAMPLE_RATE_HZ: f64 = 1000.0;
@@ -50,7 +69,8 @@ pub struct DynPick<P> {
 const HINT: &str = "check baud rate (921600) and cable; the device may be resetting";
 
 impl<P: Read + Write> DynPick<P> {
-    /// Connects: discards pending input, then reads the sensitivities (`p`).
+    /// Connects: ends continuous output (`E`) and discards pending input until the line
+    /// is quiet (see [`stop_continuous`]), then reads the sensitivities (`p`).
     pub fn connect(port: P) -> DeviceResult<Self> {
         Self::connect_with(port, REPLY_TIMEOUT)
     }
@@ -60,13 +80,7 @@ impl<P: Read + Write> DynPick<P> {
     /// sensor shares the host's CPU with everything else, so the simulated bench allows
     /// more than a real sensor on its own cable needs.
     pub fn connect_with(mut port: P, reply_timeout: Duration) -> DeviceResult<Self> {
-        ft_common::drain(
-            &mut port,
-            Duration::from_millis(10),
-            DRAIN_MAX,
-            DEVICE,
-            "connect",
-        )?;
+        stop_continuous(&mut port)?;
         let mut d = DynPick {
             port,
             sensitivities: Sensitivities([1.0; 6]),
@@ -109,11 +123,59 @@ impl<P: Read + Write> DynPick<P> {
         Ok(r)
     }
 
-    /// Firmware version line (`V`), CR LF stripped.
+    /// Firmware version line (`V`), CR LF stripped. A data record is never taken for
+    /// the version (a stray record from continuous output is skipped, the reader keeps
+    /// listening).
     pub fn firmware_version(&mut self) -> DeviceResult<String> {
         self.transact(Command::Version, |l| {
+            if Record::decode(l).is_ok() {
+                return Err(CodecError::Unexpected {
+                    what: "a data record",
+                    bytes: show_bytes(l),
+                });
+            }
             Ok((String::from_utf8_lossy(l).trim_end().to_string(), false))
         })
+    }
+
+    /// Zeroes the offset (`O`) and checks it took: after each `O` one record is read;
+    /// the tare took when every channel is within [`TARE_TOLERANCE_LSB`] of zero load.
+    /// Otherwise `O` is sent again, up to [`TARE_ATTEMPTS`] times; then the error
+    /// ([`ErrorKind::Rejected`]) gives the last reading. Returns the `O` commands sent.
+    pub fn tare_verified(&mut self) -> DeviceResult<u32> {
+        let cmd = Command::ZeroOffset;
+        let mut last = None;
+        for attempt in 1..=TARE_ATTEMPTS {
+            self.rx.clear();
+            ft_common::send(&mut self.port, DEVICE, &cmd.text(), &cmd.encode())?;
+            let r = self.read_record()?;
+            if r.raw
+                .iter()
+                .all(|&v| v.abs_diff(RAW_ZERO) <= TARE_TOLERANCE_LSB)
+            {
+                return Ok(attempt);
+            }
+            last = Some(r);
+        }
+        let shown = last.map_or(String::new(), |r| {
+            let off: Vec<String> = r
+                .raw
+                .iter()
+                .map(|&v| format!("{:+}", v as i32 - RAW_ZERO as i32))
+                .collect();
+            format!(
+                ": the record read after the last still has {} LSB from zero (Fx Fy Fz Mx My Mz), \
+                 tolerance ±{TARE_TOLERANCE_LSB} LSB",
+                off.join(" ")
+            )
+        });
+        Err(DeviceError::new(
+            ErrorKind::Rejected,
+            DEVICE,
+            cmd.text(),
+            format!("tare did not take after {TARE_ATTEMPTS} `O` commands{shown}"),
+        )
+        .with_hint("keep the sensor still and unloaded while taring; check the cable"))
     }
 
     /// The filter divider (`0F`).
@@ -207,6 +269,35 @@ impl<P: Read + Write> DynPick<P> {
     }
 }
 
+/// Ends continuous output (`E`, no reply) and discards input until the line has been
+/// quiet for [`STOP_QUIET`]; while records keep coming for [`DRAIN_MAX`], sends `E`
+/// again, at most [`STOP_ATTEMPTS`] rounds, then fails with [`ErrorKind::Protocol`].
+/// A sensor in polled mode ignores the `E`. Returns the bytes discarded.
+pub fn stop_continuous<P: Read + Write>(port: &mut P) -> DeviceResult<usize> {
+    let cmd = Command::StopContinuous;
+    let mut dropped = 0;
+    for _ in 0..STOP_ATTEMPTS {
+        ft_common::send(port, DEVICE, &cmd.text(), &cmd.encode())?;
+        let start = Instant::now();
+        let n = ft_common::drain(port, STOP_QUIET, DRAIN_MAX, DEVICE, &cmd.text())?;
+        dropped += n;
+        if start.elapsed() < DRAIN_MAX {
+            return Ok(dropped);
+        }
+    }
+    Err(DeviceError::new(
+        ErrorKind::Protocol,
+        DEVICE,
+        cmd.text(),
+        format!(
+            "the sensor kept sending after {STOP_ATTEMPTS} `E` commands ({dropped} bytes discarded, \
+             never quiet for {} ms)",
+            STOP_QUIET.as_millis()
+        ),
+    )
+    .with_hint(HINT))
+}
+
 /// Reads one line (LF-terminated, LF included) before `deadline`, keeping what
 /// follows it in `rx`.
 fn read_line<P: Read>(
@@ -261,12 +352,10 @@ impl<P: Read + Write> ForceSensor for DynPick<P> {
         Ok(self.read_record_once()?.to_wrench(&s))
     }
 
-    /// Zeroes the device's offset (`O`). The device does not answer; the next record
-    /// reflects the new offset. A device reset loses it (see `protocols/dynpick.md`).
+    /// Zeroes the device's offset (`O`), verified and repeated as
+    /// [`DynPick::tare_verified`]. A device reset loses it (see `protocols/dynpick.md`).
     fn tare(&mut self) -> DeviceResult<()> {
-        let cmd = Command::ZeroOffset;
-        self.rx.clear();
-        ft_common::send(&mut self.port, DEVICE, &cmd.text(), &cmd.encode())
+        self.tare_verified().map(|_| ())
     }
 
     fn sample_rate_hz(&self) -> f64 {

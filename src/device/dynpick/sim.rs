@@ -6,7 +6,13 @@
 //! filter divider n (records average the source over the last n 1-kHz samples:
 //! t, t − 1 ms, …, t − (n−1) ms). Unknown bytes are ignored; a digit waits for the
 //! `F` that completes `nF` (any other byte cancels it; n ∉ {0, 1, 2, 4, 8} is
-//! ignored). Faults from [`FaultConfig`] apply per reply. See `protocols/dynpick.md`.
+//! ignored). Continuous output: `S` starts a record every [`SAMPLE_PERIOD`] (record k
+//! due at start + k ms, caught up when the serve loop is late), `E` ends it; commands
+//! are still answered in between, their replies interleaved with the records (how a
+//! sensor left streaming confuses a host that does not send `E` first). Opt-in
+//! behaviours seen with real sensors: [`DynPickSimConfig::streaming_at_start`] and
+//! [`DynPickSimConfig::tare_ignored`]. Faults from [`FaultConfig`] apply per reply
+//! (not to continuous records). See `protocols/dynpick.md`.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -36,6 +42,11 @@ pub struct DynPickSimConfig {
     pub firmware: String,
     /// Faults to inject (none by default).
     pub faults: FaultConfig,
+    /// In continuous output from power-on (left so by an earlier program) until `E`.
+    pub streaming_at_start: bool,
+    /// The first this many `O` commands do nothing (the ROS driver's note: the offset
+    /// reset "only works when sent several times").
+    pub tare_ignored: u32,
 }
 
 impl Default for DynPickSimConfig {
@@ -44,6 +55,8 @@ impl Default for DynPickSimConfig {
             sensitivities: DEFAULT_SENSITIVITIES,
             firmware: DEFAULT_FIRMWARE.to_string(),
             faults: no_faults(),
+            streaming_at_start: false,
+            tare_ignored: 0,
         }
     }
 }
@@ -59,13 +72,21 @@ pub struct DynPickSim {
     out: OutQueue,
     faults: SimFaults,
     drop_link: bool,
+    /// Continuous output: when the next record is due.
+    continuous_next: Option<Duration>,
+    /// `O` commands still to ignore.
+    tare_ignored: u32,
 }
 
 impl DynPickSim {
     /// A simulator reading its load from `source`.
     pub fn new(config: DynPickSimConfig, source: impl WrenchSource + 'static) -> Self {
         let faults = SimFaults::new(config.faults.clone());
+        let continuous_next = config.streaming_at_start.then_some(Duration::ZERO);
+        let tare_ignored = config.tare_ignored;
         DynPickSim {
+            continuous_next,
+            tare_ignored,
             config,
             source: Box::new(source),
             counter: 0,
@@ -127,6 +148,7 @@ impl DynPickSim {
         self.filter = FilterDivider::D1;
         self.offset_lsb = [0.0; 6];
         self.pending_digit = None;
+        self.continuous_next = None;
         self.out.clear();
     }
 
@@ -175,7 +197,14 @@ impl DynPickSim {
                 let l = self.config.sensitivities.encode();
                 self.reply(l, now);
             }
+            b'O' if self.tare_ignored > 0 => self.tare_ignored -= 1,
             b'O' => self.offset_lsb = self.load_lsb(now),
+            b'S' => {
+                if self.continuous_next.is_none() {
+                    self.continuous_next = Some(now);
+                }
+            }
+            b'E' => self.continuous_next = None,
             b'V' => {
                 let l = format!("{}\r\n", self.config.firmware).into_bytes();
                 self.reply(l, now);
@@ -207,11 +236,21 @@ impl Simulator for DynPickSim {
             return Flow::Hangup;
         }
         self.out.drain_due(now, output);
+        while let Some(due) = self.continuous_next.filter(|&t| t <= now) {
+            self.continuous_next = Some(due + SAMPLE_PERIOD);
+            let r = self.record(due);
+            output.extend_from_slice(&r);
+        }
         Flow::Continue
     }
 
     fn next_wake(&self, now: Duration) -> Option<Duration> {
-        self.out.next_due().map(|t| t.saturating_sub(now))
+        let q = self.out.next_due();
+        match (q, self.continuous_next) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+        .map(|t| t.saturating_sub(now))
     }
 }
 
@@ -239,6 +278,52 @@ mod tests {
         let after = Record::decode(&run(&mut sim, b"R")).unwrap();
         assert_eq!(after.raw, [8192; 6]);
         assert_eq!((before.counter, after.counter), (0, 1));
+    }
+
+    #[test]
+    fn continuous_output_sends_a_record_per_ms_until_e() {
+        let cfg = DynPickSimConfig {
+            streaming_at_start: true,
+            ..DynPickSimConfig::default()
+        };
+        let mut sim = DynPickSim::new(cfg, SharedWrench::default());
+        let mut out = Vec::new();
+        // Due at 0, 1, ..., 4 ms.
+        sim.step(Duration::from_millis(4), &[], &mut out);
+        assert_eq!(out.len(), 5 * 27);
+        assert!(Record::decode(&out[27..54]).is_ok());
+        out.clear();
+        // `V` is answered between records: the reply is interleaved.
+        sim.step(Duration::from_millis(5), b"V", &mut out);
+        assert!(out.starts_with(b"DynPick simulator"), "{out:?}");
+        assert_eq!(out.len(), DEFAULT_FIRMWARE.len() + 2 + 27);
+        out.clear();
+        sim.step(Duration::from_millis(6), b"E", &mut out);
+        sim.step(Duration::from_millis(60), &[], &mut out);
+        assert!(out.is_empty());
+        // `S` starts it again.
+        sim.step(Duration::from_millis(61), b"S", &mut out);
+        sim.step(Duration::from_millis(62), &[], &mut out);
+        assert_eq!(out.len(), 2 * 27);
+    }
+
+    #[test]
+    fn tare_ignored_skips_the_first_o_commands() {
+        let w = SharedWrench::new(Wrench {
+            force_n: [0.0, 0.0, 30.0],
+            torque_nm: [0.0; 3],
+        });
+        let cfg = DynPickSimConfig {
+            tare_ignored: 2,
+            ..DynPickSimConfig::default()
+        };
+        let mut sim = DynPickSim::new(cfg, w);
+        for _ in 0..2 {
+            run(&mut sim, b"O");
+            assert_ne!(Record::decode(&run(&mut sim, b"R")).unwrap().raw[2], 8192);
+        }
+        run(&mut sim, b"O");
+        assert_eq!(Record::decode(&run(&mut sim, b"R")).unwrap().raw, [8192; 6]);
     }
 
     #[test]

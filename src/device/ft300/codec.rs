@@ -20,7 +20,9 @@ pub const REG_WRENCH: u16 = 180;
 /// First firmware-version register (3 registers: 3 ASCII letters, then major, minor,
 /// patch bytes). Taken from an open-source driver, not from the manual.
 pub const REG_FIRMWARE: u16 = 500;
-/// First serial-number register (4 registers, 8 ASCII characters, high byte first).
+/// First serial-number register (4 registers): three ASCII characters (510 high byte,
+/// 510 low byte, 511 high byte), then a 32-bit number with register 513 the high word
+/// and 512 the low word, as Robotiq's `rq_sensor_com` decodes it. See [`decode_serial`].
 pub const REG_SERIAL: u16 = 510;
 /// Production year register.
 pub const REG_YEAR: u16 = 514;
@@ -32,7 +34,8 @@ pub const STREAM_START: u16 = 0x0200;
 pub const FRAME_LEN: usize = 16;
 /// Stream frame header.
 pub const FRAME_HEADER: [u8; 2] = [0x20, 0x4E];
-/// Bytes the host sends to stop the stream (about 50 × 0xFF).
+/// Bytes the host sends to stop the stream: the "jam signal" of Robotiq's driver,
+/// 50 × 0xFF.
 pub const STOP_STREAM: [u8; 50] = [0xFF; 50];
 /// Newtons per force LSB.
 pub const FORCE_N_PER_LSB: f64 = 0.01;
@@ -385,6 +388,36 @@ impl Response {
     }
 }
 
+/// The serial number registers 510–513 as text, the way Robotiq's `rq_sensor_com`
+/// prints it: the three characters, a dash, then the 32-bit number (register 513 high
+/// word, 512 low word) with at least four digits (`FTS-1234`, `FTS-0042`,
+/// `FTS-70000`). A number of 0 means the sensor has none: `UNKNOWN`, as the vendor
+/// driver says. A byte that is not printable ASCII shows as `?`.
+pub fn decode_serial(regs: [u16; 4]) -> String {
+    let number = (regs[3] as u32) << 16 | regs[2] as u32;
+    if number == 0 {
+        return "UNKNOWN".to_string();
+    }
+    let [a, b] = regs[0].to_be_bytes();
+    let [c, _] = regs[1].to_be_bytes();
+    let letters: String = [a, b, c]
+        .iter()
+        .map(|&x| if x.is_ascii_graphic() { x as char } else { '?' })
+        .collect();
+    format!("{letters}-{number:04}")
+}
+
+/// The serial number registers 510–513 for three characters and a number (the
+/// inverse of [`decode_serial`]; the low byte of 511 is 0).
+pub fn encode_serial(letters: [u8; 3], number: u32) -> [u16; 4] {
+    [
+        u16::from_be_bytes([letters[0], letters[1]]),
+        u16::from_be_bytes([letters[2], 0]),
+        (number & 0xFFFF) as u16,
+        (number >> 16) as u16,
+    ]
+}
+
 /// Bytes as hex for error messages (`09 03 00 b4`).
 pub fn show_bytes_hex(bytes: &[u8]) -> String {
     let v: Vec<String> = bytes.iter().map(|b| format!("{b:02x}")).collect();
@@ -586,6 +619,25 @@ mod tests {
             assert_eq!(Response::frame_len(&f), Some(Ok(f.len())));
             assert_eq!(Response::decode(&f).unwrap(), r);
         }
+    }
+
+    #[test]
+    fn serial_number_is_three_letters_and_a_32_bit_number_high_word_in_513() {
+        // FTS-1234: 'F' 'T' | 'S' 0 | 1234 | 0, as a real sensor's registers hold it.
+        assert_eq!(decode_serial([0x4654, 0x5300, 1234, 0]), "FTS-1234");
+        // The high word is register 513: 70000 = 0x0001_1170.
+        assert_eq!(decode_serial([0x4654, 0x5300, 0x1170, 0x0001]), "FTS-70000");
+        // At least four digits, as the vendor's `%.4lu`.
+        assert_eq!(decode_serial([0x4654, 0x5300, 42, 0]), "FTS-0042");
+        assert_eq!(decode_serial([0x4654, 0x5300, 0, 0]), "UNKNOWN");
+        assert_eq!(decode_serial([0x4601, 0x5300, 7, 0]), "F?S-0007");
+        for n in [1, 1234, 65535, 65536, 70000, u32::MAX] {
+            assert_eq!(
+                decode_serial(encode_serial(*b"FTS", n)),
+                format!("FTS-{n:04}")
+            );
+        }
+        assert_eq!(encode_serial(*b"FTS", 1234), [0x4654, 0x5300, 0x04D2, 0]);
     }
 
     #[test]

@@ -21,9 +21,9 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use super::codec::{
-    show_bytes_hex, wrench_from_raw, Request, Response, StreamDecoder, StreamFrame, StreamStats,
-    REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS, STOP_STREAM,
-    STREAM_START,
+    crc_ok, decode_serial, show_bytes_hex, wrench_from_raw, ExceptionCode, Request, Response,
+    StreamDecoder, StreamFrame, StreamStats, FN_WRITE_MULTIPLE, REG_FIRMWARE, REG_SERIAL,
+    REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS, STOP_STREAM, STREAM_START,
 };
 use crate::device::ft_common::{self, LinkStats, Retry};
 use crate::device::{DeviceError, DeviceResult, ErrorKind, ForceSensor, Wrench};
@@ -54,8 +54,17 @@ pub const STREAM_READ_TIMEOUT: Duration = Duration::from_millis(100);
 /// device may have reset).
 pub const STREAM_STALL: Duration = Duration::from_millis(100);
 /// After the stop bytes, frames still in flight are decoded until the line is quiet
-/// this long.
+/// this long (five stream periods).
 pub const STOP_QUIET: Duration = Duration::from_millis(50);
+/// Rounds of stop bytes before a line that keeps sending is an error: Robotiq's driver
+/// repeats its jam signal until the stream stops; we repeat it at most this often,
+/// each round waiting up to [`DRAIN_MAX`] for [`STOP_QUIET`].
+pub const STOP_ATTEMPTS: u32 = 3;
+/// Stream frames a stream-start attempt waits for, beyond the reply deadline, before
+/// it is repeated: the write's echo or one valid frame confirms the start.
+pub const START_CONFIRM_FRAMES: u32 = 3;
+/// Stream period (100 Hz).
+pub const STREAM_PERIOD: Duration = Duration::from_millis(10);
 /// Frames kept for [`Ft300Stream::take_samples`] (10 s at 100 Hz); older ones are
 /// dropped and counted.
 pub const SAMPLE_BUFFER: usize = 1000;
@@ -65,7 +74,8 @@ pub const SAMPLE_BUFFER: usize = 1000;
 pub struct Ft300Info {
     /// Firmware version, e.g. `FTS-3.0.1` (registers 500–502).
     pub firmware: String,
-    /// Serial number (registers 510–513, ASCII).
+    /// Serial number, e.g. `FTS-1234` (registers 510–513: three characters, then a
+    /// 32-bit number, 513 the high word; see [`super::codec::decode_serial`]).
     pub serial: String,
     /// Production year (register 514).
     pub year: u16,
@@ -101,25 +111,10 @@ fn mean(ws: &[Wrench]) -> Wrench {
     m
 }
 
-fn ascii_regs(regs: &[u16]) -> String {
-    regs.iter()
-        .flat_map(|r| r.to_be_bytes())
-        .filter(|b| *b != 0)
-        .map(|b| {
-            if b.is_ascii_graphic() || b == b' ' {
-                b as char
-            } else {
-                '?'
-            }
-        })
-        .collect::<String>()
-        .trim()
-        .to_string()
-}
-
 impl<P: Read + Write> Ft300<P> {
     /// Connects to slave [`SLAVE_ADDRESS`]: stops a stream left running (sends the stop
-    /// bytes, drains), then checks the device answers by reading the wrench registers.
+    /// bytes until the line is quiet, see [`stop_stream_on`]), then checks the device
+    /// answers by reading the wrench registers.
     pub fn connect(port: P) -> DeviceResult<Self> {
         Self::connect_slave(port, SLAVE_ADDRESS)
     }
@@ -133,14 +128,7 @@ impl<P: Read + Write> Ft300<P> {
     /// the quiet time before a retry). A simulated sensor shares the host's CPU with
     /// everything else, so the simulated bench allows more than a real sensor needs.
     pub fn connect_with(mut port: P, slave: u8, reply_timeout: Duration) -> DeviceResult<Self> {
-        ft_common::send(&mut port, DEVICE, "stop stream", &STOP_STREAM)?;
-        ft_common::drain(
-            &mut port,
-            Duration::from_millis(30),
-            DRAIN_MAX,
-            DEVICE,
-            "stop stream",
-        )?;
+        stop_stream_on(&mut port, &mut StreamDecoder::default(), &mut Vec::new())?;
         let mut d = Ft300 {
             port,
             slave,
@@ -228,6 +216,7 @@ impl<P: Read + Write> Ft300<P> {
     pub fn info(&mut self) -> DeviceResult<Ft300Info> {
         let fw = self.read_registers(REG_FIRMWARE, 3)?;
         let serial = self.read_registers(REG_SERIAL, 4)?;
+        let serial = [serial[0], serial[1], serial[2], serial[3]];
         let year = self.read_registers(REG_YEAR, 1)?;
         let b: Vec<u8> = fw.iter().flat_map(|r| r.to_be_bytes()).collect();
         let letters: String = b[..3]
@@ -236,19 +225,140 @@ impl<P: Read + Write> Ft300<P> {
             .collect();
         Ok(Ft300Info {
             firmware: format!("{letters}-{}.{}.{}", b[3], b[4], b[5]),
-            serial: ascii_regs(&serial),
+            serial: decode_serial(serial),
             year: year[0],
         })
     }
 
-    /// Starts the stream (writes 0x0200 to register 410; the write is acknowledged
-    /// before the first frame) and hands the port to a reader thread.
+    /// Starts the stream (writes 0x0200 to register 410) and hands the port to a reader
+    /// thread. As Robotiq's driver, the start is confirmed by the write's echo *or* by
+    /// the stream itself: one valid frame counts when the echo is lost. Each attempt
+    /// waits the reply deadline plus [`START_CONFIRM_FRAMES`] stream periods; the write
+    /// is repeated (idempotent) up to [`MAX_ATTEMPTS`] times without draining (a
+    /// streaming line never goes quiet). Frames that arrive while confirming are kept
+    /// (the first samples of the stream). A Modbus exception is `Rejected`.
+    ///
+    /// On any failure the stop bytes are sent (until the line is quiet, as at connect),
+    /// so the sensor is never left streaming: it may have taken the write while both
+    /// the echo and the frames were lost or garbled.
     pub fn start_stream(mut self) -> DeviceResult<Ft300Stream<P>>
     where
         P: Send + 'static,
     {
-        self.write_registers(REG_STREAM, &[STREAM_START])?;
-        Ok(Ft300Stream::spawn(self))
+        match self.confirm_stream_start() {
+            Ok((decoder, frames)) => Ok(Ft300Stream::spawn(self, decoder, frames)),
+            Err(e) if e.kind == ErrorKind::Disconnected => Err(e),
+            Err(e) => {
+                let stopped = stop_stream_on(
+                    &mut self.port,
+                    &mut StreamDecoder::default(),
+                    &mut Vec::new(),
+                );
+                let note = match stopped {
+                    Ok(()) => "stop bytes sent, the line is quiet".to_string(),
+                    Err(s) => format!("stop bytes sent, but {}", s.message),
+                };
+                Err(DeviceError {
+                    message: format!("{}; {note}", e.message),
+                    ..e
+                })
+            }
+        }
+    }
+
+    /// Sends the stream-start write until its echo or a valid frame arrives; returns
+    /// the decoder (fed every byte after the echo, or every byte when no echo came)
+    /// and the frames decoded so far.
+    fn confirm_stream_start(&mut self) -> DeviceResult<(StreamDecoder, Vec<StreamFrame>)> {
+        let req = Request::WriteMultiple {
+            slave: self.slave,
+            start: REG_STREAM,
+            values: vec![STREAM_START],
+        };
+        let text = req.text();
+        let bytes = req.encode();
+        let echo = Response::WriteMultiple {
+            slave: self.slave,
+            start: REG_STREAM,
+            count: 1,
+        }
+        .encode();
+        let wait = self.retry.reply_timeout + STREAM_PERIOD * START_CONFIRM_FRAMES;
+        let mut rx: Vec<u8> = Vec::new();
+        let mut decoder = StreamDecoder::default();
+        let mut frames = Vec::new();
+        let mut chunk = [0u8; 256];
+        self.retry.stats.commands += 1;
+        for attempt in 0..MAX_ATTEMPTS {
+            if attempt > 0 {
+                self.retry.stats.retries += 1;
+            }
+            ft_common::send(&mut self.port, DEVICE, &text, &bytes)?;
+            let deadline = Instant::now() + wait;
+            loop {
+                if let Some(i) = find(&rx, &echo) {
+                    // Confirmed by the echo: decode what surrounds it (frames may
+                    // follow it in the same read).
+                    let mut d = StreamDecoder::default();
+                    let mut f = Vec::new();
+                    d.push(&rx[..i], &mut f);
+                    d.push(&rx[i + echo.len()..], &mut f);
+                    return Ok((d, f));
+                }
+                if let Some(code) = find_exception(&rx, self.slave, FN_WRITE_MULTIPLE) {
+                    return Err(DeviceError::new(
+                        ErrorKind::Rejected,
+                        DEVICE,
+                        &text,
+                        format!(
+                            "modbus exception {:02x} ({}) to function {FN_WRITE_MULTIPLE:02x}",
+                            code.byte(),
+                            code.describe()
+                        ),
+                    ));
+                }
+                if !frames.is_empty() {
+                    // Confirmed by the stream itself: the echo was lost.
+                    return Ok((decoder, frames));
+                }
+                match ft_common::read_until_deadline(
+                    &mut self.port,
+                    &mut chunk,
+                    deadline,
+                    DEVICE,
+                    &text,
+                ) {
+                    Ok(n) => {
+                        rx.extend_from_slice(&chunk[..n]);
+                        decoder.push(&chunk[..n], &mut frames);
+                    }
+                    Err(e) if e.kind == ErrorKind::Timeout => break,
+                    Err(e) => return Err(e),
+                }
+            }
+            self.retry.stats.timeouts += 1;
+        }
+        let seen = if rx.is_empty() {
+            "nothing arrived".to_string()
+        } else {
+            format!(
+                "{} bytes arrived, {} candidate frames failed the CRC: `{}`",
+                rx.len(),
+                decoder.stats.bad_crc,
+                show_bytes_hex(&rx[..rx.len().min(48)])
+            )
+        };
+        Err(DeviceError::new(
+            ErrorKind::Timeout,
+            DEVICE,
+            &text,
+            format!(
+                "stream start not confirmed: neither the write's echo nor a valid stream \
+                 frame within {} ms ({seen}) (after {MAX_ATTEMPTS} attempts)",
+                wait.as_millis()
+            ),
+        )
+        .with_hint(HINT))
     }
 
     /// Sends `req` and reads its reply, retrying timeouts and malformed replies.
@@ -282,6 +392,76 @@ impl<P: Read + Write> Ft300<P> {
             r => Ok(r),
         }
     }
+}
+
+/// Where `needle` first occurs in `hay`.
+fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
+    hay.windows(needle.len()).position(|w| w == needle)
+}
+
+/// A Modbus exception reply to `function` from `slave` somewhere in `rx` (CRC checked).
+fn find_exception(rx: &[u8], slave: u8, function: u8) -> Option<ExceptionCode> {
+    rx.windows(5)
+        .find(|w| w[0] == slave && w[1] == function | 0x80 && crc_ok(w))
+        .map(|w| ExceptionCode::from_byte(w[2]))
+}
+
+/// Stops a stream that may be running: sends the stop bytes (Robotiq's jam signal,
+/// 50 × 0xFF) and reads until the line has been quiet for [`STOP_QUIET`], decoding
+/// frames still in flight into `frames`. While bytes keep coming for [`DRAIN_MAX`]
+/// the stop bytes are sent again, at most [`STOP_ATTEMPTS`] rounds; a line that is
+/// still busy then is a [`ErrorKind::Protocol`] error. A device that is not streaming
+/// ignores the bytes (a Modbus slave discards a frame that fails its CRC).
+pub fn stop_stream_on<P: Read + Write>(
+    port: &mut P,
+    decoder: &mut StreamDecoder,
+    frames: &mut Vec<StreamFrame>,
+) -> DeviceResult<()> {
+    let what = "stop stream";
+    let mut buf = [0u8; 256];
+    let mut received = 0usize;
+    for _ in 0..STOP_ATTEMPTS {
+        ft_common::send(port, DEVICE, what, &STOP_STREAM)?;
+        let start = Instant::now();
+        let mut last = Instant::now();
+        loop {
+            if last.elapsed() >= STOP_QUIET {
+                return Ok(());
+            }
+            if start.elapsed() >= DRAIN_MAX {
+                break;
+            }
+            match port.read(&mut buf) {
+                Ok(0) => {
+                    return Err(DeviceError::new(
+                        ErrorKind::Disconnected,
+                        DEVICE,
+                        what,
+                        "port reached end of file",
+                    ))
+                }
+                Ok(n) => {
+                    decoder.push(&buf[..n], frames);
+                    received += n;
+                    last = Instant::now();
+                }
+                Err(e) if ft_common::is_quiet(&e) => {}
+                Err(e) => return Err(ft_common::io_error(DEVICE, what, &e)),
+            }
+        }
+    }
+    Err(DeviceError::new(
+        ErrorKind::Protocol,
+        DEVICE,
+        what,
+        format!(
+            "the line never went quiet for {} ms after {STOP_ATTEMPTS} rounds of stop bytes \
+             ({received} bytes received, {} valid frames)",
+            STOP_QUIET.as_millis(),
+            decoder.stats.frames
+        ),
+    )
+    .with_hint("the device keeps sending: check the baud rate (19200) and that this is an FT 300"))
 }
 
 /// Reads one reply frame addressed to `slave` before `deadline` (`timeout` after the
@@ -414,7 +594,7 @@ struct Shared {
 type SharedState = Arc<(Mutex<Shared>, Condvar)>;
 
 /// An FT 300 in stream mode: a reader thread owns the port until [`Ft300Stream::stop`].
-pub struct Ft300Stream<P: Send + 'static> {
+pub struct Ft300Stream<P: Read + Write + Send + 'static> {
     shared: SharedState,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<(P, StreamDecoder)>>,
@@ -430,13 +610,29 @@ fn lock(s: &SharedState) -> std::sync::MutexGuard<'_, Shared> {
 }
 
 impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
-    fn spawn(d: Ft300<P>) -> Self {
-        let shared: SharedState = Arc::new((Mutex::new(Shared::default()), Condvar::new()));
+    /// Hands the port to a reader thread; `decoder` and `frames` are what the start
+    /// confirmation already read (the first frames become samples 1, 2, ...).
+    fn spawn(d: Ft300<P>, decoder: StreamDecoder, frames: Vec<StreamFrame>) -> Self {
+        let mut state = Shared::default();
+        let now = Instant::now();
+        for (seq, f) in (1..).zip(&frames) {
+            push_sample(
+                &mut state,
+                StreamSample {
+                    seq,
+                    raw_wrench: f.wrench(),
+                    received: now,
+                },
+            );
+        }
+        state.stats = decoder.stats;
+        let first_seq = frames.len() as u64;
+        let shared: SharedState = Arc::new((Mutex::new(state), Condvar::new()));
         let stop = Arc::new(AtomicBool::new(false));
         let (s2, stop2) = (Arc::clone(&shared), Arc::clone(&stop));
         let slave = d.slave;
         let port = d.port;
-        let thread = std::thread::spawn(move || reader(port, slave, s2, stop2));
+        let thread = std::thread::spawn(move || reader(port, slave, decoder, first_seq, s2, stop2));
         Ft300Stream {
             shared,
             stop,
@@ -518,24 +714,15 @@ impl<P: Read + Write + Send + 'static> Ft300Stream<P> {
             }
         };
         if let Some(e) = lock(&self.shared).error.clone() {
+            if e.kind != ErrorKind::Disconnected {
+                // The reader failed but the link may be up: do not leave the sensor
+                // streaming.
+                let _ = stop_stream_on(&mut port, &mut decoder, &mut Vec::new());
+            }
             return Err(e);
         }
-        ft_common::send(&mut port, DEVICE, "stop stream", &STOP_STREAM)?;
-        let start = Instant::now();
-        let mut last = Instant::now();
-        let mut buf = [0u8; 256];
         let mut frames = Vec::new();
-        while last.elapsed() < STOP_QUIET && start.elapsed() < DRAIN_MAX {
-            match port.read(&mut buf) {
-                Ok(0) => break,
-                Ok(n) => {
-                    decoder.push(&buf[..n], &mut frames);
-                    last = Instant::now();
-                }
-                Err(e) if ft_common::is_quiet(&e) => {}
-                Err(e) => return Err(ft_common::io_error(DEVICE, "stop stream", &e)),
-            }
-        }
+        stop_stream_on(&mut port, &mut decoder, &mut frames)?;
         let summary = {
             let mut g = lock(&self.shared);
             let restarts = g.stats.restarts;
@@ -580,13 +767,13 @@ fn push_sample(g: &mut Shared, s: StreamSample) {
 fn reader<P: Read + Write>(
     mut port: P,
     slave: u8,
+    mut decoder: StreamDecoder,
+    mut seq: u64,
     shared: SharedState,
     stop: Arc<AtomicBool>,
 ) -> (P, StreamDecoder) {
-    let mut decoder = StreamDecoder::default();
     let mut buf = [0u8; 512];
     let mut frames: Vec<StreamFrame> = Vec::new();
-    let mut seq = 0u64;
     let mut last_frame = Instant::now();
     let restart = Request::WriteMultiple {
         slave,
@@ -675,13 +862,16 @@ impl<P: Read + Write + Send + 'static> ForceSensor for Ft300Stream<P> {
     }
 }
 
-impl<P: Send + 'static> Drop for Ft300Stream<P> {
+impl<P: Read + Write + Send + 'static> Drop for Ft300Stream<P> {
     fn drop(&mut self) {
-        // Stop the reader thread; the port is dropped with it (the stream keeps
-        // running on the device until the next connect sends the stop bytes).
+        // Stop the reader thread, then the device's stream (best effort: a stream
+        // dropped on an error path must not leave the sensor streaming), without
+        // waiting for the line to go quiet.
         self.stop.store(true, Ordering::SeqCst);
         if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            if let Ok((mut port, _)) = t.join() {
+                let _ = port.write_all(&STOP_STREAM).and_then(|_| port.flush());
+            }
         }
     }
 }

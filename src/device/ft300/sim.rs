@@ -16,7 +16,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::codec::{
-    raw_from_wrench, ExceptionCode, Request, Response, StreamFrame, FN_READ_HOLDING,
+    encode_serial, raw_from_wrench, ExceptionCode, Request, Response, StreamFrame, FN_READ_HOLDING,
     FN_WRITE_MULTIPLE, REG_FIRMWARE, REG_SERIAL, REG_STREAM, REG_WRENCH, REG_YEAR, SLAVE_ADDRESS,
     STREAM_START,
 };
@@ -38,24 +38,33 @@ pub const REQUEST_STALE: Duration = Duration::from_millis(50);
 pub struct Ft300SimConfig {
     /// Modbus slave address.
     pub slave: u8,
-    /// Serial number (8 ASCII characters, registers 510–513).
-    pub serial: String,
+    /// Serial number: three characters (registers 510, 511 high byte) and a 32-bit
+    /// number (513 high word, 512 low word), as a real sensor holds it: `FTS-1234`.
+    pub serial: ([u8; 3], u32),
     /// Production year (register 514).
     pub year: u16,
     /// Firmware: 3 letters and major, minor, patch (registers 500–502).
     pub firmware: ([u8; 3], [u8; 3]),
     /// Faults to inject (none by default).
     pub faults: FaultConfig,
+    /// The Modbus reply to the stream-start write is lost (the stream still starts), as
+    /// on links where Robotiq's driver takes the arriving stream as the confirmation.
+    pub drop_stream_echo: bool,
+    /// The sensor is streaming from power-on (left so by an earlier session), until the
+    /// host's stop bytes.
+    pub streaming_at_start: bool,
 }
 
 impl Default for Ft300SimConfig {
     fn default() -> Self {
         Ft300SimConfig {
             slave: SLAVE_ADDRESS,
-            serial: "SIM00001".to_string(),
+            serial: (*b"FTS", 1234),
             year: 2026,
             firmware: (*b"FTS", [3, 0, 1]),
             faults: no_faults(),
+            drop_stream_echo: false,
+            streaming_at_start: false,
         }
     }
 }
@@ -77,13 +86,14 @@ impl Ft300Sim {
     /// A simulator reading its load from `source`.
     pub fn new(config: Ft300SimConfig, source: impl WrenchSource + 'static) -> Self {
         let faults = SimFaults::new(config.faults.clone());
+        let stream_next = config.streaming_at_start.then_some((Duration::ZERO, 0));
         Ft300Sim {
             config,
             source: Box::new(source),
             rx: Vec::new(),
             rx_since: None,
             ff_run: 0,
-            stream_next: None,
+            stream_next,
             out: OutQueue::default(),
             faults,
             drop_link: false,
@@ -100,11 +110,7 @@ impl Ft300Sim {
     }
 
     fn register(&mut self, reg: u16, now: Duration) -> Option<u16> {
-        let serial: Vec<u8> = {
-            let mut s = self.config.serial.as_bytes().to_vec();
-            s.resize(8, b' ');
-            s
-        };
+        let serial = encode_serial(self.config.serial.0, self.config.serial.1);
         let (letters, version) = self.config.firmware;
         let fw = [
             letters[0], letters[1], letters[2], version[0], version[1], version[2],
@@ -118,8 +124,7 @@ impl Ft300Sim {
                 Some(u16::from_be_bytes([fw[i], fw[i + 1]]))
             }
             r if (REG_SERIAL..REG_SERIAL + 4).contains(&r) => {
-                let i = 2 * (r - REG_SERIAL) as usize;
-                Some(u16::from_be_bytes([serial[i], serial[i + 1]]))
+                Some(serial[(r - REG_SERIAL) as usize])
             }
             REG_YEAR => Some(self.config.year),
             REG_STREAM => Some(if self.stream_next.is_some() {
@@ -176,9 +181,17 @@ impl Ft300Sim {
                         start,
                         count: 1,
                     };
-                    if self.reply(ack.encode(), now, ReplyClass::Command)
-                        && self.stream_next.is_none()
-                    {
+                    let started = if self.config.drop_stream_echo {
+                        // The echo is lost on the way; the device took the write.
+                        self.faults
+                            .counters()
+                            .replies
+                            .fetch_add(1, Ordering::SeqCst);
+                        true
+                    } else {
+                        self.reply(ack.encode(), now, ReplyClass::Command)
+                    };
+                    if started && self.stream_next.is_none() {
                         self.stream_next = Some((now + STREAM_PERIOD, 0));
                     }
                     return;

@@ -68,6 +68,11 @@ pub const CONNECT_STATUS_INTERVAL: Duration = Duration::from_millis(250);
 /// at most 5 Hz for GUIs; a bench wants to see alarms sooner, 50 Hz is fine).
 pub const POLL_INTERVAL: Duration = Duration::from_millis(20);
 
+/// The rate at which a caller polls `?` while a move runs: GRBL's interface guide
+/// recommends status reports at no more than 5 Hz ("10 Hz may be possible"; a report
+/// takes ~5-20 ms to generate, and not every `?` is guaranteed an answer).
+pub const STATUS_INTERVAL: Duration = Duration::from_millis(200);
+
 /// Time for the controller to come to a stop after a feed hold.
 pub const STOP_TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -1432,6 +1437,10 @@ impl<P: Read + Write> Stage for Grbl<P> {
 
     fn limits(&self) -> TravelLimits {
         self.limits
+    }
+
+    fn status_interval(&self) -> Duration {
+        STATUS_INTERVAL
     }
 }
 

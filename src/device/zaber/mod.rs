@@ -514,4 +514,11 @@ impl<P: Read + Write> Stage for Zaber<P> {
     fn limits(&self) -> TravelLimits {
         self.limits
     }
+
+    /// Zaber documents no status rate: every status request is an ordinary command
+    /// answered at once, and motion completion is "poll until `IDLE`"; the runner polls
+    /// as often as the driver's own [`wait_idle`](Stage::wait_idle) does.
+    fn status_interval(&self) -> Duration {
+        POLL_INTERVAL
+    }
 }

@@ -1,4 +1,5 @@
-//! The elastic half-space forward model: marker displacements from surface forces.
+//! The elastic half-space: Boussinesq (normal load) and Cerruti (tangential load)
+//! point responses, paper Eq. 1–2, and their vertical components.
 //!
 //! A point force `f = (fx, fy, fz)` applied at the origin of the surface of a
 //! homogeneous, isotropic, linear-elastic half-space (Young's modulus `E`, Poisson
@@ -13,54 +14,21 @@
 //!                     + [2r(σr + z) + z²] y / (r³(r+z)²) (x f_x + y f_y) }
 //! ```
 //!
+//! and, out of plane (z positive into the elastomer, so `u_z > 0` moves a point
+//! deeper; Johnson Eq. 3.22c for the normal load and 3.86c for the tangential load,
+//! with `(1+σ)/(2πE) = 1/(4πG)`):
+//!
+//! ```text
+//! u_z = (1+σ)/(2πE) { [2(1−σ)/r + z²/r³] f_z + [z/r³ + (1−2σ)/(r(r+z))] (x f_x + y f_y) }
+//! ```
+//!
 //! with `r = |r|`. Units: mm, N and N/mm² give displacements in mm. `f_z > 0` presses
 //! into the elastomer (+z is depth). The paper fixes σ = 0.5 and E = 1; here both come
 //! from `sensor.toml` (`young_modulus_kpa` is converted to N/mm² once, in
 //! [`crate::units`]).
-//!
-//! By linearity, markers `k` and force points `j` give `u = H f` (paper Eq. 4, 5). The
-//! row/column order is a project-wide convention (DESIGN.md): rows `2k` (u_x) and
-//! `2k+1` (u_y) for marker `k`; columns `3j` (f_x), `3j+1` (f_y), `3j+2` (f_z) for force
-//! point `j`. Markers may sit anywhere (their positions come from data), at any depth
-//! `> 0`, in any number of layers.
 
-use nalgebra::DMatrix;
-use thiserror::Error;
-
-use crate::sensor::{Elastomer, Sensor};
-
-/// An error building the forward model.
-#[derive(Debug, Error, PartialEq)]
-pub enum ModelError {
-    /// A marker is not strictly below the surface, where Eq. 1–2 are singular.
-    #[error("marker {index} at depth {depth_mm} mm: depth must be a finite number > 0 mm")]
-    BadDepth {
-        /// Marker index in the set.
-        index: usize,
-        /// Its depth.
-        depth_mm: f64,
-    },
-    /// A position is NaN or infinite.
-    #[error("{what} {index} has a non-finite position ({x_mm}, {y_mm}) mm")]
-    NonFinitePosition {
-        /// `marker` or `force point`.
-        what: &'static str,
-        /// Index in its set.
-        index: usize,
-        /// x in mm.
-        x_mm: f64,
-        /// y in mm.
-        y_mm: f64,
-    },
-    /// Material constants outside the model's domain.
-    #[error("material out of range: E = {young_n_per_mm2} N/mm² must be > 0 and σ = {poisson} in [0, 0.5]")]
-    BadMaterial {
-        /// Young's modulus.
-        young_n_per_mm2: f64,
-        /// Poisson ratio.
-        poisson: f64,
-    },
-}
+use super::{ElasticModel, ModelError, PointResponse, PointResponse3};
+use crate::sensor::Elastomer;
 
 /// The half-space material: everything Eq. 1–2 need besides geometry.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -70,11 +38,6 @@ pub struct HalfSpace {
     /// Young's modulus E in N/mm².
     pub young_n_per_mm2: f64,
 }
-
-/// Horizontal displacement response of one point to unit forces: `h[a][b]` is the
-/// displacement along axis `a` (0 = x, 1 = y) per newton along axis `b`
-/// (0 = x, 1 = y, 2 = z), in mm/N.
-pub type PointResponse = [[f64; 3]; 2];
 
 impl HalfSpace {
     /// A half-space with the given constants, checked.
@@ -138,120 +101,50 @@ impl HalfSpace {
             h[1][0] * f[0] + h[1][1] * f[1] + h[1][2] * f[2],
         ]
     }
-}
 
-/// A marker of the system: its reference position in the sensor frame and its depth.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MarkerSite {
-    /// Index of its layer in the sensor's layer list.
-    pub layer: usize,
-    /// Reference (unloaded) position, mm.
-    pub position_mm: [f64; 2],
-    /// Depth below the surface, mm.
-    pub depth_mm: f64,
-}
+    /// Eq. 1–2 and the vertical components: the full 3 × 3 response at offset
+    /// `(dx, dy)` mm and depth `z > 0` mm, `h[a][b]` = displacement along `a`
+    /// (x, y, z) per newton along `b` (x, y, z), mm/N. Rows 0 and 1 are exactly
+    /// [`HalfSpace::point_response`].
+    #[inline]
+    pub fn point_response3(&self, dx: f64, dy: f64, z: f64) -> PointResponse3 {
+        let [hx, hy] = self.point_response(dx, dy, z);
+        let s = self.poisson;
+        let c = (1.0 + s) / (2.0 * std::f64::consts::PI * self.young_n_per_mm2);
+        let r2 = dx * dx + dy * dy + z * z;
+        let r = r2.sqrt();
+        let r3 = r2 * r;
+        // Boussinesq u_z and Cerruti u_z (per unit of x f_x + y f_y).
+        let n = 2.0 * (1.0 - s) / r + z * z / r3;
+        let t = z / r3 + (1.0 - 2.0 * s) / (r * (r + z));
+        [hx, hy, [c * t * dx, c * t * dy, c * n]]
+    }
 
-impl MarkerSite {
-    /// Every marker of every layer grid of a sensor, layer by layer, row-major within
-    /// a layer. Layers without a `[layers.markers]` grid contribute nothing.
-    pub fn from_sensor_grids(sensor: &Sensor) -> Vec<MarkerSite> {
-        let mut out = Vec::new();
-        for (li, layer) in sensor.layers.iter().enumerate() {
-            if let Some(m) = &layer.markers {
-                out.extend(m.grid.nodes_mm().into_iter().map(|p| MarkerSite {
-                    layer: li,
-                    position_mm: p,
-                    depth_mm: layer.depth_mm,
-                }));
-            }
-        }
-        out
+    /// Displacement `(u_x, u_y, u_z)` in mm at offset `(dx, dy)` and depth `z` from a
+    /// force `f` in N applied at the surface point.
+    #[inline]
+    pub fn displacement3(&self, dx: f64, dy: f64, z: f64, f: [f64; 3]) -> [f64; 3] {
+        let h = self.point_response3(dx, dy, z);
+        std::array::from_fn(|a| h[a][0] * f[0] + h[a][1] * f[1] + h[a][2] * f[2])
     }
 }
 
-/// Transfer matrix `H` (paper Eq. 5) with `2 × markers` rows and `3 × force points`
-/// columns, in the order of the module docs. Unit: mm/N.
-pub fn transfer_matrix(
-    model: &HalfSpace,
-    markers: &[MarkerSite],
-    force_points_mm: &[[f64; 2]],
-) -> Result<DMatrix<f64>, ModelError> {
-    check_geometry(markers, force_points_mm)?;
-    let mut h = DMatrix::<f64>::zeros(2 * markers.len(), 3 * force_points_mm.len());
-    for (j, fp) in force_points_mm.iter().enumerate() {
-        for (k, m) in markers.iter().enumerate() {
-            let r = model.point_response(
-                m.position_mm[0] - fp[0],
-                m.position_mm[1] - fp[1],
-                m.depth_mm,
-            );
-            for b in 0..3 {
-                h[(2 * k, 3 * j + b)] = r[0][b];
-                h[(2 * k + 1, 3 * j + b)] = r[1][b];
-            }
-        }
+impl ElasticModel for HalfSpace {
+    fn point_response(&self, dx: f64, dy: f64, z: f64) -> PointResponse {
+        HalfSpace::point_response(self, dx, dy, z)
     }
-    Ok(h)
-}
 
-/// Forward model without building `H`: displacements (interleaved `ux, uy` per marker,
-/// mm) for forces (interleaved `fx, fy, fz` per force point, N).
-pub fn forward(
-    model: &HalfSpace,
-    markers: &[MarkerSite],
-    force_points_mm: &[[f64; 2]],
-    forces_n: &[f64],
-) -> Result<Vec<f64>, ModelError> {
-    check_geometry(markers, force_points_mm)?;
-    assert_eq!(forces_n.len(), 3 * force_points_mm.len(), "forces length");
-    let mut u = vec![0.0; 2 * markers.len()];
-    for (k, m) in markers.iter().enumerate() {
-        let mut acc = [0.0; 2];
-        for (j, fp) in force_points_mm.iter().enumerate() {
-            let f = [forces_n[3 * j], forces_n[3 * j + 1], forces_n[3 * j + 2]];
-            let d = model.displacement(
-                m.position_mm[0] - fp[0],
-                m.position_mm[1] - fp[1],
-                m.depth_mm,
-                f,
-            );
-            acc[0] += d[0];
-            acc[1] += d[1];
-        }
-        u[2 * k] = acc[0];
-        u[2 * k + 1] = acc[1];
+    fn point_response3(&self, dx: f64, dy: f64, z: f64) -> PointResponse3 {
+        HalfSpace::point_response3(self, dx, dy, z)
     }
-    Ok(u)
-}
 
-fn check_geometry(markers: &[MarkerSite], force_points_mm: &[[f64; 2]]) -> Result<(), ModelError> {
-    for (index, m) in markers.iter().enumerate() {
-        if !(m.depth_mm.is_finite() && m.depth_mm > 0.0) {
-            return Err(ModelError::BadDepth {
-                index,
-                depth_mm: m.depth_mm,
-            });
-        }
-        if !(m.position_mm[0].is_finite() && m.position_mm[1].is_finite()) {
-            return Err(ModelError::NonFinitePosition {
-                what: "marker",
-                index,
-                x_mm: m.position_mm[0],
-                y_mm: m.position_mm[1],
-            });
-        }
+    fn displacement(&self, dx: f64, dy: f64, z: f64, f: [f64; 3]) -> [f64; 2] {
+        HalfSpace::displacement(self, dx, dy, z, f)
     }
-    for (index, p) in force_points_mm.iter().enumerate() {
-        if !(p[0].is_finite() && p[1].is_finite()) {
-            return Err(ModelError::NonFinitePosition {
-                what: "force point",
-                index,
-                x_mm: p[0],
-                y_mm: p[1],
-            });
-        }
+
+    fn max_depth_mm(&self) -> f64 {
+        f64::INFINITY
     }
-    Ok(())
 }
 
 #[cfg(test)]
@@ -259,6 +152,8 @@ mod tests {
     //! Eq. 1–2 against the textbook closed forms, written independently here
     //! (Johnson, Contact Mechanics, Eq. 3.22 Boussinesq and 3.34 Cerruti, rotated).
     use super::*;
+    use crate::model::ElasticModel;
+    use crate::model::{forward, forward3, transfer_matrix, MarkerSite};
     use std::f64::consts::PI;
 
     /// Boussinesq, horizontal displacement of a normal point load P (into the solid).
@@ -427,5 +322,76 @@ mod tests {
             depth_mm: 1.0,
         }];
         assert!(transfer_matrix(&m, &nan, &[[0.0, 0.0]]).is_err());
+    }
+
+    /// Johnson Eq. 3.22c (Boussinesq) and 3.86c (Cerruti) vertical displacements,
+    /// written independently: u_z = P/(4πG)[2(1−ν)/r + z²/r³],
+    /// u_z = Q/(4πG)[xz/r³ + (1−2ν)x/(r(r+z))].
+    fn johnson_uz(f: [f64; 3], x: f64, y: f64, z: f64, nu: f64, e: f64) -> f64 {
+        let g = e / (2.0 * (1.0 + nu));
+        let r = (x * x + y * y + z * z).sqrt();
+        let k = 1.0 / (4.0 * PI * g);
+        let t = |c: f64| c * z / r.powi(3) + (1.0 - 2.0 * nu) * c / (r * (r + z));
+        k * (f[2] * (2.0 * (1.0 - nu) / r + z * z / r.powi(3)) + f[0] * t(x) + f[1] * t(y))
+    }
+
+    #[test]
+    fn vertical_displacement_matches_johnson_and_its_surface_limit() {
+        for nu in NUS {
+            let m = HalfSpace::new(0.9, nu).unwrap();
+            for &(x, y, z) in &[
+                (1.0, 0.5, 3.0),
+                (-2.0, 1.0, 6.0),
+                (0.0, 0.0, 2.0),
+                (4.0, -3.0, 0.2),
+            ] {
+                let f = [0.3, -0.7, 1.1];
+                let u = m.displacement3(x, y, z, f);
+                let want = johnson_uz(f, x, y, z, nu, 0.9);
+                assert!(close(u[2], want, 1e-12), "nu={nu}: {} vs {want}", u[2]);
+                // Rows x, y are Eq. 1–2 exactly.
+                let h = m.displacement(x, y, z, f);
+                assert_eq!([u[0], u[1]], h);
+            }
+            // Surface (z -> 0): u_z = (1−ν²)P/(πE ρ) under a normal load and
+            // (1−2ν)(1+ν)Q x/(2πE ρ²) ahead of a tangential load.
+            let (x, y, z) = (1.2, 0.9, 1e-9);
+            let rho = f64::hypot(x, y);
+            let u = m.displacement3(x, y, z, [0.0, 0.0, 1.0]);
+            assert!((u[2] - (1.0 - nu * nu) / (PI * 0.9 * rho)).abs() < 1e-8);
+            let u = m.displacement3(x, y, z, [1.0, 0.0, 0.0]);
+            let want = (1.0 - 2.0 * nu) * (1.0 + nu) * x / (2.0 * PI * 0.9 * rho * rho);
+            assert!((u[2] - want).abs() < 1e-8, "nu={nu}");
+        }
+    }
+
+    #[test]
+    fn vertical_displacement_symmetries_and_forward3() {
+        let m = HalfSpace::new(1.0, 0.5).unwrap();
+        let h = m.point_response3(1.3, -0.4, 3.0);
+        let hm = m.point_response3(-1.3, -0.4, 3.0);
+        // u_z under f_z is even in x; under f_x odd in x; above the load only f_z acts.
+        assert!(close(hm[2][2], h[2][2], 1e-14) && close(hm[2][0], -h[2][0], 1e-14));
+        let h0 = m.point_response3(0.0, 0.0, 3.0);
+        assert_eq!(h0[2][0], 0.0);
+        assert!(h0[2][2] > 0.0);
+        let markers = [MarkerSite {
+            layer: 0,
+            position_mm: [1.0, 2.0],
+            depth_mm: 6.0,
+        }];
+        let fps = [[0.5, 0.5], [2.0, -1.0]];
+        let f = [0.1, -0.2, 0.3, 0.0, 0.5, 1.0];
+        let u3 = forward3(&m, &markers, &fps, &f).unwrap();
+        let u2 = forward(&m, &markers, &fps, &f).unwrap();
+        assert!(close(u3[0], u2[0], 1e-14) && close(u3[1], u2[1], 1e-14));
+        let want = m.displacement3(0.5, 1.5, 6.0, [0.1, -0.2, 0.3])[2]
+            + m.displacement3(-1.0, 3.0, 6.0, [0.0, 0.5, 1.0])[2];
+        assert!(close(u3[2], want, 1e-14));
+        // The trait's generic path gives the inherent results bit for bit.
+        assert_eq!(
+            ElasticModel::point_response(&m, 0.3, 0.2, 3.0),
+            m.point_response(0.3, 0.2, 3.0)
+        );
     }
 }
