@@ -12,9 +12,9 @@
 //! # zaber only: devices = [1, 2, 3] (x, y, z addresses), mm_per_step = 0.000047625
 //! travel_min_mm = [-200.0, -200.0, -200.0]  # optional, stage machine coordinates:
 //! travel_max_mm = [0.0, 0.0, 0.0]           # what `run --dry-run` checks targets
-//!                                   # against (the run itself checks the limits the
-//!                                   # controller reports: GRBL $130-$132, Zaber
-//!                                   # limit.min / limit.max)
+//!                                   # against; a GRBL driver also enforces it on
+//!                                   # every move (with GRBL's own [-$13x, 0] where
+//!                                   # homing $22=1 and soft limits $20=1 are on)
 //!
 //! [force_sensor]
 //! protocol = "dynpick"              # dynpick | ft300

@@ -86,11 +86,16 @@ fn open_stage(
     baud: u32,
     devices: [u8; 3],
     mm_per_step: f64,
+    travel: Option<crate::device::TravelLimits>,
 ) -> Result<(Box<dyn Stage>, serde_json::Value), ConnectError> {
     Ok(match kind {
         StageKind::Grbl => {
             let p = grbl::open_serial(port, baud).map_err(dev("stage"))?;
-            let g = Grbl::connect(p, GrblConfig::default()).map_err(dev("stage"))?;
+            let cfg = GrblConfig {
+                limits: travel,
+                ..GrblConfig::default()
+            };
+            let g = Grbl::connect(p, cfg).map_err(dev("stage"))?;
             let id = json!({"protocol": "grbl", "port": port, "version": g.version()});
             (Box::new(g), id)
         }
@@ -173,6 +178,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 stage.baud,
                 stage.zaber_devices,
                 stage.zaber_mm_per_step,
+                stage.travel,
             )?;
             let (f, fid) = open_ft(
                 force_sensor.protocol,
@@ -237,7 +243,14 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 },
             )?;
             let port = vb.stage_port().display().to_string();
-            let (s, sid) = open_stage(cfg.stage, &port, 115_200, [1, 2, 3], DEFAULT_MM_PER_STEP)?;
+            let (s, sid) = open_stage(
+                cfg.stage,
+                &port,
+                115_200,
+                [1, 2, 3],
+                DEFAULT_MM_PER_STEP,
+                None,
+            )?;
             let ft_port = vb.ft_port().display().to_string();
             let baud = match cfg.force_sensor {
                 FtKind::DynPick => dynpick::BAUD,

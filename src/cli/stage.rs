@@ -80,12 +80,20 @@ pub struct Args {
 /// What to do.
 #[derive(Debug, Subcommand)]
 enum Action {
-    /// Show the motion state and position (GRBL: also the firmware version and
-    /// alarm message; Zaber: warning flags per axis).
+    /// Show the motion state and position without changing anything (GRBL: works
+    /// in every state, also the raw state, firmware version, work offset and alarm;
+    /// Zaber: warning flags per axis).
     Status,
-    /// Clear an alarm (GRBL `$X`, after a soft reset if the alarm needs one; Zaber
-    /// `warnings clear`). Does not establish a reference position: home does.
+    /// Clear an alarm and say what was done (GRBL: `$X`; a critical alarm, or a
+    /// controller that answers nothing, first gets a soft reset 0x18; sleep: reset;
+    /// check mode: `$C`. Zaber: `warnings clear`). Does not establish a reference
+    /// position: home does.
     Unlock,
+    /// Resume motion paused by a feed hold or a closed safety door (GRBL `~`).
+    Resume,
+    /// Stop motion now (GRBL: feed hold, then a soft reset that discards the queued
+    /// moves and keeps the position; jogs are cancelled; Zaber `stop`).
+    Stop,
     /// Run the homing cycle and wait for it (GRBL `$H` needs `$22=1`).
     Home,
     /// Print the position in mm (`--json`: {"x_mm":…,"y_mm":…,"z_mm":…}).
@@ -222,22 +230,44 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     match conn.protocol {
         Protocol::Grbl => {
             let port = grbl::open_serial(&conn.port, conn.baud)?;
-            let mut g = Grbl::connect(port, GrblConfig::default())
-                .with_context(|| format!("connecting to GRBL on {}", conn.port))?;
-            let detail = |g: &Grbl<_>| {
-                let mut d = format!("grbl {}", g.version().unwrap_or("(no banner seen)"));
-                if let Some(m) = g.last_message() {
-                    d.push_str(&format!("; last message: {m}"));
-                }
-                d
+            // Only `unlock` may reset a controller that answers nothing (a critical
+            // alarm); `status` and the rest leave it as it is.
+            let connect = if matches!(a.action, Action::Unlock) {
+                Grbl::connect_resetting
+            } else {
+                Grbl::connect
             };
-            if let Action::Jog { dx, dy, dz } = a.action {
-                g.jog([dx, dy, dz], a.speed.unwrap_or(DEFAULT_JOG_SPEED_MM_S))?;
-                g.wait_idle(Duration::from_secs_f64(a.timeout))?;
-                print_position(&mut g, a.json)?;
-                return Ok(ExitCode::SUCCESS);
+            let mut g = connect(port, GrblConfig::default())
+                .with_context(|| format!("connecting to GRBL on {}", conn.port))?;
+            match a.action {
+                Action::Jog { dx, dy, dz } => {
+                    g.jog([dx, dy, dz], a.speed.unwrap_or(DEFAULT_JOG_SPEED_MM_S))?;
+                    g.wait_idle(Duration::from_secs_f64(a.timeout))?;
+                    print_position(&mut g, a.json)?;
+                    return Ok(ExitCode::SUCCESS);
+                }
+                Action::Unlock => {
+                    let r = g.unlock_report()?;
+                    if a.json {
+                        print_position(&mut g, true)?;
+                    } else {
+                        for step in &r.actions {
+                            println!("{step}");
+                        }
+                        println!("unlocked; state: {}", state_name(g.state()?));
+                    }
+                    return Ok(ExitCode::SUCCESS);
+                }
+                Action::Resume => {
+                    let s = g.resume()?;
+                    if !a.json {
+                        println!("resumed (`~`); state: {s}");
+                    }
+                    return Ok(ExitCode::SUCCESS);
+                }
+                _ => {}
             }
-            let d = detail(&g);
+            let d = grbl_detail(&mut g)?;
             act(&mut g, &a, d)
         }
         Protocol::Zaber => {
@@ -250,6 +280,38 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             act(&mut z, &a, d)
         }
     }
+}
+
+/// The GRBL part of `status`: raw state, firmware version, alarm, work offset and
+/// the last message, from what was read at connect and one status report.
+fn grbl_detail<P: std::io::Read + std::io::Write>(g: &mut Grbl<P>) -> anyhow::Result<String> {
+    let s = g.status()?;
+    let mut d = format!(
+        "grbl {}; state {}",
+        g.version()
+            .unwrap_or("(version unknown: `$I` is answered only when idle or in alarm)"),
+        s.state.map_or_else(|| "?".to_string(), |v| v.to_string())
+    );
+    if let Some(code) = g.alarm() {
+        if code == 0 {
+            d.push_str("; alarm (raised before this connection)");
+        } else {
+            d.push_str(&format!(
+                "; ALARM:{code} ({})",
+                grbl::codec::alarm_text(code)
+            ));
+        }
+    }
+    if let Some(w) = g.wco_mm() {
+        d.push_str(&format!(
+            "; work offset (WCO) {:.3}, {:.3}, {:.3} mm",
+            w[0], w[1], w[2]
+        ));
+    }
+    if let Some(m) = g.last_message() {
+        d.push_str(&format!("; last message: {m}"));
+    }
+    Ok(d)
 }
 
 fn print_position(stage: &mut dyn Stage, json: bool) -> anyhow::Result<()> {
@@ -289,8 +351,10 @@ fn act(stage: &mut dyn Stage, a: &Args, detail: String) -> anyhow::Result<ExitCo
                     p[0], p[1], p[2]
                 );
                 println!("{detail}");
-                if s == StageState::Alarm {
-                    println!("hint: `home` establishes the reference position (needed after power-up); `unlock` clears an alarm or warning flags");
+                match s {
+                    StageState::Alarm => println!("hint: `home` establishes the reference position (needed after power-up); `unlock` clears an alarm or warning flags"),
+                    StageState::Held => println!("hint: motion is paused: `resume` continues it (GRBL `~`), `stop` aborts it"),
+                    _ => {}
                 }
             }
         }
@@ -307,6 +371,15 @@ fn act(stage: &mut dyn Stage, a: &Args, detail: String) -> anyhow::Result<ExitCo
             print_position(stage, a.json)?;
         }
         Action::Position => print_position(stage, a.json)?,
+        Action::Resume => bail!("resume is a GRBL command (`~`); Zaber stages do not hold"),
+        Action::Stop => {
+            stage.stop()?;
+            if !a.json {
+                println!("stopped; state: {}", state_name(stage.state()?));
+            } else {
+                print_position(stage, true)?;
+            }
+        }
         Action::Move { x, y, z } => {
             stage.move_to([x, y, z], a.speed)?;
             stage.wait_idle(timeout)?;

@@ -30,6 +30,9 @@ pub enum ErrorKind {
     Rejected,
     /// A travel, force or alarm limit was hit (GRBL `ALARM:N`, Zaber limit flags).
     Limit,
+    /// Motion is held and waits for the user (GRBL feed hold `Hold:N` or safety
+    /// door `Door:N`): resume (GRBL `~`) or abort.
+    Held,
     /// Anything else.
     Other,
 }
@@ -42,6 +45,7 @@ impl fmt::Display for ErrorKind {
             ErrorKind::Protocol => "protocol error",
             ErrorKind::Rejected => "rejected",
             ErrorKind::Limit => "limit",
+            ErrorKind::Held => "held",
             ErrorKind::Other => "error",
         })
     }

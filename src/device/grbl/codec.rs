@@ -51,6 +51,13 @@ pub enum Command {
     Settings,
     /// `$G`: report the parser state (`[GC:..]`); the driver uses it to resynchronise.
     ParserState,
+    /// `$#`: list the coordinate offsets (`[G54:..]` .. `[G59:..]`, `[G92:..]`,
+    /// `[TLO:..]`, ...); answered in Idle and Alarm only (`error:8` otherwise).
+    Offsets,
+    /// `$C`: toggle check mode (GRBL resets when leaving it).
+    CheckMode,
+    /// `$I`: build info (`[VER:1.1h.20190830:]`, `[OPT:..]`); Idle and Alarm only.
+    BuildInfo,
     /// `$N=V`: store a setting.
     SetSetting {
         /// Setting number.
@@ -126,6 +133,9 @@ impl Command {
             Command::Home => "$H".into(),
             Command::Settings => "$$".into(),
             Command::ParserState => "$G".into(),
+            Command::Offsets => "$#".into(),
+            Command::BuildInfo => "$I".into(),
+            Command::CheckMode => "$C".into(),
             Command::SetSetting { number, value } => format!("${number}={}", fmt_num(*value)),
             Command::Jog {
                 xyz_mm,
@@ -153,7 +163,11 @@ impl Command {
     pub fn is_query(&self) -> bool {
         matches!(
             self,
-            Command::Settings | Command::ParserState | Command::Dwell { .. }
+            Command::Settings
+                | Command::ParserState
+                | Command::Offsets
+                | Command::BuildInfo
+                | Command::Dwell { .. }
         )
     }
 }
@@ -364,6 +378,77 @@ fn parse_status(inner: &str) -> Option<StatusReport> {
     Some(r)
 }
 
+/// The work coordinate offsets from a `$#` listing, combined as GRBL combines them
+/// into the `WCO:` of its status reports: the active coordinate system (`G54`..`G59`)
+/// plus `G92` plus the tool length offset on z.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Offsets {
+    /// `G54`..`G59` offsets, mm (index 0 = G54); `None` where the listing lacked one.
+    pub systems_mm: [Option<[f64; 3]>; 6],
+    /// `G92` offset, mm.
+    pub g92_mm: Option<[f64; 3]>,
+    /// Tool length offset (`TLO`), mm, applied to z.
+    pub tlo_mm: Option<f64>,
+}
+
+impl Offsets {
+    /// Takes one `[...]` feedback line of a `$#` listing (inner text, e.g.
+    /// `G54:-2.000,-3.000,-1.000`); returns false if it is not an offset line.
+    pub fn take(&mut self, feedback: &str) -> bool {
+        let Some((key, val)) = feedback.split_once(':') else {
+            return false;
+        };
+        match key {
+            "G54" | "G55" | "G56" | "G57" | "G58" | "G59" => {
+                let i = usize::from(key.as_bytes()[2] - b'4');
+                self.systems_mm[i] = parse_triple(val);
+                self.systems_mm[i].is_some()
+            }
+            "G92" => {
+                self.g92_mm = parse_triple(val);
+                self.g92_mm.is_some()
+            }
+            "TLO" => {
+                self.tlo_mm = val.trim().parse().ok().filter(|v: &f64| v.is_finite());
+                self.tlo_mm.is_some()
+            }
+            // G28, G30, PRB: listed, not part of the work offset.
+            "G28" | "G30" | "PRB" => true,
+            _ => false,
+        }
+    }
+
+    /// The work coordinate offset (MPos = WPos + WCO) with coordinate system
+    /// `system` active (0 = G54 .. 5 = G59); `None` if the listing lacked a part.
+    pub fn wco_mm(&self, system: usize) -> Option<[f64; 3]> {
+        let cs = (*self.systems_mm.get(system)?)?;
+        let g92 = self.g92_mm?;
+        let tlo = self.tlo_mm?;
+        Some([cs[0] + g92[0], cs[1] + g92[1], cs[2] + g92[2] + tlo])
+    }
+}
+
+/// The active coordinate system (0 = G54 .. 5 = G59) in a `$G` parser state
+/// (`G0 G54 G17 G21 G90 ...`); `None` if the state names none.
+pub fn active_coordinate_system(parser_state: &str) -> Option<usize> {
+    parser_state.split_whitespace().find_map(|w| match w {
+        "G54" => Some(0),
+        "G55" => Some(1),
+        "G56" => Some(2),
+        "G57" => Some(3),
+        "G58" => Some(4),
+        "G59" => Some(5),
+        _ => None,
+    })
+}
+
+/// The firmware version in a `$I` line (`VER:1.1h.20190830:` → `1.1h.20190830`).
+pub fn build_version(feedback: &str) -> Option<&str> {
+    let v = feedback.strip_prefix("VER:")?;
+    let v = v.split(':').next().unwrap_or(v).trim();
+    (!v.is_empty()).then_some(v)
+}
+
 /// Decodes one line (terminators already stripped).
 pub fn decode(line: &[u8]) -> Result<Response, DecodeError> {
     let err = |reason| DecodeError {
@@ -494,6 +579,48 @@ pub fn alarm_text(code: u8) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn offsets_listing_of_real_grbl_combines_into_the_wco_of_its_reports() {
+        // `$#` and `$G` as GRBL 1.1h answered after `G10 L2 P1 X-2 Y-3 Z-1` and
+        // `G92 X1` at WPos x 7 (its reports then carried WCO:4.000,-3.000,-1.000).
+        let mut o = Offsets::default();
+        for line in [
+            "G54:-2.000,-3.000,-1.000",
+            "G55:0.000,0.000,0.000",
+            "G56:0.000,0.000,0.000",
+            "G57:0.000,0.000,0.000",
+            "G58:0.000,0.000,0.000",
+            "G59:0.000,0.000,0.000",
+            "G28:0.000,0.000,0.000",
+            "G30:0.000,0.000,0.000",
+            "G92:6.000,0.000,0.000",
+            "TLO:0.000",
+            "PRB:0.000,0.000,0.000:0",
+        ] {
+            assert!(o.take(line), "{line}");
+        }
+        assert!(!o.take("VER:1.1h.20190830:"));
+        let cs = active_coordinate_system("G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0");
+        assert_eq!(cs, Some(0));
+        assert_eq!(o.wco_mm(0), Some([4.0, -3.0, -1.0]));
+        assert_eq!(o.wco_mm(1), Some([6.0, 0.0, 0.0]));
+        assert_eq!(Offsets::default().wco_mm(0), None, "incomplete listing");
+        assert_eq!(Command::Offsets.to_bytes(), b"$#\n");
+        assert!(Command::Offsets.is_query() && Command::BuildInfo.is_query());
+    }
+
+    #[test]
+    fn build_version_from_the_ver_line_of_dollar_i() {
+        assert_eq!(build_version("VER:1.1h.20190830:"), Some("1.1h.20190830"));
+        assert_eq!(
+            build_version("VER:1.1f.20170801:My machine"),
+            Some("1.1f.20170801")
+        );
+        assert_eq!(build_version("OPT:V,15,128"), None);
+        assert_eq!(build_version("VER::"), None);
+        assert_eq!(Command::BuildInfo.encode(), "$I");
+    }
 
     #[test]
     fn commands_encode_to_the_documented_lines() {

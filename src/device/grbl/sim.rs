@@ -7,17 +7,26 @@
 //! - real-time bytes `?` `!` `~` 0x18 0x85 handled on arrival, anywhere in a line;
 //! - motion: straight segments at constant speed (no acceleration), the position
 //!   integrating over time, `F` feed or `G0` at the `$110..$112` max rate;
-//! - machine coordinates only (no work offsets: WCO is always 0);
+//! - work offsets as GRBL keeps them: `G10 L2 Pn` / `G10 L20 Pn` (G54..G59),
+//!   `G54`..`G59` selection, `G92` / `G92.1`; WCO = active system + G92; `$#` lists
+//!   them; absolute moves without `G53` are in work coordinates;
 //! - status reports `<State|MPos:..|FS:..>` (or `WPos` when `$10` bit 0 is clear,
-//!   `Bf:` when bit 1 is set, `WCO:` on every 10th report, `Ov:` on every 20th);
+//!   `Bf:` when bit 1 is set), `WCO:` and `Ov:` with GRBL's refresh counters
+//!   (`WCO:` every 10 reports when idle, 30 when busy, and on the next report after
+//!   an offset changes; `Ov:` on the report after a `WCO:` one, then every 10/20);
 //! - homing per `$22` (error:5 when disabled), ending at MPos = −`$27` pull-off;
 //! - soft limits `$20` with `$130..$132` in GRBL's negative space
 //!   (−max_travel ≤ MPos ≤ 0): G0/G1 beyond → `ALARM:2` + critical lock,
 //!   `$J=` beyond → `error:15`;
-//! - alarm state: only `$X`, `$H`, `$$`, `$G`, `$N=V` accepted, G-code → `error:9`,
-//!   `$J=` → `error:8`; critical alarms (1, 2) block everything but `?` and reset;
-//! - feed hold (immediate stop → `Hold:0`), resume, jog cancel, soft reset (banner;
-//!   `ALARM:3` if reset in motion; `[MSG:'$H'|'$X' to unlock]` when in alarm);
+//! - alarm state: only `$` commands accepted, G-code → `error:9`, `$J=` →
+//!   `error:8`; critical alarms (1, 2) ignore everything, `?` included, but a soft
+//!   reset (as the real firmware does, whatever its source comments say);
+//! - during homing `?` is answered only when the cycle ends (as GRBL 1.1h);
+//! - feed hold (immediate stop → `Hold:0`; no line is read while held), resume,
+//!   jog cancel, soft reset (banner; `ALARM:3` if reset in motion;
+//!   `[MSG:'$H'|'$X' to unlock]` when in alarm); check mode `$C` (parsed, not
+//!   moved; leaving it resets); sleep `$SLP` (only `?` and reset answered; reset →
+//!   alarm); `$I` (`[VER:1.1h.20190830:]`);
 //! - probing `G38.2` against an optional contact plane `z = probe_contact_z_mm`.
 //!
 //! Faults from [`FaultConfig`] are applied to replies: see [`GrblSim::apply_fault`].
@@ -92,6 +101,8 @@ pub struct GrblSimConfig {
     pub start_mpos_mm: [f64; 3],
     /// Start in the alarm state (GRBL does at power-up when homing is enabled).
     pub start_in_alarm: bool,
+    /// G54 work offset at start, mm (`G10 L2 P1`), as left by another program.
+    pub start_g54_mm: [f64; 3],
     /// Height of the contact plane for `G38.2` probing, machine z in mm (`None`:
     /// the probe never touches).
     pub probe_contact_z_mm: Option<f64>,
@@ -108,6 +119,7 @@ impl Default for GrblSimConfig {
             settings: Vec::new(),
             start_mpos_mm: [0.0; 3],
             start_in_alarm: false,
+            start_g54_mm: [0.0; 3],
             probe_contact_z_mm: None,
             banner_on_start: true,
             faults: None,
@@ -155,8 +167,12 @@ struct Segment {
 enum Mode {
     Idle,
     Alarm,
-    /// Critical alarm: nothing but `?` and reset until reset.
+    /// Critical alarm: nothing but a reset is answered (not even `?`).
     AlarmLocked,
+    /// Check mode (`$C`): G-code parsed, nothing moves.
+    Check,
+    /// Sleep (`$SLP`): only `?` and reset.
+    Sleep,
 }
 
 /// Output held back until its release time (late-reply fault). Everything sent
@@ -184,7 +200,17 @@ pub struct GrblSim {
     dwell_until: Option<Duration>,
     feed_mm_min: Option<f64>,
     relative: bool,
-    reports: u32,
+    /// GRBL's `report_wco_counter` / `report_ovr_counter`.
+    wco_counter: u32,
+    ovr_counter: u32,
+    /// Coordinate systems G54..G59, mm.
+    systems: [[f64; 3]; 6],
+    /// Active coordinate system (0 = G54).
+    active_system: usize,
+    /// G92 offset, mm.
+    g92: [f64; 3],
+    /// A `?` arrived during homing: answered when the cycle ends.
+    report_pending: bool,
     pending_banner: bool,
     delayed: Option<Delayed>,
     faults: Option<FaultInjector>,
@@ -223,7 +249,16 @@ impl GrblSim {
             dwell_until: None,
             feed_mm_min: None,
             relative: false,
-            reports: 0,
+            wco_counter: 0,
+            ovr_counter: 0,
+            systems: {
+                let mut s = [[0.0; 3]; 6];
+                s[0] = config.start_g54_mm;
+                s
+            },
+            active_system: 0,
+            g92: [0.0; 3],
+            report_pending: false,
             pending_banner: config.banner_on_start,
             delayed: None,
             faults: config.faults.map(FaultInjector::new),
@@ -241,7 +276,23 @@ impl GrblSim {
 
     /// True if the controller is in an alarm state.
     pub fn in_alarm(&self) -> bool {
-        self.mode != Mode::Idle
+        matches!(self.mode, Mode::Alarm | Mode::AlarmLocked)
+    }
+
+    /// True while a feed hold pauses motion.
+    pub fn held(&self) -> bool {
+        self.held && self.moving()
+    }
+
+    /// The work coordinate offset GRBL applies (active system + G92), mm.
+    pub fn wco_mm(&self) -> [f64; 3] {
+        let c = self.systems[self.active_system];
+        [c[0] + self.g92[0], c[1] + self.g92[1], c[2] + self.g92[2]]
+    }
+
+    /// Marks the offsets changed: GRBL reports `WCO:` on the next report.
+    fn wco_changed(&mut self) {
+        self.wco_counter = 0;
     }
 
     /// Motion lines (G0/G1/G38.2/`$J=`) accepted so far: lets tests check that a
@@ -268,8 +319,11 @@ impl GrblSim {
     }
 
     fn state_text(&self) -> String {
-        if self.mode != Mode::Idle {
-            return "Alarm".into();
+        match self.mode {
+            Mode::Alarm | Mode::AlarmLocked => return "Alarm".into(),
+            Mode::Check => return "Check".into(),
+            Mode::Sleep => return "Sleep".into(),
+            Mode::Idle => {}
         }
         match self.queue.front() {
             Some(_) if self.held => "Hold:0".into(),
@@ -284,8 +338,17 @@ impl GrblSim {
 
     fn status_report(&mut self) -> String {
         let mask = self.setting(10) as u32;
-        let pos = self
-            .mpos
+        let wco = self.wco_mm();
+        let shown = if mask & 1 == 1 {
+            self.mpos
+        } else {
+            [
+                self.mpos[0] - wco[0],
+                self.mpos[1] - wco[1],
+                self.mpos[2] - wco[2],
+            ]
+        };
+        let pos = shown
             .iter()
             .map(|v| fmt_num(*v))
             .collect::<Vec<_>>()
@@ -305,14 +368,27 @@ impl GrblSim {
             _ => 0.0,
         };
         s.push_str(&format!("|FS:{},0", feed.round() as i64));
-        if self.reports.is_multiple_of(10) {
-            s.push_str("|WCO:0.000,0.000,0.000");
+        // GRBL 1.1h report.c: the WCO counter first (a WCO report schedules Ov for
+        // the next one), refreshed every 10 reports when idle, 30 when busy;
+        // Ov every 10 / 20.
+        let busy = self.moving();
+        if self.wco_counter > 0 {
+            self.wco_counter -= 1;
+        } else {
+            self.wco_counter = if busy { 29 } else { 9 };
+            if self.ovr_counter == 0 {
+                self.ovr_counter = 1;
+            }
+            let w: Vec<String> = wco.iter().map(|v| fmt_num(*v)).collect();
+            s.push_str(&format!("|WCO:{}", w.join(",")));
         }
-        if self.reports % 20 == 1 {
+        if self.ovr_counter > 0 {
+            self.ovr_counter -= 1;
+        } else {
+            self.ovr_counter = if busy { 19 } else { 9 };
             s.push_str("|Ov:100,100,100");
         }
         s.push('>');
-        self.reports += 1;
         s
     }
 
@@ -356,8 +432,13 @@ impl GrblSim {
                     SegKind::Home => {
                         let pulloff = self.setting(27);
                         self.mpos = [-pulloff; 3];
-                        // The `$H` line is answered when homing completes.
+                        // The `$H` line is answered when homing completes, and a
+                        // `?` asked during the cycle only then.
                         self.reply(out, "ok", ReplyClass::Command, now);
+                        if std::mem::take(&mut self.report_pending) {
+                            let report = self.status_report();
+                            self.reply(out, &report, ReplyClass::Query, now);
+                        }
                     }
                     SegKind::Probe => {
                         // Reached the target without contact: ALARM:5, probe fail.
@@ -381,8 +462,20 @@ impl GrblSim {
             push_line(out, if homing { "ALARM:6" } else { "ALARM:3" });
             self.mode = Mode::Alarm;
         }
-        if self.mode == Mode::AlarmLocked {
+        if matches!(self.mode, Mode::AlarmLocked | Mode::Sleep) {
+            // GRBL re-initialises sleep as alarm (position not guaranteed).
             self.mode = Mode::Alarm;
+        }
+        if self.mode == Mode::Check {
+            self.mode = Mode::Idle;
+        }
+        self.report_pending = false;
+        self.wco_counter = 0;
+        self.ovr_counter = 0;
+        // A reset re-initialises the parser: G92 cleared, G54 active again.
+        if self.g92 != [0.0; 3] || self.active_system != 0 {
+            self.g92 = [0.0; 3];
+            self.active_system = 0;
         }
         self.queue.clear();
         self.held = false;
@@ -402,7 +495,7 @@ impl GrblSim {
     fn send_banner(&mut self, out: &mut Vec<u8>) {
         out.extend_from_slice(b"\r\n");
         push_line(out, BANNER);
-        if self.mode != Mode::Idle {
+        if self.in_alarm() {
             push_line(out, "[MSG:'$H'|'$X' to unlock]");
         }
     }
@@ -492,7 +585,11 @@ impl GrblSim {
 
     /// True if the front line must wait (GRBL's main loop is blocked).
     fn blocked(&self, now: Duration) -> bool {
-        if self.mode == Mode::AlarmLocked {
+        if matches!(self.mode, Mode::AlarmLocked | Mode::Sleep) {
+            return true;
+        }
+        // A feed hold suspends GRBL's main loop: no line is read until resume.
+        if self.held && self.moving() {
             return true;
         }
         if self.queue.front().is_some_and(|s| s.kind == SegKind::Home) {
@@ -539,7 +636,7 @@ impl GrblSim {
         }
         let result = if let Some(sys) = line.strip_prefix('$') {
             self.system_command(sys, out)
-        } else if self.mode != Mode::Idle
+        } else if self.in_alarm()
             || (self.moving() && self.queue.front().is_some_and(|s| s.kind == SegKind::Jog))
         {
             // G-code is locked out in alarm and while jogging.
@@ -595,18 +692,68 @@ impl GrblSim {
                 push_line(
                     out,
                     &format!(
-                        "[GC:{motion} G54 G17 G21 {dist} G94 M5 M9 T0 F{} S0]",
+                        "[GC:{motion} G5{} G17 G21 {dist} G94 M5 M9 T0 F{} S0]",
+                        4 + self.active_system,
                         f.round() as i64
                     ),
                 );
                 Ok(Some(ReplyClass::Query))
             }
             "X" => {
-                if self.mode != Mode::Idle {
+                if self.in_alarm() {
                     push_line(out, "[MSG:Caution: Unlocked]");
                     self.mode = Mode::Idle;
                 }
                 Ok(Some(ReplyClass::Command))
+            }
+            "#" => {
+                if self.moving() || self.mode == Mode::Check {
+                    return Err(8);
+                }
+                let f = |v: [f64; 3]| v.iter().map(|x| fmt_num(*x)).collect::<Vec<_>>().join(",");
+                for (i, c) in self.systems.iter().enumerate() {
+                    push_line(out, &format!("[G5{}:{}]", 4 + i, f(*c)));
+                }
+                push_line(out, "[G28:0.000,0.000,0.000]");
+                push_line(out, "[G30:0.000,0.000,0.000]");
+                push_line(out, &format!("[G92:{}]", f(self.g92)));
+                push_line(out, "[TLO:0.000]");
+                push_line(out, "[PRB:0.000,0.000,0.000:0]");
+                Ok(Some(ReplyClass::Query))
+            }
+            "I" => {
+                if self.moving() {
+                    return Err(8);
+                }
+                push_line(out, "[VER:1.1h.20190830:]");
+                push_line(out, "[OPT:V,15,128]");
+                Ok(Some(ReplyClass::Query))
+            }
+            "C" => {
+                match self.mode {
+                    Mode::Check => {
+                        // GRBL resets when leaving check mode.
+                        push_line(out, "[MSG:Disabled]");
+                        self.reply(out, "ok", ReplyClass::Command, self.last_time);
+                        self.soft_reset(out);
+                        return Ok(None);
+                    }
+                    Mode::Idle if !self.moving() => {
+                        self.mode = Mode::Check;
+                        push_line(out, "[MSG:Enabled]");
+                    }
+                    _ => return Err(8),
+                }
+                Ok(Some(ReplyClass::Command))
+            }
+            "SLP" => {
+                if self.moving() || self.mode == Mode::Check {
+                    return Err(8);
+                }
+                self.reply(out, "ok", ReplyClass::Command, self.last_time);
+                push_line(out, "[MSG:Sleeping]");
+                self.mode = Mode::Sleep;
+                Ok(None)
             }
             "H" => {
                 if !self.homing_enabled() {
@@ -779,6 +926,9 @@ impl GrblSim {
         let mut relative = self.relative;
         let mut feed = self.feed_mm_min;
         let mut p = None;
+        let mut l_word = None;
+        let mut offset_cmd: Option<i64> = None;
+        let mut select: Option<usize> = None;
         for (l, v) in &words {
             match (l, g_code(*v)) {
                 ('G', 0) => {
@@ -796,6 +946,11 @@ impl GrblSim {
                 // keeps the simulator in one unit (documented in protocols/grbl.md).
                 ('G', 200) => return Err(20),
                 ('G', 530) => machine = true,
+                ('G', code @ (100 | 920 | 921)) => offset_cmd = Some(code),
+                ('G', code @ (540 | 550 | 560 | 570 | 580 | 590)) => {
+                    select = Some(((code - 540) / 10) as usize)
+                }
+                ('L', _) => l_word = Some(*v),
                 ('G', 900) => relative = false,
                 ('G', 910) => relative = true,
                 ('F', _) => {
@@ -814,10 +969,23 @@ impl GrblSim {
         self.relative = relative;
         self.feed_mm_min = feed;
         let xyz = Self::axis_words(&words);
+        if let Some(cs) = select {
+            if cs != self.active_system {
+                self.active_system = cs;
+                self.wco_changed();
+            }
+        }
+        if let Some(code) = offset_cmd {
+            self.set_offsets(code, l_word, p, xyz)?;
+            return Ok(Some(ReplyClass::Command));
+        }
         if dwell {
             let p = p.ok_or(28u8)?;
             if p < 0.0 {
                 return Err(4);
+            }
+            if self.mode == Mode::Check {
+                return Ok(Some(ReplyClass::Command));
             }
             self.dwell_until = Some(now + Duration::from_secs_f64(p));
             return Ok(None);
@@ -831,7 +999,19 @@ impl GrblSim {
         if xyz.iter().all(Option::is_none) {
             return Err(26);
         }
-        let target = self.resolve(xyz, relative && !machine);
+        let target = if relative && !machine {
+            self.resolve(xyz, true)
+        } else if machine {
+            self.resolve(xyz, false)
+        } else {
+            // Absolute in work coordinates: machine = work + WCO.
+            let w = self.wco_mm();
+            let mut xyz_m = xyz;
+            for i in 0..3 {
+                xyz_m[i] = xyz[i].map(|v| v + w[i]);
+            }
+            self.resolve(xyz_m, false)
+        };
         let from = self.planned_end();
         let speed = if rapid {
             self.rapid_speed(from, target)
@@ -847,6 +1027,10 @@ impl GrblSim {
         if kind == SegKind::Probe && self.moving() {
             return Err(8);
         }
+        if self.mode == Mode::Check {
+            // Check mode: parsed and answered, nothing moves.
+            return Ok(Some(ReplyClass::Command));
+        }
         self.motions_accepted += 1;
         self.queue.push_back(Segment {
             kind,
@@ -856,8 +1040,67 @@ impl GrblSim {
         Ok(Some(ReplyClass::Command))
     }
 
+    /// `G10 L2 Pn` (set system n), `G10 L20 Pn` (set system n so that the current
+    /// position reads the given values), `G92` (offset so that it reads them),
+    /// `G92.1` (clear G92). P0 = the active system.
+    fn set_offsets(
+        &mut self,
+        code: i64,
+        l_word: Option<f64>,
+        p: Option<f64>,
+        xyz: [Option<f64>; 3],
+    ) -> Result<(), u8> {
+        // GRBL syncs the planner before changing offsets.
+        if self.moving() {
+            return Err(8);
+        }
+        match code {
+            100 => {
+                let l = l_word.ok_or(17u8)?.round() as i64;
+                let p = p.ok_or(28u8)?.round() as i64;
+                if !(0..=6).contains(&p) {
+                    return Err(29);
+                }
+                let cs = if p == 0 {
+                    self.active_system
+                } else {
+                    (p - 1) as usize
+                };
+                for (i, v) in xyz.iter().enumerate() {
+                    if let Some(v) = v {
+                        self.systems[cs][i] = match l {
+                            2 => *v,
+                            20 => self.mpos[i] - self.g92[i] - v,
+                            _ => return Err(17),
+                        };
+                    }
+                }
+            }
+            920 => {
+                if xyz.iter().all(Option::is_none) {
+                    return Err(26);
+                }
+                let c = self.systems[self.active_system];
+                for (i, v) in xyz.iter().enumerate() {
+                    if let Some(v) = v {
+                        self.g92[i] = self.mpos[i] - c[i] - v;
+                    }
+                }
+            }
+            _ => self.g92 = [0.0; 3],
+        }
+        self.wco_changed();
+        Ok(())
+    }
+
     fn realtime(&mut self, b: u8, now: Duration, out: &mut Vec<u8>) {
         match b {
+            // A critical alarm ignores `?`; during homing it is answered when the
+            // cycle ends (GRBL 1.1h's homing loop does not serve reports).
+            b'?' if self.mode == Mode::AlarmLocked => {}
+            b'?' if self.queue.front().is_some_and(|s| s.kind == SegKind::Home) => {
+                self.report_pending = true;
+            }
             b'?' => {
                 let report = self.status_report();
                 self.reply(out, &report, ReplyClass::Query, now);
@@ -1047,10 +1290,16 @@ mod tests {
             "alarm lock"
         );
         assert_eq!(run(&mut sim, 0.0, "$H\n"), "");
-        assert!(run(&mut sim, 0.1, "?").starts_with("<Home|"));
+        // GRBL 1.1h serves no report during the homing cycle: the `?` is answered
+        // when it ends.
+        assert_eq!(run(&mut sim, 0.1, "?"), "");
         // |(-50,-50,-25)| = 75 mm at $25 = 3000 mm/min -> 1.5 s.
         assert_eq!(run(&mut sim, 1.4, ""), "", "still homing");
-        assert_eq!(run(&mut sim, 1.51, ""), "ok\r\n");
+        let out = run(&mut sim, 1.51, "");
+        assert!(
+            out.starts_with("ok\r\n<Idle|MPos:-1.000,-1.000,-1.000|"),
+            "{out:?}"
+        );
         assert_eq!(sim.mpos_mm(), [-1.0; 3], "pull-off $27 = 1 mm");
     }
 
@@ -1091,6 +1340,127 @@ mod tests {
         let out = run(&mut sim, 1.3, "\u{18}");
         assert!(out.starts_with("ALARM:3\r\n\r\nGrbl 1.1h"), "{out:?}");
         assert!(sim.in_alarm());
+    }
+
+    fn quiet() -> GrblSim {
+        GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            ..Default::default()
+        })
+    }
+
+    #[test]
+    fn critical_alarm_ignores_status_queries_until_a_soft_reset() {
+        let mut cfg = GrblSimConfig::homing_bench();
+        cfg.start_in_alarm = false;
+        cfg.banner_on_start = false;
+        let mut sim = GrblSim::new(cfg);
+        assert_eq!(
+            run(&mut sim, 0.0, "G0 X5\n"),
+            "ALARM:2\r\n[MSG:Reset to continue]\r\n"
+        );
+        // As the real firmware: `?` gets nothing, lines get nothing.
+        assert_eq!(run(&mut sim, 0.1, "?"), "");
+        assert_eq!(run(&mut sim, 0.2, "$G\n?"), "");
+        let out = run(&mut sim, 0.3, "\u{18}");
+        assert_eq!(
+            out, "ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n",
+            "the lines sent while locked were flushed by the reset"
+        );
+        assert!(run(&mut sim, 0.4, "?").starts_with("<Alarm|"));
+    }
+
+    #[test]
+    fn feed_hold_reads_no_line_until_resume() {
+        let mut sim = quiet();
+        run(&mut sim, 0.0, "G53 G1 X-10 F300\n");
+        run(&mut sim, 0.2, "!");
+        assert_eq!(run(&mut sim, 0.3, "$G\n"), "", "no line read in a hold");
+        assert_eq!(run(&mut sim, 0.4, "$$\n"), "");
+        let out = run(&mut sim, 0.5, "~");
+        assert!(
+            out.starts_with("[GC:G1 G54 G17 G21 G90 G94 M5 M9 T0 F300 S0]\r\nok\r\nerror:8\r\n"),
+            "on resume: $G answered, $$ refused while running: {out:?}"
+        );
+    }
+
+    #[test]
+    fn wco_reported_with_grbls_refresh_counters_and_on_change() {
+        let mut sim = quiet();
+        let reports: Vec<String> = (0..12)
+            .map(|i| run(&mut sim, f64::from(i) * 0.01, "?"))
+            .collect();
+        // As recorded from GRBL 1.1h: WCO on reports 1 and 11, Ov on 2 and 12.
+        for (i, r) in reports.iter().enumerate() {
+            assert_eq!(r.contains("|WCO:"), i == 0 || i == 10, "report {i}: {r}");
+            assert_eq!(r.contains("|Ov:"), i == 1 || i == 11, "report {i}: {r}");
+        }
+        // An offset change is reported on the next report.
+        assert_eq!(run(&mut sim, 0.2, "G10 L2 P1 X-2 Y-3 Z-1\n"), "ok\r\n");
+        assert!(run(&mut sim, 0.2, "?").contains("|WCO:-2.000,-3.000,-1.000"));
+    }
+
+    #[test]
+    fn wpos_mask_g54_and_g92_offsets_and_the_offset_listing() {
+        let mut sim = GrblSim::new(GrblSimConfig {
+            banner_on_start: false,
+            start_mpos_mm: [5.0, 0.0, 0.0],
+            start_g54_mm: [-2.0, -3.0, -1.0],
+            settings: vec![(10, 0.0)],
+            ..Default::default()
+        });
+        assert_eq!(
+            run(&mut sim, 0.0, "?"),
+            "<Idle|WPos:7.000,3.000,1.000|FS:0,0|WCO:-2.000,-3.000,-1.000>\r\n"
+        );
+        assert_eq!(run(&mut sim, 0.0, "G92 X1\n"), "ok\r\n");
+        assert_eq!(sim.wco_mm(), [4.0, -3.0, -1.0]);
+        let out = run(&mut sim, 0.0, "$#\n");
+        assert!(
+            out.starts_with("[G54:-2.000,-3.000,-1.000]\r\n[G55:0.000,0.000,0.000]"),
+            "{out}"
+        );
+        assert!(
+            out.contains("[G92:6.000,0.000,0.000]\r\n[TLO:0.000]\r\n"),
+            "{out}"
+        );
+        assert!(out.ends_with("ok\r\n"));
+        // Absolute moves without G53 are in work coordinates.
+        run(&mut sim, 0.0, "G92.1\nG0 X0 Y0 Z0\n");
+        let _ = run(&mut sim, 5.0, "");
+        assert_eq!(sim.mpos_mm(), [-2.0, -3.0, -1.0]);
+        assert_eq!(
+            run(&mut sim, 5.0, "$I\n"),
+            "[VER:1.1h.20190830:]\r\n[OPT:V,15,128]\r\nok\r\n"
+        );
+    }
+
+    #[test]
+    fn homing_off_accepts_any_coordinate_and_sleep_resets_into_alarm() {
+        let mut sim = quiet();
+        assert_eq!(run(&mut sim, 0.0, "G53 G0 X5\n"), "ok\r\n");
+        let _ = run(&mut sim, 2.0, "");
+        assert_eq!(sim.mpos_mm(), [5.0, 0.0, 0.0]);
+        assert_eq!(run(&mut sim, 2.0, "$SLP\n"), "ok\r\n[MSG:Sleeping]\r\n");
+        assert!(run(&mut sim, 2.1, "?").starts_with("<Sleep|"));
+        assert_eq!(run(&mut sim, 2.1, "$G\n"), "");
+        assert!(run(&mut sim, 2.2, "\u{18}").ends_with("[MSG:'$H'|'$X' to unlock]\r\n"));
+        assert!(sim.in_alarm());
+    }
+
+    #[test]
+    fn check_mode_parses_without_moving_and_leaving_it_resets() {
+        let mut sim = quiet();
+        assert_eq!(run(&mut sim, 0.0, "$C\n"), "[MSG:Enabled]\r\nok\r\n");
+        assert_eq!(run(&mut sim, 0.0, "G53 G0 X-10\n"), "ok\r\n");
+        assert!(run(&mut sim, 1.0, "?").starts_with("<Check|MPos:0.000,0.000,0.000|"));
+        assert_eq!(run(&mut sim, 1.0, "$#\n"), "error:8\r\n");
+        let out = run(&mut sim, 1.0, "$C\n");
+        assert!(
+            out.starts_with("[MSG:Disabled]\r\nok\r\n\r\nGrbl 1.1h"),
+            "{out:?}"
+        );
+        assert!(run(&mut sim, 1.1, "?").starts_with("<Idle|"));
     }
 
     #[test]
