@@ -1107,3 +1107,47 @@ fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
     );
     assert_eq!(fz, 0.0, "retracted after the abort");
 }
+
+/// An ideal unloaded setpoint tracks as an exactly unmoved frame. With automatic λ the
+/// runner used to precompute on it, which fails (no signal to choose λ from), and
+/// journalled NaN force sums; now such a frame is zero force and λ is chosen on the
+/// first loaded one.
+#[test]
+fn an_unloaded_first_setpoint_with_automatic_lambda_is_zero_force_not_nan() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {:?}", sensor.display().to_string()),
+        )
+        .replace("to = 750.0", "to = 100.0")
+        .replace("trials = 10", "trials = 1");
+    let path = write(
+        tmp.path(),
+        "plan.toml",
+        &format!("{text}\n[reconstruct]\nsolver = \"tikhonov\"\nlambda = \"gcv\"\n"),
+    );
+    let plan = Plan::from_path(&path).unwrap();
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+    let out = tmp.path().join("run");
+    let (summary, events, _, _) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Completed, "{events:?}");
+    let rows = rows(&out);
+    assert_eq!(rows.len(), 3);
+    assert_eq!(
+        [rows[0].fsum_x_n, rows[0].fsum_y_n, rows[0].fsum_z_n],
+        [0.0; 3],
+        "unloaded row"
+    );
+    for r in &rows[1..] {
+        assert!(r.fsum_z_n.is_finite() && r.fsum_z_n.abs() > 0.1, "{r:?}");
+    }
+    assert!(
+        !events
+            .iter()
+            .any(|e| matches!(e, RunEvent::Warning { message, .. } if message.contains("reconstruction failed"))),
+        "{events:?}"
+    );
+}

@@ -1621,6 +1621,7 @@ mod runs_from_a_stage_left_in_a_state {
             tare: c.tare,
             limit: Some(2),
             stop: Arc::new(AtomicBool::new(false)),
+            stop_signal: Default::default(),
         };
         let summary = {
             let mut devices = Devices {

@@ -476,6 +476,13 @@ impl Runner<'_, '_, '_, '_> {
         let mut f = vec![f64::NAN; n_out];
         let mut precompute_s = 0.0;
         let solved: Result<(), String> = (|| {
+            // An exactly unmoved frame (an ideal unloaded setpoint) is zero force for
+            // every linear solver; solving it would let automatic λ / rank be chosen
+            // (and cached for the run) on a frame with no signal, which fails.
+            if !u.is_empty() && u.iter().all(|v| *v == 0.0) {
+                f.iter_mut().for_each(|v| *v = 0.0);
+                return Ok(());
+            }
             if !self.solvers.contains_key(&key) {
                 let tp = Instant::now();
                 let problem = Problem::new(sensor, &sites);
