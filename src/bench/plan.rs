@@ -51,6 +51,7 @@
 //! solver = "pinv"                   # pinv (default) | tikhonov | tsvd | fourier
 //! lambda = "gcv"                    # tikhonov / fourier: gcv | lcurve | number (mm/N)
 //! rank = "auto"                     # tsvd: auto | integer
+//! refine_iterations = 20            # fourier: CGLS iterations (0 = direct solve)
 //!
 //! [sweep]                           # exactly one kind:
 //! kind = "magnitude"                # normal force from..to by step, `trials` times
@@ -696,6 +697,7 @@ struct RawReconstruct {
     solver: Option<String>,
     lambda: Option<toml::Value>,
     rank: Option<toml::Value>,
+    refine_iterations: Option<i64>,
 }
 
 /// Defaults of the optional keys (README plan schema; echoed by `run --dry-run`).
@@ -1258,10 +1260,38 @@ impl RawPlan {
                 .parse()
                 .map_err(|e: String| c.invalid("reconstruct.rank", v, e))?,
         };
+        let max_refine = crate::solve::fourier::MAX_REFINE_ITERATIONS as i64;
+        let fourier_refine_iterations = match self.reconstruct.refine_iterations {
+            None => {
+                if method == Method::Fourier {
+                    defaults.push(
+                        "reconstruct.refine_iterations",
+                        crate::solve::fourier::DEFAULT_REFINE_ITERATIONS.to_string(),
+                    );
+                }
+                crate::solve::fourier::DEFAULT_REFINE_ITERATIONS
+            }
+            Some(_) if method != Method::Fourier => {
+                return Err(c.invalid(
+                    "reconstruct.refine_iterations",
+                    self.reconstruct.refine_iterations.unwrap_or(0),
+                    format!("only the fourier solver refines (solver is {method})"),
+                ))
+            }
+            Some(v) if (0..=max_refine).contains(&v) => v as usize,
+            Some(v) => {
+                return Err(c.invalid(
+                    "reconstruct.refine_iterations",
+                    v,
+                    format!("must be an integer in [0, {max_refine}] (CGLS iterations)"),
+                ))
+            }
+        };
         let solver = SolverConfig {
             method,
             lambda,
             rank,
+            fourier_refine_iterations,
             ..SolverConfig::default()
         };
 
@@ -1598,6 +1628,43 @@ trials = 10
             e.contains("sweep.trials = (missing)") && e.contains("required by sweep kind"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn fourier_refinement_is_a_plan_choice_checked_against_the_solver() {
+        let p = parse(&format!("{FIG7}[reconstruct]\nsolver = \"fourier\"\n")).unwrap();
+        assert_eq!(
+            p.solver.fourier_refine_iterations,
+            crate::solve::fourier::DEFAULT_REFINE_ITERATIONS
+        );
+        assert!(p
+            .defaults
+            .iter()
+            .any(|(k, _)| k == "reconstruct.refine_iterations"));
+        let p = parse(&format!(
+            "{FIG7}[reconstruct]\nsolver = \"fourier\"\nrefine_iterations = 0\n"
+        ))
+        .unwrap();
+        assert_eq!(p.solver.fourier_refine_iterations, 0);
+        for (extra, needle) in [
+            (
+                "solver = \"pinv\"\nrefine_iterations = 5",
+                "only the fourier solver",
+            ),
+            ("solver = \"fourier\"\nrefine_iterations = -1", "[0, 1000]"),
+            (
+                "solver = \"fourier\"\nrefine_iterations = 5000",
+                "[0, 1000]",
+            ),
+        ] {
+            let e = parse(&format!("{FIG7}[reconstruct]\n{extra}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("reconstruct.refine_iterations") && e.contains(needle),
+                "{extra}: {e}"
+            );
+        }
     }
 
     #[test]

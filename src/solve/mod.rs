@@ -213,6 +213,11 @@ pub struct SolverConfig {
     /// Fourier solver: zero padding added around the grids, as a fraction of the
     /// larger grid extent (see [`fourier`]).
     pub fourier_padding: f64,
+    /// Fourier solver: CGLS refinement iterations on the exact operator after the
+    /// per-frequency solve (0 = the direct solve alone: fastest, but with the periodic
+    /// model's boundary error; see [`fourier`]). Default
+    /// [`fourier::DEFAULT_REFINE_ITERATIONS`].
+    pub fourier_refine_iterations: usize,
 }
 
 impl Default for SolverConfig {
@@ -224,6 +229,7 @@ impl Default for SolverConfig {
             precision: Precision::F64,
             rcond: None,
             fourier_padding: 1.0,
+            fourier_refine_iterations: fourier::DEFAULT_REFINE_ITERATIONS,
         }
     }
 }

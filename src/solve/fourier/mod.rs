@@ -150,6 +150,10 @@ const MAX_PADDING: f64 = 8.0;
 /// 1 % (force sums) and 2 % (field) of dense Tikhonov on the tested geometries.
 pub const DEFAULT_REFINE_ITERATIONS: usize = 20;
 
+/// Largest accepted refinement count ([`SolverConfig::fourier_refine_iterations`]):
+/// 80 iterations already agree with dense Tikhonov to 1e-6.
+pub const MAX_REFINE_ITERATIONS: usize = 1000;
+
 /// The fine-grid geometry a [`FourierSolver`] found for its problem.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FourierGeometry {
@@ -229,6 +233,12 @@ impl FourierSolver {
         }
         if let Some(u) = frame {
             check_input(u, n_in)?;
+        }
+        if config.fourier_refine_iterations > MAX_REFINE_ITERATIONS {
+            return Err(SolveError::InvalidOption(format!(
+                "fourier refinement of {} iterations exceeds the maximum of {MAX_REFINE_ITERATIONS}",
+                config.fourier_refine_iterations
+            )));
         }
         let pad = config.fourier_padding;
         if !(pad.is_finite() && (0.0..=MAX_PADDING).contains(&pad)) {
@@ -779,7 +789,7 @@ impl FourierSolver {
             diag,
             n_in,
             n_out,
-            refine_iterations: DEFAULT_REFINE_ITERATIONS,
+            refine_iterations: config.fourier_refine_iterations,
             refine_preconditioned: true,
             bridge_edges: true,
         })
