@@ -390,17 +390,7 @@ fn a_huge_displacement_is_refused_with_a_short_number() {
 #[test]
 fn fourier_refinement_is_selectable_and_converges_to_dense_tikhonov() {
     let dir = tempfile::tempdir().unwrap();
-    let text = std::fs::read_to_string(util::root(SENSOR))
-        .unwrap()
-        .replace(
-            "nx = 13\nny = 10\npitch_mm = 1.5",
-            "nx = 12\nny = 12\npitch_mm = 1.1",
-        )
-        .replace("origin_mm = [0.75, 0.75]", "origin_mm = [0.55, 0.55]")
-        .replace(
-            "nx = 10\nny = 8\npitch_mm = 2.2\norigin_mm = [-0.9, -0.95]",
-            "nx = 12\nny = 12\npitch_mm = 1.1\norigin_mm = [0.0, 0.0]",
-        );
+    let text = grid_sensor_toml();
     let sensor_path = dir.path().join("grid.toml");
     std::fs::write(&sensor_path, &text).unwrap();
     let s = Sensor::from_path(&sensor_path).unwrap();
@@ -460,4 +450,62 @@ fn fourier_refinement_is_selectable_and_converges_to_dense_tikhonov() {
     let (code, e, _) = forces(&["--solver", "fourier", "--refine-iterations", "100000"]);
     assert_eq!(code, Some(2), "{e}");
     assert!(e.contains("1000"), "{e}");
+}
+
+/// The paper sensor file rewritten to issue 12's observation-1 geometry at 12×12: force
+/// grid and both marker layers every 1.1 mm, the deeper layer offset by half a pitch
+/// (a geometry the fourier solver handles).
+fn grid_sensor_toml() -> String {
+    std::fs::read_to_string(util::root(SENSOR))
+        .unwrap()
+        .replace(
+            "nx = 13\nny = 10\npitch_mm = 1.5",
+            "nx = 12\nny = 12\npitch_mm = 1.1",
+        )
+        .replace("origin_mm = [0.75, 0.75]", "origin_mm = [0.55, 0.55]")
+        .replace(
+            "nx = 10\nny = 8\npitch_mm = 2.2\norigin_mm = [-0.9, -0.95]",
+            "nx = 12\nny = 12\npitch_mm = 1.1\norigin_mm = [0.0, 0.0]",
+        )
+}
+
+/// The fourier solver's automatic λ (GCV and L-curve on the periodic problem) must
+/// not change when the displacements are scaled by 1e-160 or 1e300 (its sums of
+/// squares under- or overflowed, as the dense solvers' did), and a search that ends
+/// on the boundary of its range is a warning, never "nearly noise-free".
+#[test]
+fn fourier_automatic_lambda_is_the_same_at_1e_minus_160_and_1e300_scalings() {
+    let s = Sensor::from_toml_str(&grid_sensor_toml(), Path::new("grid.toml")).unwrap();
+    let u = press(&s, [6.0, 6.0], 0.05, 2e-4, 9);
+    let sites = MarkerSite::from_sensor_grids(&s);
+    let problem = Problem::new(&s, &sites);
+    for lambda in [Lambda::Gcv, Lambda::LCurve] {
+        let cfg = SolverConfig {
+            method: Method::Fourier,
+            lambda,
+            ..SolverConfig::default()
+        };
+        let l0 = solve::precompute(&problem, &cfg, Some(&u))
+            .unwrap()
+            .diagnostics()
+            .lambda
+            .unwrap();
+        for scale in [1e-160, 1e300] {
+            let scaled: Vec<f64> = u.iter().map(|v| v * scale).collect();
+            let solver = solve::precompute(&problem, &cfg, Some(&scaled)).unwrap();
+            let d = solver.diagnostics();
+            let l = d.lambda.unwrap();
+            assert!(
+                ((l - l0) / l0).abs() < 1e-6,
+                "{lambda:?} ×{scale:e}: λ = {l:e} vs {l0:e} unscaled: {:?}",
+                d.notes
+            );
+            assert!(d.warnings().next().is_none(), "{:?}", d.notes);
+            assert!(
+                !d.notes.iter().any(|n| n.contains("noise-free")),
+                "{:?}",
+                d.notes
+            );
+        }
+    }
 }

@@ -107,15 +107,22 @@ pub(super) fn choose_lambda(
                 }
             }
             let l = (0.5 * (x0 + x1)).exp();
-            let edge = if ib == 0 || ib == LAMBDA_SCAN - 1 {
-                " (at the edge of the scanned range: the frame may be nearly noise-free)"
+            let note = format!("λ = {l:e} mm/N by GCV on the given frame, periodic problem");
+            if ib == 0 || ib == LAMBDA_SCAN - 1 {
+                // The search ended on its boundary: the choice is not a GCV minimum.
+                (
+                    l,
+                    format!(
+                        "{}{note}, on the boundary of the scanned range [{:.3e}, {:.3e}] mm/N: \
+                         not a GCV minimum; set λ by hand (--lambda) if the forces look wrong",
+                        super::super::WARNING_PREFIX,
+                        grid[0],
+                        grid[LAMBDA_SCAN - 1]
+                    ),
+                )
             } else {
-                ""
-            };
-            (
-                l,
-                format!("λ = {l:e} mm/N by GCV on the given frame, periodic problem{edge}"),
-            )
+                (l, note)
+            }
         }
     }
 }

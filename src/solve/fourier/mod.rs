@@ -609,7 +609,16 @@ impl FourierSolver {
             }
             (choice, Some(u)) => {
                 // Project the frame's (unitary) spectrum on each block's left singular vectors.
-                markers_to_spectra(&plan, &mut work, u, 1.0, false);
+                // The frame is divided by its largest |value| first: GCV and the L-curve
+                // corner do not change under u -> a·u, but their sums of squares would
+                // underflow or overflow at displacements of order 1e-160 or 1e300 mm.
+                let peak = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let in_scale = if peak > 0.0 && peak.is_finite() {
+                    1.0 / peak
+                } else {
+                    1.0
+                };
+                markers_to_spectra(&plan, &mut work, u, in_scale, false);
                 let unit = 1.0 / ((mm[0] * mm[1]) as f64).sqrt();
                 let mut beta2 = vec![0.0f64; nb * kmin];
                 let mut rest = 0.0f64;
