@@ -260,9 +260,8 @@ impl<'a> Spectrum<'a> {
     /// `‖u‖²` under- or overflows for displacements of order 1e-160 or 1e300 mm.
     /// `frame` must not be all zero.
     fn new(svd: &'a Svd, rank: usize, frame: &[f64]) -> Self {
-        let scale = frame.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-        let scale = if scale > 0.0 { scale } else { 1.0 };
-        let unit: Vec<f64> = frame.iter().map(|v| v / scale).collect();
+        let factor = super::unit_peak_factor(frame);
+        let unit: Vec<f64> = frame.iter().map(|v| v * factor).collect();
         let beta: Vec<f64> = svd
             .u
             .tr_mul(&nalgebra::DVector::from_column_slice(&unit))
@@ -793,7 +792,7 @@ impl FrameSolver for DenseSolver {
     fn apply(&mut self, u_mm: &[f64], f_n: &mut [f64]) -> Result<(), SolveError> {
         check_input(u_mm, self.n_in)?;
         check_output(f_n, self.n_out)?;
-        let max_abs = u_mm.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let max_abs = super::max_abs(u_mm);
         if max_abs > self.limit_mm {
             return Err(SolveError::TooLarge {
                 max_abs_mm: max_abs,

@@ -323,6 +323,24 @@ pub struct Diagnostics {
     pub notes: Vec<String>,
 }
 
+/// Largest |value| of a displacement frame (0 when empty).
+pub(crate) fn max_abs(u: &[f64]) -> f64 {
+    u.iter().fold(0.0f64, |m, v| m.max(v.abs()))
+}
+
+/// The factor that brings a frame to unit peak for the automatic λ / rank searches
+/// (GCV's and the L-curve's optimum do not change under `u → a·u`, but their sums of
+/// squares under- or overflow at displacements of order 1e-160 or 1e300 mm); 1 for an
+/// all-zero frame.
+pub(crate) fn unit_peak_factor(u: &[f64]) -> f64 {
+    let peak = max_abs(u);
+    if peak > 0.0 && peak.is_finite() {
+        1.0 / peak
+    } else {
+        1.0
+    }
+}
+
 /// Prefix of the [`Diagnostics::notes`] that are warnings.
 pub const WARNING_PREFIX: &str = "warning: ";
 

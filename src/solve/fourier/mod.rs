@@ -609,15 +609,8 @@ impl FourierSolver {
             }
             (choice, Some(u)) => {
                 // Project the frame's (unitary) spectrum on each block's left singular vectors.
-                // The frame is divided by its largest |value| first: GCV and the L-curve
-                // corner do not change under u -> a·u, but their sums of squares would
-                // underflow or overflow at displacements of order 1e-160 or 1e300 mm.
-                let peak = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                let in_scale = if peak > 0.0 && peak.is_finite() {
-                    1.0 / peak
-                } else {
-                    1.0
-                };
+                // The frame is brought to unit peak first, as for the dense solvers.
+                let in_scale = super::unit_peak_factor(u);
                 markers_to_spectra(&plan, &mut work, u, in_scale, false);
                 let unit = 1.0 / ((mm[0] * mm[1]) as f64).sqrt();
                 let mut beta2 = vec![0.0f64; nb * kmin];
@@ -845,7 +838,7 @@ impl FrameSolver for FourierSolver {
         check_input(u_mm, self.n_in)?;
         check_output(f_n, self.n_out)?;
         // The operator is linear: rescale huge inputs so intermediate sums cannot overflow.
-        let umax = u_mm.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let umax = super::max_abs(u_mm);
         let in_scale = if umax > 1e100 { 1.0 / umax } else { 1.0 };
         markers_to_forces(
             &self.plan,
