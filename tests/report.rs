@@ -168,7 +168,10 @@ fn magnitude_run(dir: &Path) {
 fn summary(dir: &Path) -> Vec<(String, f64, String)> {
     let text = std::fs::read_to_string(dir.join("summary.csv")).unwrap();
     let mut lines = text.lines();
-    assert_eq!(lines.next(), Some("metric,value,unit"));
+    assert_eq!(
+        lines.next(),
+        Some("metric,value,unit,ci95_low,ci95_high,ci_method")
+    );
     lines
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();

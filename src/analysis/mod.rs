@@ -322,6 +322,39 @@ pub struct Metric {
     pub value: f64,
     /// Unit (`N`, `gf`, `deg`, `mm`, `px`, `ms`, `%`, `1` for dimensionless, `count`).
     pub unit: &'static str,
+    /// 95 % confidence interval `(low, high)` in the metric's unit, where the analysis
+    /// can state one; `None` where it cannot (counts, a single trial per level, ...).
+    pub ci95: Option<Ci95>,
+}
+
+/// A 95 % confidence interval and how it was obtained.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ci95 {
+    /// Lower bound (metric unit).
+    pub low: f64,
+    /// Upper bound (metric unit).
+    pub high: f64,
+    /// How: `t` (Student t on an analytic standard error), `bootstrap` (percentile
+    /// bootstrap over trials, seeded), `chi2` (chi-squared interval of an SD), ...
+    pub method: &'static str,
+}
+
+impl Metric {
+    /// A metric without a confidence interval.
+    pub fn new(name: impl Into<String>, value: f64, unit: &'static str) -> Metric {
+        Metric {
+            name: name.into(),
+            value,
+            unit,
+            ci95: None,
+        }
+    }
+
+    /// The same metric with a 95 % confidence interval.
+    pub fn with_ci(mut self, ci: Option<Ci95>) -> Metric {
+        self.ci95 = ci;
+        self
+    }
 }
 
 /// Every metric the analyses can produce: `(name pattern, unit, meaning)`. `<layer>`
@@ -642,7 +675,7 @@ impl RunAnalysis {
     pub fn metrics(&self) -> Vec<Metric> {
         let mut v = Vec::new();
         let mut push =
-            |name: String, value: f64, unit: &'static str| v.push(Metric { name, value, unit });
+            |name: String, value: f64, unit: &'static str| v.push(Metric::new(name, value, unit));
         push("run.rows".into(), self.run.rows.len() as f64, "count");
         let unsettled = self.run.rows.iter().filter(|r| !r.settled).count();
         push("run.unsettled".into(), unsettled as f64, "count");

@@ -20,7 +20,7 @@ use tactbench::report::{self, ReportOptions};
 /// spatial: Fig. 9; displacement: Table I; timing of every run: Table II) and writes
 /// OUT/report.html (self-contained, figures embedded, opening with the verdict
 /// banner), OUT/verdict.json (the machine-readable verdict, schema in the README),
-/// OUT/summary.csv (metric,value,unit) and OUT/plots/*.png|svg, where OUT is RUN_DIR
+/// OUT/summary.csv (metric,value,unit,ci95_low,ci95_high,ci_method) and OUT/plots/*.png|svg, where OUT is RUN_DIR
 /// unless --out is given.
 ///
 /// The report only reads the run: it never changes manifest.json, journal.csv or the

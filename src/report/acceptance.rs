@@ -401,11 +401,7 @@ mod tests {
     use super::*;
 
     fn metric(name: &str, value: f64) -> Metric {
-        Metric {
-            name: name.into(),
-            value,
-            unit: "1",
-        }
+        Metric::new(name, value, "1")
     }
 
     #[test]

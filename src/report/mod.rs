@@ -10,7 +10,8 @@
 //! RUN_DIR/report.html          self-contained (PNG figures embedded as data URIs),
 //!                              opening with the verdict banner
 //! RUN_DIR/verdict.json         outcome, criteria, run state, provenance (README schema)
-//! RUN_DIR/summary.csv          metric,value,unit (every metric of the run)
+//! RUN_DIR/summary.csv          metric,value,unit,ci95_low,ci95_high,ci_method (every metric
+//!                              of the run; the CI columns empty where none is stated)
 //! RUN_DIR/plots/STEM.png|svg   each figure
 //! ```
 //!
@@ -278,13 +279,31 @@ pub fn write_report_to(
         source: std::io::Error::other(e.to_string()),
     };
     let mut w = csv::Writer::from_writer(Vec::new());
-    w.write_record(["metric", "value", "unit"])
-        .map_err(csv_err)?;
+    w.write_record([
+        "metric",
+        "value",
+        "unit",
+        "ci95_low",
+        "ci95_high",
+        "ci_method",
+    ])
+    .map_err(csv_err)?;
     for m in &metrics {
+        let (low, high, method) = match m.ci95 {
+            Some(ci) => (
+                crate::formats::Num(ci.low).to_string(),
+                crate::formats::Num(ci.high).to_string(),
+                ci.method,
+            ),
+            None => (String::new(), String::new(), ""),
+        };
         w.write_record([
             m.name.as_str(),
             &crate::formats::Num(m.value).to_string(),
             m.unit,
+            &low,
+            &high,
+            method,
         ])
         .map_err(csv_err)?;
     }
