@@ -425,8 +425,13 @@ impl Journal {
             .map_err(|e| corrupt(&path, 1, e.to_string()))?
             .clone();
         let found: Vec<&str> = headers.iter().collect();
-        let legacy = found == header()[..LEGACY_COLUMNS];
-        if found != header() && !legacy {
+        let current = header();
+        // The header only ever grows at its end: an older journal's header is a prefix.
+        let legacy = PRIOR_WIDTHS
+            .iter()
+            .copied()
+            .find(|&w| w < current.len() && found == current[..w]);
+        if found != current && legacy.is_none() {
             return Err(corrupt(
                 &path,
                 1,
@@ -449,12 +454,12 @@ impl Journal {
             }
             rows.push(row);
         }
-        if legacy {
-            // A journal from before the tracking-quality columns: rewrite it with the
+        if let Some(width) = legacy {
+            // A journal from before some of today's columns: rewrite it with the
             // current header and those columns empty in the old rows (atomically:
             // temp file, sync, rename), so the rows appended now line up.
             drop(file);
-            file = upgrade_legacy(dir, &bytes[..keep])?;
+            file = upgrade_legacy(dir, &bytes[..keep], width)?;
         }
         file.seek(SeekFrom::End(0)).map_err(io)?;
         Ok(Resumed {
@@ -511,16 +516,23 @@ impl Journal {
 /// Columns of journals written before the tracking-quality columns (`markers_ok` on).
 pub const LEGACY_COLUMNS: usize = 29;
 
-/// Rewrites a legacy journal (`text`: header and complete lines) with the current
-/// header, appending empty new columns to every old row; returns it open for append.
-fn upgrade_legacy(dir: &Path, text: &[u8]) -> Result<File, JournalError> {
+/// The widths of every earlier journal header, oldest first. The header is append-only
+/// (new columns go at its end, and their row fields are `Option`s read as absent), so
+/// a journal with one of these widths whose header is the current header's prefix is
+/// resumed by upgrading it. A change that appends columns adds the old width here.
+pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS];
+
+/// Rewrites a legacy journal (`text`: header and complete lines, `width` columns) with
+/// the current header, appending empty new columns to every old row; returns it open
+/// for append.
+fn upgrade_legacy(dir: &Path, text: &[u8], width: usize) -> Result<File, JournalError> {
     let path = dir.join(JOURNAL_FILE);
     let tmp = dir.join(".journal.csv.tmp");
     let io = |source| JournalError::Io {
         path: path.clone(),
         source,
     };
-    let empty = ",".repeat(header().len() - LEGACY_COLUMNS);
+    let empty = ",".repeat(header().len() - width);
     let mut out = Vec::with_capacity(text.len() + 64);
     for (i, line) in text.split_inclusive(|&b| b == b'\n').enumerate() {
         let body = line.strip_suffix(b"\n").unwrap_or(line);
