@@ -133,6 +133,38 @@ pub struct JournalRow {
     /// `flagged` when still below it after `max_reacquire` re-acquisitions.
     #[serde(default)]
     pub quality: Option<RowQuality>,
+    /// Standard deviation of F^sum x (N) from the displacement noise propagated through
+    /// the solver (issue 12's uncertainty); empty when no noise estimate was available.
+    #[serde(default)]
+    pub fsum_sd_x_n: Option<f64>,
+    /// As `fsum_sd_x_n`, y (N).
+    #[serde(default)]
+    pub fsum_sd_y_n: Option<f64>,
+    /// As `fsum_sd_x_n`, z (N).
+    #[serde(default)]
+    pub fsum_sd_z_n: Option<f64>,
+    /// Magnitude sweeps with `sweep.direction = "up-down"`: whether this row was
+    /// measured on the way up or back down; empty for sweeps without a direction.
+    #[serde(default)]
+    pub direction: Option<Direction>,
+    /// Index (0-based) of the contact position in the plan's `sweep.positions_mm`
+    /// for sweeps repeated at several positions; empty otherwise.
+    #[serde(default)]
+    pub position: Option<usize>,
+    /// `hold` sweeps: seconds since the hold force was reached when this sample was
+    /// taken; empty for other sweeps.
+    #[serde(default)]
+    pub hold_t_s: Option<f64>,
+}
+
+/// Which way a magnitude sweep was going when a row was measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Direction {
+    /// Loading: the force level rises from the previous row of the trial.
+    Up,
+    /// Unloading: the force level falls.
+    Down,
 }
 
 /// The tracking-quality verdict of one journal row.
@@ -520,7 +552,7 @@ pub const LEGACY_COLUMNS: usize = 29;
 /// (new columns go at its end, and their row fields are `Option`s read as absent), so
 /// a journal with one of these widths whose header is the current header's prefix is
 /// resumed by upgrading it. A change that appends columns adds the old width here.
-pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS];
+pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35];
 
 /// Rewrites a legacy journal (`text`: header and complete lines, `width` columns) with
 /// the current header, appending empty new columns to every old row; returns it open
@@ -664,6 +696,12 @@ pub fn header() -> Vec<&'static str> {
         "markers_outlier",
         "reacquired",
         "quality",
+        "fsum_sd_x_n",
+        "fsum_sd_y_n",
+        "fsum_sd_z_n",
+        "direction",
+        "position",
+        "hold_t_s",
     ]
 }
 
@@ -793,11 +831,12 @@ mod tests {
         let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines[0], header().join(","));
-        assert!(lines[1].ends_with(",,,,,,"), "{}", lines[1]);
-        assert!(lines[3].ends_with(",250,6,3,1,1,ok"), "{}", lines[3]);
+        let added = header().len() - LEGACY_COLUMNS;
+        assert!(lines[1].ends_with(&",".repeat(added)), "{}", lines[1]);
+        assert!(lines[3].ends_with(",250,6,3,1,1,ok,,,,,,"), "{}", lines[3]);
         assert_eq!(
             old.lines().nth(1).unwrap(),
-            &lines[1][..lines[1].len() - 6],
+            &lines[1][..lines[1].len() - added],
             "old rows keep their bytes"
         );
         let rows = read_rows(dir.path()).unwrap();
@@ -807,6 +846,41 @@ mod tests {
         // A second resume sees the current header: nothing to upgrade.
         let r = Journal::open_resume(dir.path()).unwrap();
         assert_eq!(r.rows.len(), 3);
+    }
+
+    #[test]
+    fn a_journal_without_the_uncertainty_and_direction_columns_resumes_and_is_upgraded() {
+        // A journal of the 35-column header (quality columns, no F^sum SD, direction,
+        // position or hold time): every earlier width in PRIOR_WIDTHS resumes.
+        for &width in PRIOR_WIDTHS {
+            let dir = tempfile::tempdir().unwrap();
+            let mut w = csv::Writer::from_writer(Vec::new());
+            w.write_record(&header()[..width]).unwrap();
+            let mut full = csv::WriterBuilder::new()
+                .has_headers(false)
+                .from_writer(Vec::new());
+            full.serialize(row(0)).unwrap();
+            let text = String::from_utf8(full.into_inner().unwrap()).unwrap();
+            let fields: Vec<&str> = text.trim_end().split(',').collect();
+            w.write_record(&fields[..width]).unwrap();
+            let old = String::from_utf8(w.into_inner().unwrap()).unwrap();
+            std::fs::write(dir.path().join(JOURNAL_FILE), &old).unwrap();
+            let r = Journal::open_resume(dir.path()).unwrap();
+            assert_eq!(r.rows, vec![row(0)], "width {width}");
+            let mut j = r.journal;
+            let mut new = row(1);
+            new.fsum_sd_z_n = Some(0.25);
+            new.direction = Some(Direction::Down);
+            new.position = Some(2);
+            new.hold_t_s = Some(1.5);
+            j.append(&new).unwrap();
+            drop(j);
+            let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
+            let lines: Vec<&str> = text.lines().collect();
+            assert_eq!(lines[0], header().join(","), "width {width}");
+            assert!(lines[2].ends_with(",0.25,down,2,1.5"), "{}", lines[2]);
+            assert_eq!(read_rows(dir.path()).unwrap(), vec![row(0), new]);
+        }
     }
 
     #[test]

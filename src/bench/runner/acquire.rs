@@ -349,6 +349,12 @@ impl Runner<'_, '_, '_, '_> {
             markers_outlier: Some(counts.outlier),
             reacquired: Some(reacquired),
             quality: Some(quality),
+            fsum_sd_x_n: None,
+            fsum_sd_y_n: None,
+            fsum_sd_z_n: None,
+            direction: None,
+            position: None,
+            hold_t_s: None,
         })
     }
 
