@@ -60,9 +60,14 @@
 //! `G_ll = (2(1−ν) − s)e^{−s}/(2μk)`, `G_tt = e^{−s}/(μk)`,
 //! `g_lz = (1−2ν − s)e^{−s}/(2μk)`, `g_zl = −(1−2ν + s)e^{−s}/(2μk)`,
 //! `G_zz = (2(1−ν) + s)e^{−s}/(2μk)`, whose inverse transforms are exactly paper
-//! Eq. 1–2 and the `u_z` of [`super::half_space`] (tested). At k → 0 (kh < 1e−8) the
-//! kernels take their limit, the uniform-traction layer: `G_ll = G_tt = (h−z)/μ`,
-//! `G_zz = (h−z)(1−2ν)/(2μ(1−ν))`, `g_lz = g_zl = 0`. In the lab frame
+//! Eq. 1–2 and the `u_z` of [`super::half_space`] (tested). Unlike the half-space's,
+//! the layer's kernels are finite at k = 0, the uniform-traction layer:
+//! `G_ll = G_tt = (h−z)/μ`, `G_zz = (h−z)(1−2ν)/(2μ(1−ν))`, `g_lz = g_zl = 0`. The
+//! closed forms lose `≈ ε/(kh)` relative accuracy to cancellation as kh → 0, so below
+//! kh = [`SERIES_BELOW_KH`] their Taylor series in `t = kh` (at fixed `ζ = z/h`, to
+//! `t²` for `G_ll, G_tt, G_zz` and `t³` for `g_lz, g_zl`; no cancellation, exact at
+//! k = 0) is used; `G_tt = (h−z)/μ · (1 + t²(ζ² − 2ζ − 2)/6)` is the simplest term.
+//! Tested against 60-digit evaluations of the closed forms (mpmath) to 1e−12. In the lab frame
 //! ([`layer_kernel3`]): `K_ab = G_tt δ_ab + (G_ll − G_tt) k̂_a k̂_b`,
 //! `K_az = i g_lz k̂_a`, `K_zb = i g_zl k̂_b`, `K_zz = G_zz` (a, b ∈ {x, y}).
 //!
@@ -167,15 +172,8 @@ pub fn scalar_kernels(k: f64, z: f64, h: f64, young: f64, nu: f64) -> LayerKerne
         };
     }
     let t = k * h;
-    if t < 1e-8 {
-        let d = h - z;
-        return LayerKernels {
-            ll: d / mu,
-            tt: d / mu,
-            lz: 0.0,
-            zl: 0.0,
-            zz: d * (1.0 - 2.0 * nu) / (2.0 * mu * (1.0 - nu)),
-        };
+    if t < SERIES_BELOW_KH {
+        return small_kh_series(t, z / h, h, mu, kappa);
     }
     let q = (-2.0 * t).exp();
     let ea = (-s).exp();
@@ -200,6 +198,51 @@ pub fn scalar_kernels(k: f64, z: f64, h: f64, young: f64, nu: f64) -> LayerKerne
         lz: x(az, gz, bz, dz) * c,
         zl: zf(al, gl, bl, dl) * c,
         zz: zf(az, gz, bz, dz) * c,
+    }
+}
+
+/// Below this `kh` [`scalar_kernels`] uses its Taylor series (module docs): the closed
+/// form loses about `ε/kh` to cancellation there (1e-12 at kh = 1e-4), the series'
+/// first neglected terms are `O((kh)⁴)` (6e-14 at the switch).
+pub const SERIES_BELOW_KH: f64 = 5e-4;
+
+/// The kernels for `t = kh` below [`SERIES_BELOW_KH`]: the Taylor series in `t` of the
+/// closed forms at fixed `ζ = z/h` (computed with SymPy from the formulas of the module
+/// docs), even kernels to `t²`, odd ones to `t³`. At t = 0 this is the uniform-traction
+/// limit: `G_ll = G_tt = (h−z)/μ`, `G_zz = (h−z)(1−2ν)/(2μ(1−ν))`, `g_lz = g_zl = 0`.
+fn small_kh_series(t: f64, zeta: f64, h: f64, mu: f64, kappa: f64) -> LayerKernels {
+    let (w, z, k) = (1.0 - zeta, zeta, kappa);
+    let (z2, z3, k1) = (z * z, z * z * z, kappa + 1.0);
+    let t2 = t * t;
+    let pref = h / (2.0 * mu);
+    let ll3 = w * (k * z2 - 2.0 * k * z + 4.0 * k + 3.0 * z2 - 12.0 * z - 24.0) / (3.0 * k1);
+    let tt3 = w * (z2 - 2.0 * z - 2.0) / 3.0;
+    let lz2 = 2.0 * w * (k - z - 2.0) / k1;
+    let lz4 = w
+        * (k * k * z2 - 2.0 * k * k * z + 2.0 * k * k - k * z3 + 3.0 * k * z2 - 6.0 * k * z
+            - 26.0 * k
+            - z3
+            - 6.0 * z2
+            + 24.0 * z
+            + 48.0)
+        / (3.0 * k1 * k1);
+    let zl2 = -2.0 * w * (k + z - 2.0) / k1;
+    let zl4 = -w
+        * (k * k * z2 - 2.0 * k * k * z + 2.0 * k * k + k * z3 - 5.0 * k * z2 + 10.0 * k * z
+            - 26.0 * k
+            + z3
+            - 6.0 * z2
+            - 24.0 * z
+            + 48.0)
+        / (3.0 * k1 * k1);
+    let zz1 = 2.0 * (k - 1.0) * w / k1;
+    let zz3 = (k - 3.0) * w * (k * z2 - 2.0 * k * z + 4.0 * k + z2 + 4.0 * z - 8.0) / (3.0 * k1 * k1);
+    LayerKernels {
+        ll: pref * (2.0 * w + ll3 * t2),
+        tt: pref * (2.0 * w + tt3 * t2),
+        lz: pref * t * (lz2 + lz4 * t2),
+        zl: pref * t * (zl2 + zl4 * t2),
+        zz: pref * (zz1 + zz3 * t2),
     }
 }
 
@@ -832,6 +875,42 @@ mod tests {
             assert!((x - y).abs() < 1e-6 * x.abs(), "{x} vs {y}");
         }
         assert!(b.lz.abs() < 1e-3 * a.ll && b.zl.abs() < 1e-3 * a.ll);
+    }
+
+    /// The closed forms of the module docs evaluated with mpmath at 60 digits
+    /// (`h z ν kh` → `ll tt lz zl zz`, E = 1 N/mm²), on both sides of the switch to the
+    /// series and deep below it.
+    const SMALL_KH: [(f64, f64, f64, f64, [f64; 5]); 15] = [
+        (3.0, 1.0, 0.3, 1e-7, [5.1999999999999335, 5.1999999999999778, -9.9047619047617919e-8, -2.4761904761905026e-8, 1.4857142857142862]),
+        (3.0, 1.0, 0.3, 1e-5, [5.1999999993355555, 5.1999999997785185, -9.9047619036443426e-6, -2.476190476446612e-6, 1.4857142857190023]),
+        (3.0, 1.0, 0.3, 4.9e-4, [5.1999984046693483, 5.1999994682230148, -0.00048533320185342536, -0.00012133336346735538, 1.4857142970387261]),
+        (3.0, 1.0, 0.3, 5.1e-4, [5.1999982717805391, 5.1999994239267275, -0.00050514270889730593, -0.00012628574826227207, 1.4857142979820361]),
+        (3.0, 1.0, 0.3, 3e-3, [5.1999402006455615, 5.1999800667395097, -0.0029713983976037021, -0.00074286405841661874, 1.4857147101983205]),
+        (40.0, 6.0, 0.5, 1e-7, [101.99999999999813, 101.99999999999961, -5.864999999999888e-6, 4.3349999999999091e-6, 3.1067499999999454e-13]),
+        (40.0, 6.0, 0.5, 1e-5, [101.9999999812915, 101.99999999612825, -0.00058649999988801994, 0.00043349999990912756, 3.106749999454489e-9]),
+        (40.0, 6.0, 0.5, 4.9e-4, [101.99995508091129, 101.99999070392915, -0.028738486825663424, 0.021241489308953303, 7.4593036052391261e-6]),
+        (40.0, 6.0, 0.5, 5.1e-4, [101.99995133921473, 101.9999899295793, -0.02991148514573981, 0.022108487945686037, 8.0806530595103139e-6]),
+        (40.0, 6.0, 0.5, 3e-3, [101.998316262812, 101.99965154375974, -0.17594697658818107, 0.13004754648464228, 0.00027960308143354124]),
+        (2.0, 0.5, 0.49, 1e-7, [4.4699999999999156, 4.4699999999999818, -2.6513235294117164e-7, 1.5557352941176137e-7, 0.08764705882354083]),
+        (2.0, 0.5, 0.49, 1e-5, [4.4699999991561231, 4.4699999998184062, -2.6513235289305986e-5, 1.5557352937849985e-5, 0.087647058936949723]),
+        (2.0, 0.5, 0.49, 4.9e-4, [4.4699979738525827, 4.4699995639934485, -0.0012991479633250522, 0.00076230990276026904, 0.087647331145403868]),
+        (2.0, 0.5, 0.49, 5.1e-4, [4.4699978050773662, 4.4699995276747058, -0.0013521743617288221, 0.00079342455873874242, 0.087647353829431803]),
+        (2.0, 0.5, 0.49, 3e-3, [4.4699240523087948, 4.4699836566219137, -0.0079538406755127088, 0.0046671160687244635, 0.087657266490308604]),
+    ];
+
+    #[test]
+    fn small_kh_kernels_match_60_digit_values_on_both_sides_of_the_series_switch() {
+        for (h, z, nu, t, want) in SMALL_KH {
+            let g = scalar_kernels(t / h, z, h, E, nu);
+            let got = [g.ll, g.tt, g.lz, g.zl, g.zz];
+            let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-12 * scale,
+                    "h={h} z={z} nu={nu} kh={t:e} kernel {i}: {a} vs {b}"
+                );
+            }
+        }
     }
 
     #[test]
