@@ -118,6 +118,7 @@
 //! 2.2 mm / 1.5 mm = 22/15 is refused; markers every 1.1 mm or 2.2 mm would work).
 
 mod grid;
+mod kernel;
 mod lambda;
 mod refine;
 mod transform;
@@ -130,13 +131,13 @@ use super::{
     check_input, check_output, Diagnostics, FrameSolver, Lambda, Method, Problem, SolveError,
     SolverConfig,
 };
-use crate::model::HalfSpace;
+use crate::model::ForwardModel;
 
 use grid::{commensurate, smooth_at_least, RATIO_TOLERANCE};
 pub use grid::{MAX_LCM, OFF_GRID_TOLERANCE};
 use lambda::choose_lambda;
 use transform::{
-    bridge_weights, fft2_transposed, gather_marker_block, markers_to_forces, markers_to_spectra,
+    bridge_weights, gather_marker_block, markers_to_forces, markers_to_spectra,
     LayerPlan, Plan, Work, C64,
 };
 
@@ -407,12 +408,15 @@ impl FourierSolver {
             }
         }
 
-        // ---- kernel spectra on the fine grid ----
-        let model: HalfSpace = problem.model;
+        // ---- kernel spectra on the fine grid (kernel.rs) ----
+        // `exact`: the model's real-space responses on the kernel window (the exact
+        // operator of the refinement); `periodic`: what the direct solve inverts, the
+        // layer's Fourier kernel used directly (the half-space has no finite k = 0 term
+        // and uses the window-sampled kernel for both).
+        let model = problem.forward_model();
         let mut planner = FftPlanner::<f64>::new();
-        let nfine = period[0] * period[1];
-        // khat[slot][comp][qx·N_y + qy], comp = 3·axis_u + axis_f.
-        let mut khat: Vec<Vec<Vec<C64>>> = Vec::with_capacity(layers.len());
+        let mut exact: Vec<Vec<Vec<C64>>> = Vec::with_capacity(layers.len());
+        let mut periodic: Vec<Vec<Vec<C64>>> = Vec::new();
         for (slot, lp) in layers.iter().enumerate() {
             let layer = &sensor.layers[layer_of_slot[slot]];
             let grid = layer.markers.map(|m| m.grid).unwrap_or(fg);
@@ -421,24 +425,24 @@ impl FourierSolver {
                 let span = a * (nf[ax] - 1) + b * (lp.nm[ax] - 1) + 1;
                 lo[ax] = -((a * (nf[ax] - 1)) as i64) - ((period[ax] - span) / 2) as i64;
             }
-            let mut comps = vec![vec![C64::default(); nfine]; 6];
-            for ty in lo[1]..lo[1] + period[1] as i64 {
-                let iy = ty.rem_euclid(period[1] as i64) as usize;
-                let dy = grid.origin_mm[1] - fg.origin_mm[1] + h * ty as f64;
-                for tx in lo[0]..lo[0] + period[0] as i64 {
-                    let ix = tx.rem_euclid(period[0] as i64) as usize;
-                    let dx = grid.origin_mm[0] - fg.origin_mm[0] + h * tx as f64;
-                    let r = model.point_response(dx, dy, layer.depth_mm);
-                    for (c, comp) in comps.iter_mut().enumerate() {
-                        comp[iy * period[0] + ix] = C64::new(r[c / 3][c % 3], 0.0);
-                    }
-                }
+            let sampling = kernel::LayerSampling {
+                offset_mm: [
+                    grid.origin_mm[0] - fg.origin_mm[0],
+                    grid.origin_mm[1] - fg.origin_mm[1],
+                ],
+                depth_mm: layer.depth_mm,
+                lo,
+            };
+            exact.push(kernel::sampled_spectra(
+                &model,
+                &sampling,
+                period,
+                h,
+                &mut planner,
+            ));
+            if let ForwardModel::BondedLayer(bl) = &model {
+                periodic.push(kernel::layer_spectra(bl, &sampling, period, h));
             }
-            let spectra = comps
-                .iter_mut()
-                .map(|c| fft2_transposed(&mut planner, c, period[0], period[1]))
-                .collect();
-            khat.push(spectra);
         }
 
         // ---- blocks ----
@@ -464,8 +468,8 @@ impl FourierSolver {
         let mut sig = vec![0.0f64; nb * kmin];
         let mut uvec = vec![C64::default(); nb * rows * kmin];
         let mut vvec = vec![C64::default(); nb * cols * kmin];
-        for (bi, c) in blocks.iter().enumerate() {
-            let ab = &mut amat[bi * rows * cols..(bi + 1) * rows * cols];
+        // Block `c` (row-major `rows × cols`, unitary scaling) from one set of spectra.
+        let assemble = |khat: &[Vec<Vec<C64>>], c: [usize; 2], ab: &mut [C64]| {
             for ty in 0..l {
                 let qy = c[1] + ty * m[1];
                 let (sry, sfy) = (ty % a, ty % b);
@@ -484,7 +488,18 @@ impl FourierSolver {
                     }
                 }
             }
-            let dm = DMatrix::from_row_slice(rows, cols, ab);
+        };
+        let mut periodic_block = vec![C64::default(); rows * cols];
+        for (bi, &c) in blocks.iter().enumerate() {
+            let ab = &mut amat[bi * rows * cols..(bi + 1) * rows * cols];
+            assemble(&exact, c, ab);
+            let dm = if periodic.is_empty() {
+                DMatrix::from_row_slice(rows, cols, ab)
+            } else {
+                periodic_block.fill(C64::default());
+                assemble(&periodic, c, &mut periodic_block);
+                DMatrix::from_row_slice(rows, cols, &periodic_block)
+            };
             let svd = dm
                 .try_svd_unordered(true, true, f64::EPSILON, 10_000)
                 .ok_or_else(|| {
