@@ -348,12 +348,7 @@ mod tests {
             [1.0, 2.0],
             [0.37, -0.21],
         ));
-        periodic_layer_case(&layer_sensor(
-            (5, 4, 1.1, 2.2),
-            3.0,
-            [1.0, 2.0],
-            [0.9, 0.3],
-        ));
+        periodic_layer_case(&layer_sensor((5, 4, 1.1, 2.2), 3.0, [1.0, 2.0], [0.9, 0.3]));
     }
 
     #[test]
@@ -371,9 +366,8 @@ mod tests {
             };
             let mut solver = FourierSolver::precompute(&p, &cfg, None).unwrap();
             let f = pseudo_random(p.n_outputs(), 7);
-            let want =
-                crate::model::forward(&p.forward_model(), &sites, &s.force_points_mm(), &f)
-                    .unwrap();
+            let want = crate::model::forward(&p.forward_model(), &sites, &s.force_points_mm(), &f)
+                .unwrap();
             let hs = crate::model::forward(&p.model, &sites, &s.force_points_mm(), &f).unwrap();
             let mut got = vec![0.0; p.n_inputs()];
             forward_op(&solver.plan, &mut solver.work, &solver.a, &f, &mut got);

@@ -16,7 +16,17 @@
 //! ```
 //!
 //! Any sub-pitch offset between a layer and the force grid is absorbed exactly into the
-//! sampled kernel `k_ℓ`. On a periodic fine grid of `N` nodes per axis (`N` a multiple of
+//! sampled kernel `k_ℓ`.
+//!
+//! The kernel `K` is the sensor's model (`[elastomer] model`, [`crate::model::ForwardModel`]).
+//! For the half-space, `k_ℓ` samples Eq. 1–2 on the kernel window. For the bonded layer
+//! the direct solve uses the layer's closed-form Fourier kernel
+//! ([`crate::model::layer_kernel`]) directly in frequency space: per fine frequency the
+//! 2 × 3 block of each layer at its depth, aliases folded in, with the in-plane phase
+//! `exp(i k·(o_ℓ − o_f))` of the layer offset, and the finite `k = 0` term of the
+//! uniform-traction layer (`kernel.rs`); the refinement's exact operator `H` samples
+//! the layer's real-space responses through the same [`crate::model::ElasticModel`]
+//! trait the dense solvers build `H` with, so it converges to their solution. On a periodic fine grid of `N` nodes per axis (`N` a multiple of
 //! `L = a·b`, 2-3-5-7-smooth) the DFT turns this into (per axis, unnormalised DFTs, `M = N/L`,
 //! marker lattice period `N/b = a·M`, force lattice period `N/a = b·M`):
 //!
@@ -137,8 +147,8 @@ use grid::{commensurate, smooth_at_least, RATIO_TOLERANCE};
 pub use grid::{MAX_LCM, OFF_GRID_TOLERANCE};
 use lambda::choose_lambda;
 use transform::{
-    bridge_weights, gather_marker_block, markers_to_forces, markers_to_spectra,
-    LayerPlan, Plan, Work, C64,
+    bridge_weights, gather_marker_block, markers_to_forces, markers_to_spectra, LayerPlan, Plan,
+    Work, C64,
 };
 
 /// Largest accepted `fourier_padding`: beyond it the FFTs grow without improving the
