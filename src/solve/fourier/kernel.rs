@@ -31,6 +31,10 @@
 //! `|k| z ≤ 40` (the omitted terms are below `40·e^{−40} ≈ 2e−16` of the kernel at
 //! `|k| ≈ 1/z`). The `k = 0` term is the uniform-traction layer, finite and exact
 //! (the kernels' series branch, [`crate::model::layer::SERIES_BELOW_KH`]).
+//! The sum costs about `π (40 h / (2π z))²` kernel evaluations per fine frequency and
+//! layer: ~17 for markers at 3 mm on a 1.1 mm fine lattice (~4 at 6 mm), ~150 at
+//! 1 mm depth, ~4000 at 0.2 mm (precompute only; very shallow markers on a large grid
+//! make it the slowest part of the precompute).
 //!
 //! The direct solve with [`layer_spectra`] is exact on the periodic layer problem
 //! (unit test below, against a dense Tikhonov solve of the periodic `H` written as a
