@@ -479,3 +479,200 @@ fn calibration_errors_are_clear_and_never_panic() {
     let _ = BrownConrady::none([0.0, 0.0], 1.0);
     let _: Option<Sensor> = None;
 }
+
+// ---- from outside: sim render -> calibrate -> track --camera -------------------------
+
+/// Reads a displacement CSV's `layer,marker -> (ux_mm, uy_mm)` (ok rows only; frame 0
+/// of `markers.csv` when it has a frame column).
+fn read_u(
+    path: &Path,
+    ux_col: &str,
+    uy_col: &str,
+) -> std::collections::HashMap<(String, u64), [f64; 2]> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let (cx, cy) = (col(ux_col), col(uy_col));
+    let mut out = std::collections::HashMap::new();
+    for l in lines {
+        let f: Vec<&str> = l.split(',').collect();
+        if let (Ok(x), Ok(y)) = (f[cx].parse::<f64>(), f[cy].parse::<f64>()) {
+            out.insert((f[0].to_string(), f[1].parse().unwrap()), [x, y]);
+        }
+    }
+    out
+}
+
+#[test]
+fn frames_rendered_with_perspective_track_closer_to_truth_with_the_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let sensor = root("experiments/paper_sensor.toml");
+    // Pinhole 30 mm below the plate with the [camera] scale at the surface: the layers
+    // at 3 and 6 mm look 4.5 % and 9.4 % larger than the sensor file says; plus barrel
+    // distortion and an off-centre principal point. 400 gf at 30° from the normal.
+    let scene_text = format!(
+        "sensor = {:?}\n{}{}",
+        sensor.display().to_string(),
+        BASE.replace("sensor = \"paper_sensor.toml\"\n", ""),
+        r#"
+[[effects]]
+kind = "perspective"
+distance_mm = 30.0
+reference_depth_mm = 0.0
+principal_point_px = [224.0, 162.0]
+[[effects]]
+kind = "lens_distortion"
+k1 = -1.0
+"#
+    );
+    let scene_path = dir.path().join("scene.toml");
+    std::fs::write(&scene_path, scene_text).unwrap();
+    let out = dir.path().join("render");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let o = crate::util::run(&[
+        "sim",
+        "render",
+        "--scene",
+        &s(&scene_path),
+        "--out",
+        &s(&out),
+    ]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    let cam = dir.path().join("camera.toml");
+    let o = crate::util::run(&[
+        "calibrate",
+        "--sensor",
+        &s(&sensor),
+        "--reference",
+        &s(&out.join("reference.png")),
+        "--out",
+        &s(&cam),
+    ]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    eprintln!("{}", crate::util::stderr(&o));
+    let text = std::fs::read_to_string(&cam).unwrap();
+    assert!(text.contains("format = \"tactbench-camera/1\"") && text.contains("[[layers]]"));
+    let truth = read_u(&out.join("markers.csv"), "elastic_ux_mm", "elastic_uy_mm");
+    let mut tracked = Vec::new();
+    for with_camera in [false, true] {
+        let d = dir.path().join(format!("d_{with_camera}.csv"));
+        let mut args = vec![
+            "track".to_string(),
+            "--sensor".into(),
+            s(&sensor),
+            "--reference".into(),
+            s(&out.join("reference.png")),
+            s(&out.join("frame_000.png")),
+            "--out".into(),
+            s(&d),
+            // Without the calibration the sensor file's scale loses markers: count
+            // them instead of failing.
+            "--max-lost-fraction".into(),
+            "1".into(),
+        ];
+        if with_camera {
+            args.extend(["--camera".to_string(), s(&cam)]);
+        }
+        let args: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        let o = crate::util::run(&args);
+        assert!(o.status.success(), "{}", crate::util::stderr(&o));
+        tracked.push(read_u(&d, "ux_mm", "uy_mm"));
+    }
+    // Error over the markers both runs tracked, µm RMS, and relative to the RMS
+    // displacement.
+    let common: Vec<_> = tracked[0]
+        .keys()
+        .filter(|k| tracked[1].contains_key(*k))
+        .cloned()
+        .collect();
+    let rms = |m: &std::collections::HashMap<(String, u64), [f64; 2]>| {
+        let (mut ss, mut su) = (0.0, 0.0);
+        for k in &common {
+            let (u, t) = (m[k], truth[k]);
+            ss += (u[0] - t[0]).powi(2) + (u[1] - t[1]).powi(2);
+            su += t[0] * t[0] + t[1] * t[1];
+        }
+        ((ss / common.len() as f64).sqrt(), (ss / su).sqrt())
+    };
+    let (without, with) = (rms(&tracked[0]), rms(&tracked[1]));
+    eprintln!(
+        "markers tracked: {} without camera.toml, {} with; on the {} tracked by both, displacement error RMS {:.2} µm ({:.1} %) without, {:.2} µm ({:.1} %) with",
+        tracked[0].len(),
+        tracked[1].len(),
+        common.len(),
+        1000.0 * without.0,
+        100.0 * without.1,
+        1000.0 * with.0,
+        100.0 * with.1
+    );
+    assert_eq!(
+        tracked[1].len(),
+        260,
+        "every marker tracked with the calibration"
+    );
+    assert!(
+        tracked[0].len() < 260,
+        "the sensor file's scale loses markers"
+    );
+    assert!(with.0 < 0.9 * without.0, "{with:?} vs {without:?}");
+}
+
+#[test]
+fn calibrate_and_track_camera_report_bad_input_with_exit_code_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let sensor = root("experiments/paper_sensor.toml");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let missing = dir.path().join("nope.png");
+    let o = crate::util::run(&[
+        "calibrate",
+        "--sensor",
+        &s(&sensor),
+        "--reference",
+        &s(&missing),
+        "--out",
+        &s(&dir.path().join("c.toml")),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        crate::util::stderr(&o).contains("nope.png"),
+        "{}",
+        crate::util::stderr(&o)
+    );
+    // A blank frame: too few markers.
+    let blank = dir.path().join("blank.png");
+    image::RgbImage::from_pixel(430, 340, image::Rgb([10, 10, 12]))
+        .save(&blank)
+        .unwrap();
+    let o = crate::util::run(&[
+        "calibrate",
+        "--sensor",
+        &s(&sensor),
+        "--reference",
+        &s(&blank),
+        "--out",
+        &s(&dir.path().join("c.toml")),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    let e = crate::util::stderr(&o);
+    assert!(
+        e.contains("markers matched") && e.contains("at least 6"),
+        "{e}"
+    );
+    assert!(!e.contains("panicked"), "{e}");
+    // track --camera with a missing file.
+    let o = crate::util::run(&[
+        "track",
+        "--sensor",
+        &s(&sensor),
+        "--reference",
+        &s(&blank),
+        &s(&blank),
+        "--camera",
+        &s(&dir.path().join("camera.toml")),
+        "--out",
+        &s(&dir.path().join("d.csv")),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(crate::util::stderr(&o).contains("camera.toml"));
+}
