@@ -314,6 +314,18 @@ fn refraction_bends_each_ray_by_snells_law_and_changes_only_the_magnification() 
     let (_, m) = optics.project(axis, 3.0);
     let reduced = (h - 3.0) / 1.41 + 5.0 / 1.49 + 25.0;
     assert!((m - fpx / reduced).abs() < 1e-9 * m, "{m}");
+    // Indices of 1 bend nothing: the same image as perspective alone.
+    let unit = "[[effects]]\nkind = \"refraction\"\nplate_index = 1.0\nplate_thickness_mm = 5.0\nelastomer_index = 1.0\n";
+    let (sim_u, _, tr_u, _, tf_u) = render(&scene(&format!("{PERSPECTIVE}{unit}")));
+    let (sim_p, _, tr_p, _, tf_p) = render(&scene(PERSPECTIVE));
+    for k in 0..sim_p.markers().len() {
+        for (a, b) in [
+            (sim_u.apparent_px(k, &tr_u), sim_p.apparent_px(k, &tr_p)),
+            (sim_u.apparent_px(k, &tf_u), sim_p.apparent_px(k, &tf_p)),
+        ] {
+            assert!((a[0] - b[0]).hypot(a[1] - b[1]) < 1e-9, "marker {k}");
+        }
+    }
 }
 
 #[test]

@@ -184,7 +184,7 @@ impl Layout {
         c
     }
 
-    fn from_calibration(&self, c: &CameraCalibration) -> Vec<f64> {
+    fn params_of(&self, c: &CameraCalibration) -> Vec<f64> {
         let mut p = Vec::with_capacity(3 * self.layers + 7);
         for l in &c.layers {
             p.extend([l.px_per_mm, l.origin_px[0], l.origin_px[1]]);
@@ -428,14 +428,14 @@ pub fn calibrate(
         let p0 = if rounds == 1 {
             let (lin, _, _, _) = fit(
                 &linear_layout,
-                linear_layout.from_calibration(&model),
+                linear_layout.params_of(&model),
                 &base,
                 &matches,
                 config.max_iterations,
             )?;
             lin
         } else {
-            layout.from_calibration(&model)
+            layout.params_of(&model)
         };
         let (p, iterations, jtj, cost) = fit(&layout, p0, &base, &matches, config.max_iterations)?;
         model = layout.to_calibration(&p, &base);
