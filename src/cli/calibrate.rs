@@ -66,7 +66,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .with_context(|| format!("calibrating from {}", args.reference.display()))?;
     let c = &fit.calibration;
     eprintln!(
-        "calibrated from {}: {} markers, residual RMS {:.4} px ({} matching rounds, {} iterations, {} blobs unmatched)",
+        "calibrated from {}: {} markers, residual RMS {:.4} px ({} matching rounds, {} iterations in the last fit, {} blobs unmatched)",
         args.reference.display(),
         c.layers.iter().map(|l| l.markers).sum::<usize>(),
         c.rms_px,
