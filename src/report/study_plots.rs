@@ -422,7 +422,7 @@ impl Figure for LayerSeparationFigure {
                 .label_style((FONT, 12))
                 .axis_desc_style((FONT, 13))
                 .draw()?;
-            for (si, (solver, ys)) in series.iter().enumerate() {
+            for (si, (_, ys)) in series.iter().enumerate() {
                 let colour = SERIES[si % SERIES.len()];
                 let (mark, dash, size) = series_style(si);
                 let mut pts = Vec::new();
