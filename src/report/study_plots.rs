@@ -531,3 +531,59 @@ fn mark_px<DB: DrawingBackend>(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The 90–130 µs cluster of the Pareto plot: ten points a few pixels apart, and a
+    /// point at the right edge. Placed labels never overlap each other or a point, and
+    /// stay inside the plot area (the rightmost label went out of it before).
+    #[test]
+    fn pareto_labels_in_a_cluster_do_not_overlap_and_stay_inside() {
+        let bounds = (80, 40, 1380, 820);
+        let mut anchors: Vec<(i32, i32)> =
+            (0..10).map(|i| (300 + 9 * i, 500 + 7 * (i % 3))).collect();
+        anchors.push((1370, 780));
+        let items: Vec<_> = anchors.iter().map(|&a| (a, (150, 13))).collect();
+        let obstacles: Vec<Rect> = anchors
+            .iter()
+            .map(|&(x, y)| (x - 6, y - 6, x + 6, y + 6))
+            .collect();
+        let placed = place_labels(&items, &obstacles, bounds);
+        let boxes: Vec<Rect> = placed
+            .iter()
+            .zip(&items)
+            .filter_map(|(p, (_, (w, h)))| p.map(|(x, y)| (x, y, x + w, y + h)))
+            .collect();
+        assert!(boxes.len() >= 8, "only {} of 11 labels placed", boxes.len());
+        assert!(placed[10].is_some(), "the edge label was dropped");
+        for (i, a) in boxes.iter().enumerate() {
+            assert!(
+                a.0 >= bounds.0 && a.1 >= bounds.1 && a.2 <= bounds.2 && a.3 <= bounds.3,
+                "{a:?} outside"
+            );
+            for b in &boxes[i + 1..] {
+                assert!(!overlaps(*a, *b), "{a:?} overlaps {b:?}");
+            }
+            for o in &obstacles {
+                assert!(!overlaps(*a, *o), "{a:?} covers a point");
+            }
+        }
+    }
+
+    /// pinv and tsvd coincide on exact data: every series has its own marker and dash
+    /// pattern, and the first (pinv) is a hollow ring larger than the later markers.
+    #[test]
+    fn layer_series_styles_are_distinct_and_pinv_stays_visible_under_tsvd() {
+        let styles: Vec<_> = (0..4).map(series_style).collect();
+        for i in 0..4 {
+            for j in i + 1..4 {
+                assert_ne!(styles[i].0, styles[j].0);
+                assert_ne!(styles[i].1, styles[j].1);
+            }
+        }
+        assert_eq!(styles[0].0, Mark::Ring);
+        assert!(styles[0].2 > styles[3].2);
+    }
+}
