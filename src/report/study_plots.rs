@@ -240,6 +240,9 @@ impl Figure for ParetoFigure {
 /// A pixel box `(x0, y0, x1, y1)`.
 pub type Rect = (i32, i32, i32, i32);
 
+/// A label to place: its anchor point and its (width, height), px.
+pub type LabelItem = ((i32, i32), (i32, i32));
+
 fn overlaps(a: Rect, b: Rect) -> bool {
     a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3
 }
@@ -251,7 +254,7 @@ fn overlaps(a: Rect, b: Rect) -> bool {
 /// box (the points; the label's own point included). Returns each label's top-left
 /// corner, `None` where no position is free.
 pub fn place_labels(
-    items: &[((i32, i32), (i32, i32))],
+    items: &[LabelItem],
     obstacles: &[Rect],
     bounds: Rect,
 ) -> Vec<Option<(i32, i32)>> {
@@ -501,8 +504,6 @@ impl Figure for LayerSeparationFigure {
         Ok(())
     }
 }
-
-/// The legend glyph of a series: a short line in its dash pattern and its marker.
 
 /// Draws marker `mark` centred on pixel `p` of `area` (pixel coordinates of the area).
 fn mark_px<DB: DrawingBackend>(
