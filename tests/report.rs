@@ -242,7 +242,13 @@ fn magnitude_report_has_known_values_figures_and_escaped_provenance() {
     for stem in ["magnitude", "displacements", "force_field"] {
         let png = dir.join("plots").join(format!("{stem}.png"));
         let img = image::open(&png).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
-        assert_eq!(image::GenericImageView::dimensions(&img), (900, 680));
+        let dims = image::GenericImageView::dimensions(&img);
+        if stem == "force_field" {
+            // Sized for equal mm per pixel on both axes.
+            assert!(dims.0 >= 800 && dims.1 >= 360, "{dims:?}");
+        } else {
+            assert_eq!(dims, (900, 680));
+        }
         let svg = std::fs::read_to_string(dir.join("plots").join(format!("{stem}.svg"))).unwrap();
         assert!(svg.starts_with("<svg"), "{stem}.svg");
     }
@@ -1002,4 +1008,152 @@ fn caused_by_lines_do_not_repeat_the_message() {
     assert_eq!(e.matches("manifest.json").count(), 1, "{e}");
     assert!(e.starts_with("error: analysing run directory"), "{e}");
     assert!(e.contains("  caused by: "), "{e}");
+}
+
+/// The base64 PNG of `<figure id="ID">` in the page, decoded.
+fn embedded_png(html: &str, id: &str) -> image::RgbImage {
+    use base64::Engine;
+    let at = html
+        .find(&format!("<figure id=\"{id}\""))
+        .unwrap_or_else(|| panic!("figure {id} missing"));
+    let rest = &html[at..];
+    let start = rest.find("base64,").unwrap() + 7;
+    let end = start + rest[start..].find('"').unwrap();
+    let bytes = base64::engine::general_purpose::STANDARD
+        .decode(&rest[start..end])
+        .unwrap();
+    image::load_from_memory(&bytes)
+        .unwrap_or_else(|e| panic!("figure {id}: {e}"))
+        .to_rgb8()
+}
+
+/// A loaded run's force field is an fz map with a colour bar and arrows; the caption
+/// states the arrow scale (N per mm) and why there is no σ panel.
+#[test]
+fn force_field_is_a_heat_map_with_arrow_scale_and_colour_bar() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    let img = embedded_png(&html, "force_field");
+    // Both ends of the diverging scale are drawn (colour bar), and the pressing
+    // cells are red.
+    let near = |c: [u8; 3], p: &image::Rgb<u8>| {
+        p.0.iter()
+            .zip(c)
+            .all(|(a, b)| (*a as i32 - b as i32).abs() <= 3)
+    };
+    let red = img.pixels().filter(|p| near([178, 24, 43], p)).count();
+    let blue = img.pixels().filter(|p| near([33, 102, 172], p)).count();
+    assert!(red > 200 && blue > 20, "red {red}, blue {blue}");
+    assert!(html.contains("N per mm of arrow"), "arrow scale missing");
+    assert!(html.contains("No per-node uncertainty"), "σ note missing");
+    assert!(!html.contains("class=\"no-force-field\""));
+}
+
+/// Table I shifts the whole sensor with no load: no force field is drawn even when
+/// the run has forces files, and the page says why.
+#[test]
+fn unloaded_displacement_run_has_no_force_field_and_says_why() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    write_run(dir, DISPLACEMENT, |dir, r| {
+        write_displacements(dir, r.index, |_, _, _| [0.15, 0.0]);
+        // What a solver returns for a rigid shift: not a force.
+        write_forces(dir, r.index, |q| 0.1 * (q[0] - 9.0));
+    });
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(!dir.join("plots/force_field.png").exists());
+    assert!(!html.contains("<figure id=\"force_field\""));
+    let note = html
+        .split("<p class=\"no-force-field\">")
+        .nth(1)
+        .expect("no reason given for the missing force field");
+    assert!(note.contains("displacement sweep") && note.contains("not a measured force"));
+    // The synthetic track files have no tracker columns: said, not drawn.
+    assert!(html.contains("class=\"no-camera-evidence\""));
+}
+
+/// A run whose setpoints were tracked from real frames shows the reference and the
+/// chosen loaded frames, cropped, with markers in their status colours and arrows.
+#[test]
+fn camera_evidence_shows_reference_and_loaded_frames_with_statuses() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    // Real frames: the flat-punch scene rendered, tracked by `tactbench track`.
+    let scene = tmp.path().join("scene");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = run(&[
+        "sim",
+        "render",
+        "--scene",
+        root.join("experiments/scenes/fig4_flat_910gf.toml")
+            .to_str()
+            .unwrap(),
+        "--out",
+        scene.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    std::fs::create_dir_all(dir.join("frames")).unwrap();
+    std::fs::copy(
+        scene.join("reference.png"),
+        dir.join("frames/reference.png"),
+    )
+    .unwrap();
+    std::fs::copy(scene.join("frame_000.png"), dir.join("frames/loaded.png")).unwrap();
+    let sensor_path = root.join("experiments/paper_sensor.toml");
+    let out = crate::util::run_in(
+        dir,
+        &[
+            "track",
+            "--sensor",
+            sensor_path.to_str().unwrap(),
+            "--reference",
+            "frames/reference.png",
+            "frames/loaded.png",
+            "--out",
+            "track.csv",
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let run_data = tactbench::analysis::RunData::load(dir).unwrap();
+    let chosen = tactbench::report::evidence::chosen_setpoints(&run_data);
+    assert_eq!(chosen.len(), 2, "{chosen:?}");
+    for &i in &chosen {
+        std::fs::copy(dir.join("track.csv"), displacements_path(dir, i)).unwrap();
+    }
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("id=\"camera-evidence\""));
+    let green = |img: &image::RgbImage| {
+        img.pixels()
+            .filter(|p| p.0[0] < 40 && p.0[1] > 170 && p.0[2] < 100)
+            .count()
+    };
+    let yellow = |img: &image::RgbImage| {
+        img.pixels()
+            .filter(|p| p.0[0] > 220 && p.0[1] > 200 && p.0[2] < 60)
+            .count()
+    };
+    let reference = embedded_png(&html, "camera_reference");
+    assert!(green(&reference) > 1000, "reference: markers not circled");
+    assert_eq!(yellow(&reference), 0, "the reference has no displacements");
+    for &i in &chosen {
+        let stem = format!("camera_{i:05}");
+        let img = embedded_png(&html, &stem);
+        // Cropped (the markers span less than the 430 × 340 frame) and enlarged.
+        assert!(img.width() >= 430, "{stem}: {}", img.width());
+        assert!(green(&img) > 1000, "{stem}: ok markers not circled");
+        assert!(yellow(&img) > 50, "{stem}: no displacement arrows");
+        let file = image::open(dir.join("plots").join(format!("{stem}.png"))).unwrap();
+        assert_eq!(file.to_rgb8(), img, "{stem}: plots/ and the page differ");
+    }
+    // Scale and statuses are stated.
+    assert!(html.contains("drawn ×") && html.contains("green ok"));
 }

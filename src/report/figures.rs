@@ -6,23 +6,23 @@
 //! - [`ProfileFigure`]: the normalised f_z profile of the spatial sweep with the
 //!   half-maximum crossings (Fig. 9);
 //! - [`QuiverFigure`]: tracked marker displacements as arrows, coloured by layer (Fig. 4);
-//! - [`ForceFieldFigure`]: tangential force arrows (fx, fy) on the force grid with a disc
-//!   per node whose area and colour give fz (Fig. 5);
+//! - the force field (Fig. 5) is [`super::force_map::ForceMapFigure`];
 //! - [`MarkerHealthFigure`]: the fractions of markers ok / lost / merged / outlier per
 //!   setpoint, the plan's `min_ok_fraction` gate, flagged rows marked.
 //!
-//! Arrow lengths in the two field figures are scaled so the longest arrow spans 90 % of
-//! the grid pitch; the scale factor is printed in the caption (the paper draws Fig. 4
-//! five times longer than real).
+//! Arrow lengths in the quiver figure are scaled so the longest arrow spans 90 % of
+//! the marker pitch; the scale factor is printed in the caption (the paper draws Fig. 4
+//! five times longer than real). Arrowheads are filled triangles.
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
+use super::force_map::{arrow_parts, draw_arrows};
 use super::plot::{Figure, FigureResult, FONT};
 use crate::analysis::calibration::Calibration;
 use crate::analysis::spatial::SpatialAnalysis;
 use crate::analysis::tracking::{SetpointHealth, TrackingAnalysis};
-use crate::formats::{DisplacementFrame, ForceRecord};
+use crate::formats::DisplacementFrame;
 use crate::sensor::{MarkerColor, Sensor};
 
 /// Applied against measured (Fig. 7, 8).
@@ -36,6 +36,8 @@ pub struct CalibrationFigure {
     pub y_label: String,
     /// Multiplies every value for display (e.g. N -> gf); 1 for none.
     pub display_scale: f64,
+    /// Unit of the displayed values (the fit offset's unit in the legend).
+    pub unit: String,
     /// The calibration (levels and fit).
     pub calibration: Calibration,
     /// Every `(applied, measured)` sample.
@@ -115,9 +117,10 @@ impl Figure for CalibrationFigure {
                 RED.stroke_width(2),
             ))?
             .label(format!(
-                "fit: slope {:.4}, offset {:.4}, R² {:.5}",
+                "fit: slope {:.4}, offset {:.4} {}, R² {:.5}",
                 fit.slope,
                 fit.offset * k,
+                self.unit,
                 fit.r2
             ))
             .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED.stroke_width(2)));
@@ -178,24 +181,6 @@ impl Figure for ProfileFigure {
         ))?;
         Ok(())
     }
-}
-
-/// An arrow from `a` to `b` in data coordinates, with a head `head` long.
-fn arrow(a: (f64, f64), b: (f64, f64), head: f64) -> Vec<(f64, f64)> {
-    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-    let len = dx.hypot(dy);
-    if len.is_nan() || len <= 0.0 {
-        return vec![a, b];
-    }
-    let (ux, uy) = (dx / len, dy / len);
-    let h = head.min(0.5 * len);
-    let side = |s: f64| {
-        (
-            b.0 - h * ux - s * 0.5 * h * uy,
-            b.1 - h * uy + s * 0.5 * h * ux,
-        )
-    };
-    vec![a, b, side(1.0), b, side(-1.0)]
 }
 
 fn layer_color(c: MarkerColor) -> RGBColor {
@@ -261,19 +246,21 @@ impl Figure for QuiverFigure {
             .draw()?;
         for (li, layer) in self.sensor.layers.iter().enumerate() {
             let color = layer_color(layer.color);
-            let style = ShapeStyle::from(&color).stroke_width(1);
-            let tracked: Vec<_> = recs
+            let arrows: Vec<_> = recs
                 .iter()
                 .filter(|r| r.layer == li)
                 .filter_map(|r| r.u_mm.map(|u| (r.position_mm, u)))
-                .collect();
-            chart
-                .draw_series(tracked.iter().map(|(p, u)| {
+                .filter_map(|(p, u)| {
                     let a = (p[0], p[1]);
                     let b = (p[0] + k * u[0], p[1] + k * u[1]);
                     let len = (k * u[0]).hypot(k * u[1]);
-                    PathElement::new(arrow(a, b, 0.3 * len), style)
-                }))?
+                    arrow_parts(a, b, 0.3 * len)
+                })
+                .collect();
+            draw_arrows(&mut chart, &arrows, color, 1)?;
+            // An empty series carries the legend entry.
+            chart
+                .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())?
                 .label(layer.name.clone())
                 .legend(move |(x, y)| {
                     PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2))
@@ -292,103 +279,6 @@ impl Figure for QuiverFigure {
             .border_style(BLACK)
             .draw()?;
         Ok(())
-    }
-}
-
-/// Reconstructed force field (Fig. 5): arrows for (fx, fy), discs for fz.
-#[derive(Debug, Clone)]
-pub struct ForceFieldFigure {
-    /// Caption prefix.
-    pub title: String,
-    /// Grid pitch, mm (arrow and disc scale).
-    pub pitch_mm: f64,
-    /// The forces.
-    pub forces: Vec<ForceRecord>,
-}
-
-impl ForceFieldFigure {
-    /// Arrow scale, mm per N: the longest tangential force spans 90 % of the pitch.
-    pub fn scale_mm_per_n(&self) -> f64 {
-        let tmax = self
-            .forces
-            .iter()
-            .fold(0.0f64, |m, r| m.max(r.f_n[0].hypot(r.f_n[1])));
-        if tmax > 0.0 {
-            0.9 * self.pitch_mm / tmax
-        } else {
-            0.0
-        }
-    }
-}
-
-impl Figure for ForceFieldFigure {
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
-        let k = self.scale_mm_per_n();
-        let p = self.pitch_mm;
-        let xs = range(self.forces.iter().map(|r| r.position_mm[0]), 0.0);
-        let ys = range(self.forces.iter().map(|r| r.position_mm[1]), 0.0);
-        let xs = (xs.start - p)..(xs.end + p);
-        let ys = (ys.start - p)..(ys.end + p);
-        let fzmax = self
-            .forces
-            .iter()
-            .fold(0.0f64, |m, r| m.max(r.f_n[2].abs()));
-        let caption = format!(
-            "{}: max |fz| {:.4} N, arrows {:.3} mm/N",
-            self.title, fzmax, k
-        );
-        let mut chart = ChartBuilder::on(root)
-            .caption(caption, (FONT, 18))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(50)
-            .build_cartesian_2d(xs, ys)?;
-        chart
-            .configure_mesh()
-            .x_desc("x (mm)")
-            .y_desc("y (mm)")
-            .label_style((FONT, 13))
-            .draw()?;
-        // Disc area ∝ |fz| (radius up to 12 px); red presses in, blue pulls out.
-        chart.draw_series(self.forces.iter().map(|r| {
-            let frac = if fzmax > 0.0 {
-                r.f_n[2].abs() / fzmax
-            } else {
-                0.0
-            };
-            let radius = (12.0 * frac.sqrt()).round() as i32;
-            let shade = (255.0 * (1.0 - frac)) as u8;
-            let color = if r.f_n[2] >= 0.0 {
-                RGBColor(255, shade, shade)
-            } else {
-                RGBColor(shade, shade, 255)
-            };
-            Circle::new(
-                (r.position_mm[0], r.position_mm[1]),
-                radius.max(1),
-                color.filled(),
-            )
-        }))?;
-        chart.draw_series(self.forces.iter().map(|r| {
-            let a = (r.position_mm[0], r.position_mm[1]);
-            let b = (a.0 + k * r.f_n[0], a.1 + k * r.f_n[1]);
-            PathElement::new(arrow(a, b, 0.25 * p), BLACK.stroke_width(2))
-        }))?;
-        Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn arrow_head_points_back_from_the_tip() {
-        let a = arrow((0.0, 0.0), (10.0, 0.0), 2.0);
-        assert_eq!(a[1], (10.0, 0.0));
-        // Both barbs 2 back along x and ±1 across.
-        assert!((a[2].0 - 8.0).abs() < 1e-12 && (a[2].1.abs() - 1.0).abs() < 1e-12);
-        assert!((a[4].0 - 8.0).abs() < 1e-12 && (a[4].1 + a[2].1).abs() < 1e-12);
     }
 }
 

@@ -19,7 +19,9 @@
 //! journal, frames), so it can run while the run is still going, or on a torn journal.
 
 pub mod acceptance;
+pub mod evidence;
 pub mod figures;
+pub mod force_map;
 pub mod html;
 pub mod plot;
 pub mod sha256;
@@ -33,9 +35,8 @@ use thiserror::Error;
 use crate::analysis::{Metric, RunAnalysis};
 use crate::bench::lock::LockState;
 use acceptance::{AcceptanceError, Criteria, Outcome, Verdict};
-use figures::{
-    CalibrationFigure, ForceFieldFigure, MarkerHealthFigure, ProfileFigure, QuiverFigure,
-};
+use figures::{CalibrationFigure, MarkerHealthFigure, ProfileFigure, QuiverFigure};
+use force_map::ForceMapFigure;
 use plot::{Figure, FigureFiles, FigureResult, PlotError};
 use verdict::{RunState, VerdictDoc, VERDICT_FILE};
 
@@ -122,7 +123,7 @@ pub enum ReportFigure {
     /// Fig. 4.
     Quiver(QuiverFigure),
     /// Fig. 5.
-    ForceField(ForceFieldFigure),
+    ForceField(ForceMapFigure),
     /// Marker health per setpoint.
     MarkerHealth(MarkerHealthFigure),
 }
@@ -142,6 +143,16 @@ impl Figure for ReportFigure {
     }
 }
 
+impl ReportFigure {
+    /// The figure's size in pixels.
+    pub fn size_px(&self) -> (u32, u32) {
+        match self {
+            ReportFigure::ForceField(f) => f.size_px(),
+            _ => FIGURE_SIZE,
+        }
+    }
+}
+
 /// The figures of an analysed run: `(file stem, caption, figure)`.
 pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)> {
     let run = &analysis.run;
@@ -157,6 +168,7 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
                 x_label: format!("applied Fz, F/T sensor ({u})"),
                 y_label: format!("measured Fz sum ({u})"),
                 display_scale: unit.from_newtons(1.0),
+                unit: u.to_string(),
                 calibration: m.calibration.clone(),
                 samples: m.pairs.iter().map(|p| (p.applied_n, p.measured_n)).collect(),
             }),
@@ -171,6 +183,7 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
                 x_label: "applied angle, F/T sensor (deg)".into(),
                 y_label: "measured angle, F sum (deg)".into(),
                 display_scale: 1.0,
+                unit: "deg".into(),
                 calibration: a.calibration.clone(),
                 samples: a.pairs.iter().map(|p| (p.applied_deg, p.measured_deg)).collect(),
             }),
@@ -199,20 +212,17 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
                 frame: snap.displacements.clone(),
             }),
         ));
-        if let Some(forces) = &snap.forces {
-            out.push((
-                "force_field".to_string(),
-                format!(
-                    "Reconstructed force vectors of setpoint {}: arrows (fx, fy), discs |fz| (red: pressing) (paper Fig. 5)",
-                    snap.index
-                ),
-                ReportFigure::ForceField(ForceFieldFigure {
-                    title: format!("forces, setpoint {}", snap.index),
-                    pitch_mm: run.sensor.force_grid.pitch_mm,
-                    forces: forces.clone(),
-                }),
-            ));
-        }
+    }
+    if let Some(evidence::ForceField::Map(fig)) = evidence::force_field(analysis) {
+        let why = match &fig.sd {
+            Some(_) => None,
+            None => evidence::why_no_sd(analysis),
+        };
+        out.push((
+            "force_field".to_string(),
+            evidence::force_map_caption(&fig, why.as_deref()),
+            ReportFigure::ForceField(*fig),
+        ));
     }
     if let Some(t) = &analysis.tracking {
         out.push((
@@ -264,7 +274,7 @@ pub fn write_report_to(
     let mut files = Vec::new();
     let mut embedded = Vec::new();
     for (stem, caption, fig) in run_figures(analysis) {
-        let f = plot::save_figure(&fig, &plots, &stem, FIGURE_SIZE)?;
+        let f = plot::save_figure(&fig, &plots, &stem, fig.size_px())?;
         let png = std::fs::read(&f.png).map_err(|source| ReportError::Io {
             path: f.png.clone(),
             source,
@@ -309,6 +319,14 @@ pub fn write_report_to(
     }
     let bytes = w.into_inner().map_err(|e| csv_err(e.into_error().into()))?;
     write(&summary, &bytes)?;
+    let force_note = match evidence::force_field(analysis) {
+        Some(evidence::ForceField::Absent(why)) => Some(why),
+        _ => None,
+    };
+    let camera = evidence::camera_evidence(analysis);
+    let (sections, _camera_files) =
+        evidence::write_sections(&plots, force_note.as_deref(), &camera)
+            .map_err(|(path, source)| ReportError::Io { path, source })?;
     let criteria_path = criteria.map(|c| c.path.display().to_string());
     let page = html::render(
         analysis,
@@ -317,6 +335,7 @@ pub fn write_report_to(
         criteria.map(|_| verdicts.as_slice()),
         criteria_path.as_deref(),
         &embedded,
+        &sections,
     );
     let html_path = out_dir.join(REPORT_FILE);
     write(&html_path, page.as_bytes())?;

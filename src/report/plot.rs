@@ -5,12 +5,25 @@
 //! Text uses DejaVu Sans from the `dejavu` crate, registered once as plotters'
 //! `"sans-serif"` family through its `ab_glyph` backend: no system fonts, fontconfig
 //! or freetype are needed, so plots look the same on every machine.
+//!
+//! PNGs are drawn through [`PngBackend`], plotters' bitmap backend with two primitives
+//! replaced: text in the bundled font is rasterised here with `ab_glyph` on one exact
+//! baseline (plotters' glue truncates each glyph's offset toward zero, so glyphs that
+//! sit low — `.`, `,`, `-` — came out a pixel higher than the digits: "700·0"), and
+//! wide strokes are drawn segment by segment (plotters fills one polygon around the
+//! whole path, which leaves dotted seams where a path turns back on itself, as an
+//! arrowhead's barbs do). SVG output is unchanged (text is SVG `<text>`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
+use ab_glyph::{Font, FontRef, ScaleFont};
 use plotters::coord::Shift;
 use plotters::prelude::*;
+use plotters_backend::{
+    text_anchor::{HPos, VPos},
+    BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind,
+};
 use thiserror::Error;
 
 /// Font family name every figure should use for text.
@@ -100,16 +113,12 @@ pub fn render_png(figure: &impl Figure, size_px: (u32, u32)) -> Result<Vec<u8>, 
     let (w, h) = size_px;
     let mut rgb = vec![0u8; w as usize * h as usize * 3];
     {
-        let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
+        let root = PngBackend::new(&mut rgb, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| e.to_string())?;
         figure.draw(&root).map_err(|e| e.to_string())?;
         root.present().map_err(|e| e.to_string())?;
     }
-    let mut out = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut out)
-        .write_image_rgb8(&rgb, w, h)
-        .map_err(|e| e.to_string())?;
-    Ok(out)
+    encode_png(&rgb, w, h)
 }
 
 /// Draws `figure` as SVG text.
@@ -123,6 +132,225 @@ pub fn render_svg(figure: &impl Figure, size_px: (u32, u32)) -> Result<String, S
         root.present().map_err(|e| e.to_string())?;
     }
     Ok(text)
+}
+
+/// Encodes an RGB buffer as PNG bytes.
+pub fn encode_png(rgb: &[u8], w: u32, h: u32) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image_rgb8(rgb, w, h)
+        .map_err(|e| e.to_string())?;
+    Ok(out)
+}
+
+/// The bundled font for a plotters family and style, `None` for any other family.
+fn bundled_font(family: &str, style: FontStyle) -> Option<&'static FontRef<'static>> {
+    static FONTS: std::sync::OnceLock<Option<(FontRef<'static>, FontRef<'static>)>> =
+        std::sync::OnceLock::new();
+    if family != FONT {
+        return None;
+    }
+    let fonts = FONTS.get_or_init(|| {
+        let regular = FontRef::try_from_slice(dejavu::sans::regular()).ok()?;
+        let bold = FontRef::try_from_slice(dejavu::sans::bold()).ok()?;
+        Some((regular, bold))
+    });
+    let (regular, bold) = fonts.as_ref()?;
+    Some(if matches!(style, FontStyle::Bold) {
+        bold
+    } else {
+        regular
+    })
+}
+
+/// Plotters' bitmap backend over an RGB buffer, with exact text in the bundled font
+/// and seam-free wide strokes (see the module docs). Everything else is the bitmap
+/// backend's.
+pub struct PngBackend<'a> {
+    inner: BitMapBackend<'a>,
+}
+
+impl<'a> PngBackend<'a> {
+    /// A backend drawing into `rgb` (`w × h × 3` bytes).
+    pub fn new(rgb: &'a mut [u8], size: (u32, u32)) -> Self {
+        PngBackend {
+            inner: BitMapBackend::with_buffer(rgb, size),
+        }
+    }
+}
+
+/// The pixels of `text` drawn with its first character's pen at x = 0 and the
+/// baseline at y = `baseline`: `(x, y, coverage)`.
+pub fn rasterize_text(
+    font: &FontRef<'_>,
+    size: f32,
+    baseline: f32,
+    text: &str,
+) -> Vec<(i32, i32, f32)> {
+    let scaled = font.as_scaled(size);
+    let mut out = Vec::new();
+    let mut pen = 0f32;
+    let mut prev = None;
+    for c in text.chars() {
+        let id = scaled.glyph_id(c);
+        if let Some(p) = prev {
+            pen += scaled.kern(p, id);
+        }
+        prev = Some(id);
+        let glyph = id.with_scale_and_position(size, ab_glyph::point(pen, baseline));
+        if let Some(q) = font.outline_glyph(glyph) {
+            let b = q.px_bounds();
+            let (x0, y0) = (b.min.x as i32, b.min.y as i32);
+            q.draw(|x, y, cov| {
+                if cov > 0.0 {
+                    out.push((x0 + x as i32, y0 + y as i32, cov.min(1.0)));
+                }
+            });
+        }
+        pen += scaled.h_advance(id);
+    }
+    out
+}
+
+impl DrawingBackend for PngBackend<'_> {
+    type ErrorType = <BitMapBackend<'static> as DrawingBackend>::ErrorType;
+
+    fn get_size(&self) -> (u32, u32) {
+        self.inner.get_size()
+    }
+    fn ensure_prepared(&mut self) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.ensure_prepared()
+    }
+    fn present(&mut self) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.present()
+    }
+    fn draw_pixel(
+        &mut self,
+        point: BackendCoord,
+        color: BackendColor,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.draw_pixel(point, color)
+    }
+    fn draw_line<S: BackendStyle>(
+        &mut self,
+        from: BackendCoord,
+        to: BackendCoord,
+        style: &S,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.draw_line(from, to, style)
+    }
+    fn draw_rect<S: BackendStyle>(
+        &mut self,
+        upper_left: BackendCoord,
+        bottom_right: BackendCoord,
+        style: &S,
+        fill: bool,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.draw_rect(upper_left, bottom_right, style, fill)
+    }
+    fn draw_path<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(
+        &mut self,
+        path: I,
+        style: &S,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        let width = style.stroke_width();
+        if width <= 1 || style.color().alpha == 0.0 {
+            return self.inner.draw_path(path, style);
+        }
+        // One quad per segment and a disc at each inner joint: no seams where the path
+        // turns back.
+        let pts: Vec<BackendCoord> = path.into_iter().collect();
+        let half = width as f64 / 2.0;
+        let color = style.color();
+        for (i, w) in pts.windows(2).enumerate() {
+            let (a, b) = (w[0], w[1]);
+            let (dx, dy) = ((b.0 - a.0) as f64, (b.1 - a.1) as f64);
+            let len = dx.hypot(dy);
+            if len == 0.0 {
+                continue;
+            }
+            let (nx, ny) = (-dy / len * half, dx / len * half);
+            let q = |p: BackendCoord, s: f64| {
+                (
+                    (p.0 as f64 + s * nx).round() as i32,
+                    (p.1 as f64 + s * ny).round() as i32,
+                )
+            };
+            self.inner
+                .fill_polygon([q(a, 1.0), q(b, 1.0), q(b, -1.0), q(a, -1.0)], &color)?;
+            if i + 2 < pts.len() && width > 2 {
+                self.inner
+                    .draw_circle(b, (half.floor() as u32).max(1), &color, true)?;
+            }
+        }
+        Ok(())
+    }
+    fn draw_circle<S: BackendStyle>(
+        &mut self,
+        center: BackendCoord,
+        radius: u32,
+        style: &S,
+        fill: bool,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.draw_circle(center, radius, style, fill)
+    }
+    fn fill_polygon<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(
+        &mut self,
+        vert: I,
+        style: &S,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.fill_polygon(vert, style)
+    }
+    fn draw_text<TStyle: BackendTextStyle>(
+        &mut self,
+        text: &str,
+        style: &TStyle,
+        pos: BackendCoord,
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        let Some(font) = bundled_font(style.family().as_str(), style.style()) else {
+            return self.inner.draw_text(text, style, pos);
+        };
+        let color = style.color();
+        if color.alpha == 0.0 {
+            return Ok(());
+        }
+        // The anchor box and the baseline (half the size below the box's top) are
+        // plotters' own, so text lands where the charts' layout expects it.
+        let ((min_x, min_y), (max_x, max_y)) = style
+            .layout_box(text)
+            .map_err(|e| DrawingErrorKind::FontError(Box::new(e)))?;
+        let (width, height) = (max_x - min_x, max_y - min_y);
+        let dx = match style.anchor().h_pos {
+            HPos::Left => 0,
+            HPos::Right => -width,
+            HPos::Center => -width / 2,
+        };
+        let dy = match style.anchor().v_pos {
+            VPos::Top => 0,
+            VPos::Center => -height / 2,
+            VPos::Bottom => -height,
+        };
+        let size = style.size() as f32;
+        let trans = style.transform();
+        let (w, h) = self.get_size();
+        // A whole-pixel baseline keeps flat glyph bottoms crisp.
+        for (x, y, cov) in rasterize_text(font, size, (size / 2.0).round(), text) {
+            let (x, y) = trans.transform(x + dx - min_x, y + dy - min_y);
+            let (x, y) = (pos.0 + x, pos.1 + y);
+            if x >= 0 && x < w as i32 && y >= 0 && y < h as i32 {
+                self.inner.draw_pixel((x, y), color.mix(cov as f64))?;
+            }
+        }
+        Ok(())
+    }
+    fn blit_bitmap(
+        &mut self,
+        pos: BackendCoord,
+        size: (u32, u32),
+        src: &[u8],
+    ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        self.inner.blit_bitmap(pos, size, src)
+    }
 }
 
 /// PNG encoding through the `image` crate's encoder trait.
@@ -194,5 +422,119 @@ mod tests {
             svg.contains("parabola"),
             "caption text missing from the SVG"
         );
+    }
+
+    /// A text label drawn at a given place.
+    struct Label(&'static str, f64);
+
+    impl Figure for Label {
+        fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+            root.draw(&Text::new(self.0, (10, 10), (FONT, self.1).into_font()))?;
+            Ok(())
+        }
+    }
+
+    /// Ink of a PNG: per column, the (first, last) row darker than mid-grey.
+    fn ink_columns(png: &[u8]) -> Vec<Option<(u32, u32)>> {
+        let img = image::load_from_memory(png).unwrap().to_rgb8();
+        (0..img.width())
+            .map(|x| {
+                let rows: Vec<u32> = (0..img.height())
+                    .filter(|&y| img.get_pixel(x, y).0[0] < 128)
+                    .collect();
+                Some((*rows.first()?, *rows.last()?))
+            })
+            .collect()
+    }
+
+    /// Runs of inked columns: (first row, last row) of each glyph, left to right.
+    fn glyph_rows(png: &[u8]) -> Vec<(u32, u32)> {
+        let mut out: Vec<(u32, u32)> = Vec::new();
+        let mut inside = false;
+        for c in ink_columns(png) {
+            match (c, inside) {
+                (Some((t, b)), true) => {
+                    let last = out.last_mut().unwrap();
+                    *last = (last.0.min(t), last.1.max(b));
+                }
+                (Some(tb), false) => {
+                    out.push(tb);
+                    inside = true;
+                }
+                (None, _) => inside = false,
+            }
+        }
+        out
+    }
+
+    /// plotters' own ab_glyph glue truncated each glyph's vertical offset toward zero,
+    /// drawing '.' a pixel or two above the digits' baseline at odd sizes ("700·0").
+    #[test]
+    fn png_decimal_point_sits_on_the_baseline_at_every_size() {
+        for size in [11.0, 12.0, 13.0, 14.0, 15.0, 17.0, 20.0] {
+            let png = render_png(&Label("0.5", size), (120, 60)).unwrap();
+            let g = glyph_rows(&png);
+            assert_eq!(g.len(), 3, "size {size}: glyphs {g:?}");
+            let (zero, dot, five) = (g[0], g[1], g[2]);
+            // The point's ink ends on the digits' baseline row, and is a small mark
+            // near it (not raised to mid-height).
+            assert_eq!(
+                dot.1, zero.1,
+                "size {size}: '.' bottom {} vs '0' bottom {}",
+                dot.1, zero.1
+            );
+            assert!(
+                (dot.1 as i64 - five.1 as i64).abs() <= 1,
+                "size {size}: {g:?}"
+            );
+            assert!(dot.0 > zero.0 + (zero.1 - zero.0) / 2, "size {size}: {g:?}");
+        }
+    }
+
+    /// A wide arrow drawn as shaft + filled head: the head's interior is solid ink
+    /// (plotters' one-polygon stroke of a path that turns back left dotted seams).
+    #[test]
+    fn png_arrowheads_are_filled_and_wide_paths_have_no_seams() {
+        struct Arrow;
+        impl Figure for Arrow {
+            fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+                root.draw(&PathElement::new(
+                    vec![(10, 50), (150, 50)],
+                    ShapeStyle::from(&BLACK).stroke_width(3),
+                ))?;
+                root.draw(&Polygon::new(
+                    vec![(190, 50), (150, 30), (150, 70)],
+                    BLACK.filled(),
+                ))?;
+                // A path that turns back on itself, as the old arrow barbs did.
+                root.draw(&PathElement::new(
+                    vec![(20, 90), (180, 90), (160, 80), (180, 90), (160, 100)],
+                    ShapeStyle::from(&BLACK).stroke_width(2),
+                ))?;
+                Ok(())
+            }
+        }
+        let png = render_png(&Arrow, (200, 120)).unwrap();
+        let img = image::load_from_memory(&png).unwrap().to_rgb8();
+        let dark = |x: u32, y: u32| img.get_pixel(x, y).0[0] < 100;
+        // Every pixel well inside the head's triangle is ink.
+        for x in 153..185 {
+            let half = (70.0 - 30.0) / 2.0 * (190.0 - x as f64) / 40.0;
+            for y in (50.0 - half + 1.5).ceil() as u32..=(50.0 + half - 1.5).floor() as u32 {
+                assert!(dark(x, y), "hole in the arrowhead at ({x}, {y})");
+            }
+        }
+        // The doubled-back barb is a continuous line: every column 162..178 has ink
+        // between rows 80 and 90.
+        for x in 162..178 {
+            assert!(
+                (80..=91).any(|y| dark(x, y)),
+                "gap in the barb at column {x}"
+            );
+        }
+        // The shaft's rows are solid along its length.
+        for x in 12..148 {
+            assert!(dark(x, 50), "gap in the shaft at column {x}");
+        }
     }
 }

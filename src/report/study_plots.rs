@@ -2,9 +2,15 @@
 //!
 //! - [`ParetoFigure`]: error against time per frame (both log scales) for every setting
 //!   of the accuracy-against-time study, coloured by sweep, the Pareto front joined and
-//!   labelled, error budgets as dashed lines;
+//!   labelled, error budgets as dashed lines; labels are placed by [`place_labels`]
+//!   (greedy: Pareto-front labels first, each at the first of a ring of positions
+//!   around its point that overlaps no placed label, no point and stays inside the
+//!   plot area; a label with no free position is left out and its point keeps its
+//!   colour);
 //! - [`LayerSeparationFigure`]: the paper's Fig. 6 — mean absolute force difference
-//!   against the layer configuration, one line per solver, one panel per noise level.
+//!   against the layer separation on a true distance axis (mm), one line per solver with
+//!   its own colour, marker and dash pattern, the single layer as a dashed level of the
+//!   same colour, one panel per noise level, the legend in headroom above the data.
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -167,24 +173,58 @@ impl Figure for ParetoFigure {
                 .label(sweep.name())
                 .legend(move |(x, y)| Circle::new((x + 8, y), 5, colour.filled()));
         }
-        for p in &pts {
-            if p.on_front {
-                chart.draw_series(std::iter::once(Circle::new(
-                    (p.time_us, floor(p.error_pct)),
-                    8,
-                    RED.stroke_width(2),
-                )))?;
-            }
-            let font = if p.on_front {
+        for p in pts.iter().filter(|p| p.on_front) {
+            chart.draw_series(std::iter::once(Circle::new(
+                (p.time_us, floor(p.error_pct)),
+                8,
+                RED.stroke_width(2),
+            )))?;
+        }
+        // Labels: front first, then by error; pixel boxes placed without overlap.
+        let mut order: Vec<&&ParetoPoint> = pts.iter().collect();
+        order.sort_by(|a, b| {
+            b.on_front
+                .cmp(&a.on_front)
+                .then(a.error_pct.total_cmp(&b.error_pct))
+        });
+        let base = root.get_base_pixel();
+        let area = chart.plotting_area().get_pixel_range();
+        let bounds = (
+            area.0.start - base.0,
+            area.1.start - base.1,
+            area.0.end - base.0,
+            area.1.end - base.1,
+        );
+        let font_of = |front: bool| {
+            if front {
                 (FONT, 12).into_font().color(&BLACK)
             } else {
-                (FONT, 10).into_font().color(&RGBColor(120, 120, 120))
-            };
-            chart.draw_series(std::iter::once(Text::new(
-                p.label.clone(),
-                (p.time_us * 1.04, floor(p.error_pct) * 1.02),
-                font,
-            )))?;
+                (FONT, 11).into_font().color(&RGBColor(110, 110, 110))
+            }
+        };
+        let anchor = |p: &ParetoPoint| {
+            let c = chart.backend_coord(&(p.time_us, floor(p.error_pct)));
+            (c.0 - base.0, c.1 - base.1)
+        };
+        let obstacles: Vec<Rect> = pts
+            .iter()
+            .map(|p| {
+                let (x, y) = anchor(p);
+                (x - 6, y - 6, x + 6, y + 6)
+            })
+            .collect();
+        let mut items = Vec::new();
+        for p in &order {
+            let (w, h) = root
+                .estimate_text_size(&p.label, &font_of(p.on_front))
+                .unwrap_or((6 * p.label.len() as u32, 12));
+            items.push((anchor(p), (w as i32, h as i32)));
+        }
+        let placed = place_labels(&items, &obstacles, bounds);
+        for (p, at) in order.iter().zip(placed) {
+            if let Some((x, y)) = at {
+                root.draw(&Text::new(p.label.clone(), (x, y), font_of(p.on_front)))?;
+            }
         }
         chart
             .configure_series_labels()
@@ -194,6 +234,88 @@ impl Figure for ParetoFigure {
             .label_font((FONT, 13))
             .draw()?;
         Ok(())
+    }
+}
+
+/// A pixel box `(x0, y0, x1, y1)`.
+pub type Rect = (i32, i32, i32, i32);
+
+/// A label to place: its anchor point and its (width, height), px.
+pub type LabelItem = ((i32, i32), (i32, i32));
+
+fn overlaps(a: Rect, b: Rect) -> bool {
+    a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3
+}
+
+/// Greedy label placement: `items` are `(anchor point, (width, height))` in priority
+/// order; each label goes to the first position of a ring around its anchor (right,
+/// left, above, below, the diagonals, then the same one and two label heights farther
+/// out) whose box lies inside `bounds`, overlaps no placed label and no `obstacles`
+/// box (the points; the label's own point included). Returns each label's top-left
+/// corner, `None` where no position is free.
+pub fn place_labels(
+    items: &[LabelItem],
+    obstacles: &[Rect],
+    bounds: Rect,
+) -> Vec<Option<(i32, i32)>> {
+    let mut placed: Vec<Rect> = Vec::new();
+    let gap = 8;
+    items
+        .iter()
+        .map(|&((ax, ay), (w, h))| {
+            let mut candidates = Vec::new();
+            for ring in 0..3 {
+                let r = ring * (h + 2);
+                candidates.extend([
+                    (ax + gap + r, ay - h / 2),
+                    (ax - gap - r - w, ay - h / 2),
+                    (ax - w / 2, ay - gap - r - h),
+                    (ax - w / 2, ay + gap + r),
+                    (ax + gap + r, ay - gap - r - h),
+                    (ax + gap + r, ay + gap + r),
+                    (ax - gap - r - w, ay - gap - r - h),
+                    (ax - gap - r - w, ay + gap + r),
+                ]);
+            }
+            let free = candidates.into_iter().find(|&(x, y)| {
+                let b = (x, y, x + w, y + h);
+                b.0 >= bounds.0
+                    && b.1 >= bounds.1
+                    && b.2 <= bounds.2
+                    && b.3 <= bounds.3
+                    && !placed.iter().any(|p| overlaps(*p, b))
+                    && !obstacles.iter().any(|o| overlaps(*o, b))
+            });
+            if let Some((x, y)) = free {
+                placed.push((x, y, x + w, y + h));
+            }
+            free
+        })
+        .collect()
+}
+
+/// Line and marker style of the `i`-th solver series of the layer-separation plot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mark {
+    /// Hollow circle.
+    Ring,
+    /// Filled square.
+    Square,
+    /// Filled triangle.
+    Triangle,
+    /// Cross.
+    Cross,
+}
+
+/// `(marker, dash: (on, off) px; (0, 0) solid, marker size px)` of series `i`: the
+/// first series (pinv) is drawn largest and hollow, later ones smaller, so series that
+/// coincide stay visible.
+pub fn series_style(i: usize) -> (Mark, (u32, u32), i32) {
+    match i % 4 {
+        0 => (Mark::Ring, (0, 0), 7),
+        1 => (Mark::Square, (10, 5), 5),
+        2 => (Mark::Triangle, (3, 4), 5),
+        _ => (Mark::Cross, (12, 4), 4),
     }
 }
 
@@ -271,71 +393,198 @@ impl Figure for LayerSeparationFigure {
         ))?;
         let n = self.panels.len().max(1);
         let areas = body.split_evenly((1, n));
-        let labels: Vec<String> = self
+        let dmax = self
             .cases
             .iter()
-            .map(|c| match c {
-                LayerCase::SingleLayer => "1 layer".to_string(),
-                LayerCase::Separation(d) => format!("{d}"),
-            })
-            .collect();
+            .filter_map(|c| c.separation_mm())
+            .fold(0.0f64, f64::max);
+        let (x0, x1) = (-0.04 * dmax.max(1.0), dmax.max(1.0) * 1.04);
         for (area, panel) in areas.iter().zip(&self.panels) {
             let (noise, series) = (&panel.noise_px, &panel.series);
             let (y0, y1) = log_range(series.iter().flat_map(|(_, ys)| ys.iter().copied()));
+            // Headroom above the data for the legend (40 % of the decades shown).
+            let y1 = y1 * (y1 / y0).powf(0.4);
             let caption = if *noise == 0.0 {
                 "exact displacements".to_string()
             } else {
                 format!("displacement noise σ = {noise} px")
             };
-            let nx = self.cases.len() as f64;
+            let base = area.get_base_pixel();
             let mut chart = ChartBuilder::on(area)
                 .caption(caption, (FONT, 16))
                 .margin(12)
                 .x_label_area_size(45)
                 .y_label_area_size(70)
-                .build_cartesian_2d(-0.5..nx - 0.5, (y0..y1).log_scale())?;
-            let fmt = |x: &f64| {
-                let i = x.round();
-                if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < labels.len() {
-                    labels[i as usize].clone()
-                } else {
-                    String::new()
-                }
-            };
+                .build_cartesian_2d(x0..x1, (y0..y1).log_scale())?;
             chart
                 .configure_mesh()
-                .x_labels(self.cases.len() * 4 + 1)
-                .x_label_formatter(&fmt)
-                .x_desc("layer configuration: single layer, or separation d, mm")
-                .y_label_formatter(&|v| format!("{v:.1e}"))
+                .x_label_formatter(&|x| format!("{x:.0}"))
+                .x_desc("separation d between the marker layers, mm (dashed level: single layer)")
+                .y_label_formatter(&|v| format!("{v:.0e}"))
                 .y_desc("mean |f − f*| over points and axes, gf")
                 .label_style((FONT, 12))
                 .axis_desc_style((FONT, 13))
                 .draw()?;
-            for (si, (solver, ys)) in series.iter().enumerate() {
+            for (si, (_, ys)) in series.iter().enumerate() {
                 let colour = SERIES[si % SERIES.len()];
-                let pts: Vec<(f64, f64)> = ys
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, y)| y.is_finite() && **y > 0.0)
-                    .map(|(i, y)| (i as f64, *y))
-                    .collect();
-                chart
-                    .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))?
-                    .label(solver.clone())
-                    .legend(move |(x, y)| {
-                        PathElement::new(vec![(x, y), (x + 16, y)], colour.stroke_width(2))
-                    });
-                chart.draw_series(pts.iter().map(|p| Circle::new(*p, 4, colour.filled())))?;
+                let (mark, dash, size) = series_style(si);
+                let mut pts = Vec::new();
+                let mut single = None;
+                for (c, y) in self.cases.iter().zip(ys) {
+                    if !(y.is_finite() && *y > 0.0) {
+                        continue;
+                    }
+                    match c.separation_mm() {
+                        Some(d) => pts.push((d, *y)),
+                        None => single = Some(*y),
+                    }
+                }
+                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let line = colour.stroke_width(2);
+                if dash.0 == 0 {
+                    chart.draw_series(LineSeries::new(pts.clone(), line))?;
+                } else {
+                    chart.draw_series(DashedLineSeries::new(pts.clone(), dash.0, dash.1, line))?;
+                }
+                for p in &pts {
+                    let c = chart.backend_coord(p);
+                    mark_px(area, mark, colour, size, (c.0 - base.0, c.1 - base.1))?;
+                }
+                if let Some(y) = single {
+                    chart.draw_series(DashedLineSeries::new(
+                        [(x0, y), (x1, y)],
+                        4,
+                        6,
+                        colour.mix(0.8).stroke_width(1),
+                    ))?;
+                }
             }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::UpperRight)
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .label_font((FONT, 12))
-                .draw()?;
+            // Legend, drawn by hand (each entry: line in its dash pattern + marker) in
+            // the headroom at the top right of the plotting area.
+            let (xr, yr) = chart.plotting_area().get_pixel_range();
+            let font = (FONT, 12).into_font();
+            let wmax = series
+                .iter()
+                .map(|(n, _)| {
+                    area.estimate_text_size(n, &TextStyle::from(font.clone()))
+                        .map_or(80, |s| s.0 as i32)
+                })
+                .max()
+                .unwrap_or(80);
+            let (lw, lh) = (wmax + 56, 20 * series.len() as i32 + 10);
+            let (lx, ly) = (xr.end - base.0 - lw - 8, yr.start - base.1 + 8);
+            area.draw(&Rectangle::new(
+                [(lx, ly), (lx + lw, ly + lh)],
+                WHITE.mix(0.9).filled(),
+            ))?;
+            area.draw(&Rectangle::new(
+                [(lx, ly), (lx + lw, ly + lh)],
+                BLACK.stroke_width(1),
+            ))?;
+            for (si, (solver, _)) in series.iter().enumerate() {
+                let colour = SERIES[si % SERIES.len()];
+                let (mark, dash, size) = series_style(si);
+                let y = ly + 15 + 20 * si as i32;
+                let (x0l, x1l) = (lx + 8, lx + 40);
+                let line = colour.stroke_width(2);
+                if dash.0 == 0 {
+                    area.draw(&PathElement::new(vec![(x0l, y), (x1l, y)], line))?;
+                } else {
+                    let mut a = x0l;
+                    while a < x1l {
+                        let b = (a + dash.0 as i32).min(x1l);
+                        area.draw(&PathElement::new(vec![(a, y), (b, y)], line))?;
+                        a += (dash.0 + dash.1) as i32;
+                    }
+                }
+                mark_px(area, mark, colour, size, ((x0l + x1l) / 2, y))?;
+                area.draw(&Text::new(solver.clone(), (x1l + 8, y - 7), font.clone()))?;
+            }
         }
         Ok(())
+    }
+}
+
+/// Draws marker `mark` centred on pixel `p` of `area` (pixel coordinates of the area).
+fn mark_px<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    mark: Mark,
+    colour: RGBColor,
+    size: i32,
+    p: (i32, i32),
+) -> FigureResult<DB> {
+    let (x, y) = p;
+    match mark {
+        Mark::Ring => area.draw(&Circle::new(p, size, colour.stroke_width(2)))?,
+        Mark::Square => area.draw(&Rectangle::new(
+            [(x - size, y - size), (x + size, y + size)],
+            colour.filled(),
+        ))?,
+        Mark::Triangle => area.draw(&Polygon::new(
+            vec![
+                (x, y - size - 1),
+                (x - size - 1, y + size),
+                (x + size + 1, y + size),
+            ],
+            colour.filled(),
+        ))?,
+        Mark::Cross => area.draw(&Cross::new(p, size, colour.stroke_width(2)))?,
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The 90–130 µs cluster of the Pareto plot: ten points a few pixels apart, and a
+    /// point at the right edge. Placed labels never overlap each other or a point, and
+    /// stay inside the plot area (the rightmost label went out of it before).
+    #[test]
+    fn pareto_labels_in_a_cluster_do_not_overlap_and_stay_inside() {
+        let bounds = (80, 40, 1380, 820);
+        let mut anchors: Vec<(i32, i32)> =
+            (0..10).map(|i| (300 + 9 * i, 500 + 7 * (i % 3))).collect();
+        anchors.push((1370, 780));
+        let items: Vec<_> = anchors.iter().map(|&a| (a, (150, 13))).collect();
+        let obstacles: Vec<Rect> = anchors
+            .iter()
+            .map(|&(x, y)| (x - 6, y - 6, x + 6, y + 6))
+            .collect();
+        let placed = place_labels(&items, &obstacles, bounds);
+        let boxes: Vec<Rect> = placed
+            .iter()
+            .zip(&items)
+            .filter_map(|(p, (_, (w, h)))| p.map(|(x, y)| (x, y, x + w, y + h)))
+            .collect();
+        assert!(boxes.len() >= 8, "only {} of 11 labels placed", boxes.len());
+        assert!(placed[10].is_some(), "the edge label was dropped");
+        for (i, a) in boxes.iter().enumerate() {
+            assert!(
+                a.0 >= bounds.0 && a.1 >= bounds.1 && a.2 <= bounds.2 && a.3 <= bounds.3,
+                "{a:?} outside"
+            );
+            for b in &boxes[i + 1..] {
+                assert!(!overlaps(*a, *b), "{a:?} overlaps {b:?}");
+            }
+            for o in &obstacles {
+                assert!(!overlaps(*a, *o), "{a:?} covers a point");
+            }
+        }
+    }
+
+    /// pinv and tsvd coincide on exact data: every series has its own marker and dash
+    /// pattern, and the first (pinv) is a hollow ring larger than the later markers.
+    #[test]
+    fn layer_series_styles_are_distinct_and_pinv_stays_visible_under_tsvd() {
+        let styles: Vec<_> = (0..4).map(series_style).collect();
+        for i in 0..4 {
+            for j in i + 1..4 {
+                assert_ne!(styles[i].0, styles[j].0);
+                assert_ne!(styles[i].1, styles[j].1);
+            }
+        }
+        assert_eq!(styles[0].0, Mark::Ring);
+        assert!(styles[0].2 > styles[3].2);
     }
 }
