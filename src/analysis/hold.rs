@@ -110,7 +110,7 @@ impl HoldAnalysis {
     /// Last minus first unloaded error, N (two or more unloaded rows).
     pub fn zero_drift_n(&self) -> Option<f64> {
         let (a, b) = (self.zeros.first()?, self.zeros.last()?);
-        (self.zeros.len() >= 2).then(|| b.error_n - a.error_n)
+        (self.zeros.len() >= 2).then_some(b.error_n - a.error_n)
     }
 
     /// Its 95 % interval from the propagated SDs, N.
@@ -144,7 +144,7 @@ pub fn pooled_slope(points: &[(usize, f64, f64)]) -> Option<(PooledSlope, Vec<f6
         sxx += (t - mt[g]).powi(2);
         sxy += (t - mt[g]) * (y - my[g]);
     }
-    if !(sxx > 0.0) {
+    if sxx.is_nan() || sxx <= 0.0 {
         return None;
     }
     let slope = sxy / sxx;

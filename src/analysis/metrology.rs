@@ -442,8 +442,9 @@ fn core(readings: &[Reading]) -> Option<Core> {
         .values()
         .filter_map(|u| {
             let (first, last) = (u.first()?, u.last()?);
-            (u.len() >= 2 && first.unloaded() && last.unloaded())
-                .then(|| (last.measured_n - last.applied_n) - (first.measured_n - first.applied_n))
+            (u.len() >= 2 && first.unloaded() && last.unloaded()).then_some(
+                (last.measured_n - last.applied_n) - (first.measured_n - first.applied_n),
+            )
         })
         .collect();
     Some(Core {

@@ -2,7 +2,7 @@
 //! [`crate::analysis::hold`]), each a [`Figure`] written as PNG and SVG:
 //!
 //! - [`ResidualFigure`]: measured − applied (F^sum − F/T) against applied, one colour
-//!   per trial, loading rows filled circles and unloading rows open triangles, with the
+//!   per trial, loading rows circles and unloading rows triangles, with the
 //!   calibration line's error `(slope − 1)·F + offset` dashed;
 //! - [`HysteresisFigure`]: the loop, F^sum against applied with the level means of the
 //!   loading (up) and unloading (down) branches joined, samples behind; an inset of the

@@ -178,7 +178,7 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
     if let Some(m) = &analysis.metrology {
         out.push((
             "residuals".to_string(),
-            format!("Measured − applied (F^sum − F/T, {u}) against applied force, one colour per trial; filled circles loading, open triangles unloading; dashed: the calibration line's own error"),
+            format!("Measured − applied (F^sum − F/T, {u}) against applied force, one colour per trial; circles loading, triangles unloading; dashed: the calibration line's own error"),
             ReportFigure::Residual(ResidualFigure {
                 metrology: m.clone(),
                 scale: k,
