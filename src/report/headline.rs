@@ -171,14 +171,24 @@ fn class_of(o: Outcome) -> &'static str {
     }
 }
 
-/// The headline table: key metrics, then any other metric an acceptance criterion
-/// bounds.
-pub fn headline(o: &mut String, metrics: &[Metric], verdicts: Option<&[Verdict]>) {
+/// The headline table: key metrics (the resolution in the plan's force unit
+/// `unit_symbol`), then any other metric an acceptance criterion bounds.
+pub fn headline(
+    o: &mut String,
+    metrics: &[Metric],
+    verdicts: Option<&[Verdict]>,
+    unit_symbol: &str,
+) {
     let vs = verdicts.unwrap_or(&[]);
+    let other_resolution = if unit_symbol == "gf" {
+        "magnitude.resolution_n"
+    } else {
+        "magnitude.resolution_gf"
+    };
     let mut names: Vec<&str> = HEADLINE
         .iter()
         .copied()
-        .filter(|n| metrics.iter().any(|m| m.name == *n))
+        .filter(|n| *n != other_resolution && metrics.iter().any(|m| m.name == *n))
         .collect();
     for v in vs {
         if !names.contains(&v.criterion.metric.as_str()) {

@@ -186,7 +186,7 @@ pub fn render(
     );
     banner(&mut o, verdict);
     let _ = writeln!(o, "<h1>{}</h1>", escape(&title));
-    super::headline::headline(&mut o, metrics, verdicts);
+    super::headline::headline(&mut o, metrics, verdicts, run.plan.force_unit.symbol());
 
     if let Some(vs) = verdicts {
         let worst = vs.iter().map(|v| v.outcome).max().unwrap_or(Outcome::Pass);
