@@ -84,6 +84,8 @@ impl Figure for ResidualFigure {
                 .chain([line(xs.start), line(xs.end), 0.0]),
             0.08,
         );
+        // Head room for the legend above the points.
+        let ys = ys.start..(ys.end + 0.25 * (ys.end - ys.start));
         let mut chart = ChartBuilder::on(root)
             .caption("measured − applied", (FONT, 20))
             .margin(12)
