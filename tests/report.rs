@@ -14,7 +14,7 @@ use tactbench::units::gf_to_n;
 
 use crate::util::{run, stderr, stdout};
 
-const PLAN_HEAD: &str = r#"
+pub(crate) const PLAN_HEAD: &str = r#"
 name = "report test <b>&amp;</b>"
 sensor = "paper_sensor.toml"
 build_id = "elastomer-<x>"
@@ -47,11 +47,11 @@ const DISPLACEMENT: &str = "[sweep]\nkind = \"displacement\"\nshift_mm = [0.15, 
 const E: f64 = 0.02;
 const TRIAL_ERR: [f64; 3] = [E, -E, 0.0];
 
-fn sensor() -> Sensor {
+pub(crate) fn sensor() -> Sensor {
     Sensor::from_toml_str(PAPER_SENSOR_TOML, "paper_sensor.toml").unwrap()
 }
 
-fn empty_row(index: usize, trial: usize) -> JournalRow {
+pub(crate) fn empty_row(index: usize, trial: usize) -> JournalRow {
     JournalRow {
         index,
         trial,
@@ -68,7 +68,11 @@ fn empty_row(index: usize, trial: usize) -> JournalRow {
 }
 
 /// Displacements: every marker moves by `u(p)` (mm).
-fn write_displacements(dir: &Path, index: usize, u: impl Fn(usize, [f64; 2], u64) -> [f64; 2]) {
+pub(crate) fn write_displacements(
+    dir: &Path,
+    index: usize,
+    u: impl Fn(usize, [f64; 2], u64) -> [f64; 2],
+) {
     let s = sensor();
     let mut recs = Vec::new();
     for (li, layer) in s.layers.iter().enumerate() {
@@ -88,7 +92,7 @@ fn write_displacements(dir: &Path, index: usize, u: impl Fn(usize, [f64; 2], u64
 }
 
 /// Forces: fz(q) = `fz(q)` at every node, a small tangential part along +y.
-fn write_forces(dir: &Path, index: usize, fz: impl Fn([f64; 2]) -> f64) {
+pub(crate) fn write_forces(dir: &Path, index: usize, fz: impl Fn([f64; 2]) -> f64) {
     let g = sensor().force_grid;
     let f: Vec<f64> = g
         .nodes_mm()
@@ -104,7 +108,7 @@ fn write_forces(dir: &Path, index: usize, fz: impl Fn([f64; 2]) -> f64) {
 
 /// Writes manifest and journal for `sweep`; `fill` sets each row's measured values and
 /// writes its per-setpoint files.
-fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mut JournalRow)) {
+pub(crate) fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mut JournalRow)) {
     let plan_toml = format!("{PLAN_HEAD}{sweep}");
     let plan = Plan::from_toml_str(&plan_toml, "experiments/test.toml").unwrap();
     let setpoints = plan.setpoints();
@@ -165,7 +169,7 @@ fn magnitude_run(dir: &Path) {
     });
 }
 
-fn summary(dir: &Path) -> Vec<(String, f64, String)> {
+pub(crate) fn summary(dir: &Path) -> Vec<(String, f64, String)> {
     let text = std::fs::read_to_string(dir.join("summary.csv")).unwrap();
     let mut lines = text.lines();
     assert_eq!(
@@ -180,7 +184,7 @@ fn summary(dir: &Path) -> Vec<(String, f64, String)> {
         .collect()
 }
 
-fn metric(dir: &Path, name: &str) -> f64 {
+pub(crate) fn metric(dir: &Path, name: &str) -> f64 {
     summary(dir)
         .into_iter()
         .find(|m| m.0 == name)
@@ -188,7 +192,7 @@ fn metric(dir: &Path, name: &str) -> f64 {
         .1
 }
 
-fn report(dir: &Path, extra: &[&str]) -> std::process::Output {
+pub(crate) fn report(dir: &Path, extra: &[&str]) -> std::process::Output {
     let mut args = vec!["report", dir.to_str().unwrap()];
     args.extend_from_slice(extra);
     run(&args)
@@ -235,11 +239,13 @@ fn magnitude_report_has_known_values_figures_and_escaped_provenance() {
     assert!(html.contains("elastomer-&lt;x&gt;") && html.contains("0.1.0-test"));
     assert!(html.contains("dynpick sim 0001") && html.contains("&lt;scene&gt;.toml"));
     assert!(html.contains("2026-11-22T01:10:00Z") && html.contains("completed"));
-    // Self-contained: three figures embedded, nothing fetched.
-    assert_eq!(html.matches("src=\"data:image/png;base64,").count(), 3);
+    // Self-contained: four figures embedded (Fig. 7, residuals, Fig. 4, Fig. 5; no
+    // hysteresis loop for a sweep that only loads), nothing fetched.
+    assert_eq!(html.matches("src=\"data:image/png;base64,").count(), 4);
+    assert!(!dir.join("plots/hysteresis.png").exists());
     assert!(!html.contains("http://") && !html.contains("https://"));
 
-    for stem in ["magnitude", "displacements", "force_field"] {
+    for stem in ["magnitude", "residuals", "displacements", "force_field"] {
         let png = dir.join("plots").join(format!("{stem}.png"));
         let img = image::open(&png).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
         let dims = image::GenericImageView::dimensions(&img);
@@ -605,7 +611,7 @@ fn cut_run(dir: &Path, keep: usize, status: RunStatus, reason: Option<&str>) {
     m.write(dir).unwrap();
 }
 
-fn verdict_json(dir: &Path) -> serde_json::Value {
+pub(crate) fn verdict_json(dir: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join("verdict.json")).unwrap()).unwrap()
 }
 

@@ -11,6 +11,7 @@ mod ft;
 mod layer;
 mod plans;
 mod report;
+mod report_metrology;
 mod reproduce;
 mod run;
 mod sim;

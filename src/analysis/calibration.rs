@@ -10,7 +10,12 @@
 //!   residuals rather than raw y removes the (small) spread of the applied value
 //!   within a level, so it measures the sensor's spread only.
 //! - **pooled SD** `s_p`: the per-level residual SDs pooled by degrees of freedom; when
-//!   no level has two samples, the residual SD about the line (n − 2 dof) instead.
+//!   no level has two samples (one trial per level), the residual SD about the line
+//!   (n − 2 dof) instead. Which one was used is recorded in
+//!   [`Calibration::resolution_method`] (metrics `magnitude.resolution_method`,
+//!   `angle.resolution_method`: 1 = pooled within-level, 2 = about the fit line) and
+//!   said on the report page: with one trial per level the fallback also counts any
+//!   nonlinearity as spread.
 //! - **resolution**: the paper reads its 30 gf and 5° from the *data spread* of Fig. 7
 //!   and 8 (the vertical scatter at each level). We take that spread as the ±1 SD band,
 //!   `2·s_p`, and express it in applied units through the sensitivity:
@@ -68,6 +73,35 @@ pub struct Level {
     pub residual_sd: f64,
 }
 
+/// Which spread the resolution is built on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ResolutionMethod {
+    /// Pooled within-level residual SD (at least one level has two samples).
+    PooledWithinLevel,
+    /// Residual SD about the fit line, n − 2 dof (no level has two samples).
+    FitLine,
+}
+
+impl ResolutionMethod {
+    /// The metric code: 1 pooled within-level, 2 about the fit line.
+    pub fn code(self) -> f64 {
+        match self {
+            ResolutionMethod::PooledWithinLevel => 1.0,
+            ResolutionMethod::FitLine => 2.0,
+        }
+    }
+
+    /// In words, for the report.
+    pub fn describe(self) -> &'static str {
+        match self {
+            ResolutionMethod::PooledWithinLevel => "2 × pooled within-level residual SD / |slope|",
+            ResolutionMethod::FitLine => {
+                "2 × residual SD about the fit line / |slope| (no level has two trials, so there                  is no within-level spread; nonlinearity counts as spread)"
+            }
+        }
+    }
+}
+
 /// Result of [`calibrate`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Calibration {
@@ -75,8 +109,13 @@ pub struct Calibration {
     pub fit: LineFit,
     /// Levels in ascending target order.
     pub levels: Vec<Level>,
-    /// Pooled within-level residual SD, measured units.
+    /// Pooled within-level residual SD, measured units (the SD about the fit line when
+    /// no level has two samples, see `resolution_method`).
     pub pooled_sd: f64,
+    /// Degrees of freedom of `pooled_sd`.
+    pub pooled_dof: usize,
+    /// Which spread `pooled_sd` is.
+    pub resolution_method: ResolutionMethod,
     /// `2·pooled_sd / |slope|`, applied units.
     pub resolution: f64,
     /// Full-scale output `|slope|·(x_max − x_min)`, measured units.
@@ -152,8 +191,19 @@ pub fn calibrate(samples: &[Sample]) -> Result<Calibration, CalibrationError> {
             residual_sd: stats::sample_sd(&r).unwrap_or(0.0),
         });
     }
-    let pooled_sd =
-        stats::pooled_sd(levels.iter().map(|l| (l.n, l.residual_sd))).unwrap_or(fit.residual_sd);
+    let (pooled_sd, pooled_dof, resolution_method) =
+        match stats::pooled_sd(levels.iter().map(|l| (l.n, l.residual_sd))) {
+            Some(s) => (
+                s,
+                levels.iter().map(|l| l.n.saturating_sub(1)).sum(),
+                ResolutionMethod::PooledWithinLevel,
+            ),
+            None => (
+                fit.residual_sd,
+                samples.len().saturating_sub(2),
+                ResolutionMethod::FitLine,
+            ),
+        };
     let (lo, hi) = levels
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), l| {
@@ -171,6 +221,8 @@ pub fn calibrate(samples: &[Sample]) -> Result<Calibration, CalibrationError> {
     Ok(Calibration {
         fit,
         pooled_sd,
+        pooled_dof,
+        resolution_method,
         resolution: 2.0 * pooled_sd / fit.slope.abs(),
         full_scale,
         linearity_pct: 100.0 * max_dev / full_scale,
@@ -180,9 +232,20 @@ pub fn calibrate(samples: &[Sample]) -> Result<Calibration, CalibrationError> {
     })
 }
 
+impl Calibration {
+    /// 95 % chi-squared interval of the resolution `2·s_p/|slope|` (from the interval
+    /// of `s_p` with its degrees of freedom; the slope's own uncertainty, far smaller in
+    /// relative terms, is not propagated).
+    pub fn resolution_ci95(&self) -> Option<(f64, f64)> {
+        let (lo, hi) = stats::sd_ci95(self.pooled_sd, self.pooled_dof)?;
+        let k = 2.0 / self.fit.slope.abs();
+        Some((k * lo, k * hi))
+    }
+}
+
 /// Targets within 1e-9 (relative to their size, or absolute near zero) are one level:
 /// unit conversions of the same plan value differ only by rounding.
-fn same_level(a: f64, b: f64) -> bool {
+pub(crate) fn same_level(a: f64, b: f64) -> bool {
     (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0)
 }
 

@@ -5,14 +5,16 @@
 //! resolution, linearity error, hysteresis) is defined in [`super::calibration`]; all
 //! values are in newtons.
 //!
-//! Loading and unloading are told apart per trial from the run order of the targets
-//! ([`super::calibration::directions`]): the paper's sweep only loads, so hysteresis is
-//! `None` for it.
+//! Loading and unloading are taken from the journal's `direction` column where the
+//! runner wrote it (`up` / `down`, up-down sweeps), else told apart per trial from the
+//! run order of the targets ([`super::calibration::directions`]): the paper's sweep
+//! only loads, so hysteresis is `None` for it. The ISO 376-style metrics of up-down and
+//! multi-position sweeps are in [`super::metrology`].
 
 use std::collections::BTreeMap;
 
 use super::calibration::{self, Calibration, CalibrationError, Sample};
-use crate::bench::journal::JournalRow;
+use crate::bench::journal::{self, JournalRow};
 
 /// One measurement: applied (F/T) and measured (F^sum) normal force, N.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -55,9 +57,11 @@ pub(crate) fn samples(
     rows: &[JournalRow],
     pick: impl Fn(&JournalRow) -> (f64, f64, f64),
 ) -> Vec<Sample> {
-    let mut by_trial: BTreeMap<usize, Vec<&JournalRow>> = BTreeMap::new();
+    // A trial is a (position, trial) pair: sweeps repeated at several contact positions
+    // may number their trials per position.
+    let mut by_trial: BTreeMap<(Option<usize>, usize), Vec<&JournalRow>> = BTreeMap::new();
     for r in rows {
-        by_trial.entry(r.trial).or_default().push(r);
+        by_trial.entry((r.position, r.trial)).or_default().push(r);
     }
     let mut out = Vec::with_capacity(rows.len());
     for trial in by_trial.values_mut() {
@@ -65,6 +69,11 @@ pub(crate) fn samples(
         let targets: Vec<f64> = trial.iter().map(|r| pick(r).0).collect();
         let dirs = calibration::directions(&targets);
         for (r, d) in trial.iter().zip(dirs) {
+            let d = match r.direction {
+                Some(journal::Direction::Up) => calibration::Direction::Loading,
+                Some(journal::Direction::Down) => calibration::Direction::Unloading,
+                None => d,
+            };
             let (target, applied, measured) = pick(r);
             out.push(Sample {
                 target,

@@ -9,6 +9,8 @@
 //! | [`displacement`] | Table I | `displacements/NNNNN.csv` of a `displacement` sweep |
 //! | [`timing`] | Table II | journal `t_*` columns |
 //! | [`tracking`] | — | journal `markers_*`, `reacquired`, `quality` columns (marker health) |
+//! | [`metrology`] | ISO 376 | magnitude rows with `direction`, `position`: repeatability, reproducibility, interpolation, zero, reversibility, class |
+//! | [`hold`] | ISO 376 | rows with `hold_t_s`: creep of F^sum against the F/T, zero drift |
 //!
 //! [`calibration`] holds the definitions shared by Fig. 7 and 8 (fit, resolution,
 //! linearity, hysteresis); [`stats`] the small statistics they use.
@@ -32,8 +34,10 @@ pub mod accuracy_time;
 pub mod angle;
 pub mod calibration;
 pub mod displacement;
+pub mod hold;
 pub mod layer_separation;
 pub mod magnitude;
+pub mod metrology;
 pub mod spatial;
 pub mod stats;
 pub mod timing;
@@ -308,6 +312,10 @@ pub struct RunAnalysis {
     pub snapshot: Option<Snapshot>,
     /// Marker health per setpoint (rows with marker counts).
     pub tracking: Option<tracking::TrackingAnalysis>,
+    /// ISO 376-style metrics (magnitude sweeps).
+    pub metrology: Option<metrology::MetrologyAnalysis>,
+    /// Creep and zero drift (rows with `hold_t_s`, whatever the sweep kind).
+    pub hold: Option<hold::HoldAnalysis>,
     /// Analyses left out because the rows cannot support them: (metric prefix, e.g.
     /// `magnitude`, and why). Their metrics are absent.
     pub absent: Vec<(String, String)>,
@@ -398,6 +406,11 @@ pub const METRICS: &[(&str, &str, &str)] = &[
         "the resolution in gram-force",
     ),
     (
+        "magnitude.resolution_method",
+        "1",
+        "spread behind the resolution: 1 = pooled within-level residual SD, 2 = residual SD about the fit line (no level has two trials)",
+    ),
+    (
         "magnitude.linearity_pct",
         "%",
         "max level deviation from the fit / full-scale output",
@@ -406,6 +419,46 @@ pub const METRICS: &[(&str, &str, &str)] = &[
         "magnitude.hysteresis_pct",
         "%",
         "max unloading-loading difference / full-scale output",
+    ),
+    (
+        "metrology.full_scale_n",
+        "N",
+        "full scale FS of the ISO 376-style metrics: the largest applied F/T force",
+    ),
+    (
+        "metrology.repeatability_pct_fs",
+        "%FS",
+        "ISO 376 b' (SD form): pooled SD of F^sum residuals over trials at the same position, level and direction",
+    ),
+    (
+        "metrology.reproducibility_pct_fs",
+        "%FS",
+        "ISO 376 b (SD form): pooled SD of F^sum residuals over trials and contact positions at the same level and direction",
+    ),
+    (
+        "metrology.interpolation_pct_fs",
+        "%FS",
+        "ISO 376 f_c: max |mean loading residual| of a level about the line through the loading rows",
+    ),
+    (
+        "metrology.zero_pct_fs",
+        "%FS",
+        "ISO 376 f_0: mean over trials of the unloaded error (F^sum - F/T) at the end minus at the start",
+    ),
+    (
+        "metrology.zero_max_pct_fs",
+        "%FS",
+        "ISO 376 f_0: the largest |zero error| of a trial",
+    ),
+    (
+        "metrology.reversibility_pct_fs",
+        "%FS",
+        "ISO 376 v (hysteresis): max over levels of |mean unloading - mean loading residual|",
+    ),
+    (
+        "metrology.class",
+        "1",
+        "ISO 376 class the metrics imply: 0 = class 00, 0.5, 1, 2; 3 = outside class 2",
     ),
     (
         "angle.bias_deg",
@@ -422,6 +475,11 @@ pub const METRICS: &[(&str, &str, &str)] = &[
         "angle.resolution_deg",
         "deg",
         "2 x pooled residual SD / |slope|",
+    ),
+    (
+        "angle.resolution_method",
+        "1",
+        "spread behind the resolution: 1 = pooled within-level residual SD, 2 = residual SD about the fit line (no level has two trials)",
     ),
     (
         "angle.slope",
@@ -497,6 +555,31 @@ pub const METRICS: &[(&str, &str, &str)] = &[
         "displacement.max_abs_bias_px",
         "px",
         "largest |bias| over layers and axes",
+    ),
+    (
+        "hold.full_scale_n",
+        "N",
+        "full scale of the hold metrics: the largest applied F/T force",
+    ),
+    (
+        "hold.creep_pct_fs_per_min",
+        "%FS/min",
+        "creep: slope of (F^sum - F/T) against hold_t_s (one intercept per hold)",
+    ),
+    (
+        "hold.ft_drift_pct_fs_per_min",
+        "%FS/min",
+        "slope of the F/T force against hold_t_s during the holds",
+    ),
+    (
+        "hold.zero_drift_n",
+        "N",
+        "unloaded error (F^sum - F/T): last unloaded row minus first",
+    ),
+    (
+        "hold.zero_drift_pct_fs",
+        "%FS",
+        "the zero drift in % of full scale",
     ),
     ("timing.tracking_ms", "ms", "mean tracking time per frame"),
     (
@@ -613,6 +696,33 @@ impl RunAnalysis {
             }
             Sweep::Setpoints(_) => {}
         }
+        // Dispatched on the data, not the plan: magnitude rows give the ISO 376-style
+        // metrics, rows with `hold_t_s` the creep analysis.
+        let metrology = if magnitude.is_some() {
+            let m = metrology::analyze(rows);
+            if let Some(m) = &m {
+                if !m.absent.is_empty() {
+                    let why: Vec<String> =
+                        m.absent.iter().map(|(n, w)| format!("{n}: {w}")).collect();
+                    absent.push(("metrology".into(), why.join("; ")));
+                }
+            }
+            m
+        } else {
+            None
+        };
+        let hold = if rows.iter().any(|r| r.hold_t_s.is_some()) {
+            let h = hold::analyze(rows);
+            if h.is_none() {
+                absent.push((
+                    "hold".into(),
+                    format!("{n_rows}: a creep slope needs three or more hold samples at different hold_t_s"),
+                ));
+            }
+            h
+        } else {
+            None
+        };
         let timing = timing::analyze(&run.rows);
         if timing.is_none() {
             absent.push(("timing".into(), format!("{n_rows}: nothing was timed")));
@@ -624,6 +734,8 @@ impl RunAnalysis {
             displacement,
             timing,
             tracking: tracking::analyze(&run.rows, run.plan.quality.min_ok_fraction),
+            metrology,
+            hold,
             snapshot: None,
             absent,
             run,
@@ -674,88 +786,232 @@ impl RunAnalysis {
     /// Every scalar result, in the order of [`METRICS`].
     pub fn metrics(&self) -> Vec<Metric> {
         let mut v = Vec::new();
-        let mut push =
-            |name: String, value: f64, unit: &'static str| v.push(Metric::new(name, value, unit));
-        push("run.rows".into(), self.run.rows.len() as f64, "count");
+        fn push(v: &mut Vec<Metric>, name: String, value: f64, unit: &'static str) {
+            v.push(Metric::new(name, value, unit));
+        }
+        push(
+            &mut v,
+            "run.rows".into(),
+            self.run.rows.len() as f64,
+            "count",
+        );
         let unsettled = self.run.rows.iter().filter(|r| !r.settled).count();
-        push("run.unsettled".into(), unsettled as f64, "count");
+        push(&mut v, "run.unsettled".into(), unsettled as f64, "count");
+        let t = |ci: Option<(f64, f64)>, k: f64| {
+            ci.map(|(lo, hi)| Ci95 {
+                low: (lo * k).min(hi * k),
+                high: (lo * k).max(hi * k),
+                method: "t",
+            })
+        };
+        let chi2 = |ci: Option<(f64, f64)>, k: f64| {
+            ci.map(|(lo, hi)| Ci95 {
+                low: lo * k,
+                high: hi * k,
+                method: "chi2",
+            })
+        };
         if let Some(m) = &self.magnitude {
             let c = &m.calibration;
-            push("magnitude.slope".into(), c.fit.slope, "1");
-            push("magnitude.offset_n".into(), c.fit.offset, "N");
-            push("magnitude.r2".into(), c.fit.r2, "1");
-            push("magnitude.residual_sd_n".into(), c.pooled_sd, "N");
-            let max_sd = c.levels.iter().fold(0.0f64, |a, l| a.max(l.residual_sd));
-            push("magnitude.max_level_sd_n".into(), max_sd, "N");
-            push("magnitude.resolution_n".into(), c.resolution, "N");
-            push(
-                "magnitude.resolution_gf".into(),
-                crate::units::n_to_gf(c.resolution),
-                "gf",
+            let gf = crate::units::n_to_gf(1.0);
+            v.push(
+                Metric::new("magnitude.slope", c.fit.slope, "1")
+                    .with_ci(t(c.fit.slope_ci95(), 1.0)),
             );
-            push("magnitude.linearity_pct".into(), c.linearity_pct, "%");
+            v.push(
+                Metric::new("magnitude.offset_n", c.fit.offset, "N")
+                    .with_ci(t(c.fit.offset_ci95(), 1.0)),
+            );
+            v.push(Metric::new("magnitude.r2", c.fit.r2, "1"));
+            v.push(
+                Metric::new("magnitude.residual_sd_n", c.pooled_sd, "N")
+                    .with_ci(chi2(stats::sd_ci95(c.pooled_sd, c.pooled_dof), 1.0)),
+            );
+            let max_sd = c.levels.iter().fold(0.0f64, |a, l| a.max(l.residual_sd));
+            v.push(Metric::new("magnitude.max_level_sd_n", max_sd, "N"));
+            v.push(
+                Metric::new("magnitude.resolution_n", c.resolution, "N")
+                    .with_ci(chi2(c.resolution_ci95(), 1.0)),
+            );
+            v.push(
+                Metric::new("magnitude.resolution_gf", c.resolution * gf, "gf")
+                    .with_ci(chi2(c.resolution_ci95(), gf)),
+            );
+            v.push(Metric::new(
+                "magnitude.resolution_method",
+                c.resolution_method.code(),
+                "1",
+            ));
+            v.push(Metric::new("magnitude.linearity_pct", c.linearity_pct, "%"));
             if let Some(h) = c.hysteresis_pct {
-                push("magnitude.hysteresis_pct".into(), h, "%");
+                v.push(Metric::new("magnitude.hysteresis_pct", h, "%"));
+            }
+        }
+        if let Some(m) = &self.metrology {
+            v.push(Metric::new("metrology.full_scale_n", m.full_scale_n, "N"));
+            let mut est = |name: &str, e: &Option<metrology::Estimate>| {
+                if let Some(e) = e {
+                    v.push(Metric::new(name, e.pct_fs, "%FS").with_ci(e.ci95));
+                }
+            };
+            est("metrology.repeatability_pct_fs", &m.repeatability);
+            est("metrology.reproducibility_pct_fs", &m.reproducibility);
+            est("metrology.interpolation_pct_fs", &m.interpolation);
+            est("metrology.zero_pct_fs", &m.zero);
+            est("metrology.reversibility_pct_fs", &m.reversibility);
+            if let Some(z) = m.zero_max_pct_fs {
+                v.push(Metric::new("metrology.zero_max_pct_fs", z, "%FS"));
+            }
+            if let Some(c) = &m.class {
+                v.push(Metric::new("metrology.class", c.code, "1"));
             }
         }
         if let Some(a) = &self.angle {
             let c = &a.calibration;
-            push("angle.bias_deg".into(), a.bias_deg, "deg");
-            push("angle.sd_deg".into(), a.sd_deg, "deg");
-            push(
-                "angle.bias_vs_target_deg".into(),
+            let e: Vec<f64> = a
+                .pairs
+                .iter()
+                .map(|p| p.measured_deg - p.applied_deg)
+                .collect();
+            v.push(
+                Metric::new("angle.bias_deg", a.bias_deg, "deg")
+                    .with_ci(t(stats::mean_ci95(&e), 1.0)),
+            );
+            v.push(Metric::new("angle.sd_deg", a.sd_deg, "deg").with_ci(chi2(
+                stats::sd_ci95(a.sd_deg, e.len().saturating_sub(1)),
+                1.0,
+            )));
+            v.push(Metric::new(
+                "angle.bias_vs_target_deg",
                 a.bias_vs_target_deg,
                 "deg",
+            ));
+            v.push(
+                Metric::new("angle.resolution_deg", c.resolution, "deg")
+                    .with_ci(chi2(c.resolution_ci95(), 1.0)),
             );
-            push("angle.resolution_deg".into(), c.resolution, "deg");
-            push("angle.slope".into(), c.fit.slope, "1");
-            push("angle.r2".into(), c.fit.r2, "1");
-            push("angle.linearity_pct".into(), c.linearity_pct, "%");
+            v.push(Metric::new(
+                "angle.resolution_method",
+                c.resolution_method.code(),
+                "1",
+            ));
+            v.push(
+                Metric::new("angle.slope", c.fit.slope, "1").with_ci(t(c.fit.slope_ci95(), 1.0)),
+            );
+            v.push(Metric::new("angle.r2", c.fit.r2, "1"));
+            v.push(Metric::new("angle.linearity_pct", c.linearity_pct, "%"));
+        }
+        if let Some(h) = &self.hold {
+            v.push(Metric::new("hold.full_scale_n", h.full_scale_n, "N"));
+            v.push(
+                Metric::new(
+                    "hold.creep_pct_fs_per_min",
+                    h.creep_pct_fs_per_min(),
+                    "%FS/min",
+                )
+                .with_ci(h.creep_ci95()),
+            );
+            if let Some(ft) = &h.ft_drift {
+                let ci = ft.ci95.map(|(lo, hi)| Ci95 {
+                    low: h.pct_fs_per_min(lo),
+                    high: h.pct_fs_per_min(hi),
+                    method: "t",
+                });
+                v.push(
+                    Metric::new(
+                        "hold.ft_drift_pct_fs_per_min",
+                        h.pct_fs_per_min(ft.slope),
+                        "%FS/min",
+                    )
+                    .with_ci(ci),
+                );
+            }
+            if let Some(d) = h.zero_drift_n() {
+                let ci = h.zero_drift_ci95();
+                let k = 100.0 / h.full_scale_n;
+                v.push(Metric::new("hold.zero_drift_n", d, "N").with_ci(ci));
+                v.push(
+                    Metric::new("hold.zero_drift_pct_fs", d * k, "%FS").with_ci(ci.map(|c| Ci95 {
+                        low: c.low * k,
+                        high: c.high * k,
+                        method: c.method,
+                    })),
+                );
+            }
+            if self.metrology.is_none() {
+                if let Some(c) = &h.class {
+                    v.push(Metric::new("metrology.class", c.code, "1"));
+                }
+            }
         }
         if let Some(s) = &self.spatial {
-            push("spatial.fwhm_mm".into(), s.fwhm_mm, "mm");
-            push("spatial.peak_offset_mm".into(), s.peak_distance_mm, "mm");
-            push("spatial.line_offset_mm".into(), s.line_offset_mm, "mm");
+            push(&mut v, "spatial.fwhm_mm".into(), s.fwhm_mm, "mm");
+            push(
+                &mut v,
+                "spatial.peak_offset_mm".into(),
+                s.peak_distance_mm,
+                "mm",
+            );
+            push(
+                &mut v,
+                "spatial.line_offset_mm".into(),
+                s.line_offset_mm,
+                "mm",
+            );
         }
         if let Some(d) = &self.displacement {
             for a in &d.axes {
                 let base = format!("displacement.{}.{}", a.layer, a.axis);
-                push(format!("{base}.mean_px"), a.mean_px, "px");
-                push(format!("{base}.sd_px"), a.sd_px, "px");
-                push(format!("{base}.bias_px"), a.bias_px, "px");
-                push(format!("{base}.sd_mm"), a.sd_mm, "mm");
+                push(&mut v, format!("{base}.mean_px"), a.mean_px, "px");
+                push(&mut v, format!("{base}.sd_px"), a.sd_px, "px");
+                push(&mut v, format!("{base}.bias_px"), a.bias_px, "px");
+                push(&mut v, format!("{base}.sd_mm"), a.sd_mm, "mm");
             }
             let max_sd = d.axes.iter().fold(0.0f64, |m, a| m.max(a.sd_px));
             let max_bias = d.axes.iter().fold(0.0f64, |m, a| m.max(a.bias_px.abs()));
-            push("displacement.max_sd_px".into(), max_sd, "px");
-            push("displacement.max_abs_bias_px".into(), max_bias, "px");
+            push(&mut v, "displacement.max_sd_px".into(), max_sd, "px");
+            push(
+                &mut v,
+                "displacement.max_abs_bias_px".into(),
+                max_bias,
+                "px",
+            );
         }
         if let Some(t) = &self.timing {
             let ms = |s: &str| t.stage(s).map_or(f64::NAN, |s| s.mean_s * 1e3);
-            push("timing.tracking_ms".into(), ms("tracking"), "ms");
+            push(&mut v, "timing.tracking_ms".into(), ms("tracking"), "ms");
             push(
+                &mut v,
                 "timing.reconstruction_ms".into(),
                 ms("reconstruction"),
                 "ms",
             );
-            push("timing.forces_ms".into(), ms("forces"), "ms");
+            push(&mut v, "timing.forces_ms".into(), ms("forces"), "ms");
             let max = t.stage("forces").map_or(f64::NAN, |s| s.max_s * 1e3);
-            push("timing.forces_max_ms".into(), max, "ms");
-            push("timing.rest_ms".into(), ms("rest"), "ms");
+            push(&mut v, "timing.forces_max_ms".into(), max, "ms");
+            push(&mut v, "timing.rest_ms".into(), ms("rest"), "ms");
         }
         if let Some(t) = &self.tracking {
-            push("tracking.min_ok_fraction".into(), t.min_ok_fraction(), "1");
             push(
+                &mut v,
+                "tracking.min_ok_fraction".into(),
+                t.min_ok_fraction(),
+                "1",
+            );
+            push(
+                &mut v,
                 "tracking.mean_ok_fraction".into(),
                 t.mean_ok_fraction(),
                 "1",
             );
             push(
+                &mut v,
                 "tracking.flagged_rows".into(),
                 t.flagged().count() as f64,
                 "count",
             );
             push(
+                &mut v,
                 "tracking.reacquired_rows".into(),
                 t.reacquired_rows() as f64,
                 "count",

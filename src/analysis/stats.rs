@@ -1,11 +1,24 @@
 //! Small statistics shared by the analyses: mean, sample standard deviation, ordinary
-//! least-squares line fit with R², pooled within-group SD.
+//! least-squares line fit with R², pooled within-group SD, and the 95 % confidence
+//! intervals built on them (Student t for a slope, an offset or a mean; chi-squared for
+//! an SD; the percentile bootstrap where no closed form exists).
 //!
 //! Least squares (measured `y` against applied `x`, n points):
 //! `slope = Σ(x−x̄)(y−ȳ) / Σ(x−x̄)²`, `offset = ȳ − slope·x̄`,
 //! `R² = 1 − Σ(y − ŷ)² / Σ(y − ȳ)²`. The sample SD uses n − 1 (Bessel).
 //! Pooled SD of groups i with n_i samples and sample SDs s_i:
 //! `s_p = sqrt(Σ(n_i − 1)s_i² / Σ(n_i − 1))`.
+//!
+//! Confidence intervals (95 %, normal errors assumed):
+//! - slope: `slope ± t(0.975, n−2)·s/√Sxx`; offset: `offset ± t(0.975, n−2)·s·√(1/n + x̄²/Sxx)`,
+//!   `s` the residual SD about the line (n − 2 dof), `Sxx = Σ(x−x̄)²`;
+//! - mean of n values: `mean ± t(0.975, n−1)·sd/√n`;
+//! - an SD `s` with ν degrees of freedom: `[s·√(ν/χ²(0.975, ν)), s·√(ν/χ²(0.025, ν))]`.
+//!
+//! The quantiles come from the regularised incomplete beta (Student t) and gamma
+//! (chi-squared) functions, evaluated by their continued fractions (Numerical Recipes,
+//! 3rd ed., §6.2 and §6.4) and inverted by bisection to 1e-12; `ln Γ` by the Lanczos
+//! approximation (g = 7, n = 9). Tests check them against tabulated values.
 
 /// Arithmetic mean; `None` for an empty slice.
 pub fn mean(v: &[f64]) -> Option<f64> {
@@ -38,12 +51,42 @@ pub struct LineFit {
     pub r2: f64,
     /// SD of the residuals about the line with n − 2 degrees of freedom (0 for n = 2).
     pub residual_sd: f64,
+    /// Number of points.
+    pub n: usize,
+    /// Mean of x.
+    pub x_mean: f64,
+    /// `Σ(x − x̄)²`.
+    pub sxx: f64,
 }
 
 impl LineFit {
     /// The line's value at `x`.
     pub fn at(&self, x: f64) -> f64 {
         self.slope * x + self.offset
+    }
+
+    /// Standard error of the slope, `s/√Sxx` (`None` for n ≤ 2).
+    pub fn slope_se(&self) -> Option<f64> {
+        (self.n > 2).then(|| self.residual_sd / self.sxx.sqrt())
+    }
+
+    /// Standard error of the offset, `s·√(1/n + x̄²/Sxx)` (`None` for n ≤ 2).
+    pub fn offset_se(&self) -> Option<f64> {
+        (self.n > 2).then(|| {
+            self.residual_sd * (1.0 / self.n as f64 + self.x_mean.powi(2) / self.sxx).sqrt()
+        })
+    }
+
+    /// 95 % Student-t interval of the slope (n − 2 dof).
+    pub fn slope_ci95(&self) -> Option<(f64, f64)> {
+        let h = t_quantile(0.975, (self.n as f64) - 2.0)? * self.slope_se()?;
+        Some((self.slope - h, self.slope + h))
+    }
+
+    /// 95 % Student-t interval of the offset (n − 2 dof).
+    pub fn offset_ci95(&self) -> Option<(f64, f64)> {
+        let h = t_quantile(0.975, (self.n as f64) - 2.0)? * self.offset_se()?;
+        Some((self.offset - h, self.offset + h))
     }
 }
 
@@ -86,7 +129,226 @@ pub fn fit_line(x: &[f64], y: &[f64]) -> Option<LineFit> {
         offset,
         r2,
         residual_sd,
+        n,
+        x_mean: mx,
+        sxx,
     })
+}
+
+/// 95 % Student-t interval of the mean of `v` (`None` for fewer than two values).
+pub fn mean_ci95(v: &[f64]) -> Option<(f64, f64)> {
+    let m = mean(v)?;
+    let sd = sample_sd(v)?;
+    let h = t_quantile(0.975, (v.len() - 1) as f64)? * sd / (v.len() as f64).sqrt();
+    Some((m - h, m + h))
+}
+
+/// 95 % chi-squared interval of a standard deviation `s` with `dof` degrees of freedom
+/// (`None` for dof = 0 or a non-finite `s`).
+pub fn sd_ci95(s: f64, dof: usize) -> Option<(f64, f64)> {
+    if dof == 0 || !s.is_finite() {
+        return None;
+    }
+    let nu = dof as f64;
+    let hi = chi2_quantile(0.975, nu)?;
+    let lo = chi2_quantile(0.025, nu)?;
+    Some((s * (nu / hi).sqrt(), s * (nu / lo).sqrt()))
+}
+
+/// `ln Γ(x)` for x > 0 (Lanczos, g = 7, n = 9; relative error < 1e-13).
+pub fn ln_gamma(x: f64) -> f64 {
+    const G: f64 = 7.0;
+    const C: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        // Reflection: Γ(x)Γ(1−x) = π / sin(πx).
+        return (std::f64::consts::PI / (std::f64::consts::PI * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let mut a = C[0];
+    let t = x + G + 0.5;
+    for (i, c) in C.iter().enumerate().skip(1) {
+        a += c / (x + i as f64);
+    }
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// Continued fraction of the incomplete beta function (modified Lentz).
+fn beta_cf(a: f64, b: f64, x: f64) -> f64 {
+    const TINY: f64 = 1e-300;
+    let (qab, qap, qam) = (a + b, a + 1.0, a - 1.0);
+    let mut c = 1.0;
+    let mut d = 1.0 - qab * x / qap;
+    if d.abs() < TINY {
+        d = TINY;
+    }
+    d = 1.0 / d;
+    let mut h = d;
+    for m in 1..400 {
+        let m = m as f64;
+        let m2 = 2.0 * m;
+        let aa = m * (b - m) * x / ((qam + m2) * (a + m2));
+        d = 1.0 + aa * d;
+        if d.abs() < TINY {
+            d = TINY;
+        }
+        c = 1.0 + aa / c;
+        if c.abs() < TINY {
+            c = TINY;
+        }
+        d = 1.0 / d;
+        h *= d * c;
+        let aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2));
+        d = 1.0 + aa * d;
+        if d.abs() < TINY {
+            d = TINY;
+        }
+        c = 1.0 + aa / c;
+        if c.abs() < TINY {
+            c = TINY;
+        }
+        d = 1.0 / d;
+        let del = d * c;
+        h *= del;
+        if (del - 1.0).abs() < 1e-15 {
+            break;
+        }
+    }
+    h
+}
+
+/// Regularised incomplete beta `I_x(a, b)`.
+pub fn inc_beta(a: f64, b: f64, x: f64) -> f64 {
+    if x <= 0.0 {
+        return 0.0;
+    }
+    if x >= 1.0 {
+        return 1.0;
+    }
+    let ln_front = ln_gamma(a + b) - ln_gamma(a) - ln_gamma(b) + a * x.ln() + b * (1.0 - x).ln();
+    if x < (a + 1.0) / (a + b + 2.0) {
+        ln_front.exp() * beta_cf(a, b, x) / a
+    } else {
+        1.0 - ln_front.exp() * beta_cf(b, a, 1.0 - x) / b
+    }
+}
+
+/// Regularised lower incomplete gamma `P(a, x)`.
+pub fn inc_gamma(a: f64, x: f64) -> f64 {
+    if x <= 0.0 {
+        return 0.0;
+    }
+    let ln_front = a * x.ln() - x - ln_gamma(a);
+    if x < a + 1.0 {
+        // Series.
+        let (mut ap, mut sum, mut del) = (a, 1.0 / a, 1.0 / a);
+        for _ in 0..1000 {
+            ap += 1.0;
+            del *= x / ap;
+            sum += del;
+            if del.abs() < sum.abs() * 1e-16 {
+                break;
+            }
+        }
+        sum * ln_front.exp()
+    } else {
+        // Continued fraction for Q (modified Lentz).
+        const TINY: f64 = 1e-300;
+        let mut b = x + 1.0 - a;
+        let mut c = 1.0 / TINY;
+        let mut d = 1.0 / b;
+        let mut h = d;
+        for i in 1..1000 {
+            let an = -(i as f64) * (i as f64 - a);
+            b += 2.0;
+            d = an * d + b;
+            if d.abs() < TINY {
+                d = TINY;
+            }
+            c = b + an / c;
+            if c.abs() < TINY {
+                c = TINY;
+            }
+            d = 1.0 / d;
+            let del = d * c;
+            h *= del;
+            if (del - 1.0).abs() < 1e-16 {
+                break;
+            }
+        }
+        1.0 - ln_front.exp() * h
+    }
+}
+
+/// Student-t cumulative distribution with `nu` degrees of freedom.
+pub fn t_cdf(t: f64, nu: f64) -> f64 {
+    let tail = 0.5 * inc_beta(0.5 * nu, 0.5, nu / (nu + t * t));
+    if t >= 0.0 {
+        1.0 - tail
+    } else {
+        tail
+    }
+}
+
+/// Chi-squared cumulative distribution with `nu` degrees of freedom.
+pub fn chi2_cdf(x: f64, nu: f64) -> f64 {
+    inc_gamma(0.5 * nu, 0.5 * x)
+}
+
+/// Inverts an increasing `cdf` on `[lo, hi]` by bisection.
+fn invert(p: f64, mut lo: f64, mut hi: f64, cdf: impl Fn(f64) -> f64) -> f64 {
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if cdf(mid) < p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= 1e-12 * mid.abs().max(1e-12) {
+            break;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// Student-t quantile (`None` for nu < 1 or p outside (0, 1)).
+pub fn t_quantile(p: f64, nu: f64) -> Option<f64> {
+    if !(nu >= 1.0 && p > 0.0 && p < 1.0) {
+        return None;
+    }
+    Some(invert(p, -1e7, 1e7, |t| t_cdf(t, nu)))
+}
+
+/// Chi-squared quantile (`None` for nu ≤ 0 or p outside (0, 1)).
+pub fn chi2_quantile(p: f64, nu: f64) -> Option<f64> {
+    if !(nu > 0.0 && p > 0.0 && p < 1.0) {
+        return None;
+    }
+    let hi = nu + 50.0 * (2.0 * nu).sqrt() + 100.0;
+    Some(invert(p, 0.0, hi, |x| chi2_cdf(x, nu)))
+}
+
+/// The `q`-quantile of `v` (sorted in place), linear interpolation between order
+/// statistics (type 7); `None` for an empty slice.
+pub fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let h = (v.len() - 1) as f64 * q.clamp(0.0, 1.0);
+    let (i, f) = (h.floor() as usize, h - h.floor());
+    let a = v[i];
+    let b = v[(i + 1).min(v.len() - 1)];
+    Some(a + f * (b - a))
 }
 
 /// Pooled within-group SD from `(n_i, s_i)` pairs; groups with n_i < 2 carry no
@@ -133,6 +395,60 @@ mod tests {
         assert!((f.slope - 1.0).abs() < 1e-12 && (f.offset - 1.0).abs() < 1e-12);
         assert!((f.r2 - 0.5).abs() < 1e-12);
         assert!((f.residual_sd - 2f64.sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn quantiles_match_tabulated_values() {
+        // Student t, two-sided 95 %: 12.706 (1), 4.303 (2), 2.228 (10), 2.042 (30).
+        for (nu, t) in [
+            (1.0, 12.7062),
+            (2.0, 4.3027),
+            (10.0, 2.2281),
+            (30.0, 2.0423),
+        ] {
+            let q = t_quantile(0.975, nu).unwrap();
+            assert!((q - t).abs() < 1e-3, "t({nu}) = {q}, table {t}");
+        }
+        // The median, to the precision of ν/(ν + t²) near 1.
+        assert!((t_quantile(0.5, 7.0).unwrap()).abs() < 1e-6);
+        // Chi-squared: 0.0506 / 7.378 (2), 3.247 / 20.483 (10), 74.222 / 129.561 (100).
+        for (nu, lo, hi) in [
+            (2.0, 0.0506, 7.3778),
+            (10.0, 3.2470, 20.4832),
+            (100.0, 74.2219, 129.5612),
+        ] {
+            let (a, b) = (
+                chi2_quantile(0.025, nu).unwrap(),
+                chi2_quantile(0.975, nu).unwrap(),
+            );
+            assert!(
+                (a - lo).abs() < 1e-3 && (b - hi).abs() < 1e-3,
+                "chi2({nu}): {a}, {b}"
+            );
+        }
+        assert!((ln_gamma(5.0) - 24f64.ln()).abs() < 1e-12);
+        assert!((ln_gamma(0.5) - std::f64::consts::PI.sqrt().ln()).abs() < 1e-12);
+        assert_eq!(t_quantile(0.975, 0.0), None);
+    }
+
+    #[test]
+    fn line_fit_intervals_have_the_closed_form_width() {
+        // (0,0),(0,2),(2,2),(2,4): s = √2, Sxx = 4, x̄ = 1, n = 4, t(0.975, 2) = 4.3027.
+        let f = fit_line(&[0.0, 0.0, 2.0, 2.0], &[0.0, 2.0, 2.0, 4.0]).unwrap();
+        let t = t_quantile(0.975, 2.0).unwrap();
+        let (lo, hi) = f.slope_ci95().unwrap();
+        assert!(
+            (hi - 1.0 - t * 2f64.sqrt() / 2.0).abs() < 1e-9
+                && (1.0 - lo - (hi - 1.0)).abs() < 1e-12
+        );
+        let (lo, hi) = f.offset_ci95().unwrap();
+        let h = t * 2f64.sqrt() * (0.25f64 + 0.25).sqrt();
+        assert!((hi - 1.0 - h).abs() < 1e-9 && (1.0 - lo - h).abs() < 1e-9);
+        let (lo, hi) = sd_ci95(1.0, 10).unwrap();
+        assert!((lo - (10.0f64 / 20.4832).sqrt()).abs() < 1e-4, "{lo}");
+        assert!((hi - (10.0f64 / 3.2470).sqrt()).abs() < 1e-4, "{hi}");
+        let mut v = [3.0, 1.0, 2.0, 4.0];
+        assert_eq!(quantile(&mut v, 0.5), Some(2.5));
     }
 
     #[test]

@@ -45,7 +45,7 @@ const STYLE: &str = "body{font-family:sans-serif;max-width:70em;margin:1em auto;
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}\
 th{background:#eee}td.l,th.l{text-align:left}.pass{color:#070;font-weight:bold}.fail{color:#b00;font-weight:bold}\
 pre{background:#f6f6f6;padding:.5em;overflow:auto}figure{margin:1em 0}img{max-width:100%}\
-.marginal{color:#a60;font-weight:bold}\
+.marginal{color:#a60;font-weight:bold}small code{color:#666}\
 #verdict{border:4px solid;border-radius:8px;padding:.6em 1em;margin:.5em 0 1em}\
 #verdict .outcome{font-size:3em;font-weight:bold;line-height:1.1}\
 #verdict.PASS{border-color:#070;background:#efe}#verdict.PASS .outcome{color:#070}\
@@ -190,6 +190,7 @@ pub fn render(
     );
     banner(&mut o, verdict);
     let _ = writeln!(o, "<h1>{}</h1>", escape(&title));
+    super::headline::headline(&mut o, metrics, verdicts, run.plan.force_unit.symbol());
 
     if let Some(vs) = verdicts {
         let worst = vs.iter().map(|v| v.outcome).max().unwrap_or(Outcome::Pass);
@@ -309,18 +310,8 @@ pub fn render(
         o.push_str("</ul>\n");
     }
 
-    o.push_str("<h2>Metrics</h2>\n<table>\n");
-    header(&mut o, &["metric", "value", "unit"]);
-    for mt in metrics {
-        let _ = writeln!(
-            o,
-            "<tr class=\"metric\"><td class=\"l\">{}</td><td>{}</td><td class=\"l\">{}</td></tr>",
-            escape(&mt.name),
-            fmt_value(mt.value),
-            escape(mt.unit)
-        );
-    }
-    o.push_str("</table>\n");
+    super::headline::metrics_table(&mut o, metrics);
+    super::headline::iso376_section(&mut o, analysis);
 
     let unit = run.plan.force_unit;
     let scale = unit.from_newtons(1.0);
@@ -328,9 +319,10 @@ pub fn render(
         let _ = writeln!(
             o,
             "<h2>Force magnitude (paper Fig. 7)</h2>\n<p>F<sup>sum</sup><sub>z</sub> against the \
-             applied Fz of the F/T sensor, per target level, in {}. Resolution = 2 &times; pooled \
-             within-level residual SD / |slope| = {} {}.</p>",
+             applied Fz of the F/T sensor, per target level, in {}. <span class=\"resolution-method\">\
+             Resolution = {}</span> = {} {}.</p>",
             unit.symbol(),
+            escape(mag.calibration.resolution_method.describe()),
             fmt_value(mag.calibration.resolution * scale),
             unit.symbol()
         );
@@ -341,9 +333,10 @@ pub fn render(
             o,
             "<h2>Force angle (paper Fig. 8)</h2>\n<p>Angle from the normal measured from \
              F<sup>sum</sup> against the applied angle from the F/T wrench, degrees. Bias {} deg, \
-             SD {} deg, resolution {} deg.</p>",
+             SD {} deg, <span class=\"resolution-method\">resolution ({})</span> {} deg.</p>",
             fmt_value(a.bias_deg),
             fmt_value(a.sd_deg),
+            escape(a.calibration.resolution_method.describe()),
             fmt_value(a.calibration.resolution)
         );
         calibration_table(&mut o, &a.calibration, "deg", 1.0);

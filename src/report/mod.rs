@@ -21,7 +21,9 @@
 pub mod acceptance;
 pub mod evidence;
 pub mod figures;
+pub mod figures_metrology;
 pub mod force_map;
+pub mod headline;
 pub mod html;
 pub mod plot;
 pub mod sha256;
@@ -36,6 +38,7 @@ use crate::analysis::{Metric, RunAnalysis};
 use crate::bench::lock::LockState;
 use acceptance::{AcceptanceError, Criteria, Outcome, Verdict};
 use figures::{CalibrationFigure, MarkerHealthFigure, ProfileFigure, QuiverFigure};
+use figures_metrology::{CreepFigure, HysteresisFigure, ResidualFigure};
 use force_map::ForceMapFigure;
 use plot::{Figure, FigureFiles, FigureResult, PlotError};
 use verdict::{RunState, VerdictDoc, VERDICT_FILE};
@@ -126,6 +129,12 @@ pub enum ReportFigure {
     ForceField(ForceMapFigure),
     /// Marker health per setpoint.
     MarkerHealth(MarkerHealthFigure),
+    /// Measured − applied per trial.
+    Residual(ResidualFigure),
+    /// Up and down branches.
+    Hysteresis(HysteresisFigure),
+    /// Creep through the holds.
+    Creep(CreepFigure),
 }
 
 impl Figure for ReportFigure {
@@ -139,6 +148,9 @@ impl Figure for ReportFigure {
             ReportFigure::Quiver(f) => f.draw(root),
             ReportFigure::ForceField(f) => f.draw(root),
             ReportFigure::MarkerHealth(f) => f.draw(root),
+            ReportFigure::Residual(f) => f.draw(root),
+            ReportFigure::Hysteresis(f) => f.draw(root),
+            ReportFigure::Creep(f) => f.draw(root),
         }
     }
 }
@@ -171,6 +183,48 @@ pub fn run_figures(analysis: &RunAnalysis) -> Vec<(String, String, ReportFigure)
                 unit: u.to_string(),
                 calibration: m.calibration.clone(),
                 samples: m.pairs.iter().map(|p| (p.applied_n, p.measured_n)).collect(),
+            }),
+        ));
+    }
+    let k = unit.from_newtons(1.0);
+    if let Some(m) = &analysis.metrology {
+        out.push((
+            "residuals".to_string(),
+            format!("Measured − applied (F^sum − F/T, {u}) against applied force, one colour per trial; circles loading, triangles unloading; dashed: the calibration line's own error"),
+            ReportFigure::Residual(ResidualFigure {
+                metrology: m.clone(),
+                scale: k,
+                unit: u.to_string(),
+            }),
+        ));
+        if m.levels.iter().any(|l| l.reversibility_n().is_some()) {
+            out.push((
+                "hysteresis".to_string(),
+                format!(
+                    "Hysteresis loop: F^sum against applied ({u}), level means of the loading and unloading branches; below, unloading − loading mean residual per level (reversibility {} %FS)",
+                    m.reversibility.map_or("-".to_string(), |e| acceptance::fmt_value(e.pct_fs))
+                ),
+                ReportFigure::Hysteresis(HysteresisFigure {
+                    metrology: m.clone(),
+                    scale: k,
+                    unit: u.to_string(),
+                }),
+            ));
+        }
+    }
+    if let Some(h) = &analysis.hold {
+        out.push((
+            "creep".to_string(),
+            format!(
+                "Creep during {} hold(s): F/T and F^sum ({u}) against time since the hold force was reached (top); F^sum − F/T with the fitted creep line, {} %FS/min, FS = {} {u} (bottom)",
+                h.holds,
+                acceptance::fmt_value(h.creep_pct_fs_per_min()),
+                acceptance::fmt_value(h.full_scale_n * k)
+            ),
+            ReportFigure::Creep(CreepFigure {
+                hold: h.clone(),
+                scale: k,
+                unit: u.to_string(),
             }),
         ));
     }
@@ -265,7 +319,8 @@ pub fn write_report_to(
         None => Vec::new(),
     };
     let state = RunState::of(analysis, &options.lock);
-    let verdict = VerdictDoc::judge(analysis, criteria, &verdicts, state, options.allow_partial);
+    let verdict = VerdictDoc::judge(analysis, criteria, &verdicts, state, options.allow_partial)
+        .with_metrics(&metrics);
     std::fs::create_dir_all(out_dir).map_err(|source| ReportError::Io {
         path: out_dir.to_path_buf(),
         source,

@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use super::acceptance::{Criteria, Outcome, Verdict};
 use super::sha256::sha256_hex;
-use crate::analysis::RunAnalysis;
+use crate::analysis::{Ci95, Metric, RunAnalysis};
 use crate::bench::journal::{RunStatus, GIT_COMMIT};
 use crate::bench::lock::{Holder, LockState};
 
@@ -178,6 +178,43 @@ pub struct CriterionJson {
     pub outcome: Outcome,
     /// Why there is no value, if so.
     pub note: Option<String>,
+    /// The metric's 95 % confidence interval (`null` where none is stated).
+    pub ci95: Option<CiJson>,
+}
+
+/// A 95 % confidence interval in `verdict.json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CiJson {
+    /// Lower bound (metric unit).
+    pub low: f64,
+    /// Upper bound (metric unit).
+    pub high: f64,
+    /// `t`, `chi2`, `bootstrap`, `normal`.
+    pub method: String,
+}
+
+impl CiJson {
+    fn of(ci: Option<Ci95>) -> Option<CiJson> {
+        let ci = ci?;
+        (ci.low.is_finite() && ci.high.is_finite()).then(|| CiJson {
+            low: ci.low,
+            high: ci.high,
+            method: ci.method.to_string(),
+        })
+    }
+}
+
+/// One metric of the run in `verdict.json` (as in `summary.csv`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MetricJson {
+    /// Metric name.
+    pub name: String,
+    /// Value (`null` when not finite).
+    pub value: Option<f64>,
+    /// Unit.
+    pub unit: String,
+    /// 95 % confidence interval (`null` where none is stated).
+    pub ci95: Option<CiJson>,
 }
 
 /// A provenance requirement in `verdict.json` (e.g. `require_build_id`).
@@ -253,6 +290,8 @@ pub struct VerdictDoc {
     pub criteria: Vec<CriterionJson>,
     /// Provenance requirements of the criteria file.
     pub requirements: Vec<RequirementJson>,
+    /// Every metric of the run with its interval (empty until [`VerdictDoc::with_metrics`]).
+    pub metrics: Vec<MetricJson>,
     /// The run's state and counts.
     pub run: RunState,
     /// Where the run came from.
@@ -345,6 +384,7 @@ impl VerdictDoc {
                 note: v.note.clone().or_else(|| {
                     (!v.value.is_finite()).then(|| format!("value {} is not finite", v.value))
                 }),
+                ci95: None,
             })
             .collect();
         VerdictDoc {
@@ -356,6 +396,7 @@ impl VerdictDoc {
             criteria_file: criteria.map(|c| c.path.display().to_string()),
             criteria: criteria_json,
             requirements,
+            metrics: Vec::new(),
             run,
             provenance: ProvenanceJson {
                 plan_name: m.plan_name.clone(),
@@ -378,5 +419,27 @@ impl VerdictDoc {
                 generated_at: crate::bench::runner::rfc3339_now(),
             },
         }
+    }
+}
+
+impl VerdictDoc {
+    /// Adds the run's metrics (`metrics[]`) and each criterion's confidence interval.
+    pub fn with_metrics(mut self, metrics: &[Metric]) -> VerdictDoc {
+        for c in &mut self.criteria {
+            c.ci95 = metrics
+                .iter()
+                .find(|m| m.name == c.metric)
+                .and_then(|m| CiJson::of(m.ci95));
+        }
+        self.metrics = metrics
+            .iter()
+            .map(|m| MetricJson {
+                name: m.name.clone(),
+                value: m.value.is_finite().then_some(m.value),
+                unit: m.unit.to_string(),
+                ci95: CiJson::of(m.ci95),
+            })
+            .collect();
+        self
     }
 }

@@ -1,0 +1,364 @@
+//! The metrology figures (ISO 376-style analysis, [`crate::analysis::metrology`] and
+//! [`crate::analysis::hold`]), each a [`Figure`] written as PNG and SVG:
+//!
+//! - [`ResidualFigure`]: measured − applied (F^sum − F/T) against applied, one colour
+//!   per trial, loading rows circles and unloading rows triangles, with the
+//!   calibration line's error `(slope − 1)·F + offset` dashed;
+//! - [`HysteresisFigure`]: the loop, F^sum against applied with the level means of the
+//!   loading (up) and unloading (down) branches joined, samples behind; an inset of the
+//!   down − up difference per level, where the loop itself is thinner than a line;
+//! - [`CreepFigure`]: two panels against `hold_t_s`: the F/T force and F^sum (top), and
+//!   their difference F^sum − F/T with the fitted creep line of each hold (bottom).
+//!
+//! Forces are drawn in the plan's force unit (`scale` converts from newtons).
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+
+use super::plot::{Figure, FigureResult, FONT};
+use crate::analysis::hold::HoldAnalysis;
+use crate::analysis::metrology::MetrologyAnalysis;
+
+/// Colours cycled over trials / holds.
+const PALETTE: [RGBColor; 8] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+];
+
+/// Padded range of `values` (0..1 when empty).
+fn span(values: impl Iterator<Item = f64>, pad: f64) -> std::ops::Range<f64> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+            (a.min(v), b.max(v))
+        });
+    if !lo.is_finite() {
+        return 0.0..1.0;
+    }
+    let w = (hi - lo).max(1e-9 * hi.abs().max(1.0));
+    (lo - pad * w)..(hi + pad * w)
+}
+
+/// Measured − applied against applied, per trial.
+#[derive(Debug, Clone)]
+pub struct ResidualFigure {
+    /// The metrology analysis (readings and calibration line).
+    pub metrology: MetrologyAnalysis,
+    /// Newtons -> display unit.
+    pub scale: f64,
+    /// Display unit symbol.
+    pub unit: String,
+}
+
+impl Figure for ResidualFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let k = self.scale;
+        let m = &self.metrology;
+        let pts: Vec<(f64, f64, usize, bool)> = {
+            let mut units: Vec<(Option<usize>, usize)> =
+                m.readings.iter().map(|r| (r.position, r.trial)).collect();
+            units.sort();
+            units.dedup();
+            m.readings
+                .iter()
+                .map(|r| {
+                    let u = units
+                        .iter()
+                        .position(|&x| x == (r.position, r.trial))
+                        .unwrap_or(0);
+                    (r.applied_n * k, (r.measured_n - r.applied_n) * k, u, r.down)
+                })
+                .collect()
+        };
+        let xs = span(pts.iter().map(|p| p.0), 0.05);
+        let line = |x: f64| ((m.fit.slope - 1.0) * x / k + m.fit.offset) * k;
+        let ys = span(
+            pts.iter()
+                .map(|p| p.1)
+                .chain([line(xs.start), line(xs.end), 0.0]),
+            0.08,
+        );
+        // Head room for the legend above the points.
+        let ys = ys.start..(ys.end + 0.25 * (ys.end - ys.start));
+        let mut chart = ChartBuilder::on(root)
+            .caption("measured − applied", (FONT, 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(xs.clone(), ys)?;
+        chart
+            .configure_mesh()
+            .x_desc(format!("applied Fz, F/T ({})", self.unit))
+            .y_desc(format!("F sum − F/T ({})", self.unit))
+            .label_style((FONT, 13))
+            .draw()?;
+        chart.draw_series(LineSeries::new(
+            [(xs.start, 0.0), (xs.end, 0.0)],
+            BLACK.mix(0.3),
+        ))?;
+        chart
+            .draw_series(DashedLineSeries::new(
+                [xs.start, xs.end].map(|x| (x, line(x))),
+                8,
+                5,
+                BLACK.stroke_width(1),
+            ))?
+            .label(format!(
+                "calibration line error: (slope − 1)·F + offset, slope {:.4}",
+                m.fit.slope
+            ))
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+        let up = pts.iter().filter(|p| !p.3);
+        chart
+            .draw_series(up.map(|p| Circle::new((p.0, p.1), 3, PALETTE[p.2 % 8].filled())))?
+            .label("loading (up), colour = trial")
+            .legend(|(x, y)| Circle::new((x + 10, y), 3, PALETTE[0].filled()));
+        let down: Vec<_> = pts.iter().filter(|p| p.3).collect();
+        if !down.is_empty() {
+            chart
+                .draw_series(
+                    down.iter().map(|p| {
+                        TriangleMarker::new((p.0, p.1), 5, PALETTE[p.2 % 8].stroke_width(1))
+                    }),
+                )?
+                .label("unloading (down)")
+                .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, PALETTE[0].stroke_width(1)));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
+    }
+}
+
+/// F^sum against applied: up and down branches.
+#[derive(Debug, Clone)]
+pub struct HysteresisFigure {
+    /// The metrology analysis (levels and readings).
+    pub metrology: MetrologyAnalysis,
+    /// Newtons -> display unit.
+    pub scale: f64,
+    /// Display unit symbol.
+    pub unit: String,
+}
+
+impl Figure for HysteresisFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let k = self.scale;
+        let m = &self.metrology;
+        let (main, inset) = root.split_vertically(root.dim_in_pixel().1 * 64 / 100);
+        let xs = span(m.readings.iter().map(|r| r.applied_n * k), 0.05);
+        let ys = span(m.readings.iter().map(|r| r.measured_n * k), 0.05);
+        let mut chart = ChartBuilder::on(&main)
+            .caption("hysteresis loop: F sum against applied", (FONT, 20))
+            .margin(12)
+            .x_label_area_size(35)
+            .y_label_area_size(70)
+            .build_cartesian_2d(xs.clone(), ys)?;
+        chart
+            .configure_mesh()
+            .x_desc(format!("applied Fz, F/T ({})", self.unit))
+            .y_desc(format!("F sum ({})", self.unit))
+            .label_style((FONT, 13))
+            .draw()?;
+        chart.draw_series(m.readings.iter().map(|r| {
+            Circle::new(
+                (r.applied_n * k, r.measured_n * k),
+                2,
+                BLACK.mix(0.2).filled(),
+            )
+        }))?;
+        let branch = |down: bool| -> Vec<(f64, f64)> {
+            m.levels
+                .iter()
+                .filter_map(|l| {
+                    let (a, y) = if down {
+                        (l.down_applied_n?, l.down_measured_n?)
+                    } else {
+                        (l.up_applied_n?, l.up_measured_n?)
+                    };
+                    Some((a * k, y * k))
+                })
+                .collect()
+        };
+        let blue = RGBColor(31, 90, 200);
+        let red = RGBColor(200, 40, 40);
+        chart
+            .draw_series(LineSeries::new(branch(false), blue.stroke_width(2)))?
+            .label("loading (up), level means")
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], blue.stroke_width(2)));
+        let down = branch(true);
+        if !down.is_empty() {
+            chart
+                .draw_series(LineSeries::new(down, red.stroke_width(2)))?
+                .label("unloading (down), level means")
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        // Inset: down − up per level (the loop's width).
+        let diffs: Vec<(f64, f64)> = m
+            .levels
+            .iter()
+            .filter_map(|l| Some((l.target_n * k, l.reversibility_n()? * k)))
+            .collect();
+        let ys = span(diffs.iter().map(|d| d.1).chain([0.0]), 0.15);
+        let mut c2 = ChartBuilder::on(&inset)
+            .margin(12)
+            .x_label_area_size(35)
+            .y_label_area_size(70)
+            .build_cartesian_2d(xs.clone(), ys)?;
+        c2.configure_mesh()
+            .x_desc(format!("target level ({})", self.unit))
+            .y_desc(format!("down − up ({})", self.unit))
+            .label_style((FONT, 13))
+            .draw()?;
+        c2.draw_series(LineSeries::new(
+            [(xs.start, 0.0), (xs.end, 0.0)],
+            BLACK.mix(0.3),
+        ))?;
+        c2.draw_series(LineSeries::new(diffs.clone(), red.stroke_width(1)))?;
+        c2.draw_series(diffs.iter().map(|d| Circle::new(*d, 4, red.filled())))?;
+        Ok(())
+    }
+}
+
+/// Creep through the holds.
+#[derive(Debug, Clone)]
+pub struct CreepFigure {
+    /// The hold analysis.
+    pub hold: HoldAnalysis,
+    /// Newtons -> display unit.
+    pub scale: f64,
+    /// Display unit symbol.
+    pub unit: String,
+}
+
+impl Figure for CreepFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let k = self.scale;
+        let h = &self.hold;
+        let (top, bottom) = root.split_vertically(root.dim_in_pixel().1 / 2);
+        let ts = span(h.samples.iter().map(|s| s.t_s), 0.03);
+        let ys = span(
+            h.samples
+                .iter()
+                .flat_map(|s| [s.applied_n * k, s.measured_n * k]),
+            0.08,
+        );
+        let mut c1 = ChartBuilder::on(&top)
+            .caption(
+                format!(
+                    "creep during the holds: {:.4} %FS/min (F sum − F/T)",
+                    h.creep_pct_fs_per_min()
+                ),
+                (FONT, 20),
+            )
+            .margin(12)
+            .x_label_area_size(35)
+            .y_label_area_size(70)
+            .build_cartesian_2d(ts.clone(), ys)?;
+        c1.configure_mesh()
+            .x_desc("hold_t_s (s)")
+            .y_desc(format!("force ({})", self.unit))
+            .label_style((FONT, 13))
+            .draw()?;
+        for hold in 0..h.holds {
+            let c = PALETTE[hold % 8];
+            let pts: Vec<_> = h.samples.iter().filter(|s| s.hold == hold).collect();
+            let s1 = c1.draw_series(LineSeries::new(
+                pts.iter().map(|s| (s.t_s, s.applied_n * k)),
+                c.stroke_width(2),
+            ))?;
+            if hold == 0 {
+                s1.label("F/T (solid)").legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 20, y)], c.stroke_width(2))
+                });
+            }
+            let s2 = c1.draw_series(DashedLineSeries::new(
+                pts.iter().map(|s| (s.t_s, s.measured_n * k)),
+                6,
+                4,
+                c.stroke_width(2),
+            ))?;
+            if hold == 0 {
+                s2.label("F sum (dashed)").legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 6, y)], c.stroke_width(2))
+                });
+            }
+        }
+        c1.configure_series_labels()
+            .position(SeriesLabelPosition::LowerRight)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        let d = |s: &crate::analysis::hold::HoldSample| (s.measured_n - s.applied_n) * k;
+        let ys = span(h.samples.iter().map(d), 0.1);
+        let mut c2 = ChartBuilder::on(&bottom)
+            .margin(12)
+            .x_label_area_size(35)
+            .y_label_area_size(70)
+            .build_cartesian_2d(ts.clone(), ys)?;
+        c2.configure_mesh()
+            .x_desc("hold_t_s (s)")
+            .y_desc(format!("F sum − F/T ({})", self.unit))
+            .label_style((FONT, 13))
+            .draw()?;
+        for hold in 0..h.holds {
+            let c = PALETTE[hold % 8];
+            c2.draw_series(
+                h.samples
+                    .iter()
+                    .filter(|s| s.hold == hold)
+                    .map(|s| Circle::new((s.t_s, d(s)), 3, c.filled())),
+            )?;
+            let (t0, t1) = h
+                .samples
+                .iter()
+                .filter(|s| s.hold == hold)
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), s| {
+                    (a.min(s.t_s), b.max(s.t_s))
+                });
+            if let Some(&b0) = h.creep_intercepts_n.get(hold) {
+                let series = c2.draw_series(LineSeries::new(
+                    [t0, t1].map(|t| (t, (b0 + h.creep.slope * t) * k)),
+                    BLACK.stroke_width(2),
+                ))?;
+                if hold == 0 {
+                    series
+                        .label(format!(
+                            "fitted creep line, slope {:.4} {}/min",
+                            h.creep.slope * 60.0 * k,
+                            self.unit
+                        ))
+                        .legend(|(x, y)| {
+                            PathElement::new([(x, y), (x + 20, y)], BLACK.stroke_width(2))
+                        });
+                }
+            }
+        }
+        c2.configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .label_font((FONT, 13))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+        Ok(())
+    }
+}
