@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod camera;
+mod compare;
 mod ft;
 mod model;
 mod ports;
@@ -39,6 +40,7 @@ enum Command {
     Run(run::Args),
     Reconstruct(reconstruct::Args),
     Report(report::Args),
+    Compare(compare::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
     #[command(subcommand)]
@@ -71,6 +73,7 @@ pub fn main() -> ExitCode {
         Command::Run(args) => run::run(args),
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Report(args) => report::run(args),
+        Command::Compare(args) => compare::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Model(cmd) => model::run(cmd),
