@@ -5,6 +5,7 @@ mod util;
 
 mod bench;
 mod cli;
+mod compare;
 mod fourier;
 mod ft;
 mod layer;

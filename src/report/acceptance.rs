@@ -780,6 +780,90 @@ mod tests {
     }
 
     #[test]
+    fn relative_bounds_take_their_limits_from_the_baseline() {
+        let c = Criteria::from_toml_str(
+            "[[criterion]]\nmetric = \"magnitude.resolution_gf\"\nmax = 30.0\nmax_relative_to_baseline = 0.1\n\
+             [[criterion]]\nmetric = \"magnitude.offset_n\"\nmin_relative_to_baseline = 0.5\nmax_increase = 0.2\n\
+             [[criterion]]\nmetric = \"magnitude.r2\"\nmax_decrease = 0.01\n",
+            Path::new("c.toml"),
+        )
+        .unwrap();
+        assert!(c.has_relative());
+        let res = &c.criteria[0];
+        // The tightest of max = 30 and 20 + 10 % = 22.
+        assert_eq!(res.limits(Some(20.0)), (None, Some(22.0)));
+        assert_eq!(res.limits(Some(40.0)), (None, Some(30.0)));
+        assert_eq!(res.judge_against(22.0, Some(20.0)), Outcome::Pass);
+        assert_eq!(res.judge_against(22.01, Some(20.0)), Outcome::Fail);
+        // A negative baseline: relative to |b|.
+        let off = &c.criteria[1];
+        let (lo, hi) = off.limits(Some(-0.4));
+        assert!((lo.unwrap() - -0.6).abs() < 1e-12 && (hi.unwrap() - -0.2).abs() < 1e-12);
+        assert_eq!(res.absolute_part().unwrap().max_relative_to_baseline, None);
+        assert_eq!(off.absolute_part(), None);
+        assert_eq!(res.to_string(), "<= 30, <= baseline + 10 %");
+        assert_eq!(off.to_string(), ">= baseline - 50 %, <= baseline + 0.2");
+        // Judged against a baseline's metrics.
+        let base = [
+            metric("magnitude.resolution_gf", 20.0),
+            metric("magnitude.offset_n", -0.4),
+            metric("magnitude.r2", 0.999),
+        ];
+        let run = [
+            metric("magnitude.resolution_gf", 25.0),
+            metric("magnitude.offset_n", -0.5),
+            metric("magnitude.r2", 0.99),
+        ];
+        let v = c
+            .evaluate_against(&run, "magnitude", &[], Some(&base))
+            .unwrap();
+        assert_eq!(
+            v.iter().map(|v| v.outcome).collect::<Vec<_>>(),
+            [Outcome::Fail, Outcome::Pass, Outcome::Pass]
+        );
+        assert_eq!(v[0].baseline, Some(20.0));
+        assert_eq!(
+            v[0].to_string(),
+            "FAIL magnitude.resolution_gf = 25 (<= 30, <= baseline + 10 %; baseline 20: <= 22)"
+        );
+        // No baseline (`report`): an error naming compare; a baseline without the
+        // metric or with a non-finite value: an error.
+        let e = c.evaluate(&run, "magnitude", &[]).unwrap_err().to_string();
+        assert!(e.contains("criterion 1") && e.contains("needs a baseline"), "{e}");
+        let e = c
+            .evaluate_against(&run, "magnitude", &[], Some(&base[..1]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("criterion 2") && e.contains("baseline run has no value"),
+            "{e}"
+        );
+        let nan = [metric("magnitude.resolution_gf", f64::NAN)];
+        let e = c
+            .evaluate_against(&run, "magnitude", &[], Some(&nan))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a finite number"), "{e}");
+        // Bad relative bounds are rejected when loading.
+        for bad in ["max_relative_to_baseline = -0.1", "max_increase = inf"] {
+            let e = Criteria::from_toml_str(
+                &format!("[[criterion]]\nmetric = \"magnitude.r2\"\n{bad}\n"),
+                Path::new("c.toml"),
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("must be a finite number >= 0"), "{e}");
+        }
+        let e = Criteria::from_toml_str(
+            "[[criterion]]\nmetric = \"magnitude.r2\"\n",
+            Path::new("c.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("max_relative_to_baseline"), "{e}");
+    }
+
+    #[test]
     fn values_print_with_six_significant_digits() {
         assert_eq!(fmt_value(0.998765432), "0.998765");
         assert_eq!(fmt_value(2.9), "2.9");
