@@ -174,7 +174,11 @@ fn the_noisy_build_is_worse_on_resolution_and_relative_criteria_set_the_exit_cod
         .filter(|l| l.starts_with("build-noisy: ") && l.contains(" = "))
         .collect();
     assert_eq!(lines.len(), 3, "{text}");
-    assert!(lines[0].contains("PASS magnitude.resolution_gf"), "{}", lines[0]);
+    assert!(
+        lines[0].contains("PASS magnitude.resolution_gf"),
+        "{}",
+        lines[0]
+    );
     assert!(lines[1].contains("PASS run.rows"), "{}", lines[1]);
     assert!(
         lines[2].contains("FAIL magnitude.resolution_gf")
@@ -183,7 +187,10 @@ fn the_noisy_build_is_worse_on_resolution_and_relative_criteria_set_the_exit_cod
         lines[2]
     );
     // The baseline is judged on absolute bounds only (run.rows min = 1).
-    assert!(text.contains("build-ideal: PASS run.rows = 8 (>= 1)"), "{text}");
+    assert!(
+        text.contains("build-ideal: PASS run.rows = 8 (>= 1)"),
+        "{text}"
+    );
 
     // compare.csv: the documented header, one row per (metric, run).
     let (header, rows) = read_csv(&out.join("compare.csv"));
@@ -206,7 +213,10 @@ fn the_noisy_build_is_worse_on_resolution_and_relative_criteria_set_the_exit_cod
     assert_eq!(res["build_id"], "build-noisy");
     assert_eq!(res["unit"], "gf");
     assert_eq!(res["better"], "lower");
-    assert_eq!((res["worst"].as_str(), base_res["worst"].as_str()), ("yes", "no"));
+    assert_eq!(
+        (res["worst"].as_str(), base_res["worst"].as_str()),
+        ("yes", "no")
+    );
     let (v, b) = (num(&res["value"]), num(&base_res["value"]));
     assert!(v > b, "noisy {v} gf is not above ideal {b} gf");
     assert_eq!(num(&res["baseline_value"]), b);
@@ -216,7 +226,11 @@ fn the_noisy_build_is_worse_on_resolution_and_relative_criteria_set_the_exit_cod
         assert!((pct - 100.0 * (v - b) / b.abs()).abs() < 1e-6 * pct.abs().max(1.0));
     }
     assert_eq!(res["outcome"], "FAIL");
-    assert!(res["criterion"].contains("<= baseline + 10 %"), "{}", res["criterion"]);
+    assert!(
+        res["criterion"].contains("<= baseline + 10 %"),
+        "{}",
+        res["criterion"]
+    );
     assert!(res["date"].starts_with("20") && res["date"].ends_with('Z'));
 
     // Significance only where both runs state a CI; otherwise n/a, never "yes".
@@ -227,7 +241,11 @@ fn the_noisy_build_is_worse_on_resolution_and_relative_criteria_set_the_exit_cod
             let se = |r: &Row| (num(&r["ci95_high"]) - num(&r["ci95_low"])) / 2.0 / Z95;
             let half = Z95 * se(rw).hypot(se(base));
             let d = num(&rw["difference"]);
-            let expected = if d - half > 0.0 || d + half < 0.0 { "yes" } else { "no" };
+            let expected = if d - half > 0.0 || d + half < 0.0 {
+                "yes"
+            } else {
+                "no"
+            };
             assert_eq!(rw["significant"], expected, "{rw:?}");
             assert!((num(&rw["difference_ci95_low"]) - (d - half)).abs() < 1e-6 * half.max(1e-9));
         } else {
@@ -283,7 +301,10 @@ fn relative_criteria_follow_the_baseline_and_pass_the_better_build() {
     ]);
     let text = stdout(&o);
     assert_eq!(o.status.code(), Some(0), "{text}\n{}", stderr(&o));
-    assert!(text.contains("build-ideal: PASS magnitude.resolution_gf"), "{text}");
+    assert!(
+        text.contains("build-ideal: PASS magnitude.resolution_gf"),
+        "{text}"
+    );
     assert!(
         text.contains("worst magnitude.resolution_gf: build-noisy"),
         "{text}"
@@ -323,7 +344,11 @@ fn a_partial_run_makes_the_comparison_incomplete_unless_allow_partial() {
     let a = args(&[]);
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     assert_eq!(o.status.code(), Some(5), "{}", stdout(&o));
-    assert!(stdout(&o).contains("comparison: INCOMPLETE"), "{}", stdout(&o));
+    assert!(
+        stdout(&o).contains("comparison: INCOMPLETE"),
+        "{}",
+        stdout(&o)
+    );
     let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
     assert!(html.contains("limited by --limit 4"), "the page says why");
     let a = args(&["--allow-partial"]);
@@ -382,7 +407,10 @@ fn bad_input_is_a_clear_error_never_a_panic() {
         &["compare", &ideal, copy.to_str().unwrap(), "--out", out],
         &["identical manifest.json and journal.csv"],
     );
-    check(&["compare", &ideal, "--out", out], &["at least two run directories"]);
+    check(
+        &["compare", &ideal, "--out", out],
+        &["at least two run directories"],
+    );
     // Criteria: an unknown metric, a negative relative bound, a relative bound on a
     // metric the baseline lacks (an up-only sweep has no hysteresis).
     let crit = |name: &str, text: &str| write(tmp.path(), name, text).display().to_string();
@@ -391,7 +419,15 @@ fn bad_input_is_a_clear_error_never_a_panic() {
         "[[criterion]]\nmetric = \"magnitude.resolution_furlongs\"\nmax_relative_to_baseline = 0.1\n",
     );
     check(
-        &["compare", &ideal, &noisy, "--acceptance", &unknown, "--out", out],
+        &[
+            "compare",
+            &ideal,
+            &noisy,
+            "--acceptance",
+            &unknown,
+            "--out",
+            out,
+        ],
         &["criterion 1 (`magnitude.resolution_furlongs`): unknown metric"],
     );
     let negative = crit(
@@ -399,7 +435,15 @@ fn bad_input_is_a_clear_error_never_a_panic() {
         "[[criterion]]\nmetric = \"magnitude.resolution_gf\"\nmax_relative_to_baseline = -0.1\n",
     );
     check(
-        &["compare", &ideal, &noisy, "--acceptance", &negative, "--out", out],
+        &[
+            "compare",
+            &ideal,
+            &noisy,
+            "--acceptance",
+            &negative,
+            "--out",
+            out,
+        ],
         &["max_relative_to_baseline = -0.1 must be a finite number >= 0"],
     );
     let lacking = crit(
@@ -407,8 +451,19 @@ fn bad_input_is_a_clear_error_never_a_panic() {
         "[[criterion]]\nmetric = \"magnitude.hysteresis_pct\"\nmax_relative_to_baseline = 0.1\n",
     );
     check(
-        &["compare", &ideal, &noisy, "--acceptance", &lacking, "--out", out],
-        &["magnitude.hysteresis_pct", "the baseline run has no value for this metric"],
+        &[
+            "compare",
+            &ideal,
+            &noisy,
+            "--acceptance",
+            &lacking,
+            "--out",
+            out,
+        ],
+        &[
+            "magnitude.hysteresis_pct",
+            "the baseline run has no value for this metric",
+        ],
     );
     // `report` has no baseline: a relative criterion is an error there, not a pass.
     let relative = crit(

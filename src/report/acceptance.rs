@@ -829,7 +829,10 @@ mod tests {
         // No baseline (`report`): an error naming compare; a baseline without the
         // metric or with a non-finite value: an error.
         let e = c.evaluate(&run, "magnitude", &[]).unwrap_err().to_string();
-        assert!(e.contains("criterion 1") && e.contains("needs a baseline"), "{e}");
+        assert!(
+            e.contains("criterion 1") && e.contains("needs a baseline"),
+            "{e}"
+        );
         let e = c
             .evaluate_against(&run, "magnitude", &[], Some(&base[..1]))
             .unwrap_err()

@@ -182,10 +182,7 @@ impl Figure for TrendFigure {
                 u => format!(" [{u}]"),
             };
             let mut chart = ChartBuilder::on(area)
-                .caption(
-                    format!("{}{unit}{better}", panel.metric),
-                    (FONT, 13),
-                )
+                .caption(format!("{}{unit}{better}", panel.metric), (FONT, 13))
                 .margin(8)
                 .x_label_area_size(22)
                 .y_label_area_size(58)
@@ -422,7 +419,9 @@ impl Figure for OverlayFigure {
                     color.stroke_width(2),
                 ))?
                 .label(c.label.as_str())
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color.stroke_width(3)));
+                .legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 20, y)], color.stroke_width(3))
+                });
         }
         chart
             .configure_series_labels()

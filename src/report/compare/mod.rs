@@ -226,6 +226,19 @@ pub fn plan_runs(
     if dirs.len() < 2 {
         return Err(CompareError::TooFewRuns { given: dirs.len() });
     }
+    // Before anything is analysed: a copied run is refused by name, not by whatever
+    // the copy happens to lack.
+    for (i, d) in dirs.iter().enumerate() {
+        for e in &dirs[..i] {
+            if same_record(e, d) {
+                return Err(CompareError::Duplicate {
+                    first: e.clone(),
+                    second: d.clone(),
+                    why: "identical manifest.json and journal.csv: a copy of one run",
+                });
+            }
+        }
+    }
     Ok((dirs, base_index))
 }
 
@@ -673,9 +686,7 @@ fn compare_metrics(runs: &[ComparedRun], baseline: usize) -> Vec<MetricCompariso
     names
         .into_iter()
         .map(|(name, unit)| {
-            let base = runs[baseline]
-                .metric(&name)
-                .filter(|m| m.value.is_finite());
+            let base = runs[baseline].metric(&name).filter(|m| m.value.is_finite());
             let differences = runs
                 .iter()
                 .enumerate()
@@ -685,7 +696,12 @@ fn compare_metrics(runs: &[ComparedRun], baseline: usize) -> Vec<MetricCompariso
                     }
                     let m = r.metric(&name).filter(|m| m.value.is_finite())?;
                     let b = base?;
-                    Some(difference(m.value, m.ci95.as_ref(), b.value, b.ci95.as_ref()))
+                    Some(difference(
+                        m.value,
+                        m.ci95.as_ref(),
+                        b.value,
+                        b.ci95.as_ref(),
+                    ))
                 })
                 .collect();
             let better = better(&name);
@@ -869,7 +885,12 @@ pub fn csv_bytes(c: &Comparison) -> Result<Vec<u8>, csv::Error> {
                     .to_string(),
                 criterion,
                 outcome,
-                if r.is_baseline { "baseline" } else { "compared" }.to_string(),
+                if r.is_baseline {
+                    "baseline"
+                } else {
+                    "compared"
+                }
+                .to_string(),
                 opt(d.and_then(|d| d.ci95.map(|c| c.0))),
                 opt(d.and_then(|d| d.ci95.map(|c| c.1))),
                 m.better.map(Better::word).unwrap_or_default(),
@@ -1021,7 +1042,10 @@ mod tests {
         assert_eq!(worst_run(&[Some(1.05), Some(0.9)], s), Some(1));
         let o = Better::CloserTo(0.0);
         assert_eq!(worst_run(&[Some(-3.0), Some(2.0)], o), Some(0));
-        assert_eq!(worst_run(&[Some(1.0), None, Some(2.0)], Better::Lower), Some(2));
+        assert_eq!(
+            worst_run(&[Some(1.0), None, Some(2.0)], Better::Lower),
+            Some(2)
+        );
         assert_eq!(
             worst_run(&[Some(0.99), Some(0.999)], Better::Higher),
             Some(0)
@@ -1029,10 +1053,7 @@ mod tests {
         // Ties and single values name nobody.
         assert_eq!(worst_run(&[Some(0.0), Some(0.0)], Better::Lower), None);
         assert_eq!(worst_run(&[Some(1.0), None], Better::Lower), None);
-        assert_eq!(
-            worst_run(&[Some(f64::NAN), Some(1.0)], Better::Lower),
-            None
-        );
+        assert_eq!(worst_run(&[Some(f64::NAN), Some(1.0)], Better::Lower), None);
     }
 
     #[test]

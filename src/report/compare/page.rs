@@ -202,7 +202,9 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
                 }
             }
             if let Some(d) = m.differences[i] {
-                let pct = d.pct.map_or(String::new(), |p| format!(" ({} %)", signed(p)));
+                let pct = d
+                    .pct
+                    .map_or(String::new(), |p| format!(" ({} %)", signed(p)));
                 let _ = write!(cell, "<br>Δ {}{pct}", signed(d.value));
                 match (d.ci95, d.significance) {
                     (Some((lo, hi)), s) => {
