@@ -47,6 +47,9 @@ impl<F: Figure> AnyFigure for F {
     }
 }
 
+/// `(x, value, 95 % CI)` of one run in a trend panel.
+pub type TrendPoint = (usize, f64, Option<(f64, f64)>);
+
 /// One metric over the runs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrendPanel {
@@ -57,7 +60,7 @@ pub struct TrendPanel {
     /// Which way is better.
     pub better: Option<Better>,
     /// `(x, value, CI)` per run that has a finite value; `x` indexes the labels.
-    pub points: Vec<(usize, f64, Option<(f64, f64)>)>,
+    pub points: Vec<TrendPoint>,
     /// The baseline's value (dashed line), if finite.
     pub baseline: Option<f64>,
 }
@@ -95,7 +98,7 @@ pub fn trend_figure(c: &Comparison) -> Option<TrendFigure> {
         if m.better.is_none() || panels.len() >= MAX_TREND_PANELS {
             continue;
         }
-        let points: Vec<(usize, f64, Option<(f64, f64)>)> = order
+        let points: Vec<TrendPoint> = order
             .iter()
             .enumerate()
             .filter_map(|(x, &i)| {
@@ -143,8 +146,27 @@ fn span(values: impl Iterator<Item = f64>) -> std::ops::Range<f64> {
     if !lo.is_finite() {
         return 0.0..1.0;
     }
-    let s = (hi - lo).max(1e-6 * hi.abs().max(lo.abs()).max(1e-12));
+    // A flat set (every run equal, e.g. 0 unsettled rows) gets a readable span
+    // around its value instead of a rounding-error one.
+    let flat = 0.1 * hi.abs().max(lo.abs());
+    let s = if hi - lo > 1e-9 * hi.abs().max(lo.abs()) {
+        hi - lo
+    } else if flat > 0.0 {
+        flat
+    } else {
+        1.0
+    };
     (lo - 0.12 * s)..(hi + 0.12 * s)
+}
+
+/// `v`, with values within 1e-9 of the axis span from 0 printed as 0 (axis key points
+/// land on -5.6e-17 instead of 0).
+fn snap(v: f64, axis: &std::ops::Range<f64>) -> f64 {
+    if v.abs() < 1e-9 * (axis.end - axis.start).abs() {
+        0.0
+    } else {
+        v
+    }
 }
 
 fn short(label: &str, n: usize) -> String {
@@ -201,7 +223,8 @@ impl Figure for TrendFigure {
                 .x_labels(n + 2)
                 .x_label_formatter(&fmt_x)
                 .y_labels(5)
-                .y_label_formatter(&|y| fmt_value(*y))
+                .y_label_formatter(&|y| fmt_value(snap(*y, &ys)))
+                .light_line_style(WHITE)
                 .label_style((FONT, 11))
                 .draw()?;
             if let Some(b) = panel.baseline {
@@ -392,8 +415,8 @@ impl Figure for OverlayFigure {
             .configure_mesh()
             .x_desc(self.x_label.as_str())
             .y_desc(self.y_label.as_str())
-            .x_label_formatter(&|v| fmt_value(*v))
-            .y_label_formatter(&|v| fmt_value(*v))
+            .x_label_formatter(&|v| fmt_value(snap(*v, &(lo..hi))))
+            .y_label_formatter(&|v| fmt_value(snap(*v, &(lo..hi))))
             .label_style((FONT, 13))
             .draw()?;
         chart

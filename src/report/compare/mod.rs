@@ -39,7 +39,7 @@ use std::path::{Path, PathBuf};
 
 use thiserror::Error;
 
-pub use figures::{OverlayCurve, OverlayFigure, TrendFigure, TrendPanel, RUN_COLORS};
+pub use figures::{OverlayCurve, OverlayFigure, TrendFigure, TrendPanel, TrendPoint, RUN_COLORS};
 
 use super::acceptance::{fmt_value, AcceptanceError, Criteria, Outcome, Verdict};
 use super::plot::{FigureFiles, PlotError};
@@ -115,7 +115,7 @@ pub enum CompareError {
         /// The run directory.
         dir: PathBuf,
         /// The lock error.
-        source: LockError,
+        source: Box<LockError>,
     },
     /// Loading or analysing a run failed.
     #[error("analysing run directory {dir}: {source}")]
@@ -123,7 +123,7 @@ pub enum CompareError {
         /// The run directory.
         dir: PathBuf,
         /// The analysis error.
-        source: AnalysisError,
+        source: Box<AnalysisError>,
     },
     /// The criteria do not apply to a run (or to the baseline).
     #[error("judging {dir}: {source}")]
@@ -131,7 +131,7 @@ pub enum CompareError {
         /// The run directory.
         dir: PathBuf,
         /// The criteria error.
-        source: AcceptanceError,
+        source: Box<AcceptanceError>,
     },
     /// Drawing or writing a figure failed.
     #[error(transparent)]
@@ -179,12 +179,12 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun, CompareError> {
     }
     let lock = lock::probe(dir).map_err(|source| CompareError::Lock {
         dir: dir.to_path_buf(),
-        source,
+        source: Box::new(source),
     })?;
     let analysis = RunAnalysis::load(dir, &AnalysisOptions::default()).map_err(|source| {
         CompareError::Analysis {
             dir: dir.to_path_buf(),
-            source,
+            source: Box::new(source),
         }
     })?;
     Ok(LoadedRun {
@@ -602,7 +602,7 @@ impl Comparison {
             let is_baseline = i == baseline;
             let judge_err = |source| CompareError::Acceptance {
                 dir: l.dir.clone(),
-                source,
+                source: Box::new(source),
             };
             let (crit, verdicts) = if is_baseline {
                 let c = base_criteria.as_ref();
@@ -1063,7 +1063,7 @@ mod tests {
         std::fs::create_dir(&a).unwrap();
         let e = plan_runs(&[a.clone(), tmp.path().join("./a")], None).unwrap_err();
         assert!(e.to_string().contains("the same directory"), "{e}");
-        let e = plan_runs(&[a.clone()], None).unwrap_err();
+        let e = plan_runs(std::slice::from_ref(&a), None).unwrap_err();
         assert!(e.to_string().contains("at least two"), "{e}");
         // --baseline naming one of the runs: that one, no extra run.
         let b = tmp.path().join("b");
