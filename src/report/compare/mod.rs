@@ -290,7 +290,8 @@ impl Better {
 /// |---|---|
 /// | `*.slope` | closer to 1 |
 /// | `*.r2`, `*ok_fraction` | higher |
-/// | `spatial.line_offset_mm`, `run.rows`, `*.mean_px`, `*.class*` | undefined |
+/// | `spatial.line_offset_mm`, `run.rows`, `*.mean_px`, `*_method`, `*full_scale*` | undefined |
+/// | `*.class` (ISO 376 class code, 0 = class 00 ... 3 = outside class 2) | lower |
 /// | names with `bias`, `offset`, `zero`, `creep`, `drift` (signed errors) | closer to 0 |
 /// | `timing.*`, `run.unsettled`, `tracking.flagged_rows`, `tracking.reacquired_rows` | lower |
 /// | names with `resolution`, `sd`, `linearity`, `hysteresis`, `fwhm`, `repeatab`, `reproducib`, `interpolation`, `reversib`, `error`, `uncertainty` | lower |
@@ -308,9 +309,14 @@ pub fn better(metric: &str) -> Option<Better> {
     if metric == "spatial.line_offset_mm"
         || metric == "run.rows"
         || last == "mean_px"
-        || contains("class")
+        || last.ends_with("_method")
+        || contains("full_scale")
     {
         return None;
+    }
+    if last == "class" {
+        // ISO 376 class code: 0 (class 00), 0.5, 1, 2, 3 (outside class 2).
+        return Some(Better::Lower);
     }
     if ["bias", "offset", "zero", "creep", "drift"]
         .iter()
@@ -1037,6 +1043,25 @@ mod tests {
         assert_eq!(better("run.rows"), None);
         assert_eq!(better("displacement.blue.x.mean_px"), None);
         assert_eq!(better("spatial.line_offset_mm"), None);
+        // The metrology metrics (issue 13).
+        assert_eq!(better("magnitude.resolution_method"), None);
+        assert_eq!(better("metrology.full_scale_n"), None);
+        assert_eq!(better("metrology.class"), Some(Better::Lower));
+        for m in [
+            "metrology.repeatability_pct_fs",
+            "metrology.reproducibility_pct_fs",
+            "metrology.interpolation_pct_fs",
+            "metrology.reversibility_pct_fs",
+        ] {
+            assert_eq!(better(m), Some(Better::Lower), "{m}");
+        }
+        for m in [
+            "metrology.zero_pct_fs",
+            "hold.creep_pct_fs_per_min",
+            "hold.zero_drift_n",
+        ] {
+            assert_eq!(better(m), Some(Better::CloserTo(0.0)), "{m}");
+        }
         // Slope 0.9 is worse than 1.05; an offset of -3 worse than 2.
         let s = Better::CloserTo(1.0);
         assert_eq!(worst_run(&[Some(1.05), Some(0.9)], s), Some(1));

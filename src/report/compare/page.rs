@@ -301,8 +301,9 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
          <p><b>Worse.</b> Which direction is better, by metric: closer to 1 for slopes; higher \
          for R² and fractions of markers ok; closer to 0 for biases, offsets, zero errors, creep \
          and drift; lower for resolution, SDs, linearity, hysteresis, FWHM, repeatability, \
-         reproducibility, interpolation and reversibility errors, times and counts of unsettled, \
-         flagged or re-acquired rows; undefined otherwise (e.g. rows, mean displacements). The \
+         reproducibility, interpolation and reversibility errors, the ISO 376 class code, times \
+         and counts of unsettled, flagged or re-acquired rows; undefined otherwise (e.g. rows, \
+         mean displacements, full scale, which resolution method was used). The \
          worst run is named when at least two runs have the metric and one is uniquely worst.</p>\n",
         z = Z95
     );
