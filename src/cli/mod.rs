@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+mod calibrate;
 mod camera;
 mod compare;
 mod ft;
@@ -43,6 +44,7 @@ enum Command {
     Compare(compare::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
+    Calibrate(calibrate::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
     #[command(subcommand)]
@@ -76,6 +78,7 @@ pub fn main() -> ExitCode {
         Command::Compare(args) => compare::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
+        Command::Calibrate(args) => calibrate::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),
         Command::Ports(args) => ports::run(args),
