@@ -6,6 +6,7 @@ mod util;
 mod bench;
 mod camera;
 mod cli;
+mod compare;
 mod fourier;
 mod ft;
 mod layer;

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 mod calibrate;
 mod camera;
+mod compare;
 mod ft;
 mod model;
 mod ports;
@@ -40,6 +41,7 @@ enum Command {
     Run(run::Args),
     Reconstruct(reconstruct::Args),
     Report(report::Args),
+    Compare(compare::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
     Calibrate(calibrate::Args),
@@ -73,6 +75,7 @@ pub fn main() -> ExitCode {
         Command::Run(args) => run::run(args),
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Report(args) => report::run(args),
+        Command::Compare(args) => compare::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Calibrate(args) => calibrate::run(args),

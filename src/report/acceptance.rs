@@ -22,6 +22,23 @@
 //! max = 2.9
 //! ```
 //!
+//! Bounds relative to a baseline run (judged by `tactbench compare`, which names the
+//! baseline; `b` = the baseline's value of the metric, every key optional, each ≥ 0):
+//!
+//! ```toml
+//! [[criterion]]
+//! metric = "magnitude.resolution_gf"
+//! max_relative_to_baseline = 0.10   # value <= b + 0.10 |b|: at most 10 % worse
+//! # min_relative_to_baseline = 0.05 # value >= b - 0.05 |b|
+//! # max_increase = 2.0              # value <= b + 2 (metric unit)
+//! # max_decrease = 2.0              # value >= b - 2 (metric unit)
+//! ```
+//!
+//! A criterion may mix absolute and relative bounds; the limits are the tightest of
+//! them. `tactbench report` has no baseline: a criterion with a relative bound is an
+//! error there ([`Criteria::evaluate`]), never a silent pass; so is a baseline that
+//! lacks the metric or whose value is not finite ([`Criteria::evaluate_against`]).
+//!
 //! Outcome of one criterion: FAIL outside `[min, max]` (or not a finite number);
 //! MARGINAL inside the limits but at or beyond a marginal bound (`value <= marginal_min`
 //! or `value >= marginal_max`, OpenHTF's marginal band: within limits, close to them);
@@ -84,7 +101,23 @@ pub struct Criterion {
     pub marginal_min: Option<f64>,
     /// Values at or above it (within the limits) are MARGINAL.
     pub marginal_max: Option<f64>,
+    /// `value <= b + r |b|` with `b` the baseline's value (`compare` only).
+    pub max_relative_to_baseline: Option<f64>,
+    /// `value >= b - r |b|` (`compare` only).
+    pub min_relative_to_baseline: Option<f64>,
+    /// `value <= b + d`, metric unit (`compare` only).
+    pub max_increase: Option<f64>,
+    /// `value >= b - d`, metric unit (`compare` only).
+    pub max_decrease: Option<f64>,
 }
+
+/// The relative bound keys of a criterion, for messages.
+pub const RELATIVE_KEYS: [&str; 4] = [
+    "max_relative_to_baseline",
+    "min_relative_to_baseline",
+    "max_increase",
+    "max_decrease",
+];
 
 /// The outcome of a criterion, a requirement or a whole verdict.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
@@ -119,14 +152,34 @@ impl fmt::Display for Outcome {
 }
 
 impl fmt::Display for Criterion {
-    /// The threshold as text: `>= 0.99`, `<= 2.9`, `in [0, 2.9]`.
+    /// The threshold as text: `>= 0.99`, `<= 2.9`, `in [0, 2.9]`; relative bounds as
+    /// `<= baseline + 10 %`, `>= baseline - 2`, joined by `, `.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut parts: Vec<String> = Vec::new();
         match (self.min, self.max) {
-            (Some(lo), Some(hi)) => write!(f, "in [{lo}, {hi}]"),
-            (Some(lo), None) => write!(f, ">= {lo}"),
-            (None, Some(hi)) => write!(f, "<= {hi}"),
-            (None, None) => f.write_str("(no bound)"),
-        }?;
+            (Some(lo), Some(hi)) => parts.push(format!("in [{lo}, {hi}]")),
+            (Some(lo), None) => parts.push(format!(">= {lo}")),
+            (None, Some(hi)) => parts.push(format!("<= {hi}")),
+            (None, None) => {}
+        }
+        let pct = |r: f64| fmt_value(r * 100.0);
+        if let Some(r) = self.max_relative_to_baseline {
+            parts.push(format!("<= baseline + {} %", pct(r)));
+        }
+        if let Some(r) = self.min_relative_to_baseline {
+            parts.push(format!(">= baseline - {} %", pct(r)));
+        }
+        if let Some(d) = self.max_increase {
+            parts.push(format!("<= baseline + {d}"));
+        }
+        if let Some(d) = self.max_decrease {
+            parts.push(format!(">= baseline - {d}"));
+        }
+        if parts.is_empty() {
+            f.write_str("(no bound)")?;
+        } else {
+            f.write_str(&parts.join(", "))?;
+        }
         match (self.marginal_min, self.marginal_max) {
             (Some(lo), Some(hi)) => write!(f, ", marginal outside ({lo}, {hi})"),
             (Some(lo), None) => write!(f, ", marginal <= {lo}"),
@@ -164,6 +217,10 @@ struct RawCriterion {
     max: Option<f64>,
     marginal_min: Option<f64>,
     marginal_max: Option<f64>,
+    max_relative_to_baseline: Option<f64>,
+    min_relative_to_baseline: Option<f64>,
+    max_increase: Option<f64>,
+    max_decrease: Option<f64>,
 }
 
 /// The known metric names, one per line, for messages and `--help`.
@@ -204,8 +261,30 @@ impl Criteria {
                     known_metrics_text()
                 )));
             }
+            let relative = [
+                c.max_relative_to_baseline,
+                c.min_relative_to_baseline,
+                c.max_increase,
+                c.max_decrease,
+            ];
+            for (key, v) in RELATIVE_KEYS.iter().zip(relative) {
+                if let Some(v) = v {
+                    if !v.is_finite() || v < 0.0 {
+                        return Err(invalid(format!(
+                            "{key} = {v} must be a finite number >= 0 (how much worse than \
+                             the baseline a run may be)"
+                        )));
+                    }
+                }
+            }
+            let has_relative = relative.iter().any(Option::is_some);
             match (c.min, c.max) {
-                (None, None) => return Err(invalid("give min, max or both".into())),
+                (None, None) if !has_relative => {
+                    return Err(invalid(format!(
+                        "give min, max or both (or a bound relative to a baseline run: {})",
+                        RELATIVE_KEYS.join(", ")
+                    )))
+                }
                 (Some(lo), Some(hi)) if lo > hi => {
                     return Err(invalid(format!("min = {lo} is greater than max = {hi}")))
                 }
@@ -244,6 +323,10 @@ impl Criteria {
                 max: c.max,
                 marginal_min: c.marginal_min,
                 marginal_max: c.marginal_max,
+                max_relative_to_baseline: c.max_relative_to_baseline,
+                min_relative_to_baseline: c.min_relative_to_baseline,
+                max_increase: c.max_increase,
+                max_decrease: c.max_decrease,
             });
         }
         Ok(Criteria {
@@ -257,14 +340,69 @@ impl Criteria {
     /// names the run's sweep kind in messages; `absent` lists the analyses that could
     /// not run on this run's data as (metric prefix, reason): their criteria FAIL
     /// with the reason instead of being errors.
+    ///
+    /// Without a baseline, a criterion with a bound relative to one is an error.
     pub fn evaluate(
         &self,
         metrics: &[Metric],
         sweep: &str,
         absent: &[(String, String)],
     ) -> Result<Vec<Verdict>, AcceptanceError> {
+        self.evaluate_against(metrics, sweep, absent, None)
+    }
+
+    /// Whether any criterion has a bound relative to a baseline.
+    pub fn has_relative(&self) -> bool {
+        self.criteria.iter().any(Criterion::is_relative)
+    }
+
+    /// As [`Criteria::evaluate`], with `baseline` the baseline run's metrics for the
+    /// relative bounds (`None`: no baseline, a relative criterion is an error). A
+    /// baseline that lacks the metric, or whose value is not a finite number, is an
+    /// error naming the criterion.
+    pub fn evaluate_against(
+        &self,
+        metrics: &[Metric],
+        sweep: &str,
+        absent: &[(String, String)],
+        baseline: Option<&[Metric]>,
+    ) -> Result<Vec<Verdict>, AcceptanceError> {
         let mut out = Vec::with_capacity(self.criteria.len());
         for (i, c) in self.criteria.iter().enumerate() {
+            let invalid = |message: String| AcceptanceError::Invalid {
+                path: self.path.clone(),
+                number: i + 1,
+                metric: c.metric.clone(),
+                message,
+            };
+            let base = if c.is_relative() {
+                let Some(b) = baseline else {
+                    return Err(invalid(
+                        "a bound relative to a baseline run needs a baseline: judge it with \
+                         `tactbench compare RUN_DIR... --baseline BASELINE_DIR`"
+                            .into(),
+                    ));
+                };
+                match b.iter().find(|m| m.name == c.metric) {
+                    Some(m) if m.value.is_finite() => Some(m.value),
+                    Some(m) => {
+                        return Err(invalid(format!(
+                            "the baseline's value {} is not a finite number: no relative \
+                             limit can be derived from it",
+                            m.value
+                        )))
+                    }
+                    None => {
+                        return Err(invalid(
+                            "the baseline run has no value for this metric, so the bound \
+                             relative to it cannot be judged"
+                                .into(),
+                        ))
+                    }
+                }
+            } else {
+                None
+            };
             let prefix = c.metric.split('.').next().unwrap_or_default();
             if let Some((_, why)) = absent.iter().find(|(p, _)| p == prefix) {
                 if !metrics.iter().any(|m| m.name == c.metric) {
@@ -274,6 +412,7 @@ impl Criteria {
                         unit: metric_unit(&c.metric),
                         outcome: Outcome::Fail,
                         note: Some(format!("not computed: {why}")),
+                        baseline: base,
                     });
                     continue;
                 }
@@ -294,8 +433,9 @@ impl Criteria {
                 criterion: c.clone(),
                 value: m.value,
                 unit: m.unit,
-                outcome: c.judge(m.value),
+                outcome: c.judge_against(m.value, base),
                 note: None,
+                baseline: base,
             });
         }
         Ok(out)
@@ -303,12 +443,69 @@ impl Criteria {
 }
 
 impl Criterion {
+    /// Whether a bound is relative to a baseline.
+    pub fn is_relative(&self) -> bool {
+        self.max_relative_to_baseline.is_some()
+            || self.min_relative_to_baseline.is_some()
+            || self.max_increase.is_some()
+            || self.max_decrease.is_some()
+    }
+
+    /// The criterion with its relative bounds removed (`None`: it had only those),
+    /// what applies to the baseline run itself.
+    pub fn absolute_part(&self) -> Option<Criterion> {
+        if self.min.is_none() && self.max.is_none() {
+            return None;
+        }
+        Some(Criterion {
+            max_relative_to_baseline: None,
+            min_relative_to_baseline: None,
+            max_increase: None,
+            max_decrease: None,
+            ..self.clone()
+        })
+    }
+
+    /// The inclusive limits `(low, high)` for a baseline value `baseline` (ignored
+    /// without relative bounds): the tightest of the absolute and relative bounds.
+    pub fn limits(&self, baseline: Option<f64>) -> (Option<f64>, Option<f64>) {
+        let mut lo = self.min;
+        let mut hi = self.max;
+        if let Some(b) = baseline {
+            let tighten_hi = |hi: &mut Option<f64>, v: f64| {
+                *hi = Some(hi.map_or(v, |h: f64| h.min(v)));
+            };
+            let tighten_lo = |lo: &mut Option<f64>, v: f64| {
+                *lo = Some(lo.map_or(v, |l: f64| l.max(v)));
+            };
+            if let Some(r) = self.max_relative_to_baseline {
+                tighten_hi(&mut hi, b + r * b.abs());
+            }
+            if let Some(d) = self.max_increase {
+                tighten_hi(&mut hi, b + d);
+            }
+            if let Some(r) = self.min_relative_to_baseline {
+                tighten_lo(&mut lo, b - r * b.abs());
+            }
+            if let Some(d) = self.max_decrease {
+                tighten_lo(&mut lo, b - d);
+            }
+        }
+        (lo, hi)
+    }
+
     /// FAIL outside `[min, max]` or not finite; MARGINAL at or beyond a marginal
-    /// bound; PASS otherwise.
+    /// bound; PASS otherwise (relative bounds are not applied: see
+    /// [`Criterion::judge_against`]).
     pub fn judge(&self, value: f64) -> Outcome {
-        if !value.is_finite()
-            || self.min.is_some_and(|lo| value < lo)
-            || self.max.is_some_and(|hi| value > hi)
+        self.judge_against(value, None)
+    }
+
+    /// As [`Criterion::judge`], the limits from [`Criterion::limits`] with the
+    /// baseline's value `baseline`.
+    pub fn judge_against(&self, value: f64, baseline: Option<f64>) -> Outcome {
+        let (lo, hi) = self.limits(baseline);
+        if !value.is_finite() || lo.is_some_and(|lo| value < lo) || hi.is_some_and(|hi| value > hi)
         {
             Outcome::Fail
         } else if self.marginal_min.is_some_and(|lo| value <= lo)
@@ -346,6 +543,9 @@ pub struct Verdict {
     pub outcome: Outcome,
     /// Why there is no value (the analysis that could not run), if so.
     pub note: Option<String>,
+    /// The baseline's value the relative bounds were taken from (`None` without
+    /// relative bounds).
+    pub baseline: Option<f64>,
 }
 
 impl Verdict {
@@ -366,10 +566,27 @@ impl fmt::Display for Verdict {
             Some(n) => format!("? ({n})"),
             None => format!("{}{unit}", fmt_value(self.value)),
         };
+        let Some(b) = self.baseline else {
+            return write!(
+                f,
+                "{} {} = {value} ({}{unit})",
+                self.outcome, self.criterion.metric, self.criterion
+            );
+        };
+        let (lo, hi) = self.criterion.limits(Some(b));
+        let limits = match (lo, hi) {
+            (Some(lo), Some(hi)) => format!("in [{}, {}]", fmt_value(lo), fmt_value(hi)),
+            (Some(lo), None) => format!(">= {}", fmt_value(lo)),
+            (None, Some(hi)) => format!("<= {}", fmt_value(hi)),
+            (None, None) => String::new(),
+        };
         write!(
             f,
-            "{} {} = {value} ({}{unit})",
-            self.outcome, self.criterion.metric, self.criterion
+            "{} {} = {value} ({}; baseline {}{unit}: {limits}{unit})",
+            self.outcome,
+            self.criterion.metric,
+            self.criterion,
+            fmt_value(b)
         )
     }
 }
@@ -560,6 +777,93 @@ mod tests {
             e.contains("marginal_max = 1.5 is greater than max = 1"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn relative_bounds_take_their_limits_from_the_baseline() {
+        let c = Criteria::from_toml_str(
+            "[[criterion]]\nmetric = \"magnitude.resolution_gf\"\nmax = 30.0\nmax_relative_to_baseline = 0.1\n\
+             [[criterion]]\nmetric = \"magnitude.offset_n\"\nmin_relative_to_baseline = 0.5\nmax_increase = 0.2\n\
+             [[criterion]]\nmetric = \"magnitude.r2\"\nmax_decrease = 0.01\n",
+            Path::new("c.toml"),
+        )
+        .unwrap();
+        assert!(c.has_relative());
+        let res = &c.criteria[0];
+        // The tightest of max = 30 and 20 + 10 % = 22.
+        assert_eq!(res.limits(Some(20.0)), (None, Some(22.0)));
+        assert_eq!(res.limits(Some(40.0)), (None, Some(30.0)));
+        assert_eq!(res.judge_against(22.0, Some(20.0)), Outcome::Pass);
+        assert_eq!(res.judge_against(22.01, Some(20.0)), Outcome::Fail);
+        // A negative baseline: relative to |b|.
+        let off = &c.criteria[1];
+        let (lo, hi) = off.limits(Some(-0.4));
+        assert!((lo.unwrap() - -0.6).abs() < 1e-12 && (hi.unwrap() - -0.2).abs() < 1e-12);
+        assert_eq!(res.absolute_part().unwrap().max_relative_to_baseline, None);
+        assert_eq!(off.absolute_part(), None);
+        assert_eq!(res.to_string(), "<= 30, <= baseline + 10 %");
+        assert_eq!(off.to_string(), ">= baseline - 50 %, <= baseline + 0.2");
+        // Judged against a baseline's metrics.
+        let base = [
+            metric("magnitude.resolution_gf", 20.0),
+            metric("magnitude.offset_n", -0.4),
+            metric("magnitude.r2", 0.999),
+        ];
+        let run = [
+            metric("magnitude.resolution_gf", 25.0),
+            metric("magnitude.offset_n", -0.5),
+            metric("magnitude.r2", 0.99),
+        ];
+        let v = c
+            .evaluate_against(&run, "magnitude", &[], Some(&base))
+            .unwrap();
+        assert_eq!(
+            v.iter().map(|v| v.outcome).collect::<Vec<_>>(),
+            [Outcome::Fail, Outcome::Pass, Outcome::Pass]
+        );
+        assert_eq!(v[0].baseline, Some(20.0));
+        assert_eq!(
+            v[0].to_string(),
+            "FAIL magnitude.resolution_gf = 25 (<= 30, <= baseline + 10 %; baseline 20: <= 22)"
+        );
+        // No baseline (`report`): an error naming compare; a baseline without the
+        // metric or with a non-finite value: an error.
+        let e = c.evaluate(&run, "magnitude", &[]).unwrap_err().to_string();
+        assert!(
+            e.contains("criterion 1") && e.contains("needs a baseline"),
+            "{e}"
+        );
+        let e = c
+            .evaluate_against(&run, "magnitude", &[], Some(&base[..1]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("criterion 2") && e.contains("baseline run has no value"),
+            "{e}"
+        );
+        let nan = [metric("magnitude.resolution_gf", f64::NAN)];
+        let e = c
+            .evaluate_against(&run, "magnitude", &[], Some(&nan))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a finite number"), "{e}");
+        // Bad relative bounds are rejected when loading.
+        for bad in ["max_relative_to_baseline = -0.1", "max_increase = inf"] {
+            let e = Criteria::from_toml_str(
+                &format!("[[criterion]]\nmetric = \"magnitude.r2\"\n{bad}\n"),
+                Path::new("c.toml"),
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("must be a finite number >= 0"), "{e}");
+        }
+        let e = Criteria::from_toml_str(
+            "[[criterion]]\nmetric = \"magnitude.r2\"\n",
+            Path::new("c.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("max_relative_to_baseline"), "{e}");
     }
 
     #[test]
