@@ -244,6 +244,7 @@ impl RunData {
             Sweep::Spatial { .. } => "spatial",
             Sweep::Displacement { .. } => "displacement",
             Sweep::Setpoints(_) => "setpoints",
+            Sweep::Hold { .. } => "hold",
         }
     }
 }
@@ -612,6 +613,12 @@ impl RunAnalysis {
                 }
             }
             Sweep::Setpoints(_) => {}
+            // Minimal arm (the sweeps branch added the kind): creep and zero drift of
+            // hold sweeps are the metrics work of issue 13.
+            Sweep::Hold { .. } => absent.push((
+                "hold".into(),
+                format!("{n_rows}: this build has no analysis of hold sweeps"),
+            )),
         }
         let timing = timing::analyze(&run.rows);
         if timing.is_none() {

@@ -87,6 +87,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use super::journal::Direction;
 use crate::config::{self, Checker, ConfigError};
 use crate::solve::{Lambda, Method, Rank, SolverConfig};
 use crate::units::ForceUnit;
@@ -107,6 +108,9 @@ pub const MAX_DURATION_S: f64 = 7.0 * 86_400.0;
 /// Most bytes of frames a run may write, estimated as width × height × 3 bytes per
 /// frame (uncompressed 8-bit RGB: PNG only makes it smaller), 100 GB.
 pub const MAX_FRAME_BYTES: u64 = 100_000_000_000;
+
+/// Most contact positions in `sweep.positions_mm`.
+pub const MAX_POSITIONS: usize = 10_000;
 
 /// Retract height above the surface assumed by the plan's own duration estimate
 /// (the bench file's `geometry.clearance_mm` default), mm.
@@ -146,6 +150,38 @@ pub struct Setpoint {
     pub shift_mm: [f64; 2],
     /// The swept quantity in its display unit (force_unit, degrees, mm), for reports.
     pub swept_value: f64,
+    /// `sweep.direction = "up-down"` magnitude sweeps: loading (`Up`, the top level
+    /// and the trial's first unloaded reading included) or unloading (`Down`); `None`
+    /// for every other sweep (journal `direction`).
+    pub direction: Option<Direction>,
+    /// Index into `sweep.positions_mm` when the plan lists contact positions (journal
+    /// `position`); `None` otherwise.
+    pub position: Option<usize>,
+    /// `hold` sweeps: the scheduled time of this sample after the hold force is
+    /// reached, s (the journal's `hold_t_s` records the measured time); `None` for the
+    /// unloaded readings and every other sweep.
+    pub hold_t_s: Option<f64>,
+}
+
+/// `[sweep] direction` of a magnitude sweep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SweepDirection {
+    /// `"up"` (default): each trial runs the levels from `from` up to `to`.
+    #[default]
+    Up,
+    /// `"up-down"`: each trial runs up to `to` and back down to `from` (the top level
+    /// measured once), starting and ending with an unloaded reading.
+    UpDown,
+}
+
+impl SweepDirection {
+    /// The name used in plans.
+    pub fn name(self) -> &'static str {
+        match self {
+            SweepDirection::Up => "up",
+            SweepDirection::UpDown => "up-down",
+        }
+    }
 }
 
 /// Which sweep the plan runs (display units kept for reports).
@@ -187,6 +223,17 @@ pub enum Sweep {
         end_mm: [f64; 2],
         /// Number of intervals (positions = subdivisions + 1).
         subdivisions: usize,
+    },
+    /// Constant normal force held for a stated time, sampled through it (creep).
+    Hold {
+        /// Normal force held (force_unit).
+        force: f64,
+        /// How long each hold lasts after the force is reached, s.
+        duration_s: f64,
+        /// Time between samples, s (first at 0, last at `duration_s`).
+        sample_interval_s: f64,
+        /// Holds (contact released between them).
+        trials: usize,
     },
     /// Paper Table I: whole-sensor shift, no load.
     Displacement {
@@ -334,6 +381,12 @@ pub struct Plan {
     pub defaults: Vec<(String, String)>,
     /// Tracking quality gates (`[quality]`, defaults when absent).
     pub quality: Quality,
+    /// `[sweep] direction` (magnitude sweeps; `Up` for every other kind).
+    pub sweep_direction: SweepDirection,
+    /// `[sweep] positions_mm`: contact positions (sensor frame, mm) the trials are
+    /// repeated at, in turn; empty when the key is absent (the trials run at
+    /// `approach.position_mm`).
+    pub positions_mm: Vec<[f64; 2]>,
 }
 
 impl Plan {
@@ -363,15 +416,42 @@ impl Plan {
     /// expanded).
     pub fn setpoint_count(&self) -> usize {
         // Validation bounded the count by MAX_SETPOINTS, so the conversion is exact.
-        self.sweep.count() as usize
+        total_count(&self.sweep, self.sweep_direction, self.positions_mm.len()) as usize
+    }
+
+    /// The contact positions the trials run at, in turn: `(Some(index), position)`
+    /// for each of `sweep.positions_mm`, or `(None, approach.position_mm)` without it.
+    fn trial_positions(&self) -> Vec<(Option<usize>, [f64; 2])> {
+        if self.positions_mm.is_empty() {
+            vec![(None, self.approach_position_mm)]
+        } else {
+            self.positions_mm
+                .iter()
+                .enumerate()
+                .map(|(i, p)| (Some(i), *p))
+                .collect()
+        }
+    }
+
+    /// The top level of a magnitude sweep, N (the largest `from + k·step` ≤ `to`);
+    /// `None` for other sweeps. A resumed up-down trial loads to it before its next
+    /// unloading level, so every `down` row is measured on unloading from the top.
+    pub fn top_level_n(&self) -> Option<f64> {
+        match &self.sweep {
+            Sweep::Magnitude { from, to, step, .. } => {
+                let n = level_count(*from, *to, *step);
+                Some(self.force_unit.to_newtons(from + step * (n - 1.0)))
+            }
+            _ => None,
+        }
     }
 
     /// Every setpoint in run order, generated one at a time (no list is built).
     pub fn setpoints_iter(&self) -> impl Iterator<Item = Setpoint> + '_ {
         let u = self.force_unit;
         let pos = self.approach_position_mm;
-        // (trial, position, normal, tangential, shift, swept value)
-        type Raw = (usize, [f64; 2], f64, [f64; 2], [f64; 2], f64);
+        let positions = self.trial_positions();
+        let updown = self.sweep_direction == SweepDirection::UpDown;
         let raw: Box<dyn Iterator<Item = Raw> + '_> = match &self.sweep {
             Sweep::Magnitude {
                 from,
@@ -379,14 +459,42 @@ impl Plan {
                 step,
                 trials,
             } => {
-                let (from, step) = (*from, *step);
+                let (from, step, trials) = (*from, *step, *trials);
                 let n = level_count(from, *to, step) as usize;
-                Box::new((0..*trials).flat_map(move |t| {
-                    (0..n).map(move |i| {
-                        let v = from + step * i as f64;
-                        (t, pos, u.to_newtons(v), [0.0; 2], [0.0; 2], v)
-                    })
-                }))
+                // (level value, direction) of one trial.
+                let level = move |i: usize, d: Option<Direction>| (from + step * i as f64, d);
+                let one_trial = move || -> Box<dyn Iterator<Item = (f64, Option<Direction>)>> {
+                    if !updown {
+                        return Box::new((0..n).map(move |i| level(i, None)));
+                    }
+                    // Unloaded readings at both ends even when `from` > 0.
+                    let extra = from > 0.0;
+                    let up = Some(Direction::Up);
+                    let down = Some(Direction::Down);
+                    Box::new(
+                        extra
+                            .then_some((0.0, up))
+                            .into_iter()
+                            .chain((0..n).map(move |i| level(i, up)))
+                            .chain((0..n.saturating_sub(1)).rev().map(move |i| level(i, down)))
+                            .chain(extra.then_some((0.0, down))),
+                    )
+                };
+                Box::new(positions.into_iter().enumerate().flat_map(
+                    move |(pi, (pidx, p))| {
+                        (0..trials).flat_map(move |t| {
+                            one_trial().map(move |(v, d)| Raw {
+                                trial: pi * trials + t,
+                                position_mm: p,
+                                normal_n: u.to_newtons(v),
+                                swept_value: v,
+                                direction: d,
+                                position: pidx,
+                                ..Raw::default()
+                            })
+                        })
+                    },
+                ))
             }
             Sweep::Angle {
                 force,
@@ -397,17 +505,57 @@ impl Plan {
                 trials,
             } => {
                 let f = u.to_newtons(*force);
-                let (from, step) = (*from_deg, *step_deg);
+                let (from, step, trials) = (*from_deg, *step_deg, *trials);
                 let n = level_count(from, *to_deg, step) as usize;
                 let (dcos, dsin) = cos_sin_deg(*direction_deg);
-                Box::new((0..*trials).flat_map(move |t| {
-                    (0..n).map(move |i| {
-                        let a = from + step * i as f64;
-                        let (c, s) = cos_sin_deg(a);
-                        let tan = f * s;
-                        (t, pos, f * c, [tan * dcos, tan * dsin], [0.0; 2], a)
-                    })
-                }))
+                Box::new(positions.into_iter().enumerate().flat_map(
+                    move |(pi, (pidx, p))| {
+                        (0..trials).flat_map(move |t| {
+                            (0..n).map(move |i| {
+                                let a = from + step * i as f64;
+                                let (c, s) = cos_sin_deg(a);
+                                let tan = f * s;
+                                Raw {
+                                    trial: pi * trials + t,
+                                    position_mm: p,
+                                    normal_n: f * c,
+                                    tangential_n: [tan * dcos, tan * dsin],
+                                    swept_value: a,
+                                    position: pidx,
+                                    ..Raw::default()
+                                }
+                            })
+                        })
+                    },
+                ))
+            }
+            Sweep::Hold {
+                force,
+                duration_s,
+                sample_interval_s,
+                trials,
+            } => {
+                let (force, d, dt, trials) = (*force, *duration_s, *sample_interval_s, *trials);
+                let f = u.to_newtons(force);
+                let unloaded = move |trial: usize| Raw {
+                    trial,
+                    position_mm: pos,
+                    ..Raw::default()
+                };
+                Box::new(std::iter::once(unloaded(0)).chain((0..trials).flat_map(
+                    move |k| {
+                        hold_schedule(d, dt)
+                            .map(move |t| Raw {
+                                trial: k,
+                                position_mm: pos,
+                                normal_n: f,
+                                swept_value: force,
+                                hold_t_s: Some(t),
+                                ..Raw::default()
+                            })
+                            .chain(std::iter::once(unloaded(k)))
+                    },
+                )))
             }
             Sweep::Spatial {
                 force,
@@ -420,41 +568,119 @@ impl Plan {
                 let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
                 Box::new((0..=k).map(move |i| {
                     let s = i as f64 / k as f64;
-                    let p = [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])];
-                    (0, p, f, [0.0; 2], [0.0; 2], s * len)
+                    Raw {
+                        position_mm: [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])],
+                        normal_n: f,
+                        swept_value: s * len,
+                        ..Raw::default()
+                    }
                 }))
             }
             Sweep::Displacement { shift_mm, trials } => {
                 let shift = *shift_mm;
-                Box::new(
-                    (0..*trials)
-                        .map(move |t| (t, pos, 0.0, [0.0; 2], shift, shift[0].hypot(shift[1]))),
-                )
+                Box::new((0..*trials).map(move |t| Raw {
+                    trial: t,
+                    position_mm: pos,
+                    shift_mm: shift,
+                    swept_value: shift[0].hypot(shift[1]),
+                    ..Raw::default()
+                }))
             }
-            Sweep::Setpoints(points) => Box::new(points.iter().map(move |p| {
-                (
-                    0,
-                    p.position_mm,
-                    u.to_newtons(p.normal),
-                    [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
-                    [0.0; 2],
-                    p.normal,
-                )
+            Sweep::Setpoints(points) => Box::new(points.iter().map(move |p| Raw {
+                position_mm: p.position_mm,
+                normal_n: u.to_newtons(p.normal),
+                tangential_n: [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
+                swept_value: p.normal,
+                ..Raw::default()
             })),
         };
-        raw.enumerate().map(
-            |(index, (trial, position_mm, normal_n, tangential_n, shift_mm, swept_value))| {
-                Setpoint {
-                    index,
-                    trial,
-                    position_mm,
-                    normal_n,
-                    tangential_n,
-                    shift_mm,
-                    swept_value,
-                }
-            },
-        )
+        raw.enumerate().map(|(index, r)| Setpoint {
+            index,
+            trial: r.trial,
+            position_mm: r.position_mm,
+            normal_n: r.normal_n,
+            tangential_n: r.tangential_n,
+            shift_mm: r.shift_mm,
+            swept_value: r.swept_value,
+            direction: r.direction,
+            position: r.position,
+            hold_t_s: r.hold_t_s,
+        })
+    }
+
+    /// What the sweep repeats and how, for `run --dry-run` (empty for a plain sweep):
+    /// the direction of an up-down sweep, the contact positions, a hold's schedule.
+    pub fn sweep_summary(&self) -> Vec<String> {
+        let fu = self.force_unit.symbol();
+        let mut out = Vec::new();
+        if let Sweep::Magnitude {
+            from, to, trials, ..
+        } = &self.sweep
+        {
+            if self.sweep_direction == SweepDirection::UpDown {
+                out.push(format!(
+                    "sweep.direction = \"up-down\": each trial runs from {from} up to {to} {fu} (top level once) and back down to {from} {fu}{}; rows direction = up | down",
+                    if *from > 0.0 {
+                        format!(", with an unloaded reading (0 {fu}, contact released) first (up) and last (down)")
+                    } else {
+                        String::new()
+                    }
+                ));
+            }
+            let _ = trials;
+        }
+        if !self.positions_mm.is_empty() {
+            let trials = match &self.sweep {
+                Sweep::Magnitude { trials, .. } | Sweep::Angle { trials, .. } => *trials,
+                _ => 0,
+            };
+            let list: Vec<String> = self
+                .positions_mm
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    format!(
+                        "{i}: [{}, {}] mm (trials {}..{})",
+                        p[0],
+                        p[1],
+                        i * trials,
+                        (i + 1) * trials - 1
+                    )
+                })
+                .collect();
+            out.push(format!(
+                "sweep.positions_mm: {trials} trial(s) at each of {} positions in turn, trials numbered across positions; {}",
+                self.positions_mm.len(),
+                list.join(", ")
+            ));
+        }
+        if let Sweep::Hold {
+            force,
+            duration_s,
+            sample_interval_s,
+            trials,
+        } = &self.sweep
+        {
+            let times: Vec<f64> = hold_schedule(*duration_s, *sample_interval_s).collect();
+            let shown = if times.len() <= 12 {
+                times.iter().map(|t| format!("{t}")).collect::<Vec<_>>().join(", ")
+            } else {
+                format!(
+                    "{}, ... ({} samples), {}",
+                    times[..5]
+                        .iter()
+                        .map(|t| format!("{t}"))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    times.len(),
+                    times[times.len() - 1]
+                )
+            };
+            out.push(format!(
+                "hold: {force} {fu} for {duration_s} s, {trials} hold(s); samples at {shown} s after the force is reached (force controlled once, then the stage holds its position); unloaded readings before the first hold and after each (rows with target 0 and hold_t_s empty)"
+            ));
+        }
+        out
     }
 
     /// Camera frames the whole plan writes (the reference frame not counted).
@@ -478,7 +704,17 @@ impl Plan {
         let per_setpoint = settle + self.samples as f64 * 1e-3 + self.frames as f64 * 0.03;
         let mut t = 0.0;
         let mut prev: Option<Setpoint> = None;
+        let acquisition = self.samples as f64 * 1e-3 + self.frames as f64 * 0.03;
         for sp in self.setpoints_iter().take(limit.unwrap_or(usize::MAX)) {
+            // A hold sample after the first waits for its time in the schedule (the
+            // acquisition happens within that wait, or later when it is longer).
+            if let (Some(t_hold), Some(t_prev)) = (sp.hold_t_s, prev.and_then(|p| p.hold_t_s)) {
+                if t_hold > t_prev && !needs_retract(prev.as_ref(), &sp) {
+                    t += (t_hold - t_prev).max(acquisition);
+                    prev = Some(sp);
+                    continue;
+                }
+            }
             if needs_retract(prev.as_ref(), &sp) {
                 t += 2.0 * clearance_mm / vmax + 0.5;
                 if let Some(p) = prev {
@@ -493,7 +729,12 @@ impl Plan {
             if sp.normal_n > 0.0 {
                 t += 4.0 * (0.1 / v + 0.02);
             }
-            t += per_setpoint;
+            // The first sample of a hold is taken as soon as the force is reached.
+            t += if sp.hold_t_s.is_some() {
+                acquisition
+            } else {
+                per_setpoint
+            };
             prev = Some(sp);
         }
         t
@@ -529,7 +770,8 @@ impl Plan {
 
 impl Sweep {
     /// The number of setpoints the sweep expands to, from its parameters alone (as
-    /// f64: a typo can make it astronomically large, which validation refuses).
+    /// f64: a typo can make it astronomically large, which validation refuses), for
+    /// `direction = "up"` at one position; [`total_count`] includes both.
     pub fn count(&self) -> f64 {
         match self {
             Sweep::Magnitude {
@@ -546,9 +788,73 @@ impl Sweep {
                 ..
             } => level_count(*from_deg, *to_deg, *step_deg) * *trials as f64,
             Sweep::Spatial { subdivisions, .. } => *subdivisions as f64 + 1.0,
+            Sweep::Hold {
+                duration_s,
+                sample_interval_s,
+                trials,
+                ..
+            } => {
+                // An unloaded reading before the first hold and after each.
+                (hold_sample_count(*duration_s, *sample_interval_s) + 1.0) * *trials as f64 + 1.0
+            }
             Sweep::Displacement { trials, .. } => *trials as f64,
             Sweep::Setpoints(points) => points.len() as f64,
         }
+    }
+}
+
+/// A setpoint before it is numbered (internal units, as in [`Setpoint`]).
+#[derive(Clone, Copy, Default)]
+struct Raw {
+    trial: usize,
+    position_mm: [f64; 2],
+    normal_n: f64,
+    tangential_n: [f64; 2],
+    shift_mm: [f64; 2],
+    swept_value: f64,
+    direction: Option<Direction>,
+    position: Option<usize>,
+    hold_t_s: Option<f64>,
+}
+
+/// Samples per hold: `0, dt, 2·dt, … ≤ duration`, plus `duration` itself when it is
+/// not on that grid (as f64: a typo can make it astronomically large, which
+/// validation refuses before anything is listed).
+pub fn hold_sample_count(duration_s: f64, sample_interval_s: f64) -> f64 {
+    let k = (duration_s / sample_interval_s + 1e-9).floor();
+    let on_grid = (duration_s - k * sample_interval_s).abs() <= 1e-9 * duration_s.max(1.0);
+    k + 1.0 + if on_grid { 0.0 } else { 1.0 }
+}
+
+/// The sample times of one hold, s after the hold force is reached: `0, dt, 2·dt, …`
+/// and the last at `duration` (see [`hold_sample_count`]).
+pub fn hold_schedule(duration_s: f64, sample_interval_s: f64) -> impl Iterator<Item = f64> {
+    let n = hold_sample_count(duration_s, sample_interval_s) as usize;
+    (0..n).map(move |k| (k as f64 * sample_interval_s).min(duration_s))
+}
+
+/// The number of setpoints of a sweep with its direction and `positions` contact
+/// positions (0 = the approach position only), from the parameters alone.
+pub fn total_count(sweep: &Sweep, direction: SweepDirection, positions: usize) -> f64 {
+    let positions = positions.max(1) as f64;
+    match sweep {
+        Sweep::Magnitude {
+            from,
+            to,
+            step,
+            trials,
+        } => {
+            let n = level_count(*from, *to, *step);
+            let per_trial = match direction {
+                SweepDirection::Up => n,
+                SweepDirection::UpDown => {
+                    2.0 * n - 1.0 + if *from > 0.0 { 2.0 } else { 0.0 }
+                }
+            };
+            per_trial * *trials as f64 * positions
+        }
+        Sweep::Angle { .. } => sweep.count() * positions,
+        _ => sweep.count(),
     }
 }
 
@@ -775,6 +1081,10 @@ struct RawSweep {
     subdivisions: Option<i64>,
     shift_mm: Option<[f64; 2]>,
     points: Option<Vec<RawPoint>>,
+    direction: Option<String>,
+    positions_mm: Option<Vec<[f64; 2]>>,
+    duration_s: Option<f64>,
+    sample_interval_s: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -817,14 +1127,58 @@ impl Defaults {
 fn check_caps(
     c: &Checker<'_>,
     sweep: &Sweep,
+    direction: SweepDirection,
+    positions: usize,
     frames: usize,
     fu: &str,
     max_normal: f64,
 ) -> Result<(), PlanError> {
-    let total = sweep.count();
+    if let Sweep::Hold {
+        duration_s, trials, ..
+    } = sweep
+    {
+        let hold_s = duration_s * *trials as f64;
+        if hold_s > MAX_DURATION_S {
+            return Err(c.invalid(
+                "sweep.duration_s",
+                format!("{duration_s} s"),
+                format!(
+                    "sweep.trials {trials} holds of sweep.duration_s {duration_s} s = {:.1} h of holding alone, above the cap of {:.0} h per plan",
+                    hold_s / 3600.0,
+                    MAX_DURATION_S / 3600.0
+                ),
+            ));
+        }
+    }
+    let total = total_count(sweep, direction, positions);
+    let base = sweep.count();
     // NaN (cannot happen after the range checks) is refused as well.
     if total.is_nan() || total > MAX_SETPOINTS as f64 {
         let (key, value, how) = match sweep {
+            _ if base <= MAX_SETPOINTS as f64 && positions > 1 && base * positions as f64 > MAX_SETPOINTS as f64 => (
+                "sweep.positions_mm",
+                format!("{positions} positions"),
+                format!(
+                    "{base:.0} setpoints per position x {positions} positions = {total:.0} setpoints"
+                ),
+            ),
+            Sweep::Hold {
+                duration_s,
+                sample_interval_s,
+                trials,
+                ..
+            } => {
+                let per_hold = hold_sample_count(*duration_s, *sample_interval_s);
+                let how = format!(
+                    "sweep.duration_s {duration_s} s sampled every sweep.sample_interval_s {sample_interval_s} s is {per_hold:.0} samples per hold x sweep.trials {trials} (+ {} unloaded readings) = {total:.0} setpoints",
+                    trials + 1
+                );
+                if per_hold <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else {
+                    ("sweep.sample_interval_s", format!("{sample_interval_s} s"), how)
+                }
+            }
             Sweep::Magnitude {
                 from,
                 to,
@@ -832,9 +1186,14 @@ fn check_caps(
                 trials,
             } => {
                 let levels = level_count(*from, *to, *step);
-                let how = format!(
-                    "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels x sweep.trials {trials} = {total:.0} setpoints"
-                );
+                let how = match direction {
+                    SweepDirection::Up => format!(
+                        "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels x sweep.trials {trials} = {total:.0} setpoints"
+                    ),
+                    SweepDirection::UpDown => format!(
+                        "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels, up and down (sweep.direction = \"up-down\") x sweep.trials {trials} = {total:.0} setpoints"
+                    ),
+                };
                 if levels <= MAX_SETPOINTS as f64 {
                     ("sweep.trials", trials.to_string(), how)
                 } else if *to > max_normal {
@@ -1159,6 +1518,33 @@ impl RawPlan {
                     )?,
                 }
             }
+            "hold" => {
+                let force =
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let duration_s = c.positive(
+                    "sweep.duration_s",
+                    need(&c, "sweep.duration_s", sw.duration_s, &kind)?,
+                    "s",
+                )?;
+                let sample_interval_s = c.positive(
+                    "sweep.sample_interval_s",
+                    need(&c, "sweep.sample_interval_s", sw.sample_interval_s, &kind)?,
+                    "s",
+                )?;
+                if sample_interval_s > duration_s {
+                    return Err(c.invalid(
+                        "sweep.sample_interval_s",
+                        format!("{sample_interval_s} s"),
+                        format!("must not exceed sweep.duration_s = {duration_s} s"),
+                    ));
+                }
+                Sweep::Hold {
+                    force,
+                    duration_s,
+                    sample_interval_s,
+                    trials: trials(&c)?,
+                }
+            }
             "displacement" => {
                 let shift_mm = need(&c, "sweep.shift_mm", sw.shift_mm, &kind)?;
                 c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
@@ -1213,12 +1599,91 @@ impl RawPlan {
                 return Err(c.invalid(
                     "sweep.kind",
                     format!("{other:?}"),
-                    "unknown sweep: expected magnitude, angle, spatial, displacement or setpoints",
+                    "unknown sweep: expected magnitude, angle, hold, spatial, displacement or setpoints",
                 ))
             }
         };
 
-        check_caps(&c, &sweep, frames, fu, unit.from_newtons(max_force_n[2]))?;
+        let sweep_direction = match (sw.direction.as_deref(), &sweep) {
+            (None, Sweep::Magnitude { .. }) => {
+                defaults.push("sweep.direction", "\"up\"".into());
+                SweepDirection::Up
+            }
+            (None, _) => SweepDirection::Up,
+            (Some(d), Sweep::Magnitude { .. }) => match d {
+                "up" => SweepDirection::Up,
+                "up-down" => SweepDirection::UpDown,
+                other => {
+                    return Err(c.invalid(
+                        "sweep.direction",
+                        format!("{other:?}"),
+                        "expected \"up\" or \"up-down\"",
+                    ))
+                }
+            },
+            (Some(d), _) => {
+                return Err(c.invalid(
+                    "sweep.direction",
+                    format!("{d:?}"),
+                    format!("only magnitude sweeps run up and down (sweep kind is \"{kind}\")"),
+                ))
+            }
+        };
+        let positions_mm = match sw.positions_mm {
+            None => Vec::new(),
+            Some(_) if !matches!(sweep, Sweep::Magnitude { .. } | Sweep::Angle { .. }) => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    "(given)",
+                    format!(
+                        "only magnitude and angle sweeps repeat their trials at several positions (sweep kind is \"{kind}\")"
+                    ),
+                ))
+            }
+            Some(list) if list.is_empty() => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    "[]",
+                    "give at least one [x, y] position (mm), or leave the key out",
+                ))
+            }
+            Some(list) if list.len() > MAX_POSITIONS => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    format!("{} positions", list.len()),
+                    format!("at most {MAX_POSITIONS} positions"),
+                ))
+            }
+            Some(list) => {
+                for (i, p) in list.iter().enumerate() {
+                    for (a, axis) in ["x", "y"].iter().enumerate() {
+                        let key = format!("sweep.positions_mm[{i}][{a}]");
+                        c.finite(&key, p[a], "mm")?;
+                        let (lo, hi) = (safety.travel_min_mm[a], safety.travel_max_mm[a]);
+                        if p[a] < lo || p[a] > hi {
+                            return Err(c.invalid(
+                                &key,
+                                format!("{} mm", p[a]),
+                                format!(
+                                    "{axis} is outside the travel box safety.travel_min_mm[{a}]..travel_max_mm[{a}] = {lo}..{hi} mm"
+                                ),
+                            ));
+                        }
+                    }
+                }
+                list
+            }
+        };
+
+        check_caps(
+            &c,
+            &sweep,
+            sweep_direction,
+            positions_mm.len(),
+            frames,
+            fu,
+            unit.from_newtons(max_force_n[2]),
+        )?;
 
         let r = &self.reconstruct;
         let method: Method = match &r.solver {
@@ -1320,6 +1785,8 @@ impl RawPlan {
             defaults.push("quality.on_fail", "\"flag\"".into());
         }
         let plan = Plan {
+            sweep_direction,
+            positions_mm,
             quality,
             solver,
             path: path.to_path_buf(),

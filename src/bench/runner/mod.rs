@@ -103,7 +103,8 @@ mod dry_run;
 mod motion;
 
 pub use dry_run::{
-    check_bench_inputs, dry_run, needs_retract, stage_limits_of, DryRun, InputError, StageTargets,
+    check_bench_inputs, dry_run, needs_retract, sensor_area_checks, stage_limits_of, DryRun,
+    InputError, StageTargets,
 };
 use motion::Timed;
 
@@ -375,6 +376,12 @@ struct Runner<'p, 'd, 'a, 'e> {
     tracker: Option<Tracker>,
     solvers: HashMap<Vec<bool>, Box<dyn FrameSolver>>,
     index: Option<usize>,
+    /// When the force of the current hold (`hold` sweeps) was reached; `None` when no
+    /// hold is under way in this contact (released by every retract).
+    hold_t0: Option<Instant>,
+    /// The current hold was re-established part-way (a resumed run): its samples are
+    /// journalled `settled = false`.
+    hold_restarted: bool,
     /// Per-setpoint accounting.
     track_s: f64,
     solve_s: f64,
@@ -504,6 +511,8 @@ pub fn run(
         tracker: None,
         solvers: HashMap::new(),
         index: None,
+        hold_t0: None,
+        hold_restarted: false,
         track_s: 0.0,
         solve_s: 0.0,
         precompute_s: 0.0,
@@ -683,6 +692,7 @@ pub fn sweep_name(plan: &Plan) -> &'static str {
         Sweep::Spatial { .. } => "spatial",
         Sweep::Displacement { .. } => "displacement",
         Sweep::Setpoints(_) => "setpoints",
+        Sweep::Hold { .. } => "hold",
     }
 }
 
@@ -709,6 +719,9 @@ mod tests {
             tangential_n,
             shift_mm: [0.0; 2],
             swept_value: 0.0,
+            direction: None,
+            position: None,
+            hold_t_s: None,
         }
     }
 
