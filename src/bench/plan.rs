@@ -59,13 +59,50 @@
 //! to = 750.0
 //! step = 50.0
 //! trials = 10
+//! direction = "up"                  # optional: "up" (default) | "up-down"
+//! positions_mm = [[9.0, 6.75], [7.5, 6.75]]  # optional (magnitude, angle): repeat
+//!                                   # the trials at each contact position in turn
 //! # kind = "angle":        force, angle_from_deg, angle_to_deg, angle_step_deg,
 //! #                        direction_deg (azimuth of the tangential part), trials
+//! # kind = "hold":         force, duration_s, sample_interval_s, trials (constant
+//! #                        normal force held, sampled through it: creep)
 //! # kind = "spatial":      force, start_mm = [x, y], end_mm = [x, y], subdivisions
 //! #                        (the paper's sub-stepped point loads between two force nodes)
 //! # kind = "displacement": shift_mm = [dx, dy], trials (whole-sensor shift, no load)
 //! # kind = "setpoints":    [[sweep.points]] with position_mm, normal, tangential = [tx, ty]
 //! ```
+//!
+//! **Up-down sweeps** (`direction = "up-down"`, magnitude only): each trial runs the
+//! levels `from, from + step, …` up to the top level (the largest ≤ `to`, measured
+//! once) and back down to `from` through the same levels (ISO 376 style). Every row
+//! has `direction` = `up` or `down` (the top level is `up`). A trial starts and ends
+//! with an unloaded reading (target 0, contact released): with `from = 0` these are
+//! the `from` level itself (`swept_value` 0, `up` first, `down` last); with `from >
+//! 0` two rows are added, `swept_value` 0, the first `up` and the last `down`. With
+//! `"up"` (the default) the sweep is today's and `direction` stays empty. A `down`
+//! row reached from a fresh contact (a resumed run) is reached by loading to the top
+//! level first (not journalled), so it is measured on unloading as in one pass.
+//!
+//! **Positions** (`positions_mm = [[x, y], …]`, magnitude and angle): sensor-frame
+//! points, mm, in the same frame as `approach.position_mm` (which still places the
+//! reference frame), each inside the plan's travel box (checked here) and the
+//! sensor's force grid (`run --dry-run`). The plan's trials run at position 0, then
+//! all of them at position 1, …; trials are numbered across positions (`trial =
+//! position × trials + repetition`, so a trial number names one pass), and every
+//! row's `position` is its index in the list (empty without the key).
+//!
+//! **Hold sweeps** (`kind = "hold"`): `force` (force_unit) held for `duration_s`,
+//! sampled at `0, sample_interval_s, 2·sample_interval_s, …` and at `duration_s`
+//! ([`hold_schedule`]) after the force is reached; `trials` holds, the contact
+//! released between them. The force is controlled once, at the first sample; the
+//! stage then holds its position (creep shows as the F/T and F^sum changing) and
+//! each sample acquires the F/T mean, the frames and the reconstruction at its time
+//! (no settling; journal `hold_t_s` = measured seconds since the force was reached,
+//! ≥ the schedule's). An unloaded reading (target 0, `hold_t_s` empty, settled as
+//! usual) comes before the first hold (trial 0) and after each hold (that hold's
+//! trial), for the drift of the zero. `swept_value` is the target force (force_unit;
+//! 0 for the unloaded readings). Caps: the samples and the hold time (`trials ×
+//! duration_s` ≤ [`MAX_DURATION_S`]) are checked before anything is expanded.
 //!
 //! Every setpoint is numbered up front ([`Plan::setpoints`], [`Plan::setpoints_iter`])
 //! so `--dry-run`, the journal and resume all see the same numbered list.
@@ -73,7 +110,7 @@
 //! **Required and default keys.** `name`, `sensor`, `[indenter] shape` (+
 //! `diameter_mm` unless `point`), `[approach]`, `[safety]`, `[sweep] kind` and the
 //! keys of that kind are required; so is `sweep.trials` for the kinds that repeat
-//! (`magnitude`, `angle`, `displacement`). Every other key has the default shown in
+//! (`magnitude`, `angle`, `hold`, `displacement`). Every other key has the default shown in
 //! the README's plan schema; [`Plan::defaults`] lists the ones a plan left out, and
 //! `tactbench run --dry-run` prints them.
 //!
@@ -480,21 +517,24 @@ impl Plan {
                             .chain(extra.then_some((0.0, down))),
                     )
                 };
-                Box::new(positions.into_iter().enumerate().flat_map(
-                    move |(pi, (pidx, p))| {
-                        (0..trials).flat_map(move |t| {
-                            one_trial().map(move |(v, d)| Raw {
-                                trial: pi * trials + t,
-                                position_mm: p,
-                                normal_n: u.to_newtons(v),
-                                swept_value: v,
-                                direction: d,
-                                position: pidx,
-                                ..Raw::default()
+                Box::new(
+                    positions
+                        .into_iter()
+                        .enumerate()
+                        .flat_map(move |(pi, (pidx, p))| {
+                            (0..trials).flat_map(move |t| {
+                                one_trial().map(move |(v, d)| Raw {
+                                    trial: pi * trials + t,
+                                    position_mm: p,
+                                    normal_n: u.to_newtons(v),
+                                    swept_value: v,
+                                    direction: d,
+                                    position: pidx,
+                                    ..Raw::default()
+                                })
                             })
-                        })
-                    },
-                ))
+                        }),
+                )
             }
             Sweep::Angle {
                 force,
@@ -508,26 +548,29 @@ impl Plan {
                 let (from, step, trials) = (*from_deg, *step_deg, *trials);
                 let n = level_count(from, *to_deg, step) as usize;
                 let (dcos, dsin) = cos_sin_deg(*direction_deg);
-                Box::new(positions.into_iter().enumerate().flat_map(
-                    move |(pi, (pidx, p))| {
-                        (0..trials).flat_map(move |t| {
-                            (0..n).map(move |i| {
-                                let a = from + step * i as f64;
-                                let (c, s) = cos_sin_deg(a);
-                                let tan = f * s;
-                                Raw {
-                                    trial: pi * trials + t,
-                                    position_mm: p,
-                                    normal_n: f * c,
-                                    tangential_n: [tan * dcos, tan * dsin],
-                                    swept_value: a,
-                                    position: pidx,
-                                    ..Raw::default()
-                                }
+                Box::new(
+                    positions
+                        .into_iter()
+                        .enumerate()
+                        .flat_map(move |(pi, (pidx, p))| {
+                            (0..trials).flat_map(move |t| {
+                                (0..n).map(move |i| {
+                                    let a = from + step * i as f64;
+                                    let (c, s) = cos_sin_deg(a);
+                                    let tan = f * s;
+                                    Raw {
+                                        trial: pi * trials + t,
+                                        position_mm: p,
+                                        normal_n: f * c,
+                                        tangential_n: [tan * dcos, tan * dsin],
+                                        swept_value: a,
+                                        position: pidx,
+                                        ..Raw::default()
+                                    }
+                                })
                             })
-                        })
-                    },
-                ))
+                        }),
+                )
             }
             Sweep::Hold {
                 force,
@@ -542,8 +585,8 @@ impl Plan {
                     position_mm: pos,
                     ..Raw::default()
                 };
-                Box::new(std::iter::once(unloaded(0)).chain((0..trials).flat_map(
-                    move |k| {
+                Box::new(
+                    std::iter::once(unloaded(0)).chain((0..trials).flat_map(move |k| {
                         hold_schedule(d, dt)
                             .map(move |t| Raw {
                                 trial: k,
@@ -554,8 +597,8 @@ impl Plan {
                                 ..Raw::default()
                             })
                             .chain(std::iter::once(unloaded(k)))
-                    },
-                )))
+                    })),
+                )
             }
             Sweep::Spatial {
                 force,
@@ -663,7 +706,11 @@ impl Plan {
         {
             let times: Vec<f64> = hold_schedule(*duration_s, *sample_interval_s).collect();
             let shown = if times.len() <= 12 {
-                times.iter().map(|t| format!("{t}")).collect::<Vec<_>>().join(", ")
+                times
+                    .iter()
+                    .map(|t| format!("{t}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             } else {
                 format!(
                     "{}, ... ({} samples), {}",
@@ -847,9 +894,7 @@ pub fn total_count(sweep: &Sweep, direction: SweepDirection, positions: usize) -
             let n = level_count(*from, *to, *step);
             let per_trial = match direction {
                 SweepDirection::Up => n,
-                SweepDirection::UpDown => {
-                    2.0 * n - 1.0 + if *from > 0.0 { 2.0 } else { 0.0 }
-                }
+                SweepDirection::UpDown => 2.0 * n - 1.0 + if *from > 0.0 { 2.0 } else { 0.0 },
             };
             per_trial * *trials as f64 * positions
         }
@@ -2149,6 +2194,7 @@ trials = 10
                 "settle.dwell_s",
                 "acquire.samples",
                 "acquire.frames",
+                "sweep.direction",
                 "reconstruct.solver",
                 "quality.reference_min_found_fraction",
                 "quality.min_ok_fraction",
@@ -2199,6 +2245,266 @@ trials = 10
             assert_eq!(p.setpoint_count(), n);
             assert_eq!(p.setpoints().len(), n);
             assert_eq!(p.frame_count(), n);
+        }
+    }
+
+    const MAG: &str = "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10";
+
+    fn with_sweep(sweep: &str) -> String {
+        FIG7.replace(MAG, sweep)
+    }
+
+    #[test]
+    fn an_up_down_sweep_runs_each_trial_up_and_back_down_with_the_top_once() {
+        let p = parse(&with_sweep(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\ntrials = 2\ndirection = \"up-down\"",
+        ))
+        .unwrap();
+        assert_eq!(p.sweep_direction, SweepDirection::UpDown);
+        let s = p.setpoints();
+        let got: Vec<(usize, f64, Option<Direction>)> = s
+            .iter()
+            .map(|s| (s.trial, s.swept_value, s.direction))
+            .collect();
+        let (u, d) = (Some(Direction::Up), Some(Direction::Down));
+        let one = |t| {
+            vec![
+                (t, 0.0, u),
+                (t, 100.0, u),
+                (t, 200.0, u),
+                (t, 300.0, u),
+                (t, 200.0, d),
+                (t, 100.0, d),
+                (t, 0.0, d),
+            ]
+        };
+        assert_eq!(got, [one(0), one(1)].concat());
+        assert!(s
+            .iter()
+            .all(|s| s.position.is_none() && s.hold_t_s.is_none()));
+        assert_eq!(s[6].normal_n, 0.0, "the trial ends unloaded");
+        assert_eq!(p.top_level_n(), Some(gf_to_n(300.0)));
+        // From > 0: an unloaded reading is added at both ends of each trial.
+        let p = parse(&with_sweep(
+            "kind = \"magnitude\"\nfrom = 100.0\nto = 250.0\nstep = 100.0\ntrials = 1\ndirection = \"up-down\"",
+        ))
+        .unwrap();
+        let got: Vec<(f64, Option<Direction>)> = p
+            .setpoints()
+            .iter()
+            .map(|s| (s.swept_value, s.direction))
+            .collect();
+        assert_eq!(
+            got,
+            [(0.0, u), (100.0, u), (200.0, u), (100.0, d), (0.0, d)]
+        );
+        assert_eq!(
+            p.top_level_n(),
+            Some(gf_to_n(200.0)),
+            "the top level, not `to`"
+        );
+        // The default ("up") is today's sweep: no direction in the rows.
+        let p = parse(FIG7).unwrap();
+        assert_eq!(p.sweep_direction, SweepDirection::Up);
+        assert!(p.setpoints().iter().all(|s| s.direction.is_none()));
+        let p = parse(&FIG7.replace("trials = 10", "trials = 10\ndirection = \"up\"")).unwrap();
+        assert_eq!(p.setpoint_count(), 160);
+        assert!(p.defaults.iter().all(|(k, _)| k != "sweep.direction"));
+    }
+
+    #[test]
+    fn trials_repeat_at_each_listed_position_in_turn_numbered_across_positions() {
+        let p = parse(&with_sweep(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 100.0\nstep = 100.0\ntrials = 2\ndirection = \"up-down\"\npositions_mm = [[9.0, 6.75], [7.0, 5.0]]",
+        ))
+        .unwrap();
+        let s = p.setpoints();
+        assert_eq!(s.len(), 2 * 2 * 3);
+        let got: Vec<(usize, Option<usize>, [f64; 2])> = s
+            .iter()
+            .map(|s| (s.trial, s.position, s.position_mm))
+            .collect();
+        let mut want = Vec::new();
+        for (pi, pos) in [[9.0, 6.75], [7.0, 5.0]].iter().enumerate() {
+            for t in 0..2 {
+                want.extend([(pi * 2 + t, Some(pi), *pos); 3]);
+            }
+        }
+        assert_eq!(got, want);
+        // Angle sweeps repeat the same way; without the key, position is empty.
+        let p = parse(&with_sweep(
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 10.0\nangle_step_deg = 10.0\ntrials = 1\npositions_mm = [[9.0, 6.75], [10.0, 6.75], [11.0, 6.75]]",
+        ))
+        .unwrap();
+        let s = p.setpoints();
+        assert_eq!(s.len(), 6);
+        assert_eq!(s[5].position, Some(2));
+        assert_eq!(s[5].trial, 2);
+        assert_eq!(s[5].position_mm, [11.0, 6.75]);
+        assert!(parse(FIG7)
+            .unwrap()
+            .setpoints()
+            .iter()
+            .all(|s| s.position.is_none()));
+    }
+
+    #[test]
+    fn a_hold_sweep_samples_each_hold_on_its_schedule_between_unloaded_readings() {
+        let p = parse(&with_sweep(
+            "kind = \"hold\"\nforce = 300.0\nduration_s = 2.5\nsample_interval_s = 1.0\ntrials = 2",
+        ))
+        .unwrap();
+        let s = p.setpoints();
+        let got: Vec<(usize, f64, Option<f64>)> = s
+            .iter()
+            .map(|s| (s.trial, s.normal_n, s.hold_t_s))
+            .collect();
+        let f = gf_to_n(300.0);
+        let hold = |t| {
+            vec![
+                (t, f, Some(0.0)),
+                (t, f, Some(1.0)),
+                (t, f, Some(2.0)),
+                (t, f, Some(2.5)),
+                (t, 0.0, None),
+            ]
+        };
+        assert_eq!(got, [vec![(0, 0.0, None)], hold(0), hold(1)].concat());
+        assert_eq!(s[1].swept_value, 300.0);
+        assert_eq!(s[0].swept_value, 0.0);
+        assert!(s
+            .iter()
+            .all(|s| s.direction.is_none() && s.position.is_none()));
+        // Consecutive samples of a hold keep the contact; each hold starts afresh.
+        assert!(!needs_retract(Some(&s[1]), &s[2]));
+        assert!(needs_retract(Some(&s[5]), &s[6]) && needs_retract(Some(&s[4]), &s[5]));
+        assert_eq!(
+            hold_schedule(3.0, 1.0).collect::<Vec<_>>(),
+            [0.0, 1.0, 2.0, 3.0]
+        );
+        assert_eq!(hold_sample_count(0.3, 0.1), 4.0, "0.3 / 0.1 is on the grid");
+        // The estimate includes the holds' own time.
+        assert!(p.estimate_duration_s(DEFAULT_CLEARANCE_MM, None) > 2.0 * 2.5);
+    }
+
+    #[test]
+    fn sweep_direction_positions_and_hold_keys_are_checked_naming_file_key_and_value() {
+        let hold = "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 1.0\ntrials = 2";
+        for (sweep, key, needle) in [
+            (
+                format!("{MAG}\ndirection = \"down\""),
+                "sweep.direction = \"down\"",
+                "expected \"up\" or \"up-down\"",
+            ),
+            (
+                "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 10.0\nangle_step_deg = 10.0\ntrials = 1\ndirection = \"up-down\"".into(),
+                "sweep.direction",
+                "only magnitude sweeps",
+            ),
+            (
+                format!("{MAG}\npositions_mm = []"),
+                "sweep.positions_mm = []",
+                "at least one",
+            ),
+            (
+                format!("{MAG}\npositions_mm = [[9.0, 6.75], [60.0, 6.75]]"),
+                "sweep.positions_mm[1][0] = 60 mm",
+                "travel box",
+            ),
+            (
+                format!("{hold}\npositions_mm = [[9.0, 6.75]]"),
+                "sweep.positions_mm",
+                "only magnitude and angle",
+            ),
+            (
+                hold.replace("duration_s = 10.0\n", ""),
+                "sweep.duration_s = (missing)",
+                "required by sweep kind \"hold\"",
+            ),
+            (
+                hold.replace("sample_interval_s = 1.0", "sample_interval_s = 20.0"),
+                "sweep.sample_interval_s = 20 s",
+                "must not exceed sweep.duration_s = 10 s",
+            ),
+            (
+                hold.replace("duration_s = 10.0", "duration_s = -1.0"),
+                "sweep.duration_s = -1",
+                "> 0",
+            ),
+            (
+                hold.replace("force = 300.0", "force = 2000.0"),
+                "fz = 2000 gf",
+                "safety.max_force[2]",
+            ),
+            (
+                hold.replace("trials = 2\n", "").replace("trials = 2", ""),
+                "sweep.trials = (missing)",
+                "required",
+            ),
+        ] {
+            let e = parse(&with_sweep(&sweep)).unwrap_err().to_string();
+            assert!(
+                e.contains("experiments/p.toml") && e.contains(key) && e.contains(needle),
+                "{sweep}: {e}"
+            );
+        }
+        // An unknown key in [sweep] is named with its line.
+        let e = parse(&with_sweep(&format!("{hold}\nhold_s = 3")))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("hold_s") && e.contains("line"), "{e}");
+    }
+
+    #[test]
+    fn hold_caps_are_checked_before_anything_is_expanded() {
+        let hold = "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 1.0\ntrials = 2";
+        let e = parse(&with_sweep(
+            &hold.replace("sample_interval_s = 1.0", "sample_interval_s = 1e-6"),
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.sample_interval_s = 0.000001 s")
+                && e.contains("samples per hold")
+                && e.contains(&format!("cap of {MAX_SETPOINTS} setpoints")),
+            "{e}"
+        );
+        let e = parse(&with_sweep(
+            &hold
+                .replace("duration_s = 10.0", "duration_s = 1e9")
+                .replace("sample_interval_s = 1.0", "sample_interval_s = 1e8"),
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.duration_s = 1000000000 s") && e.contains("cap of 168 h"),
+            "{e}"
+        );
+        let e = parse(&with_sweep(&format!(
+            "{MAG}\npositions_mm = [{}]",
+            vec!["[9.0, 6.75]"; 1000].join(", ")
+        )))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.positions_mm = 1000 positions") && e.contains("cap"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_setpoint_count_matches_the_expansion_for_the_repeating_kinds() {
+        for sweep in [
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 3\ndirection = \"up-down\"",
+            "kind = \"magnitude\"\nfrom = 50.0\nto = 700.0\nstep = 50.0\ntrials = 3\ndirection = \"up-down\"\npositions_mm = [[9.0, 6.75], [8.0, 6.0]]",
+            "kind = \"magnitude\"\nfrom = 100.0\nto = 100.0\nstep = 50.0\ntrials = 2\ndirection = \"up-down\"",
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 5.0\ntrials = 2\npositions_mm = [[9.0, 6.75], [8.0, 6.0], [10.0, 7.0]]",
+            "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 0.3\ntrials = 3",
+        ] {
+            let p = parse(&with_sweep(sweep)).unwrap();
+            assert_eq!(p.setpoint_count(), p.setpoints().len(), "{sweep}");
+            assert_eq!(p.setpoints_iter().count(), p.setpoint_count(), "{sweep}");
+            assert!(p.setpoints().iter().enumerate().all(|(i, s)| s.index == i));
         }
     }
 }

@@ -284,9 +284,7 @@ impl World {
             return (self.load_case(c), (fe + s.creep_n + h) / fe);
         }
         match &s.last_load {
-            Some((load, f_last)) if *f_last > 0.0 && s.creep_n > 0.0 => {
-                (*load, s.creep_n / f_last)
-            }
+            Some((load, f_last)) if *f_last > 0.0 && s.creep_n > 0.0 => (*load, s.creep_n / f_last),
             _ => (self.load_case(c), 1.0),
         }
     }
@@ -718,5 +716,107 @@ mod effect_tests {
         let plain = world(BenchEffects::default());
         plain.set_stage_mm([29.15, 36.75, 0.0]);
         assert_eq!(plain.carry_shift_mm(&plain.contact()), [0.0, 0.0]);
+    }
+
+    /// The scale of the rendered displacement field against the ideal world's at the
+    /// same stage position (largest displacement component).
+    fn field_scale(w: &World, ideal: &World) -> f64 {
+        let mut a = w.blank_frame();
+        let mut b = ideal.blank_frame();
+        let ua = w.render(&mut a).unwrap().elastic_u_mm;
+        let ub = ideal.render(&mut b).unwrap().elastic_u_mm;
+        let k = (0..ub.len())
+            .max_by(|&i, &j| ub[i].abs().total_cmp(&ub[j].abs()))
+            .unwrap();
+        ua[k] / ub[k]
+    }
+
+    fn visco(creep: f64, time_constant_s: f64, hysteresis: f64) -> Arc<World> {
+        world(BenchEffects {
+            viscoelastic: Some(Viscoelastic {
+                creep,
+                time_constant_s,
+                hysteresis,
+            }),
+            ..BenchEffects::default()
+        })
+    }
+
+    #[test]
+    fn without_the_viscoelastic_effect_the_field_has_no_creep_and_no_hysteresis() {
+        let (w, ideal) = (
+            world(BenchEffects::default()),
+            world(BenchEffects::default()),
+        );
+        for z in [5.4, 5.2, 5.4, 5.1] {
+            w.set_stage_mm([29.0, 36.75, z]);
+            ideal.set_stage_mm([29.0, 36.75, z]);
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            assert_eq!(field_scale(&w, &ideal), 1.0, "exact at z = {z}");
+        }
+        // Released: nothing left.
+        w.set_stage_mm([29.0, 36.75, 0.0]);
+        let mut img = w.blank_frame();
+        assert!(w
+            .render(&mut img)
+            .unwrap()
+            .elastic_u_mm
+            .iter()
+            .all(|u| *u == 0.0));
+    }
+
+    #[test]
+    fn hysteresis_widens_the_unloading_field_by_the_configured_lens() {
+        let h = 0.1;
+        let (w, ideal) = (visco(0.0, 1.0, h), world(BenchEffects::default()));
+        let at = |z: f64| {
+            w.set_stage_mm([29.0, 36.75, z]);
+            ideal.set_stage_mm([29.0, 36.75, z]);
+            field_scale(&w, &ideal)
+        };
+        // Loading: on the elastic curve.
+        assert!((at(5.2) - 1.0).abs() < 1e-12);
+        assert!((at(5.4) - 1.0).abs() < 1e-12, "peak P = flat_n(0.4)");
+        // Unloading to P/2 (flat punch: force ∝ depth): F + 4hF(P−F)/P = F(1 + 2h).
+        assert!((at(5.2) - (1.0 + 2.0 * h)).abs() < 1e-12);
+        // To P/4: 1 + 4h·3/4.
+        assert!((at(5.1) - (1.0 + 3.0 * h)).abs() < 1e-12);
+        // Back to the peak closes the loop; a release resets it.
+        assert!((at(5.4) - 1.0).abs() < 1e-12);
+        at(0.0);
+        assert!((at(5.2) - 1.0).abs() < 1e-12, "a new contact loads afresh");
+    }
+
+    #[test]
+    fn creep_grows_the_field_towards_one_plus_a_and_recovers_after_unloading() {
+        let (a, tau) = (0.2, 0.02);
+        let (w, ideal) = (visco(a, tau, 0.0), world(BenchEffects::default()));
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        ideal.set_stage_mm([29.0, 36.75, 5.3]);
+        let s0 = field_scale(&w, &ideal);
+        assert!((1.0..=1.0 + a).contains(&s0), "right after the step: {s0}");
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        // 15 τ later: within a·e^-15 of 1 + a (a longer wait only comes closer).
+        let s1 = field_scale(&w, &ideal);
+        assert!((s1 - (1.0 + a)).abs() < 1e-6 * a, "{s1}");
+        // Released: the last contact's field, scaled to the creep left, decays with τ.
+        w.set_stage_mm([29.0, 36.75, 0.0]);
+        let mut img = w.blank_frame();
+        let u = w.render(&mut img).unwrap().elastic_u_mm;
+        let residual = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(
+            residual > 0.0,
+            "creep recovery is visible right after unloading"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(400));
+        let u = w.render(&mut img).unwrap().elastic_u_mm;
+        let later = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(
+            later < residual * 1e-6,
+            "recovered: {later} mm vs {residual} mm"
+        );
+        // The F/T side is untouched by this effect.
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        assert!((w.wrench().force_n[2] - flat_n(0.3)).abs() < 1e-12);
     }
 }

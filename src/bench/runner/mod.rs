@@ -56,7 +56,18 @@
 //! **Resume.** [`run`] with `resume = true` reopens the journal (a torn last line is
 //! cut), skips completed indices, homes / tares as the bench requires, and takes a new
 //! reference frame (`frames/reference_resumeN.png`; `frames/reference.png` stays the
-//! first run's).
+//! first run's). Rows are never overwritten, so:
+//! - a **hold** interrupted part-way is not re-run from its start (its rows exist):
+//!   its force is re-established (approach and control) and its remaining samples
+//!   are taken at their scheduled times counted from that moment (`hold_t_s` keeps
+//!   meaning "seconds since the force of this loading was reached"); those rows are
+//!   journalled `settled = false` and a warning is logged;
+//! - a **`down` row** of an up-down sweep reached from a fresh contact first loads to
+//!   the sweep's top level (not journalled), then unloads to its level.
+//!
+//! **Hold samples** (plan `hold` sweeps) skip settling: the first is taken as soon as
+//! force control reached the target, the later ones wait (reading the F/T every
+//! 20 ms for the safety limits, stopping at once on a stop request) until their time.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
