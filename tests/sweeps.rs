@@ -312,7 +312,7 @@ fn the_hold_example_samples_on_its_schedule_between_unloaded_readings() {
                     "row {}: sampled at {got} s, scheduled {t} s",
                     r.index
                 );
-                assert!(last.map_or(true, |l| got > l), "row {}", r.index);
+                assert!(last.is_none_or(|l| got > l), "row {}", r.index);
                 assert!(r.settled, "an uninterrupted hold");
                 last = Some(got);
             }
