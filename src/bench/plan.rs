@@ -81,7 +81,8 @@
 //! 0` two rows are added, `swept_value` 0, the first `up` and the last `down`. With
 //! `"up"` (the default) the sweep is today's and `direction` stays empty. A `down`
 //! row reached from a fresh contact (a resumed run) is reached by loading to the top
-//! level first (not journalled), so it is measured on unloading as in one pass.
+//! level first (not journalled), so it is measured on unloading as in one pass; the
+//! runner approaches every level of such a sweep from one side (no overshoot).
 //!
 //! **Positions** (`positions_mm = [[x, y], …]`, magnitude and angle): sensor-frame
 //! points, mm, in the same frame as `approach.position_mm` (which still places the

@@ -17,6 +17,10 @@ use crate::formats::{self, DisplacementFrame};
 use crate::solve::{self, Problem};
 use crate::vision::{self, FrameView, MarkerTrack, Reference, ReferenceHealth, StatusCounts};
 
+/// Fraction of the force controller's step taken towards the target on the rows of
+/// an up-down sweep (approached from one side; see `control`).
+pub const MONOTONIC_STEP_FRACTION: f64 = 0.6;
+
 /// How often a hold reads the force sensor for the safety limits while it waits for
 /// its next sample.
 pub const HOLD_POLL: Duration = Duration::from_millis(20);
@@ -104,10 +108,21 @@ impl Runner<'_, '_, '_, '_> {
             let xy = self.geom.sensor_xy(here);
             if !normal_ok {
                 let depth = self.geom.depth(here[2]);
-                let next = self
-                    .normal_ctl
-                    .next_z(depth, f[2], sp.normal_n)
-                    .min(max_depth);
+                let mut next = self.normal_ctl.next_z(depth, f[2], sp.normal_n);
+                // Up-down sweeps approach each level from one side (loading from
+                // below, unloading from above): a step towards the target is cut to
+                // MONOTONIC_STEP_FRACTION of the secant's, so a contact that stiffens
+                // with depth (Hertz: local stiffness up to 1.5x the secant) is not
+                // overshot, which would put an `up` row on an unloading branch.
+                let towards = match sp.direction {
+                    Some(Direction::Up) => next > depth,
+                    Some(Direction::Down) => next < depth,
+                    None => false,
+                };
+                if towards {
+                    next = depth + (next - depth) * MONOTONIC_STEP_FRACTION;
+                }
+                let next = next.min(max_depth);
                 if next <= depth + 1e-9 && f[2] < sp.normal_n - tol {
                     return Err(Halt::Abort(format!(
                         "cannot reach fz = {:.4} N: {:.4} N at the deepest allowed indentation {max_depth} mm",
