@@ -657,10 +657,7 @@ impl Plan {
     pub fn sweep_summary(&self) -> Vec<String> {
         let fu = self.force_unit.symbol();
         let mut out = Vec::new();
-        if let Sweep::Magnitude {
-            from, to, trials, ..
-        } = &self.sweep
-        {
+        if let Sweep::Magnitude { from, to, .. } = &self.sweep {
             if self.sweep_direction == SweepDirection::UpDown {
                 out.push(format!(
                     "sweep.direction = \"up-down\": each trial runs from {from} up to {to} {fu} (top level once) and back down to {from} {fu}{}; rows direction = up | down",
@@ -671,7 +668,6 @@ impl Plan {
                     }
                 ));
             }
-            let _ = trials;
         }
         if !self.positions_mm.is_empty() {
             let trials = match &self.sweep {
