@@ -21,7 +21,7 @@ use tactbench::sim::scene::Scene;
 use crate::util;
 
 /// Each plan in `experiments/` and the scene its simulated run uses.
-const PLANS: [(&str, &str); 5] = [
+const PLANS: [(&str, &str); 7] = [
     (
         "experiments/fig7_magnitude.toml",
         "experiments/scenes/fig7_hemisphere_ramp.toml",
@@ -41,6 +41,14 @@ const PLANS: [(&str, &str); 5] = [
     (
         "experiments/setpoints_example.toml",
         "experiments/scenes/fig8_angle_400gf.toml",
+    ),
+    (
+        "experiments/magnitude_updown.toml",
+        "experiments/scenes/fig7_hemisphere_ramp.toml",
+    ),
+    (
+        "experiments/hold_example.toml",
+        "experiments/scenes/fig7_hemisphere_ramp.toml",
     ),
 ];
 

@@ -20,4 +20,5 @@ mod solver_cli;
 mod solvers;
 mod stage;
 mod study;
+mod sweeps;
 mod vision;

@@ -248,6 +248,7 @@ impl RunData {
             Sweep::Spatial { .. } => "spatial",
             Sweep::Displacement { .. } => "displacement",
             Sweep::Setpoints(_) => "setpoints",
+            Sweep::Hold { .. } => "hold",
         }
     }
 }
@@ -695,6 +696,9 @@ impl RunAnalysis {
                 }
             }
             Sweep::Setpoints(_) => {}
+            // Hold sweeps: the creep and zero-drift analysis below runs on the rows'
+            // `hold_t_s`, whatever the plan kind.
+            Sweep::Hold { .. } => {}
         }
         // Dispatched on the data, not the plan: magnitude rows give the ISO 376-style
         // metrics, rows with `hold_t_s` the creep analysis.

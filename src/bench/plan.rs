@@ -59,13 +59,51 @@
 //! to = 750.0
 //! step = 50.0
 //! trials = 10
+//! direction = "up"                  # optional: "up" (default) | "up-down"
+//! positions_mm = [[9.0, 6.75], [7.5, 6.75]]  # optional (magnitude, angle): repeat
+//!                                   # the trials at each contact position in turn
 //! # kind = "angle":        force, angle_from_deg, angle_to_deg, angle_step_deg,
 //! #                        direction_deg (azimuth of the tangential part), trials
+//! # kind = "hold":         force, duration_s, sample_interval_s, trials (constant
+//! #                        normal force held, sampled through it: creep)
 //! # kind = "spatial":      force, start_mm = [x, y], end_mm = [x, y], subdivisions
 //! #                        (the paper's sub-stepped point loads between two force nodes)
 //! # kind = "displacement": shift_mm = [dx, dy], trials (whole-sensor shift, no load)
 //! # kind = "setpoints":    [[sweep.points]] with position_mm, normal, tangential = [tx, ty]
 //! ```
+//!
+//! **Up-down sweeps** (`direction = "up-down"`, magnitude only): each trial runs the
+//! levels `from, from + step, …` up to the top level (the largest ≤ `to`, measured
+//! once) and back down to `from` through the same levels (ISO 376 style). Every row
+//! has `direction` = `up` or `down` (the top level is `up`). A trial starts and ends
+//! with an unloaded reading (target 0, contact released): with `from = 0` these are
+//! the `from` level itself (`swept_value` 0, `up` first, `down` last); with `from >
+//! 0` two rows are added, `swept_value` 0, the first `up` and the last `down`. With
+//! `"up"` (the default) the sweep is today's and `direction` stays empty. A `down`
+//! row reached from a fresh contact (a resumed run) is reached by loading to the top
+//! level first (not journalled), so it is measured on unloading as in one pass; the
+//! runner approaches every level of such a sweep from one side (no overshoot).
+//!
+//! **Positions** (`positions_mm = [[x, y], …]`, magnitude and angle): sensor-frame
+//! points, mm, in the same frame as `approach.position_mm` (which still places the
+//! reference frame), each inside the plan's travel box (checked here) and the
+//! sensor's force grid (`run --dry-run`). The plan's trials run at position 0, then
+//! all of them at position 1, …; trials are numbered across positions (`trial =
+//! position × trials + repetition`, so a trial number names one pass), and every
+//! row's `position` is its index in the list (empty without the key).
+//!
+//! **Hold sweeps** (`kind = "hold"`): `force` (force_unit) held for `duration_s`,
+//! sampled at `0, sample_interval_s, 2·sample_interval_s, …` and at `duration_s`
+//! ([`hold_schedule`]) after the force is reached; `trials` holds, the contact
+//! released between them. The force is controlled once, at the first sample; the
+//! stage then holds its position (creep shows as the F/T and F^sum changing) and
+//! each sample acquires the F/T mean, the frames and the reconstruction at its time
+//! (no settling; journal `hold_t_s` = measured seconds since the force was reached,
+//! ≥ the schedule's). An unloaded reading (target 0, `hold_t_s` empty, settled as
+//! usual) comes before the first hold (trial 0) and after each hold (that hold's
+//! trial), for the drift of the zero. `swept_value` is the target force (force_unit;
+//! 0 for the unloaded readings). Caps: the samples and the hold time (`trials ×
+//! duration_s` ≤ [`MAX_DURATION_S`]) are checked before anything is expanded.
 //!
 //! Every setpoint is numbered up front ([`Plan::setpoints`], [`Plan::setpoints_iter`])
 //! so `--dry-run`, the journal and resume all see the same numbered list.
@@ -73,7 +111,7 @@
 //! **Required and default keys.** `name`, `sensor`, `[indenter] shape` (+
 //! `diameter_mm` unless `point`), `[approach]`, `[safety]`, `[sweep] kind` and the
 //! keys of that kind are required; so is `sweep.trials` for the kinds that repeat
-//! (`magnitude`, `angle`, `displacement`). Every other key has the default shown in
+//! (`magnitude`, `angle`, `hold`, `displacement`). Every other key has the default shown in
 //! the README's plan schema; [`Plan::defaults`] lists the ones a plan left out, and
 //! `tactbench run --dry-run` prints them.
 //!
@@ -87,6 +125,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use super::journal::Direction;
 use crate::config::{self, Checker, ConfigError};
 use crate::solve::{Lambda, Method, Rank, SolverConfig};
 use crate::units::ForceUnit;
@@ -107,6 +146,9 @@ pub const MAX_DURATION_S: f64 = 7.0 * 86_400.0;
 /// Most bytes of frames a run may write, estimated as width × height × 3 bytes per
 /// frame (uncompressed 8-bit RGB: PNG only makes it smaller), 100 GB.
 pub const MAX_FRAME_BYTES: u64 = 100_000_000_000;
+
+/// Most contact positions in `sweep.positions_mm`.
+pub const MAX_POSITIONS: usize = 10_000;
 
 /// Retract height above the surface assumed by the plan's own duration estimate
 /// (the bench file's `geometry.clearance_mm` default), mm.
@@ -146,6 +188,38 @@ pub struct Setpoint {
     pub shift_mm: [f64; 2],
     /// The swept quantity in its display unit (force_unit, degrees, mm), for reports.
     pub swept_value: f64,
+    /// `sweep.direction = "up-down"` magnitude sweeps: loading (`Up`, the top level
+    /// and the trial's first unloaded reading included) or unloading (`Down`); `None`
+    /// for every other sweep (journal `direction`).
+    pub direction: Option<Direction>,
+    /// Index into `sweep.positions_mm` when the plan lists contact positions (journal
+    /// `position`); `None` otherwise.
+    pub position: Option<usize>,
+    /// `hold` sweeps: the scheduled time of this sample after the hold force is
+    /// reached, s (the journal's `hold_t_s` records the measured time); `None` for the
+    /// unloaded readings and every other sweep.
+    pub hold_t_s: Option<f64>,
+}
+
+/// `[sweep] direction` of a magnitude sweep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SweepDirection {
+    /// `"up"` (default): each trial runs the levels from `from` up to `to`.
+    #[default]
+    Up,
+    /// `"up-down"`: each trial runs up to `to` and back down to `from` (the top level
+    /// measured once), starting and ending with an unloaded reading.
+    UpDown,
+}
+
+impl SweepDirection {
+    /// The name used in plans.
+    pub fn name(self) -> &'static str {
+        match self {
+            SweepDirection::Up => "up",
+            SweepDirection::UpDown => "up-down",
+        }
+    }
 }
 
 /// Which sweep the plan runs (display units kept for reports).
@@ -187,6 +261,17 @@ pub enum Sweep {
         end_mm: [f64; 2],
         /// Number of intervals (positions = subdivisions + 1).
         subdivisions: usize,
+    },
+    /// Constant normal force held for a stated time, sampled through it (creep).
+    Hold {
+        /// Normal force held (force_unit).
+        force: f64,
+        /// How long each hold lasts after the force is reached, s.
+        duration_s: f64,
+        /// Time between samples, s (first at 0, last at `duration_s`).
+        sample_interval_s: f64,
+        /// Holds (contact released between them).
+        trials: usize,
     },
     /// Paper Table I: whole-sensor shift, no load.
     Displacement {
@@ -334,6 +419,12 @@ pub struct Plan {
     pub defaults: Vec<(String, String)>,
     /// Tracking quality gates (`[quality]`, defaults when absent).
     pub quality: Quality,
+    /// `[sweep] direction` (magnitude sweeps; `Up` for every other kind).
+    pub sweep_direction: SweepDirection,
+    /// `[sweep] positions_mm`: contact positions (sensor frame, mm) the trials are
+    /// repeated at, in turn; empty when the key is absent (the trials run at
+    /// `approach.position_mm`).
+    pub positions_mm: Vec<[f64; 2]>,
 }
 
 impl Plan {
@@ -363,15 +454,42 @@ impl Plan {
     /// expanded).
     pub fn setpoint_count(&self) -> usize {
         // Validation bounded the count by MAX_SETPOINTS, so the conversion is exact.
-        self.sweep.count() as usize
+        total_count(&self.sweep, self.sweep_direction, self.positions_mm.len()) as usize
+    }
+
+    /// The contact positions the trials run at, in turn: `(Some(index), position)`
+    /// for each of `sweep.positions_mm`, or `(None, approach.position_mm)` without it.
+    fn trial_positions(&self) -> Vec<(Option<usize>, [f64; 2])> {
+        if self.positions_mm.is_empty() {
+            vec![(None, self.approach_position_mm)]
+        } else {
+            self.positions_mm
+                .iter()
+                .enumerate()
+                .map(|(i, p)| (Some(i), *p))
+                .collect()
+        }
+    }
+
+    /// The top level of a magnitude sweep, N (the largest `from + k·step` ≤ `to`);
+    /// `None` for other sweeps. A resumed up-down trial loads to it before its next
+    /// unloading level, so every `down` row is measured on unloading from the top.
+    pub fn top_level_n(&self) -> Option<f64> {
+        match &self.sweep {
+            Sweep::Magnitude { from, to, step, .. } => {
+                let n = level_count(*from, *to, *step);
+                Some(self.force_unit.to_newtons(from + step * (n - 1.0)))
+            }
+            _ => None,
+        }
     }
 
     /// Every setpoint in run order, generated one at a time (no list is built).
     pub fn setpoints_iter(&self) -> impl Iterator<Item = Setpoint> + '_ {
         let u = self.force_unit;
         let pos = self.approach_position_mm;
-        // (trial, position, normal, tangential, shift, swept value)
-        type Raw = (usize, [f64; 2], f64, [f64; 2], [f64; 2], f64);
+        let positions = self.trial_positions();
+        let updown = self.sweep_direction == SweepDirection::UpDown;
         let raw: Box<dyn Iterator<Item = Raw> + '_> = match &self.sweep {
             Sweep::Magnitude {
                 from,
@@ -379,14 +497,45 @@ impl Plan {
                 step,
                 trials,
             } => {
-                let (from, step) = (*from, *step);
+                let (from, step, trials) = (*from, *step, *trials);
                 let n = level_count(from, *to, step) as usize;
-                Box::new((0..*trials).flat_map(move |t| {
-                    (0..n).map(move |i| {
-                        let v = from + step * i as f64;
-                        (t, pos, u.to_newtons(v), [0.0; 2], [0.0; 2], v)
-                    })
-                }))
+                // (level value, direction) of one trial.
+                let level = move |i: usize, d: Option<Direction>| (from + step * i as f64, d);
+                let one_trial = move || -> Box<dyn Iterator<Item = (f64, Option<Direction>)>> {
+                    if !updown {
+                        return Box::new((0..n).map(move |i| level(i, None)));
+                    }
+                    // Unloaded readings at both ends even when `from` > 0.
+                    let extra = from > 0.0;
+                    let up = Some(Direction::Up);
+                    let down = Some(Direction::Down);
+                    Box::new(
+                        extra
+                            .then_some((0.0, up))
+                            .into_iter()
+                            .chain((0..n).map(move |i| level(i, up)))
+                            .chain((0..n.saturating_sub(1)).rev().map(move |i| level(i, down)))
+                            .chain(extra.then_some((0.0, down))),
+                    )
+                };
+                Box::new(
+                    positions
+                        .into_iter()
+                        .enumerate()
+                        .flat_map(move |(pi, (pidx, p))| {
+                            (0..trials).flat_map(move |t| {
+                                one_trial().map(move |(v, d)| Raw {
+                                    trial: pi * trials + t,
+                                    position_mm: p,
+                                    normal_n: u.to_newtons(v),
+                                    swept_value: v,
+                                    direction: d,
+                                    position: pidx,
+                                    ..Raw::default()
+                                })
+                            })
+                        }),
+                )
             }
             Sweep::Angle {
                 force,
@@ -397,17 +546,60 @@ impl Plan {
                 trials,
             } => {
                 let f = u.to_newtons(*force);
-                let (from, step) = (*from_deg, *step_deg);
+                let (from, step, trials) = (*from_deg, *step_deg, *trials);
                 let n = level_count(from, *to_deg, step) as usize;
                 let (dcos, dsin) = cos_sin_deg(*direction_deg);
-                Box::new((0..*trials).flat_map(move |t| {
-                    (0..n).map(move |i| {
-                        let a = from + step * i as f64;
-                        let (c, s) = cos_sin_deg(a);
-                        let tan = f * s;
-                        (t, pos, f * c, [tan * dcos, tan * dsin], [0.0; 2], a)
-                    })
-                }))
+                Box::new(
+                    positions
+                        .into_iter()
+                        .enumerate()
+                        .flat_map(move |(pi, (pidx, p))| {
+                            (0..trials).flat_map(move |t| {
+                                (0..n).map(move |i| {
+                                    let a = from + step * i as f64;
+                                    let (c, s) = cos_sin_deg(a);
+                                    let tan = f * s;
+                                    Raw {
+                                        trial: pi * trials + t,
+                                        position_mm: p,
+                                        normal_n: f * c,
+                                        tangential_n: [tan * dcos, tan * dsin],
+                                        swept_value: a,
+                                        position: pidx,
+                                        ..Raw::default()
+                                    }
+                                })
+                            })
+                        }),
+                )
+            }
+            Sweep::Hold {
+                force,
+                duration_s,
+                sample_interval_s,
+                trials,
+            } => {
+                let (force, d, dt, trials) = (*force, *duration_s, *sample_interval_s, *trials);
+                let f = u.to_newtons(force);
+                let unloaded = move |trial: usize| Raw {
+                    trial,
+                    position_mm: pos,
+                    ..Raw::default()
+                };
+                Box::new(
+                    std::iter::once(unloaded(0)).chain((0..trials).flat_map(move |k| {
+                        hold_schedule(d, dt)
+                            .map(move |t| Raw {
+                                trial: k,
+                                position_mm: pos,
+                                normal_n: f,
+                                swept_value: force,
+                                hold_t_s: Some(t),
+                                ..Raw::default()
+                            })
+                            .chain(std::iter::once(unloaded(k)))
+                    })),
+                )
             }
             Sweep::Spatial {
                 force,
@@ -420,41 +612,119 @@ impl Plan {
                 let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
                 Box::new((0..=k).map(move |i| {
                     let s = i as f64 / k as f64;
-                    let p = [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])];
-                    (0, p, f, [0.0; 2], [0.0; 2], s * len)
+                    Raw {
+                        position_mm: [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])],
+                        normal_n: f,
+                        swept_value: s * len,
+                        ..Raw::default()
+                    }
                 }))
             }
             Sweep::Displacement { shift_mm, trials } => {
                 let shift = *shift_mm;
-                Box::new(
-                    (0..*trials)
-                        .map(move |t| (t, pos, 0.0, [0.0; 2], shift, shift[0].hypot(shift[1]))),
-                )
+                Box::new((0..*trials).map(move |t| Raw {
+                    trial: t,
+                    position_mm: pos,
+                    shift_mm: shift,
+                    swept_value: shift[0].hypot(shift[1]),
+                    ..Raw::default()
+                }))
             }
-            Sweep::Setpoints(points) => Box::new(points.iter().map(move |p| {
-                (
-                    0,
-                    p.position_mm,
-                    u.to_newtons(p.normal),
-                    [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
-                    [0.0; 2],
-                    p.normal,
-                )
+            Sweep::Setpoints(points) => Box::new(points.iter().map(move |p| Raw {
+                position_mm: p.position_mm,
+                normal_n: u.to_newtons(p.normal),
+                tangential_n: [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
+                swept_value: p.normal,
+                ..Raw::default()
             })),
         };
-        raw.enumerate().map(
-            |(index, (trial, position_mm, normal_n, tangential_n, shift_mm, swept_value))| {
-                Setpoint {
-                    index,
-                    trial,
-                    position_mm,
-                    normal_n,
-                    tangential_n,
-                    shift_mm,
-                    swept_value,
-                }
-            },
-        )
+        raw.enumerate().map(|(index, r)| Setpoint {
+            index,
+            trial: r.trial,
+            position_mm: r.position_mm,
+            normal_n: r.normal_n,
+            tangential_n: r.tangential_n,
+            shift_mm: r.shift_mm,
+            swept_value: r.swept_value,
+            direction: r.direction,
+            position: r.position,
+            hold_t_s: r.hold_t_s,
+        })
+    }
+
+    /// What the sweep repeats and how, for `run --dry-run` (empty for a plain sweep):
+    /// the direction of an up-down sweep, the contact positions, a hold's schedule.
+    pub fn sweep_summary(&self) -> Vec<String> {
+        let fu = self.force_unit.symbol();
+        let mut out = Vec::new();
+        if let Sweep::Magnitude { from, to, .. } = &self.sweep {
+            if self.sweep_direction == SweepDirection::UpDown {
+                out.push(format!(
+                    "sweep.direction = \"up-down\": each trial runs from {from} up to {to} {fu} (top level once) and back down to {from} {fu}{}; rows direction = up | down",
+                    if *from > 0.0 {
+                        format!(", with an unloaded reading (0 {fu}, contact released) first (up) and last (down)")
+                    } else {
+                        String::new()
+                    }
+                ));
+            }
+        }
+        if !self.positions_mm.is_empty() {
+            let trials = match &self.sweep {
+                Sweep::Magnitude { trials, .. } | Sweep::Angle { trials, .. } => *trials,
+                _ => 0,
+            };
+            let list: Vec<String> = self
+                .positions_mm
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    format!(
+                        "{i}: [{}, {}] mm (trials {}..{})",
+                        p[0],
+                        p[1],
+                        i * trials,
+                        (i + 1) * trials - 1
+                    )
+                })
+                .collect();
+            out.push(format!(
+                "sweep.positions_mm: {trials} trial(s) at each of {} positions in turn, trials numbered across positions; {}",
+                self.positions_mm.len(),
+                list.join(", ")
+            ));
+        }
+        if let Sweep::Hold {
+            force,
+            duration_s,
+            sample_interval_s,
+            trials,
+        } = &self.sweep
+        {
+            let times: Vec<f64> = hold_schedule(*duration_s, *sample_interval_s).collect();
+            let shown = if times.len() <= 12 {
+                times
+                    .iter()
+                    .map(|t| format!("{t}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            } else {
+                format!(
+                    "{}, ... ({} samples), {}",
+                    times[..5]
+                        .iter()
+                        .map(|t| format!("{t}"))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    times.len(),
+                    times[times.len() - 1]
+                )
+            };
+            out.push(format!(
+                "hold: {force} {fu} for {duration_s} s, {trials} hold(s); samples at {shown} s after the force is reached (force controlled once, then the stage holds its position); unloaded readings before the first hold and after each (rows with target 0 and hold_t_s empty)"
+            ));
+        }
+        out
     }
 
     /// Camera frames the whole plan writes (the reference frame not counted).
@@ -478,7 +748,17 @@ impl Plan {
         let per_setpoint = settle + self.samples as f64 * 1e-3 + self.frames as f64 * 0.03;
         let mut t = 0.0;
         let mut prev: Option<Setpoint> = None;
+        let acquisition = self.samples as f64 * 1e-3 + self.frames as f64 * 0.03;
         for sp in self.setpoints_iter().take(limit.unwrap_or(usize::MAX)) {
+            // A hold sample after the first waits for its time in the schedule (the
+            // acquisition happens within that wait, or later when it is longer).
+            if let (Some(t_hold), Some(t_prev)) = (sp.hold_t_s, prev.and_then(|p| p.hold_t_s)) {
+                if t_hold > t_prev && !needs_retract(prev.as_ref(), &sp) {
+                    t += (t_hold - t_prev).max(acquisition);
+                    prev = Some(sp);
+                    continue;
+                }
+            }
             if needs_retract(prev.as_ref(), &sp) {
                 t += 2.0 * clearance_mm / vmax + 0.5;
                 if let Some(p) = prev {
@@ -493,7 +773,12 @@ impl Plan {
             if sp.normal_n > 0.0 {
                 t += 4.0 * (0.1 / v + 0.02);
             }
-            t += per_setpoint;
+            // The first sample of a hold is taken as soon as the force is reached.
+            t += if sp.hold_t_s.is_some() {
+                acquisition
+            } else {
+                per_setpoint
+            };
             prev = Some(sp);
         }
         t
@@ -529,7 +814,8 @@ impl Plan {
 
 impl Sweep {
     /// The number of setpoints the sweep expands to, from its parameters alone (as
-    /// f64: a typo can make it astronomically large, which validation refuses).
+    /// f64: a typo can make it astronomically large, which validation refuses), for
+    /// `direction = "up"` at one position; [`total_count`] includes both.
     pub fn count(&self) -> f64 {
         match self {
             Sweep::Magnitude {
@@ -546,9 +832,71 @@ impl Sweep {
                 ..
             } => level_count(*from_deg, *to_deg, *step_deg) * *trials as f64,
             Sweep::Spatial { subdivisions, .. } => *subdivisions as f64 + 1.0,
+            Sweep::Hold {
+                duration_s,
+                sample_interval_s,
+                trials,
+                ..
+            } => {
+                // An unloaded reading before the first hold and after each.
+                (hold_sample_count(*duration_s, *sample_interval_s) + 1.0) * *trials as f64 + 1.0
+            }
             Sweep::Displacement { trials, .. } => *trials as f64,
             Sweep::Setpoints(points) => points.len() as f64,
         }
+    }
+}
+
+/// A setpoint before it is numbered (internal units, as in [`Setpoint`]).
+#[derive(Clone, Copy, Default)]
+struct Raw {
+    trial: usize,
+    position_mm: [f64; 2],
+    normal_n: f64,
+    tangential_n: [f64; 2],
+    shift_mm: [f64; 2],
+    swept_value: f64,
+    direction: Option<Direction>,
+    position: Option<usize>,
+    hold_t_s: Option<f64>,
+}
+
+/// Samples per hold: `0, dt, 2·dt, … ≤ duration`, plus `duration` itself when it is
+/// not on that grid (as f64: a typo can make it astronomically large, which
+/// validation refuses before anything is listed).
+pub fn hold_sample_count(duration_s: f64, sample_interval_s: f64) -> f64 {
+    let k = (duration_s / sample_interval_s + 1e-9).floor();
+    let on_grid = (duration_s - k * sample_interval_s).abs() <= 1e-9 * duration_s.max(1.0);
+    k + 1.0 + if on_grid { 0.0 } else { 1.0 }
+}
+
+/// The sample times of one hold, s after the hold force is reached: `0, dt, 2·dt, …`
+/// and the last at `duration` (see [`hold_sample_count`]).
+pub fn hold_schedule(duration_s: f64, sample_interval_s: f64) -> impl Iterator<Item = f64> {
+    let n = hold_sample_count(duration_s, sample_interval_s) as usize;
+    (0..n).map(move |k| (k as f64 * sample_interval_s).min(duration_s))
+}
+
+/// The number of setpoints of a sweep with its direction and `positions` contact
+/// positions (0 = the approach position only), from the parameters alone.
+pub fn total_count(sweep: &Sweep, direction: SweepDirection, positions: usize) -> f64 {
+    let positions = positions.max(1) as f64;
+    match sweep {
+        Sweep::Magnitude {
+            from,
+            to,
+            step,
+            trials,
+        } => {
+            let n = level_count(*from, *to, *step);
+            let per_trial = match direction {
+                SweepDirection::Up => n,
+                SweepDirection::UpDown => 2.0 * n - 1.0 + if *from > 0.0 { 2.0 } else { 0.0 },
+            };
+            per_trial * *trials as f64 * positions
+        }
+        Sweep::Angle { .. } => sweep.count() * positions,
+        _ => sweep.count(),
     }
 }
 
@@ -775,6 +1123,10 @@ struct RawSweep {
     subdivisions: Option<i64>,
     shift_mm: Option<[f64; 2]>,
     points: Option<Vec<RawPoint>>,
+    direction: Option<String>,
+    positions_mm: Option<Vec<[f64; 2]>>,
+    duration_s: Option<f64>,
+    sample_interval_s: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -817,14 +1169,58 @@ impl Defaults {
 fn check_caps(
     c: &Checker<'_>,
     sweep: &Sweep,
+    direction: SweepDirection,
+    positions: usize,
     frames: usize,
     fu: &str,
     max_normal: f64,
 ) -> Result<(), PlanError> {
-    let total = sweep.count();
+    if let Sweep::Hold {
+        duration_s, trials, ..
+    } = sweep
+    {
+        let hold_s = duration_s * *trials as f64;
+        if hold_s > MAX_DURATION_S {
+            return Err(c.invalid(
+                "sweep.duration_s",
+                format!("{duration_s} s"),
+                format!(
+                    "sweep.trials {trials} holds of sweep.duration_s {duration_s} s = {:.1} h of holding alone, above the cap of {:.0} h per plan",
+                    hold_s / 3600.0,
+                    MAX_DURATION_S / 3600.0
+                ),
+            ));
+        }
+    }
+    let total = total_count(sweep, direction, positions);
+    let base = sweep.count();
     // NaN (cannot happen after the range checks) is refused as well.
     if total.is_nan() || total > MAX_SETPOINTS as f64 {
         let (key, value, how) = match sweep {
+            _ if base <= MAX_SETPOINTS as f64 && positions > 1 && base * positions as f64 > MAX_SETPOINTS as f64 => (
+                "sweep.positions_mm",
+                format!("{positions} positions"),
+                format!(
+                    "{base:.0} setpoints per position x {positions} positions = {total:.0} setpoints"
+                ),
+            ),
+            Sweep::Hold {
+                duration_s,
+                sample_interval_s,
+                trials,
+                ..
+            } => {
+                let per_hold = hold_sample_count(*duration_s, *sample_interval_s);
+                let how = format!(
+                    "sweep.duration_s {duration_s} s sampled every sweep.sample_interval_s {sample_interval_s} s is {per_hold:.0} samples per hold x sweep.trials {trials} (+ {} unloaded readings) = {total:.0} setpoints",
+                    trials + 1
+                );
+                if per_hold <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else {
+                    ("sweep.sample_interval_s", format!("{sample_interval_s} s"), how)
+                }
+            }
             Sweep::Magnitude {
                 from,
                 to,
@@ -832,9 +1228,14 @@ fn check_caps(
                 trials,
             } => {
                 let levels = level_count(*from, *to, *step);
-                let how = format!(
-                    "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels x sweep.trials {trials} = {total:.0} setpoints"
-                );
+                let how = match direction {
+                    SweepDirection::Up => format!(
+                        "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels x sweep.trials {trials} = {total:.0} setpoints"
+                    ),
+                    SweepDirection::UpDown => format!(
+                        "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels, up and down (sweep.direction = \"up-down\") x sweep.trials {trials} = {total:.0} setpoints"
+                    ),
+                };
                 if levels <= MAX_SETPOINTS as f64 {
                     ("sweep.trials", trials.to_string(), how)
                 } else if *to > max_normal {
@@ -1159,6 +1560,33 @@ impl RawPlan {
                     )?,
                 }
             }
+            "hold" => {
+                let force =
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let duration_s = c.positive(
+                    "sweep.duration_s",
+                    need(&c, "sweep.duration_s", sw.duration_s, &kind)?,
+                    "s",
+                )?;
+                let sample_interval_s = c.positive(
+                    "sweep.sample_interval_s",
+                    need(&c, "sweep.sample_interval_s", sw.sample_interval_s, &kind)?,
+                    "s",
+                )?;
+                if sample_interval_s > duration_s {
+                    return Err(c.invalid(
+                        "sweep.sample_interval_s",
+                        format!("{sample_interval_s} s"),
+                        format!("must not exceed sweep.duration_s = {duration_s} s"),
+                    ));
+                }
+                Sweep::Hold {
+                    force,
+                    duration_s,
+                    sample_interval_s,
+                    trials: trials(&c)?,
+                }
+            }
             "displacement" => {
                 let shift_mm = need(&c, "sweep.shift_mm", sw.shift_mm, &kind)?;
                 c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
@@ -1213,12 +1641,91 @@ impl RawPlan {
                 return Err(c.invalid(
                     "sweep.kind",
                     format!("{other:?}"),
-                    "unknown sweep: expected magnitude, angle, spatial, displacement or setpoints",
+                    "unknown sweep: expected magnitude, angle, hold, spatial, displacement or setpoints",
                 ))
             }
         };
 
-        check_caps(&c, &sweep, frames, fu, unit.from_newtons(max_force_n[2]))?;
+        let sweep_direction = match (sw.direction.as_deref(), &sweep) {
+            (None, Sweep::Magnitude { .. }) => {
+                defaults.push("sweep.direction", "\"up\"".into());
+                SweepDirection::Up
+            }
+            (None, _) => SweepDirection::Up,
+            (Some(d), Sweep::Magnitude { .. }) => match d {
+                "up" => SweepDirection::Up,
+                "up-down" => SweepDirection::UpDown,
+                other => {
+                    return Err(c.invalid(
+                        "sweep.direction",
+                        format!("{other:?}"),
+                        "expected \"up\" or \"up-down\"",
+                    ))
+                }
+            },
+            (Some(d), _) => {
+                return Err(c.invalid(
+                    "sweep.direction",
+                    format!("{d:?}"),
+                    format!("only magnitude sweeps run up and down (sweep kind is \"{kind}\")"),
+                ))
+            }
+        };
+        let positions_mm = match sw.positions_mm {
+            None => Vec::new(),
+            Some(_) if !matches!(sweep, Sweep::Magnitude { .. } | Sweep::Angle { .. }) => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    "(given)",
+                    format!(
+                        "only magnitude and angle sweeps repeat their trials at several positions (sweep kind is \"{kind}\")"
+                    ),
+                ))
+            }
+            Some(list) if list.is_empty() => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    "[]",
+                    "give at least one [x, y] position (mm), or leave the key out",
+                ))
+            }
+            Some(list) if list.len() > MAX_POSITIONS => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    format!("{} positions", list.len()),
+                    format!("at most {MAX_POSITIONS} positions"),
+                ))
+            }
+            Some(list) => {
+                for (i, p) in list.iter().enumerate() {
+                    for (a, axis) in ["x", "y"].iter().enumerate() {
+                        let key = format!("sweep.positions_mm[{i}][{a}]");
+                        c.finite(&key, p[a], "mm")?;
+                        let (lo, hi) = (safety.travel_min_mm[a], safety.travel_max_mm[a]);
+                        if p[a] < lo || p[a] > hi {
+                            return Err(c.invalid(
+                                &key,
+                                format!("{} mm", p[a]),
+                                format!(
+                                    "{axis} is outside the travel box safety.travel_min_mm[{a}]..travel_max_mm[{a}] = {lo}..{hi} mm"
+                                ),
+                            ));
+                        }
+                    }
+                }
+                list
+            }
+        };
+
+        check_caps(
+            &c,
+            &sweep,
+            sweep_direction,
+            positions_mm.len(),
+            frames,
+            fu,
+            unit.from_newtons(max_force_n[2]),
+        )?;
 
         let r = &self.reconstruct;
         let method: Method = match &r.solver {
@@ -1320,6 +1827,8 @@ impl RawPlan {
             defaults.push("quality.on_fail", "\"flag\"".into());
         }
         let plan = Plan {
+            sweep_direction,
+            positions_mm,
             quality,
             solver,
             path: path.to_path_buf(),
@@ -1682,6 +2191,7 @@ trials = 10
                 "settle.dwell_s",
                 "acquire.samples",
                 "acquire.frames",
+                "sweep.direction",
                 "reconstruct.solver",
                 "quality.reference_min_found_fraction",
                 "quality.min_ok_fraction",
@@ -1732,6 +2242,266 @@ trials = 10
             assert_eq!(p.setpoint_count(), n);
             assert_eq!(p.setpoints().len(), n);
             assert_eq!(p.frame_count(), n);
+        }
+    }
+
+    const MAG: &str = "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10";
+
+    fn with_sweep(sweep: &str) -> String {
+        FIG7.replace(MAG, sweep)
+    }
+
+    #[test]
+    fn an_up_down_sweep_runs_each_trial_up_and_back_down_with_the_top_once() {
+        let p = parse(&with_sweep(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\ntrials = 2\ndirection = \"up-down\"",
+        ))
+        .unwrap();
+        assert_eq!(p.sweep_direction, SweepDirection::UpDown);
+        let s = p.setpoints();
+        let got: Vec<(usize, f64, Option<Direction>)> = s
+            .iter()
+            .map(|s| (s.trial, s.swept_value, s.direction))
+            .collect();
+        let (u, d) = (Some(Direction::Up), Some(Direction::Down));
+        let one = |t| {
+            vec![
+                (t, 0.0, u),
+                (t, 100.0, u),
+                (t, 200.0, u),
+                (t, 300.0, u),
+                (t, 200.0, d),
+                (t, 100.0, d),
+                (t, 0.0, d),
+            ]
+        };
+        assert_eq!(got, [one(0), one(1)].concat());
+        assert!(s
+            .iter()
+            .all(|s| s.position.is_none() && s.hold_t_s.is_none()));
+        assert_eq!(s[6].normal_n, 0.0, "the trial ends unloaded");
+        assert_eq!(p.top_level_n(), Some(gf_to_n(300.0)));
+        // From > 0: an unloaded reading is added at both ends of each trial.
+        let p = parse(&with_sweep(
+            "kind = \"magnitude\"\nfrom = 100.0\nto = 250.0\nstep = 100.0\ntrials = 1\ndirection = \"up-down\"",
+        ))
+        .unwrap();
+        let got: Vec<(f64, Option<Direction>)> = p
+            .setpoints()
+            .iter()
+            .map(|s| (s.swept_value, s.direction))
+            .collect();
+        assert_eq!(
+            got,
+            [(0.0, u), (100.0, u), (200.0, u), (100.0, d), (0.0, d)]
+        );
+        assert_eq!(
+            p.top_level_n(),
+            Some(gf_to_n(200.0)),
+            "the top level, not `to`"
+        );
+        // The default ("up") is today's sweep: no direction in the rows.
+        let p = parse(FIG7).unwrap();
+        assert_eq!(p.sweep_direction, SweepDirection::Up);
+        assert!(p.setpoints().iter().all(|s| s.direction.is_none()));
+        let p = parse(&FIG7.replace("trials = 10", "trials = 10\ndirection = \"up\"")).unwrap();
+        assert_eq!(p.setpoint_count(), 160);
+        assert!(p.defaults.iter().all(|(k, _)| k != "sweep.direction"));
+    }
+
+    #[test]
+    fn trials_repeat_at_each_listed_position_in_turn_numbered_across_positions() {
+        let p = parse(&with_sweep(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 100.0\nstep = 100.0\ntrials = 2\ndirection = \"up-down\"\npositions_mm = [[9.0, 6.75], [7.0, 5.0]]",
+        ))
+        .unwrap();
+        let s = p.setpoints();
+        assert_eq!(s.len(), 2 * 2 * 3);
+        let got: Vec<(usize, Option<usize>, [f64; 2])> = s
+            .iter()
+            .map(|s| (s.trial, s.position, s.position_mm))
+            .collect();
+        let mut want = Vec::new();
+        for (pi, pos) in [[9.0, 6.75], [7.0, 5.0]].iter().enumerate() {
+            for t in 0..2 {
+                want.extend([(pi * 2 + t, Some(pi), *pos); 3]);
+            }
+        }
+        assert_eq!(got, want);
+        // Angle sweeps repeat the same way; without the key, position is empty.
+        let p = parse(&with_sweep(
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 10.0\nangle_step_deg = 10.0\ntrials = 1\npositions_mm = [[9.0, 6.75], [10.0, 6.75], [11.0, 6.75]]",
+        ))
+        .unwrap();
+        let s = p.setpoints();
+        assert_eq!(s.len(), 6);
+        assert_eq!(s[5].position, Some(2));
+        assert_eq!(s[5].trial, 2);
+        assert_eq!(s[5].position_mm, [11.0, 6.75]);
+        assert!(parse(FIG7)
+            .unwrap()
+            .setpoints()
+            .iter()
+            .all(|s| s.position.is_none()));
+    }
+
+    #[test]
+    fn a_hold_sweep_samples_each_hold_on_its_schedule_between_unloaded_readings() {
+        let p = parse(&with_sweep(
+            "kind = \"hold\"\nforce = 300.0\nduration_s = 2.5\nsample_interval_s = 1.0\ntrials = 2",
+        ))
+        .unwrap();
+        let s = p.setpoints();
+        let got: Vec<(usize, f64, Option<f64>)> = s
+            .iter()
+            .map(|s| (s.trial, s.normal_n, s.hold_t_s))
+            .collect();
+        let f = gf_to_n(300.0);
+        let hold = |t| {
+            vec![
+                (t, f, Some(0.0)),
+                (t, f, Some(1.0)),
+                (t, f, Some(2.0)),
+                (t, f, Some(2.5)),
+                (t, 0.0, None),
+            ]
+        };
+        assert_eq!(got, [vec![(0, 0.0, None)], hold(0), hold(1)].concat());
+        assert_eq!(s[1].swept_value, 300.0);
+        assert_eq!(s[0].swept_value, 0.0);
+        assert!(s
+            .iter()
+            .all(|s| s.direction.is_none() && s.position.is_none()));
+        // Consecutive samples of a hold keep the contact; each hold starts afresh.
+        assert!(!needs_retract(Some(&s[1]), &s[2]));
+        assert!(needs_retract(Some(&s[5]), &s[6]) && needs_retract(Some(&s[4]), &s[5]));
+        assert_eq!(
+            hold_schedule(3.0, 1.0).collect::<Vec<_>>(),
+            [0.0, 1.0, 2.0, 3.0]
+        );
+        assert_eq!(hold_sample_count(0.3, 0.1), 4.0, "0.3 / 0.1 is on the grid");
+        // The estimate includes the holds' own time.
+        assert!(p.estimate_duration_s(DEFAULT_CLEARANCE_MM, None) > 2.0 * 2.5);
+    }
+
+    #[test]
+    fn sweep_direction_positions_and_hold_keys_are_checked_naming_file_key_and_value() {
+        let hold = "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 1.0\ntrials = 2";
+        for (sweep, key, needle) in [
+            (
+                format!("{MAG}\ndirection = \"down\""),
+                "sweep.direction = \"down\"",
+                "expected \"up\" or \"up-down\"",
+            ),
+            (
+                "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 10.0\nangle_step_deg = 10.0\ntrials = 1\ndirection = \"up-down\"".into(),
+                "sweep.direction",
+                "only magnitude sweeps",
+            ),
+            (
+                format!("{MAG}\npositions_mm = []"),
+                "sweep.positions_mm = []",
+                "at least one",
+            ),
+            (
+                format!("{MAG}\npositions_mm = [[9.0, 6.75], [60.0, 6.75]]"),
+                "sweep.positions_mm[1][0] = 60 mm",
+                "travel box",
+            ),
+            (
+                format!("{hold}\npositions_mm = [[9.0, 6.75]]"),
+                "sweep.positions_mm",
+                "only magnitude and angle",
+            ),
+            (
+                hold.replace("duration_s = 10.0\n", ""),
+                "sweep.duration_s = (missing)",
+                "required by sweep kind \"hold\"",
+            ),
+            (
+                hold.replace("sample_interval_s = 1.0", "sample_interval_s = 20.0"),
+                "sweep.sample_interval_s = 20 s",
+                "must not exceed sweep.duration_s = 10 s",
+            ),
+            (
+                hold.replace("duration_s = 10.0", "duration_s = -1.0"),
+                "sweep.duration_s = -1",
+                "> 0",
+            ),
+            (
+                hold.replace("force = 300.0", "force = 2000.0"),
+                "fz = 2000 gf",
+                "safety.max_force[2]",
+            ),
+            (
+                hold.replace("trials = 2\n", "").replace("trials = 2", ""),
+                "sweep.trials = (missing)",
+                "required",
+            ),
+        ] {
+            let e = parse(&with_sweep(&sweep)).unwrap_err().to_string();
+            assert!(
+                e.contains("experiments/p.toml") && e.contains(key) && e.contains(needle),
+                "{sweep}: {e}"
+            );
+        }
+        // An unknown key in [sweep] is named with its line.
+        let e = parse(&with_sweep(&format!("{hold}\nhold_s = 3")))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("hold_s") && e.contains("line"), "{e}");
+    }
+
+    #[test]
+    fn hold_caps_are_checked_before_anything_is_expanded() {
+        let hold = "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 1.0\ntrials = 2";
+        let e = parse(&with_sweep(
+            &hold.replace("sample_interval_s = 1.0", "sample_interval_s = 1e-6"),
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.sample_interval_s = 0.000001 s")
+                && e.contains("samples per hold")
+                && e.contains(&format!("cap of {MAX_SETPOINTS} setpoints")),
+            "{e}"
+        );
+        let e = parse(&with_sweep(
+            &hold
+                .replace("duration_s = 10.0", "duration_s = 1e9")
+                .replace("sample_interval_s = 1.0", "sample_interval_s = 1e8"),
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.duration_s = 1000000000 s") && e.contains("cap of 168 h"),
+            "{e}"
+        );
+        let e = parse(&with_sweep(&format!(
+            "{MAG}\npositions_mm = [{}]",
+            vec!["[9.0, 6.75]"; 1000].join(", ")
+        )))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.positions_mm = 1000 positions") && e.contains("cap"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_setpoint_count_matches_the_expansion_for_the_repeating_kinds() {
+        for sweep in [
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 3\ndirection = \"up-down\"",
+            "kind = \"magnitude\"\nfrom = 50.0\nto = 700.0\nstep = 50.0\ntrials = 3\ndirection = \"up-down\"\npositions_mm = [[9.0, 6.75], [8.0, 6.0]]",
+            "kind = \"magnitude\"\nfrom = 100.0\nto = 100.0\nstep = 50.0\ntrials = 2\ndirection = \"up-down\"",
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 5.0\ntrials = 2\npositions_mm = [[9.0, 6.75], [8.0, 6.0], [10.0, 7.0]]",
+            "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 0.3\ntrials = 3",
+        ] {
+            let p = parse(&with_sweep(sweep)).unwrap();
+            assert_eq!(p.setpoint_count(), p.setpoints().len(), "{sweep}");
+            assert_eq!(p.setpoints_iter().count(), p.setpoint_count(), "{sweep}");
+            assert!(p.setpoints().iter().enumerate().all(|(i, s)| s.index == i));
         }
     }
 }

@@ -14,7 +14,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
-use tactbench::bench::journal::{Manifest, RunStatus};
+use tactbench::bench::journal::{Direction, Manifest, RunStatus};
 use tactbench::bench::lock::RunLock;
 use tactbench::bench::plan::{self, Plan};
 use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions};
@@ -248,7 +248,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     plan.check_frames_on_disk(&sensor)?;
 
     if a.dry_run {
-        return dry_run(&a, &plan, bench.as_ref(), limit);
+        return dry_run(&a, &plan, &sensor, bench.as_ref(), limit);
     }
 
     let bench = bench.context("give a bench: --bench bench.toml or --sim SCENE.toml")?;
@@ -546,6 +546,7 @@ const DRY_RUN_ROWS: usize = 20;
 fn dry_run(
     a: &Args,
     plan: &Plan,
+    sensor: &Sensor,
     bench: Option<&BenchConfig>,
     limit: Option<usize>,
 ) -> anyhow::Result<ExitCode> {
@@ -597,6 +598,9 @@ fn dry_run(
         duration_text(plan.estimate_duration_s(plan::DEFAULT_CLEARANCE_MM, None)),
         plan::MAX_DURATION_S / 3600.0
     );
+    for line in plan.sweep_summary() {
+        outln!("{line}");
+    }
     if plan.defaults.is_empty() {
         outln!("defaults used: none (every optional key is given)");
     } else {
@@ -618,8 +622,12 @@ fn dry_run(
         }
     }
     let stage = !report.stage.is_empty();
+    // Direction, position and hold time, for the plans that have them ('-' = empty).
+    let repeat = plan.sweep_direction == plan::SweepDirection::UpDown
+        || !plan.positions_mm.is_empty()
+        || matches!(plan.sweep, plan::Sweep::Hold { .. });
     let header = format!(
-        "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}{}",
+        "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}{}{}",
         "index",
         "trial",
         "x_mm",
@@ -633,6 +641,11 @@ fn dry_run(
                 " {:>10} {:>10} {:>11} {:>13}",
                 "stage_x_mm", "stage_y_mm", "stage_z_clr", "stage_z_limit"
             )
+        } else {
+            String::new()
+        },
+        if repeat {
+            format!(" {:>9} {:>8} {:>9}", "direction", "position", "hold_t_s")
         } else {
             String::new()
         }
@@ -654,6 +667,18 @@ fn dry_run(
             line += &format!(
                 " {:>10.4} {:>10.4} {:>11.4} {:>13.4}",
                 t.xy_mm[0], t.xy_mm[1], t.z_clear_mm, t.z_deepest_mm
+            );
+        }
+        if repeat {
+            let dash = || "-".to_string();
+            line += &format!(
+                " {:>9} {:>8} {:>9}",
+                sp.direction.map_or_else(dash, |d| match d {
+                    Direction::Up => "up".into(),
+                    Direction::Down => "down".into(),
+                }),
+                sp.position.map_or_else(dash, |p| p.to_string()),
+                sp.hold_t_s.map_or_else(dash, |t| format!("{t}"))
             );
         }
         line
@@ -693,7 +718,8 @@ fn dry_run(
     }
     outln!("checks:");
     let mut ok = true;
-    for (pass, what) in input_checks.iter().chain(&report.checks) {
+    let area = runner::sensor_area_checks(plan, sensor);
+    for (pass, what) in input_checks.iter().chain(&area).chain(&report.checks) {
         ok &= pass;
         outln!("  [{}] {what}", if *pass { "ok" } else { "FAIL" });
     }

@@ -93,6 +93,13 @@
 //!                          # and relaxes with time constant τ (s)
 //! stage_carries_sensor = true  # the stage's xy motion shifts the whole sensor under
 //! carry_zero_mm = [9.0, 6.75]  # the camera; unshifted with the tip over this point
+//! viscoelastic = { creep = 0.05, time_constant_s = 2.0, hysteresis = 0.02 }
+//!                          # what the camera sees (the F/T side is force_relaxation):
+//!                          # creep: under a constant load the marker displacements
+//!                          # grow as 1 + creep·(1 − e^(−t/τ)) and recover with τ after
+//!                          # unloading; hysteresis h: unloading from a peak P the
+//!                          # field is that of F + 4h·F·(P − F)/P (loop width h·P at
+//!                          # P/2). Either may be 0 (default); τ is needed with creep
 //! ```
 //!
 //! The elastic model the simulation renders with (independent of the sensor file's
@@ -146,6 +153,21 @@ pub struct ForceRelaxation {
     pub time_constant_s: f64,
 }
 
+/// The elastomer's viscoelastic creep and rate-independent hysteresis as the camera
+/// sees them (model in [`super::world`]): the marker displacement field is that of the
+/// elastic contact scaled by `(F_e + c + h_term) / F_e`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Viscoelastic {
+    /// Creep fraction `a` (≥ 0): under a constant load the displacements grow as
+    /// `1 + a·(1 − e^{−t/τ})`.
+    pub creep: f64,
+    /// Creep (and recovery) time constant τ, s (> 0).
+    pub time_constant_s: f64,
+    /// Hysteresis width `h` (in [0, 1]): unloading from a peak `P`, the camera sees
+    /// `F + 4h·F·(P − F)/P`, a loop whose widest point (at `P/2`) is `h·P`.
+    pub hysteresis: f64,
+}
+
 /// Opt-in effects of the simulated bench (see the module docs). The default is none:
 /// ideal and exact.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -157,6 +179,8 @@ pub struct BenchEffects {
     /// The stage carries the sensor: the sensor-frame point where the image is
     /// unshifted (and where the contact stays), mm.
     pub carry_zero_mm: Option<[f64; 2]>,
+    /// Creep and hysteresis of the displacement field the camera sees.
+    pub viscoelastic: Option<Viscoelastic>,
 }
 
 /// An error reading or validating a scene file. Every variant names the file.
@@ -307,6 +331,15 @@ struct RawSceneBench {
     #[serde(default)]
     stage_carries_sensor: bool,
     carry_zero_mm: Option<[f64; 2]>,
+    viscoelastic: Option<RawViscoelastic>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawViscoelastic {
+    creep: Option<f64>,
+    time_constant_s: Option<f64>,
+    hysteresis: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -829,10 +862,48 @@ impl RawScene {
                     }
                     (false, None) => None,
                 };
+                let viscoelastic = match b.viscoelastic {
+                    None => None,
+                    Some(v) => {
+                        let creep = nonneg("bench.viscoelastic.creep", v.creep.unwrap_or(0.0), "")?;
+                        let hysteresis = v.hysteresis.unwrap_or(0.0);
+                        if !(hysteresis.is_finite() && (0.0..=1.0).contains(&hysteresis)) {
+                            return Err(invalid(
+                                "bench.viscoelastic.hysteresis",
+                                &hysteresis,
+                                "must be in [0, 1] (widest down - up difference / peak force)",
+                            ));
+                        }
+                        let time_constant_s = match v.time_constant_s {
+                            Some(t) => positive("bench.viscoelastic.time_constant_s", t, "s")?,
+                            None if creep > 0.0 => {
+                                return Err(invalid(
+                                    "bench.viscoelastic.time_constant_s",
+                                    &"(missing)",
+                                    "creep > 0 needs a time constant > 0 s",
+                                ))
+                            }
+                            None => 1.0,
+                        };
+                        if creep == 0.0 && hysteresis == 0.0 {
+                            return Err(invalid(
+                                "bench.viscoelastic",
+                                &"(no effect)",
+                                "give creep > 0 and/or hysteresis > 0, or leave the effect out",
+                            ));
+                        }
+                        Some(Viscoelastic {
+                            creep,
+                            time_constant_s,
+                            hysteresis,
+                        })
+                    }
+                };
                 BenchEffects {
                     ft_noise,
                     force_relaxation,
                     carry_zero_mm,
+                    viscoelastic,
                 }
             }
         };

@@ -271,8 +271,27 @@ impl Simulation {
         shift_mm: [f64; 2],
         out: &mut Rgb32FImage,
     ) -> Result<FrameTruth, SimError> {
+        self.render_load_scaled(load, frame, shift_mm, 1.0, out)
+    }
+
+    /// As [`Simulation::render_load_shifted`], with the elastic displacement field (and
+    /// the truth's displacements and force-grid forces, the load that field is the
+    /// elastic response of) multiplied by `scale`: the viscoelastic bench effect
+    /// (creep, hysteresis) of [`super::world`]. `scale = 1` renders exactly as
+    /// [`Simulation::render_load_shifted`] (multiplying by 1 is exact).
+    pub fn render_load_scaled(
+        &mut self,
+        load: &LoadCase,
+        frame: u64,
+        shift_mm: [f64; 2],
+        scale: f64,
+        out: &mut Rgb32FImage,
+    ) -> Result<FrameTruth, SimError> {
         let contact = Contact::solve(&self.model, self.indenter, load)?;
-        let (u, uz) = self.marker_displacements(&contact);
+        let (mut u, mut uz) = self.marker_displacements(&contact);
+        if scale != 1.0 {
+            u.iter_mut().chain(uz.iter_mut()).for_each(|v| *v *= scale);
+        }
         self.moved.clear();
         self.moved
             .extend(self.markers.iter().enumerate().map(|(k, m)| Marker {
@@ -285,7 +304,10 @@ impl Simulation {
         self.project_moved(Some(&uz));
         self.pipeline
             .render_frame(&self.renderer, &self.moved, frame, out, &mut self.scratch)?;
-        let forces_n = contact.force_grid_n(&self.sensor.force_grid);
+        let mut forces_n = contact.force_grid_n(&self.sensor.force_grid);
+        if scale != 1.0 {
+            forces_n.iter_mut().for_each(|v| *v *= scale);
+        }
         Ok(FrameTruth {
             frame,
             contact: Some(contact),

@@ -38,6 +38,21 @@
 //! - **F/T noise**: independent Gaussian noise of σ (N) on each force component of each
 //!   sample the force sensor serves, from a seeded stream; torques follow the noisy
 //!   force (`M = r × F`).
+//! - **viscoelastic** (what the camera sees; the F/T side is the force relaxation
+//!   above): the marker displacement field is the elastic field of the contact scaled
+//!   by `(F_e + c + H) / F_e` (`F_e` the elastic normal force of the indentation):
+//!   - *creep* `c` (N) follows `dc/dt = (a·F_e − c)/τ` (a one-term Kelvin–Voigt creep
+//!     compliance, Boltzmann superposition), advanced exactly between updates with
+//!     `F_e` held: under a constant load applied at `t₀` with `c = 0` the
+//!     displacements grow as `1 + a·(1 − e^{−(t−t₀)/τ})`; after unloading `c` decays
+//!     with τ and the camera sees the last contact's field scaled to `c` (creep
+//!     recovery: the zero returns with τ);
+//!   - *hysteresis* `H = 4h·F_e·(P − F_e)/P`, `P` the largest `F_e` since the contact
+//!     began (reset when it is released): 0 while loading (`F_e = P`), and on
+//!     unloading a lens-shaped loop, rate-independent, closed at `P` and at 0, whose
+//!     widest point (`F_e = P/2`) is `h·P`; reloading below `P` retraces it.
+//!
+//!   With the effect absent the scale is exactly 1 (zero creep, zero hysteresis).
 //! - **stage carries the sensor**: the stage's xy motion moves the whole sensor under a
 //!   fixed camera: every marker appears shifted by the stage's xy travel from the
 //!   position where the tip is over `carry_zero_mm`, and the contact stays at
@@ -56,7 +71,7 @@ use crate::device::Wrench;
 use crate::model::HalfSpace;
 
 // The bench-effect types are scene data; re-exported here under their old paths.
-pub use super::scene::{BenchEffects, ForceRelaxation, FtNoise};
+pub use super::scene::{BenchEffects, ForceRelaxation, FtNoise, Viscoelastic};
 
 /// Tip radius used for the force law of a point indenter, mm.
 pub const POINT_TIP_RADIUS_MM: f64 = 0.25;
@@ -101,6 +116,13 @@ struct State {
     excess_n: [f64; 3],
     updated: Instant,
     noise: Option<Rng>,
+    /// Viscoelastic creep `c` of the displacement field, N of normal force.
+    creep_n: f64,
+    /// Largest elastic normal force since the contact began, N (0 out of contact).
+    peak_n: f64,
+    /// The last contact's load case and normal force (creep recovery is rendered as
+    /// its field scaled to `c`).
+    last_load: Option<(LoadCase, f64)>,
 }
 
 /// The virtual world. Cheap to share: clone the [`Arc`] from [`World::new`].
@@ -188,6 +210,9 @@ impl World {
                 excess_n: [0.0; 3],
                 updated: Instant::now(),
                 noise: effects.ft_noise.map(|n| Rng::new(n.seed)),
+                creep_n: 0.0,
+                peak_n: 0.0,
+                last_load: None,
             }),
             camera: Mutex::new(simulation),
         };
@@ -204,27 +229,64 @@ impl World {
         &self.effects
     }
 
-    /// Advances force relaxation to now with the current contact.
+    /// Advances force relaxation and viscoelastic creep to now with the current
+    /// contact (the elastic force of the interval since the last update is the one
+    /// recorded then; the new one applies from now).
     fn relax(&self, s: &mut State) {
-        let Some(r) = self.effects.force_relaxation else {
+        let (r, v) = (self.effects.force_relaxation, self.effects.viscoelastic);
+        if r.is_none() && v.is_none() {
             return;
-        };
+        }
         let now = Instant::now();
         let dt = now.duration_since(s.updated).as_secs_f64();
         s.updated = now;
-        let decay = (-dt / r.time_constant_s).exp();
         let c = self.contact_of(s.stage_mm, s.stick_mm);
         let fe = [c.tangential_n[0], c.tangential_n[1], c.normal_n];
         let last = s.elastic_n;
-        for ((e, f), l) in s.excess_n.iter_mut().zip(fe).zip(last) {
-            // Out of contact there is nothing to relax.
-            *e = if c.normal_n > 0.0 {
-                *e * decay + r.fraction * (f - l)
+        if let Some(r) = r {
+            let decay = (-dt / r.time_constant_s).exp();
+            for ((e, f), l) in s.excess_n.iter_mut().zip(fe).zip(last) {
+                // Out of contact there is nothing to relax.
+                *e = if c.normal_n > 0.0 {
+                    *e * decay + r.fraction * (f - l)
+                } else {
+                    0.0
+                };
+            }
+        }
+        if let Some(v) = v {
+            // Exact for the normal force held at `last` over the interval.
+            let goal = v.creep * last[2];
+            s.creep_n = goal + (s.creep_n - goal) * (-dt / v.time_constant_s).exp();
+            if c.normal_n > 0.0 {
+                s.peak_n = s.peak_n.max(c.normal_n);
+                s.last_load = Some((self.load_case(&c), c.normal_n));
+            } else {
+                s.peak_n = 0.0;
+            }
+        }
+        s.elastic_n = fe;
+    }
+
+    /// The load case the camera renders and the scale of its displacement field
+    /// (1 without the viscoelastic effect; see the module docs).
+    fn rendered_load(&self, s: &State, c: &ContactState) -> (LoadCase, f64) {
+        let Some(v) = self.effects.viscoelastic else {
+            return (self.load_case(c), 1.0);
+        };
+        let fe = c.normal_n;
+        if c.indentation_mm > 0.0 && fe > 0.0 {
+            let h = if s.peak_n > fe {
+                4.0 * v.hysteresis * fe * (s.peak_n - fe) / s.peak_n
             } else {
                 0.0
             };
+            return (self.load_case(c), (fe + s.creep_n + h) / fe);
         }
-        s.elastic_n = fe;
+        match &s.last_load {
+            Some((load, f_last)) if *f_last > 0.0 && s.creep_n > 0.0 => (*load, s.creep_n / f_last),
+            _ => (self.load_case(c), 1.0),
+        }
     }
 
     /// The geometry.
@@ -302,15 +364,17 @@ impl World {
     /// Renders the camera's next frame for the current contact into `out` (effects of
     /// the simulation's pipeline included) and returns its ground truth.
     pub fn render(&self, out: &mut Rgb32FImage) -> Result<FrameTruth, SimError> {
-        let (c, frame) = {
+        let (c, frame, load, scale) = {
             let mut s = lock(&self.state);
+            self.relax(&mut s);
             let frame = s.next_frame;
             s.next_frame += 1;
-            (self.contact_of(s.stage_mm, s.stick_mm), frame)
+            let c = self.contact_of(s.stage_mm, s.stick_mm);
+            let (load, scale) = self.rendered_load(&s, &c);
+            (c, frame, load, scale)
         };
-        let load = self.load_case(&c);
         let shift = self.carry_shift_mm(&c);
-        lock(&self.camera).render_load_shifted(&load, frame, shift, out)
+        lock(&self.camera).render_load_scaled(&load, frame, shift, scale, out)
     }
 
     /// Whole-sensor shift in the image when the stage carries the sensor, mm.
@@ -652,5 +716,107 @@ mod effect_tests {
         let plain = world(BenchEffects::default());
         plain.set_stage_mm([29.15, 36.75, 0.0]);
         assert_eq!(plain.carry_shift_mm(&plain.contact()), [0.0, 0.0]);
+    }
+
+    /// The scale of the rendered displacement field against the ideal world's at the
+    /// same stage position (largest displacement component).
+    fn field_scale(w: &World, ideal: &World) -> f64 {
+        let mut a = w.blank_frame();
+        let mut b = ideal.blank_frame();
+        let ua = w.render(&mut a).unwrap().elastic_u_mm;
+        let ub = ideal.render(&mut b).unwrap().elastic_u_mm;
+        let k = (0..ub.len())
+            .max_by(|&i, &j| ub[i].abs().total_cmp(&ub[j].abs()))
+            .unwrap();
+        ua[k] / ub[k]
+    }
+
+    fn visco(creep: f64, time_constant_s: f64, hysteresis: f64) -> Arc<World> {
+        world(BenchEffects {
+            viscoelastic: Some(Viscoelastic {
+                creep,
+                time_constant_s,
+                hysteresis,
+            }),
+            ..BenchEffects::default()
+        })
+    }
+
+    #[test]
+    fn without_the_viscoelastic_effect_the_field_has_no_creep_and_no_hysteresis() {
+        let (w, ideal) = (
+            world(BenchEffects::default()),
+            world(BenchEffects::default()),
+        );
+        for z in [5.4, 5.2, 5.4, 5.1] {
+            w.set_stage_mm([29.0, 36.75, z]);
+            ideal.set_stage_mm([29.0, 36.75, z]);
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            assert_eq!(field_scale(&w, &ideal), 1.0, "exact at z = {z}");
+        }
+        // Released: nothing left.
+        w.set_stage_mm([29.0, 36.75, 0.0]);
+        let mut img = w.blank_frame();
+        assert!(w
+            .render(&mut img)
+            .unwrap()
+            .elastic_u_mm
+            .iter()
+            .all(|u| *u == 0.0));
+    }
+
+    #[test]
+    fn hysteresis_widens_the_unloading_field_by_the_configured_lens() {
+        let h = 0.1;
+        let (w, ideal) = (visco(0.0, 1.0, h), world(BenchEffects::default()));
+        let at = |z: f64| {
+            w.set_stage_mm([29.0, 36.75, z]);
+            ideal.set_stage_mm([29.0, 36.75, z]);
+            field_scale(&w, &ideal)
+        };
+        // Loading: on the elastic curve.
+        assert!((at(5.2) - 1.0).abs() < 1e-12);
+        assert!((at(5.4) - 1.0).abs() < 1e-12, "peak P = flat_n(0.4)");
+        // Unloading to P/2 (flat punch: force ∝ depth): F + 4hF(P−F)/P = F(1 + 2h).
+        assert!((at(5.2) - (1.0 + 2.0 * h)).abs() < 1e-12);
+        // To P/4: 1 + 4h·3/4.
+        assert!((at(5.1) - (1.0 + 3.0 * h)).abs() < 1e-12);
+        // Back to the peak closes the loop; a release resets it.
+        assert!((at(5.4) - 1.0).abs() < 1e-12);
+        at(0.0);
+        assert!((at(5.2) - 1.0).abs() < 1e-12, "a new contact loads afresh");
+    }
+
+    #[test]
+    fn creep_grows_the_field_towards_one_plus_a_and_recovers_after_unloading() {
+        let (a, tau) = (0.2, 0.02);
+        let (w, ideal) = (visco(a, tau, 0.0), world(BenchEffects::default()));
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        ideal.set_stage_mm([29.0, 36.75, 5.3]);
+        let s0 = field_scale(&w, &ideal);
+        assert!((1.0..=1.0 + a).contains(&s0), "right after the step: {s0}");
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        // 15 τ later: within a·e^-15 of 1 + a (a longer wait only comes closer).
+        let s1 = field_scale(&w, &ideal);
+        assert!((s1 - (1.0 + a)).abs() < 1e-6 * a, "{s1}");
+        // Released: the last contact's field, scaled to the creep left, decays with τ.
+        w.set_stage_mm([29.0, 36.75, 0.0]);
+        let mut img = w.blank_frame();
+        let u = w.render(&mut img).unwrap().elastic_u_mm;
+        let residual = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(
+            residual > 0.0,
+            "creep recovery is visible right after unloading"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(400));
+        let u = w.render(&mut img).unwrap().elastic_u_mm;
+        let later = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(
+            later < residual * 1e-6,
+            "recovered: {later} mm vs {residual} mm"
+        );
+        // The F/T side is untouched by this effect.
+        w.set_stage_mm([29.0, 36.75, 5.3]);
+        assert!((w.wrench().force_n[2] - flat_n(0.3)).abs() < 1e-12);
     }
 }

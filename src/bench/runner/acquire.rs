@@ -10,12 +10,20 @@ use super::{
     MAX_CONTROL_STEP_MM, READ_RETRIES, SETTLE_RETRIES,
 };
 use crate::bench::control::{check_force_limits, ForceController, SettleDetector};
-use crate::bench::journal::{JournalRow, RowQuality};
+use crate::bench::journal::{Direction, JournalRow, RowQuality};
 use crate::bench::plan::{OnFail, Setpoint};
 use crate::device::{CameraFrame, ErrorKind, Wrench};
 use crate::formats::{self, DisplacementFrame};
 use crate::solve::{self, Problem};
 use crate::vision::{self, FrameView, MarkerTrack, Reference, ReferenceHealth, StatusCounts};
+
+/// Fraction of the force controller's step taken towards the target on the rows of
+/// an up-down sweep (approached from one side; see `control`).
+pub const MONOTONIC_STEP_FRACTION: f64 = 0.6;
+
+/// How often a hold reads the force sensor for the safety limits while it waits for
+/// its next sample.
+pub const HOLD_POLL: Duration = Duration::from_millis(20);
 
 /// One setpoint's frames: `(relative path, tracks)` per frame.
 type Tracked = Vec<(String, Vec<MarkerTrack>)>;
@@ -100,10 +108,21 @@ impl Runner<'_, '_, '_, '_> {
             let xy = self.geom.sensor_xy(here);
             if !normal_ok {
                 let depth = self.geom.depth(here[2]);
-                let next = self
-                    .normal_ctl
-                    .next_z(depth, f[2], sp.normal_n)
-                    .min(max_depth);
+                let mut next = self.normal_ctl.next_z(depth, f[2], sp.normal_n);
+                // Up-down sweeps approach each level from one side (loading from
+                // below, unloading from above): a step towards the target is cut to
+                // MONOTONIC_STEP_FRACTION of the secant's, so a contact that stiffens
+                // with depth (Hertz: local stiffness up to 1.5x the secant) is not
+                // overshot, which would put an `up` row on an unloading branch.
+                let towards = match sp.direction {
+                    Some(Direction::Up) => next > depth,
+                    Some(Direction::Down) => next < depth,
+                    None => false,
+                };
+                if towards {
+                    next = depth + (next - depth) * MONOTONIC_STEP_FRACTION;
+                }
+                let next = next.min(max_depth);
                 if next <= depth + 1e-9 && f[2] < sp.normal_n - tol {
                     return Err(Halt::Abort(format!(
                         "cannot reach fz = {:.4} N: {:.4} N at the deepest allowed indentation {max_depth} mm",
@@ -204,12 +223,45 @@ impl Runner<'_, '_, '_, '_> {
             self.move_lateral_at_clearance(target_xy)?;
             if sp.normal_n > 0.0 {
                 self.approach(target_xy)?;
+                self.preload_for_unloading(sp, &mut lateral)?;
             }
         }
         let mut settled = true;
         let mut t_settle = 0.0;
         let mut t_move = 0.0;
+        let mut hold_t_s = None;
+        if let Some(t_sched) = sp.hold_t_s {
+            // A hold: the force is controlled once (its first sample, or the first
+            // one of a resumed hold), then the stage holds its position and each
+            // sample waits for its time in the schedule; no settling.
+            if self.hold_t0.is_none() {
+                self.control(sp, &mut lateral)?;
+                self.hold_t0 = Some(Instant::now());
+                self.hold_restarted = t_sched > 0.0;
+                if self.hold_restarted {
+                    (self.events)(&RunEvent::Warning {
+                        index: sp.index,
+                        message: format!(
+                            "hold of trial {} resumed part-way: its force was re-established now, and this and its remaining samples are taken at their scheduled times after it (hold_t_s counts from the re-established force; rows journalled settled = false)",
+                            sp.trial
+                        ),
+                    });
+                }
+            }
+            t_move = t_move0.elapsed().as_secs_f64();
+            let t0 = self
+                .hold_t0
+                .ok_or_else(|| Halt::Abort("hold: the force was not reached".into()))?;
+            let t_w = Instant::now();
+            self.hold_wait(t0 + Duration::from_secs_f64(t_sched))?;
+            t_settle = t_w.elapsed().as_secs_f64();
+            settled = !self.hold_restarted;
+            hold_t_s = Some(t0.elapsed().as_secs_f64());
+        }
         for attempt in 0..=SETTLE_RETRIES {
+            if hold_t_s.is_some() {
+                break;
+            }
             let t_c = Instant::now();
             if sp.normal_n > 0.0 {
                 self.control(sp, &mut lateral)?;
@@ -352,10 +404,56 @@ impl Runner<'_, '_, '_, '_> {
             fsum_sd_x_n: None,
             fsum_sd_y_n: None,
             fsum_sd_z_n: None,
-            direction: None,
-            position: None,
-            hold_t_s: None,
+            direction: sp.direction,
+            position: sp.position,
+            hold_t_s,
         })
+    }
+
+    /// A `down` row of an up-down sweep reached from a fresh contact (a resumed run, or
+    /// after a retry that released the contact) is reached by loading to the sweep's
+    /// top level first (not journalled), so every `down` row is measured on unloading
+    /// from the top, as in an uninterrupted trial.
+    fn preload_for_unloading(&mut self, sp: &Setpoint, lateral: &mut [f64; 2]) -> Step<()> {
+        let Some(top) = self.plan.top_level_n() else {
+            return Ok(());
+        };
+        if sp.direction != Some(Direction::Down) || top <= sp.normal_n {
+            return Ok(());
+        }
+        (self.events)(&RunEvent::Retry {
+            index: Some(sp.index),
+            attempt: 1,
+            reason: format!(
+                "unloading row from a fresh contact: loading to the sweep's top level {top:.4} N first (not journalled), then down to {:.4} N",
+                sp.normal_n
+            ),
+        });
+        let top_sp = Setpoint {
+            normal_n: top,
+            ..*sp
+        };
+        self.control(&top_sp, lateral)
+    }
+
+    /// Waits until `until` with the stage holding its position (a hold sample's time
+    /// in the schedule), reading the force sensor every [`HOLD_POLL`] for the safety
+    /// limits and stopping at once when asked.
+    fn hold_wait(&mut self, until: Instant) -> Step<()> {
+        loop {
+            if self.stopped() {
+                return Err(Halt::Interrupted);
+            }
+            let now = Instant::now();
+            if now >= until {
+                return Ok(());
+            }
+            self.dev.sleep((until - now).min(HOLD_POLL));
+            let w = self.read_retry()?;
+            if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
+                return Err(self.trip(format!("{trip}"), Instant::now()));
+            }
+        }
     }
 
     /// Per-setpoint marker counts: each marker's worst status over the frames (lost

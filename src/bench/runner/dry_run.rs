@@ -12,6 +12,7 @@ use crate::device::camera::image_dir::ImageDirCamera;
 use crate::device::camera::CameraSpec;
 use crate::device::zaber::DEFAULT_MM_PER_STEP;
 use crate::device::{DeviceError, TravelLimits};
+use crate::sensor::Sensor;
 use crate::sim::bench::ZABER_TRAVEL_STEPS;
 use crate::sim::scene::{Scene, SceneError};
 
@@ -161,6 +162,43 @@ pub fn dry_run(
         stage,
         checks,
     }
+}
+
+/// The plan's `sweep.positions_mm` against the sensor's area: the bounding box of its
+/// force grid, where forces are reconstructed. One `(passed, description)` per
+/// position, none without the key (the stage's travel is checked per setpoint by
+/// [`dry_run`]).
+pub fn sensor_area_checks(plan: &Plan, sensor: &Sensor) -> Vec<(bool, String)> {
+    let g = &sensor.force_grid;
+    let lo = g.origin_mm;
+    let hi = [
+        g.origin_mm[0] + (g.nx.saturating_sub(1)) as f64 * g.pitch_mm,
+        g.origin_mm[1] + (g.ny.saturating_sub(1)) as f64 * g.pitch_mm,
+    ];
+    let inside = |p: [f64; 2]| (0..2).all(|i| p[i] >= lo[i] - 1e-9 && p[i] <= hi[i] + 1e-9);
+    let area = format!(
+        "the sensor's force grid x {:.4}..{:.4} mm, y {:.4}..{:.4} mm ({})",
+        lo[0],
+        hi[0],
+        lo[1],
+        hi[1],
+        plan.sensor_path.display()
+    );
+    plan.positions_mm
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            (
+                inside(*p),
+                format!(
+                    "sweep.positions_mm[{i}] [{}, {}] mm {} {area}",
+                    p[0],
+                    p[1],
+                    if inside(*p) { "within" } else { "OUTSIDE" }
+                ),
+            )
+        })
+        .collect()
 }
 
 /// Travel of each axis of the simulated GRBL stage: GRBL 1.1's default `$130..$132`

@@ -56,7 +56,18 @@
 //! **Resume.** [`run`] with `resume = true` reopens the journal (a torn last line is
 //! cut), skips completed indices, homes / tares as the bench requires, and takes a new
 //! reference frame (`frames/reference_resumeN.png`; `frames/reference.png` stays the
-//! first run's).
+//! first run's). Rows are never overwritten, so:
+//! - a **hold** interrupted part-way is not re-run from its start (its rows exist):
+//!   its force is re-established (approach and control) and its remaining samples
+//!   are taken at their scheduled times counted from that moment (`hold_t_s` keeps
+//!   meaning "seconds since the force of this loading was reached"); those rows are
+//!   journalled `settled = false` and a warning is logged;
+//! - a **`down` row** of an up-down sweep reached from a fresh contact first loads to
+//!   the sweep's top level (not journalled), then unloads to its level.
+//!
+//! **Hold samples** (plan `hold` sweeps) skip settling: the first is taken as soon as
+//! force control reached the target, the later ones wait (reading the F/T every
+//! 20 ms for the safety limits, stopping at once on a stop request) until their time.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -103,7 +114,8 @@ mod dry_run;
 mod motion;
 
 pub use dry_run::{
-    check_bench_inputs, dry_run, needs_retract, stage_limits_of, DryRun, InputError, StageTargets,
+    check_bench_inputs, dry_run, needs_retract, sensor_area_checks, stage_limits_of, DryRun,
+    InputError, StageTargets,
 };
 use motion::Timed;
 
@@ -375,6 +387,12 @@ struct Runner<'p, 'd, 'a, 'e> {
     tracker: Option<Tracker>,
     solvers: HashMap<Vec<bool>, Box<dyn FrameSolver>>,
     index: Option<usize>,
+    /// When the force of the current hold (`hold` sweeps) was reached; `None` when no
+    /// hold is under way in this contact (released by every retract).
+    hold_t0: Option<Instant>,
+    /// The current hold was re-established part-way (a resumed run): its samples are
+    /// journalled `settled = false`.
+    hold_restarted: bool,
     /// Per-setpoint accounting.
     track_s: f64,
     solve_s: f64,
@@ -504,6 +522,8 @@ pub fn run(
         tracker: None,
         solvers: HashMap::new(),
         index: None,
+        hold_t0: None,
+        hold_restarted: false,
         track_s: 0.0,
         solve_s: 0.0,
         precompute_s: 0.0,
@@ -683,6 +703,7 @@ pub fn sweep_name(plan: &Plan) -> &'static str {
         Sweep::Spatial { .. } => "spatial",
         Sweep::Displacement { .. } => "displacement",
         Sweep::Setpoints(_) => "setpoints",
+        Sweep::Hold { .. } => "hold",
     }
 }
 
@@ -709,6 +730,9 @@ mod tests {
             tangential_n,
             shift_mm: [0.0; 2],
             swept_value: 0.0,
+            direction: None,
+            position: None,
+            hold_t_s: None,
         }
     }
 

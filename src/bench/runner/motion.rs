@@ -384,6 +384,7 @@ impl Runner<'_, '_, '_, '_> {
             }
         };
         self.in_contact = false;
+        self.hold_t0 = None;
         self.normal_ctl.reset();
         if let Some(t) = self.tracker.as_mut() {
             t.reset();
@@ -427,6 +428,7 @@ impl Runner<'_, '_, '_, '_> {
             .map_err(|e| e.to_string())?;
         self.commanded = Some(target);
         self.in_contact = false;
+        self.hold_t0 = None;
         Ok(())
     }
 
@@ -504,6 +506,7 @@ impl Runner<'_, '_, '_, '_> {
             )));
         }
         self.in_contact = true;
+        self.hold_t0 = None;
         self.normal_ctl.reset();
         Ok(())
     }
