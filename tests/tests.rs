@@ -8,6 +8,7 @@ mod cli;
 mod fourier;
 mod ft;
 mod layer;
+mod model_error;
 mod plans;
 mod report;
 mod reproduce;
