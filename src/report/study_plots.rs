@@ -447,7 +447,13 @@ impl Figure for ModelErrorFigure {
             chart
                 .configure_mesh()
                 .x_label_formatter(&|v| short(*v))
-                .y_label_formatter(&|v| short(*v))
+                .y_label_formatter(&|v| {
+                    if *v >= 0.01 {
+                        short(*v)
+                    } else {
+                        format!("{v:.0e}")
+                    }
+                })
                 .x_desc("elastomer thickness h, mm (log)")
                 .y_desc("relative error, % (log)")
                 .label_style((FONT, 12))
@@ -498,7 +504,7 @@ impl Figure for ModelErrorFigure {
             }
             chart
                 .configure_series_labels()
-                .position(SeriesLabelPosition::UpperRight)
+                .position(SeriesLabelPosition::MiddleRight)
                 .background_style(WHITE.mix(0.85))
                 .border_style(BLACK)
                 .label_font((FONT, 12))
