@@ -520,7 +520,7 @@ pub fn sensor_at_thickness(
         .iter()
         .map(|l| l.depth_mm)
         .fold(0.0f64, f64::max);
-    if !(deepest > 0.0) {
+    if deepest.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return Err(ModelErrorStudyError::Sensor(
             "the sensor has no marker layer below the surface".into(),
         ));
@@ -794,6 +794,9 @@ pub enum ModelErrorEvent<'a> {
     },
 }
 
+/// A dense `H` for the full marker set with its build time (s), or why it failed.
+type Operator = Result<(DMatrix<f64>, f64), String>;
+
 /// The data of one (thickness, physics, effect set, load).
 struct Data {
     /// Per realisation, displacements of the used markers, mm.
@@ -833,8 +836,7 @@ pub fn run_model_error(
         }
         let points = sensor_h.force_points_mm();
         // The operators first, while this thickness's layer tables are cold.
-        let mut operators: Vec<(ModelKind, Sensor, Result<(DMatrix<f64>, f64), String>)> =
-            Vec::new();
+        let mut operators: Vec<(ModelKind, Sensor, Operator)> = Vec::new();
         let any_dense = options.solvers.iter().any(|c| c.method != Method::Fourier);
         for &m in &options.solver_models {
             let mut s = sensor_h.clone();
@@ -1091,7 +1093,7 @@ fn solve_row(
     row: &mut ModelErrorRow,
     sensor: &Sensor,
     sites: &[MarkerSite],
-    operator: &Result<(DMatrix<f64>, f64), String>,
+    operator: &Operator,
     data: &Data,
     config: &SolverConfig,
 ) -> Result<Box<dyn FrameSolver>, String> {

@@ -444,8 +444,9 @@ fn model_error_lines(path: &Path) -> anyhow::Result<String> {
         col("sum_error")?,
         col("field_error")?,
     ];
-    // thickness -> (depths, [half-space (sum, field), bonded-layer (sum, field)])
-    let mut by_h: BTreeMap<String, (f64, String, [Option<(f64, f64)>; 2])> = BTreeMap::new();
+    // thickness -> (h, depths, [half-space (sum, field), bonded-layer (sum, field)])
+    type Entry = (f64, String, [Option<(f64, f64)>; 2]);
+    let mut by_h: BTreeMap<String, Entry> = BTreeMap::new();
     for rec in r.records() {
         let rec = rec.with_context(|| format!("cannot read {}", path.display()))?;
         let g = |i: usize| rec.get(c[i]).unwrap_or_default();
