@@ -1,5 +1,5 @@
 //! `tactbench reproduce-paper` on its short variant: every step runs (runs on the
-//! simulated bench, reports, both studies) and the README puts a figure of ours beside
+//! simulated bench, reports, the three studies) and the README puts a figure of ours beside
 //! each of the paper's.
 
 use std::path::Path;
@@ -51,6 +51,10 @@ fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
         "accuracy_vs_time/accuracy_vs_time.csv",
         "accuracy_vs_time/budgets.csv",
         "accuracy_vs_time/accuracy_vs_time.png",
+        "model_error/model_error.csv",
+        "model_error/model_error.png",
+        "model_error/model_error.svg",
+        "model_error/README.md",
     ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
@@ -78,6 +82,16 @@ fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
             "no figure of ours in {row:?}"
         );
     }
+
+    // The model-error headline: the 40 mm and the 3 mm layer, both solvers, in numbers.
+    let me: Vec<&str> = readme
+        .lines()
+        .filter(|l| l.starts_with("- ") && l.contains("mm layer, markers at"))
+        .collect();
+    assert_eq!(me.len(), 2, "model-error lines:\n{readme}");
+    assert!(me[0].starts_with("- 40 mm layer, markers at 3 / 6 mm: F_sum error "));
+    assert!(me[1].starts_with("- 3 mm layer, markers at 0.75 / 1.5 mm: F_sum error "));
+    assert!(me.iter().all(|l| !l.contains("n/a")), "{me:?}");
 
     // --readme-only rewrites the README from the outputs already there.
     std::fs::remove_file(out.join("README.md")).unwrap();

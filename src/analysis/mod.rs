@@ -27,8 +27,10 @@
 //!
 //! The simulation studies live here too: [`accuracy_time`] (force error against time
 //! per frame over solver, force-grid, tracking and averaging choices; Pareto front and
-//! budgets) and [`layer_separation`] (force error against the distance between the two
-//! marker layers, paper Fig. 6, per solver).
+//! budgets), [`layer_separation`] (force error against the distance between the two
+//! marker layers, paper Fig. 6, per solver) and [`model_error`] (what the half-space
+//! assumption costs a bonded layer of each thickness, against a solver that models the
+//! layer, with camera effects; issue 14).
 
 pub mod accuracy_time;
 pub mod angle;
@@ -38,6 +40,7 @@ pub mod hold;
 pub mod layer_separation;
 pub mod magnitude;
 pub mod metrology;
+pub mod model_error;
 pub mod spatial;
 pub mod stats;
 pub mod timing;

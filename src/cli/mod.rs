@@ -63,7 +63,8 @@ enum Command {
     /// Serve a force/torque sensor simulator on a pseudo-terminal (test helper).
     #[command(hide = true)]
     SimServeFt(ft::ServeArgs),
-    /// Simulation studies: accuracy against time, layer separation (paper Fig. 6).
+    /// Simulation studies: accuracy against time, layer separation (paper Fig. 6),
+    /// model error (half-space against a bonded layer).
     #[command(subcommand)]
     Study(study::StudyCommand),
 }

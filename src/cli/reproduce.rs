@@ -1,7 +1,8 @@
 //! `tactbench reproduce-paper`: regenerates the paper reproduction (`reports/paper/`)
 //! from the simulated bench with the same public commands a user runs by hand:
-//! `run --sim` for each paper plan, `report` on each run, the two `study` commands,
-//! then a README that puts our figures beside the paper's.
+//! `run --sim` for each paper plan, `report` on each run, the three `study` commands
+//! (layer separation, accuracy against time, model error), then a README that puts our
+//! figures beside the paper's.
 //!
 //! Each step is a child process of this same executable, so the reproduction exercises
 //! exactly the command-line contracts (arguments, exit codes, files) it documents, and
@@ -21,8 +22,9 @@ use tactbench::bench::journal::MANIFEST_FILE;
 ///
 /// Runs, in order: the Table I displacement plan, the Fig. 7 magnitude, Fig. 8 angle and
 /// Fig. 9 spatial plans (each `tactbench run PLAN --sim SCENE`, then `tactbench report`),
-/// the layer-separation study (Fig. 6) and the accuracy-against-time study, and writes
-/// OUT/README.md with our figures beside the paper's. Run directories are replaced
+/// the layer-separation study (Fig. 6), the accuracy-against-time study and the
+/// model-error study (the half-space against a bonded layer of the paper's 40 mm and
+/// thinner), and writes OUT/README.md with our figures beside the paper's. Run directories are replaced
 /// (only directories holding a manifest.json, i.e. earlier runs, are ever removed).
 ///
 /// The full reproduction measures 351 setpoints (Table I 10, Fig. 7 2 × 160 with an
@@ -35,7 +37,8 @@ use tactbench::bench::journal::MANIFEST_FILE;
     after_long_help = "Examples:\n  # Regenerate the committed reference report (release build recommended):\n  cargo run --release -- reproduce-paper --out reports/paper\n  # A short variant into a scratch directory:\n  tactbench reproduce-paper --out /tmp/paper --quick 4"
 )]
 pub struct Args {
-    /// Output directory (created): runs/, fig6/, accuracy_vs_time/, README.md.
+    /// Output directory (created): runs/, fig6_layer_separation/, accuracy_vs_time/,
+    /// model_error/, README.md.
     #[arg(long, value_name = "DIR", default_value = "reports/paper")]
     out: PathBuf,
     /// Short variant: only the first N setpoints of each plan, small studies. N is at
@@ -176,6 +179,34 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         args.extend(["--reps", "2", "--realisations", "1", "--sweeps", "solver"].map(String::from));
     }
     step(&exe, "accuracy against time study", &args)?;
+
+    let me = a.out.join("model_error");
+    let mut args: Vec<String> = vec![
+        "study".into(),
+        "model-error".into(),
+        "--out".into(),
+        path_arg(&me),
+    ];
+    if a.quick.is_some() {
+        args.extend(
+            [
+                "--thickness",
+                "3,40",
+                "--effects",
+                "none,pixel_noise+quantize8",
+                "--reps",
+                "2",
+                "--realisations",
+                "1",
+            ]
+            .map(String::from),
+        );
+    }
+    step(
+        &exe,
+        "model error study (half-space against bonded layer)",
+        &args,
+    )?;
 
     write_readme(&a.out, a.quick, started)
 }
@@ -382,7 +413,94 @@ fn paper_readme(out: &Path, quick: Option<u64>) -> anyhow::Result<String> {
         }
     );
     let _ = writeln!(s);
+    s.push_str(&model_error_lines(
+        &out.join("model_error/model_error.csv"),
+    )?);
     s.push_str(DIFFERENCES);
+    Ok(s)
+}
+
+/// The model-error study's headline (bonded-layer data, forward path, mixed load: the
+/// paper's Fig. 6 load) at the thickest and the thinnest layer it measured: F_sum and
+/// field error of the half-space solver and of the matching bonded-layer solver.
+fn model_error_lines(path: &Path) -> anyhow::Result<String> {
+    let mut r =
+        csv::Reader::from_path(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let headers = r.headers()?.clone();
+    let col = |name: &str| {
+        headers
+            .iter()
+            .position(|h| h == name)
+            .with_context(|| format!("{}: no column {name}", path.display()))
+    };
+    let c = [
+        col("thickness_mm")?,
+        col("depths_mm")?,
+        col("physics")?,
+        col("solver_model")?,
+        col("load")?,
+        col("effects")?,
+        col("status")?,
+        col("sum_error")?,
+        col("field_error")?,
+    ];
+    // thickness -> (h, depths, [half-space (sum, field), bonded-layer (sum, field)])
+    type Entry = (f64, String, [Option<(f64, f64)>; 2]);
+    let mut by_h: BTreeMap<String, Entry> = BTreeMap::new();
+    for rec in r.records() {
+        let rec = rec.with_context(|| format!("cannot read {}", path.display()))?;
+        let g = |i: usize| rec.get(c[i]).unwrap_or_default();
+        if g(2) != "bonded-layer" || g(4) != "mixed" || g(5) != "none" || g(6) != "ok" {
+            continue;
+        }
+        let (Ok(h), Ok(sum), Ok(field)) = (
+            g(0).parse::<f64>(),
+            g(7).parse::<f64>(),
+            g(8).parse::<f64>(),
+        ) else {
+            continue;
+        };
+        let k = if g(3) == "half-space" { 0 } else { 1 };
+        let e = by_h
+            .entry(g(0).to_string())
+            .or_insert_with(|| (h, g(1).replace(';', " / "), [None, None]));
+        e.2[k] = Some((sum, field));
+    }
+    let mut v: Vec<_> = by_h.into_values().collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let pick: Vec<_> = match (v.last(), v.first()) {
+        (Some(a), Some(b)) if a.0 != b.0 => vec![a.clone(), b.clone()],
+        (Some(a), _) => vec![a.clone()],
+        _ => Vec::new(),
+    };
+    let mut s = String::from(
+        "## What the half-space assumption costs ([model_error](model_error/README.md))\n\n\
+         The paper's solver assumes a half-space; a real elastomer is a layer bonded to a \
+         plate. On data made with the bonded layer (the paper's Fig. 6 load, 100 gf z + 50 gf \
+         y, exact marker displacements), the F_sum and force-field errors of the half-space \
+         solver against a solver inverting the same bonded layer (dense tikhonov, GCV):\n\n",
+    );
+    let pct = |x: Option<(f64, f64)>, i: usize| {
+        x.map_or("n/a".to_string(), |p| {
+            let v = 100.0 * if i == 0 { p.0 } else { p.1 };
+            if v != 0.0 && v.abs() < 0.01 {
+                format!("{v:.0e} %")
+            } else {
+                format!("{v:.2} %")
+            }
+        })
+    };
+    for (h, depths, e) in pick {
+        let _ = writeln!(
+            s,
+            "- {h} mm layer, markers at {depths} mm: F_sum error {} (half-space solver) against {} (bonded-layer solver); field error {} against {}",
+            pct(e[0], 0),
+            pct(e[1], 0),
+            pct(e[0], 1),
+            pct(e[1], 1)
+        );
+    }
+    s.push('\n');
     Ok(s)
 }
 
@@ -434,7 +552,9 @@ non-linearity, temperature drift, probe misalignment).\n\
 through the same half-space model (Eq. 1–2) the solver inverts, so model error — \
 the finite 40 mm thickness, the elastomer's non-linear response at large \
 indentation — is absent. The remaining error is the inverse problem's own: \
-discretisation of the contact on the 2.2 mm force grid and regularisation.\n\
+discretisation of the contact on the 2.2 mm force grid and regularisation. What the \
+finite thickness alone costs is measured by the model-error study above \
+(`model_error/`).\n\
 - **Camera noise and the paper's pseudo-inverse.** With the ideal camera the Fig. 7 \
 spread is the force controller's tolerance and the discretisation of the contact. With \
 the Table I camera (σ = 2 of 255 levels, 8-bit; about 0.015 px tracking SD) the same \

@@ -1,5 +1,6 @@
 //! `tactbench study`: simulation studies (library: [`tactbench::analysis`]) —
-//! accuracy against time, and layer separation (paper Fig. 6).
+//! accuracy against time, layer separation (paper Fig. 6), and model error (the
+//! half-space against a bonded layer, issue 14).
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -11,10 +12,15 @@ use tactbench::analysis::accuracy_time::{
 use tactbench::analysis::layer_separation::{
     paper_fig6_load, run_layer_separation, LayerCase, LayerOptions,
 };
+use tactbench::analysis::model_error::{
+    run_model_error, CameraEffects, EffectSet, LoadKind, ModelErrorEvent, ModelErrorOptions,
+    RowStatus,
+};
 use tactbench::report::plot::save_figure;
-use tactbench::report::study_plots::{LayerSeparationFigure, ParetoFigure};
-use tactbench::sensor::{paper_sensor, Sensor};
+use tactbench::report::study_plots::{LayerSeparationFigure, ModelErrorFigure, ParetoFigure};
+use tactbench::sensor::{paper_sensor, ModelKind, Sensor};
 use tactbench::sim::scene::Scene;
+use tactbench::solve::{Lambda, Method, SolverConfig};
 
 /// Simulation studies: what accuracy costs in time, and how far apart the marker layers
 /// should be.
@@ -22,6 +28,7 @@ use tactbench::sim::scene::Scene;
 pub enum StudyCommand {
     AccuracyVsTime(AccuracyArgs),
     LayerSeparation(LayerArgs),
+    ModelError(ModelErrorArgs),
 }
 
 /// Measure force error against time per frame for the choices that trade one for the other.
@@ -152,6 +159,146 @@ pub struct LayerArgs {
     seed: u64,
 }
 
+/// What the half-space assumption costs a bonded elastomer layer, per thickness and
+/// camera effect, against a solver that models the layer, and what each costs in time.
+///
+/// For each elastomer thickness h, data is made with each --physics: `bonded-layer`
+/// (the layer of thickness h bonded to a rigid plate, what a scene's `[physics] model =
+/// "bonded-layer"` renders) and `half-space` (the reference), and the forces are
+/// reconstructed by each --solver inverting the half-space (`[elastomer] model =
+/// "half-space"`, the paper's) and the bonded layer of the same thickness (`model =
+/// "bonded-layer"`). A row is `matched` when the solver's model is the data's.
+///
+/// Marker depths: the sensor's (the paper's 3 and 6 mm) while the deepest lies within
+/// --max-depth-fraction of h, else all scaled so that it does (a 3 mm gel: 0.75 / 1.5 mm).
+///
+/// Loads: the paper's Fig. 6 load, 100 gf along z and 50 gf along y spread over the 4 x 4
+/// force points (4,3)-(7,6): `normal` (its z part), `tangential` (its y part), `mixed`
+/// (both, the paper's).
+///
+/// Camera effects (--effects, one entry per row set): `none` = no camera, the forward
+/// model's marker displacements with the load exactly on the force nodes (only model
+/// error and regularisation remain); `ideal` = rendered, tracked and solved with no
+/// effect; anything else = scene effect kinds joined by `+` (e.g. `pixel_noise+quantize8`,
+/// `perspective`, `perspective+refraction`), rendered with those effects, tracked and
+/// solved. Each kind's parameters come from the `[[effects]]` tables of --scene (parsed
+/// by the scene parser, so every effect a scene accepts works here) or, without
+/// --scene, from the built-in Table I camera (pixel_noise sigma 2 levels, quantize8).
+/// Rendered rows use the paper's 5 mm flat probe centred on the Fig. 6 patch (100 gf,
+/// plus 50 gf along +y for `mixed`; a contact cannot carry a purely tangential load, so
+/// those rows are refused), --realisations loaded frames each.
+///
+/// Errors (relative): field = ||f - f*|| / ||f*|| over nodes and axes (per axis:
+/// ||f_a - f*_a|| / ||f*||); F_sum = |sum F - F_applied| / |F_applied| (per axis, signed:
+/// (sum F_a - F_applied,a) / |F_applied|); mean |f - f*| in gf (the paper's Fig. 6
+/// metric). Times: build = H for the full marker set (cold Hankel tables for the layer) +
+/// the solver's precompute; per frame = tracking (rendered rows) + one solve, medians
+/// over --reps. A solver that refuses a problem (fourier on grids it cannot represent
+/// or, until it learns the layer kernel, on a bonded-layer sensor) gives a row with
+/// status `refused` and its reason.
+///
+/// Writes DIR/model_error.csv (one row per thickness, physics, effects, load, solver
+/// model and solver), DIR/model_error.png and .svg (error against thickness on
+/// bonded-layer data, half-space solver dashed, matching solver solid, one colour per
+/// load) and DIR/README.md (what ran, the headline table, refused rows).
+#[derive(clap::Args)]
+#[command(
+    after_long_help = "Examples:\n  tactbench study model-error --out study/model_error\n  tactbench study model-error --thickness 3,40 --effects none --loads mixed --reps 5 --out /tmp/me\n  # camera effects from a scene file (its [[effects]] tables give the parameters):\n  tactbench study model-error --scene my_camera.toml --effects none,ideal,perspective,perspective+refraction --out study/camera\n  # the Fourier solver next to dense tikhonov (rows it refuses say why):\n  tactbench study model-error --solver tikhonov,fourier --out study/fourier"
+)]
+pub struct ModelErrorArgs {
+    /// Sensor (two marker layers with grids, a force grid of at least 7 x 6 nodes); its
+    /// thickness and [elastomer] model are replaced per row [default: the paper's
+    /// sensor, experiments/paper_sensor.toml].
+    #[arg(long, value_name = "S.toml")]
+    sensor: Option<PathBuf>,
+    /// Base scene whose [[effects]] tables (and pixel_filter) give the parameters of the
+    /// effects named in --effects; its sensor, indenter and load are not used
+    /// [default: the Table I camera: pixel_noise (sigma_8bit = 2, seed 7), quantize8].
+    #[arg(long, value_name = "SCENE.toml")]
+    scene: Option<PathBuf>,
+    /// Output directory (created if missing; files are overwritten).
+    #[arg(long, value_name = "DIR", default_value = "study")]
+    out: PathBuf,
+    /// Elastomer thicknesses, mm (distinct, > 0).
+    #[arg(
+        long,
+        alias = "thicknesses",
+        value_name = "MM,...",
+        value_delimiter = ',',
+        allow_negative_numbers = true,
+        default_value = "3,5,10,20,40"
+    )]
+    thickness: Vec<f64>,
+    /// Camera-effect sets: `none` (forward model, no camera), `ideal` (rendered, no
+    /// effect) or scene effect kinds joined by `+`.
+    #[arg(
+        long,
+        value_name = "SET,...",
+        value_delimiter = ',',
+        default_value = "none,ideal,pixel_noise+quantize8",
+        value_parser = parse_effect_set
+    )]
+    effects: Vec<EffectSet>,
+    /// Loads: normal, tangential, mixed.
+    #[arg(long, value_name = "LOAD,...", value_delimiter = ',', default_value = "normal,tangential,mixed", value_parser = parse_load)]
+    loads: Vec<LoadKind>,
+    /// What the data is made with: bonded-layer, half-space.
+    #[arg(long, value_name = "MODEL,...", value_delimiter = ',', default_value = "bonded-layer,half-space", value_parser = parse_model)]
+    physics: Vec<ModelKind>,
+    /// Solver kinds: pinv, tikhonov, tsvd, fourier (each run with the half-space and
+    /// the bonded-layer model).
+    #[arg(long, value_name = "SOLVER,...", value_delimiter = ',', default_value = "tikhonov", value_parser = parse_method)]
+    solver: Vec<Method>,
+    /// Regularisation of tikhonov and fourier: `auto` (gcv for tikhonov, lcurve for
+    /// fourier), `gcv`, `lcurve` or a fixed value in mm/N.
+    #[arg(long, default_value = "auto")]
+    lambda: String,
+    /// fourier: CGLS refinement iterations after the per-frequency solve [default: the
+    /// solver's, 20].
+    #[arg(long, value_name = "N")]
+    refine_iterations: Option<usize>,
+    /// The deepest marker lies at most this fraction of the thickness, in (0, 1]
+    /// (deeper layers are all scaled by one factor).
+    #[arg(long, value_name = "F", default_value_t = 0.5)]
+    max_depth_fraction: f64,
+    /// Timing repetitions per row (medians reported).
+    #[arg(long, value_name = "N", default_value_t = 30)]
+    reps: usize,
+    /// Loaded frames rendered per rendered data set (errors RMS over them; each draws
+    /// its seeded noise from its own stream).
+    #[arg(long, value_name = "R", default_value_t = 4)]
+    realisations: usize,
+    /// Gaussian noise added to the forward (`none`) displacements, px (sigma per
+    /// component; 0 = exact data: model error alone).
+    #[arg(
+        long,
+        value_name = "PX",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    noise_px: f64,
+    /// Seed of that noise.
+    #[arg(long, default_value_t = 14)]
+    seed: u64,
+}
+
+fn parse_effect_set(s: &str) -> Result<EffectSet, String> {
+    s.parse()
+}
+
+fn parse_load(s: &str) -> Result<LoadKind, String> {
+    s.parse()
+}
+
+fn parse_model(s: &str) -> Result<ModelKind, String> {
+    ModelKind::from_name(s.trim())
+        .ok_or_else(|| format!("unknown model `{s}`: expected bonded-layer or half-space"))
+}
+
+fn parse_method(s: &str) -> Result<Method, String> {
+    s.parse()
+}
+
 fn parse_metric(s: &str) -> Result<Metric, String> {
     s.parse()
 }
@@ -164,6 +311,7 @@ pub fn run(cmd: StudyCommand) -> Result<ExitCode> {
     match cmd {
         StudyCommand::AccuracyVsTime(a) => accuracy(a),
         StudyCommand::LayerSeparation(a) => layers(a),
+        StudyCommand::ModelError(a) => model_error(a),
     }
 }
 
@@ -378,6 +526,136 @@ fn layers(a: LayerArgs) -> Result<ExitCode> {
         csv.display(),
         files.png.display(),
         files.svg.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn model_error(a: ModelErrorArgs) -> Result<ExitCode> {
+    let sensor = match &a.sensor {
+        Some(p) => Sensor::from_path(p)?,
+        None => paper_sensor(),
+    };
+    let camera = match &a.scene {
+        Some(p) => CameraEffects::from_path(p)?,
+        None => CameraEffects::default_camera(),
+    };
+    if let Some(h) = a.thickness.iter().find(|h| !(h.is_finite() && **h > 0.0)) {
+        bail!("--thickness: {h} mm must be a finite number > 0");
+    }
+    if a.noise_px < 0.0 || !a.noise_px.is_finite() {
+        bail!("--noise-px: {} px must be a finite number >= 0", a.noise_px);
+    }
+    let mut solvers = Vec::new();
+    for &m in &a.solver {
+        let lambda = match (a.lambda.as_str(), m) {
+            ("auto", Method::Fourier) => Lambda::LCurve,
+            ("auto", _) => Lambda::Gcv,
+            (l, _) => l
+                .parse()
+                .map_err(|e: String| anyhow::anyhow!("--lambda: {e}"))?,
+        };
+        if a.lambda != "auto" && matches!(m, Method::Pinv | Method::Tsvd) && a.solver.len() == 1 {
+            bail!("--lambda does not apply to the {m} solver, which has no regularisation parameter lambda (tikhonov and fourier use it)");
+        }
+        let mut c = SolverConfig {
+            method: m,
+            lambda,
+            ..SolverConfig::default()
+        };
+        if let Some(n) = a.refine_iterations {
+            if !a.solver.contains(&Method::Fourier) {
+                bail!("--refine-iterations applies to the fourier solver only; --solver does not list it");
+            }
+            c.fourier_refine_iterations = n;
+        }
+        solvers.push(c);
+    }
+    let options = ModelErrorOptions {
+        thicknesses_mm: a.thickness.clone(),
+        physics: a.physics.clone(),
+        solvers,
+        loads: a.loads.clone(),
+        effects: a.effects.clone(),
+        max_depth_fraction: a.max_depth_fraction,
+        reps: a.reps,
+        realisations: a.realisations,
+        noise_px: a.noise_px,
+        seed: a.seed,
+        ..ModelErrorOptions::default()
+    };
+    create_dir(&a.out)?;
+    let result = run_model_error(&sensor, &camera, &options, &mut |e| match e {
+        ModelErrorEvent::Operator {
+            thickness_mm,
+            model,
+            seconds,
+        } => eprintln!(
+            "model error: h = {thickness_mm} mm: H of the {model} model built in {:.1} ms",
+            seconds * 1e3
+        ),
+        ModelErrorEvent::Group { done, total, rows } => {
+            let Some(r0) = rows.first() else { return };
+            let mut line = format!(
+                "model error: [{done:>3}/{total}] h = {} mm, {} data, effects {}, {} load:",
+                r0.thickness_mm,
+                r0.physics,
+                r0.effects,
+                r0.load.name()
+            );
+            for r in rows {
+                match &r.status {
+                    RowStatus::Ok => line.push_str(&format!(
+                        " | {} {}: field {:.3} %, F_sum {:.3} %, build {:.1} ms, {:.1} µs/frame",
+                        r.solver_model,
+                        r.solver.name(),
+                        100.0 * r.errors.field,
+                        100.0 * r.errors.sum,
+                        r.t_build_s * 1e3,
+                        r.t_frame_s * 1e6
+                    )),
+                    RowStatus::Refused(why) => line.push_str(&format!(
+                        " | {} {}: refused ({})",
+                        r.solver_model,
+                        r.solver.name(),
+                        why.split("; ").next().unwrap_or_default()
+                    )),
+                }
+            }
+            eprintln!("{line}");
+        }
+    })?;
+    if result.rows.iter().all(|r| !r.is_ok()) {
+        bail!("every row was refused (see the messages above): nothing measured");
+    }
+    let csv = a.out.join("model_error.csv");
+    result.write_csv(&csv)?;
+    let fig = ModelErrorFigure::from_result(&result);
+    let files = save_figure(&fig, &a.out, "model_error", (1500, 700))?;
+    let readme = a.out.join("README.md");
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let command = format!("tactbench {}", args.join(" "));
+    result.write_readme(&readme, &command)?;
+    // The headline on stdout: the README's table.
+    let text = result.readme(&command);
+    for line in text
+        .lines()
+        .filter(|l| l.starts_with('|') || l.starts_with("## "))
+    {
+        println!("{line}");
+    }
+    let refused = result.rows.iter().filter(|r| !r.is_ok()).count();
+    println!(
+        "{} rows, {} measured, {} refused (reasons in the CSV and README)",
+        result.rows.len(),
+        result.rows.len() - refused,
+        refused
+    );
+    println!(
+        "wrote {}, {}, {}, {}",
+        csv.display(),
+        files.png.display(),
+        files.svg.display(),
+        readme.display()
     );
     Ok(ExitCode::SUCCESS)
 }

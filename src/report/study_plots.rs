@@ -10,7 +10,10 @@
 //! - [`LayerSeparationFigure`]: the paper's Fig. 6 — mean absolute force difference
 //!   against the layer separation on a true distance axis (mm), one line per solver with
 //!   its own colour, marker and dash pattern, the single layer as a dashed level of the
-//!   same colour, one panel per noise level, the legend in headroom above the data.
+//!   same colour, one panel per noise level, the legend in headroom above the data;
+//! - [`ModelErrorFigure`]: the model-error study — field and F_sum error against the
+//!   elastomer thickness on bonded-layer data, the half-space solver (dashed) against
+//!   the matching bonded-layer solver (solid), one colour per load.
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -18,6 +21,8 @@ use plotters::prelude::*;
 use super::plot::{Figure, FigureResult, FONT};
 use crate::analysis::accuracy_time::{Metric, StudyResult, Sweep};
 use crate::analysis::layer_separation::{LayerCase, LayerResult};
+use crate::analysis::model_error::ModelErrorResult;
+use crate::sensor::ModelKind;
 
 /// Colours of the data series, in order (colour-blind friendly Okabe–Ito palette).
 const SERIES: [RGBColor; 7] = [
@@ -504,6 +509,176 @@ impl Figure for LayerSeparationFigure {
         Ok(())
     }
 }
+
+/// One line of [`ModelErrorFigure`]: one load, one solver model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelErrorSeries {
+    /// Load name.
+    pub load: String,
+    /// What the solver inverts.
+    pub solver_model: ModelKind,
+    /// `(thickness mm, field error %, F_sum error %)`, by thickness.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// The model-error plot: error against thickness, half-space against matching solver.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelErrorFigure {
+    /// Title.
+    pub title: String,
+    /// A sentence on the data, shown under the title.
+    pub note: String,
+    /// The lines.
+    pub series: Vec<ModelErrorSeries>,
+}
+
+impl ModelErrorFigure {
+    /// The figure of a study result: bonded-layer data, the headline effect set
+    /// ([`ModelErrorResult::headline_effects`]), the first solver kind; one series per
+    /// (load, solver model) with the rows that ran.
+    pub fn from_result(result: &ModelErrorResult) -> Self {
+        let o = &result.options;
+        let eff = result.headline_effects();
+        let method = o.solvers.first().map(|c| c.method).unwrap_or_default();
+        let mut series = Vec::new();
+        for &load in &o.loads {
+            for &m in &o.solver_models {
+                let points: Vec<(f64, f64, f64)> = o
+                    .thicknesses_mm
+                    .iter()
+                    .filter_map(|&h| {
+                        result
+                            .find(h, ModelKind::BondedLayer, m, method, load, &eff)
+                            .map(|r| (h, 100.0 * r.errors.field, 100.0 * r.errors.sum))
+                    })
+                    .collect();
+                if !points.is_empty() {
+                    series.push(ModelErrorSeries {
+                        load: load.name().to_string(),
+                        solver_model: m,
+                        points,
+                    });
+                }
+            }
+        }
+        ModelErrorFigure {
+            title: "Model error: half-space vs bonded-layer solver on bonded-layer data".into(),
+            note: format!(
+                "solver {}, effects {eff}; load: paper Fig. 6 (normal 100 gf z, tangential 50 gf y, mixed both); dashed: half-space solver, solid: matching bonded-layer solver",
+                method.name()
+            ),
+            series,
+        }
+    }
+}
+
+impl Figure for ModelErrorFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let root = root.titled(&self.title, (FONT, 22))?;
+        let (note, body) = root.split_vertically(24);
+        note.draw(&Text::new(
+            self.note.clone(),
+            (15, 4),
+            (FONT, 13).into_font(),
+        ))?;
+        let areas = body.split_evenly((1, 2));
+        let mut loads: Vec<&str> = Vec::new();
+        for s in &self.series {
+            if !loads.contains(&s.load.as_str()) {
+                loads.push(&s.load);
+            }
+        }
+        let (x0, x1) = log_range(
+            self.series
+                .iter()
+                .flat_map(|s| s.points.iter().map(|p| p.0)),
+        );
+        for (panel, area) in areas.iter().enumerate() {
+            let value = |p: &(f64, f64, f64)| if panel == 0 { p.1 } else { p.2 };
+            let (y0, y1) = log_range(self.series.iter().flat_map(|s| s.points.iter().map(value)));
+            // Zero errors (exact reconstructions) at the bottom of the log axis.
+            let floor = |e: f64| e.max(y0 * 1.01);
+            let caption = if panel == 0 {
+                "force field: ‖f − f*‖ / ‖f*‖"
+            } else {
+                "total force: |ΣF − F_applied| / |F_applied|"
+            };
+            let mut chart = ChartBuilder::on(area)
+                .caption(caption, (FONT, 16))
+                .margin(12)
+                .x_label_area_size(45)
+                .y_label_area_size(70)
+                .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?;
+            chart
+                .configure_mesh()
+                .x_label_formatter(&|v| short(*v))
+                .y_label_formatter(&|v| {
+                    if *v >= 0.01 {
+                        short(*v)
+                    } else {
+                        format!("{v:.0e}")
+                    }
+                })
+                .x_desc("elastomer thickness h, mm (log)")
+                .y_desc("relative error, % (log)")
+                .label_style((FONT, 12))
+                .axis_desc_style((FONT, 13))
+                .draw()?;
+            for s in &self.series {
+                let li = loads.iter().position(|l| *l == s.load).unwrap_or(0);
+                let colour = SERIES[li % SERIES.len()];
+                let pts: Vec<(f64, f64)> = s
+                    .points
+                    .iter()
+                    .filter(|p| p.0 > 0.0 && value(p).is_finite())
+                    .map(|p| (p.0, floor(value(p))))
+                    .collect();
+                let label = format!(
+                    "{}, {} solver",
+                    s.load,
+                    match s.solver_model {
+                        ModelKind::HalfSpace => "half-space",
+                        ModelKind::BondedLayer => "bonded-layer",
+                    }
+                );
+                if s.solver_model == ModelKind::HalfSpace {
+                    chart
+                        .draw_series(DashedLineSeries::new(
+                            pts.clone(),
+                            8,
+                            5,
+                            colour.stroke_width(2),
+                        ))?
+                        .label(label)
+                        .legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 7, y)], colour.stroke_width(2))
+                        });
+                    chart.draw_series(
+                        pts.iter()
+                            .map(|p| Circle::new(*p, 5, colour.stroke_width(2))),
+                    )?;
+                } else {
+                    chart
+                        .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))?
+                        .label(label)
+                        .legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 16, y)], colour.stroke_width(2))
+                        });
+                    chart.draw_series(pts.iter().map(|p| Circle::new(*p, 4, colour.filled())))?;
+                }
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::MiddleRight)
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .label_font((FONT, 12))
+                .draw()?;
+        }
+        Ok(())
+    }
+}
+
 
 /// Draws marker `mark` centred on pixel `p` of `area` (pixel coordinates of the area).
 fn mark_px<DB: DrawingBackend>(
