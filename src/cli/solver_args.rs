@@ -33,7 +33,7 @@ pub struct SolverArgs {
     rcond: Option<f64>,
     /// fourier: cap on the CGLS refinement iterations on the exact operator after the
     /// per-frequency solve; the refinement stops earlier once it is within about 2 %
-    /// of dense tikhonov (8 iterations on a 16x16 grid, ~20 on 32x32). The direct
+    /// of dense tikhonov (~20 iterations on 16x16 and 32x32 grids). The direct
     /// solve (0) is the fastest but carries the periodic model's boundary error (shear
     /// read partly as normal force near boundaries); each iteration costs about three
     /// direct solves. Default 50. An error with the other solvers.

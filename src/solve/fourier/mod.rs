@@ -96,9 +96,9 @@
 //! `z = M(Hᵀ(u − Hf) − λ²f)` has `‖z‖ ≤ tol·‖f‖` (`z ≈` the remaining correction, so
 //! this estimates the relative distance to dense Tikhonov), at the cap, or when the
 //! gradient has fallen to rounding (CGLS run on past that point diverged). Measured at
-//! λ ≈ 1e-2·σ₁ on the five acceptance loads: 16×16, tolerance 0.02 → 8 iterations, ΣF
-//! within 0.7 % and field within 1.2 % of dense Tikhonov; 32×32 → 22 iterations, 0.7 % /
-//! 1.3 % (README *Performance* has the whole table). The preconditioner is exact for the
+//! λ ≈ 1e-2·σ₁ on the five acceptance loads: 16×16, tolerance 0.02 → 22 iterations,
+//! ΣF within 0.4 % and field within 1.9 % of dense Tikhonov; 32×32 → 22 iterations,
+//! 0.7 % / 1.3 % (README *Performance* has the whole table). The preconditioner is exact for the
 //! periodic problem but not for the measured one (no markers in the padding, no forces
 //! outside the grid): the mismatch lives on the boundary and grows with the grid, so
 //! the iterations needed grow with it. For small λ (≲ 1e-3·σ_max) convergence is slower
@@ -160,7 +160,8 @@ pub const DEFAULT_REFINE_ITERATIONS: usize = 50;
 /// Default stopping tolerance of the refinement ([`FourierSolver::refine_tolerance`]):
 /// the largest that meets issue 12's bounds (ΣF within 2 %, field within 10 % / 5 %
 /// interior of dense Tikhonov) on the 16×16 and 32×32 acceptance loads with a margin
-/// (measured ΣF 0.7 %, field 1.3 %; README *Performance* has the trade-off table).
+/// (measured at the issue's λ: 16×16 22 iterations, ΣF 0.4 %, field 1.9 %; 32×32 22
+/// iterations, 0.7 % / 1.3 %; README *Performance* has the trade-off table).
 pub const DEFAULT_REFINE_TOLERANCE: f64 = 2e-2;
 
 /// Largest accepted refinement count ([`SolverConfig::fourier_refine_iterations`]):
