@@ -40,7 +40,7 @@
 //!   `grid_sensor(16,16,1.1,1.1)` at λ = 1e-2·σ₁ against the exact rows of dense `P`:
 //!   worst node 6.5 %, 1.6 % overall (`d = 4`: 22 % / 5.8 %; without the control
 //!   variate, `d = 6`: 14 % / 3.4 %). Computed on first use of `force_sd`
-//!   and cached (`2·layers·64` PCG solves: 128 on that grid).
+//!   and cached (`2·layers·64` PCG solves: 256 on that grid, ~7 s in the test profile).
 //! - The bridged direct map (the direct default) is probed the same way (direct applies).
 //!
 //! Checked against 300 Monte Carlo frames and the exact dense rows in `tests/fourier.rs`.
