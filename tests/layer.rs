@@ -4,9 +4,10 @@
 use std::path::Path;
 use std::process::Command;
 
+use nalgebra::{DMatrix, DVector};
 use tactbench::model::{self, layer::scalar_kernels, ElasticModel, ForwardModel, MarkerSite};
-use tactbench::sensor::{paper_sensor, ModelKind, Sensor};
-use tactbench::solve::{self, Method, Problem, SolveError, SolverConfig};
+use tactbench::sensor::{grid_sensor, paper_sensor, ModelKind, Sensor};
+use tactbench::solve::{self, FrameSolver, Lambda, Method, Problem, Rank, SolverConfig};
 
 /// Compares one line `h z nu k ll tt lz zl zz` of `tests/numpy_ref/layer_check.py`.
 fn check_reference_line(line: &str, tol: f64) {
@@ -159,23 +160,6 @@ fn bonded_layer_solver_recovers_forces_like_the_half_space_solver() {
 }
 
 #[test]
-fn fourier_solver_refuses_a_bonded_layer_sensor() {
-    let sensor = bonded(&paper_sensor(), 40.0);
-    let sites = MarkerSite::from_sensor_grids(&sensor);
-    let cfg = SolverConfig {
-        method: Method::Fourier,
-        ..SolverConfig::default()
-    };
-    let err = solve::precompute(&Problem::new(&sensor, &sites), &cfg, None)
-        .err()
-        .expect("refused");
-    assert!(
-        matches!(&err, SolveError::Incompatible(m) if m.contains("bonded-layer")),
-        "{err}"
-    );
-}
-
-#[test]
 fn half_space_sensor_builds_the_same_h_as_before() {
     let sensor = paper_sensor();
     let sites = MarkerSite::from_sensor_grids(&sensor);
@@ -309,4 +293,362 @@ fn scene_physics_selects_the_rendered_model_and_defaults_to_today() {
     );
     assert!(d > 1e-3);
     assert_ne!(fc.as_raw(), fa.as_raw());
+}
+
+// ---- the Fourier solver and every solver on bonded-layer sensors (issue 14) -------
+
+/// `grid_sensor` on the bonded-layer model: `thickness_mm`, markers at `depths_mm`.
+fn layer_grid(grid: (usize, usize, f64, f64), thickness_mm: f64, depths_mm: [f64; 2]) -> Sensor {
+    let mut s = grid_sensor(grid.0, grid.1, grid.2, grid.3);
+    s.elastomer.model = ModelKind::BondedLayer;
+    s.elastomer.thickness_mm = thickness_mm;
+    s.layers[0].depth_mm = depths_mm[0];
+    s.layers[1].depth_mm = depths_mm[1];
+    s
+}
+
+/// The marker depths used in a layer of this thickness: the paper's 3 / 6 mm, or
+/// 1 / 2 mm in a 3 mm gel.
+fn depths_for(thickness_mm: f64) -> [f64; 2] {
+    if thickness_mm < 6.0 {
+        [1.0, 2.0]
+    } else {
+        [3.0, 6.0]
+    }
+}
+
+/// A Gaussian load of width `w` mm centred at `c`, components `amp` N per node.
+fn blob(sensor: &Sensor, c: [f64; 2], w: f64, amp: [f64; 3]) -> Vec<f64> {
+    sensor
+        .force_points_mm()
+        .iter()
+        .flat_map(|p| {
+            let g = (-((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2)) / (2.0 * w * w)).exp();
+            [amp[0] * g, amp[1] * g, amp[2] * g]
+        })
+        .collect()
+}
+
+fn sums(f: &[f64]) -> [f64; 3] {
+    let mut s = [0.0; 3];
+    for (i, v) in f.iter().enumerate() {
+        s[i % 3] += v;
+    }
+    s
+}
+
+/// Force components of the nodes at least `margin_mm` from every edge of the grid.
+fn interior(sensor: &Sensor, f: &[f64], margin_mm: f64) -> Vec<f64> {
+    let g = sensor.force_grid;
+    let m = (margin_mm / g.pitch_mm).ceil() as usize;
+    let mut out = Vec::new();
+    for iy in m..g.ny.saturating_sub(m) {
+        for ix in m..g.nx.saturating_sub(m) {
+            let k = iy * g.nx + ix;
+            out.extend_from_slice(&f[3 * k..3 * k + 3]);
+        }
+    }
+    out
+}
+
+/// Dense Tikhonov `V diag(σ/(σ²+λ²)) Uᵀ` at λ = `rel`·σ₁ on the sensor's own model
+/// (nalgebra's SVD, independent of the solvers); returns it and λ.
+fn dense_tikhonov(sensor: &Sensor, sites: &[MarkerSite], rel: f64) -> (DMatrix<f64>, f64) {
+    let p = Problem::new(sensor, sites);
+    let h = model::transfer_matrix(&p.forward_model(), sites, &sensor.force_points_mm()).unwrap();
+    let svd = h.svd(true, true);
+    let lambda = rel * svd.singular_values.max();
+    let (uu, vt) = (svd.u.unwrap(), svd.v_t.unwrap());
+    let mut v = vt.transpose();
+    for (i, mut col) in v.column_iter_mut().enumerate() {
+        let s = svd.singular_values[i];
+        col *= s / (s * s + lambda * lambda);
+    }
+    (v * uu.transpose(), lambda)
+}
+
+#[test]
+fn fourier_on_bonded_layers_agrees_with_dense_tikhonov_at_3_10_and_40_mm() {
+    // The issue-12 acceptance bounds, on bonded-layer sensors: 16×16 forces and markers
+    // at 1.1 mm (second layer offset by half a pitch), λ = 1e-2·σ₁ of the layer's dense
+    // H, the default refinement; F_sum per axis within 2 % of the applied total,
+    // cross-talk of single-axis loads ≤ 2 %, field within 10 % overall, 5 % interior.
+    for thickness in [3.0, 10.0, 40.0] {
+        let s = layer_grid((16, 16, 1.1, 1.1), thickness, depths_for(thickness));
+        let sites = MarkerSite::from_sensor_grids(&s);
+        let (pd, lambda) = dense_tikhonov(&s, &sites, 1e-2);
+        let p = Problem::new(&s, &sites);
+        let cfg = SolverConfig {
+            method: Method::Fourier,
+            lambda: Lambda::Fixed(lambda),
+            ..SolverConfig::default()
+        };
+        let mut solver = solve::precompute(&p, &cfg, None).unwrap();
+        let fm = p.forward_model();
+        let c = 0.5 * 1.1 * 15.0;
+        let loads = [
+            ("centred fx", blob(&s, [c, c], 2.0, [0.1, 0.0, 0.0])),
+            ("centred fz", blob(&s, [c, c], 2.0, [0.0, 0.0, 0.1])),
+            ("centred mixed", blob(&s, [c, c], 2.0, [0.02, -0.01, 0.1])),
+            (
+                "off-centre fy",
+                blob(&s, [c - 3.0, c + 2.0], 2.0, [0.0, 0.1, 0.0]),
+            ),
+            (
+                "off-centre mixed",
+                blob(&s, [c + 4.0, c + 3.0], 2.0, [0.02, -0.01, 0.1]),
+            ),
+        ];
+        let mut f = vec![0.0; p.n_outputs()];
+        for (name, f_true) in loads {
+            let u = model::forward(&fm, &sites, &s.force_points_mm(), &f_true).unwrap();
+            let dense = (&pd * DVector::from_column_slice(&u)).as_slice().to_vec();
+            solver.apply(&u, &mut f).unwrap();
+            let (st, sd, sf) = (sums(&f_true), sums(&dense), sums(&f));
+            let total = st.iter().map(|v| v.abs()).fold(0.0, f64::max);
+            let e_all = rel_err(&f, &dense);
+            let e_int = rel_err(&interior(&s, &f, 4.0), &interior(&s, &dense, 4.0));
+            let e_sum = (0..3)
+                .map(|ax| (sf[ax] - sd[ax]).abs() / total)
+                .fold(0.0, f64::max);
+            eprintln!(
+                "h = {thickness} mm, {name}: ΣF vs dense {:.3} % of the total, field {:.3} % \
+                 overall, {:.3} % interior",
+                100.0 * e_sum,
+                100.0 * e_all,
+                100.0 * e_int
+            );
+            assert!(e_sum <= 0.02, "h = {thickness}, {name}: ΣF off by {e_sum}");
+            for ax in 0..3 {
+                if st[ax] == 0.0 {
+                    assert!(
+                        sf[ax].abs() <= 0.02 * total,
+                        "h = {thickness}, {name}: axis {ax}"
+                    );
+                }
+            }
+            assert!(e_all <= 0.10, "h = {thickness}, {name}: field {e_all}");
+            assert!(e_int <= 0.05, "h = {thickness}, {name}: interior {e_int}");
+        }
+    }
+}
+
+/// Relative force error of each method (pinv, tikhonov, tsvd, fourier) on noisy data
+/// of the sensor's own model: λ = 1e-2·σ₁ (tikhonov, fourier), GCV rank (tsvd).
+fn method_errors(s: &Sensor, f_true: &[f64], noise_rel: f64) -> Vec<(Method, f64)> {
+    let sites = MarkerSite::from_sensor_grids(s);
+    let p = Problem::new(s, &sites);
+    let mut u = model::forward(&p.forward_model(), &sites, &s.force_points_mm(), f_true).unwrap();
+    let peak = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    // Deterministic pseudo-random noise, the same sequence for every sensor.
+    let mut x = 0x9E37_79B9_7F4A_7C15u64;
+    for v in u.iter_mut() {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        *v += noise_rel * peak * ((x >> 11) as f64 / (1u64 << 53) as f64 - 0.5);
+    }
+    let (_, lambda) = dense_tikhonov(s, &sites, 1e-2);
+    [
+        Method::Pinv,
+        Method::Tikhonov,
+        Method::Tsvd,
+        Method::Fourier,
+    ]
+    .into_iter()
+    .map(|method| {
+        let cfg = SolverConfig {
+            method,
+            lambda: Lambda::Fixed(lambda),
+            rank: Rank::Auto,
+            ..SolverConfig::default()
+        };
+        let mut solver = solve::precompute(&p, &cfg, Some(&u)).unwrap();
+        let mut f = vec![0.0; p.n_outputs()];
+        solver.apply(&u, &mut f).unwrap();
+        (method, rel_err(&f, f_true))
+    })
+    .collect()
+}
+
+#[test]
+fn bonded_layer_solvers_recover_forces_like_the_half_space_solvers_on_their_own_data() {
+    // Issue 14's test: every solver on bonded-layer data with the bonded-layer model,
+    // against the same solver on half-space data with the half-space model (same grid,
+    // same marker depths, same load, same relative noise). 10×8 forces at 2.2 mm on
+    // 1.1 mm markers (the paper's force grid on a fourier-compatible marker pitch).
+    let grid = (10, 8, 2.2, 1.1);
+    let c = [0.5 * 2.2 * 9.0, 0.5 * 2.2 * 7.0];
+    for noise in [0.0, 1e-3] {
+        for thickness in [3.0, 10.0, 40.0, 1000.0] {
+            let layer = layer_grid(grid, thickness, depths_for(thickness));
+            let mut half = layer.clone();
+            half.elastomer.model = ModelKind::HalfSpace;
+            let f_true = blob(&layer, c, 2.0, [0.02, -0.01, 0.1]);
+            let el = method_errors(&layer, &f_true, noise);
+            let eh = method_errors(&half, &f_true, noise);
+            for ((m, e_l), (_, e_h)) in el.iter().zip(&eh) {
+                eprintln!(
+                    "noise {noise:.0e} of peak, h = {thickness} mm, {m}: force error \
+                     layer/layer {e_l:.3e}, half-space/half-space {e_h:.3e}"
+                );
+                assert!(
+                    *e_l <= 1.5 * e_h + 1e-6,
+                    "{m}, h = {thickness}, noise {noise}: layer {e_l} vs half-space {e_h}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn a_1000_mm_bonded_layer_reconstructs_like_the_half_space() {
+    // h → ∞ for the solvers: the bonded-layer sensor with h = 1000 mm against the
+    // half-space sensor, same half-space data, every method (fourier included).
+    let grid = (10, 8, 2.2, 1.1);
+    let layer = layer_grid(grid, 1000.0, [3.0, 6.0]);
+    let mut half = layer.clone();
+    half.elastomer.model = ModelKind::HalfSpace;
+    let sites = MarkerSite::from_sensor_grids(&half);
+    let f_true = blob(&half, [9.9, 7.7], 2.0, [0.02, -0.01, 0.1]);
+    let hs = model::HalfSpace::from_elastomer(&half.elastomer);
+    let u = model::forward(&hs, &sites, &half.force_points_mm(), &f_true).unwrap();
+    let (_, lambda) = dense_tikhonov(&half, &sites, 1e-2);
+    for method in [
+        Method::Pinv,
+        Method::Tikhonov,
+        Method::Tsvd,
+        Method::Fourier,
+    ] {
+        let cfg = SolverConfig {
+            method,
+            lambda: Lambda::Fixed(lambda),
+            rank: Rank::Fixed(150),
+            ..SolverConfig::default()
+        };
+        let solve_with = |s: &Sensor| {
+            let p = Problem::new(s, &sites);
+            let mut solver: Box<dyn FrameSolver> = solve::precompute(&p, &cfg, None).unwrap();
+            let mut f = vec![0.0; p.n_outputs()];
+            solver.apply(&u, &mut f).unwrap();
+            f
+        };
+        let (fl, fh) = (solve_with(&layer), solve_with(&half));
+        let (d, el, eh) = (
+            rel_err(&fl, &fh),
+            rel_err(&fl, &f_true),
+            rel_err(&fh, &f_true),
+        );
+        let (sl, sh) = (sums(&fl), sums(&fh));
+        eprintln!(
+            "{method}: h = 1000 mm vs half-space forces differ by {d:.2e}; error vs truth \
+             {el:.3e} / {eh:.3e}; ΣF {sl:.4?} / {sh:.4?}"
+        );
+        // The rigid base 1000 mm down still shifts the responses by ~1.2 % of their
+        // peak (falling like 1/h, `model::layer` tests); pinv amplifies that to 3 %,
+        // the regularised methods do not.
+        let bound = if method == Method::Pinv { 0.05 } else { 0.02 };
+        assert!(d < bound, "{method}: {d}");
+        for ax in 0..3 {
+            assert!(
+                (sl[ax] - sh[ax]).abs() < 0.02 * sh[2].abs(),
+                "{method}: {sl:?} vs {sh:?}"
+            );
+        }
+    }
+}
+
+/// `(2π)⁻¹ ∫₀^∞ F(k) J_n(kρ) k dk` by composite Simpson on `[0, kmax]`.
+fn hankel(f: impl Fn(f64) -> f64, n: usize, rho: f64, kmax: f64) -> f64 {
+    let m = 4000;
+    let dk = kmax / m as f64;
+    let mut acc = 0.0;
+    for i in 0..=m {
+        let k = i as f64 * dk;
+        let w = if i == 0 || i == m {
+            1.0
+        } else if i % 2 == 1 {
+            4.0
+        } else {
+            2.0
+        };
+        acc += w * f(k) * model::layer::bessel_j012(k * rho)[n] * k;
+    }
+    acc * dk / 3.0 / (2.0 * std::f64::consts::PI)
+}
+
+#[test]
+fn thin_incompressible_layer_matches_the_lubrication_limit() {
+    // Thin-layer case against an independently derived closed form: a bonded
+    // incompressible layer (ν = 0.5) much thinner than its load behaves like a
+    // lubricating film (the classical thin-layer, or lubrication, approximation,
+    // derived here from equilibrium and incompressibility alone): the in-layer pressure equals
+    // the applied p, μ ∂²u_x/∂z² = ∂p/∂x with ∂u_x/∂z = 0 at the free surface and
+    // u_x = 0 at the plate gives u_x = −(h² − z²)/(2μ) ∂p/∂x; incompressibility and
+    // u_z(h) = 0 give u_z = (h − z)²(2h + z)/(6μ) · (−∇²p). For the Gaussian
+    // p = p₀ exp(−r²/(2σ²)) at its centre −∇²p = 2p₀/σ², and at r = σ on the x axis
+    // ∂p/∂x = −p₀ e^{−1/2}/σ. The model's displacements (its Fourier kernels through
+    // a Hankel transform of p̂ = 2πσ²p₀ exp(−k²σ²/2)) must approach these with a
+    // relative error falling like (h/σ)².
+    let (h, z, e) = (1.0, 0.3, 1.0);
+    let mu = e / 3.0;
+    let p0 = 1.0;
+    let mut errs = Vec::new();
+    for sigma in [10.0, 20.0, 40.0] {
+        let ph = |k: f64| {
+            2.0 * std::f64::consts::PI * sigma * sigma * p0 * (-0.5 * k * k * sigma * sigma).exp()
+        };
+        let kmax = 9.0 / sigma;
+        let uz = hankel(|k| scalar_kernels(k, z, h, e, 0.5).zz * ph(k), 0, 0.0, kmax);
+        let ux = -hankel(
+            |k| scalar_kernels(k, z, h, e, 0.5).lz * ph(k),
+            1,
+            sigma,
+            kmax,
+        );
+        let uz_lub = (h - z).powi(2) * (2.0 * h + z) / (6.0 * mu) * 2.0 * p0 / (sigma * sigma);
+        let ux_lub = (h * h - z * z) / (2.0 * mu) * p0 * (-0.5f64).exp() / sigma;
+        let ez = (uz - uz_lub).abs() / uz_lub;
+        let ex = (ux - ux_lub).abs() / ux_lub;
+        eprintln!(
+            "h/σ = {:.3}: u_z {uz:.6e} vs lubrication {uz_lub:.6e} ({:.2e}); u_x {ux:.6e} \
+             vs {ux_lub:.6e} ({:.2e})",
+            h / sigma,
+            ez,
+            ex
+        );
+        errs.push(ez.max(ex));
+    }
+    // Quadratic convergence: halving h/σ divides the error by about 4.
+    // Measured: 6.2e-2, 1.7e-2, 4.3e-3 (max of u_z and u_x) at h/σ = 0.1, 0.05, 0.025.
+    assert!(errs[2] < 6e-3, "{errs:?}");
+    for w in errs.windows(2) {
+        let r = w[0] / w[1];
+        assert!((3.0..5.0).contains(&r), "{errs:?}");
+    }
+}
+
+#[test]
+fn forward_with_a_wrong_force_length_is_an_error_not_a_panic() {
+    let l = model::BondedLayer::new(1.0, 0.5, 5.0).unwrap();
+    let m = [MarkerSite {
+        layer: 0,
+        position_mm: [0.0, 0.0],
+        depth_mm: 1.0,
+    }];
+    for f in [vec![1.0, 2.0], vec![0.0; 4]] {
+        assert!(matches!(
+            model::forward(&l, &m, &[[0.0, 0.0]], &f),
+            Err(model::ModelError::ForceLength { expected: 3, .. })
+        ));
+        assert!(matches!(
+            model::forward3(
+                &model::HalfSpace::new(1.0, 0.5).unwrap(),
+                &m,
+                &[[0.0, 0.0]],
+                &f
+            ),
+            Err(model::ModelError::ForceLength { expected: 3, .. })
+        ));
+    }
 }

@@ -4,6 +4,7 @@
 mod util;
 
 mod bench;
+mod camera;
 mod cli;
 mod fourier;
 mod ft;

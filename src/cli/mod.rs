@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+mod calibrate;
 mod camera;
 mod ft;
 mod model;
@@ -41,6 +42,7 @@ enum Command {
     Report(report::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
+    Calibrate(calibrate::Args),
     #[command(subcommand)]
     Model(model::ModelCommand),
     #[command(subcommand)]
@@ -73,6 +75,7 @@ pub fn main() -> ExitCode {
         Command::Report(args) => report::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
+        Command::Calibrate(args) => calibrate::run(args),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),
         Command::Ports(args) => ports::run(args),

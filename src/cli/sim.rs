@@ -93,7 +93,10 @@ enum FtArg {
 ///   reference.png), the apparent displacement an ideal tracker measures against
 ///   reference.png (elastic displacement plus whole-image shift and drift), and the
 ///   elastic part alone; marker = row-major index in the layer grid, frame = index of
-///   frame_NNN.png;
+///   frame_NNN.png. With camera effects (perspective, refraction, lens_distortion)
+///   x_px,y_px and ux_px,uy_px are the projected image positions and their change
+///   (parallax of u_z included), and ux_mm,uy_mm that change at [camera] mm_per_px;
+///   elastic_ux_mm,elastic_uy_mm stay the true in-plane displacement;
 ///
 /// - forces.csv, columns ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n (+ frame with several frames):
 ///   the applied traction integrated over each force-grid cell.
@@ -264,12 +267,21 @@ fn write_marker_rows(
     let sensor = sim.sensor();
     let mut max_u = 0.0f64;
     for (i, (m, &(layer, id))) in sim.markers().iter().zip(sim.marker_ids()).enumerate() {
-        let p_px = sensor.camera.mm_to_px(m.position_mm);
-        let p_px = [
-            p_px[0] + reference.offset_px[0],
-            p_px[1] + reference.offset_px[1],
-        ];
-        let u_px = truth.apparent_u_px(i, mm_per_px, reference.offset_px);
+        let (p_px, u_px) = if sim.optics().is_some() {
+            // Camera effects: positions through the camera optics.
+            let p = sim.apparent_px(i, reference);
+            let q = sim.apparent_px(i, truth);
+            (p, [q[0] - p[0], q[1] - p[1]])
+        } else {
+            let p_px = sensor.camera.mm_to_px(m.position_mm);
+            (
+                [
+                    p_px[0] + reference.offset_px[0],
+                    p_px[1] + reference.offset_px[1],
+                ],
+                truth.apparent_u_px(i, mm_per_px, reference.offset_px),
+            )
+        };
         max_u = max_u.max(u_px[0].hypot(u_px[1]));
         writeln!(
             w,

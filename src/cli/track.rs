@@ -7,8 +7,8 @@ use std::process::ExitCode;
 use anyhow::Context;
 use tactbench::sensor::Sensor;
 use tactbench::vision::{
-    detect, load_frame, write_tracks, DetectConfig, ReferenceHealth, StatusCounts, TrackConfig,
-    TrackMode, Tracker,
+    detect_mapped, load_frame, write_tracks_mapped, CameraCalibration, DetectConfig, PixelMapping,
+    ReferenceHealth, StatusCounts, TrackConfig, TrackMode, Tracker,
 };
 
 /// Track markers: images -> marker displacements (CSV).
@@ -30,6 +30,10 @@ use tactbench::vision::{
 /// displacement (px), empty when lost; status: ok | lost (not found or too weak) |
 /// merged (two markers on one blob) | outlier (disagrees with its neighbours). The file
 /// is the input of `tactbench reconstruct`, which drops rows without ux_mm.
+///
+/// With --camera camera.toml (from `tactbench calibrate`) pixels are converted to the
+/// sensor frame per layer with the calibration (scale, origin, lens distortion): x_mm,
+/// y_mm and ux_mm, uy_mm then come from it; the pixel columns are unchanged.
 ///
 /// A summary of lost, merged and outlier markers is printed on stderr.
 ///
@@ -62,6 +66,12 @@ pub struct Args {
     /// status 1; 1 disables the check.
     #[arg(long, value_name = "F", default_value_t = DEFAULT_MAX_LOST_FRACTION, value_parser = fraction)]
     max_lost_fraction: f64,
+    /// Camera calibration (camera.toml, from `tactbench calibrate`): pixels are mapped
+    /// to the sensor frame per layer with its scale, origin and lens distortion, for the
+    /// reference positions and the displacements (mm). Without it the sensor file's
+    /// linear [camera] mapping is used, as before.
+    #[arg(long, value_name = "camera.toml")]
+    camera: Option<PathBuf>,
 }
 
 /// Default of `--max-lost-fraction`: a quarter of the markers.
@@ -86,8 +96,17 @@ enum Mode {
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
+    let mapping = match &args.camera {
+        None => PixelMapping::Linear(sensor.camera),
+        Some(path) => PixelMapping::Calibrated(CameraCalibration::from_path(path, &sensor)?),
+    };
     let reference_image = load_frame(&args.reference, &sensor.camera)?;
-    let detected = detect(&reference_image.view(), &sensor, &DetectConfig::default());
+    let detected = detect_mapped(
+        &reference_image.view(),
+        &sensor,
+        &DetectConfig::default(),
+        &mapping,
+    );
     let health = ReferenceHealth::of(detected.as_ref().ok(), &sensor, &reference_image.view());
     if detected.is_err() || 1.0 - health.found_fraction() > args.max_lost_fraction {
         eprintln!(
@@ -169,7 +188,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         total.outlier += c.outlier;
         frames.push((path.to_string_lossy().into_owned(), tracks.to_vec()));
     }
-    write_tracks(&args.out, &sensor, tracker.reference(), &frames)?;
+    write_tracks_mapped(&args.out, &sensor, tracker.reference(), &frames, &mapping)?;
     eprintln!(
         "{} frames: {} ok, {} lost, {} merged, {} outlier marker measurements -> {}",
         frames.len(),

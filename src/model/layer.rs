@@ -60,9 +60,14 @@
 //! `G_ll = (2(1−ν) − s)e^{−s}/(2μk)`, `G_tt = e^{−s}/(μk)`,
 //! `g_lz = (1−2ν − s)e^{−s}/(2μk)`, `g_zl = −(1−2ν + s)e^{−s}/(2μk)`,
 //! `G_zz = (2(1−ν) + s)e^{−s}/(2μk)`, whose inverse transforms are exactly paper
-//! Eq. 1–2 and the `u_z` of [`super::half_space`] (tested). At k → 0 (kh < 1e−8) the
-//! kernels take their limit, the uniform-traction layer: `G_ll = G_tt = (h−z)/μ`,
-//! `G_zz = (h−z)(1−2ν)/(2μ(1−ν))`, `g_lz = g_zl = 0`. In the lab frame
+//! Eq. 1–2 and the `u_z` of [`super::half_space`] (tested). Unlike the half-space's,
+//! the layer's kernels are finite at k = 0, the uniform-traction layer:
+//! `G_ll = G_tt = (h−z)/μ`, `G_zz = (h−z)(1−2ν)/(2μ(1−ν))`, `g_lz = g_zl = 0`. The
+//! closed forms lose `≈ ε/(kh)` relative accuracy to cancellation as kh → 0, so below
+//! kh = [`SERIES_BELOW_KH`] their Taylor series in `t = kh` (at fixed `ζ = z/h`, to
+//! `t²` for `G_ll, G_tt, G_zz` and `t³` for `g_lz, g_zl`; no cancellation, exact at
+//! k = 0) is used; `G_tt = (h−z)/μ · (1 + t²(ζ² − 2ζ − 2)/6)` is the simplest term.
+//! Tested against 60-digit evaluations of the closed forms (mpmath) to 1e−12. In the lab frame
 //! ([`layer_kernel3`]): `K_ab = G_tt δ_ab + (G_ll − G_tt) k̂_a k̂_b`,
 //! `K_az = i g_lz k̂_a`, `K_zb = i g_zl k̂_b`, `K_zz = G_zz` (a, b ∈ {x, y}).
 //!
@@ -97,6 +102,40 @@
 //! (relative to the peak response) and the Hankel machinery against Eq. 1–2.
 //! Tables are cached process-wide (keyed by E, ν, h, depth) and grow when a larger
 //! distance is asked for, so building `H` twice costs one table build.
+//!
+//! # The half-space's error in the paper's 40 mm layer (issue 14's FEM figures)
+//!
+//! Issue 14 quotes an independent FEM (ν = 0.49, 40 mm layer, markers at 3 / 6 mm): the
+//! half-space's error in the horizontal displacement, as a share of its peak, is
+//! 2.0 % / 3.2 % (normal load) and 6.9 % / 13.6 % (tangential load); measured here first
+//! as 4.4 % / 6.9 % for the normal load. The kernel is not wrong: the figures depend on
+//! the definition, and one definition reproduces all four FEM figures to the quoted
+//! digit. Figures (max |u_x,layer − u_x,half| / max |u_x,half| along the load's line,
+//! z = 3 / 6 mm, %; the test `paper_layer_half_space_error_reproduces_the_fem_figures`
+//! and an independent NumPy Hankel quadrature of the same kernels agree):
+//!
+//! | load, ν = 0.49 | reach 5 mm | 10 mm | 20 mm | 40 mm |
+//! |---|---|---|---|---|
+//! | point, normal | 1.0 / 1.7 | **2.0 / 3.2** | 3.5 / 5.7 | 4.4 / 7.0 |
+//! | point, tangential | 6.9 / 13.6 | **6.9 / 13.6** | 6.9 / 13.6 | 6.9 / 13.6 |
+//! | Gaussian σ = 2 mm, normal / tangential | 1.9 / 2.1, 8.3 / 14.6 | 3.6 / 4.0, 8.3 / 14.6 | 6.4 / 7.0, 8.3 / 14.6 | 8.1 / 8.7, 8.3 / 14.6 |
+//! | flat punch ⌀ 5 mm, normal / tangential | 1.5 / 1.9, 7.9 / 14.2 | 3.0 / 3.7, 7.9 / 14.2 | 5.2 / 6.4, 7.9 / 14.2 | 6.6 / 8.0, 7.9 / 14.2 |
+//!
+//! - **Reach** (the cause): the normal load's error grows with distance from the load
+//!   (the plate's image field, ∝ ρ/h near the load) while its u_x decays, so the figure
+//!   depends on how far out one looks; 10 mm (the half-width of the paper's
+//!   19.8 × 15.4 mm force grid around a centred load) gives the FEM's 2.0 / 3.2 %,
+//!   40 mm our earlier 4.4 / 7.0 %. The tangential error peaks under the load, so its
+//!   figure does not depend on the reach.
+//! - **Normalisation**: dividing by the layer's own peak instead of the half-space's
+//!   gives 4.4 / 6.9 % (normal, 40 mm; the earlier figure) and 7.5 / 15.7 %
+//!   (tangential), which does not match: the FEM divides by the half-space's peak.
+//! - **Metric**: RMS instead of max over 10 mm gives 1.2 / 1.9 % and 6.9 / 13.5 %.
+//! - **Load shape**: distributed loads raise the tangential figure to 7.7–8.3 % at
+//!   3 mm (uniform disc ⌀ 5 mm 7.7 / 14.1 %), so the FEM's load was concentrated
+//!   (point-like at these depths).
+//! - **ν**: 0.5 instead of 0.49 changes the point-load figures by ≤ 0.1 point
+//!   (2.0 / 3.2 % and 6.9 / 13.6 % at 10 mm; 4.3 / 6.9 % at 40 mm).
 
 use std::collections::HashMap;
 use std::f64::consts::PI;
@@ -167,15 +206,8 @@ pub fn scalar_kernels(k: f64, z: f64, h: f64, young: f64, nu: f64) -> LayerKerne
         };
     }
     let t = k * h;
-    if t < 1e-8 {
-        let d = h - z;
-        return LayerKernels {
-            ll: d / mu,
-            tt: d / mu,
-            lz: 0.0,
-            zl: 0.0,
-            zz: d * (1.0 - 2.0 * nu) / (2.0 * mu * (1.0 - nu)),
-        };
+    if t < SERIES_BELOW_KH {
+        return small_kh_series(t, z / h, h, mu, kappa);
     }
     let q = (-2.0 * t).exp();
     let ea = (-s).exp();
@@ -200,6 +232,53 @@ pub fn scalar_kernels(k: f64, z: f64, h: f64, young: f64, nu: f64) -> LayerKerne
         lz: x(az, gz, bz, dz) * c,
         zl: zf(al, gl, bl, dl) * c,
         zz: zf(az, gz, bz, dz) * c,
+    }
+}
+
+/// Below this `kh` [`scalar_kernels`] uses its Taylor series (module docs): the closed
+/// form loses about `ε/kh` to cancellation there (1e-12 at kh = 1e-4), the series'
+/// first neglected terms are `O((kh)⁴)` (6e-14 at the switch).
+pub const SERIES_BELOW_KH: f64 = 5e-4;
+
+/// The kernels for `t = kh` below [`SERIES_BELOW_KH`]: the Taylor series in `t` of the
+/// closed forms at fixed `ζ = z/h` (computed with SymPy from the formulas of the module
+/// docs), even kernels to `t²`, odd ones to `t³`. At t = 0 this is the uniform-traction
+/// limit: `G_ll = G_tt = (h−z)/μ`, `G_zz = (h−z)(1−2ν)/(2μ(1−ν))`, `g_lz = g_zl = 0`.
+fn small_kh_series(t: f64, zeta: f64, h: f64, mu: f64, kappa: f64) -> LayerKernels {
+    let (w, z, k) = (1.0 - zeta, zeta, kappa);
+    let (z2, z3, k1) = (z * z, z * z * z, kappa + 1.0);
+    let t2 = t * t;
+    let pref = h / (2.0 * mu);
+    let ll3 = w * (k * z2 - 2.0 * k * z + 4.0 * k + 3.0 * z2 - 12.0 * z - 24.0) / (3.0 * k1);
+    let tt3 = w * (z2 - 2.0 * z - 2.0) / 3.0;
+    let lz2 = 2.0 * w * (k - z - 2.0) / k1;
+    let lz4 = w
+        * (k * k * z2 - 2.0 * k * k * z + 2.0 * k * k - k * z3 + 3.0 * k * z2
+            - 6.0 * k * z
+            - 26.0 * k
+            - z3
+            - 6.0 * z2
+            + 24.0 * z
+            + 48.0)
+        / (3.0 * k1 * k1);
+    let zl2 = -2.0 * w * (k + z - 2.0) / k1;
+    let zl4 = -w
+        * (k * k * z2 - 2.0 * k * k * z + 2.0 * k * k + k * z3 - 5.0 * k * z2 + 10.0 * k * z
+            - 26.0 * k
+            + z3
+            - 6.0 * z2
+            - 24.0 * z
+            + 48.0)
+        / (3.0 * k1 * k1);
+    let zz1 = 2.0 * (k - 1.0) * w / k1;
+    let zz3 =
+        (k - 3.0) * w * (k * z2 - 2.0 * k * z + 4.0 * k + z2 + 4.0 * z - 8.0) / (3.0 * k1 * k1);
+    LayerKernels {
+        ll: pref * (2.0 * w + ll3 * t2),
+        tt: pref * (2.0 * w + tt3 * t2),
+        lz: pref * t * (lz2 + lz4 * t2),
+        zl: pref * t * (zl2 + zl4 * t2),
+        zz: pref * (zz1 + zz3 * t2),
     }
 }
 
@@ -834,6 +913,223 @@ mod tests {
         assert!(b.lz.abs() < 1e-3 * a.ll && b.zl.abs() < 1e-3 * a.ll);
     }
 
+    /// The closed forms of the module docs evaluated with mpmath at 60 digits
+    /// (`h z ν kh` → `ll tt lz zl zz`, E = 1 N/mm²), on both sides of the switch to the
+    /// series and deep below it.
+    #[allow(clippy::excessive_precision)] // 17 digits as mpmath printed them
+    const SMALL_KH: [(f64, f64, f64, f64, [f64; 5]); 15] = [
+        (
+            3.0,
+            1.0,
+            0.3,
+            1e-7,
+            [
+                5.1999999999999335,
+                5.1999999999999778,
+                -9.9047619047617919e-8,
+                -2.4761904761905026e-8,
+                1.4857142857142862,
+            ],
+        ),
+        (
+            3.0,
+            1.0,
+            0.3,
+            1e-5,
+            [
+                5.1999999993355555,
+                5.1999999997785185,
+                -9.9047619036443426e-6,
+                -2.476190476446612e-6,
+                1.4857142857190023,
+            ],
+        ),
+        (
+            3.0,
+            1.0,
+            0.3,
+            4.9e-4,
+            [
+                5.1999984046693483,
+                5.1999994682230148,
+                -0.00048533320185342536,
+                -0.00012133336346735538,
+                1.4857142970387261,
+            ],
+        ),
+        (
+            3.0,
+            1.0,
+            0.3,
+            5.1e-4,
+            [
+                5.1999982717805391,
+                5.1999994239267275,
+                -0.00050514270889730593,
+                -0.00012628574826227207,
+                1.4857142979820361,
+            ],
+        ),
+        (
+            3.0,
+            1.0,
+            0.3,
+            3e-3,
+            [
+                5.1999402006455615,
+                5.1999800667395097,
+                -0.0029713983976037021,
+                -0.00074286405841661874,
+                1.4857147101983205,
+            ],
+        ),
+        (
+            40.0,
+            6.0,
+            0.5,
+            1e-7,
+            [
+                101.99999999999813,
+                101.99999999999961,
+                -5.864999999999888e-6,
+                4.3349999999999091e-6,
+                3.1067499999999454e-13,
+            ],
+        ),
+        (
+            40.0,
+            6.0,
+            0.5,
+            1e-5,
+            [
+                101.9999999812915,
+                101.99999999612825,
+                -0.00058649999988801994,
+                0.00043349999990912756,
+                3.106749999454489e-9,
+            ],
+        ),
+        (
+            40.0,
+            6.0,
+            0.5,
+            4.9e-4,
+            [
+                101.99995508091129,
+                101.99999070392915,
+                -0.028738486825663424,
+                0.021241489308953303,
+                7.4593036052391261e-6,
+            ],
+        ),
+        (
+            40.0,
+            6.0,
+            0.5,
+            5.1e-4,
+            [
+                101.99995133921473,
+                101.9999899295793,
+                -0.02991148514573981,
+                0.022108487945686037,
+                8.0806530595103139e-6,
+            ],
+        ),
+        (
+            40.0,
+            6.0,
+            0.5,
+            3e-3,
+            [
+                101.998316262812,
+                101.99965154375974,
+                -0.17594697658818107,
+                0.13004754648464228,
+                0.00027960308143354124,
+            ],
+        ),
+        (
+            2.0,
+            0.5,
+            0.49,
+            1e-7,
+            [
+                4.4699999999999156,
+                4.4699999999999818,
+                -2.6513235294117164e-7,
+                1.5557352941176137e-7,
+                0.08764705882354083,
+            ],
+        ),
+        (
+            2.0,
+            0.5,
+            0.49,
+            1e-5,
+            [
+                4.4699999991561231,
+                4.4699999998184062,
+                -2.6513235289305986e-5,
+                1.5557352937849985e-5,
+                0.087647058936949723,
+            ],
+        ),
+        (
+            2.0,
+            0.5,
+            0.49,
+            4.9e-4,
+            [
+                4.4699979738525827,
+                4.4699995639934485,
+                -0.0012991479633250522,
+                0.00076230990276026904,
+                0.087647331145403868,
+            ],
+        ),
+        (
+            2.0,
+            0.5,
+            0.49,
+            5.1e-4,
+            [
+                4.4699978050773662,
+                4.4699995276747058,
+                -0.0013521743617288221,
+                0.00079342455873874242,
+                0.087647353829431803,
+            ],
+        ),
+        (
+            2.0,
+            0.5,
+            0.49,
+            3e-3,
+            [
+                4.4699240523087948,
+                4.4699836566219137,
+                -0.0079538406755127088,
+                0.0046671160687244635,
+                0.087657266490308604,
+            ],
+        ),
+    ];
+
+    #[test]
+    fn small_kh_kernels_match_60_digit_values_on_both_sides_of_the_series_switch() {
+        for (h, z, nu, t, want) in SMALL_KH {
+            let g = scalar_kernels(t / h, z, h, E, nu);
+            let got = [g.ll, g.tt, g.lz, g.zl, g.zz];
+            let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-12 * scale,
+                    "h={h} z={z} nu={nu} kh={t:e} kernel {i}: {a} vs {b}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn thick_layer_kernels_equal_the_half_space_kernels() {
         // Fourier space: for kh ≫ 1 the layer terms are e^{−2kh} small.
@@ -956,34 +1252,59 @@ mod tests {
         assert!((d[0][1] - d[1][0]).norm() < 1e-15);
     }
 
-    #[test]
-    fn paper_layer_half_space_error_against_the_fem_figures() {
-        // Issue 14 quotes an FEM model (ν = 0.49, 40 mm layer): the half-space's error
-        // in the horizontal displacement, as a share of its peak, is 2.0 % / 3.2 %
-        // (normal load) and 6.9 % / 13.6 % (tangential load) at 3 / 6 mm. Measured
-        // here along the load's line (0 ≤ x ≤ 40 mm, y = 0) for point loads.
-        let nu = 0.49;
-        let l = BondedLayer::new(E, nu, 40.0).unwrap();
+    /// max |u_layer − u_half| / max |u_half| (%) of `u_x` per unit force along axis
+    /// `b`, along the x axis from the load out to `reach` mm (0.1 mm steps), and the
+    /// same error as a share of the layer's own peak.
+    fn half_space_error(l: &BondedLayer, b: usize, z: f64, reach: f64) -> (f64, f64) {
         let hs = l.half_space();
-        let mut out = Vec::new();
-        for (b, a) in [(2usize, 0usize), (0, 0)] {
-            for z in [3.0, 6.0] {
-                let (mut dmax, mut umax): (f64, f64) = (0.0, 0.0);
-                for i in 0..=400 {
-                    let x = 0.1 * i as f64;
-                    let u = l.point_response3(x, 0.0, z)[a][b];
-                    let v = hs.point_response3(x, 0.0, z)[a][b];
-                    dmax = dmax.max((u - v).abs());
-                    umax = umax.max(u.abs());
-                }
-                out.push(100.0 * dmax / umax);
+        let (mut d, mut ph, mut pl): (f64, f64, f64) = (0.0, 0.0, 0.0);
+        for i in 0..=(10.0 * reach).round() as usize {
+            let x = 0.1 * i as f64;
+            let u = l.point_response3(x, 0.0, z)[0][b];
+            let v = hs.point_response3(x, 0.0, z)[0][b];
+            d = d.max((u - v).abs());
+            ph = ph.max(v.abs());
+            pl = pl.max(u.abs());
+        }
+        (100.0 * d / ph, 100.0 * d / pl)
+    }
+
+    #[test]
+    fn paper_layer_half_space_error_reproduces_the_fem_figures() {
+        // Issue 14 quotes an independent FEM (40 mm layer, ν = 0.49, markers at 3 / 6 mm):
+        // the half-space's error in the horizontal displacement, as a share of its peak,
+        // is 2.0 % / 3.2 % (normal load) and 6.9 % / 13.6 % (tangential load). Our
+        // earlier 4.4 % / 6.9 % (normal) measured out to 40 mm from the load and divided
+        // by the layer's peak. The FEM's figures are reproduced to the quoted digit by a
+        // point load, max |Δu_x| / max |u_x(half-space)| along the load's line, within
+        // 10 mm of the load (the half-width of the paper's 19.8 × 15.4 mm force grid
+        // around a centred load): the normal-load error grows with distance (the plate's
+        // image field), the tangential one peaks under the load (module docs).
+        let l = BondedLayer::new(E, 0.49, 40.0).unwrap();
+        let fem = [[2.0, 3.2], [6.9, 13.6]];
+        for (i, (b, name)) in [(2usize, "normal"), (0, "tangential")]
+            .into_iter()
+            .enumerate()
+        {
+            for (j, z) in [3.0, 6.0].into_iter().enumerate() {
+                let (near, near_own) = half_space_error(&l, b, z, 10.0);
+                let (far, far_own) = half_space_error(&l, b, z, 40.0);
+                eprintln!(
+                    "{name} load, z = {z} mm: within 10 mm {near:.2} % of the half-space peak \
+                     ({near_own:.2} % of the layer's); within 40 mm {far:.2} % ({far_own:.2} %); \
+                     FEM {} %",
+                    fem[i][j]
+                );
+                assert!(
+                    (near - fem[i][j]).abs() < 0.05,
+                    "{name}, z = {z}: {near:.3} % vs FEM {} %",
+                    fem[i][j]
+                );
             }
         }
-        eprintln!(
-            "half-space error, 40 mm layer: normal {:.1} % / {:.1} %, tangential {:.1} % / {:.1} %",
-            out[0], out[1], out[2], out[3]
-        );
-        // Larger deeper and for the tangential load, as in the FEM figures.
-        assert!(out[1] > out[0] && out[3] > out[2] && out[2] > out[0]);
+        // The other definitions do not reproduce them: the 40 mm reach doubles the
+        // normal-load figure, the layer's own peak inflates the tangential one.
+        assert!(half_space_error(&l, 2, 3.0, 40.0).0 > 4.0);
+        assert!(half_space_error(&l, 0, 6.0, 10.0).1 > 15.0);
     }
 }

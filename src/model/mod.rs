@@ -74,6 +74,14 @@ pub enum ModelError {
         /// The layer thickness.
         thickness_mm: f64,
     },
+    /// The force vector does not have three components per force point.
+    #[error("forces have {got} values, expected {expected} (fx, fy, fz per force point)")]
+    ForceLength {
+        /// `3 × force points`.
+        expected: usize,
+        /// The length given.
+        got: usize,
+    },
     /// Layer thickness not a finite positive number.
     #[error("layer thickness {thickness_mm} mm must be a finite number > 0 mm")]
     BadThickness {
@@ -281,27 +289,9 @@ pub fn forward<M: ElasticModel + ?Sized>(
     force_points_mm: &[[f64; 2]],
     forces_n: &[f64],
 ) -> Result<Vec<f64>, ModelError> {
-    check_geometry(model, markers, force_points_mm)?;
-    assert_eq!(forces_n.len(), 3 * force_points_mm.len(), "forces length");
-    prepare_for(model, markers, force_points_mm);
-    let mut u = vec![0.0; 2 * markers.len()];
-    for (k, m) in markers.iter().enumerate() {
-        let mut acc = [0.0; 2];
-        for (j, fp) in force_points_mm.iter().enumerate() {
-            let f = [forces_n[3 * j], forces_n[3 * j + 1], forces_n[3 * j + 2]];
-            let d = model.displacement(
-                m.position_mm[0] - fp[0],
-                m.position_mm[1] - fp[1],
-                m.depth_mm,
-                f,
-            );
-            acc[0] += d[0];
-            acc[1] += d[1];
-        }
-        u[2 * k] = acc[0];
-        u[2 * k + 1] = acc[1];
-    }
-    Ok(u)
+    superpose(model, markers, force_points_mm, forces_n, |dx, dy, z| {
+        model.point_response(dx, dy, z)
+    })
 }
 
 /// Forward model with the vertical component: displacements interleaved
@@ -313,25 +303,41 @@ pub fn forward3<M: ElasticModel + ?Sized>(
     force_points_mm: &[[f64; 2]],
     forces_n: &[f64],
 ) -> Result<Vec<f64>, ModelError> {
+    superpose(model, markers, force_points_mm, forces_n, |dx, dy, z| {
+        model.point_response3(dx, dy, z)
+    })
+}
+
+/// The one loop of [`forward`] and [`forward3`]: checks the geometry and the length of
+/// `forces_n`, then sums the `R`-row responses over the force points, marker by
+/// marker (`R` values per marker in the output).
+fn superpose<M: ElasticModel + ?Sized, const R: usize>(
+    model: &M,
+    markers: &[MarkerSite],
+    force_points_mm: &[[f64; 2]],
+    forces_n: &[f64],
+    response: impl Fn(f64, f64, f64) -> [[f64; 3]; R],
+) -> Result<Vec<f64>, ModelError> {
     check_geometry(model, markers, force_points_mm)?;
-    assert_eq!(forces_n.len(), 3 * force_points_mm.len(), "forces length");
+    if forces_n.len() != 3 * force_points_mm.len() {
+        return Err(ModelError::ForceLength {
+            expected: 3 * force_points_mm.len(),
+            got: forces_n.len(),
+        });
+    }
     prepare_for(model, markers, force_points_mm);
-    let mut u = vec![0.0; 3 * markers.len()];
-    for (k, m) in markers.iter().enumerate() {
-        let mut acc = [0.0; 3];
-        for (j, fp) in force_points_mm.iter().enumerate() {
-            let h = model.point_response3(
+    let mut u = vec![0.0; R * markers.len()];
+    for (m, out) in markers.iter().zip(u.chunks_exact_mut(R)) {
+        for (fp, f) in force_points_mm.iter().zip(forces_n.chunks_exact(3)) {
+            let h = response(
                 m.position_mm[0] - fp[0],
                 m.position_mm[1] - fp[1],
                 m.depth_mm,
             );
-            for (a, acc) in acc.iter_mut().enumerate() {
-                *acc += h[a][0] * forces_n[3 * j]
-                    + h[a][1] * forces_n[3 * j + 1]
-                    + h[a][2] * forces_n[3 * j + 2];
+            for (o, row) in out.iter_mut().zip(&h) {
+                *o += row[0] * f[0] + row[1] * f[1] + row[2] * f[2];
             }
         }
-        u[3 * k..3 * k + 3].copy_from_slice(&acc);
     }
     Ok(u)
 }

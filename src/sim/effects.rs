@@ -19,6 +19,12 @@
 //!    [`Effect::Illumination`], [`Effect::Vignetting`], [`Effect::ShotNoise`],
 //!    [`Effect::PixelNoise`], [`Effect::Quantize8`], [`Effect::Occlusion`].
 //!
+//! The camera effects [`Effect::Perspective`], [`Effect::Refraction`] and
+//! [`Effect::LensDistortion`] are scene-stage effects too: they decide where each
+//! marker centre appears in the image (from its depth and `u_z`) and how large its
+//! disc is; the models are in [`super::camera`]. Each may be listed once; refraction
+//! needs perspective.
+//!
 //! Because of this, build and scene effects must be listed before image effects
 //! ([`Pipeline::new`] rejects other orders rather than silently reordering).
 //!
@@ -29,6 +35,7 @@
 use image::Rgb32FImage;
 use thiserror::Error;
 
+use super::camera::Focal;
 use super::render::{disc_visit, fill, round_code, Marker, RenderError, Renderer};
 use super::rng::Rng;
 
@@ -148,6 +155,43 @@ pub enum Effect {
         /// Last frame occluded, inclusive (`None`: every frame from `first_frame` on).
         last_frame: Option<u64>,
     },
+    /// A pinhole camera below the plate (see [`super::camera`]): each marker is
+    /// projected from its depth (layer depth plus `u_z`).
+    Perspective {
+        /// Pinhole below the plate–elastomer interface, mm (> 0).
+        distance_mm: f64,
+        /// Focal length, or the depth imaged at the `[camera]` scale.
+        focal: Focal,
+        /// Principal point, px (default the image centre).
+        principal_point_px: Option<[f64; 2]>,
+    },
+    /// Snell refraction at the elastomer–plate and plate–air interfaces along each
+    /// marker's ray to the pinhole (needs `perspective`).
+    Refraction {
+        /// Refractive index of the plate (≥ 1; acrylic 1.49).
+        plate_index: f64,
+        /// Plate thickness, mm (≥ 0, less than the perspective's `distance_mm`).
+        plate_thickness_mm: f64,
+        /// Refractive index of the elastomer (≥ 1; silicone ≈ 1.41).
+        elastomer_index: f64,
+    },
+    /// Brown–Conrady lens distortion of the projected marker centres.
+    LensDistortion {
+        /// Radial r² coefficient.
+        k1: f64,
+        /// Radial r⁴ coefficient.
+        k2: f64,
+        /// Radial r⁶ coefficient.
+        k3: f64,
+        /// Tangential p1.
+        p1: f64,
+        /// Tangential p2.
+        p2: f64,
+        /// Centre, px (only without `perspective`; default the image centre).
+        center_px: Option<[f64; 2]>,
+        /// Normalisation radius, px (only and required without `perspective`).
+        norm_px: Option<f64>,
+    },
 }
 
 /// Stage of an effect (see the module docs).
@@ -176,6 +220,9 @@ impl Effect {
             Effect::Shift { .. } => "shift",
             Effect::Drift { .. } => "drift",
             Effect::Occlusion { .. } => "occlusion",
+            Effect::Perspective { .. } => "perspective",
+            Effect::Refraction { .. } => "refraction",
+            Effect::LensDistortion { .. } => "lens_distortion",
         }
     }
 
@@ -183,7 +230,12 @@ impl Effect {
     pub fn stage(&self) -> Stage {
         match self {
             Effect::SizeJitter { .. } | Effect::PlacementJitter { .. } => Stage::Build,
-            Effect::Shift { .. } | Effect::Drift { .. } | Effect::Blur { .. } => Stage::Scene,
+            Effect::Shift { .. }
+            | Effect::Drift { .. }
+            | Effect::Blur { .. }
+            | Effect::Perspective { .. }
+            | Effect::Refraction { .. }
+            | Effect::LensDistortion { .. } => Stage::Scene,
             _ => Stage::Image,
         }
     }
@@ -318,6 +370,85 @@ impl Effect {
                     _ => Ok(()),
                 }
             }
+            Effect::Perspective {
+                distance_mm,
+                focal,
+                principal_point_px,
+            } => {
+                if !(distance_mm.is_finite() && *distance_mm > 0.0) {
+                    return Err(bad(
+                        "distance_mm",
+                        format!("{distance_mm} mm"),
+                        "must be a finite number > 0 mm (pinhole below the plate-elastomer interface)",
+                    ));
+                }
+                match focal {
+                    Focal::Px(f) if !(f.is_finite() && *f > 0.0) => {
+                        return Err(bad(
+                            "focal_px",
+                            format!("{f} px"),
+                            "must be a finite number > 0 px (focal length / pixel pitch)",
+                        ))
+                    }
+                    Focal::ReferenceDepthMm(d) if !(d.is_finite() && *d >= 0.0) => {
+                        return Err(bad(
+                            "reference_depth_mm",
+                            format!("{d} mm"),
+                            "must be a finite depth >= 0 mm",
+                        ))
+                    }
+                    _ => {}
+                }
+                match principal_point_px {
+                    Some(c) => finite2("principal_point_px", *c, "px"),
+                    None => Ok(()),
+                }
+            }
+            Effect::Refraction {
+                plate_index,
+                plate_thickness_mm,
+                elastomer_index,
+            } => {
+                for (key, n) in [
+                    ("plate_index", plate_index),
+                    ("elastomer_index", elastomer_index),
+                ] {
+                    if !(n.is_finite() && *n >= 1.0 && *n <= 4.0) {
+                        return Err(bad(
+                            key,
+                            n.to_string(),
+                            "must be a refractive index in [1, 4] (acrylic 1.49, silicone 1.41)",
+                        ));
+                    }
+                }
+                nonneg("plate_thickness_mm", *plate_thickness_mm, "mm")
+            }
+            Effect::LensDistortion {
+                k1,
+                k2,
+                k3,
+                p1,
+                p2,
+                center_px,
+                norm_px,
+            } => {
+                for (key, v) in [("k1", k1), ("k2", k2), ("k3", k3), ("p1", p1), ("p2", p2)] {
+                    if !v.is_finite() {
+                        return Err(bad(key, v.to_string(), "must be finite"));
+                    }
+                }
+                if let Some(c) = center_px {
+                    finite2("center_px", *c, "px")?;
+                }
+                match norm_px {
+                    Some(n) if !(n.is_finite() && *n > 0.0) => Err(bad(
+                        "norm_px",
+                        format!("{n} px"),
+                        "must be a finite number > 0 px",
+                    )),
+                    _ => Ok(()),
+                }
+            }
         }
     }
 }
@@ -354,6 +485,24 @@ impl Pipeline {
                     });
                 }
             }
+            if matches!(
+                e,
+                Effect::Perspective { .. }
+                    | Effect::Refraction { .. }
+                    | Effect::LensDistortion { .. }
+            ) {
+                if let Some(j) = effects[..i].iter().position(|o| o.kind() == e.kind()) {
+                    return Err(EffectError::Invalid {
+                        index: i,
+                        kind: e.kind(),
+                        key: "kind",
+                        value: format!("{:?}", e.kind()),
+                        allowed: format!(
+                            "listed twice (also effects[{j}]): one camera of each kind"
+                        ),
+                    });
+                }
+            }
             match (e.stage(), first_image) {
                 (Stage::Image, None) => first_image = Some((i, e.kind())),
                 (Stage::Build | Stage::Scene, Some((image_index, image_kind))) => {
@@ -367,7 +516,78 @@ impl Pipeline {
                 _ => {}
             }
         }
+        let perspective = effects.iter().find_map(|e| match e {
+            Effect::Perspective { distance_mm, .. } => Some(*distance_mm),
+            _ => None,
+        });
+        for (i, e) in effects.iter().enumerate() {
+            let bad = |key: &'static str, value: String, allowed: &str| EffectError::Invalid {
+                index: i,
+                kind: e.kind(),
+                key,
+                value,
+                allowed: allowed.to_string(),
+            };
+            match (e, perspective) {
+                (Effect::Refraction { .. }, None) => {
+                    return Err(bad(
+                        "kind",
+                        "\"refraction\"".into(),
+                        "needs the perspective effect: an orthographic camera's rays cross the flat interfaces at normal incidence and are not refracted",
+                    ))
+                }
+                (
+                    Effect::Refraction {
+                        plate_thickness_mm, ..
+                    },
+                    Some(d),
+                ) if *plate_thickness_mm >= d => {
+                    return Err(bad(
+                        "plate_thickness_mm",
+                        format!("{plate_thickness_mm} mm"),
+                        &format!("must be less than the perspective's distance_mm = {d} mm (the plate lies between the elastomer and the pinhole)"),
+                    ))
+                }
+                (
+                    Effect::LensDistortion {
+                        center_px,
+                        norm_px,
+                        ..
+                    },
+                    Some(_),
+                ) if center_px.is_some() || norm_px.is_some() => {
+                    let key = if center_px.is_some() { "center_px" } else { "norm_px" };
+                    return Err(bad(
+                        key,
+                        "(given)".into(),
+                        "with perspective the distortion is about its principal point, normalised by its focal length: remove the key",
+                    ));
+                }
+                (Effect::LensDistortion { norm_px: None, .. }, None) => {
+                    return Err(bad(
+                        "norm_px",
+                        "(missing)".into(),
+                        "without perspective the distortion needs norm_px, the radius in px that counts as r = 1",
+                    ))
+                }
+                _ => {}
+            }
+        }
         Ok(Pipeline { effects })
+    }
+
+    /// True when the list has a camera effect (`perspective`, `refraction`,
+    /// `lens_distortion`): marker centres are then projected by
+    /// [`super::camera::CameraOptics`] instead of the linear `[camera]` mapping.
+    pub fn has_camera_effects(&self) -> bool {
+        self.effects.iter().any(|e| {
+            matches!(
+                e,
+                Effect::Perspective { .. }
+                    | Effect::Refraction { .. }
+                    | Effect::LensDistortion { .. }
+            )
+        })
     }
 
     /// No effects: the ideal render.

@@ -32,6 +32,7 @@
 //! ```
 
 pub mod bench;
+pub mod camera;
 pub mod contact;
 pub mod effects;
 pub mod render;

@@ -53,7 +53,31 @@
 //! | `drift` | `px_per_frame = [dx, dy]`, optional `random_walk_px` (σ per frame) and `seed` |
 //! | `occlusion` | `rect_px = [x0, y0, x1, y1]` (pixel centres covered), optional `level` (grey, default 0.5) and `frames = [first, last]` (inclusive; default every loaded frame, 1 on; 0 = the reference) |
 //!
-//! Marker-level effects (`size_jitter`, `placement_jitter`, `shift`, `drift`, `blur`)
+//! | `perspective` | `distance_mm` (pinhole below the plate–elastomer interface, mm), exactly one of `focal_px` (focal length / pixel pitch, px) or `reference_depth_mm` (the depth shown at the `[camera]` `mm_per_px`), optional `principal_point_px = [x, y]` (default the image centre) |
+//! | `refraction` | `plate_index`, `plate_thickness_mm` (< the perspective's `distance_mm`), `elastomer_index` (indices in [1, 4]); the elastomer thickness is the sensor's `thickness_mm`; needs `perspective` |
+//! | `lens_distortion` | `k1`, `k2`, `k3`, `p1`, `p2` (Brown–Conrady, each default 0); with `perspective` about its principal point, normalised by its focal length; without it `norm_px` (required, px) and `center_px` (default the image centre) |
+//!
+//! The camera effects (models and geometry in [`super::camera`]) are opt-in: with none
+//! listed, the frames are the linear `[camera]` mapping's, bit for bit. Each may be
+//! listed once, e.g.
+//!
+//! ```toml
+//! [[effects]]
+//! kind = "perspective"
+//! distance_mm = 30.0          # pinhole 30 mm below the plate-elastomer interface
+//! reference_depth_mm = 3.0    # the 3 mm layer is imaged at [camera] mm_per_px
+//! [[effects]]
+//! kind = "refraction"
+//! plate_index = 1.49          # acrylic
+//! plate_thickness_mm = 5.0
+//! elastomer_index = 1.41      # silicone
+//! [[effects]]
+//! kind = "lens_distortion"
+//! k1 = -0.3
+//! ```
+//!
+//! Marker-level effects (`size_jitter`, `placement_jitter`, `shift`, `drift`, `blur`,
+//! the camera effects)
 //! must come before image effects (`illumination`, `vignetting`, `shot_noise`,
 //! `pixel_noise`, `quantize8`, `occlusion`).
 //!
@@ -94,6 +118,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use thiserror::Error;
 
+use super::camera::{CameraOptics, Focal};
 use super::contact::{Indenter, LoadCase, Normal, Tangential};
 use super::effects::{Effect, EffectError, Pipeline};
 use super::render::PixelFilter;
@@ -370,6 +395,26 @@ enum RawEffect {
         rect_px: [f64; 4],
         level: Option<f64>,
         frames: Option<[u64; 2]>,
+    },
+    Perspective {
+        distance_mm: f64,
+        focal_px: Option<f64>,
+        reference_depth_mm: Option<f64>,
+        principal_point_px: Option<[f64; 2]>,
+    },
+    Refraction {
+        plate_index: f64,
+        plate_thickness_mm: f64,
+        elastomer_index: f64,
+    },
+    LensDistortion {
+        k1: Option<f64>,
+        k2: Option<f64>,
+        k3: Option<f64>,
+        p1: Option<f64>,
+        p2: Option<f64>,
+        center_px: Option<[f64; 2]>,
+        norm_px: Option<f64>,
     },
 }
 
@@ -664,10 +709,64 @@ impl RawScene {
                     first_frame: frames.map_or(1, |f| f[0]),
                     last_frame: frames.map(|f| f[1]),
                 },
+                RawEffect::Perspective {
+                    distance_mm,
+                    focal_px,
+                    reference_depth_mm,
+                    principal_point_px,
+                } => {
+                    let focal = match (focal_px, reference_depth_mm) {
+                        (Some(f), None) => Focal::Px(f),
+                        (None, Some(d)) => Focal::ReferenceDepthMm(d),
+                        (given, _) => {
+                            return Err(invalid(
+                                &format!("effects[{i}]"),
+                                &if given.is_some() {
+                                    "focal_px and reference_depth_mm"
+                                } else {
+                                    "(neither)"
+                                },
+                                "perspective needs exactly one of focal_px (focal length / pixel pitch, px) or reference_depth_mm (the depth imaged at [camera] mm_per_px)",
+                            ))
+                        }
+                    };
+                    Effect::Perspective {
+                        distance_mm,
+                        focal,
+                        principal_point_px,
+                    }
+                }
+                RawEffect::Refraction {
+                    plate_index,
+                    plate_thickness_mm,
+                    elastomer_index,
+                } => Effect::Refraction {
+                    plate_index,
+                    plate_thickness_mm,
+                    elastomer_index,
+                },
+                RawEffect::LensDistortion {
+                    k1,
+                    k2,
+                    k3,
+                    p1,
+                    p2,
+                    center_px,
+                    norm_px,
+                } => Effect::LensDistortion {
+                    k1: k1.unwrap_or(0.0),
+                    k2: k2.unwrap_or(0.0),
+                    k3: k3.unwrap_or(0.0),
+                    p1: p1.unwrap_or(0.0),
+                    p2: p2.unwrap_or(0.0),
+                    center_px,
+                    norm_px,
+                },
             });
         }
-        let pipeline =
-            Pipeline::new(effects, sensor.layers.len()).map_err(|source| SceneError::Effect {
+        let pipeline = Pipeline::new(effects, sensor.layers.len())
+            .and_then(|p| CameraOptics::check(&p, &sensor).map(|()| p))
+            .map_err(|source| SceneError::Effect {
                 path: path.to_path_buf(),
                 source,
             })?;

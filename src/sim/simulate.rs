@@ -6,11 +6,14 @@
 //!
 //! Per frame: contact model → cell forces → elastic displacements (the half-space of
 //! paper Eq. 1–2, or the bonded layer a scene's `[physics] model` selects; with u_z)
-//! at the (built) marker positions → image offset (shift, drift) → rasterisation → image effects.
+//! at the (built) marker positions → camera optics (only with the camera effects
+//! `perspective`, `refraction`, `lens_distortion`: each marker's centre projected from
+//! its depth and `u_z`, see [`super::camera`]) → image offset (shift, drift) → rasterisation → image effects.
 
 use image::Rgb32FImage;
 use thiserror::Error;
 
+use super::camera::CameraOptics;
 use super::contact::{Contact, ContactError, Indenter, LoadCase};
 use super::effects::{Pipeline, Scratch};
 use super::render::{reference_markers, Marker, PixelFilter, RenderError, Renderer};
@@ -81,6 +84,8 @@ pub struct Simulation {
     sites: Vec<MarkerSite>,
     scratch: Scratch,
     moved: Vec<Marker>,
+    /// The camera effects (`None`: the linear `[camera]` mapping).
+    optics: Option<CameraOptics>,
 }
 
 impl Simulation {
@@ -103,7 +108,9 @@ impl Simulation {
             })
             .collect();
         let model = HalfSpace::from_elastomer(&sensor.elastomer);
+        let optics = CameraOptics::from_pipeline(&pipeline, &sensor);
         Simulation {
+            optics,
             model,
             elastic: ForwardModel::HalfSpace(model),
             renderer: Renderer::new(&sensor),
@@ -182,10 +189,58 @@ impl Simulation {
         self.renderer.blank()
     }
 
+    /// The camera optics of the scene's camera effects (`None` when none is listed).
+    pub fn optics(&self) -> Option<&CameraOptics> {
+        self.optics.as_ref()
+    }
+
+    /// Where the centre of marker `k` appears in the frame of `truth`, px: its
+    /// displaced position seen through the camera optics (or the linear `[camera]`
+    /// mapping), plus the frame's image offset.
+    pub fn apparent_px(&self, k: usize, truth: &FrameTruth) -> [f64; 2] {
+        let m = &self.markers[k];
+        let p = [
+            m.position_mm[0] + truth.elastic_u_mm[2 * k],
+            m.position_mm[1] + truth.elastic_u_mm[2 * k + 1],
+        ];
+        let q = match &self.optics {
+            None => self.renderer.camera().mm_to_px(p),
+            Some(o) => {
+                o.project(p, self.sites[k].depth_mm + truth.elastic_uz_mm[k])
+                    .0
+            }
+        };
+        [q[0] + truth.offset_px[0], q[1] + truth.offset_px[1]]
+    }
+
+    /// Replaces each marker of `self.moved` (sensor-frame mm, marker order) by the disc
+    /// the camera optics show, expressed in the renderer's linear mapping: centre at
+    /// the projected pixel position, diameter scaled by the local magnification.
+    fn project_moved(&mut self, uz_mm: Option<&[f64]>) {
+        let Some(optics) = &self.optics else {
+            return;
+        };
+        let cam = *self.renderer.camera();
+        for (k, m) in self.moved.iter_mut().enumerate() {
+            let z = self.sites[k].depth_mm + uz_mm.map_or(0.0, |u| u[k]);
+            let (p_px, px_per_mm) = optics.project(m.position_mm, z);
+            m.position_mm = cam.px_to_mm(p_px);
+            m.diameter_mm *= px_per_mm * cam.mm_per_px;
+        }
+    }
+
     /// Renders the unloaded reference frame (pipeline frame 0) into `out`.
     pub fn render_reference(&mut self, out: &mut Rgb32FImage) -> Result<FrameTruth, SimError> {
-        self.pipeline
-            .render_frame(&self.renderer, &self.markers, 0, out, &mut self.scratch)?;
+        if self.optics.is_some() {
+            self.moved.clear();
+            self.moved.extend_from_slice(&self.markers);
+            self.project_moved(None);
+            self.pipeline
+                .render_frame(&self.renderer, &self.moved, 0, out, &mut self.scratch)?;
+        } else {
+            self.pipeline
+                .render_frame(&self.renderer, &self.markers, 0, out, &mut self.scratch)?;
+        }
         Ok(FrameTruth {
             frame: 0,
             contact: None,
@@ -227,6 +282,7 @@ impl Simulation {
                 ],
                 ..*m
             }));
+        self.project_moved(Some(&uz));
         self.pipeline
             .render_frame(&self.renderer, &self.moved, frame, out, &mut self.scratch)?;
         let forces_n = contact.force_grid_n(&self.sensor.force_grid);

@@ -404,15 +404,6 @@ pub fn precompute(
         check_input(u, problem.n_inputs())?;
     }
     match config.method {
-        Method::Fourier
-            if problem.sensor.elastomer.model != crate::sensor::ModelKind::HalfSpace =>
-        {
-            Err(SolveError::Incompatible(format!(
-                "the fourier solver inverts the half-space model only; the sensor's \
-                 [elastomer] model = \"{}\" needs a dense method (pinv, tikhonov, tsvd)",
-                problem.sensor.elastomer.model
-            )))
-        }
         Method::Fourier => Ok(Box::new(fourier::FourierSolver::precompute(
             problem, config, frame,
         )?)),

@@ -14,6 +14,7 @@
 //! window centroid. A detection is matched to the nearest grid node when it lies
 //! within `match_tolerance` pitches of it (the nearer of two claimants wins).
 
+use super::camera::PixelMapping;
 use super::image::FrameView;
 use super::window::{score, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
@@ -191,12 +192,24 @@ pub fn detect(
     sensor: &Sensor,
     config: &DetectConfig,
 ) -> Result<Reference, VisionError> {
+    detect_mapped(view, sensor, config, &PixelMapping::Linear(sensor.camera))
+}
+
+/// As [`detect`], converting pixels to the sensor frame with `mapping` (a camera
+/// calibration, per layer) instead of the sensor file's `[camera]` mapping: blobs are
+/// matched to grid nodes, and reference positions given, in that mapping.
+pub fn detect_mapped(
+    view: &FrameView<'_>,
+    sensor: &Sensor,
+    config: &DetectConfig,
+    mapping: &PixelMapping,
+) -> Result<Reference, VisionError> {
     let mut layers = Vec::with_capacity(sensor.layers.len());
     let mut markers = Vec::new();
     let mut missing = Vec::new();
     let mut unmatched = Vec::new();
-    let mm_per_px = sensor.camera.mm_per_px;
     for (li, layer) in sensor.layers.iter().enumerate() {
+        let mm_per_px = mapping.mm_per_px(li);
         let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
         let used: Vec<MarkerColor> = sensor.layers.iter().map(|l| l.color).collect();
         let weights = score_weights(layer.color, &used);
@@ -214,7 +227,7 @@ pub fn detect(
             layer: li,
             id,
             centroid_px: b.centroid_px,
-            position_mm: sensor.camera.px_to_mm(b.centroid_px),
+            position_mm: mapping.px_to_mm(li, b.centroid_px),
             signal: b.signal,
             peak: b.peak,
             background: b.background,
@@ -227,7 +240,7 @@ pub fn detect(
                 let mut claim: Vec<Option<(usize, f64)>> = vec![None; grid.len()];
                 let mut rejected = Vec::new();
                 for (bi, b) in found.blobs.iter().enumerate() {
-                    let p = sensor.camera.px_to_mm(b.centroid_px);
+                    let p = mapping.px_to_mm(li, b.centroid_px);
                     match grid.nearest_node(p) {
                         Some(((ix, iy), d)) if d <= config.match_tolerance * grid.pitch_mm => {
                             let k = iy * grid.nx + ix;
@@ -259,7 +272,7 @@ pub fn detect(
                     unmatched.push(UnmatchedBlob {
                         layer: li,
                         centroid_px: b.centroid_px,
-                        position_mm: sensor.camera.px_to_mm(b.centroid_px),
+                        position_mm: mapping.px_to_mm(li, b.centroid_px),
                     });
                 }
             }

@@ -14,6 +14,12 @@
 //!    and gives every marker a [`MarkerStatus`]. Reference and frames may differ in
 //!    bit depth (the reference's levels are rescaled to the frame's).
 //!
+//! [`camera`] holds the camera models (Brown–Conrady distortion, the per-layer
+//! calibration `camera.toml`, [`PixelMapping`]: the sensor file's linear `[camera]`
+//! mapping or a calibration) and [`calibrate`] fits a calibration to an unloaded frame
+//! (`tactbench calibrate`); [`detect_mapped`], [`write_tracks_mapped`] and
+//! [`Tracker::displacement_records_mapped`] convert pixels with a calibration.
+//!
 //! [`ReferenceHealth`] measures a reference against the sensor file (found markers per
 //! layer, marker pitch, centre, frame levels) and names the likely cause when markers
 //! are missing (scale, origin, colour, exposure).
@@ -28,6 +34,8 @@ use std::path::PathBuf;
 
 use thiserror::Error;
 
+pub mod calibrate;
+pub mod camera;
 mod detect;
 mod health;
 mod image;
@@ -35,12 +43,17 @@ mod output;
 mod track;
 mod window;
 
+pub use self::calibrate::{calibrate, CalibrateConfig, CalibrationError, CalibrationFit};
+pub use self::camera::{BrownConrady, CameraCalibration, PixelMapping};
 pub use self::detect::{
-    detect, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker, UnmatchedBlob,
+    detect, detect_mapped, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker,
+    UnmatchedBlob,
 };
 pub use self::health::{LayerHealth, ReferenceHealth, ORIGIN_TOLERANCE, SCALE_TOLERANCE};
 pub use self::image::{load_frame, Frame, FrameView, Pixels};
-pub use self::output::{write_tracks, write_tracks_to, TRACK_EXTRA_COLUMNS};
+pub use self::output::{
+    write_tracks, write_tracks_mapped, write_tracks_mapped_to, write_tracks_to, TRACK_EXTRA_COLUMNS,
+};
 pub use self::track::{MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker};
 
 /// An error of the vision module. File errors name the file.

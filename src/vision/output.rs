@@ -12,6 +12,7 @@
 use std::io::Write;
 use std::path::Path;
 
+use super::camera::PixelMapping;
 use super::{MarkerStatus, MarkerTrack, Reference};
 use crate::formats::{FormatError, Num, DISPLACEMENT_COLUMNS};
 use crate::sensor::Sensor;
@@ -26,12 +27,30 @@ pub fn write_tracks(
     reference: &Reference,
     frames: &[(String, Vec<MarkerTrack>)],
 ) -> Result<(), FormatError> {
+    write_tracks_mapped(
+        path,
+        sensor,
+        reference,
+        frames,
+        &PixelMapping::Linear(sensor.camera),
+    )
+}
+
+/// As [`write_tracks`], converting pixel displacements to mm with `mapping` (a camera
+/// calibration; `PixelMapping::Linear(sensor.camera)` is [`write_tracks`]).
+pub fn write_tracks_mapped(
+    path: &Path,
+    sensor: &Sensor,
+    reference: &Reference,
+    frames: &[(String, Vec<MarkerTrack>)],
+    mapping: &PixelMapping,
+) -> Result<(), FormatError> {
     let io = |source| FormatError::Io {
         path: path.to_path_buf(),
         source,
     };
     let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
-    write_tracks_to(&mut w, sensor, reference, frames).map_err(io)?;
+    write_tracks_mapped_to(&mut w, sensor, reference, frames, mapping).map_err(io)?;
     w.flush().map_err(io)
 }
 
@@ -41,6 +60,23 @@ pub fn write_tracks_to(
     sensor: &Sensor,
     reference: &Reference,
     frames: &[(String, Vec<MarkerTrack>)],
+) -> std::io::Result<()> {
+    write_tracks_mapped_to(
+        w,
+        sensor,
+        reference,
+        frames,
+        &PixelMapping::Linear(sensor.camera),
+    )
+}
+
+/// As [`write_tracks_mapped`], to any writer.
+pub fn write_tracks_mapped_to(
+    w: &mut impl Write,
+    sensor: &Sensor,
+    reference: &Reference,
+    frames: &[(String, Vec<MarkerTrack>)],
+    mapping: &PixelMapping,
 ) -> std::io::Result<()> {
     // Row order: (layer, id) -> Some(marker index) or None (missing).
     let mut rows: Vec<(usize, u64, Option<usize>, [f64; 2])> = reference
@@ -56,7 +92,6 @@ pub fn write_tracks_to(
         )
         .collect();
     rows.sort_by_key(|r| (r.0, r.1));
-    let mm_per_px = sensor.camera.mm_per_px;
     writeln!(
         w,
         "{},{}",
@@ -75,12 +110,8 @@ pub fn write_tracks_to(
             let t = &tracks[i];
             let r = &reference.markers[i];
             if t.status == MarkerStatus::Ok {
-                write!(
-                    w,
-                    "{},{}",
-                    Num(t.displacement_px[0] * mm_per_px),
-                    Num(t.displacement_px[1] * mm_per_px)
-                )?;
+                let u = mapping.displacement_mm(layer, r.centroid_px, t.displacement_px);
+                write!(w, "{},{}", Num(u[0]), Num(u[1]))?;
             } else {
                 write!(w, ",")?;
             }

@@ -35,6 +35,7 @@
 //! lost and merged markers keep their last good position for the next frame.
 //! [`Tracker::track`] allocates nothing: all buffers are sized in [`Tracker::new`].
 
+use super::camera::PixelMapping;
 use super::detect::{with_raw, Reference};
 use super::image::FrameView;
 use super::window::{search, Foreign, Located, Raw, Sample, Window};
@@ -407,6 +408,16 @@ impl Tracker {
         tracks: &[MarkerTrack],
         camera: &CameraMapping,
     ) -> Vec<DisplacementRecord> {
+        self.displacement_records_mapped(tracks, &PixelMapping::Linear(*camera))
+    }
+
+    /// As [`Tracker::displacement_records`], converting pixels with `mapping` (e.g. a
+    /// camera calibration).
+    pub fn displacement_records_mapped(
+        &self,
+        tracks: &[MarkerTrack],
+        mapping: &PixelMapping,
+    ) -> Vec<DisplacementRecord> {
         let mut rows: Vec<DisplacementRecord> = self
             .reference
             .markers
@@ -416,12 +427,8 @@ impl Tracker {
                 layer: r.layer,
                 marker: r.id,
                 position_mm: r.position_mm,
-                u_mm: (t.status == MarkerStatus::Ok).then(|| {
-                    [
-                        t.displacement_px[0] * camera.mm_per_px,
-                        t.displacement_px[1] * camera.mm_per_px,
-                    ]
-                }),
+                u_mm: (t.status == MarkerStatus::Ok)
+                    .then(|| mapping.displacement_mm(r.layer, r.centroid_px, t.displacement_px)),
                 line: 0,
             })
             .chain(self.reference.missing.iter().map(|m| DisplacementRecord {

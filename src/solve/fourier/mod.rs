@@ -16,7 +16,17 @@
 //! ```
 //!
 //! Any sub-pitch offset between a layer and the force grid is absorbed exactly into the
-//! sampled kernel `k_ℓ`. On a periodic fine grid of `N` nodes per axis (`N` a multiple of
+//! sampled kernel `k_ℓ`.
+//!
+//! The kernel `K` is the sensor's model (`[elastomer] model`, [`crate::model::ForwardModel`]).
+//! For the half-space, `k_ℓ` samples Eq. 1–2 on the kernel window. For the bonded layer
+//! the direct solve uses the layer's closed-form Fourier kernel
+//! ([`crate::model::layer_kernel`]) directly in frequency space: per fine frequency the
+//! 2 × 3 block of each layer at its depth, aliases folded in, with the in-plane phase
+//! `exp(i k·(o_ℓ − o_f))` of the layer offset, and the finite `k = 0` term of the
+//! uniform-traction layer (`kernel.rs`); the refinement's exact operator `H` samples
+//! the layer's real-space responses through the same [`crate::model::ElasticModel`]
+//! trait the dense solvers build `H` with, so it converges to their solution. On a periodic fine grid of `N` nodes per axis (`N` a multiple of
 //! `L = a·b`, 2-3-5-7-smooth) the DFT turns this into (per axis, unnormalised DFTs, `M = N/L`,
 //! marker lattice period `N/b = a·M`, force lattice period `N/a = b·M`):
 //!
@@ -123,6 +133,7 @@
 //! 2.2 mm / 1.5 mm = 22/15 is refused; markers every 1.1 mm or 2.2 mm would work).
 
 mod grid;
+mod kernel;
 mod lambda;
 mod refine;
 mod transform;
@@ -137,14 +148,14 @@ use super::{
     check_input, check_output, Diagnostics, FrameSolver, Lambda, Method, Problem, SolveError,
     SolverConfig,
 };
-use crate::model::HalfSpace;
+use crate::model::ForwardModel;
 
 use grid::{commensurate, smooth_at_least, RATIO_TOLERANCE};
 pub use grid::{MAX_LCM, OFF_GRID_TOLERANCE};
 use lambda::choose_lambda;
 use transform::{
-    bridge_weights, fft2_transposed, gather_marker_block, markers_to_forces, markers_to_spectra,
-    LayerPlan, Plan, Work, C64,
+    bridge_weights, gather_marker_block, markers_to_forces, markers_to_spectra, LayerPlan, Plan,
+    Work, C64,
 };
 
 /// Largest accepted `fourier_padding`: beyond it the FFTs grow without improving the
@@ -437,12 +448,15 @@ impl FourierSolver {
             }
         }
 
-        // ---- kernel spectra on the fine grid ----
-        let model: HalfSpace = problem.model;
+        // ---- kernel spectra on the fine grid (kernel.rs) ----
+        // `exact`: the model's real-space responses on the kernel window (the exact
+        // operator of the refinement); `periodic`: what the direct solve inverts, the
+        // layer's Fourier kernel used directly (the half-space has no finite k = 0 term
+        // and uses the window-sampled kernel for both).
+        let model = problem.forward_model();
         let mut planner = FftPlanner::<f64>::new();
-        let nfine = period[0] * period[1];
-        // khat[slot][comp][qx·N_y + qy], comp = 3·axis_u + axis_f.
-        let mut khat: Vec<Vec<Vec<C64>>> = Vec::with_capacity(layers.len());
+        let mut exact: Vec<Vec<Vec<C64>>> = Vec::with_capacity(layers.len());
+        let mut periodic: Vec<Vec<Vec<C64>>> = Vec::new();
         for (slot, lp) in layers.iter().enumerate() {
             let layer = &sensor.layers[layer_of_slot[slot]];
             let grid = layer.markers.map(|m| m.grid).unwrap_or(fg);
@@ -451,24 +465,24 @@ impl FourierSolver {
                 let span = a * (nf[ax] - 1) + b * (lp.nm[ax] - 1) + 1;
                 lo[ax] = -((a * (nf[ax] - 1)) as i64) - ((period[ax] - span) / 2) as i64;
             }
-            let mut comps = vec![vec![C64::default(); nfine]; 6];
-            for ty in lo[1]..lo[1] + period[1] as i64 {
-                let iy = ty.rem_euclid(period[1] as i64) as usize;
-                let dy = grid.origin_mm[1] - fg.origin_mm[1] + h * ty as f64;
-                for tx in lo[0]..lo[0] + period[0] as i64 {
-                    let ix = tx.rem_euclid(period[0] as i64) as usize;
-                    let dx = grid.origin_mm[0] - fg.origin_mm[0] + h * tx as f64;
-                    let r = model.point_response(dx, dy, layer.depth_mm);
-                    for (c, comp) in comps.iter_mut().enumerate() {
-                        comp[iy * period[0] + ix] = C64::new(r[c / 3][c % 3], 0.0);
-                    }
-                }
+            let sampling = kernel::LayerSampling {
+                offset_mm: [
+                    grid.origin_mm[0] - fg.origin_mm[0],
+                    grid.origin_mm[1] - fg.origin_mm[1],
+                ],
+                depth_mm: layer.depth_mm,
+                lo,
+            };
+            exact.push(kernel::sampled_spectra(
+                &model,
+                &sampling,
+                period,
+                h,
+                &mut planner,
+            ));
+            if let ForwardModel::BondedLayer(bl) = &model {
+                periodic.push(kernel::layer_spectra(bl, &sampling, period, h));
             }
-            let spectra = comps
-                .iter_mut()
-                .map(|c| fft2_transposed(&mut planner, c, period[0], period[1]))
-                .collect();
-            khat.push(spectra);
         }
 
         // ---- blocks ----
@@ -494,8 +508,8 @@ impl FourierSolver {
         let mut sig = vec![0.0f64; nb * kmin];
         let mut uvec = vec![C64::default(); nb * rows * kmin];
         let mut vvec = vec![C64::default(); nb * cols * kmin];
-        for (bi, c) in blocks.iter().enumerate() {
-            let ab = &mut amat[bi * rows * cols..(bi + 1) * rows * cols];
+        // Block `c` (row-major `rows × cols`, unitary scaling) from one set of spectra.
+        let assemble = |khat: &[Vec<Vec<C64>>], c: [usize; 2], ab: &mut [C64]| {
             for ty in 0..l {
                 let qy = c[1] + ty * m[1];
                 let (sry, sfy) = (ty % a, ty % b);
@@ -514,7 +528,18 @@ impl FourierSolver {
                     }
                 }
             }
-            let dm = DMatrix::from_row_slice(rows, cols, ab);
+        };
+        let mut periodic_block = vec![C64::default(); rows * cols];
+        for (bi, &c) in blocks.iter().enumerate() {
+            let ab = &mut amat[bi * rows * cols..(bi + 1) * rows * cols];
+            assemble(&exact, c, ab);
+            let dm = if periodic.is_empty() {
+                DMatrix::from_row_slice(rows, cols, ab)
+            } else {
+                periodic_block.fill(C64::default());
+                assemble(&periodic, c, &mut periodic_block);
+                DMatrix::from_row_slice(rows, cols, &periodic_block)
+            };
             let svd = dm
                 .try_svd_unordered(true, true, f64::EPSILON, 10_000)
                 .ok_or_else(|| {
