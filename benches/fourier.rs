@@ -1,12 +1,16 @@
 //! Criterion benches of the `fourier` solver: precompute and per-frame apply on the
 //! synthetic regular-grid sensors (`sensor::grid_sensor`): the paper-sized 10×8 force
-//! grid every 2.2 mm with markers every 1.1 mm, and 32×32 / 64×64 force grids with
-//! markers every 1.1 mm (two layers each). Targets (issue 2): 64×64 apply ≤ 2 ms,
-//! precompute ≤ 5 s. `direct` is the periodic solve alone (the solver before issue 12);
-//! `default` adds the default CGLS refinement ([`DEFAULT_REFINE_ITERATIONS`]), which is
-//! what makes the output agree with dense Tikhonov (issue 12).
+//! grid every 2.2 mm with markers every 1.1 mm, and 16×16, 32×32 and 64×64 force grids
+//! with markers every 1.1 mm (two layers each). Targets (issue 2): 64×64 apply ≤ 2 ms,
+//! precompute ≤ 5 s. Apply variants (issue 12: what accuracy costs): `direct` is the
+//! periodic solve alone; `refine_K` adds exactly K CGLS refinement iterations (tolerance
+//! 0); `default` is the default (stop at [`DEFAULT_REFINE_TOLERANCE`], cap
+//! [`DEFAULT_REFINE_ITERATIONS`]; the iterations it ran are printed). λ = 1e-2 of the
+//! periodic operator's largest singular value.
 //!
-//! `cargo bench --bench fourier`
+//! `cargo bench --bench fourier` (wall time; `-- fourier_apply` for the applies only);
+//! the `fourier_apply_oncpu` group times the same applies by this thread's CPU time
+//! (`/proc/thread-self/schedstat`), which a loaded machine does not inflate.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -14,15 +18,21 @@ use std::time::Duration;
 use criterion::{criterion_group, criterion_main, Criterion};
 use tactbench::model::{self, MarkerSite};
 use tactbench::sensor::{grid_sensor, Sensor};
-use tactbench::solve::fourier::{FourierSolver, DEFAULT_REFINE_ITERATIONS};
+use tactbench::solve::fourier::{
+    FourierSolver, DEFAULT_REFINE_ITERATIONS, DEFAULT_REFINE_TOLERANCE,
+};
 use tactbench::solve::{FrameSolver, Lambda, Method, Problem, SolverConfig};
 
-/// λ (mm/N) used by the fixed-λ benches: about 1 % of the largest singular value.
+/// λ (mm/N) of the precompute benches.
 const LAMBDA: f64 = 0.1;
+
+/// Fixed refinement counts timed.
+const REFINE_COUNTS: [usize; 4] = [2, 5, 10, 20];
 
 fn cases() -> Vec<(&'static str, Sensor)> {
     vec![
         ("10x8_f2.2_m1.1", grid_sensor(10, 8, 2.2, 1.1)),
+        ("16x16_f1.1_m1.1", grid_sensor(16, 16, 1.1, 1.1)),
         ("32x32_f1.1_m1.1", grid_sensor(32, 32, 1.1, 1.1)),
         ("64x64_f1.1_m1.1", grid_sensor(64, 64, 1.1, 1.1)),
     ]
@@ -70,51 +80,65 @@ fn bench(c: &mut Criterion) {
     }
     g.finish();
 
-    let mut g = c.benchmark_group("fourier_apply");
-    g.sample_size(30).measurement_time(Duration::from_secs(4));
-    for (name, sensor) in cases() {
-        let sites = MarkerSite::from_sensor_grids(&sensor);
-        let problem = Problem::new(&sensor, &sites);
-        let u = frame(&sensor, &sites);
-        let mut solver = FourierSolver::precompute(&problem, &fixed, None).expect("precompute");
-        let mut f = vec![0.0; solver.n_outputs()];
-        solver.refine_iterations = 0;
-        g.bench_function(format!("{name}/direct"), |b| {
-            b.iter(|| solver.apply(black_box(&u), &mut f).expect("apply"))
-        });
-        solver.refine_iterations = DEFAULT_REFINE_ITERATIONS;
-        g.bench_function(format!("{name}/default"), |b| {
-            b.iter(|| solver.apply(black_box(&u), &mut f).expect("apply"))
-        });
-    }
-    g.finish();
-
-    // The same applies timed by on-CPU time of this thread (`/proc/thread-self/schedstat`,
-    // ns) instead of wall time: on a shared, overloaded machine wall time includes the
-    // time the scheduler gives to other processes.
-    if tactbench::clock::thread_cpu_ns().is_some() {
-        let mut g = c.benchmark_group("fourier_apply_oncpu");
-        g.sample_size(30).measurement_time(Duration::from_secs(4));
+    // Apply variants: (name, refinement cap, tolerance).
+    let mut variants: Vec<(String, usize, f64)> = vec![("direct".into(), 0, 0.0)];
+    variants.extend(
+        REFINE_COUNTS
+            .iter()
+            .map(|&k| (format!("refine_{k}"), k, 0.0)),
+    );
+    variants.push((
+        "default".into(),
+        DEFAULT_REFINE_ITERATIONS,
+        DEFAULT_REFINE_TOLERANCE,
+    ));
+    let oncpu = tactbench::clock::thread_cpu_ns().is_some();
+    for (group, cpu) in [("fourier_apply", false), ("fourier_apply_oncpu", true)] {
+        if cpu && !oncpu {
+            continue;
+        }
+        let mut g = c.benchmark_group(group);
+        g.sample_size(20).measurement_time(Duration::from_secs(3));
         for (name, sensor) in cases() {
             let sites = MarkerSite::from_sensor_grids(&sensor);
             let problem = Problem::new(&sensor, &sites);
             let u = frame(&sensor, &sites);
-            let mut solver = FourierSolver::precompute(&problem, &fixed, None).expect("precompute");
-            solver.refine_iterations = 0;
+            let probe = FourierSolver::precompute(&problem, &fixed, None).expect("precompute");
+            let lambda = 1e-2 * probe.diagnostics().singular_values[0];
+            let cfg = SolverConfig {
+                lambda: Lambda::Fixed(lambda),
+                ..fixed
+            };
+            let mut solver = FourierSolver::precompute(&problem, &cfg, None).expect("precompute");
             let mut f = vec![0.0; solver.n_outputs()];
-            g.bench_function(format!("{name}/direct"), |b| {
-                b.iter_custom(|iters| {
-                    let t0 = tactbench::clock::thread_cpu_ns().unwrap_or(0);
-                    for _ in 0..iters {
-                        solver.apply(black_box(&u), &mut f).expect("apply");
+            for (variant, cap, tol) in &variants {
+                solver.refine_iterations = *cap;
+                solver.refine_tolerance = *tol;
+                if !cpu && variant == "default" {
+                    solver.apply(&u, &mut f).expect("apply");
+                    println!(
+                        "{name}: default refinement ran {} iterations (λ = {lambda:.3e})",
+                        solver.last_refine_iterations()
+                    );
+                }
+                g.bench_function(format!("{name}/{variant}"), |b| {
+                    if cpu {
+                        b.iter_custom(|iters| {
+                            let t0 = tactbench::clock::thread_cpu_ns().unwrap_or(0);
+                            for _ in 0..iters {
+                                solver.apply(black_box(&u), &mut f).expect("apply");
+                            }
+                            Duration::from_nanos(
+                                tactbench::clock::thread_cpu_ns()
+                                    .unwrap_or(0)
+                                    .saturating_sub(t0),
+                            )
+                        })
+                    } else {
+                        b.iter(|| solver.apply(black_box(&u), &mut f).expect("apply"))
                     }
-                    Duration::from_nanos(
-                        tactbench::clock::thread_cpu_ns()
-                            .unwrap_or(0)
-                            .saturating_sub(t0),
-                    )
-                })
-            });
+                });
+            }
         }
         g.finish();
     }

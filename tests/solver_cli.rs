@@ -438,15 +438,44 @@ fn fourier_refinement_is_selectable_and_converges_to_dense_tikhonov() {
         let den: f64 = dense.iter().map(|b| b * b).sum();
         (num / den).sqrt()
     };
-    let fourier = |n: &str| err(&ok(&["--solver", "fourier", "--refine-iterations", n]));
+    // `--refine-iterations` is the cap; `--refine-tolerance 0` runs all of them.
+    let fourier = |n: &str| {
+        err(&ok(&[
+            "--solver",
+            "fourier",
+            "--refine-iterations",
+            n,
+            "--refine-tolerance",
+            "0",
+        ]))
+    };
     let (e0, e20, e80) = (fourier("0"), fourier("20"), fourier("80"));
-    eprintln!("field error against dense tikhonov: direct {e0:.3e}, 20 iterations {e20:.3e}, 80 iterations {e80:.3e}");
+    let e_default = err(&ok(&["--solver", "fourier"]));
+    let e_loose = err(&ok(&["--solver", "fourier", "--refine-tolerance", "0.3"]));
+    eprintln!(
+        "field error against dense tikhonov: direct {e0:.3e}, 20 iterations {e20:.3e}, 80 \
+         iterations {e80:.3e}, default (tolerance 0.02) {e_default:.3e}, tolerance 0.3 {e_loose:.3e}"
+    );
     assert!(e20 < e0 && e80 < e20, "errors {e0:e} {e20:e} {e80:e}");
     assert!(
         e0 > 1e-2,
         "the direct solve carries its boundary error: {e0:e}"
     );
     assert!(e80 < 1e-4, "80 iterations: {e80:e}");
+    assert!(e_default < 0.05, "default: {e_default:e}");
+    assert!(
+        e_loose > e_default,
+        "tolerance 0.3 {e_loose:e} vs 0.02 {e_default:e}"
+    );
+    let (code, e, _) = forces(&["--solver", "tikhonov", "--refine-tolerance", "0.1"]);
+    assert_eq!(code, Some(2), "{e}");
+    assert!(
+        e.contains("--refine-tolerance") && e.contains("tikhonov"),
+        "{e}"
+    );
+    let (code, e, _) = forces(&["--solver", "fourier", "--refine-tolerance", "1.5"]);
+    assert_eq!(code, Some(2), "{e}");
+    assert!(e.contains("tolerance"), "{e}");
     let (code, e, _) = forces(&["--solver", "fourier", "--refine-iterations", "100000"]);
     assert_eq!(code, Some(2), "{e}");
     assert!(e.contains("1000"), "{e}");

@@ -218,6 +218,10 @@ pub struct SolverConfig {
     /// model's boundary error; see [`fourier`]). Default
     /// [`fourier::DEFAULT_REFINE_ITERATIONS`].
     pub fourier_refine_iterations: usize,
+    /// Fourier solver: the refinement stops before `fourier_refine_iterations` once its
+    /// estimated relative distance to dense Tikhonov is at most this. Default
+    /// [`fourier::DEFAULT_REFINE_TOLERANCE`]; 0 runs the full count.
+    pub fourier_refine_tolerance: f64,
 }
 
 impl Default for SolverConfig {
@@ -230,6 +234,7 @@ impl Default for SolverConfig {
             rcond: None,
             fourier_padding: 1.0,
             fourier_refine_iterations: fourier::DEFAULT_REFINE_ITERATIONS,
+            fourier_refine_tolerance: fourier::DEFAULT_REFINE_TOLERANCE,
         }
     }
 }

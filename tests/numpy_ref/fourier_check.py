@@ -15,12 +15,18 @@ Input: a JSON file written by the ignored Rust test
                 "layers": [{"depth_mm", "nx", "ny", "pitch_mm", "origin_mm": [x, y]}],
                 "f_true": [fx, fy, fz per force node, row-major],
                 "noise_mm": [per displacement, added to the exact H f_true],
-                "fourier": [the solver's forces for H f_true + noise]}]}
+                "fourier": [the solver's forces for H f_true + noise],
+                "sigma_mm": displacement noise SD (optional, with the two below),
+                "force_sd": [the solver's SD of every force component at sigma_mm],
+                "sum_sd": [the solver's SD of the force sums at sigma_mm]}]}
 
 Checks per case against the dense Tikhonov solution of the same (NumPy-computed)
 displacements: force sum within 2 % of the applied total on every axis, field within
-10 % overall and 5 % on the interior (>= 4 mm from the grid edges). Prints one line per
-case and exits 1 if any check fails.
+10 % overall and 5 % on the interior (>= 4 mm from the grid edges). With "sigma_mm":
+the reported uncertainties against sigma * sqrt(diag(P P^T)) of NumPy's dense Tikhonov
+operator P (what the refined solver converges to) and against a seeded NumPy Monte
+Carlo of 2000 noise frames through P: every node's SD and the force sums' SDs within
+10 %. Prints one line per case and exits 1 if any check fails.
 
 Run (NumPy needed: `pip install numpy`):
 
@@ -107,6 +113,29 @@ def check(case):
         f"fourier {np.round(sg, 4)}; sum {e_sum:.4f} (<= 0.02), field {e_all:.4f} (<= 0.10), "
         f"interior {e_int:.4f} (<= 0.05): {'ok' if ok else 'FAIL'}"
     )
+    if "sigma_mm" in case:
+        sigma = case["sigma_mm"]
+        p = vt.T @ ((s / (s * s + lam * lam))[:, None] * uu.T)
+        node = sigma * np.linalg.norm(p, axis=1)
+        sums = sigma * np.linalg.norm(p.reshape(-1, 3, p.shape[1]).sum(0), axis=1)
+        rng = np.random.default_rng(12)
+        draws = p @ (sigma * rng.standard_normal((p.shape[1], 2000)))
+        mc_node = draws.std(axis=1)
+        mc_sum = draws.reshape(-1, 3, draws.shape[1]).sum(0).std(axis=1)
+        got_node = np.asarray(case["force_sd"])
+        got_sum = np.asarray(case["sum_sd"])
+        e_node = np.abs(got_node / node - 1.0).max()
+        e_sum_sd = np.abs(got_sum / sums - 1.0).max()
+        e_mc_node = rel(got_node, mc_node)
+        e_mc_sum = np.abs(got_sum / mc_sum - 1.0).max()
+        ok_sd = e_node <= 0.10 and e_sum_sd <= 0.10 and e_mc_node <= 0.10 and e_mc_sum <= 0.10
+        print(
+            f"  uncertainty at {sigma} mm: sum SD fourier {np.round(got_sum, 5)}, numpy exact "
+            f"{np.round(sums, 5)}, MC {np.round(mc_sum, 5)}; worst node vs exact {e_node:.4f}, "
+            f"sums vs exact {e_sum_sd:.4f}, nodes vs MC {e_mc_node:.4f}, sums vs MC "
+            f"{e_mc_sum:.4f} (all <= 0.10): {'ok' if ok_sd else 'FAIL'}"
+        )
+        ok = ok and ok_sd
     return ok
 
 

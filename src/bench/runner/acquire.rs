@@ -364,7 +364,7 @@ impl Runner<'_, '_, '_, '_> {
             }
         };
         let rel: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
-        let (fsum, t_solve) = self.reconstruct(sp.index, &tracked)?;
+        let (fsum, fsum_sd, t_solve) = self.reconstruct(sp.index, &tracked)?;
         Ok(JournalRow {
             index: sp.index,
             trial: sp.trial,
@@ -401,9 +401,9 @@ impl Runner<'_, '_, '_, '_> {
             markers_outlier: Some(counts.outlier),
             reacquired: Some(reacquired),
             quality: Some(quality),
-            fsum_sd_x_n: None,
-            fsum_sd_y_n: None,
-            fsum_sd_z_n: None,
+            fsum_sd_x_n: fsum_sd.map(|v| v[0]),
+            fsum_sd_y_n: fsum_sd.map(|v| v[1]),
+            fsum_sd_z_n: fsum_sd.map(|v| v[2]),
             direction: sp.direction,
             position: sp.position,
             hold_t_s,
@@ -533,8 +533,15 @@ impl Runner<'_, '_, '_, '_> {
     }
 
     /// Writes a setpoint's displacement file and reconstructs its forces from the mean
-    /// displacement over the frames. Returns the force sums and the solving time.
-    fn reconstruct(&mut self, index: usize, tracked: &Tracked) -> Step<([f64; 3], f64)> {
+    /// displacement over the frames. Returns the force sums, their standard deviation
+    /// from the tracking noise ([`frame_scatter_mm`] propagated through the solver;
+    /// `None` with one frame or when the solve failed) and the solving time.
+    #[allow(clippy::type_complexity)]
+    fn reconstruct(
+        &mut self,
+        index: usize,
+        tracked: &Tracked,
+    ) -> Step<([f64; 3], Option<[f64; 3]>, f64)> {
         let sensor = self.sensor;
         let tracker = self
             .tracker
@@ -549,8 +556,10 @@ impl Runner<'_, '_, '_, '_> {
         // Mean displacement over the frames; a marker lost in any frame is lost.
         let t0 = Instant::now();
         let mut records = Vec::new();
+        let mut per_frame = Vec::with_capacity(tracked.len());
         for (k, (_, tracks)) in tracked.iter().enumerate() {
             let r = tracker.displacement_records(tracks, &sensor.camera);
+            per_frame.push(r.iter().map(|x| x.u_mm).collect::<Vec<_>>());
             if k == 0 {
                 records = r;
             } else {
@@ -569,6 +578,8 @@ impl Runner<'_, '_, '_, '_> {
                 u[1] /= nf;
             }
         }
+        // The noise of the mean displacement: the frames' scatter / √frames.
+        let sigma_mean_mm = frame_scatter_mm(&per_frame).map(|s| s / nf.sqrt());
         let frame = DisplacementFrame {
             frame: String::new(),
             records,
@@ -579,12 +590,17 @@ impl Runner<'_, '_, '_, '_> {
         let n_out = 3 * sensor.force_grid.len();
         let mut f = vec![f64::NAN; n_out];
         let mut precompute_s = 0.0;
+        let mut fsum_sd = None;
         let solved: Result<(), String> = (|| {
             // An exactly unmoved frame (an ideal unloaded setpoint) is zero force for
             // every linear solver; solving it would let automatic λ / rank be chosen
             // (and cached for the run) on a frame with no signal, which fails.
             if !u.is_empty() && u.iter().all(|v| *v == 0.0) {
                 f.iter_mut().for_each(|v| *v = 0.0);
+                // Frames that agree exactly carry no noise, whatever the solver.
+                if sigma_mean_mm == Some(0.0) {
+                    fsum_sd = Some([0.0; 3]);
+                }
                 return Ok(());
             }
             if !self.solvers.contains_key(&key) {
@@ -599,9 +615,14 @@ impl Runner<'_, '_, '_, '_> {
                 .solvers
                 .get_mut(&key)
                 .ok_or_else(|| "solver cache".to_string())?;
-            s.apply(&u, &mut f).map_err(|e| e.to_string())
+            s.apply(&u, &mut f).map_err(|e| e.to_string())?;
+            if let Some(sigma) = sigma_mean_mm {
+                fsum_sd = Some(solve::force_sum_sd(&**s, sigma).map_err(|e| e.to_string())?);
+            }
+            Ok(())
         })();
         if let Err(e) = solved {
+            fsum_sd = None;
             f.iter_mut().for_each(|v| *v = f64::NAN);
             (self.events)(&RunEvent::Warning {
                 index,
@@ -624,8 +645,31 @@ impl Runner<'_, '_, '_, '_> {
         .map_err(|e| Halt::Abort(format!("cannot write {fpath}: {e}")))?;
         self.io_s += t_io.elapsed().as_secs_f64();
         self.solve_s += t_solve;
-        Ok((fsum, t_solve))
+        Ok((fsum, fsum_sd, t_solve))
     }
+}
+
+/// The tracking noise of one displacement component, mm: the pooled frame-to-frame
+/// scatter `sqrt(Σ (u_k − ū)² / (n_markers · 2 · (frames − 1)))` over the markers found
+/// in every frame of a setpoint. `None` with fewer than two frames or no such marker.
+pub(super) fn frame_scatter_mm(frames: &[Vec<Option<[f64; 2]>>]) -> Option<f64> {
+    let nf = frames.len();
+    let first = frames.first()?;
+    if nf < 2 {
+        return None;
+    }
+    let (mut ss, mut dof) = (0.0f64, 0usize);
+    for i in 0..first.len() {
+        let us: Option<Vec<[f64; 2]>> =
+            frames.iter().map(|f| f.get(i).copied().flatten()).collect();
+        let Some(us) = us else { continue };
+        for ax in 0..2 {
+            let mean = us.iter().map(|u| u[ax]).sum::<f64>() / nf as f64;
+            ss += us.iter().map(|u| (u[ax] - mean).powi(2)).sum::<f64>();
+            dof += nf - 1;
+        }
+    }
+    (dof > 0).then(|| (ss / dof as f64).sqrt())
 }
 
 /// Markers ok / all markers of the sensor file.

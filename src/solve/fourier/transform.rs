@@ -50,6 +50,7 @@ pub(super) struct Plan {
 }
 
 /// Per-frame buffers, allocated once.
+#[derive(Clone)]
 pub(super) struct Work {
     pub(super) scratch: Vec<C64>,
     /// Per layer: `nm_y × mm_x`, row-major (the rows of the marker lattice that hold data).
