@@ -688,3 +688,135 @@ fn calibrate_and_track_camera_report_bad_input_with_exit_code_2() {
     assert_eq!(o.status.code(), Some(2));
     assert!(crate::util::stderr(&o).contains("camera.toml"));
 }
+
+#[test]
+fn a_bench_run_tracks_with_its_camera_calibration_and_a_resume_keeps_it() {
+    // The simulated bench seen through a pinhole 30 mm below the plate with barrel
+    // distortion: the sensor file's linear [camera] mapping finds too few markers in
+    // the reference and the run stops before any setpoint (quality gate, exit 3); with
+    // `run --camera camera.toml` (calibrated from the bench's own unloaded frame) every
+    // marker is found and tracked, and the manifest records the calibration.
+    let dir = tempfile::tempdir().unwrap();
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let sensor = root("experiments/paper_sensor.toml");
+    let scene_text = std::fs::read_to_string(root("experiments/scenes/fig7_hemisphere_ramp.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"../paper_sensor.toml\"",
+            &format!("sensor = {:?}", s(&sensor)),
+        )
+        + r#"
+[[effects]]
+kind = "perspective"
+distance_mm = 30.0
+reference_depth_mm = 0.0
+principal_point_px = [224.0, 162.0]
+[[effects]]
+kind = "lens_distortion"
+k1 = -1.0
+"#;
+    let scene_path = dir.path().join("scene.toml");
+    std::fs::write(&scene_path, scene_text).unwrap();
+    let plan_text = std::fs::read_to_string(root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {:?}", s(&sensor)),
+        )
+        .replace("to = 750.0", "to = 100.0")
+        .replace("trials = 10", "trials = 1");
+    let plan = dir.path().join("plan.toml");
+    std::fs::write(&plan, plan_text).unwrap();
+
+    // The unloaded frame the bench's camera sees, and its calibration.
+    let render = dir.path().join("render");
+    let o = crate::util::run(&[
+        "sim",
+        "render",
+        "--scene",
+        &s(&scene_path),
+        "--out",
+        &s(&render),
+    ]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    let cam = dir.path().join("camera.toml");
+    let o = crate::util::run(&[
+        "calibrate",
+        "--sensor",
+        &s(&sensor),
+        "--reference",
+        &s(&render.join("reference.png")),
+        "--out",
+        &s(&cam),
+    ]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+
+    let run = |out: &Path, camera: Option<&Path>| {
+        let mut args = vec![
+            "run".to_string(),
+            s(&plan),
+            "--sim".into(),
+            s(&scene_path),
+            "--out".into(),
+            s(out),
+            "--no-progress".into(),
+        ];
+        if let Some(c) = camera {
+            args.extend(["--camera".to_string(), s(c)]);
+        }
+        let args: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        crate::util::run(&args)
+    };
+    let without = dir.path().join("without");
+    let o = run(&without, None);
+    assert_eq!(o.status.code(), Some(3), "{}", crate::util::stderr(&o));
+    assert!(
+        crate::util::stderr(&o).contains("does not match the sensor file"),
+        "{}",
+        crate::util::stderr(&o)
+    );
+
+    let with = dir.path().join("with");
+    let o = run(&with, Some(&cam));
+    assert_eq!(o.status.code(), Some(0), "{}", crate::util::stderr(&o));
+    let m = tactbench::bench::journal::Manifest::read(&with).unwrap();
+    assert_eq!(m.camera_path.as_deref(), Some(s(&cam).as_str()));
+    assert_eq!(
+        m.camera_toml.as_deref(),
+        Some(std::fs::read_to_string(&cam).unwrap().as_str())
+    );
+    let rows = tactbench::bench::journal::read_rows(&with).unwrap();
+    assert_eq!(rows.len(), m.setpoints);
+    for r in &rows {
+        assert_eq!(
+            r.markers_ok,
+            Some(260),
+            "row {}: {:?}",
+            r.index,
+            r.markers_ok
+        );
+    }
+    // The highest load pushes down: F^sum z is a compressive force of the right size.
+    let top = rows.last().unwrap();
+    assert!(
+        (top.fsum_z_n / top.fz_n - 1.0).abs() < 0.5,
+        "F_sum z {} N against the F/T's {} N",
+        top.fsum_z_n,
+        top.fz_n
+    );
+
+    // A resume with another camera file is refused before anything is written.
+    let other = dir.path().join("other.toml");
+    std::fs::write(
+        &other,
+        std::fs::read_to_string(&cam).unwrap() + "\n# edited\n",
+    )
+    .unwrap();
+    let o = crate::util::run(&["run", "--resume", &s(&with), "--camera", &s(&other)]);
+    assert_eq!(o.status.code(), Some(2), "{}", crate::util::stderr(&o));
+    assert!(
+        crate::util::stderr(&o).contains("the run was tracked with another calibration"),
+        "{}",
+        crate::util::stderr(&o)
+    );
+}

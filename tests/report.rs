@@ -134,6 +134,8 @@ pub(crate) fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mu
         incomplete_reason: None,
         ended_at: Some("2026-11-22T01:10:00Z".into()),
         software_commit: Some("0123abcd".into()),
+        camera_path: None,
+        camera_toml: None,
     }
     .write(dir)
     .unwrap();

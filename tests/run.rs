@@ -312,6 +312,7 @@ fn run_in_process(
         build_id: Some("test-build".into()),
         plan_toml: std::fs::read_to_string(&plan.path).unwrap_or_default(),
         sensor_toml,
+        camera: None,
         bench: c.description.clone(),
         devices: c.identities.clone(),
         home: c.home,

@@ -1615,6 +1615,7 @@ mod runs_from_a_stage_left_in_a_state {
             build_id: Some("test-build".into()),
             plan_toml: std::fs::read_to_string(&plan.path).unwrap_or_default(),
             sensor_toml,
+            camera: None,
             bench: c.description.clone(),
             devices: c.identities.clone(),
             home: c.home,

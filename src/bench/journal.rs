@@ -272,6 +272,14 @@ pub struct Manifest {
     /// built from (`unknown` when built outside git).
     #[serde(default)]
     pub software_commit: Option<String>,
+    /// Camera calibration file as given (`run --camera`), when the run tracks with one.
+    #[serde(default)]
+    pub camera_path: Option<String>,
+    /// Full text of that camera calibration (camera.toml, `tactbench-camera/1`), so a
+    /// resume tracks with exactly the mapping the run started with; `None`: the sensor
+    /// file's linear `[camera]` mapping.
+    #[serde(default)]
+    pub camera_toml: Option<String>,
 }
 
 /// The git commit this binary was built from (`git rev-parse HEAD` at build time,
@@ -933,6 +941,8 @@ mod tests {
             incomplete_reason: None,
             ended_at: None,
             software_commit: None,
+            camera_path: None,
+            camera_toml: None,
         };
         m.finish(RunStatus::Completed, None, 8, None, "t1".into());
         assert_eq!(
@@ -1038,6 +1048,8 @@ mod tests {
             incomplete_reason: None,
             ended_at: None,
             software_commit: Some(GIT_COMMIT.into()),
+            camera_path: None,
+            camera_toml: None,
         };
         m.write(dir.path()).unwrap();
         assert_eq!(Manifest::read(dir.path()).unwrap(), m);

@@ -108,6 +108,13 @@ pub struct Args {
     /// (the printed table shows the first and last 20 of a long plan).
     #[arg(long, value_name = "FILE.csv", requires = "dry_run")]
     setpoints_csv: Option<PathBuf>,
+    /// Camera calibration (camera.toml, from `tactbench calibrate`): the run's tracker
+    /// maps pixels to the sensor frame with its per-layer scale and origin, principal
+    /// point and distortion instead of the sensor file's [camera] mapping. Recorded in
+    /// the manifest (path and text); a resume uses the recorded one (giving --camera
+    /// with --resume must name a file with the same text).
+    #[arg(long, value_name = "camera.toml")]
+    camera: Option<PathBuf>,
     /// Elastomer build id recorded in the manifest (overrides the plan's build_id).
     #[arg(long, value_name = "ID")]
     build_id: Option<String>,
@@ -236,6 +243,31 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         })?,
     };
     let sensor = Sensor::from_toml_str(&sensor_toml, &plan.sensor_path)?;
+    // The camera calibration: from the command line (checked against the sensor now,
+    // before anything is written), or on resume the one the run started with.
+    let camera = match (&a.camera, &manifest) {
+        (Some(p), m) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read camera calibration {}", p.display()))?;
+            tactbench::vision::CameraCalibration::from_toml_str(&text, p, &sensor)?;
+            if let Some(m) = m {
+                if m.camera_toml.as_deref() != Some(text.as_str()) {
+                    bail!(
+                        "--camera {}: the run was tracked with {}; resume without --camera (the recorded mapping is used)",
+                        p.display(),
+                        m.camera_path
+                            .as_deref()
+                            .map_or("the sensor file's [camera] mapping".to_string(), |c| {
+                                format!("another calibration ({c})")
+                            })
+                    );
+                }
+            }
+            Some((p.display().to_string(), text))
+        }
+        (None, Some(m)) => m.camera_path.clone().zip(m.camera_toml.clone()),
+        (None, None) => None,
+    };
 
     let bench = match (&a.bench, &a.sim, &manifest) {
         (Some(b), _, _) => Some(BenchConfig::from_path(b)?),
@@ -308,6 +340,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         build_id: a.build_id.clone(),
         plan_toml,
         sensor_toml,
+        camera,
         bench: c.description.clone(),
         devices: c.identities.clone(),
         home: c.home,

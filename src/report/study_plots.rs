@@ -679,7 +679,6 @@ impl Figure for ModelErrorFigure {
     }
 }
 
-
 /// Draws marker `mark` centred on pixel `p` of `area` (pixel coordinates of the area).
 fn mark_px<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,

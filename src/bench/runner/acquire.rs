@@ -472,7 +472,12 @@ impl Runner<'_, '_, '_, '_> {
     /// the likely cause.
     pub(super) fn reference_layout(&mut self, name: &str, frame: &CameraFrame) -> Step<Reference> {
         let view = FrameView::rgb8(&frame.image);
-        let detected = vision::detect(&view, self.sensor, &vision::DetectConfig::default());
+        let detected = vision::detect_mapped(
+            &view,
+            self.sensor,
+            &vision::DetectConfig::default(),
+            &self.mapping,
+        );
         let health = ReferenceHealth::of(detected.as_ref().ok(), self.sensor, &view);
         if let Ok(r) = &detected {
             (self.events)(&RunEvent::Reference {
@@ -549,8 +554,14 @@ impl Runner<'_, '_, '_, '_> {
             .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
         let t_io = Instant::now();
         let dpath = format!("displacements/{index:05}.csv");
-        vision::write_tracks(&self.dir.join(&dpath), sensor, tracker.reference(), tracked)
-            .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
+        vision::write_tracks_mapped(
+            &self.dir.join(&dpath),
+            sensor,
+            tracker.reference(),
+            tracked,
+            &self.mapping,
+        )
+        .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
         self.io_s += t_io.elapsed().as_secs_f64();
 
         // Mean displacement over the frames; a marker lost in any frame is lost.
@@ -558,7 +569,7 @@ impl Runner<'_, '_, '_, '_> {
         let mut records = Vec::new();
         let mut per_frame = Vec::with_capacity(tracked.len());
         for (k, (_, tracks)) in tracked.iter().enumerate() {
-            let r = tracker.displacement_records(tracks, &sensor.camera);
+            let r = tracker.displacement_records_mapped(tracks, &self.mapping);
             per_frame.push(r.iter().map(|x| x.u_mm).collect::<Vec<_>>());
             if k == 0 {
                 records = r;

@@ -84,6 +84,7 @@ use super::plan::{Plan, Setpoint, Sweep};
 use crate::device::{Camera, DeviceError, ForceSensor, Stage, StagePositionMm, TravelLimits};
 use crate::sensor::Sensor;
 use crate::solve::FrameSolver;
+use crate::vision::camera::{CameraCalibration, PixelMapping};
 use crate::vision::{TrackConfig, Tracker};
 
 /// Times control and settling are redone when the force left the tolerance while
@@ -162,6 +163,10 @@ pub struct RunOptions {
     pub plan_toml: String,
     /// The sensor file's text (for the manifest).
     pub sensor_toml: String,
+    /// A camera calibration (`run --camera camera.toml`): `(path as given, text)`. The
+    /// tracker maps pixels to the sensor frame with it instead of the sensor file's
+    /// `[camera]` mapping; recorded in the manifest, and a resume must use the same.
+    pub camera: Option<(String, String)>,
     /// Bench description for the manifest.
     pub bench: serde_json::Value,
     /// Device identities for the manifest.
@@ -385,6 +390,9 @@ struct Runner<'p, 'd, 'a, 'e> {
     in_contact: bool,
     normal_ctl: ForceController,
     tracker: Option<Tracker>,
+    /// Pixels -> sensor frame: the sensor file's `[camera]` mapping, or the run's
+    /// camera calibration.
+    mapping: PixelMapping,
     solvers: HashMap<Vec<bool>, Box<dyn FrameSolver>>,
     index: Option<usize>,
     /// When the force of the current hold (`hold` sweeps) was reached; `None` when no
@@ -423,6 +431,16 @@ pub fn run(
                 "{}: the run was made with another plan (manifest plan {:?}); resume with the plan it was started with",
                 dir.display(),
                 manifest.plan_path
+            )));
+        }
+        if manifest.camera_toml.as_deref() != options.camera.as_ref().map(|(_, t)| t.as_str()) {
+            return Err(RunError::Setup(format!(
+                "{}: the run was tracked with {}; resume with the same camera mapping",
+                dir.display(),
+                match &manifest.camera_path {
+                    Some(p) => format!("the camera calibration {p:?} (recorded in its manifest)"),
+                    None => "the sensor file's [camera] mapping (no --camera)".to_string(),
+                }
             )));
         }
         if manifest.status == RunStatus::Completed {
@@ -472,6 +490,8 @@ pub fn run(
             incomplete_reason: None,
             ended_at: None,
             software_commit: Some(super::journal::GIT_COMMIT.to_string()),
+            camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
+            camera_toml: options.camera.as_ref().map(|(_, t)| t.clone()),
         };
         manifest.write(&dir)?;
         (Journal::create(&dir)?, manifest, 0, 0)
@@ -502,6 +522,13 @@ pub fn run(
         truncated_bytes,
     });
 
+    let mapping = match &options.camera {
+        None => PixelMapping::Linear(sensor.camera),
+        Some((path, text)) => PixelMapping::Calibrated(
+            CameraCalibration::from_toml_str(text, Path::new(path), sensor)
+                .map_err(|e| RunError::Setup(e.to_string()))?,
+        ),
+    };
     let stage_limits = devices.stage.limits();
     let mut r = Runner {
         plan,
@@ -520,6 +547,7 @@ pub fn run(
             plan.safety.max_force_n[2],
         ),
         tracker: None,
+        mapping,
         solvers: HashMap::new(),
         index: None,
         hold_t0: None,
