@@ -66,11 +66,32 @@ fn reproduce_paper_quick_variant_writes_every_report_and_a_filled_readme() {
     );
     // Every row of the comparison table has a number of ours (not n/a) beside the
     // paper's figure, except the Fig. 6 row, which points at its plot.
-    let rows: Vec<&str> = readme
+    let (paper_part, metrology_part) = readme
+        .split_once("## Beyond the paper: force metrology in the spirit of ISO 376")
+        .expect("the metrology section");
+    let rows: Vec<&str> = paper_part
         .lines()
         .filter(|l| l.starts_with("| ") && !l.starts_with("| quantity"))
         .collect();
     assert_eq!(rows.len(), 9, "table rows:\n{readme}");
+    // The metrology table: one row per metric, each naming its run and metric; a
+    // 2-setpoint quick run cannot support most of them, so n/a is allowed here, but
+    // the up-down and hold runs exist and were reported.
+    let metrology: Vec<&str> = metrology_part
+        .lines()
+        .take_while(|l| !l.starts_with("## "))
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| quantity"))
+        .collect();
+    assert_eq!(metrology.len(), 12, "metrology rows:\n{readme}");
+    for row in &metrology {
+        assert!(row.contains("(`") && row.contains("](runs/"), "{row:?}");
+    }
+    for run in ["updown_viscoelastic", "hold_viscoelastic"] {
+        let d = out.join("runs").join(run);
+        for f in ["journal.csv", "report.html", "summary.csv", "verdict.json"] {
+            assert!(d.join(f).is_file(), "{run}: {f} missing");
+        }
+    }
     for row in &rows[..8] {
         let ours = row.split('|').nth(3).unwrap().trim();
         let number: String = ours

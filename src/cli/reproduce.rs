@@ -115,6 +115,20 @@ const EXPERIMENTS: &[Experiment] = &[
         plan: "fig9_spatial.toml",
         scene: "scenes/fig9_point_200gf.toml",
     },
+    // Beyond the paper: ISO 376-style characterization (reversibility needs the way
+    // back down, creep a hold) on the viscoelastic scene.
+    Experiment {
+        name: "updown_viscoelastic",
+        paper: "beyond the paper: up-down sweep, 3 positions",
+        plan: "magnitude_updown.toml",
+        scene: "scenes/viscoelastic_hemisphere.toml",
+    },
+    Experiment {
+        name: "hold_viscoelastic",
+        paper: "beyond the paper: hold (creep)",
+        plan: "hold_example.toml",
+        scene: "scenes/viscoelastic_hemisphere.toml",
+    },
 ];
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
@@ -266,8 +280,12 @@ fn step(exe: &Path, what: &str, args: &[String]) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `metric -> (value, unit)` from a report's summary.csv.
-fn read_summary(path: &Path) -> anyhow::Result<BTreeMap<String, (f64, String)>> {
+/// One metric of a report's summary.csv: value, unit and the 95 % CI (low, high,
+/// method) where the report states one.
+type SummaryEntry = (f64, String, Option<(f64, f64, String)>);
+
+/// `metric -> (value, unit, CI)` from a report's summary.csv.
+fn read_summary(path: &Path) -> anyhow::Result<BTreeMap<String, SummaryEntry>> {
     let mut out = BTreeMap::new();
     let mut r =
         csv::Reader::from_path(path).with_context(|| format!("cannot read {}", path.display()))?;
@@ -287,7 +305,17 @@ fn read_summary(path: &Path) -> anyhow::Result<BTreeMap<String, (f64, String)>> 
                 i + 2
             )
         })?;
-        out.insert(metric.to_string(), (value, unit.unwrap_or("").to_string()));
+        let ci = match (
+            rec.get(3).and_then(|v| v.trim().parse::<f64>().ok()),
+            rec.get(4).and_then(|v| v.trim().parse::<f64>().ok()),
+        ) {
+            (Some(lo), Some(hi)) => Some((lo, hi, rec.get(5).unwrap_or("").to_string())),
+            _ => None,
+        };
+        out.insert(
+            metric.to_string(),
+            (value, unit.unwrap_or("").to_string(), ci),
+        );
     }
     Ok(out)
 }
@@ -413,11 +441,130 @@ fn paper_readme(out: &Path, quick: Option<u64>) -> anyhow::Result<String> {
         }
     );
     let _ = writeln!(s);
+    s.push_str(&metrology_lines(&summaries));
     s.push_str(&model_error_lines(
         &out.join("model_error/model_error.csv"),
     )?);
     s.push_str(DIFFERENCES);
     Ok(s)
+}
+
+/// The ISO 376-style characterization of the Fig. 7 runs and of the two runs beyond
+/// the paper (up-down sweep at three positions, hold), from their summary.csv: value and
+/// 95 % CI with its method; `n/a` where the run cannot support the metric.
+fn metrology_lines(summaries: &BTreeMap<&str, BTreeMap<String, SummaryEntry>>) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "## Beyond the paper: force metrology in the spirit of ISO 376
+
+         F^sum against the F/T reference in % of full scale (the run's largest applied \
+         force), with 95 % confidence intervals; definitions, the standard's class table \
+         and the methods are in each report and in the project README. \
+         `updown_viscoelastic` runs 0-150 gf up and back down, 3 trials at each of 3 \
+         contact positions, on a scene with opt-in elastomer creep and hysteresis; \
+         `hold_viscoelastic` holds 1 N and samples the F/T and F^sum through the hold.\n"
+    );
+    let _ = writeln!(s, "| quantity | run | ours | 95 % CI (method) |");
+    let _ = writeln!(s, "|---|---|---|---|");
+    let rows: [(&str, &str, &str, usize); 12] = [
+        (
+            "magnitude resolution",
+            "fig7_magnitude_camera_noise",
+            "magnitude.resolution_gf",
+            1,
+        ),
+        (
+            "slope F^sum / F/T",
+            "fig7_magnitude_camera_noise",
+            "magnitude.slope",
+            4,
+        ),
+        (
+            "repeatability",
+            "fig7_magnitude_camera_noise",
+            "metrology.repeatability_pct_fs",
+            2,
+        ),
+        (
+            "interpolation error",
+            "fig7_magnitude_camera_noise",
+            "metrology.interpolation_pct_fs",
+            2,
+        ),
+        (
+            "repeatability",
+            "updown_viscoelastic",
+            "metrology.repeatability_pct_fs",
+            2,
+        ),
+        (
+            "reproducibility (3 positions)",
+            "updown_viscoelastic",
+            "metrology.reproducibility_pct_fs",
+            2,
+        ),
+        (
+            "reversibility (hysteresis)",
+            "updown_viscoelastic",
+            "metrology.reversibility_pct_fs",
+            2,
+        ),
+        (
+            "zero error",
+            "updown_viscoelastic",
+            "metrology.zero_pct_fs",
+            3,
+        ),
+        (
+            "implied ISO 376 class (3 = outside class 2)",
+            "updown_viscoelastic",
+            "metrology.class",
+            1,
+        ),
+        (
+            "creep of F^sum against the F/T",
+            "hold_viscoelastic",
+            "hold.creep_pct_fs_per_min",
+            2,
+        ),
+        (
+            "drift of the F/T itself",
+            "hold_viscoelastic",
+            "hold.ft_drift_pct_fs_per_min",
+            2,
+        ),
+        (
+            "zero drift over the run",
+            "hold_viscoelastic",
+            "hold.zero_drift_n",
+            4,
+        ),
+    ];
+    for (quantity, run, metric, digits) in rows {
+        let entry = summaries.get(run).and_then(|m| m.get(metric));
+        let (ours, ci) = match entry {
+            Some((v, unit, ci)) if v.is_finite() => {
+                let unit = match unit.as_str() {
+                    "1" | "" => String::new(),
+                    "%" => " %".to_string(),
+                    u => format!(" {u}"),
+                };
+                let ci = match ci {
+                    Some((lo, hi, m)) => format!("{lo:.digits$} – {hi:.digits$} ({m})"),
+                    None => "—".to_string(),
+                };
+                (format!("{v:.digits$}{unit}"), ci)
+            }
+            _ => ("n/a".to_string(), "—".to_string()),
+        };
+        let _ = writeln!(
+            s,
+            "| {quantity} (`{metric}`) | [{run}](runs/{run}/report.html) | {ours} | {ci} |"
+        );
+    }
+    let _ = writeln!(s);
+    s
 }
 
 /// The model-error study's headline (bonded-layer data, forward path, mixed load: the

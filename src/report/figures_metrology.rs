@@ -152,6 +152,39 @@ pub struct HysteresisFigure {
     pub unit: String,
 }
 
+/// The loop's two branches, `(applied, F^sum)` level means in display units (`k` per N),
+/// by applied force: loading, and unloading. The unloading branch starts where loading
+/// turned: the top level is measured once (on the way up), so it opens the down line
+/// too and the loop closes (with one down level the down line was a lone point before).
+fn loop_branches(
+    levels: &[crate::analysis::metrology::LevelBranches],
+    k: f64,
+) -> (Vec<(f64, f64)>, Vec<(f64, f64)>) {
+    let branch = |down: bool| -> Vec<(f64, f64)> {
+        let mut v: Vec<(f64, f64)> = levels
+            .iter()
+            .filter_map(|l| {
+                let (a, y) = if down {
+                    (l.down_applied_n?, l.down_measured_n?)
+                } else {
+                    (l.up_applied_n?, l.up_measured_n?)
+                };
+                Some((a * k, y * k))
+            })
+            .collect();
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        v
+    };
+    let up = branch(false);
+    let mut down = branch(true);
+    if let Some(&top) = up.last() {
+        if !down.is_empty() && down.iter().all(|p| p.0 < top.0) {
+            down.push(top);
+        }
+    }
+    (up, down)
+}
+
 impl Figure for HysteresisFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.scale;
@@ -178,27 +211,18 @@ impl Figure for HysteresisFigure {
                 BLACK.mix(0.2).filled(),
             )
         }))?;
-        let branch = |down: bool| -> Vec<(f64, f64)> {
-            m.levels
-                .iter()
-                .filter_map(|l| {
-                    let (a, y) = if down {
-                        (l.down_applied_n?, l.down_measured_n?)
-                    } else {
-                        (l.up_applied_n?, l.up_measured_n?)
-                    };
-                    Some((a * k, y * k))
-                })
-                .collect()
-        };
+        let (up, down) = loop_branches(&m.levels, k);
         let blue = RGBColor(31, 90, 200);
         let red = RGBColor(200, 40, 40);
         chart
-            .draw_series(LineSeries::new(branch(false), blue.stroke_width(2)))?
+            .draw_series(LineSeries::new(up, blue.stroke_width(2)))?
             .label("loading (up), level means")
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], blue.stroke_width(2)));
-        let down = branch(true);
         if !down.is_empty() {
+            chart.draw_series(
+                down.iter()
+                    .map(|&p| TriangleMarker::new(p, 5, red.filled())),
+            )?;
             chart
                 .draw_series(LineSeries::new(down, red.stroke_width(2)))?
                 .label("unloading (down), level means")
@@ -360,5 +384,40 @@ impl Figure for CreepFigure {
             .border_style(BLACK)
             .draw()?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::analysis::metrology::LevelBranches;
+
+    fn level(target: f64, up: Option<f64>, down: Option<f64>) -> LevelBranches {
+        LevelBranches {
+            target_n: target,
+            up_applied_n: up.map(|_| target),
+            up_measured_n: up,
+            up_residual_n: up.map(|u| u - target),
+            down_applied_n: down.map(|_| target),
+            down_measured_n: down,
+            down_residual_n: down.map(|d| d - target),
+        }
+    }
+
+    #[test]
+    fn unloading_branch_with_one_down_level_starts_at_the_top_and_closes_the_loop() {
+        // 0 -> 1.5 -> 3 N up, back down to 1.5 N: the down line runs from the top
+        // (measured once, on the way up) through 1.5 N, two points, not a lone one.
+        let levels = [
+            level(0.0, Some(0.05), Some(0.08)),
+            level(1.5, Some(1.4), Some(1.7)),
+            level(3.0, Some(2.9), None),
+        ];
+        let (up, down) = loop_branches(&levels, 1.0);
+        assert_eq!(up, vec![(0.0, 0.05), (1.5, 1.4), (3.0, 2.9)]);
+        assert_eq!(down, vec![(0.0, 0.08), (1.5, 1.7), (3.0, 2.9)]);
+        // Without any unloading row there is no down branch at all.
+        let only_up = [level(0.0, Some(0.0), None), level(1.0, Some(1.0), None)];
+        assert!(loop_branches(&only_up, 1.0).1.is_empty());
     }
 }
