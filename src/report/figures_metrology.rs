@@ -152,14 +152,14 @@ pub struct HysteresisFigure {
     pub unit: String,
 }
 
+/// One branch of the hysteresis loop: `(applied, F^sum)` points.
+type Branch = Vec<(f64, f64)>;
+
 /// The loop's two branches, `(applied, F^sum)` level means in display units (`k` per N),
 /// by applied force: loading, and unloading. The unloading branch starts where loading
 /// turned: the top level is measured once (on the way up), so it opens the down line
 /// too and the loop closes (with one down level the down line was a lone point before).
-fn loop_branches(
-    levels: &[crate::analysis::metrology::LevelBranches],
-    k: f64,
-) -> (Vec<(f64, f64)>, Vec<(f64, f64)>) {
+fn loop_branches(levels: &[crate::analysis::metrology::LevelBranches], k: f64) -> (Branch, Branch) {
     let branch = |down: bool| -> Vec<(f64, f64)> {
         let mut v: Vec<(f64, f64)> = levels
             .iter()
