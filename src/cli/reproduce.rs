@@ -456,14 +456,14 @@ fn metrology_lines(summaries: &BTreeMap<&str, BTreeMap<String, SummaryEntry>>) -
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "## Beyond the paper: force metrology in the spirit of ISO 376
-
+        "## Beyond the paper: force metrology in the spirit of ISO 376\n\n\
          F^sum against the F/T reference in % of full scale (the run's largest applied \
          force), with 95 % confidence intervals; definitions, the standard's class table \
          and the methods are in each report and in the project README. \
-         `updown_viscoelastic` runs 0-150 gf up and back down, 3 trials at each of 3 \
-         contact positions, on a scene with opt-in elastomer creep and hysteresis; \
-         `hold_viscoelastic` holds 1 N and samples the F/T and F^sum through the hold.\n"
+         `updown_viscoelastic` runs 0-300 gf in 150 gf steps up and back down, 3 trials \
+         at each of 3 contact positions, on a scene with opt-in elastomer creep and \
+         hysteresis; `hold_viscoelastic` holds 300 gf for 4 s, twice, and samples the F/T \
+         and F^sum every second through each hold.\n"
     );
     let _ = writeln!(s, "| quantity | run | ours | 95 % CI (method) |");
     let _ = writeln!(s, "|---|---|---|---|");
