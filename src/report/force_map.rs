@@ -306,6 +306,7 @@ impl ForceMapFigure {
             }
         }
         // Colour bar.
+        let bar_span = bar_range.end - bar_range.start;
         let mut cb = ChartBuilder::on(&bar)
             .margin_top(40)
             .margin_bottom(50)
@@ -316,7 +317,7 @@ impl ForceMapFigure {
             .disable_mesh()
             .disable_x_axis()
             .y_desc(bar_label)
-            .y_label_formatter(&|v| fmt_short(*v))
+            .y_label_formatter(&|v| bar_tick(*v, bar_span))
             .label_style((FONT, 12))
             .axis_desc_style((FONT, 13))
             .draw()?;
@@ -328,6 +329,17 @@ impl ForceMapFigure {
             Rectangle::new([(0.0, v0), (1.0, v1)], color(0.5 * (v0 + v1)).filled())
         }))?;
         Ok(())
+    }
+}
+
+/// A colour-bar tick label: [`fmt_short`], with a tick that is zero up to rounding in
+/// the bar's span (e.g. -1.1e-16 N on a ±0.7 N bar, drawn before as
+/// "-0.000000000000000111" across the map) shown as 0.
+fn bar_tick(v: f64, span: f64) -> String {
+    if v.abs() <= 1e-9 * span.abs() {
+        "0".to_string()
+    } else {
+        fmt_short(v)
     }
 }
 
@@ -387,6 +399,15 @@ impl Figure for ForceMapFigure {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_colour_bar_tick_at_zero_up_to_rounding_is_labelled_0() {
+        assert_eq!(bar_tick(-1.1102230246251565e-16, 1.44), "0");
+        assert_eq!(bar_tick(0.0, 1.44), "0");
+        assert_eq!(bar_tick(-0.2, 1.44), "-0.2");
+        assert_eq!(bar_tick(0.6, 1.44), "0.6");
+    }
+
     use super::*;
 
     fn rec(ix: usize, iy: usize, p: f64, f: [f64; 3]) -> ForceRecord {
