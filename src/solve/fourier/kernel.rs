@@ -170,26 +170,13 @@ mod tests {
     //! The bonded layer in the `fourier` solver: the direct solve is exact on the
     //! periodic layer problem, and the refinement's operator is the model's exact `H`.
     use super::super::refine::forward_op;
-    use super::super::transform::fft2_transposed;
-    use super::super::uncertainty::solve_lattice;
+    use super::super::tests::{periodic_solve_error, pseudo_random};
     use super::super::FourierSolver;
     use super::*;
     use crate::model::{layer_kernel, MarkerSite};
     use crate::sensor::{grid_sensor, ModelKind, Sensor};
     use crate::solve::{Lambda, Method, Problem, SolverConfig};
-    use nalgebra::{DMatrix, DVector};
-
-    fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
-        let mut x = seed;
-        (0..n)
-            .map(|_| {
-                x = x
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (x >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-            })
-            .collect()
-    }
+    use nalgebra::DMatrix;
 
     /// A grid sensor on the bonded-layer model with the given thickness, layer depths
     /// and red-layer offset.
@@ -293,31 +280,7 @@ mod tests {
                 }
             }
         }
-        let u = pseudo_random(nrow, 11);
-        let ct = c.transpose();
-        let lhs = &ct * &c + DMatrix::<f64>::identity(ncol, ncol) * (lambda * lambda);
-        let want = lhs
-            .lu()
-            .solve(&(&ct * DVector::from_column_slice(&u)))
-            .unwrap();
-        let mut planner = FftPlanner::<f64>::new();
-        let spec: Vec<Vec<C64>> = (0..nl)
-            .map(|li| {
-                let base = li * mm[0] * mm[1] * 2;
-                let mut z: Vec<C64> = (0..mm[0] * mm[1])
-                    .map(|k| C64::new(u[base + 2 * k], u[base + 2 * k + 1]))
-                    .collect();
-                fft2_transposed(&mut planner, &mut z, mm[0], mm[1])
-            })
-            .collect();
-        let got = solve_lattice(&solver.plan, &spec, &solver.p, &mut planner);
-        let got: Vec<f64> = got.iter().flatten().copied().collect();
-        let scale = want.amax();
-        let err = got
-            .iter()
-            .zip(want.iter())
-            .map(|(g, w)| (g - w).abs())
-            .fold(0.0, f64::max);
+        let (err, scale) = periodic_solve_error(&solver, &c, lambda, nl);
         eprintln!(
             "h = {} mm, depths {:?}: periodic solve vs dense periodic Tikhonov {:.2e} of {scale:.3e}",
             e.thickness_mm,

@@ -1020,7 +1020,8 @@ mod tests {
     use crate::sensor::grid_sensor;
     use nalgebra::{DMatrix, DVector};
 
-    fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
+    /// Deterministic values in [-0.5, 0.5) (an LCG), shared by the Fourier tests.
+    pub(super) fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
         let mut x = seed;
         (0..n)
             .map(|_| {
@@ -1030,6 +1031,47 @@ mod tests {
                 (x >> 11) as f64 / (1u64 << 53) as f64 - 0.5
             })
             .collect()
+    }
+
+    /// The periodic exactness check shared by the half-space and bonded-layer tests:
+    /// dense Tikhonov with the periodised transfer matrix `c` (rows: the `nl` marker
+    /// lattices of `solver.plan.mm`, columns: the force lattice) against the solver's
+    /// per-frequency solve of the same whole-lattice data. Returns the largest
+    /// difference and the solution's scale.
+    pub(super) fn periodic_solve_error(
+        solver: &FourierSolver,
+        c: &DMatrix<f64>,
+        lambda: f64,
+        nl: usize,
+    ) -> (f64, f64) {
+        let mm = solver.plan.mm;
+        let (nrow, ncol) = c.shape();
+        let u = pseudo_random(nrow, 11);
+        let ct = c.transpose();
+        let lhs = &ct * c + DMatrix::<f64>::identity(ncol, ncol) * (lambda * lambda);
+        let want = lhs
+            .lu()
+            .solve(&(&ct * DVector::from_column_slice(&u)))
+            .unwrap();
+        let mut planner = FftPlanner::<f64>::new();
+        let spec: Vec<Vec<C64>> = (0..nl)
+            .map(|li| {
+                let base = li * mm[0] * mm[1] * 2;
+                let mut z: Vec<C64> = (0..mm[0] * mm[1])
+                    .map(|k| C64::new(u[base + 2 * k], u[base + 2 * k + 1]))
+                    .collect();
+                fft2_transposed(&mut planner, &mut z, mm[0], mm[1])
+            })
+            .collect();
+        let got = uncertainty::solve_lattice(&solver.plan, &spec, &solver.p, &mut planner);
+        let got: Vec<f64> = got.iter().flatten().copied().collect();
+        let scale = want.amax();
+        let err = got
+            .iter()
+            .zip(want.iter())
+            .map(|(g, w)| (g - w).abs())
+            .fold(0.0, f64::max);
+        (err, scale)
     }
 
     /// Dense Tikhonov with the periodised `H` (every marker of the periodic marker
@@ -1093,32 +1135,7 @@ mod tests {
                 }
             }
         }
-        let u = pseudo_random(nrow, 11);
-        let ct = c.transpose();
-        let lhs = &ct * &c + DMatrix::<f64>::identity(ncol, ncol) * (lambda * lambda);
-        let want = lhs
-            .lu()
-            .solve(&(&ct * DVector::from_column_slice(&u)))
-            .unwrap();
-        // The solver's per-frequency solve of the same data.
-        let mut planner = FftPlanner::<f64>::new();
-        let spec: Vec<Vec<C64>> = (0..nl)
-            .map(|li| {
-                let base = li * mm[0] * mm[1] * 2;
-                let mut z: Vec<C64> = (0..mm[0] * mm[1])
-                    .map(|k| C64::new(u[base + 2 * k], u[base + 2 * k + 1]))
-                    .collect();
-                fft2_transposed(&mut planner, &mut z, mm[0], mm[1])
-            })
-            .collect();
-        let got = uncertainty::solve_lattice(&solver.plan, &spec, &solver.p, &mut planner);
-        let got: Vec<f64> = got.iter().flatten().copied().collect();
-        let scale = want.amax();
-        let err = got
-            .iter()
-            .zip(want.iter())
-            .map(|(g, w)| (g - w).abs())
-            .fold(0.0, f64::max);
+        let (err, scale) = periodic_solve_error(&solver, &c, lambda, nl);
         assert!(
             err <= 1e-10 * scale,
             "{nx}x{ny} pitches {pf}/{pm}, layer offset {offset:?}: periodic solve differs \

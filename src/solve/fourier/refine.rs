@@ -184,6 +184,7 @@ fn norm2(v: &[f64]) -> f64 {
 
 #[cfg(test)]
 mod tests {
+    use super::super::tests::pseudo_random;
     use super::*;
     use crate::solve::{Lambda, Problem, SolverConfig};
 
@@ -193,18 +194,6 @@ mod tests {
         s.layers[1].markers.as_mut().unwrap().grid.origin_mm = [0.37, -0.21];
         let sites = crate::model::MarkerSite::from_sensor_grids(&s);
         (s, sites)
-    }
-
-    fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
-        let mut x = seed;
-        (0..n)
-            .map(|_| {
-                x = x
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (x >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-            })
-            .collect()
     }
 
     #[test]
