@@ -516,6 +516,33 @@ fn read_u(
     out
 }
 
+/// `sim render --scene SCENE --out DIR/render`, then `calibrate` its reference frame
+/// into `DIR/camera.toml` (both must succeed; calibrate's report goes to stderr).
+/// Returns the render directory and the calibration file.
+fn render_and_calibrate(
+    dir: &Path,
+    scene: &Path,
+    sensor: &Path,
+) -> (std::path::PathBuf, std::path::PathBuf) {
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let out = dir.join("render");
+    let o = crate::util::run(&["sim", "render", "--scene", &s(scene), "--out", &s(&out)]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    let cam = dir.join("camera.toml");
+    let o = crate::util::run(&[
+        "calibrate",
+        "--sensor",
+        &s(sensor),
+        "--reference",
+        &s(&out.join("reference.png")),
+        "--out",
+        &s(&cam),
+    ]);
+    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    eprintln!("{}", crate::util::stderr(&o));
+    (out, cam)
+}
+
 #[test]
 fn frames_rendered_with_perspective_track_closer_to_truth_with_the_calibration() {
     let dir = tempfile::tempdir().unwrap();
@@ -540,29 +567,8 @@ k1 = -1.0
     );
     let scene_path = dir.path().join("scene.toml");
     std::fs::write(&scene_path, scene_text).unwrap();
-    let out = dir.path().join("render");
     let s = |p: &Path| p.to_str().unwrap().to_string();
-    let o = crate::util::run(&[
-        "sim",
-        "render",
-        "--scene",
-        &s(&scene_path),
-        "--out",
-        &s(&out),
-    ]);
-    assert!(o.status.success(), "{}", crate::util::stderr(&o));
-    let cam = dir.path().join("camera.toml");
-    let o = crate::util::run(&[
-        "calibrate",
-        "--sensor",
-        &s(&sensor),
-        "--reference",
-        &s(&out.join("reference.png")),
-        "--out",
-        &s(&cam),
-    ]);
-    assert!(o.status.success(), "{}", crate::util::stderr(&o));
-    eprintln!("{}", crate::util::stderr(&o));
+    let (out, cam) = render_and_calibrate(dir.path(), &scene_path, &sensor);
     let text = std::fs::read_to_string(&cam).unwrap();
     assert!(text.contains("format = \"tactbench-camera/1\"") && text.contains("[[layers]]"));
     let truth = read_u(&out.join("markers.csv"), "elastic_ux_mm", "elastic_uy_mm");
@@ -729,27 +735,7 @@ k1 = -1.0
     std::fs::write(&plan, plan_text).unwrap();
 
     // The unloaded frame the bench's camera sees, and its calibration.
-    let render = dir.path().join("render");
-    let o = crate::util::run(&[
-        "sim",
-        "render",
-        "--scene",
-        &s(&scene_path),
-        "--out",
-        &s(&render),
-    ]);
-    assert!(o.status.success(), "{}", crate::util::stderr(&o));
-    let cam = dir.path().join("camera.toml");
-    let o = crate::util::run(&[
-        "calibrate",
-        "--sensor",
-        &s(&sensor),
-        "--reference",
-        &s(&render.join("reference.png")),
-        "--out",
-        &s(&cam),
-    ]);
-    assert!(o.status.success(), "{}", crate::util::stderr(&o));
+    let (_, cam) = render_and_calibrate(dir.path(), &scene_path, &sensor);
 
     let run = |out: &Path, camera: Option<&Path>| {
         let mut args = vec![
