@@ -3,9 +3,11 @@
 //! grid every 2.2 mm with markers every 1.1 mm, and 16×16, 32×32 and 64×64 force grids
 //! with markers every 1.1 mm (two layers each). Targets (issue 2): 64×64 apply ≤ 2 ms,
 //! precompute ≤ 5 s. Apply variants (issue 12: what accuracy costs): `direct` is the
-//! periodic solve alone; `refine_K` adds exactly K CGLS refinement iterations (tolerance
-//! 0); `default` is the default (stop at [`DEFAULT_REFINE_TOLERANCE`], cap
-//! [`DEFAULT_REFINE_ITERATIONS`]; the iterations it ran are printed). λ = 1e-2 of the
+//! periodic solve alone; `two_level` adds the precomputed coarse correction with exact
+//! force sums (`coarse.rs`); `refine_K` adds exactly K CGLS refinement iterations to it
+//! (tolerance 0); `default` is the default settings ([`DEFAULT_REFINE_ITERATIONS`]
+//! iterations at most, stopping at [`DEFAULT_REFINE_TOLERANCE`]; the iterations it ran are
+//! printed). λ = 1e-2 of the
 //! periodic operator's largest singular value.
 //!
 //! `cargo bench --bench fourier` (wall time; `-- fourier_apply` for the applies only);
@@ -80,15 +82,19 @@ fn bench(c: &mut Criterion) {
     }
     g.finish();
 
-    // Apply variants: (name, refinement cap, tolerance).
-    let mut variants: Vec<(String, usize, f64)> = vec![("direct".into(), 0, 0.0)];
+    // Apply variants: (name, two-level correction, refinement cap, tolerance).
+    let mut variants: Vec<(String, bool, usize, f64)> = vec![
+        ("direct".into(), false, 0, 0.0),
+        ("two_level".into(), true, 0, 0.0),
+    ];
     variants.extend(
         REFINE_COUNTS
             .iter()
-            .map(|&k| (format!("refine_{k}"), k, 0.0)),
+            .map(|&k| (format!("refine_{k}"), true, k, 0.0)),
     );
     variants.push((
         "default".into(),
+        true,
         DEFAULT_REFINE_ITERATIONS,
         DEFAULT_REFINE_TOLERANCE,
     ));
@@ -111,7 +117,8 @@ fn bench(c: &mut Criterion) {
             };
             let mut solver = FourierSolver::precompute(&problem, &cfg, None).expect("precompute");
             let mut f = vec![0.0; solver.n_outputs()];
-            for (variant, cap, tol) in &variants {
+            for (variant, two_level, cap, tol) in &variants {
+                solver.coarse_correction = *two_level;
                 solver.refine_iterations = *cap;
                 solver.refine_tolerance = *tol;
                 if !cpu && variant == "default" {

@@ -59,9 +59,14 @@ fn main() {
     let s = grid_sensor(n, n, 1.1, 1.1);
     let sites = MarkerSite::from_sensor_grids(&s);
     let p = Problem::new(&s, &sites);
+    let padding: f64 = std::env::args()
+        .nth(3)
+        .map(|a| a.parse().unwrap())
+        .unwrap_or(SolverConfig::default().fourier_padding);
     let cfg = |l: f64| SolverConfig {
         method: Method::Fourier,
         lambda: Lambda::Fixed(l),
+        fourier_padding: padding,
         ..SolverConfig::default()
     };
     let probe = FourierSolver::precompute(&p, &cfg(1.0), None).unwrap();
@@ -72,7 +77,11 @@ fn main() {
     let lambda = lfac * probe.diagnostics().singular_values[0];
     let t0 = std::time::Instant::now();
     let mut solver = FourierSolver::precompute(&p, &cfg(lambda), None).unwrap();
-    println!("{n}x{n} λ = {lambda:e}; precompute {:?}", t0.elapsed());
+    println!(
+        "{n}x{n} λ = {lambda:e}; precompute {:?}; coarse space (k, spacing) {:?}",
+        t0.elapsed(),
+        solver.coarse_space()
+    );
     let g = s.force_grid;
     let c = 0.5 * g.pitch_mm * (g.nx - 1) as f64;
     let loads = vec![
@@ -95,16 +104,17 @@ fn main() {
         solver.apply(&u, &mut r).unwrap();
         refs.push((u, r));
     }
-    let settings: Vec<(usize, f64)> = [0usize, 1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30]
-        .iter()
-        .map(|&k| (k, 0.0))
-        .chain(
-            [1e-1, 5e-2, 3e-2, 2e-2, 1e-2, 5e-3, 3e-3, 1e-3, 1e-4]
-                .iter()
-                .map(|&t| (300usize, t)),
-        )
-        .collect();
-    for (k, tol) in settings {
+    // (two-level correction, refinement cap, tolerance); the first row is the direct
+    // periodic solve alone.
+    let mut settings: Vec<(bool, usize, f64)> = vec![(false, 0, 0.0)];
+    settings.extend([0usize, 1, 2, 3, 5, 10, 20].iter().map(|&k| (true, k, 0.0)));
+    settings.extend(
+        [1e-1, 5e-2, 2e-2, 1e-2, 1e-3]
+            .iter()
+            .map(|&t| (true, 300usize, t)),
+    );
+    for (two_level, k, tol) in settings {
+        solver.coarse_correction = two_level;
         solver.refine_iterations = k;
         solver.refine_tolerance = tol;
         let (mut es, mut ea, mut ei, mut its) = (0.0f64, 0.0f64, 0.0f64, 0usize);
@@ -123,6 +133,7 @@ fn main() {
             ea = ea.max(rel(&f, r));
             ei = ei.max(rel(&interior(&s, &f), &interior(&s, r)));
         }
-        println!("cap {k:3} tol {tol:7.0e}: its {its:3}  Fsum {:.2e}  field {:.2e}  interior {:.2e}  t/frame {:.2?}", es, ea, ei, t.elapsed() / loads.len() as u32);
+        let mode = if two_level { "two-level" } else { "direct   " };
+        println!("{mode} cap {k:3} tol {tol:7.0e}: its {its:3}  Fsum {:.2e}  field {:.2e}  interior {:.2e}  t/frame {:.2?}", es, ea, ei, t.elapsed() / loads.len() as u32);
     }
 }

@@ -615,29 +615,37 @@ fn refinement_run_far_past_convergence_stays_at_dense_tikhonov() {
 }
 
 #[test]
-fn default_refinement_stops_at_its_tolerance_well_before_the_cap() {
-    // The default stops on the tolerance (the shear test above checks its accuracy):
-    // measured 22 iterations at most on these loads at λ = 1e-2·σ₁ (16 at tolerance
-    // 0.1, 31 at 1e-3), well below the cap of 50.
+fn refinement_stops_at_its_tolerance_well_before_the_cap() {
+    // From the direct solve (no coarse correction) the refinement stops on the tolerance
+    // (the shear test above checks its accuracy): measured 22 iterations at most on these
+    // loads at λ = 1e-2·σ₁ (16 at tolerance 0.1, 31 at 1e-3), well below a cap of 50.
+    // From the default two-level solve, which on this grid is dense Tikhonov already
+    // (its coarse space is the whole 16×16 force grid), it stops at once. The default
+    // runs no refinement.
     let s = grid_sensor(16, 16, 1.1, 1.1);
     let sites = MarkerSite::from_sensor_grids(&s);
     let (_, lambda) = dense_operator(&s, &sites);
     let p = Problem::new(&s, &sites);
     let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+    assert_eq!(solver.refine_iterations, 0);
     assert_eq!(
         solver.refine_tolerance,
         tactbench::solve::fourier::DEFAULT_REFINE_TOLERANCE
     );
+    assert_eq!(solver.coarse_space(), Some((768, 1)));
     let mut f = vec![0.0; p.n_outputs()];
-    for (name, f_true) in acceptance_loads(&s) {
-        let u = displacements(&s, &sites, &f_true);
-        solver.apply(&u, &mut f).unwrap();
-        let k = solver.last_refine_iterations();
-        assert!(
-            (1..=30).contains(&k),
-            "{name}: {k} iterations (cap {})",
-            solver.refine_iterations
-        );
+    solver.refine_iterations = 50;
+    for (two_level, range) in [(false, 1..=30), (true, 0..=0)] {
+        solver.coarse_correction = two_level;
+        for (name, f_true) in acceptance_loads(&s) {
+            let u = displacements(&s, &sites, &f_true);
+            solver.apply(&u, &mut f).unwrap();
+            let k = solver.last_refine_iterations();
+            assert!(
+                range.contains(&k),
+                "{name} (two-level {two_level}): {k} iterations (cap 50)"
+            );
+        }
     }
     // A zero frame needs none.
     solver.apply(&vec![0.0; p.n_inputs()], &mut f).unwrap();
@@ -756,32 +764,42 @@ fn noise_only_force_sums_are_within_1_5x_of_dense_and_uncertainty_matches_monte_
             mc_sum[ax]
         );
     }
-    // Per node: the refinement stops at its tolerance, so its map is the converged one,
-    // dense Tikhonov, to within that tolerance; force_sd propagates through the latter.
-    let mut sd = vec![0.0; n_out];
-    solver.force_sd(sigma, &mut sd).unwrap();
+    // Per node, the default (two-level) map by probing, and the refined one: the
+    // refinement stops at its tolerance, so its map is the converged one, dense
+    // Tikhonov, to within that tolerance; force_sd propagates through the latter.
     let exact: Vec<f64> = (0..n_out).map(|j| sigma * pd.row(j).norm()).collect();
-    let worst = sd
-        .iter()
-        .zip(&exact)
-        .map(|(a, b)| (a - b).abs() / b)
-        .fold(0.0, f64::max);
-    let e_int = rel_err(&interior(&s, &sd, 4.0), &interior(&s, &mc_force, 4.0));
-    let e_all = rel_err(&sd, &mc_force);
-    println!(
-        "refined: per-node force_sd vs Monte Carlo: interior {e_int:.3}, all {e_all:.3}; \
-         vs the exact rows of dense P: worst node {worst:.3}"
-    );
-    assert!(
-        worst <= 0.10,
-        "refined: worst node's force_sd vs exact {worst:.3}"
-    );
-    assert!(e_all <= 0.10, "refined: per-node force_sd vs MC {e_all:.3}");
-    assert!(e_int <= 0.10, "refined: interior force_sd vs MC {e_int:.3}");
+    let mut sd = vec![0.0; n_out];
+    for (label, iterations) in [("two-level", 0), ("refined", 50)] {
+        solver.refine_iterations = iterations;
+        let mc_force = if iterations == 0 {
+            mc_force.clone()
+        } else {
+            monte_carlo(&mut solver, n_in, n_out, sigma, 300).0
+        };
+        solver.force_sd(sigma, &mut sd).unwrap();
+        let worst = sd
+            .iter()
+            .zip(&exact)
+            .map(|(a, b)| (a - b).abs() / b)
+            .fold(0.0, f64::max);
+        let e_int = rel_err(&interior(&s, &sd, 4.0), &interior(&s, &mc_force, 4.0));
+        let e_all = rel_err(&sd, &mc_force);
+        println!(
+            "{label}: per-node force_sd vs Monte Carlo: interior {e_int:.3}, all {e_all:.3}; \
+             vs the exact rows of dense P: worst node {worst:.3}"
+        );
+        assert!(
+            worst <= 0.10,
+            "{label}: worst node's force_sd vs exact {worst:.3}"
+        );
+        assert!(e_all <= 0.10, "{label}: per-node force_sd vs MC {e_all:.3}");
+        assert!(e_int <= 0.10, "{label}: interior force_sd vs MC {e_int:.3}");
+    }
 
-    // The direct solve with the edge bridge (the direct default): per-node figures by
+    // The direct solve with the edge bridge (no coarse correction): per-node figures by
     // probing; its ΣF SDs are those of the zero-padded map (module docs).
     solver.refine_iterations = 0;
+    solver.coarse_correction = false;
     let (mc_force, mc_sum) = monte_carlo(&mut solver, n_in, n_out, sigma, 300);
     solver.force_sd(sigma, &mut sd).unwrap();
     let predicted = solver.sum_sd(sigma).unwrap();
@@ -793,6 +811,17 @@ fn noise_only_force_sums_are_within_1_5x_of_dense_and_uncertainty_matches_monte_
         e_nodes <= 0.10,
         "bridged direct: per-node force_sd vs Monte Carlo {e_nodes:.3}"
     );
+    for ax in 0..3 {
+        // Exact (P_perᵀ 1_a through the transposed direct solve); was the zero-padded
+        // map's figure, 20× too small for ΣFz.
+        let e = (predicted[ax] - mc_sum[ax]).abs() / mc_sum[ax];
+        assert!(
+            e <= 0.10,
+            "bridged direct axis {ax}: sum_sd {} vs MC {}",
+            predicted[ax],
+            mc_sum[ax]
+        );
+    }
 
     // The direct solve without the edge bridge is a fixed linear map: exact figures.
     solver.refine_iterations = 0;
@@ -891,4 +920,44 @@ fn numpy_reference_agrees_with_fourier_output() {
         "numpy check failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+#[test]
+fn two_level_uncertainty_matches_monte_carlo_at_32x32() {
+    // At 32×32 the coarse correction is not the identity (hats every 3 force nodes), so
+    // its part of every column is spread over a coarse cell: the probed per-node SDs and
+    // the exact ΣF SDs are checked against 300 seeded noise-only frames.
+    let s = grid_sensor(32, 32, 1.1, 1.1);
+    let sites = MarkerSite::from_sensor_grids(&s);
+    let p = Problem::new(&s, &sites);
+    let (n_in, n_out) = (p.n_inputs(), p.n_outputs());
+    let lambda = {
+        let probe = FourierSolver::precompute(&p, &config(Lambda::Fixed(1.0)), None).unwrap();
+        2e-3 * probe.diagnostics().singular_values[0]
+    };
+    let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
+    assert!(solver.two_level());
+    assert_eq!(solver.coarse_space(), Some((432, 3)));
+    let sigma = 0.005;
+    let (mc_force, mc_sum) = monte_carlo(&mut solver, n_in, n_out, sigma, 300);
+    let mut sd = vec![0.0; n_out];
+    solver.force_sd(sigma, &mut sd).unwrap();
+    let predicted = solver.sum_sd(sigma).unwrap();
+    let e_all = rel_err(&sd, &mc_force);
+    let e_int = rel_err(&interior(&s, &sd, 4.0), &interior(&s, &mc_force, 4.0));
+    println!(
+        "32×32 two-level: ΣF SD MC {mc_sum:.4?} vs sum_sd {predicted:.4?}; per node all \
+         {e_all:.3}, interior {e_int:.3}"
+    );
+    assert!(e_all <= 0.10, "per-node force_sd vs MC {e_all:.3}");
+    assert!(e_int <= 0.10, "interior force_sd vs MC {e_int:.3}");
+    for ax in 0..3 {
+        let e = (predicted[ax] - mc_sum[ax]).abs() / mc_sum[ax];
+        assert!(
+            e <= 0.10,
+            "axis {ax}: sum_sd {} vs MC {}",
+            predicted[ax],
+            mc_sum[ax]
+        );
+    }
 }

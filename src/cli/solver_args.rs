@@ -31,17 +31,25 @@ pub struct SolverArgs {
     /// [default: max(rows, cols) * machine epsilon].
     #[arg(long)]
     rcond: Option<f64>,
-    /// fourier: cap on the CGLS refinement iterations on the exact operator after the
-    /// per-frequency solve; the refinement stops earlier once it is within about 2 %
-    /// of dense tikhonov (~20 iterations on 16x16 and 32x32 grids). The direct
-    /// solve (0) is the fastest but carries the periodic model's boundary error (shear
-    /// read partly as normal force near boundaries); each iteration costs about three
-    /// direct solves. Default 50. An error with the other solvers.
+    /// fourier: `on` (default) adds the precomputed coarse-grid correction to the
+    /// per-frequency solve (the two-level solve: force sums of dense tikhonov exactly,
+    /// field within ~4 %); `off` is the per-frequency solve alone, about twice as fast
+    /// at 64x64 but with the periodic model's boundary error (force sums off by 30 % to
+    /// over 100 % on bounded grids). An error with the other solvers.
+    #[arg(long, value_name = "on|off", value_parser = parse_on_off)]
+    coarse_correction: Option<bool>,
+    /// fourier: CGLS refinement iterations on the exact operator after the two-level
+    /// solve (a cap: the refinement stops earlier at --refine-tolerance). The default, 0,
+    /// is the two-level solve alone: the per-frequency solve plus a precomputed
+    /// coarse-grid correction, with the force sums of dense tikhonov exactly and the
+    /// field within ~4 % of it (1.4 ms per frame at 64x64). Each iteration costs about
+    /// three per-frequency solves and brings the field closer to dense tikhonov
+    /// (20 iterations: ~0.1 %). An error with the other solvers.
     #[arg(long, value_name = "N")]
     refine_iterations: Option<usize>,
     /// fourier: the refinement stops once its estimated relative distance to dense
     /// tikhonov is below TOL, in [0, 1) [default: 0.02]; 0 runs all --refine-iterations.
-    /// An error with the other solvers.
+    /// Needs --refine-iterations N > 0; an error with the other solvers.
     #[arg(long, value_name = "TOL")]
     refine_tolerance: Option<f64>,
 }
@@ -80,9 +88,19 @@ impl SolverArgs {
                 "--refine-tolerance does not apply to the {m} solver: only fourier refines its per-frequency solve"
             ));
         }
+        if self.coarse_correction.is_some() && m != Method::Fourier {
+            return Err(format!(
+                "--coarse-correction does not apply to the {m} solver: only fourier has a per-frequency solve to correct"
+            ));
+        }
         if self.refine_iterations.is_some() && m != Method::Fourier {
             return Err(format!(
                 "--refine-iterations does not apply to the {m} solver: only fourier refines its per-frequency solve"
+            ));
+        }
+        if let (Some(t), None | Some(0)) = (self.refine_tolerance, self.refine_iterations) {
+            return Err(format!(
+                "--refine-tolerance {t} has no effect without refinement: add --refine-iterations N (N > 0; the default, 0, is the two-level solve without refinement)"
             ));
         }
         Ok(SolverConfig {
@@ -95,6 +113,7 @@ impl SolverArgs {
             rank: self.rank.unwrap_or_default(),
             precision: self.precision.unwrap_or_default(),
             rcond: self.rcond,
+            fourier_coarse: self.coarse_correction.unwrap_or(true),
             fourier_refine_iterations: self
                 .refine_iterations
                 .unwrap_or(tactbench::solve::fourier::DEFAULT_REFINE_ITERATIONS),
@@ -103,6 +122,14 @@ impl SolverArgs {
                 .unwrap_or(tactbench::solve::fourier::DEFAULT_REFINE_TOLERANCE),
             ..SolverConfig::default()
         })
+    }
+}
+
+fn parse_on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => Err(format!("expected on or off, got {other:?}")),
     }
 }
 

@@ -213,10 +213,14 @@ pub struct SolverConfig {
     /// Fourier solver: zero padding added around the grids, as a fraction of the
     /// larger grid extent (see [`fourier`]).
     pub fourier_padding: f64,
+    /// Fourier solver: add the precomputed coarse-grid correction with the force sums of
+    /// dense Tikhonov to the per-frequency solve (the two-level solve, default true;
+    /// false = the direct periodic solve alone: fastest, but with the periodic model's
+    /// boundary error; see [`fourier`]).
+    pub fourier_coarse: bool,
     /// Fourier solver: CGLS refinement iterations on the exact operator after the
-    /// per-frequency solve (0 = the direct solve alone: fastest, but with the periodic
-    /// model's boundary error; see [`fourier`]). Default
-    /// [`fourier::DEFAULT_REFINE_ITERATIONS`].
+    /// two-level (or direct) solve, converging to dense Tikhonov. Default
+    /// [`fourier::DEFAULT_REFINE_ITERATIONS`] (none).
     pub fourier_refine_iterations: usize,
     /// Fourier solver: the refinement stops before `fourier_refine_iterations` once its
     /// estimated relative distance to dense Tikhonov is at most this. Default
@@ -233,6 +237,7 @@ impl Default for SolverConfig {
             precision: Precision::F64,
             rcond: None,
             fourier_padding: 1.0,
+            fourier_coarse: true,
             fourier_refine_iterations: fourier::DEFAULT_REFINE_ITERATIONS,
             fourier_refine_tolerance: fourier::DEFAULT_REFINE_TOLERANCE,
         }

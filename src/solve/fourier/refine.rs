@@ -44,12 +44,27 @@ pub(super) fn precond_op(plan: &Plan, w: &mut Work, qmat: &[C64], s: &[f64], out
 /// `H f`: the exact forward operator restricted to the measured markers and the force grid
 /// (the kernel window holds every offset between them, so the circular convolution is exact).
 pub(super) fn forward_op(plan: &Plan, w: &mut Work, amat: &[C64], f: &[f64], out: &mut [f64]) {
+    forces_to_lattice(plan, w, amat, f, false);
+    let s = plan.scale;
+    for (k, &(slot, idx)) in plan.site_map.iter().enumerate() {
+        let v = w.z[slot][idx];
+        out[2 * k] = v.re * s;
+        out[2 * k + 1] = v.im * s;
+    }
+}
+
+/// Forces → marker lattice through per-block `rows × cols` matrices `mats` (the forward
+/// operator `A`, or `Pᴴ` for the transposed direct solve): afterwards `w.z[slot]` holds
+/// `ux + i·uy` of every layer, unscaled (times [`Plan::scale`] is the result), row-major
+/// `[iy][ix]` with row stride `mm_x`, on the rows that hold markers (`full = false`) or
+/// on the whole lattice, padding included (`full = true`).
+pub(super) fn forces_to_lattice(plan: &Plan, w: &mut Work, mats: &[C64], f: &[f64], full: bool) {
     let ([mx, my], [mmx, mmy]) = (plan.m, plan.mm);
     let (rows, cols, a) = (plan.rows, plan.cols, plan.a);
     forces_to_spectra(plan, w, f);
     for (bi, &c) in plan.blocks.iter().enumerate() {
         gather_force_block(plan, c, &w.gxy, &w.gz, &mut w.vin);
-        let mat = &amat[bi * rows * cols..(bi + 1) * rows * cols];
+        let mat = &mats[bi * rows * cols..(bi + 1) * rows * cols];
         for r in 0..rows {
             let row = &mat[r * cols..(r + 1) * cols];
             w.vout[r] = row.iter().zip(&w.vin[..cols]).map(|(m, v)| m * v).sum();
@@ -74,14 +89,10 @@ pub(super) fn forward_op(plan: &Plan, w: &mut Work, amat: &[C64], f: &[f64], out
         let sp = &mut w.spec[slot];
         plan.inv_my.process_with_scratch(sp, &mut w.scratch);
         let z = &mut w.z[slot];
-        transpose(sp, mmy, z, mmx, mmx, lp.nm[1]);
-        plan.inv_mx.process_with_scratch(z, &mut w.scratch);
-    }
-    let s = plan.scale;
-    for (k, &(slot, idx)) in plan.site_map.iter().enumerate() {
-        let v = w.z[slot][idx];
-        out[2 * k] = v.re * s;
-        out[2 * k + 1] = v.im * s;
+        let n_rows = if full { mmy } else { lp.nm[1] };
+        transpose(sp, mmy, z, mmx, mmx, n_rows);
+        plan.inv_mx
+            .process_with_scratch(&mut z[..n_rows * mmx], &mut w.scratch);
     }
 }
 

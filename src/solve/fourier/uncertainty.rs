@@ -174,7 +174,7 @@ pub(super) fn direct_map(
 }
 
 /// Relative residual at which the force-sum solves stop.
-const SUM_TOLERANCE: f64 = 1e-6;
+const SUM_TOLERANCE: f64 = 1e-10;
 /// Iteration cap of the force-sum solves.
 const SUM_MAX_ITERATIONS: usize = 2000;
 
@@ -231,8 +231,9 @@ fn solve_normal(
     }
 }
 
-/// SDs (per unit σ) of the force sums of the converged refined map, dense Tikhonov
-/// `(HᵀH + λ²I)⁻¹Hᵀ` (module docs). `None` for λ = 0 (no unique converged map).
+/// The force-sum functionals of the converged refined map, dense Tikhonov
+/// `(HᵀH + λ²I)⁻¹Hᵀ`: `ΣF_c = w_cᵀu` (module docs), with their SDs per unit σ `‖w_c‖`.
+/// `None` for λ = 0 (no unique converged map).
 pub(super) fn converged_sums(
     plan: &Plan,
     w: &mut Work,
@@ -241,16 +242,16 @@ pub(super) fn converged_sums(
     lambda: f64,
     n_in: usize,
     n_out: usize,
-) -> Option<[f64; 3]> {
+) -> Option<([f64; 3], [Vec<f64>; 3])> {
     if lambda <= 0.0 {
         return None;
     }
     let lam2 = lambda * lambda;
     let mut sum = [0.0; 3];
-    let mut hp = vec![0.0; n_in];
+    let mut funcs: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; n_in]);
     let mut y = vec![0.0; n_out];
     let mut scratch: [Vec<f64>; 4] = std::array::from_fn(|_| vec![0.0; n_out]);
-    for (c, out) in sum.iter_mut().enumerate() {
+    for (c, (out, hp)) in sum.iter_mut().zip(funcs.iter_mut()).enumerate() {
         // (HᵀH + λ²I) y = 1_c, the indicator of component c; w_c = H y.
         let rhs: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == c)).collect();
         let [q, r, z, p] = &mut scratch;
@@ -263,13 +264,13 @@ pub(super) fn converged_sums(
             &rhs,
             SUM_TOLERANCE,
             &mut y,
-            &mut hp,
+            hp,
             [q, r, z, p],
         );
-        forward_op(plan, w, amat, &y, &mut hp);
+        forward_op(plan, w, amat, &y, hp);
         *out = hp.iter().map(|v| v * v).sum::<f64>().sqrt();
     }
-    Some(sum)
+    Some((sum, funcs))
 }
 
 /// Marker spacing (per axis, in marker pitches) of the probing estimate of per-node SDs
