@@ -9,7 +9,7 @@
 //!
 //! - **solver**: `pinv`, `tikhonov` (λ by GCV, L-curve, or fixed at a fraction of
 //!   `σ_max`, the largest singular value of `H`), `tsvd` (automatic or fixed rank),
-//!   `fourier` (L-curve λ, 0 / 10 / 30 CGLS refinements; only where the grids allow it),
+//!   `fourier` (L-curve λ, two-level solve + 0 / 10 / 30 CGLS refinements; only where the grids allow it),
 //!   f32 against f64 for the dense methods;
 //! - **force grid**: the density of force points (pitch), same area as the sensor's grid;
 //! - **tracking**: the centroid window's aperture radius (scale of the measured one) and

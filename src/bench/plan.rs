@@ -51,7 +51,7 @@
 //! solver = "pinv"                   # pinv (default) | tikhonov | tsvd | fourier
 //! lambda = "gcv"                    # tikhonov / fourier: gcv | lcurve | number (mm/N)
 //! rank = "auto"                     # tsvd: auto | integer
-//! refine_iterations = 50            # fourier: cap on CGLS iterations (0 = direct solve)
+//! refine_iterations = 0             # fourier: CGLS iterations after the two-level solve (cap)
 //!
 //! [sweep]                           # exactly one kind:
 //! kind = "magnitude"                # normal force from..to by step, `trials` times

@@ -253,8 +253,7 @@ pub struct ModelErrorArgs {
     /// fourier), `gcv`, `lcurve` or a fixed value in mm/N.
     #[arg(long, default_value = "auto")]
     lambda: String,
-    /// fourier: CGLS refinement iterations after the per-frequency solve [default: the
-    /// solver's, 20].
+    /// fourier: CGLS refinement iterations after the two-level solve [default: 0].
     #[arg(long, value_name = "N")]
     refine_iterations: Option<usize>,
     /// The deepest marker lies at most this fraction of the thickness, in (0, 1]

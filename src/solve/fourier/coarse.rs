@@ -401,49 +401,6 @@ impl Coarse {
     pub(super) fn len(&self) -> usize {
         self.basis.len()
     }
-
-    /// Per-node variance terms the correction adds to the direct map `D` (per unit σ):
-    /// `Var_j(D + ΦC) − Var_j(D) = 2 Σ_r Φ_jr (D Cᵀ)_jr + (Φ CCᵀ Φᵀ)_jj`, exactly.
-    /// `direct(u, f)` applies `D`.
-    pub(super) fn variance_terms(
-        &self,
-        n_out: usize,
-        mut direct: impl FnMut(&[f64], &mut [f64]),
-    ) -> Vec<f64> {
-        let (n, k) = (self.n_in, self.basis.len());
-        let mut tmp = vec![0.0; self.basis.scratch_len()];
-        let mut coef = vec![0.0; k];
-        let mut dc = vec![0.0; n_out];
-        let mut col = vec![0.0; n_out];
-        let mut out = vec![0.0; n_out];
-        // Cross term: column r of D Cᵀ is D applied to row r of C.
-        for r in 0..k {
-            direct(&self.c[r * n..(r + 1) * n], &mut dc);
-            coef.fill(0.0);
-            coef[r] = 1.0;
-            col.fill(0.0);
-            self.basis.add(&coef, &mut tmp, &mut col);
-            for ((o, d), p) in out.iter_mut().zip(&dc).zip(&col) {
-                *o += 2.0 * d * p;
-            }
-        }
-        // Coarse term: diag(Φ (CCᵀ) Φᵀ), column by column of Φ(CCᵀ).
-        let cm = DMatrix::from_row_slice(k, n, &self.c);
-        let cct = &cm * cm.transpose();
-        for r in 0..k {
-            coef.fill(0.0);
-            coef[r] = 1.0;
-            col.fill(0.0);
-            self.basis.add(&coef, &mut tmp, &mut col);
-            let mut mcol = vec![0.0; n_out];
-            let c_r: Vec<f64> = cct.column(r).iter().copied().collect();
-            self.basis.add(&c_r, &mut tmp, &mut mcol);
-            for ((o, p), m) in out.iter_mut().zip(&col).zip(&mcol) {
-                *o += p * m;
-            }
-        }
-        out
-    }
 }
 
 #[cfg(test)]

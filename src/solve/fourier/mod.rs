@@ -91,24 +91,40 @@
 //! (≥ 4 mm from the edges); with other paddings (0, 0.25) or without the bridge the
 //! worst of the five loads is still off by 64–135 % in the force sums.
 //!
-//! **Fix.** The solver refines by default on the exact operator, which converges to
-//! dense Tikhonov, and stops once within [`DEFAULT_REFINE_TOLERANCE`] of it (cap
-//! [`DEFAULT_REFINE_ITERATIONS`]); the direct solve alone remains available
-//! (`refine_iterations = 0`) where speed matters more than accuracy.
+//! **Fix: the two-level solve** (`coarse.rs`, the default). The direct solve's error is
+//! mostly smooth (force sums, a broad false normal load), so it is removed by a
+//! correction precomputed once per marker set: the Galerkin projection of the remaining
+//! error onto a coarse space `Φ` of the force grid (bilinear hats every `s` force nodes)
+//! in the norm of the normal equations, `f = f_d + Φ C u`, and the force sums are then
+//! set to those of dense Tikhonov exactly (`ΣF_a = w_aᵀu`, `w_a = H N⁻¹ 1_a` from three
+//! converged CG solves). `C` (`k × n_in`) is built from `k` applications of the exact
+//! normal operator and of the transposed direct solve; `s` is the smallest spacing that
+//! keeps `k·n_in` within [`coarse::COARSE_BUDGET`] (on small grids `Φ = I`, and the
+//! two-level solve *is* dense Tikhonov). Measured against dense Tikhonov at λ = 2e-3 of
+//! the periodic σ_max on the five acceptance loads (worst): 16×16 exact to 1e-10 (`s = 1`);
+//! 32×32 (`s = 3`, `k = 432`) force sums to 1e-10, field 3.0 % / 1.6 % interior; 64×64
+//! (`s = 11`, `k = 147`) force sums to 1e-10, field 3.6 % / 2.1 %; 1.4 ms per frame at
+//! 64×64 against 0.62 ms for the direct solve alone (README *Performance*).
+//! [`FourierSolver::coarse_correction`] `= false` (CLI `--coarse-correction off`) is the
+//! direct solve alone, where speed matters more than accuracy.
+//!
+//! Refinement iterations (opt-in, [`FourierSolver::refine_iterations`]) converge further
+//! to dense Tikhonov from the two-level (or direct) solve.
 //!
 //! Refinement: preconditioned CGLS (conjugate gradients on the normal equations of
 //! `min ‖H f − u‖² + λ²‖f‖²`, Björck, *Numerical Methods for Least Squares Problems*,
 //! SIAM 1996, §7.4) on the exact operator `H` restricted to the measured markers and the
 //! force grid, applied by the same FFTs (exact: the kernel window holds every offset),
-//! warm-started from the direct solve and preconditioned by the periodic block inverse
+//! warm-started from the two-level (or direct) solve and preconditioned by the periodic block inverse
 //! `M = (AᴴA + λ²I)⁻¹` (a block circulant preconditioner, T. Chan 1988). Each iteration
 //! costs about three direct solves. It stops when the preconditioned gradient
 //! `z = M(Hᵀ(u − Hf) − λ²f)` has `‖z‖ ≤ tol·‖f‖` (`z ≈` the remaining correction, so
 //! this estimates the relative distance to dense Tikhonov), at the cap, or when the
 //! gradient has fallen to rounding (CGLS run on past that point diverged). Measured at
-//! λ ≈ 1e-2·σ₁ on the five acceptance loads: 16×16, tolerance 0.02 → 22 iterations,
-//! ΣF within 0.4 % and field within 1.9 % of dense Tikhonov; 32×32 → 22 iterations,
-//! 0.7 % / 1.3 % (README *Performance* has the whole table). The preconditioner is exact for the
+//! λ ≈ 1e-2·σ₁ on the five acceptance loads, from the direct solve: 16×16, tolerance
+//! 0.02 → 22 iterations, ΣF within 0.4 % and field within 1.9 % of dense Tikhonov;
+//! 32×32 → 22 iterations, 0.7 % / 1.3 %. From the two-level solve far fewer are needed
+//! (32×32: 5 iterations to field 1.0 %; README *Performance* has the whole table). The preconditioner is exact for the
 //! periodic problem but not for the measured one (no markers in the padding, no forces
 //! outside the grid): the mismatch lives on the boundary and grows with the grid, so
 //! the iterations needed grow with it. For small λ (≲ 1e-3·σ_max) convergence is slower

@@ -36,12 +36,19 @@
 //!   solve). `Σ_C (P z_C)_j²` is `Σ_i P_ji²` plus cross terms between inputs ≥ `d`
 //!   pitches apart. The same probes through the zero-padded direct map `D`, whose exact
 //!   figures are known (above), have nearly the same cross terms (same Tikhonov filter),
-//!   so `Var_j ≈ Σ_C (P z_C)_j² − Σ_C (D z_C)_j² + Σ_i D_ji²`. Measured on
-//!   `grid_sensor(16,16,1.1,1.1)` at λ = 1e-2·σ₁ against the exact rows of dense `P`:
-//!   worst node 6.5 %, 1.6 % overall (`d = 4`: 22 % / 5.8 %; without the control
-//!   variate, `d = 6`: 14 % / 3.4 %). Computed on first use of `force_sd`
-//!   and cached (`2·layers·64` PCG solves: 256 on that grid, ~7 s in the test profile).
-//! - The bridged direct map (the direct default) is probed the same way (direct applies).
+//!   so `Var_j ≈ Σ_C (P z_C)_j² − Σ_C (D z_C)_j² + Σ_i D_ji²`. Measured against the
+//!   exact rows of NumPy's dense `P` at λ = 1e-2·σ₁ (`d = 10`, the default): worst node
+//!   4.9 % on `grid_sensor(16,16,1.1,1.1)`, 6.0 % on 20×20, 6.5 % on 32×32 (`d = 8`:
+//!   6.5 %, 8.4 %, 10.1 %; `d = 4` on 16×16: 22 %; without the control variate, `d = 6`:
+//!   14 %). Computed on first use of `force_sd` and cached (`2·layers·100` PCG solves:
+//!   400 for two layers).
+//! - The bridged direct map is probed the same way (direct applies), and so is the
+//!   two-level map (the default; `coarse.rs`): its coarse part is smooth, and its
+//!   cross terms average out like the others (32×32, hats every 3 nodes: 4.4 % overall
+//!   against 300 Monte Carlo frames).
+//! - Force sums of the two-level map: exactly those of the converged map (it has dense
+//!   Tikhonov's sums). Of the bridged direct map: exact, `‖P_perᵀ 1_c‖` through the
+//!   transposed direct solve (`coarse.rs`).
 //!
 //! Checked against 300 Monte Carlo frames and the exact dense rows in `tests/fourier.rs`.
 
@@ -275,7 +282,7 @@ pub(super) fn converged_sums(
 
 /// Marker spacing (per axis, in marker pitches) of the probing estimate of per-node SDs
 /// ([`probe_force_sd`]).
-pub(super) const PROBE_SPACING: usize = 8;
+pub(super) const PROBE_SPACING: usize = 10;
 
 /// Relative residual at which the probe solves stop (the SDs need ~1e-3).
 const PROBE_TOLERANCE: f64 = 1e-4;
