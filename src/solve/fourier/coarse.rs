@@ -41,7 +41,7 @@
 //! loads, worst; README *Performance*): see the table there and
 //! `examples/fourier_refine_tradeoff.rs`.
 
-use nalgebra::DMatrix;
+use nalgebra::{Cholesky, DMatrix, Dyn};
 
 use super::refine::{adjoint_op, forces_to_lattice, forward_op};
 use super::transform::{Plan, Work, C64};
@@ -50,6 +50,10 @@ use super::transform::{Plan, Work, C64};
 /// cost: ~0.4 ms on one core of the bench machine (a streamed 20 MB matrix), beside the
 /// 64×64 direct solve's ~0.6 ms, so the 64×64 two-level solve stays under 2 ms.
 pub const COARSE_BUDGET: usize = 2_500_000;
+
+/// Largest condition number of the Galerkin matrix `ΦᵀNΦ` the correction is built
+/// with (its solve then keeps ~4 significant digits in f64).
+const MAX_CONDITION: f64 = 1e12;
 
 /// The coarse space: tensor products of 1-D hat functions, one per coarse node and force
 /// component. Column `j = (c_y·n_cx + c_x)·3 + component`.
@@ -196,10 +200,54 @@ impl Basis {
     }
 }
 
-/// The precomputed correction `c = C u`, `f += Φ c`.
+/// The coarse space with the Cholesky factor of its Galerkin matrix `G = ΦᵀNΦ`: the
+/// coarse solve `Φ G⁻¹ Φᵀ`, also the coarse half of the two-level preconditioner
+/// `M + Φ G⁻¹ Φᵀ` of the CG solves on `N` at precompute (force sums, probing). (In the
+/// per-frame refinement it saved ~15 % of the iterations at 64×64 for ~25 % more time
+/// per iteration, so the refinement keeps `M`.)
+#[derive(Clone)]
+pub(super) struct CoarseSpace {
+    basis: Basis,
+    chol: Cholesky<f64, Dyn>,
+}
+
+impl CoarseSpace {
+    /// `z += Φ G⁻¹ Φᵀ r`, with scratch `coef` (`k`) and `tmp` ([`Basis::scratch_len`]).
+    pub(super) fn add_solve(&self, r: &[f64], coef: &mut [f64], tmp: &mut [f64], z: &mut [f64]) {
+        self.basis.project(r, tmp, coef);
+        let mut v = nalgebra::DVectorViewMut::from_slice(coef, self.basis.len());
+        self.chol.solve_mut(&mut v);
+        self.basis.add(coef, tmp, z);
+    }
+
+    /// Scratch sizes of [`CoarseSpace::add_solve`]: (`coef`, `tmp`).
+    pub(super) fn scratch(&self) -> (Vec<f64>, Vec<f64>) {
+        (
+            vec![0.0; self.basis.len()],
+            vec![0.0; self.basis.scratch_len()],
+        )
+    }
+}
+
+/// The first half of the two-level build: the coarse space, its Galerkin factor and
+/// `G⁻¹ Φᵀ(Hᵀ − N P_per)` (`k × n_in`), before the force sums are made exact.
+pub(super) struct Galerkin {
+    space: CoarseSpace,
+    c: DMatrix<f64>,
+    ph: Vec<C64>,
+}
+
+impl Galerkin {
+    /// The coarse space, for the two-level preconditioner of the force-sum solves.
+    pub(super) fn space(&self) -> &CoarseSpace {
+        &self.space
+    }
+}
+
+/// The precomputed correction `c = C u`, `f += Φ c`, and the coarse space.
 #[derive(Clone)]
 pub(super) struct Coarse {
-    basis: Basis,
+    space: CoarseSpace,
     /// `k × n_in`, row-major.
     c: Vec<f64>,
     n_in: usize,
@@ -210,8 +258,8 @@ pub(super) struct Coarse {
 impl std::fmt::Debug for Coarse {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Coarse")
-            .field("spacing", &self.basis.spacing)
-            .field("nodes", &self.basis.nc)
+            .field("spacing", &self.space.basis.spacing)
+            .field("nodes", &self.space.basis.nc)
             .finish_non_exhaustive()
     }
 }
@@ -291,21 +339,19 @@ pub(super) fn blocks_adjoint(plan: &Plan, pmat: &[C64]) -> Vec<C64> {
 }
 
 impl Coarse {
-    /// Builds the correction of the bridged direct solve (module docs) for λ > 0.
-    /// `sums` are the exact force-sum functionals `w_a = H N⁻¹ 1_a`. Errors describe why
+    /// First half of the build (module docs), λ > 0: the coarse space, `G` and its
+    /// factor, and the correction before the force-sum constraint. Errors describe why
     /// no correction could be built (the caller falls back to the direct solve).
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn build(
+    pub(super) fn galerkin(
         plan: &Plan,
         w: &mut Work,
         amat: &[C64],
         pmat: &[C64],
         lambda: f64,
-        sums: &[Vec<f64>; 3],
         n_in: usize,
         n_out: usize,
         budget: usize,
-    ) -> Result<Coarse, String> {
+    ) -> Result<Galerkin, String> {
         if lambda <= 0.0 {
             return Err("λ = 0: the Galerkin matrix is not definite".into());
         }
@@ -343,28 +389,46 @@ impl Coarse {
         let chol = g.cholesky().ok_or_else(|| {
             format!("the {k}×{k} Galerkin matrix ΦᵀNΦ is not positive definite at λ = {lambda:e}")
         })?;
-        let mut c = chol.solve(&rhs);
-
-        // Exact force sums: the two-level sums are (P_perᵀ1_a + CᵀB_a)ᵀ u.
-        let mut b = DMatrix::<f64>::zeros(k, 3);
-        let mut d = DMatrix::<f64>::zeros(3, n_in);
-        for (a, wa) in sums.iter().enumerate() {
-            let ones: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == a)).collect();
-            basis.project(&ones, &mut tmp, &mut coef);
-            b.column_mut(a).copy_from_slice(&coef);
-            direct_transpose(plan, w, &ph, true, &ones, &mut t);
-            let ctb = c.transpose() * b.column(a);
-            for i in 0..n_in {
-                d[(a, i)] = wa[i] - t[i] - ctb[i];
-            }
+        // κ(G) from the Cholesky factor's diagonal (a lower bound, ≤ κ(G) ≤ κ(N)): past
+        // MAX_CONDITION the correction would carry more rounding than signal.
+        let (dmin, dmax) = chol
+            .l_dirty()
+            .diagonal()
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(lo, hi), &d| {
+                (lo.min(d), hi.max(d))
+            });
+        let kappa = (dmax / dmin).powi(2);
+        if !(kappa <= MAX_CONDITION) {
+            return Err(format!(
+                "the {k}×{k} Galerkin matrix ΦᵀNΦ is too ill-conditioned at λ = {lambda:e} \
+                 (condition ≥ {kappa:.1e})"
+            ));
         }
-        let gib = chol.solve(&b);
-        let m = b.transpose() * &gib;
-        let minv = m
-            .try_inverse()
-            .ok_or_else(|| "the force-sum constraint matrix BᵀG⁻¹B is singular".to_string())?;
-        c += gib * minv * d;
+        let c = chol.solve(&rhs);
+        Ok(Galerkin {
+            space: CoarseSpace { basis, chol },
+            c,
+            ph,
+        })
+    }
 
+    /// Second half: the force sums made those of dense Tikhonov exactly, `sums` being
+    /// the functionals `w_a = H N⁻¹ 1_a` (module docs); `None` keeps the Galerkin
+    /// correction's own sums.
+    pub(super) fn finish(
+        plan: &Plan,
+        w: &mut Work,
+        galerkin: Galerkin,
+        sums: Option<&[Vec<f64>; 3]>,
+        n_out: usize,
+    ) -> Result<Coarse, String> {
+        let Galerkin { space, mut c, ph } = galerkin;
+        let (k, n_in) = c.shape();
+        let (mut coef, mut tmp) = space.scratch();
+        if let Some(sums) = sums {
+            Self::constrain_sums(plan, w, &space, &ph, &mut c, sums, n_out)?;
+        }
         let mut rm = vec![0.0; k * n_in];
         for (j, row) in rm.chunks_exact_mut(n_in).enumerate() {
             for (i, v) in row.iter_mut().enumerate() {
@@ -374,13 +438,51 @@ impl Coarse {
         if rm.iter().any(|v| !v.is_finite()) {
             return Err("the coarse correction is not finite".into());
         }
+        coef.fill(0.0);
+        tmp.fill(0.0);
         Ok(Coarse {
             tmp,
             coef,
-            basis,
+            space,
             c: rm,
             n_in,
         })
+    }
+
+    /// `c += E (w − Sᵀ)`: the smallest change in `span Φ` (`N`-norm) that gives the
+    /// two-level solve the force sums `w_aᵀu` (module docs).
+    fn constrain_sums(
+        plan: &Plan,
+        w: &mut Work,
+        space: &CoarseSpace,
+        ph: &[C64],
+        c: &mut DMatrix<f64>,
+        sums: &[Vec<f64>; 3],
+        n_out: usize,
+    ) -> Result<(), String> {
+        let (k, n_in) = c.shape();
+        let (mut coef, mut tmp) = space.scratch();
+        let mut t = vec![0.0; n_in];
+        // The two-level sums are (P_perᵀ1_a + CᵀB_a)ᵀ u, B_a = Φᵀ1_a.
+        let mut b = DMatrix::<f64>::zeros(k, 3);
+        let mut d = DMatrix::<f64>::zeros(3, n_in);
+        for (a, wa) in sums.iter().enumerate() {
+            let ones: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == a)).collect();
+            space.basis.project(&ones, &mut tmp, &mut coef);
+            b.column_mut(a).copy_from_slice(&coef);
+            direct_transpose(plan, w, ph, true, &ones, &mut t);
+            let ctb = c.transpose() * b.column(a);
+            for i in 0..n_in {
+                d[(a, i)] = wa[i] - t[i] - ctb[i];
+            }
+        }
+        let gib = space.chol.solve(&b);
+        let m = b.transpose() * &gib;
+        let minv = m
+            .try_inverse()
+            .ok_or_else(|| "the force-sum constraint matrix BᵀG⁻¹B is singular".to_string())?;
+        *c += gib * minv * d;
+        Ok(())
     }
 
     /// `f += Φ C (in_scale · u)`.
@@ -389,17 +491,22 @@ impl Coarse {
         for (co, row) in self.coef.iter_mut().zip(self.c.chunks_exact(n)) {
             *co = dot(row, u) * in_scale;
         }
-        self.basis.add(&self.coef, &mut self.tmp, f);
+        self.space.basis.add(&self.coef, &mut self.tmp, f);
+    }
+
+    /// The coarse space.
+    pub(super) fn space(&self) -> &CoarseSpace {
+        &self.space
     }
 
     /// Coarse spacing (force nodes) and coarse nodes per axis.
     pub(super) fn shape(&self) -> (usize, [usize; 2]) {
-        (self.basis.spacing, self.basis.nc)
+        (self.space.basis.spacing, self.space.basis.nc)
     }
 
     /// `k`, the number of coarse functions.
     pub(super) fn len(&self) -> usize {
-        self.basis.len()
+        self.space.basis.len()
     }
 }
 

@@ -858,53 +858,88 @@ impl FourierSolver {
         };
         // ---- noise propagation (per unit σ) ----
         let noise_direct = uncertainty::direct_map(&plan, &mut work, &pmat, &mut planner);
-        let converged =
-            uncertainty::converged_sums(&plan, &mut work, &amat, &qmat, lambda, n_in, n_out);
-        let coarse = match &converged {
-            _ if !config.fourier_coarse => {
-                diag.notes.push(
-                    "two-level correction not requested: the direct periodic solve alone".into(),
-                );
-                None
-            }
-            None => {
-                diag.notes.push(
-                    "two-level correction off: λ = 0 (the direct periodic solve alone)".into(),
-                );
-                None
-            }
-            Some((_, funcs)) => match coarse::Coarse::build(
+        // The two-level correction (coarse.rs): the coarse space and its Galerkin solve
+        // first, which also precondition the force-sum solves, then the exact sums.
+        let warn_direct = |why: String| {
+            format!(
+                "{}fourier: {why}: the direct periodic solve alone carries the periodic \
+                 model's boundary error (force sums off by tens of % on bounded grids); add \
+                 --refine-iterations, give another λ or use a dense solver",
+                super::WARNING_PREFIX
+            )
+        };
+        let galerkin = if !config.fourier_coarse {
+            diag.notes
+                .push("two-level correction not requested: the direct periodic solve alone".into());
+            None
+        } else if lambda <= 0.0 {
+            diag.notes
+                .push(warn_direct("λ = 0 has no two-level correction".into()));
+            None
+        } else {
+            match coarse::Coarse::galerkin(
                 &plan,
                 &mut work,
                 &amat,
                 &pmat,
                 lambda,
-                funcs,
                 n_in,
                 n_out,
                 coarse::COARSE_BUDGET,
             ) {
-                Ok(c) => {
-                    let (s, nc) = c.shape();
-                    diag.notes.push(format!(
-                        "two-level solve: direct periodic solve + Galerkin correction on {} \
-                         coarse functions (hats every {s} force nodes, {}×{} coarse nodes), \
-                         force sums those of dense Tikhonov",
-                        c.len(),
-                        nc[0],
-                        nc[1]
-                    ));
-                    Some(c)
-                }
+                Ok(g) => Some(g),
                 Err(e) => {
-                    diag.notes.push(format!(
-                        "two-level correction off ({e}): direct periodic solve"
-                    ));
+                    diag.notes
+                        .push(warn_direct(format!("two-level correction off ({e})")));
                     None
                 }
-            },
+            }
         };
-        let noise_refined_sum = converged.map(|(s, _)| s);
+        let converged = uncertainty::converged_sums(
+            &plan,
+            &mut work,
+            &amat,
+            &qmat,
+            galerkin.as_ref().map(|g| g.space()),
+            lambda,
+            n_in,
+            n_out,
+        );
+        let coarse = match (galerkin, &converged) {
+            (Some(g), Some((_, funcs, residual))) => {
+                let exact = *residual <= uncertainty::SUM_ACCEPT;
+                if !exact {
+                    diag.notes.push(format!(
+                        "{}fourier: the force-sum solves stopped at a relative residual of \
+                         {residual:.1e} (iteration cap): the two-level solve keeps its \
+                         Galerkin sums instead of dense Tikhonov's, and the force-sum SDs \
+                         are approximate; a larger λ converges faster",
+                        super::WARNING_PREFIX
+                    ));
+                }
+                let sums = exact.then_some(funcs);
+                match coarse::Coarse::finish(&plan, &mut work, g, sums, n_out) {
+                    Ok(c) => {
+                        let (s, nc) = c.shape();
+                        diag.notes.push(format!(
+                            "two-level solve: direct periodic solve + Galerkin correction on {} \
+                             coarse functions (hats every {s} force nodes, {}×{} coarse nodes)",
+                            c.len(),
+                            nc[0],
+                            nc[1]
+                        ));
+                        Some(c)
+                    }
+                    Err(e) => {
+                        diag.notes
+                            .push(warn_direct(format!("two-level correction off ({e})")));
+                        None
+                    }
+                }
+            }
+            _ => None,
+        };
+        let noise_refined_sum = converged.map(|(s, _, _)| s);
         // Force sums of the bridged direct map, exactly: ΣF_a = (P_perᵀ 1_a)ᵀ u.
         let noise_bridged_sum = {
             let ph = coarse::blocks_adjoint(&plan, &pmat);
@@ -1019,6 +1054,7 @@ impl FourierSolver {
                     &mut w,
                     &self.a,
                     &self.q,
+                    self.coarse.as_ref().map(|c| c.space()),
                     self.lambda,
                     spacing,
                     n_in,

@@ -52,6 +52,7 @@
 //!
 //! Checked against 300 Monte Carlo frames and the exact dense rows in `tests/fourier.rs`.
 
+use super::coarse::CoarseSpace;
 use super::refine::{adjoint_op, forward_op, precond_op};
 use super::transform::{
     gather_marker_block, markers_to_spectra, scatter_force_block, transpose, Plan, Work, C64,
@@ -180,34 +181,50 @@ pub(super) fn direct_map(
     }
 }
 
-/// Relative residual at which the force-sum solves stop.
-const SUM_TOLERANCE: f64 = 1e-10;
+/// Relative residual at which the force-sum solves stop when the two-level solve takes
+/// its force sums from them.
+const SUM_TOLERANCE: f64 = 1e-8;
+/// ... and when they give SDs only.
+const SUM_TOLERANCE_SD: f64 = 1e-6;
+/// Largest relative residual of the force-sum solves the two-level solve accepts as
+/// exact sums (else it keeps the Galerkin correction's own sums and warns).
+pub(super) const SUM_ACCEPT: f64 = 1e-6;
 /// Iteration cap of the force-sum solves.
 const SUM_MAX_ITERATIONS: usize = 2000;
 
 /// PCG on the normal equations `(HᵀH + λ²I) y = rhs`, preconditioned by the periodic
-/// block inverse `M`, from `y = M rhs`, to a relative residual of `tol`.
-/// `hp` (markers) and `q`, `r`, `z`, `p` (forces) are scratch.
+/// block inverse `M` (plus the coarse solve `Φ G⁻¹ Φᵀ` when a coarse space is given: the
+/// two-level preconditioner, `coarse.rs`), from `y = 0`, to a relative residual of
+/// `tol`. `hp` (markers) and `q`, `r`, `z`, `p` (forces) are scratch. Returns the
+/// relative residual reached (above `tol` when the iteration cap came first).
 #[allow(clippy::too_many_arguments)]
 fn solve_normal(
     plan: &Plan,
     w: &mut Work,
     amat: &[C64],
     qmat: &[C64],
+    coarse: Option<&CoarseSpace>,
     lam2: f64,
     rhs: &[f64],
     tol: f64,
     y: &mut [f64],
     hp: &mut [f64],
     [q, r, z, p]: [&mut [f64]; 4],
-) {
+) -> f64 {
     let bnorm = rhs.iter().map(|v| v * v).sum::<f64>().sqrt();
     y.fill(0.0);
     if bnorm == 0.0 {
-        return;
+        return 0.0;
     }
+    let mut scratch = coarse.map(|c| c.scratch());
+    let mut precondition = |w: &mut Work, r: &[f64], z: &mut [f64]| {
+        precond_op(plan, w, qmat, r, z);
+        if let (Some(c), Some((coef, tmp))) = (coarse, scratch.as_mut()) {
+            c.add_solve(r, coef, tmp, z);
+        }
+    };
     r.copy_from_slice(rhs);
-    precond_op(plan, w, qmat, r, z);
+    precondition(w, r, z);
     p.copy_from_slice(z);
     let mut gamma: f64 = r.iter().zip(z.iter()).map(|(a, b)| a * b).sum();
     for _ in 0..SUM_MAX_ITERATIONS {
@@ -226,9 +243,9 @@ fn solve_normal(
             *ri -= alpha * qi;
         }
         if r.iter().map(|v| v * v).sum::<f64>().sqrt() <= tol * bnorm {
-            break;
+            return r.iter().map(|v| v * v).sum::<f64>().sqrt() / bnorm;
         }
-        precond_op(plan, w, qmat, r, z);
+        precondition(w, r, z);
         let g2: f64 = r.iter().zip(z.iter()).map(|(a, b)| a * b).sum();
         let beta = g2 / gamma;
         gamma = g2;
@@ -236,20 +253,26 @@ fn solve_normal(
             *pi = zi + beta * *pi;
         }
     }
+    r.iter().map(|v| v * v).sum::<f64>().sqrt() / bnorm
 }
 
 /// The force-sum functionals of the converged refined map, dense Tikhonov
-/// `(HᵀH + λ²I)⁻¹Hᵀ`: `ΣF_c = w_cᵀu` (module docs), with their SDs per unit σ `‖w_c‖`.
-/// `None` for λ = 0 (no unique converged map).
+/// `(HᵀH + λ²I)⁻¹Hᵀ`: `ΣF_c = w_cᵀu` (module docs), with their SDs per unit σ `‖w_c‖`
+/// and the largest relative residual its CG solves reached.
+/// `None` for λ = 0 (no unique converged map). With a coarse space the solves use the
+/// two-level preconditioner and run to [`SUM_TOLERANCE`] (the two-level solve takes its
+/// force sums from these functionals); without, to [`SUM_TOLERANCE_SD`] (SDs only).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn converged_sums(
     plan: &Plan,
     w: &mut Work,
     amat: &[C64],
     qmat: &[C64],
+    coarse: Option<&CoarseSpace>,
     lambda: f64,
     n_in: usize,
     n_out: usize,
-) -> Option<([f64; 3], [Vec<f64>; 3])> {
+) -> Option<([f64; 3], [Vec<f64>; 3], f64)> {
     if lambda <= 0.0 {
         return None;
     }
@@ -258,26 +281,33 @@ pub(super) fn converged_sums(
     let mut funcs: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; n_in]);
     let mut y = vec![0.0; n_out];
     let mut scratch: [Vec<f64>; 4] = std::array::from_fn(|_| vec![0.0; n_out]);
+    let mut worst = 0.0f64;
     for (c, (out, hp)) in sum.iter_mut().zip(funcs.iter_mut()).enumerate() {
         // (HᵀH + λ²I) y = 1_c, the indicator of component c; w_c = H y.
         let rhs: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == c)).collect();
         let [q, r, z, p] = &mut scratch;
-        solve_normal(
+        let residual = solve_normal(
             plan,
             w,
             amat,
             qmat,
+            coarse,
             lam2,
             &rhs,
-            SUM_TOLERANCE,
+            if coarse.is_some() {
+                SUM_TOLERANCE
+            } else {
+                SUM_TOLERANCE_SD
+            },
             &mut y,
             hp,
             [q, r, z, p],
         );
+        worst = worst.max(residual);
         forward_op(plan, w, amat, &y, hp);
         *out = hp.iter().map(|v| v * v).sum::<f64>().sqrt();
     }
-    Some((sum, funcs))
+    Some((sum, funcs, worst))
 }
 
 /// Marker spacing (per axis, in marker pitches) of the probing estimate of per-node SDs
@@ -350,6 +380,7 @@ pub(super) fn converged_force_sd(
     w: &mut Work,
     amat: &[C64],
     qmat: &[C64],
+    coarse: Option<&CoarseSpace>,
     lambda: f64,
     spacing: usize,
     n_in: usize,
@@ -370,6 +401,7 @@ pub(super) fn converged_force_sd(
             w,
             amat,
             qmat,
+            coarse,
             lam2,
             &rhs,
             PROBE_TOLERANCE,
