@@ -101,7 +101,7 @@
 //! normal operator and of the transposed direct solve; `s` is the smallest spacing that
 //! keeps `k·n_in` within [`coarse::COARSE_BUDGET`] (on small grids `Φ = I`, and the
 //! two-level solve *is* dense Tikhonov). Measured against dense Tikhonov at λ = 2e-3 of
-//! the periodic σ_max on the five acceptance loads (worst): 16×16 exact to 1e-10 (`s = 1`);
+//! the periodic σ_max on the five acceptance loads (worst): 16×16 exact to 5e-8 (`s = 1`);
 //! 32×32 (`s = 3`, `k = 432`) force sums to 1e-8, field 3.0 % / 1.6 % interior; 64×64
 //! (`s = 11`, `k = 147`) force sums to 1e-8, field 3.6 % / 2.1 %; 1.6 ms per frame at
 //! 64×64 against 0.65 ms for the direct solve alone (README *Performance*).
