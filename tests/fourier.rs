@@ -983,7 +983,7 @@ fn two_level_uncertainty_matches_monte_carlo_at_32x32() {
 
 #[test]
 fn two_level_default_meets_the_bounds_at_64x64() {
-    // The speed target's grid (64×64 forces and markers at 1.1 mm, two layers, 1.6 ms
+    // The speed target's grid (64×64 forces and markers at 1.1 mm, two layers, 1.2 ms
     // per frame on-CPU: README *Performance*): the default two-level solve on the
     // acceptance loads against dense Tikhonov at λ = 2e-3 of the periodic σ_max, here
     // the refinement run to convergence (equal to dense Tikhonov to 1e-6 on 16×16 above;

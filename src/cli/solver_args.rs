@@ -42,7 +42,7 @@ pub struct SolverArgs {
     /// solve (a cap: the refinement stops earlier at --refine-tolerance). The default, 0,
     /// is the two-level solve alone: the per-frequency solve plus a precomputed
     /// coarse-grid correction, with the force sums of dense tikhonov exactly and the
-    /// field within ~4 % of it (1.6 ms per frame at 64x64). Each iteration costs about
+    /// field within ~4 % of it (1.2 ms per frame at 64x64). Each iteration costs about
     /// three per-frequency solves and brings the field closer to dense tikhonov
     /// (20 iterations: ~0.1 %). An error with the other solvers.
     #[arg(long, value_name = "N")]

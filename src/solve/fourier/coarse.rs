@@ -47,8 +47,9 @@ use super::refine::{adjoint_op, forces_to_lattice, forward_op};
 use super::transform::{Plan, Work, C64};
 
 /// Largest number of multiply-adds per frame (`k × inputs`) the coarse correction may
-/// cost: ~1 ms on one core of the bench machine (a 19 MB matrix streamed from memory), beside the
-/// 64×64 direct solve's ~0.65 ms: the 64×64 two-level solve takes 1.6 ms, under 2 ms.
+/// cost: ~0.5 ms on one core of the bench machine (a 9.6 MB f32 matrix streamed from
+/// memory; 1.0 ms in f64), beside the 64×64 direct solve's ~0.69 ms: the 64×64 two-level
+/// solve takes 1.2 ms, under 2 ms.
 pub const COARSE_BUDGET: usize = 2_500_000;
 
 /// Largest condition number of the Galerkin matrix `ΦᵀNΦ` the correction is built
@@ -248,8 +249,9 @@ impl Galerkin {
 #[derive(Clone)]
 pub(super) struct Coarse {
     space: CoarseSpace,
-    /// `k × n_in`, row-major.
-    c: Vec<f64>,
+    /// `k × n_in`, row-major, in f32: the per-frame product streams this matrix from
+    /// memory (19 MB in f64 at 64×64), so f32 halves its cost; it is accumulated in f64.
+    c: Vec<f32>,
     n_in: usize,
     coef: Vec<f64>,
     tmp: Vec<f64>,
@@ -264,16 +266,20 @@ impl std::fmt::Debug for Coarse {
     }
 }
 
-/// `Σ a_i b_i` with independent partial sums (vectorises).
-fn dot(a: &[f64], b: &[f64]) -> f64 {
+/// `Σ a_i b_i` in f64 with independent partial sums (vectorises).
+fn dot(a: &[f32], b: &[f64]) -> f64 {
     let mut acc = [0.0f64; 8];
     let n8 = a.len() / 8 * 8;
     for (x, y) in a[..n8].chunks_exact(8).zip(b[..n8].chunks_exact(8)) {
         for i in 0..8 {
-            acc[i] += x[i] * y[i];
+            acc[i] += f64::from(x[i]) * y[i];
         }
     }
-    let tail: f64 = a[n8..].iter().zip(&b[n8..]).map(|(x, y)| x * y).sum();
+    let tail: f64 = a[n8..]
+        .iter()
+        .zip(&b[n8..])
+        .map(|(x, y)| f64::from(*x) * y)
+        .sum();
     acc.iter().sum::<f64>() + tail
 }
 
@@ -430,10 +436,10 @@ impl Coarse {
         if let Some(sums) = sums {
             Self::constrain_sums(plan, w, &space, &ph, &mut c, sums, n_out)?;
         }
-        let mut rm = vec![0.0; k * n_in];
+        let mut rm = vec![0.0f32; k * n_in];
         for (j, row) in rm.chunks_exact_mut(n_in).enumerate() {
             for (i, v) in row.iter_mut().enumerate() {
-                *v = c[(j, i)];
+                *v = c[(j, i)] as f32;
             }
         }
         if rm.iter().any(|v| !v.is_finite()) {

@@ -101,10 +101,10 @@
 //! normal operator and of the transposed direct solve; `s` is the smallest spacing that
 //! keeps `k·n_in` within [`coarse::COARSE_BUDGET`] (on small grids `Φ = I`, and the
 //! two-level solve *is* dense Tikhonov). Measured against dense Tikhonov at λ = 2e-3 of
-//! the periodic σ_max on the five acceptance loads (worst): 16×16 exact to 5e-8 (`s = 1`);
+//! the periodic σ_max on the five acceptance loads (worst): 16×16 exact to 1.3e-7 (`s = 1`);
 //! 32×32 (`s = 3`, `k = 432`) force sums to 1e-8, field 3.0 % / 1.6 % interior; 64×64
-//! (`s = 11`, `k = 147`) force sums to 1e-8, field 3.6 % / 2.1 %; 1.6 ms per frame at
-//! 64×64 against 0.65 ms for the direct solve alone (README *Performance*).
+//! (`s = 11`, `k = 147`) force sums to 1e-8, field 3.6 % / 2.1 %; 1.2 ms per frame at
+//! 64×64 against 0.69 ms for the direct solve alone (README *Performance*).
 //! [`FourierSolver::coarse_correction`] `= false` (CLI `--coarse-correction off`) is the
 //! direct solve alone, where speed matters more than accuracy.
 //!
@@ -182,7 +182,7 @@ const MAX_PADDING: f64 = 8.0;
 /// Cap on the CGLS refinement iterations a new [`FourierSolver`] runs after the
 /// two-level solve: none. The two-level solve (direct periodic solve + coarse correction,
 /// `coarse.rs`) already meets issue 12's bounds against dense Tikhonov (force sums exact,
-/// field within 3.6 % / 2.1 % interior on the 64×64 acceptance loads) in 1.6 ms at 64×64;
+/// field within 3.6 % / 2.1 % interior on the 64×64 acceptance loads) in 1.2 ms at 64×64;
 /// refinement iterations converge further to dense Tikhonov at ~3 direct solves each.
 pub const DEFAULT_REFINE_ITERATIONS: usize = 0;
 
