@@ -89,9 +89,13 @@ fn dense_tikhonov(sensor: &Sensor, sites: &[MarkerSite], u: &[f64], lambda: f64)
 /// λ used by the comparisons: 1 % of the largest singular value of the periodic
 /// operator, a moderate regularisation for these grids.
 fn moderate_lambda(sensor: &Sensor, sites: &[MarkerSite]) -> f64 {
-    let p = Problem::new(sensor, sites);
-    let s = FourierSolver::precompute(&p, &config(Lambda::Fixed(1.0)), None).unwrap();
-    0.01 * s.diagnostics().singular_values[0]
+    periodic_lambda(&Problem::new(sensor, sites), 0.01)
+}
+
+/// `factor` × the largest singular value of the periodic operator (mm/N).
+fn periodic_lambda(p: &Problem<'_>, factor: f64) -> f64 {
+    let probe = FourierSolver::precompute(p, &config(Lambda::Fixed(1.0)), None).unwrap();
+    factor * probe.diagnostics().singular_values[0]
 }
 
 /// Deterministic N(0, σ²) noise (xorshift64* + Box–Muller).
@@ -573,45 +577,45 @@ fn shear_load_gives_no_false_normal_force_and_agrees_with_dense_tikhonov() {
     }
 }
 
-#[test]
-fn refinement_converges_to_dense_tikhonov_on_the_issue_geometry() {
+/// Refinement from the *direct* solve (on this grid the default two-level solve is dense
+/// Tikhonov already, which would leave nothing to refine): relative field error against
+/// dense Tikhonov after at most `cap` iterations (tolerance 0) on acceptance load `load`,
+/// and the iterations run.
+fn refined_from_direct(load: usize, cap: usize) -> (f64, usize) {
     let s = grid_sensor(16, 16, 1.1, 1.1);
     let sites = MarkerSite::from_sensor_grids(&s);
     let (pd, lambda) = dense_operator(&s, &sites);
     let p = Problem::new(&s, &sites);
     let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None)
         .unwrap()
-        .with_refinement(80)
+        .with_refinement(cap)
         .with_refine_tolerance(0.0);
-    let (_, f_true) = acceptance_loads(&s).swap_remove(0);
+    solver.coarse_correction = false;
+    let (_, f_true) = acceptance_loads(&s).swap_remove(load);
     let u = displacements(&s, &sites, &f_true);
     let dense = (&pd * DVector::from_column_slice(&u)).as_slice().to_vec();
     let mut f = vec![0.0; p.n_outputs()];
     solver.apply(&u, &mut f).unwrap();
-    let e = rel_err(&f, &dense);
+    (rel_err(&f, &dense), solver.last_refine_iterations())
+}
+
+#[test]
+fn refinement_converges_to_dense_tikhonov_on_the_issue_geometry() {
+    let (e, its) = refined_from_direct(0, 80);
     assert!(e < 1e-6, "80 CGLS iterations vs dense: {e:e}");
+    assert!(
+        its > 10,
+        "the direct solve needs refining: {its} iterations"
+    );
 }
 
 #[test]
 fn refinement_run_far_past_convergence_stays_at_dense_tikhonov() {
     // Regression: CGLS run on after converging to rounding diverged (600 iterations at
     // tolerance 0 on the off-centre fy load gave ΣF of 5e6 N); it now stops at stagnation.
-    let s = grid_sensor(16, 16, 1.1, 1.1);
-    let sites = MarkerSite::from_sensor_grids(&s);
-    let (pd, lambda) = dense_operator(&s, &sites);
-    let p = Problem::new(&s, &sites);
-    let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None)
-        .unwrap()
-        .with_refinement(600)
-        .with_refine_tolerance(0.0);
-    let (_, f_true) = acceptance_loads(&s).swap_remove(3);
-    let u = displacements(&s, &sites, &f_true);
-    let dense = (&pd * DVector::from_column_slice(&u)).as_slice().to_vec();
-    let mut f = vec![0.0; p.n_outputs()];
-    solver.apply(&u, &mut f).unwrap();
-    let e = rel_err(&f, &dense);
+    let (e, its) = refined_from_direct(3, 600);
     assert!(e < 1e-6, "600 iterations vs dense: {e:e}");
-    assert!(solver.last_refine_iterations() < 600);
+    assert!(its < 600, "{its} iterations");
 }
 
 #[test]
@@ -679,11 +683,8 @@ fn mixed_load_at_32x32_is_unbiased() {
     let s = grid_sensor(32, 32, 1.1, 1.1);
     let sites = MarkerSite::from_sensor_grids(&s);
     let p = Problem::new(&s, &sites);
-    let lambda = {
-        let probe = FourierSolver::precompute(&p, &config(Lambda::Fixed(1.0)), None).unwrap();
-        // σ₁ of the dense H is below the periodic σ_max; λ = 1e-2 of the latter / 5.
-        2e-3 * probe.diagnostics().singular_values[0]
-    };
+    // σ₁ of the dense H is below the periodic σ_max; λ = 1e-2 of the latter / 5.
+    let lambda = periodic_lambda(&p, 2e-3);
     let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
     let g = s.force_grid;
     let c = 0.5 * g.pitch_mm * (g.nx - 1) as f64;
@@ -950,10 +951,7 @@ fn two_level_uncertainty_matches_monte_carlo_at_32x32() {
     let sites = MarkerSite::from_sensor_grids(&s);
     let p = Problem::new(&s, &sites);
     let (n_in, n_out) = (p.n_inputs(), p.n_outputs());
-    let lambda = {
-        let probe = FourierSolver::precompute(&p, &config(Lambda::Fixed(1.0)), None).unwrap();
-        2e-3 * probe.diagnostics().singular_values[0]
-    };
+    let lambda = periodic_lambda(&p, 2e-3);
     let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
     assert!(solver.two_level());
     assert_eq!(solver.coarse_space(), Some((432, 3)));
@@ -992,10 +990,7 @@ fn two_level_default_meets_the_bounds_at_64x64() {
     let s = grid_sensor(64, 64, 1.1, 1.1);
     let sites = MarkerSite::from_sensor_grids(&s);
     let p = Problem::new(&s, &sites);
-    let lambda = {
-        let probe = FourierSolver::precompute(&p, &config(Lambda::Fixed(1.0)), None).unwrap();
-        2e-3 * probe.diagnostics().singular_values[0]
-    };
+    let lambda = periodic_lambda(&p, 2e-3);
     let mut solver = FourierSolver::precompute(&p, &config(Lambda::Fixed(lambda)), None).unwrap();
     assert!(solver.two_level());
     assert_eq!(solver.coarse_space(), Some((147, 11)));

@@ -235,7 +235,6 @@ impl CoarseSpace {
 pub(super) struct Galerkin {
     space: CoarseSpace,
     c: DMatrix<f64>,
-    ph: Vec<C64>,
 }
 
 impl Galerkin {
@@ -326,6 +325,27 @@ pub(super) fn direct_transpose(
     }
 }
 
+/// The indicator `1_a` of force component `a` on `n_out / 3` force nodes.
+pub(super) fn indicator(n_out: usize, a: usize) -> Vec<f64> {
+    (0..n_out).map(|j| f64::from(j % 3 == a)).collect()
+}
+
+/// The force-sum functionals of the bridged direct map, `P_perᵀ 1_a` (`ΣF_a = (P_perᵀ
+/// 1_a)ᵀ u`), through the transposed direct solve; `ph` from [`blocks_adjoint`].
+pub(super) fn direct_sum_functionals(
+    plan: &Plan,
+    w: &mut Work,
+    ph: &[C64],
+    n_in: usize,
+    n_out: usize,
+) -> [Vec<f64>; 3] {
+    std::array::from_fn(|a| {
+        let mut t = vec![0.0; n_in];
+        direct_transpose(plan, w, ph, true, &indicator(n_out, a), &mut t);
+        t
+    })
+}
+
 /// Per processed block, the conjugate transpose (`rows × cols`) of the `cols × rows`
 /// block solution operators `pmat`.
 pub(super) fn blocks_adjoint(plan: &Plan, pmat: &[C64]) -> Vec<C64> {
@@ -349,11 +369,12 @@ impl Coarse {
     /// factor, and the correction before the force-sum constraint. Errors describe why
     /// no correction could be built (the caller falls back to the direct solve).
     #[allow(clippy::too_many_arguments)]
+    /// `ph` is [`blocks_adjoint`] of the direct solve's block operators.
     pub(super) fn galerkin(
         plan: &Plan,
         w: &mut Work,
         amat: &[C64],
-        pmat: &[C64],
+        ph: &[C64],
         lambda: f64,
         n_in: usize,
         n_out: usize,
@@ -365,7 +386,6 @@ impl Coarse {
         let basis = Basis::new(plan.nf, spacing_for(plan.nf, n_in, budget));
         let k = basis.len();
         let lam2 = lambda * lambda;
-        let ph = blocks_adjoint(plan, pmat);
         let mut tmp = vec![0.0; basis.scratch_len()];
         let mut coef = vec![0.0; k];
         let mut phi = vec![0.0; n_out];
@@ -387,7 +407,7 @@ impl Coarse {
             }
             basis.project(&nphi, &mut tmp, &mut coef);
             g.column_mut(j).copy_from_slice(&coef);
-            direct_transpose(plan, w, &ph, true, &nphi, &mut t);
+            direct_transpose(plan, w, ph, true, &nphi, &mut t);
             for (i, (h, tv)) in hphi.iter().zip(&t).enumerate() {
                 rhs[(j, i)] = h - tv;
             }
@@ -416,25 +436,24 @@ impl Coarse {
         Ok(Galerkin {
             space: CoarseSpace { basis, chol },
             c,
-            ph,
         })
     }
 
     /// Second half: the force sums made those of dense Tikhonov exactly, `sums` being
-    /// the functionals `w_a = H N⁻¹ 1_a` (module docs); `None` keeps the Galerkin
-    /// correction's own sums.
+    /// the functionals `w_a = H N⁻¹ 1_a` (module docs) and `direct_sums` those of the
+    /// direct solve, `P_perᵀ 1_a` ([`direct_sum_functionals`]); `None` keeps the
+    /// Galerkin correction's own sums.
     pub(super) fn finish(
-        plan: &Plan,
-        w: &mut Work,
         galerkin: Galerkin,
         sums: Option<&[Vec<f64>; 3]>,
+        direct_sums: &[Vec<f64>; 3],
         n_out: usize,
     ) -> Result<Coarse, String> {
-        let Galerkin { space, mut c, ph } = galerkin;
+        let Galerkin { space, mut c } = galerkin;
         let (k, n_in) = c.shape();
         let (mut coef, mut tmp) = space.scratch();
         if let Some(sums) = sums {
-            Self::constrain_sums(plan, w, &space, &ph, &mut c, sums, n_out)?;
+            Self::constrain_sums(&space, &mut c, sums, direct_sums, n_out)?;
         }
         let mut rm = vec![0.0f32; k * n_in];
         for (j, row) in rm.chunks_exact_mut(n_in).enumerate() {
@@ -459,25 +478,22 @@ impl Coarse {
     /// `c += E (w − Sᵀ)`: the smallest change in `span Φ` (`N`-norm) that gives the
     /// two-level solve the force sums `w_aᵀu` (module docs).
     fn constrain_sums(
-        plan: &Plan,
-        w: &mut Work,
         space: &CoarseSpace,
-        ph: &[C64],
         c: &mut DMatrix<f64>,
         sums: &[Vec<f64>; 3],
+        direct_sums: &[Vec<f64>; 3],
         n_out: usize,
     ) -> Result<(), String> {
         let (k, n_in) = c.shape();
         let (mut coef, mut tmp) = space.scratch();
-        let mut t = vec![0.0; n_in];
         // The two-level sums are (P_perᵀ1_a + CᵀB_a)ᵀ u, B_a = Φᵀ1_a.
         let mut b = DMatrix::<f64>::zeros(k, 3);
         let mut d = DMatrix::<f64>::zeros(3, n_in);
-        for (a, wa) in sums.iter().enumerate() {
-            let ones: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == a)).collect();
-            space.basis.project(&ones, &mut tmp, &mut coef);
+        for (a, (wa, t)) in sums.iter().zip(direct_sums).enumerate() {
+            space
+                .basis
+                .project(&indicator(n_out, a), &mut tmp, &mut coef);
             b.column_mut(a).copy_from_slice(&coef);
-            direct_transpose(plan, w, ph, true, &ones, &mut t);
             let ctb = c.transpose() * b.column(a);
             for i in 0..n_in {
                 d[(a, i)] = wa[i] - t[i] - ctb[i];

@@ -868,6 +868,10 @@ impl FourierSolver {
                 super::WARNING_PREFIX
             )
         };
+        // The transposed direct solve gives the direct map's exact force sums, used by
+        // the two-level build and by `sum_sd` of the bridged direct solve.
+        let ph = coarse::blocks_adjoint(&plan, &pmat);
+        let direct_sums = coarse::direct_sum_functionals(&plan, &mut work, &ph, n_in, n_out);
         let galerkin = if !config.fourier_coarse {
             diag.notes
                 .push("two-level correction not requested: the direct periodic solve alone".into());
@@ -881,7 +885,7 @@ impl FourierSolver {
                 &plan,
                 &mut work,
                 &amat,
-                &pmat,
+                &ph,
                 lambda,
                 n_in,
                 n_out,
@@ -918,7 +922,7 @@ impl FourierSolver {
                     ));
                 }
                 let sums = exact.then_some(funcs);
-                match coarse::Coarse::finish(&plan, &mut work, g, sums, n_out) {
+                match coarse::Coarse::finish(g, sums, &direct_sums, n_out) {
                     Ok(c) => {
                         let (s, nc) = c.shape();
                         diag.notes.push(format!(
@@ -941,15 +945,7 @@ impl FourierSolver {
         };
         let noise_refined_sum = converged.map(|(s, _, _)| s);
         // Force sums of the bridged direct map, exactly: ΣF_a = (P_perᵀ 1_a)ᵀ u.
-        let noise_bridged_sum = {
-            let ph = coarse::blocks_adjoint(&plan, &pmat);
-            let mut t = vec![0.0; n_in];
-            std::array::from_fn(|a| {
-                let ones: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == a)).collect();
-                coarse::direct_transpose(&plan, &mut work, &ph, true, &ones, &mut t);
-                t.iter().map(|v| v * v).sum::<f64>().sqrt()
-            })
-        };
+        let noise_bridged_sum = direct_sums.map(|t| t.iter().map(|v| v * v).sum::<f64>().sqrt());
 
         Ok(FourierSolver {
             coarse,

@@ -284,7 +284,7 @@ pub(super) fn converged_sums(
     let mut worst = 0.0f64;
     for (c, (out, hp)) in sum.iter_mut().zip(funcs.iter_mut()).enumerate() {
         // (HᵀH + λ²I) y = 1_c, the indicator of component c; w_c = H y.
-        let rhs: Vec<f64> = (0..n_out).map(|j| f64::from(j % 3 == c)).collect();
+        let rhs = super::coarse::indicator(n_out, c);
         let [q, r, z, p] = &mut scratch;
         let residual = solve_normal(
             plan,
