@@ -44,7 +44,7 @@
 //!   400 for two layers).
 //! - The bridged direct map is probed the same way (direct applies), and so is the
 //!   two-level map (the default; `coarse.rs`): its coarse part is smooth, and its
-//!   cross terms average out like the others (32×32, hats every 3 nodes: 4.4 % overall
+//!   cross terms average out like the others (32×32, hats every 3 nodes: 4.3 % overall
 //!   against 300 Monte Carlo frames).
 //! - Force sums of the two-level map: exactly those of the converged map (it has dense
 //!   Tikhonov's sums). Of the bridged direct map: exact, `‖P_perᵀ 1_c‖` through the
