@@ -1,0 +1,1189 @@
+//! Validation of a parsed plan into a [`Plan`]: ranges with units, the keys each sweep
+//! kind requires, the defaults a plan left out (recorded for `run --dry-run`), the
+//! setpoint, frame and duration caps (computed before anything is expanded), and every
+//! target checked against the force limits and the travel box.
+
+use std::path::Path;
+
+use super::raw::{RawPlan, RawQuality};
+use super::sweep::level_count;
+use super::*;
+use crate::config::Checker;
+use crate::solve::{Lambda, Method, Rank, SolverConfig};
+use crate::units::ForceUnit;
+
+impl RawQuality {
+    fn validate(&self, c: &Checker<'_>) -> Result<Quality, PlanError> {
+        let d = Quality::default();
+        let fraction = |key: &str, v: Option<f64>, default: f64| {
+            let v = v.unwrap_or(default);
+            if v.is_finite() && (0.0..=1.0).contains(&v) {
+                Ok(v)
+            } else {
+                Err(c.invalid(
+                    key,
+                    v,
+                    "must be a fraction in [0, 1] of the sensor file's markers",
+                ))
+            }
+        };
+        let max_reacquire = match self.max_reacquire {
+            None => d.max_reacquire,
+            Some(v) if (0..=MAX_REACQUIRE).contains(&v) => v as usize,
+            Some(v) => {
+                return Err(c.invalid(
+                    "quality.max_reacquire",
+                    v,
+                    format!("must be an integer in [0, {MAX_REACQUIRE}] (re-acquisitions)"),
+                ))
+            }
+        };
+        let on_fail = match self.on_fail.as_deref() {
+            None | Some("flag") => OnFail::Flag,
+            Some("abort") => OnFail::Abort,
+            Some(other) => {
+                return Err(c.invalid(
+                    "quality.on_fail",
+                    format!("{other:?}"),
+                    "expected \"flag\" or \"abort\"",
+                ))
+            }
+        };
+        Ok(Quality {
+            reference_min_found_fraction: fraction(
+                "quality.reference_min_found_fraction",
+                self.reference_min_found_fraction,
+                d.reference_min_found_fraction,
+            )?,
+            min_ok_fraction: fraction(
+                "quality.min_ok_fraction",
+                self.min_ok_fraction,
+                d.min_ok_fraction,
+            )?,
+            max_reacquire,
+            on_fail,
+        })
+    }
+}
+
+/// Defaults of the optional keys (`docs/plans.md`; echoed by `run --dry-run`).
+const DEFAULT_FORCE_UNIT: &str = "N";
+const DEFAULT_MAX_STEPS: i64 = 40;
+const DEFAULT_WINDOW_S: f64 = 0.5;
+const DEFAULT_TIMEOUT_S: f64 = 10.0;
+const DEFAULT_DWELL_S: f64 = 0.0;
+const DEFAULT_SAMPLES: i64 = 20;
+const DEFAULT_FRAMES: i64 = 1;
+const DEFAULT_DIRECTION_DEG: f64 = 0.0;
+
+/// The optional keys a plan left out, with the defaults used (for `--dry-run`).
+#[derive(Default)]
+struct Defaults(Vec<(String, String)>);
+
+impl Defaults {
+    /// `v`, or `default` (recorded as `key = show(default)`) when the key is absent.
+    fn take<T: Clone>(
+        &mut self,
+        v: Option<T>,
+        default: T,
+        key: &str,
+        show: impl FnOnce(T) -> String,
+    ) -> T {
+        match v {
+            Some(v) => v,
+            None => {
+                self.push(key, show(default.clone()));
+                default
+            }
+        }
+    }
+
+    fn push(&mut self, key: &str, value: String) {
+        self.0.push((key.to_string(), value));
+    }
+}
+
+/// The setpoint and frame caps, from the sweep's parameters alone (before anything
+/// is expanded). `max_normal` is `safety.max_force[2]` in the plan's force unit.
+fn check_caps(
+    c: &Checker<'_>,
+    sweep: &Sweep,
+    direction: SweepDirection,
+    positions: usize,
+    frames: usize,
+    fu: &str,
+    max_normal: f64,
+) -> Result<(), PlanError> {
+    if let Sweep::Hold {
+        duration_s, trials, ..
+    } = sweep
+    {
+        let hold_s = duration_s * *trials as f64;
+        if hold_s > MAX_DURATION_S {
+            return Err(c.invalid(
+                "sweep.duration_s",
+                format!("{duration_s} s"),
+                format!(
+                    "sweep.trials {trials} holds of sweep.duration_s {duration_s} s = {:.1} h of holding alone, above the cap of {:.0} h per plan",
+                    hold_s / 3600.0,
+                    MAX_DURATION_S / 3600.0
+                ),
+            ));
+        }
+    }
+    let total = total_count(sweep, direction, positions);
+    let base = sweep.count();
+    // NaN (cannot happen after the range checks) is refused as well.
+    if total.is_nan() || total > MAX_SETPOINTS as f64 {
+        let (key, value, how) = match sweep {
+            _ if base <= MAX_SETPOINTS as f64 && positions > 1 && base * positions as f64 > MAX_SETPOINTS as f64 => (
+                "sweep.positions_mm",
+                format!("{positions} positions"),
+                format!(
+                    "{base:.0} setpoints per position x {positions} positions = {total:.0} setpoints"
+                ),
+            ),
+            Sweep::Hold {
+                duration_s,
+                sample_interval_s,
+                trials,
+                ..
+            } => {
+                let per_hold = hold_sample_count(*duration_s, *sample_interval_s);
+                let how = format!(
+                    "sweep.duration_s {duration_s} s sampled every sweep.sample_interval_s {sample_interval_s} s is {per_hold:.0} samples per hold x sweep.trials {trials} (+ {} unloaded readings) = {total:.0} setpoints",
+                    trials + 1
+                );
+                if per_hold <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else {
+                    ("sweep.sample_interval_s", format!("{sample_interval_s} s"), how)
+                }
+            }
+            Sweep::Magnitude {
+                from,
+                to,
+                step,
+                trials,
+            } => {
+                let levels = level_count(*from, *to, *step);
+                let how = match direction {
+                    SweepDirection::Up => format!(
+                        "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels x sweep.trials {trials} = {total:.0} setpoints"
+                    ),
+                    SweepDirection::UpDown => format!(
+                        "sweep.from {from} to sweep.to {to} {fu} by sweep.step {step} {fu} is {levels:.0} levels, up and down (sweep.direction = \"up-down\") x sweep.trials {trials} = {total:.0} setpoints"
+                    ),
+                };
+                if levels <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else if *to > max_normal {
+                    (
+                        "sweep.to",
+                        format!("{to} {fu}"),
+                        format!(
+                            "{how} (and sweep.to is above safety.max_force[2] = {} {fu})",
+                            round9(max_normal)
+                        ),
+                    )
+                } else {
+                    ("sweep.step", format!("{step} {fu}"), how)
+                }
+            }
+            Sweep::Angle {
+                from_deg,
+                to_deg,
+                step_deg,
+                trials,
+                ..
+            } => {
+                let levels = level_count(*from_deg, *to_deg, *step_deg);
+                let how = format!(
+                    "sweep.angle_from_deg {from_deg} to sweep.angle_to_deg {to_deg} deg by sweep.angle_step_deg {step_deg} deg is {levels:.0} angles x sweep.trials {trials} = {total:.0} setpoints"
+                );
+                if levels <= MAX_SETPOINTS as f64 {
+                    ("sweep.trials", trials.to_string(), how)
+                } else {
+                    ("sweep.angle_step_deg", format!("{step_deg} deg"), how)
+                }
+            }
+            _ => (
+                "sweep",
+                format!("{total:.0} setpoints"),
+                "the sweep is too long".to_string(),
+            ),
+        };
+        return Err(c.invalid(
+            key,
+            value,
+            format!("{how}, above the cap of {MAX_SETPOINTS} setpoints per plan"),
+        ));
+    }
+    let n_frames = total * frames as f64;
+    if n_frames > MAX_FRAMES as f64 {
+        return Err(c.invalid(
+            "acquire.frames",
+            frames,
+            format!(
+                "{total:.0} setpoints x {frames} frames = {n_frames:.0} frames, above the cap of {MAX_FRAMES} frames per plan"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// A key the chosen sweep kind requires.
+fn need<T>(c: &Checker<'_>, key: &str, v: Option<T>, kind: &str) -> Result<T, PlanError> {
+    v.ok_or_else(|| {
+        c.invalid(
+            key,
+            "(missing)",
+            format!("required by sweep kind \"{kind}\""),
+        )
+    })
+}
+
+impl RawPlan {
+    pub(super) fn validate(self, path: &Path) -> Result<Plan, PlanError> {
+        let c = Checker { path };
+        let mut defaults = Defaults::default();
+        let unit_text = defaults.take(
+            self.force_unit.clone(),
+            DEFAULT_FORCE_UNIT.to_string(),
+            "force_unit",
+            |v| format!("{v:?}"),
+        );
+        let unit: ForceUnit = unit_text
+            .parse()
+            .map_err(|e: String| c.invalid("force_unit", format!("{unit_text:?}"), e))?;
+        let fu = unit.symbol();
+        let n = |v: f64| unit.to_newtons(v);
+
+        let indenter = match self.indenter.shape.as_str() {
+            "flat" | "hemisphere" => {
+                let d = need(
+                    &c,
+                    "indenter.diameter_mm",
+                    self.indenter.diameter_mm,
+                    &self.indenter.shape,
+                )?;
+                let diameter_mm = c.positive("indenter.diameter_mm", d, "mm")?;
+                if self.indenter.shape == "flat" {
+                    IndenterShape::Flat { diameter_mm }
+                } else {
+                    IndenterShape::Hemisphere { diameter_mm }
+                }
+            }
+            "point" => IndenterShape::Point,
+            other => {
+                return Err(c.invalid(
+                    "indenter.shape",
+                    format!("{other:?}"),
+                    "unknown shape: expected flat, hemisphere or point",
+                ))
+            }
+        };
+
+        let a = &self.approach;
+        let approach_position_mm = [
+            c.finite("approach.position_mm[0]", a.position_mm[0], "mm")?,
+            c.finite("approach.position_mm[1]", a.position_mm[1], "mm")?,
+        ];
+        let approach_speed_mm_s = c.positive("approach.speed_mm_s", a.speed_mm_s, "mm/s")?;
+        let contact_force_n = n(c.positive("approach.contact_force", a.contact_force, fu)?);
+
+        let s = &self.safety;
+        let mut max_force_n = [0.0; 3];
+        for (i, v) in s.max_force.iter().enumerate() {
+            max_force_n[i] = n(c.positive(&format!("safety.max_force[{i}]"), *v, fu)?);
+        }
+        for i in 0..3 {
+            c.finite(
+                &format!("safety.travel_min_mm[{i}]"),
+                s.travel_min_mm[i],
+                "mm",
+            )?;
+            c.finite(
+                &format!("safety.travel_max_mm[{i}]"),
+                s.travel_max_mm[i],
+                "mm",
+            )?;
+            if s.travel_min_mm[i] >= s.travel_max_mm[i] {
+                return Err(c.invalid(
+                    &format!("safety.travel_max_mm[{i}]"),
+                    format!("{} mm", s.travel_max_mm[i]),
+                    format!(
+                        "must exceed safety.travel_min_mm[{i}] = {} mm",
+                        s.travel_min_mm[i]
+                    ),
+                ));
+            }
+        }
+        let max_speed_mm_s = c.positive("safety.max_speed_mm_s", s.max_speed_mm_s, "mm/s")?;
+        if approach_speed_mm_s > max_speed_mm_s {
+            return Err(c.invalid(
+                "approach.speed_mm_s",
+                format!("{approach_speed_mm_s} mm/s"),
+                format!("must not exceed safety.max_speed_mm_s = {max_speed_mm_s} mm/s"),
+            ));
+        }
+        let safety = Safety {
+            max_force_n,
+            travel_min_mm: s.travel_min_mm,
+            travel_max_mm: s.travel_max_mm,
+            max_speed_mm_s,
+        };
+
+        let with_fu = |v: f64| format!("{} {fu}", round9(v));
+        let tol_default = unit.from_newtons(contact_force_n);
+        let force_tolerance_n = n(c.positive(
+            "control.force_tolerance",
+            defaults.take(
+                self.control.force_tolerance,
+                tol_default,
+                "control.force_tolerance",
+                |v| format!("{} (approach.contact_force)", with_fu(v)),
+            ),
+            fu,
+        )?);
+        let max_control_steps = c.count(
+            "control.max_steps",
+            defaults.take(
+                self.control.max_steps,
+                DEFAULT_MAX_STEPS,
+                "control.max_steps",
+                |v| v.to_string(),
+            ),
+            10_000,
+        )?;
+
+        let st = &self.settle;
+        let secs = |v: f64| format!("{v} s");
+        let settle = Settle {
+            window_s: c.positive(
+                "settle.window_s",
+                defaults.take(st.window_s, DEFAULT_WINDOW_S, "settle.window_s", secs),
+                "s",
+            )?,
+            max_sd_n: n(c.positive(
+                "settle.max_sd",
+                defaults.take(
+                    st.max_sd,
+                    unit.from_newtons(force_tolerance_n) / 2.0,
+                    "settle.max_sd",
+                    |v| format!("{} (control.force_tolerance / 2)", with_fu(v)),
+                ),
+                fu,
+            )?),
+            timeout_s: c.positive(
+                "settle.timeout_s",
+                defaults.take(st.timeout_s, DEFAULT_TIMEOUT_S, "settle.timeout_s", secs),
+                "s",
+            )?,
+            dwell_s: c.non_negative(
+                "settle.dwell_s",
+                defaults.take(st.dwell_s, DEFAULT_DWELL_S, "settle.dwell_s", secs),
+                "s",
+            )?,
+        };
+        let samples = c.count(
+            "acquire.samples",
+            defaults.take(
+                self.acquire.samples,
+                DEFAULT_SAMPLES,
+                "acquire.samples",
+                |v| v.to_string(),
+            ),
+            100_000,
+        )?;
+        let frames = c.count(
+            "acquire.frames",
+            defaults.take(self.acquire.frames, DEFAULT_FRAMES, "acquire.frames", |v| {
+                v.to_string()
+            }),
+            1000,
+        )?;
+
+        let sw = self.sweep;
+        let kind = sw.kind.clone();
+        let trials = |c: &Checker| {
+            c.count(
+                "sweep.trials",
+                need(c, "sweep.trials", sw.trials, &kind)?,
+                10_000,
+            )
+        };
+        let sweep = match kind.as_str() {
+            "magnitude" => {
+                let from =
+                    c.non_negative("sweep.from", need(&c, "sweep.from", sw.from, &kind)?, fu)?;
+                let to = c.non_negative("sweep.to", need(&c, "sweep.to", sw.to, &kind)?, fu)?;
+                let step = c.positive("sweep.step", need(&c, "sweep.step", sw.step, &kind)?, fu)?;
+                if to < from {
+                    return Err(c.invalid(
+                        "sweep.to",
+                        format!("{to} {fu}"),
+                        format!("must be >= sweep.from = {from} {fu}"),
+                    ));
+                }
+                Sweep::Magnitude {
+                    from,
+                    to,
+                    step,
+                    trials: trials(&c)?,
+                }
+            }
+            "angle" => {
+                let force =
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let from_deg = need(&c, "sweep.angle_from_deg", sw.angle_from_deg, &kind)?;
+                let to_deg = need(&c, "sweep.angle_to_deg", sw.angle_to_deg, &kind)?;
+                for (key, v) in [
+                    ("sweep.angle_from_deg", from_deg),
+                    ("sweep.angle_to_deg", to_deg),
+                ] {
+                    if !(v.is_finite() && (0.0..90.0).contains(&v)) {
+                        return Err(c.invalid(
+                            key,
+                            format!("{v} deg"),
+                            "must be in [0, 90) deg from the normal",
+                        ));
+                    }
+                }
+                if to_deg < from_deg {
+                    return Err(c.invalid(
+                        "sweep.angle_to_deg",
+                        format!("{to_deg} deg"),
+                        format!("must be >= sweep.angle_from_deg = {from_deg} deg"),
+                    ));
+                }
+                Sweep::Angle {
+                    force,
+                    from_deg,
+                    to_deg,
+                    step_deg: c.positive(
+                        "sweep.angle_step_deg",
+                        need(&c, "sweep.angle_step_deg", sw.angle_step_deg, &kind)?,
+                        "deg",
+                    )?,
+                    direction_deg: c.finite(
+                        "sweep.direction_deg",
+                        defaults.take(
+                            sw.direction_deg,
+                            DEFAULT_DIRECTION_DEG,
+                            "sweep.direction_deg",
+                            |v| format!("{v} deg (+x)"),
+                        ),
+                        "deg",
+                    )?,
+                    trials: trials(&c)?,
+                }
+            }
+            "spatial" => {
+                let force =
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let start_mm = need(&c, "sweep.start_mm", sw.start_mm, &kind)?;
+                let end_mm = need(&c, "sweep.end_mm", sw.end_mm, &kind)?;
+                for (key, p) in [("sweep.start_mm", start_mm), ("sweep.end_mm", end_mm)] {
+                    c.finite(key, p[0], "mm")?;
+                    c.finite(key, p[1], "mm")?;
+                }
+                Sweep::Spatial {
+                    force,
+                    start_mm,
+                    end_mm,
+                    subdivisions: c.count(
+                        "sweep.subdivisions",
+                        need(&c, "sweep.subdivisions", sw.subdivisions, &kind)?,
+                        10_000,
+                    )?,
+                }
+            }
+            "hold" => {
+                let force =
+                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
+                let duration_s = c.positive(
+                    "sweep.duration_s",
+                    need(&c, "sweep.duration_s", sw.duration_s, &kind)?,
+                    "s",
+                )?;
+                let sample_interval_s = c.positive(
+                    "sweep.sample_interval_s",
+                    need(&c, "sweep.sample_interval_s", sw.sample_interval_s, &kind)?,
+                    "s",
+                )?;
+                if sample_interval_s > duration_s {
+                    return Err(c.invalid(
+                        "sweep.sample_interval_s",
+                        format!("{sample_interval_s} s"),
+                        format!("must not exceed sweep.duration_s = {duration_s} s"),
+                    ));
+                }
+                Sweep::Hold {
+                    force,
+                    duration_s,
+                    sample_interval_s,
+                    trials: trials(&c)?,
+                }
+            }
+            "displacement" => {
+                let shift_mm = need(&c, "sweep.shift_mm", sw.shift_mm, &kind)?;
+                c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
+                c.finite("sweep.shift_mm[1]", shift_mm[1], "mm")?;
+                Sweep::Displacement {
+                    shift_mm,
+                    trials: trials(&c)?,
+                }
+            }
+            "setpoints" => {
+                let points = need(&c, "sweep.points", sw.points, &kind)?;
+                if points.is_empty() {
+                    return Err(c.invalid(
+                        "sweep.points",
+                        "[]",
+                        "at least one [[sweep.points]] is required",
+                    ));
+                }
+                if points.len() > MAX_SETPOINTS {
+                    return Err(c.invalid(
+                        "sweep.points",
+                        format!("{} points", points.len()),
+                        format!("a plan may have at most {MAX_SETPOINTS} setpoints (cap)"),
+                    ));
+                }
+                let mut out = Vec::with_capacity(points.len());
+                let mut untangential = false;
+                for (i, p) in points.into_iter().enumerate() {
+                    untangential |= p.tangential.is_none();
+                    let tangential = p.tangential.unwrap_or([0.0; 2]);
+                    let key = format!("sweep.points[{i}]");
+                    c.finite(&format!("{key}.position_mm[0]"), p.position_mm[0], "mm")?;
+                    c.finite(&format!("{key}.position_mm[1]"), p.position_mm[1], "mm")?;
+                    out.push(ExplicitPoint {
+                        position_mm: p.position_mm,
+                        normal: c.non_negative(&format!("{key}.normal"), p.normal, fu)?,
+                        tangential: [
+                            c.finite(&format!("{key}.tangential[0]"), tangential[0], fu)?,
+                            c.finite(&format!("{key}.tangential[1]"), tangential[1], fu)?,
+                        ],
+                    });
+                }
+                if untangential {
+                    defaults.push(
+                        "sweep.points[].tangential",
+                        format!("[0, 0] {fu} (where not given)"),
+                    );
+                }
+                Sweep::Setpoints(out)
+            }
+            other => {
+                return Err(c.invalid(
+                    "sweep.kind",
+                    format!("{other:?}"),
+                    "unknown sweep: expected magnitude, angle, hold, spatial, displacement or setpoints",
+                ))
+            }
+        };
+
+        let sweep_direction = match (sw.direction.as_deref(), &sweep) {
+            (None, Sweep::Magnitude { .. }) => {
+                defaults.push("sweep.direction", "\"up\"".into());
+                SweepDirection::Up
+            }
+            (None, _) => SweepDirection::Up,
+            (Some(d), Sweep::Magnitude { .. }) => match d {
+                "up" => SweepDirection::Up,
+                "up-down" => SweepDirection::UpDown,
+                other => {
+                    return Err(c.invalid(
+                        "sweep.direction",
+                        format!("{other:?}"),
+                        "expected \"up\" or \"up-down\"",
+                    ))
+                }
+            },
+            (Some(d), _) => {
+                return Err(c.invalid(
+                    "sweep.direction",
+                    format!("{d:?}"),
+                    format!("only magnitude sweeps run up and down (sweep kind is \"{kind}\")"),
+                ))
+            }
+        };
+        let positions_mm = match sw.positions_mm {
+            None => Vec::new(),
+            Some(_) if !matches!(sweep, Sweep::Magnitude { .. } | Sweep::Angle { .. }) => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    "(given)",
+                    format!(
+                        "only magnitude and angle sweeps repeat their trials at several positions (sweep kind is \"{kind}\")"
+                    ),
+                ))
+            }
+            Some(list) if list.is_empty() => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    "[]",
+                    "give at least one [x, y] position (mm), or leave the key out",
+                ))
+            }
+            Some(list) if list.len() > MAX_POSITIONS => {
+                return Err(c.invalid(
+                    "sweep.positions_mm",
+                    format!("{} positions", list.len()),
+                    format!("at most {MAX_POSITIONS} positions"),
+                ))
+            }
+            Some(list) => {
+                for (i, p) in list.iter().enumerate() {
+                    for (a, axis) in ["x", "y"].iter().enumerate() {
+                        let key = format!("sweep.positions_mm[{i}][{a}]");
+                        c.finite(&key, p[a], "mm")?;
+                        let (lo, hi) = (safety.travel_min_mm[a], safety.travel_max_mm[a]);
+                        if p[a] < lo || p[a] > hi {
+                            return Err(c.invalid(
+                                &key,
+                                format!("{} mm", p[a]),
+                                format!(
+                                    "{axis} is outside the travel box safety.travel_min_mm[{a}]..travel_max_mm[{a}] = {lo}..{hi} mm"
+                                ),
+                            ));
+                        }
+                    }
+                }
+                list
+            }
+        };
+
+        check_caps(
+            &c,
+            &sweep,
+            sweep_direction,
+            positions_mm.len(),
+            frames,
+            fu,
+            unit.from_newtons(max_force_n[2]),
+        )?;
+
+        let r = &self.reconstruct;
+        let method: Method = match &r.solver {
+            None => {
+                defaults.push("reconstruct.solver", "\"pinv\"".into());
+                Method::Pinv
+            }
+            Some(m) => m
+                .parse()
+                .map_err(|e: String| c.invalid("reconstruct.solver", format!("{m:?}"), e))?,
+        };
+        let as_text = |v: &toml::Value| match v {
+            toml::Value::String(s) => s.clone(),
+            other => other.to_string(),
+        };
+        let lambda: Lambda = match &r.lambda {
+            None if method == Method::Fourier => {
+                defaults.push("reconstruct.lambda", "\"lcurve\" (fourier)".into());
+                Lambda::LCurve
+            }
+            None => {
+                if matches!(method, Method::Tikhonov) {
+                    defaults.push("reconstruct.lambda", "\"gcv\"".into());
+                }
+                Lambda::Gcv
+            }
+            Some(v) => as_text(v)
+                .parse()
+                .map_err(|e: String| c.invalid("reconstruct.lambda", v, e))?,
+        };
+        let rank: Rank = match &r.rank {
+            None => {
+                if matches!(method, Method::Tsvd) {
+                    defaults.push("reconstruct.rank", "\"auto\"".into());
+                }
+                Rank::Auto
+            }
+            Some(v) => as_text(v)
+                .parse()
+                .map_err(|e: String| c.invalid("reconstruct.rank", v, e))?,
+        };
+        let max_refine = crate::solve::fourier::MAX_REFINE_ITERATIONS as i64;
+        let fourier_refine_iterations = match self.reconstruct.refine_iterations {
+            None => {
+                if method == Method::Fourier {
+                    defaults.push(
+                        "reconstruct.refine_iterations",
+                        crate::solve::fourier::DEFAULT_REFINE_ITERATIONS.to_string(),
+                    );
+                }
+                crate::solve::fourier::DEFAULT_REFINE_ITERATIONS
+            }
+            Some(_) if method != Method::Fourier => {
+                return Err(c.invalid(
+                    "reconstruct.refine_iterations",
+                    self.reconstruct.refine_iterations.unwrap_or(0),
+                    format!("only the fourier solver refines (solver is {method})"),
+                ))
+            }
+            Some(v) if (0..=max_refine).contains(&v) => v as usize,
+            Some(v) => {
+                return Err(c.invalid(
+                    "reconstruct.refine_iterations",
+                    v,
+                    format!("must be an integer in [0, {max_refine}] (CGLS iterations)"),
+                ))
+            }
+        };
+        let solver = SolverConfig {
+            method,
+            lambda,
+            rank,
+            fourier_refine_iterations,
+            ..SolverConfig::default()
+        };
+
+        let quality = self.quality.validate(&c)?;
+        // The tracking gates the plan left at their defaults, echoed like the others.
+        let q = &self.quality;
+        if q.reference_min_found_fraction.is_none() {
+            defaults.push(
+                "quality.reference_min_found_fraction",
+                format!("{}", quality.reference_min_found_fraction),
+            );
+        }
+        if q.min_ok_fraction.is_none() {
+            defaults.push(
+                "quality.min_ok_fraction",
+                format!("{}", quality.min_ok_fraction),
+            );
+        }
+        if q.max_reacquire.is_none() {
+            defaults.push(
+                "quality.max_reacquire",
+                format!("{}", quality.max_reacquire),
+            );
+        }
+        if q.on_fail.is_none() {
+            defaults.push("quality.on_fail", "\"flag\"".into());
+        }
+        let plan = Plan {
+            sweep_direction,
+            positions_mm,
+            quality,
+            solver,
+            path: path.to_path_buf(),
+            name: self.name,
+            sensor_path: path.parent().unwrap_or(Path::new(".")).join(&self.sensor),
+            build_id: self.build_id,
+            force_unit: unit,
+            indenter,
+            approach_position_mm,
+            approach_speed_mm_s,
+            contact_force_n,
+            force_tolerance_n,
+            max_control_steps,
+            settle,
+            samples,
+            frames,
+            safety,
+            sweep,
+            defaults: defaults.0,
+        };
+        // The duration, from the (bounded) setpoints one at a time.
+        let est = plan.estimate_duration_s(DEFAULT_CLEARANCE_MM, None);
+        if est > MAX_DURATION_S {
+            let (key, value) = if plan.settle.dwell_s > 0.0
+                && plan.settle.dwell_s * plan.setpoint_count() as f64 > MAX_DURATION_S / 2.0
+            {
+                ("settle.dwell_s", format!("{} s", plan.settle.dwell_s))
+            } else {
+                ("sweep", format!("{} setpoints", plan.setpoint_count()))
+            };
+            return Err(c.invalid(
+                key,
+                value,
+                format!(
+                    "the plan's estimated duration is {:.1} h, above the cap of {:.0} h per plan",
+                    est / 3600.0,
+                    MAX_DURATION_S / 3600.0
+                ),
+            ));
+        }
+        // Every target must stay within the force limits and the travel box before
+        // anything moves.
+        for sp in plan.setpoints_iter() {
+            for i in 0..2 {
+                let v = sp.position_mm[i] + sp.shift_mm[i];
+                let (lo, hi) = (plan.safety.travel_min_mm[i], plan.safety.travel_max_mm[i]);
+                if v < lo || v > hi {
+                    return Err(c.invalid(
+                        "sweep",
+                        format!("setpoint {} at {} = {} mm", sp.index, ["x", "y"][i], round9(v)),
+                        format!(
+                            "outside the travel box safety.travel_min_mm[{i}]..travel_max_mm[{i}] = {lo}..{hi} mm"
+                        ),
+                    ));
+                }
+            }
+            let f = [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n];
+            for (i, axis) in ["x", "y", "z"].iter().enumerate() {
+                if f[i].abs() > plan.safety.max_force_n[i] {
+                    return Err(c.invalid(
+                        "sweep",
+                        format!(
+                            "setpoint {} with f{axis} = {} {fu}",
+                            sp.index,
+                            round9(unit.from_newtons(f[i]))
+                        ),
+                        format!(
+                            "exceeds safety.max_force[{i}] = {} {fu}",
+                            round9(unit.from_newtons(plan.safety.max_force_n[i]))
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(plan)
+    }
+}
+
+/// Rounds away unit-conversion noise for messages (1000 gf, not 999.9999999999999 gf).
+fn round9(v: f64) -> f64 {
+    (v * 1e9).round() / 1e9
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bench::plan::fixtures::*;
+
+    #[test]
+    fn quality_section_has_documented_defaults_and_checked_values() {
+        let p = parse(FIG7).unwrap();
+        assert_eq!(
+            p.quality,
+            Quality {
+                reference_min_found_fraction: 0.9,
+                min_ok_fraction: 0.9,
+                max_reacquire: 2,
+                on_fail: OnFail::Flag,
+            }
+        );
+        let q = parse(&format!(
+            "{FIG7}[quality]\nreference_min_found_fraction = 0.5\nmin_ok_fraction = 0.75\nmax_reacquire = 0\non_fail = \"abort\"\n"
+        ))
+        .unwrap()
+        .quality;
+        assert_eq!(
+            q,
+            Quality {
+                reference_min_found_fraction: 0.5,
+                min_ok_fraction: 0.75,
+                max_reacquire: 0,
+                on_fail: OnFail::Abort,
+            }
+        );
+        for (line, key, value) in [
+            ("min_ok_fraction = 1.5", "quality.min_ok_fraction", "1.5"),
+            (
+                "reference_min_found_fraction = -0.1",
+                "quality.reference_min_found_fraction",
+                "-0.1",
+            ),
+            ("max_reacquire = 11", "quality.max_reacquire", "11"),
+            ("on_fail = \"retry\"", "quality.on_fail", "\"retry\""),
+        ] {
+            let e = parse(&format!("{FIG7}[quality]\n{line}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("experiments/p.toml") && e.contains(key) && e.contains(value),
+                "{line}: {e}"
+            );
+        }
+        let e = parse(&format!("{FIG7}[quality]\nmin_ok = 0.5\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("min_ok"), "{e}");
+    }
+
+    #[test]
+    fn rejects_bad_values_naming_file_key_value_and_unit() {
+        let e = parse(&FIG7.replace("step = 50.0", "step = -50.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("experiments/p.toml")
+                && e.contains("sweep.step = -50 gf")
+                && e.contains("> 0 gf"),
+            "{e}"
+        );
+        let e = parse(&FIG7.replace("shape = \"hemisphere\"", "shape = \"cone\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("indenter.shape") && e.contains("cone"), "{e}");
+        let e = parse(&FIG7.replace("force_unit = \"gf\"", "force_unit = \"lbf\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("force_unit") && e.contains("lbf"), "{e}");
+        let e = parse(&FIG7.replace("trials = 10", "trials = 10\nbogus = 1"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bogus") && e.contains("line"), "{e}");
+        let e = parse(&FIG7.replace("speed_mm_s = 0.5", "speed_mm_s = 9.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("approach.speed_mm_s = 9 mm/s") && e.contains("max_speed_mm_s = 5"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn rejects_targets_beyond_the_force_limit_before_anything_moves() {
+        let e = parse(&FIG7.replace("to = 750.0", "to = 1200.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("fz = 1000") || e.contains("fz = 1050"), "{e}");
+        assert!(e.contains("safety.max_force[2] = 1000 gf"), "{e}");
+    }
+
+    #[test]
+    fn a_sweep_to_1e9_is_refused_by_the_setpoint_cap_naming_key_value_and_cap() {
+        let e = parse(&FIG7.replace("to = 750.0", "to = 1e9"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("experiments/p.toml")
+                && e.contains("sweep.to = 1000000000 gf")
+                && e.contains("200000010 setpoints")
+                && e.contains(&format!("cap of {MAX_SETPOINTS} setpoints")),
+            "{e}"
+        );
+        // A tiny step within the force limit names the step instead.
+        let e = parse(&FIG7.replace("step = 50.0", "step = 1e-6"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("sweep.step = 0.000001 gf") && e.contains("cap"),
+            "{e}"
+        );
+        let e = parse(&FIG7.replace(
+            "kind = \"magnitude\"\nfrom = 0.0\nto = 750.0\nstep = 50.0\ntrials = 10",
+            "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 45.0\nangle_step_deg = 1e-12\ntrials = 1",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.angle_step_deg") && e.contains("cap"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_frame_and_duration_caps_refuse_plans_that_would_run_for_weeks() {
+        let e = parse(&FIG7.replace("trials = 10", "trials = 20\n[acquire]\nframes = 1000"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("acquire.frames = 1000")
+                && e.contains("320000 frames")
+                && e.contains(&format!("cap of {MAX_FRAMES} frames")),
+            "{e}"
+        );
+        let e = parse(&FIG7.replace("trials = 10", "trials = 10\n[settle]\ndwell_s = 86400.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("settle.dwell_s = 86400 s") && e.contains("cap of 168 h"),
+            "{e}"
+        );
+        let p = parse(FIG7).unwrap();
+        let est = p.estimate_duration_s(DEFAULT_CLEARANCE_MM, None);
+        assert!(est > 0.0 && est < MAX_DURATION_S);
+        assert!(p.estimate_duration_s(DEFAULT_CLEARANCE_MM, Some(16)) < est / 5.0);
+    }
+
+    #[test]
+    fn a_missing_trials_is_refused_instead_of_meaning_one() {
+        let e = parse(&FIG7.replace("trials = 10\n", ""))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("sweep.trials = (missing)") && e.contains("required by sweep kind"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn fourier_refinement_is_a_plan_choice_checked_against_the_solver() {
+        let p = parse(&format!("{FIG7}[reconstruct]\nsolver = \"fourier\"\n")).unwrap();
+        assert_eq!(
+            p.solver.fourier_refine_iterations,
+            crate::solve::fourier::DEFAULT_REFINE_ITERATIONS
+        );
+        assert!(p
+            .defaults
+            .iter()
+            .any(|(k, _)| k == "reconstruct.refine_iterations"));
+        let p = parse(&format!(
+            "{FIG7}[reconstruct]\nsolver = \"fourier\"\nrefine_iterations = 0\n"
+        ))
+        .unwrap();
+        assert_eq!(p.solver.fourier_refine_iterations, 0);
+        for (extra, needle) in [
+            (
+                "solver = \"pinv\"\nrefine_iterations = 5",
+                "only the fourier solver",
+            ),
+            ("solver = \"fourier\"\nrefine_iterations = -1", "[0, 1000]"),
+            (
+                "solver = \"fourier\"\nrefine_iterations = 5000",
+                "[0, 1000]",
+            ),
+        ] {
+            let e = parse(&format!("{FIG7}[reconstruct]\n{extra}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("reconstruct.refine_iterations") && e.contains(needle),
+                "{extra}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn keys_left_out_are_listed_with_their_defaults() {
+        let p = parse(FIG7).unwrap();
+        let keys: Vec<&str> = p.defaults.iter().map(|(k, _)| k.as_str()).collect();
+        assert_eq!(
+            keys,
+            [
+                "control.force_tolerance",
+                "control.max_steps",
+                "settle.window_s",
+                "settle.max_sd",
+                "settle.timeout_s",
+                "settle.dwell_s",
+                "acquire.samples",
+                "acquire.frames",
+                "sweep.direction",
+                "reconstruct.solver",
+                "quality.reference_min_found_fraction",
+                "quality.min_ok_fraction",
+                "quality.max_reacquire",
+                "quality.on_fail"
+            ]
+        );
+        assert_eq!(p.defaults[0].1, "5 gf (approach.contact_force)");
+        assert_eq!(p.defaults[3].1, "2.5 gf (control.force_tolerance / 2)");
+        assert_eq!(p.settle.window_s, DEFAULT_WINDOW_S);
+        let p = parse(&FIG7.replace("force_unit = \"gf\"\n", "")).unwrap();
+        assert_eq!(p.force_unit, ForceUnit::Newton);
+        assert_eq!(p.defaults[0], ("force_unit".into(), "\"N\"".into()));
+    }
+
+    #[test]
+    fn sweep_direction_positions_and_hold_keys_are_checked_naming_file_key_and_value() {
+        let hold = "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 1.0\ntrials = 2";
+        for (sweep, key, needle) in [
+            (
+                format!("{MAG}\ndirection = \"down\""),
+                "sweep.direction = \"down\"",
+                "expected \"up\" or \"up-down\"",
+            ),
+            (
+                "kind = \"angle\"\nforce = 400.0\nangle_from_deg = 0.0\nangle_to_deg = 10.0\nangle_step_deg = 10.0\ntrials = 1\ndirection = \"up-down\"".into(),
+                "sweep.direction",
+                "only magnitude sweeps",
+            ),
+            (
+                format!("{MAG}\npositions_mm = []"),
+                "sweep.positions_mm = []",
+                "at least one",
+            ),
+            (
+                format!("{MAG}\npositions_mm = [[9.0, 6.75], [60.0, 6.75]]"),
+                "sweep.positions_mm[1][0] = 60 mm",
+                "travel box",
+            ),
+            (
+                format!("{hold}\npositions_mm = [[9.0, 6.75]]"),
+                "sweep.positions_mm",
+                "only magnitude and angle",
+            ),
+            (
+                hold.replace("duration_s = 10.0\n", ""),
+                "sweep.duration_s = (missing)",
+                "required by sweep kind \"hold\"",
+            ),
+            (
+                hold.replace("sample_interval_s = 1.0", "sample_interval_s = 20.0"),
+                "sweep.sample_interval_s = 20 s",
+                "must not exceed sweep.duration_s = 10 s",
+            ),
+            (
+                hold.replace("duration_s = 10.0", "duration_s = -1.0"),
+                "sweep.duration_s = -1",
+                "> 0",
+            ),
+            (
+                hold.replace("force = 300.0", "force = 2000.0"),
+                "fz = 2000 gf",
+                "safety.max_force[2]",
+            ),
+            (
+                hold.replace("trials = 2\n", "").replace("trials = 2", ""),
+                "sweep.trials = (missing)",
+                "required",
+            ),
+        ] {
+            let e = parse(&with_sweep(&sweep)).unwrap_err().to_string();
+            assert!(
+                e.contains("experiments/p.toml") && e.contains(key) && e.contains(needle),
+                "{sweep}: {e}"
+            );
+        }
+        // An unknown key in [sweep] is named with its line.
+        let e = parse(&with_sweep(&format!("{hold}\nhold_s = 3")))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("hold_s") && e.contains("line"), "{e}");
+    }
+
+    #[test]
+    fn hold_caps_are_checked_before_anything_is_expanded() {
+        let hold = "kind = \"hold\"\nforce = 300.0\nduration_s = 10.0\nsample_interval_s = 1.0\ntrials = 2";
+        let e = parse(&with_sweep(
+            &hold.replace("sample_interval_s = 1.0", "sample_interval_s = 1e-6"),
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.sample_interval_s = 0.000001 s")
+                && e.contains("samples per hold")
+                && e.contains(&format!("cap of {MAX_SETPOINTS} setpoints")),
+            "{e}"
+        );
+        let e = parse(&with_sweep(
+            &hold
+                .replace("duration_s = 10.0", "duration_s = 1e9")
+                .replace("sample_interval_s = 1.0", "sample_interval_s = 1e8"),
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.duration_s = 1000000000 s") && e.contains("cap of 168 h"),
+            "{e}"
+        );
+        let e = parse(&with_sweep(&format!(
+            "{MAG}\npositions_mm = [{}]",
+            vec!["[9.0, 6.75]"; 1000].join(", ")
+        )))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("sweep.positions_mm = 1000 positions") && e.contains("cap"),
+            "{e}"
+        );
+    }
+}
