@@ -36,9 +36,11 @@ use thiserror::Error;
 
 pub mod calibrate;
 pub mod camera;
+mod contrast;
 mod detect;
 mod health;
 mod image;
+pub mod onboard;
 mod output;
 mod track;
 mod window;
@@ -134,7 +136,8 @@ pub enum VisionError {
 pub enum MarkerStatus {
     /// Measured; the displacement is trusted.
     Ok,
-    /// Not found: no signal, too weak, outside the image, or missing from the reference.
+    /// Not found: no signal, too weak, outside the image, missing from the reference,
+    /// or its window crosses the border of the sensor file's `[camera] roi_px`.
     Lost,
     /// Its window converged onto the same blob as a neighbour's (or onto a blob with
     /// about twice the reference signal), or another layer's marker overlaps it too
