@@ -78,7 +78,7 @@ pub fn run(cmd: ModelCommand) -> Result<ExitCode> {
 
 fn forward(args: ForwardArgs) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
-    let forces = formats::read_forces(&args.forces)?;
+    let forces = formats::read_forces_for(&args.forces, &sensor)?;
     let points: Vec<[f64; 2]> = forces.iter().map(|r| r.position_mm).collect();
     let f: Vec<f64> = forces.iter().flat_map(|r| r.f_n).collect();
     // The sensor file's `[elastomer] model` (half-space or bonded layer).
@@ -128,7 +128,12 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     let (sites, frame) = match &args.displacements {
         Some(path) => {
             let frames = formats::read_displacements(path, &sensor)?;
-            let first = &frames[0];
+            formats::require_usable_marker(&frames, &sensor, path)?;
+            // The first frame with a usable marker gives the marker set.
+            let first = frames
+                .iter()
+                .find(|f| f.records.iter().any(|r| r.u_mm.is_some()))
+                .unwrap_or(&frames[0]);
             // Automatic lambda / rank needs a loaded frame: the first frame whose
             // displacements are not all zero among those with the first frame's markers
             // (an unloaded reference often comes first).
