@@ -94,6 +94,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         fit.iterations,
         fit.unmatched
     );
+    eprintln!(
+        "  centroid noise measured on the frame {:.4} px: residual gate RMS <= {:.4} px, any marker <= {:.4} px (passed)",
+        fit.noise_px,
+        tactbench::vision::calibrate::RMS_GATE_FACTOR * fit.noise_px
+            + tactbench::vision::calibrate::RESIDUAL_FLOOR_PX,
+        tactbench::vision::calibrate::MAX_GATE_FACTOR * fit.noise_px
+            + 2.0 * tactbench::vision::calibrate::RESIDUAL_FLOOR_PX
+    );
     for l in &c.layers {
         eprintln!(
             "  layer {}: {:.5} px/mm ({:.6} mm/px), origin ({:.3}, {:.3}) px, RMS {:.4} px over {} markers",

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
 use tactbench::formats;
 use tactbench::model::{self, ForwardModel, MarkerSite};
@@ -163,11 +163,14 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     };
     let config = args.solver.config().map_err(anyhow::Error::msg)?;
     let problem = Problem::new(&sensor, &sites);
-    let solver = solve::precompute(&problem, &config, frame.as_deref()).with_context(|| {
-        format!(
-            "cannot set up the {} solver (automatic lambda / rank needs --displacements, or give --lambda <value> / --rank <k>)",
-            config.method
-        )
+    let solver = solve::precompute(&problem, &config, frame.as_deref()).map_err(|e| {
+        // The hint on automatic parameters only where it is the cause.
+        let hint = if matches!(e, solve::SolveError::NeedsFrame(_)) {
+            " (automatic lambda / rank needs --displacements, or give --lambda <value> / --rank <k>)"
+        } else {
+            ""
+        };
+        anyhow::Error::new(e).context(format!("cannot set up the {} solver{hint}", config.method))
     })?;
     let d = solver.diagnostics();
     let noise_mm = 0.1 * sensor.camera.mm_per_px;

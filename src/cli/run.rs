@@ -522,6 +522,15 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 summary.measured,
                 dir.display()
             );
+            let planned = plan.setpoint_count();
+            if summary.done < planned {
+                // A session stopped by its --limit: say how to measure the rest.
+                eprintln!(
+                    "  {} of the plan's {planned} setpoints measured (--limit); `tactbench run --resume {}` measures the rest (add --limit N for N more)",
+                    summary.done,
+                    dir.display()
+                );
+            }
             Ok(ExitCode::SUCCESS)
         }
         RunStatus::Interrupted => {

@@ -94,7 +94,7 @@ pub enum ModelError {
         "bonded layer of thickness {} mm with markers at depth {} mm: distances up to {} mm \
          (the largest marker-force-point distance) would need tables of {} Bessel evaluations \
          and {} bytes, past the limit of {:e} evaluations and {:e} bytes; this layer allows \
-         distances up to {} mm (about 50 x its thickness). Thicknesses and depths are in mm: \
+         distances up to {} mm. Thicknesses and depths are in mm: \
          check `thickness_mm` and `depth_mm` (metres typed in?), or use `model = \"half-space\"`",
         crate::solve::fmt_num(*thickness_mm),
         crate::solve::fmt_num(*depth_mm),

@@ -204,6 +204,9 @@ pub struct CalibrationFit {
     pub parameters: Vec<(String, f64, f64)>,
     /// Blobs found but matched to no grid node.
     pub unmatched: usize,
+    /// The centroid noise measured on the frame (px; NaN when too few markers for
+    /// the estimate), which the residual gate is set against.
+    pub noise_px: f64,
 }
 
 /// One matched marker: layer, node position (mm), measured centroid (px).
@@ -688,6 +691,7 @@ pub fn calibrate(
                 .collect();
             let r = residuals(&layout, &p, &base, &matches);
             check_residuals(sensor, &matches, &r)?;
+            let noise_px = centroid_noise_px(sensor, &matches).unwrap_or(f64::NAN);
             let mut per_layer = vec![(0.0f64, 0usize); sensor.layers.len()];
             for (k, m) in matches.iter().enumerate() {
                 per_layer[m.layer].0 += r[2 * k].powi(2) + r[2 * k + 1].powi(2);
@@ -710,6 +714,7 @@ pub fn calibrate(
                 rounds,
                 parameters,
                 unmatched,
+                noise_px,
             });
         }
         last = Some(matches);
