@@ -22,7 +22,10 @@
 //! a unit of that order, where 1e-12 is far below any instrument's resolution: such
 //! values are the residue of arithmetic (`cos 90° = 6.1e-17`), not measurements.
 //! Twelve digits keep every value within a relative 5e-12 of what was computed,
-//! several orders below the noise of any measured quantity. NaN stays `NaN`.
+//! several orders below the noise of any measured quantity. NaN stays `NaN`. The
+//! displacement and force columns of these two files are linear quantities whose
+//! scale is the data's, not the unit's: there the cut is relative to the frame's
+//! largest value ([`NumRel`]), so scaling a frame by 1e-12 scales its file.
 
 use std::collections::HashSet;
 use std::io::Write;
@@ -74,6 +77,42 @@ impl std::fmt::Display for Num {
             write!(f, "{v}")
         }
     }
+}
+
+/// A number of a linear quantity as the displacement and forces CSVs write it: as
+/// [`Num`], except that the zero cut is relative to `scale` (the largest magnitude of
+/// its frame and column family): a value below `CSV_ZERO_BELOW × scale` is written as
+/// `0`. Forces are linear in the displacements, so the file of a frame scaled by
+/// 1e-12 is the file of the frame, scaled (no absolute threshold zeroes small loads).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NumRel(pub f64, pub f64);
+
+impl std::fmt::Display for NumRel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let NumRel(v, scale) = *self;
+        if !v.is_finite() {
+            return Num(v).fmt(f);
+        }
+        let scale = if scale.is_finite() { scale } else { 0.0 };
+        if v == 0.0 || v.abs() < CSV_ZERO_BELOW * scale {
+            return f.write_str("0");
+        }
+        let r: f64 = format!("{:.*e}", CSV_SIGNIFICANT_DIGITS - 1, v)
+            .parse()
+            .unwrap_or(v);
+        if r.abs() < 1e-5 || r.abs() >= 1e15 {
+            write!(f, "{r:e}")
+        } else {
+            write!(f, "{r}")
+        }
+    }
+}
+
+/// Largest finite magnitude in `v` (0 for none).
+fn max_finite_abs(v: impl IntoIterator<Item = f64>) -> f64 {
+    v.into_iter()
+        .filter(|x| x.is_finite())
+        .fold(0.0, |m, x| m.max(x.abs()))
 }
 
 /// Rewrites one CSV field the way [`Num`] writes numbers when it is a decimal number
@@ -164,6 +203,189 @@ pub enum FormatError {
         /// The file.
         path: PathBuf,
     },
+    /// No frame of the file has a single usable marker: nothing can be reconstructed.
+    #[error(
+        "{path}: no usable marker in any of its {frames} frame(s): every marker is lost \
+         (empty or NaN displacement): {markers}; nothing can be reconstructed"
+    )]
+    NoUsableMarker {
+        /// The file.
+        path: PathBuf,
+        /// Frames in the file.
+        frames: usize,
+        /// The lost markers, per layer (`blue: 0-259`).
+        markers: String,
+    },
+}
+
+/// Largest force component accepted from a file, N (1e6 N, 100 tonnes-force): far
+/// beyond what any elastomer sensor survives, far below what `f64` sums can hold.
+pub const MAX_FORCE_N: f64 = 1e6;
+
+/// What a value read from a file may plausibly be on this sensor: positions within
+/// the sensor's extent (the camera's field, the force grid and the marker grids)
+/// widened by its size on every side, displacements no larger than its size. The
+/// size is the diagonal of that extent (at least the elastomer's thickness), so the
+/// bounds are generous for real data and still refuse 1e9 mm or 1e300 mm.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Plausible {
+    /// Sensor extent `[x_min, y_min, x_max, y_max]`, mm.
+    pub extent_mm: [f64; 4],
+    /// The sensor's size, mm.
+    pub size_mm: f64,
+}
+
+impl Plausible {
+    /// The bounds of `sensor`.
+    pub fn of(sensor: &Sensor) -> Self {
+        let cam = &sensor.camera;
+        let mut pts = vec![
+            cam.px_to_mm([0.0, 0.0]),
+            cam.px_to_mm([cam.width_px as f64, cam.height_px as f64]),
+        ];
+        pts.extend(sensor.force_grid.nodes_mm());
+        for l in &sensor.layers {
+            if let Some(m) = &l.markers {
+                let g = &m.grid;
+                if !g.is_empty() {
+                    pts.push(g.node_mm(0, 0));
+                    pts.push(g.node_mm(g.nx - 1, g.ny - 1));
+                }
+            }
+        }
+        let mut e = [
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        for p in pts.iter().filter(|p| p[0].is_finite() && p[1].is_finite()) {
+            e = [
+                e[0].min(p[0]),
+                e[1].min(p[1]),
+                e[2].max(p[0]),
+                e[3].max(p[1]),
+            ];
+        }
+        let size = (e[2] - e[0])
+            .hypot(e[3] - e[1])
+            .max(sensor.elastomer.thickness_mm);
+        Plausible {
+            extent_mm: e,
+            size_mm: size,
+        }
+    }
+
+    /// `Err(what is allowed)` when coordinate `axis` (0 = x, 1 = y) of a position is
+    /// outside the widened extent.
+    pub fn position(&self, axis: usize, v_mm: f64) -> Result<(), String> {
+        let lo = self.extent_mm[axis] - self.size_mm;
+        let hi = self.extent_mm[axis + 2] + self.size_mm;
+        if (lo..=hi).contains(&v_mm) {
+            Ok(())
+        } else {
+            Err(format!(
+                "position {} mm is outside the sensor: it must lie within {} ... {} mm (the \
+                 sensor's extent {} ... {} mm, widened by its size {} mm)",
+                crate::solve::fmt_num(v_mm),
+                crate::solve::fmt_num(lo),
+                crate::solve::fmt_num(hi),
+                crate::solve::fmt_num(self.extent_mm[axis]),
+                crate::solve::fmt_num(self.extent_mm[axis + 2]),
+                crate::solve::fmt_num(self.size_mm)
+            ))
+        }
+    }
+
+    /// `Err(what is allowed)` when a displacement component is larger than the sensor.
+    pub fn displacement(&self, v_mm: f64) -> Result<(), String> {
+        if v_mm.abs() <= self.size_mm {
+            Ok(())
+        } else {
+            Err(format!(
+                "displacement {} mm is larger than the sensor itself ({} mm across): no \
+                 marker can move that far (is the unit mm?)",
+                crate::solve::fmt_num(v_mm),
+                crate::solve::fmt_num(self.size_mm)
+            ))
+        }
+    }
+}
+
+/// `Err(what is allowed)` when a force component is beyond [`MAX_FORCE_N`].
+pub fn plausible_force(v_n: f64) -> Result<(), String> {
+    if v_n.abs() <= MAX_FORCE_N {
+        Ok(())
+    } else {
+        Err(format!(
+            "force {} N is beyond {} N: no elastomer sensor carries that (is the unit N?)",
+            crate::solve::fmt_num(v_n),
+            crate::solve::fmt_num(MAX_FORCE_N)
+        ))
+    }
+}
+
+/// Refuses a displacement file in which no frame has a single usable marker (every
+/// row lost): the error names the file, the frame count and the lost markers per
+/// layer (id ranges, the first ones when there are many).
+pub fn require_usable_marker(
+    frames: &[DisplacementFrame],
+    sensor: &Sensor,
+    path: &Path,
+) -> Result<(), FormatError> {
+    if frames
+        .iter()
+        .any(|f| f.records.iter().any(|r| r.u_mm.is_some()))
+    {
+        return Ok(());
+    }
+    let mut per_layer: Vec<Vec<u64>> = vec![Vec::new(); sensor.layers.len()];
+    for f in frames {
+        for r in &f.records {
+            per_layer[r.layer].push(r.marker);
+        }
+    }
+    let markers: Vec<String> = per_layer
+        .iter_mut()
+        .zip(&sensor.layers)
+        .filter(|(ids, _)| !ids.is_empty())
+        .map(|(ids, l)| {
+            ids.sort_unstable();
+            ids.dedup();
+            format!("{} ({} lost: {})", l.name, ids.len(), id_ranges(ids, 8))
+        })
+        .collect();
+    Err(FormatError::NoUsableMarker {
+        path: path.to_path_buf(),
+        frames: frames.len(),
+        markers: markers.join("; "),
+    })
+}
+
+/// Sorted ids as ranges (`0-9, 12, 20-25`), at most `max` ranges then `…`.
+fn id_ranges(ids: &[u64], max: usize) -> String {
+    let mut ranges: Vec<(u64, u64)> = Vec::new();
+    for &id in ids {
+        match ranges.last_mut() {
+            Some((_, hi)) if id == *hi + 1 => *hi = id,
+            _ => ranges.push((id, id)),
+        }
+    }
+    let mut out: Vec<String> = ranges
+        .iter()
+        .take(max)
+        .map(|&(a, b)| {
+            if a == b {
+                a.to_string()
+            } else {
+                format!("{a}-{b}")
+            }
+        })
+        .collect();
+    if ranges.len() > max {
+        out.push(format!("... ({} more ranges)", ranges.len() - max));
+    }
+    out.join(", ")
 }
 
 /// One marker's row of a displacement file, after validation.
@@ -266,6 +488,7 @@ pub fn read_displacements_from(
         });
     }
     let frame_col = headers.iter().position(|h| h == "frame");
+    let plausible = Plausible::of(sensor);
 
     let mut frames: Vec<DisplacementFrame> = Vec::new();
     let mut seen: Vec<HashSet<(usize, u64)>> = Vec::new();
@@ -307,7 +530,11 @@ pub fn read_displacements_from(
                     "reference position must be finite (mm)".into(),
                 ));
             }
-            pos[if i == 2 { 0 } else { 1 }] = v;
+            let axis = if i == 2 { 0 } else { 1 };
+            plausible
+                .position(axis, v)
+                .map_err(|m| bad(col, &rec[i], m))?;
+            pos[axis] = v;
         }
         let mut comp = [None; 2];
         for (k, (i, col)) in [(4usize, "ux_mm"), (5, "uy_mm")].into_iter().enumerate() {
@@ -330,6 +557,7 @@ pub fn read_displacements_from(
                 ));
             }
             if !v.is_nan() {
+                plausible.displacement(v).map_err(|m| bad(col, raw, m))?;
                 comp[k] = Some(v);
             }
         }
@@ -396,6 +624,7 @@ pub fn write_displacements(
     };
     let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
     writeln!(w, "{}", DISPLACEMENT_COLUMNS.join(",")).map_err(io)?;
+    let scale = max_finite_abs(records.iter().filter_map(|r| r.u_mm).flatten());
     for r in records {
         let name = &sensor.layers[r.layer].name;
         match r.u_mm {
@@ -405,8 +634,8 @@ pub fn write_displacements(
                 r.marker,
                 Num(r.position_mm[0]),
                 Num(r.position_mm[1]),
-                Num(u[0]),
-                Num(u[1])
+                NumRel(u[0], scale),
+                NumRel(u[1], scale)
             ),
             None => writeln!(
                 w,
@@ -479,6 +708,10 @@ pub fn write_forces_sd_to(
     }
     writeln!(w, "{}", if multi { ",frame" } else { "" })?;
     for (fi, (label, f)) in frames.iter().enumerate() {
+        // Zero cut relative to the frame's largest force (and SD): see [`NumRel`].
+        let scale = max_finite_abs(f.iter().copied());
+        let sd_frame = sd.and_then(|s| s.get(fi));
+        let sd_scale = sd_frame.map_or(0.0, |s| max_finite_abs(s.iter().copied()));
         for iy in 0..grid.ny {
             for ix in 0..grid.nx {
                 let j = iy * grid.nx + ix;
@@ -488,17 +721,17 @@ pub fn write_forces_sd_to(
                     "{ix},{iy},{},{},{},{},{}",
                     Num(p[0]),
                     Num(p[1]),
-                    Num(f[3 * j]),
-                    Num(f[3 * j + 1]),
-                    Num(f[3 * j + 2])
+                    NumRel(f[3 * j], scale),
+                    NumRel(f[3 * j + 1], scale),
+                    NumRel(f[3 * j + 2], scale)
                 )?;
-                if let Some(s) = sd.and_then(|s| s.get(fi)) {
+                if let Some(s) = sd_frame {
                     write!(
                         w,
                         ",{},{},{}",
-                        Num(s[3 * j]),
-                        Num(s[3 * j + 1]),
-                        Num(s[3 * j + 2])
+                        NumRel(s[3 * j], sd_scale),
+                        NumRel(s[3 * j + 1], sd_scale),
+                        NumRel(s[3 * j + 2], sd_scale)
                     )?;
                 }
                 if multi {
@@ -524,8 +757,23 @@ pub struct ForceRecord {
     pub f_n: [f64; 3],
 }
 
-/// Reads a forces file (the first frame's rows when there are several).
+/// Reads a forces file (the first frame's rows when there are several). Positions
+/// and forces must be finite, forces within [`MAX_FORCE_N`]; [`read_forces_for`]
+/// also checks the positions against a sensor.
 pub fn read_forces(path: &Path) -> Result<Vec<ForceRecord>, FormatError> {
+    read_forces_checked(path, None)
+}
+
+/// As [`read_forces`], with every position within the sensor's plausible extent
+/// ([`Plausible`]).
+pub fn read_forces_for(path: &Path, sensor: &Sensor) -> Result<Vec<ForceRecord>, FormatError> {
+    read_forces_checked(path, Some(&Plausible::of(sensor)))
+}
+
+fn read_forces_checked(
+    path: &Path,
+    plausible: Option<&Plausible>,
+) -> Result<Vec<ForceRecord>, FormatError> {
     let mut rdr = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
         .from_path(path)
@@ -542,14 +790,31 @@ pub fn read_forces(path: &Path) -> Result<Vec<ForceRecord>, FormatError> {
     for result in rdr.records() {
         let rec = result.map_err(|e| csv_error(path, e))?;
         let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let bad = |i: usize, message: String| FormatError::Value {
+            path: path.to_path_buf(),
+            line,
+            column: FORCE_COLUMNS[i],
+            value: rec[i].to_string(),
+            message,
+        };
         let num = |i: usize| -> Result<f64, FormatError> {
-            rec[i].parse::<f64>().map_err(|_| FormatError::Value {
-                path: path.to_path_buf(),
-                line,
-                column: FORCE_COLUMNS[i],
-                value: rec[i].to_string(),
-                message: "expected a number".into(),
-            })
+            let v = rec[i]
+                .parse::<f64>()
+                .map_err(|_| bad(i, "expected a number".into()))?;
+            // NaN forces are what `reconstruct` writes for a frame it could not solve.
+            if v.is_infinite() || (v.is_nan() && i < 4) {
+                return Err(bad(i, "must be a finite number".into()));
+            }
+            match i {
+                2 | 3 => {
+                    if let Some(p) = plausible {
+                        p.position(i - 2, v).map_err(|m| bad(i, m))?;
+                    }
+                }
+                4..=6 if !v.is_nan() => plausible_force(v).map_err(|m| bad(i, m))?,
+                _ => {}
+            }
+            Ok(v)
         };
         out.push(ForceRecord {
             ix: num(0)? as usize,

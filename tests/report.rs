@@ -124,6 +124,7 @@ pub(crate) fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mu
         software_version: "0.1.0-test".into(),
         started_at: "2026-11-22T01:00:00Z".into(),
         resumed_at: vec![],
+        sessions: vec![],
         setpoints: setpoints.len(),
         planned_setpoints: Some(setpoints.len()),
         limit: None,

@@ -264,10 +264,19 @@ fn a_run_killed_mid_sweep_resumes_to_a_complete_journal() {
     assert!(before >= 3 && before < n, "{before} rows before the kill");
 
     // Resumed from another working directory: the bench comes from the manifest,
-    // its relative scene path from the directory the run started in.
+    // its relative scene path from the directory the run started in. `--limit`
+    // caps a session (issue 24): the rest of the killed session's 8 setpoints.
+    let rest = (n - before).to_string();
     let o = util::run_in(
         tmp.path(),
-        &["run", "--resume", out.to_str().unwrap(), "--no-progress"],
+        &[
+            "run",
+            "--resume",
+            out.to_str().unwrap(),
+            "--limit",
+            &rest,
+            "--no-progress",
+        ],
     );
     assert!(o.status.success(), "{}", util::stderr(&o));
     let rows = rows(&out);
@@ -456,7 +465,9 @@ fn injected_device_faults_end_in_recovery_or_a_clean_abort_with_the_journal_inta
     assert_eq!(before, (0..before.len()).collect::<Vec<_>>());
     assert!(before.len() < 5, "the fault hit mid-run");
     assert_eq!(Manifest::read(&out).unwrap().status, RunStatus::Aborted);
-    let (s, _, _, _) = run_in_process(&plan, &scene, &out, true, None, None, None);
+    // The rest of the aborted session's 5 (a limit caps a session, issue 24).
+    let rest = 5 - before.len();
+    let (s, _, _, _) = run_in_process(&plan, &scene, &out, true, Some(rest), None, None);
     assert_eq!(s.status, RunStatus::Completed, "{:?}", s.reason);
     assert_eq!(
         rows(&out).iter().map(|r| r.index).collect::<Vec<_>>(),

@@ -1068,6 +1068,10 @@ fn build_solver(
 /// Largest singular value of the problem's `H`, mm/N, by 100 power iterations on `HᵀH`
 /// (relative accuracy far below the decades λ is varied by).
 fn sigma_max(problem: &Problem<'_>) -> Result<f64, SolveError> {
+    crate::solve::dense::check_dense_size(
+        2 * problem.sites.len(),
+        3 * problem.sensor.force_grid.len(),
+    )?;
     let h = crate::model::transfer_matrix(
         &problem.model,
         problem.sites,

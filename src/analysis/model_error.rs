@@ -824,6 +824,27 @@ pub fn run_model_error(
         * options.physics.len()
         * options.effects.len()
         * options.loads.len();
+    // Every thickness's bonded layer is checked before any work: a layer too thin
+    // for the sensor's distances (a table of 1e19 Bessel evaluations at 1 µm) is an
+    // error naming it, not hours of work or an abort allocating terabytes.
+    let layer_wanted = options.physics.contains(&ModelKind::BondedLayer)
+        || options.solver_models.contains(&ModelKind::BondedLayer);
+    if layer_wanted {
+        for &h in &options.thicknesses_mm {
+            let sensor_h = sensor_at_thickness(base, h, options.max_depth_fraction)?;
+            let layer = ForwardModel::of_kind(ModelKind::BondedLayer, &sensor_h.elastomer);
+            let sites = MarkerSite::from_sensor_grids(&sensor_h);
+            model::check_reach_for(&layer, &sites, &sensor_h.force_points_mm())?;
+            if options.physics.contains(&ModelKind::BondedLayer)
+                && options
+                    .effects
+                    .iter()
+                    .any(|e| !matches!(e, EffectSet::Forward))
+            {
+                crate::sim::scene::check_physics(ModelKind::BondedLayer, &sensor_h)?;
+            }
+        }
+    }
     let mut done = 0;
     let mut rows = Vec::new();
     for &h in &options.thicknesses_mm {
@@ -843,13 +864,17 @@ pub fn run_model_error(
             s.elastomer.model = m;
             let op = if any_dense {
                 let t = Instant::now();
-                let r = model::transfer_matrix(
-                    &ForwardModel::from_elastomer(&s.elastomer),
-                    &sites,
-                    &points,
-                )
-                .map(|hm| (hm, t.elapsed().as_secs_f64()))
-                .map_err(|e| e.to_string());
+                let r = crate::solve::dense::check_dense_size(2 * sites.len(), 3 * points.len())
+                    .map_err(|e| e.to_string())
+                    .and_then(|()| {
+                        model::transfer_matrix(
+                            &ForwardModel::from_elastomer(&s.elastomer),
+                            &sites,
+                            &points,
+                        )
+                        .map_err(|e| e.to_string())
+                    })
+                    .map(|hm| (hm, t.elapsed().as_secs_f64()));
                 progress(ModelErrorEvent::Operator {
                     thickness_mm: h,
                     model: m,
@@ -1000,6 +1025,7 @@ fn pipeline_data(
     options: &ModelErrorOptions,
 ) -> Result<Data, String> {
     let sensor = &scene.sensor;
+    crate::sim::scene::check_physics(scene.physics, sensor).map_err(|e| e.to_string())?;
     let mut sim = Simulation::from_scene(scene);
     let eight_bit = sim.pipeline().quantizes_to_8bit();
     let convert = |img: &image::Rgb32FImage| {

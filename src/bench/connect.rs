@@ -38,6 +38,9 @@ pub enum ConnectError {
     /// The simulated bench could not start.
     #[error(transparent)]
     Sim(#[from] BenchError),
+    /// The simulated bench's set-up cannot be used (a path it cannot name).
+    #[error("{0}")]
+    Setup(String),
 }
 
 /// Options for a simulated bench (tests inject faults here).
@@ -242,7 +245,10 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                     ft_faults: sim.ft_faults.clone(),
                 },
             )?;
-            let port = vb.stage_port().display().to_string();
+            // Serial ports are opened by name (a `&str`): a link inside a run
+            // directory whose path is not UTF-8 would be mangled by a lossy
+            // conversion, so the pseudo-terminal's own name is used then.
+            let port = port_name(vb.stage_port(), vb.stage_device())?;
             let (s, sid) = open_stage(
                 cfg.stage,
                 &port,
@@ -251,7 +257,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 DEFAULT_MM_PER_STEP,
                 None,
             )?;
-            let ft_port = vb.ft_port().display().to_string();
+            let ft_port = port_name(vb.ft_port(), vb.ft_device())?;
             let baud = match cfg.force_sensor {
                 FtKind::DynPick => dynpick::BAUD,
                 FtKind::Ft300 => ft300::BAUD,
@@ -282,6 +288,22 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
             })
         }
     }
+}
+
+/// The name to open a simulated device's port by: its link when the link's path is
+/// UTF-8, else the pseudo-terminal it points to; an error naming the path when
+/// neither is.
+fn port_name(link: &Path, device: &Path) -> Result<String, ConnectError> {
+    link.to_str()
+        .or_else(|| device.to_str())
+        .map(str::to_string)
+        .ok_or_else(|| {
+            ConnectError::Setup(format!(
+                "the simulated bench's port {} is not a UTF-8 path, nor its pseudo-terminal {}",
+                link.display(),
+                device.display()
+            ))
+        })
 }
 
 /// The working directory the bench description's relative paths are relative to

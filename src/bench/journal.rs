@@ -239,15 +239,20 @@ pub struct Manifest {
     /// Times the run was resumed, RFC 3339 UTC.
     #[serde(default)]
     pub resumed_at: Vec<String>,
-    /// Setpoints this run measures: the plan's, or the first `limit` of them.
+    /// Setpoints the run is to have measured at the end of its latest session: the
+    /// plan's, or fewer when that session ran with `--limit`.
     pub setpoints: usize,
     /// Setpoints in the plan, before any `--limit` (`None` in manifests written before
     /// it was recorded; [`Manifest::planned`] falls back to `setpoints`).
     #[serde(default)]
     pub planned_setpoints: Option<usize>,
-    /// The `--limit N` the run was started with, if any.
+    /// The `--limit N` of the latest session (`run` or `run --resume`), if any.
     #[serde(default)]
     pub limit: Option<usize>,
+    /// One entry per session (`run`, then each `run --resume`), in order; empty in
+    /// manifests written before sessions were recorded.
+    #[serde(default)]
+    pub sessions: Vec<Session>,
     /// Setpoints in the journal when the manifest was last written (at the start and
     /// the end of each session; after a kill, the journal is the authority).
     #[serde(default)]
@@ -282,6 +287,21 @@ pub struct Manifest {
     pub camera_toml: Option<String>,
 }
 
+/// One session of a run: a `run` or a `run --resume` invocation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Session {
+    /// Start time, RFC 3339 UTC.
+    pub started_at: String,
+    /// Its `--limit N`: at most N setpoints measured by this session.
+    #[serde(default)]
+    pub limit: Option<usize>,
+    /// Setpoints in the journal when the session started.
+    pub setpoints_before: usize,
+    /// Setpoints in the journal when it ended (equal to `setpoints_before` while it
+    /// runs, or when it was killed before it could say).
+    pub setpoints_after: usize,
+}
+
 /// The git commit this binary was built from (`git rev-parse HEAD` at build time,
 /// `unknown` when built outside a git checkout).
 pub const GIT_COMMIT: &str = env!("TACTBENCH_GIT_COMMIT");
@@ -306,6 +326,9 @@ impl Manifest {
         let planned = self.planned();
         self.status = status;
         self.measured_setpoints = measured;
+        if let Some(last) = self.sessions.last_mut() {
+            last.setpoints_after = measured;
+        }
         self.stop_signal = signal.map(signal_name);
         self.ended_at = Some(ended_at);
         self.incomplete_reason = if measured >= planned {
@@ -314,7 +337,9 @@ impl Manifest {
             let of = format!("{measured} of the plan's {planned} setpoints measured");
             Some(match status {
                 RunStatus::Completed | RunStatus::Running => match self.limit {
-                    Some(n) => format!("limited by --limit {n}: {of}"),
+                    Some(n) => {
+                        format!("limited by --limit {n}: {of} (`run --resume` measures the rest)")
+                    }
                     None => of,
                 },
                 RunStatus::Interrupted => {
@@ -931,6 +956,7 @@ mod tests {
             software_version: "0".into(),
             started_at: "t0".into(),
             resumed_at: vec![],
+            sessions: vec![],
             setpoints: 8,
             planned_setpoints: Some(160),
             limit: Some(8),
@@ -1038,6 +1064,7 @@ mod tests {
             software_version: env!("CARGO_PKG_VERSION").into(),
             started_at: "2026-11-22T00:00:00Z".into(),
             resumed_at: vec![],
+            sessions: vec![],
             setpoints: 160,
             planned_setpoints: Some(160),
             limit: None,

@@ -32,8 +32,19 @@ use tactbench::vision::{calibrate, load_frame, CalibrateConfig};
 /// fitted parameter with its standard deviation (a large SD = not determined by the
 /// frame). Use the file with `tactbench track --camera camera.toml`.
 ///
+/// The frame must be a clean frame of the unloaded sensor showing every layer's whole
+/// grid; otherwise nothing is written and the reason is given: with distortion terms
+/// (--radial-terms 1..3, --tangential) a layer with less than 85 % of its grid
+/// markers matched, or spanning less than 85 % of its grid on either axis, is refused
+/// (the distortion and principal point cannot be determined from part of the grid:
+/// use --radial-terms 0 to fit scale and origin only); a fit whose residuals exceed 3x
+/// (RMS) or 8x (any marker) the centroid noise measured on the frame itself, plus
+/// 0.05 / 0.1 px, is refused (a loaded sensor, or part of the frame covered by dust or
+/// a shadow); a fitted distortion that cannot be inverted over the image is refused.
+///
 /// Exit status: 0 written; 2 on errors (missing or unreadable files, a layer with fewer
-/// than 6 markers matched to its grid, a fit that does not converge).
+/// than 6 markers matched to its grid, partial coverage, a frame that is not clean and
+/// unloaded, a fit that does not converge).
 #[derive(clap::Args)]
 pub struct Args {
     /// Sensor description (sensor.toml: layer grids are the calibration target).
@@ -65,6 +76,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let fit = calibrate(&image.view(), &sensor, &config)
         .with_context(|| format!("calibrating from {}", args.reference.display()))?;
     let c = &fit.calibration;
+    if let Err(why) = c.distortion.check_invertible(c.width_px, c.height_px) {
+        anyhow::bail!(
+            "calibrating from {}: the fitted distortion (k1 {:.3e}, k2 {:.3e}, k3 {:.3e}) {why}: the frame does not determine a usable calibration; nothing was written (try --radial-terms 0 or 1)",
+            args.reference.display(),
+            c.distortion.k1,
+            c.distortion.k2,
+            c.distortion.k3
+        );
+    }
     eprintln!(
         "calibrated from {}: {} markers, residual RMS {:.4} px ({} matching rounds, {} iterations in the last fit, {} blobs unmatched)",
         args.reference.display(),
@@ -73,6 +93,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         fit.rounds,
         fit.iterations,
         fit.unmatched
+    );
+    eprintln!(
+        "  centroid noise measured on the frame {:.4} px: residual gate RMS <= {:.4} px, any marker <= {:.4} px (passed)",
+        fit.noise_px,
+        tactbench::vision::calibrate::RMS_GATE_FACTOR * fit.noise_px
+            + tactbench::vision::calibrate::RESIDUAL_FLOOR_PX,
+        tactbench::vision::calibrate::MAX_GATE_FACTOR * fit.noise_px
+            + 2.0 * tactbench::vision::calibrate::RESIDUAL_FLOOR_PX
     );
     for l in &c.layers {
         eprintln!(

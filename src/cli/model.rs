@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
 use tactbench::formats;
 use tactbench::model::{self, ForwardModel, MarkerSite};
@@ -78,7 +78,7 @@ pub fn run(cmd: ModelCommand) -> Result<ExitCode> {
 
 fn forward(args: ForwardArgs) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
-    let forces = formats::read_forces(&args.forces)?;
+    let forces = formats::read_forces_for(&args.forces, &sensor)?;
     let points: Vec<[f64; 2]> = forces.iter().map(|r| r.position_mm).collect();
     let f: Vec<f64> = forces.iter().flat_map(|r| r.f_n).collect();
     // The sensor file's `[elastomer] model` (half-space or bonded layer).
@@ -128,7 +128,12 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     let (sites, frame) = match &args.displacements {
         Some(path) => {
             let frames = formats::read_displacements(path, &sensor)?;
-            let first = &frames[0];
+            formats::require_usable_marker(&frames, &sensor, path)?;
+            // The first frame with a usable marker gives the marker set.
+            let first = frames
+                .iter()
+                .find(|f| f.records.iter().any(|r| r.u_mm.is_some()))
+                .unwrap_or(&frames[0]);
             // Automatic lambda / rank needs a loaded frame: the first frame whose
             // displacements are not all zero among those with the first frame's markers
             // (an unloaded reference often comes first).
@@ -158,11 +163,14 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     };
     let config = args.solver.config().map_err(anyhow::Error::msg)?;
     let problem = Problem::new(&sensor, &sites);
-    let solver = solve::precompute(&problem, &config, frame.as_deref()).with_context(|| {
-        format!(
-            "cannot set up the {} solver (automatic lambda / rank needs --displacements, or give --lambda <value> / --rank <k>)",
-            config.method
-        )
+    let solver = solve::precompute(&problem, &config, frame.as_deref()).map_err(|e| {
+        // The hint on automatic parameters only where it is the cause.
+        let hint = if matches!(e, solve::SolveError::NeedsFrame(_)) {
+            " (automatic lambda / rank needs --displacements, or give --lambda <value> / --rank <k>)"
+        } else {
+            ""
+        };
+        anyhow::Error::new(e).context(format!("cannot set up the {} solver{hint}", config.method))
     })?;
     let d = solver.diagnostics();
     let noise_mm = 0.1 * sensor.camera.mm_per_px;

@@ -24,7 +24,9 @@ use super::SolverArgs;
 ///
 /// Multi-frame files: a frame whose displacements are all exactly zero (e.g. the
 /// unloaded reference) gives zero force; a frame whose markers are all lost gives NaN
-/// forces (a flagged row, warned on stderr); the file goes on either way.
+/// forces (a flagged row, warned on stderr); the file goes on either way. A file in
+/// which no frame has a usable marker is an error (exit 2, no output file) naming the
+/// lost markers.
 #[derive(clap::Args)]
 #[command(
     after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements experiments/examples/fig6_displacements.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --uncertainty --noise-px 0.1 --out F.csv"
@@ -83,6 +85,9 @@ fn marker_key(frame: &DisplacementFrame) -> MarkerKey {
 pub fn run(args: Args) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
     let frames = formats::read_displacements(&args.displacements, &sensor)?;
+    // No usable marker in any frame: an error (exit 2, no output file), not a file of
+    // NaN rows.
+    formats::require_usable_marker(&frames, &sensor, &args.displacements)?;
     let config = args.solver.config().map_err(anyhow::Error::msg)?;
     if let Some(per) = args.lambda_per {
         if !config.needs_frame() {
@@ -217,8 +222,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
             .with_context(|| format!("reconstruction failed{label}"))?;
         let sum = axis_sums(&f);
         eprintln!(
-            "reconstruct: F_sum{label} = ({:.6}, {:.6}, {:.6}) N",
-            sum[0], sum[1], sum[2]
+            "reconstruct: F_sum{label} = ({}, {}, {}) N",
+            fmt_num(sum[0]),
+            fmt_num(sum[1]),
+            fmt_num(sum[2])
         );
         if let Some(s) = sigma_mm {
             let mut sd = vec![0.0; solver.n_outputs()];
@@ -228,8 +235,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
             let ssd = solve::force_sum_sd(&**solver, s)
                 .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
             eprintln!(
-                "reconstruct: sd of F_sum{label} = ({:.6}, {:.6}, {:.6}) N",
-                ssd[0], ssd[1], ssd[2]
+                "reconstruct: sd of F_sum{label} = ({}, {}, {}) N",
+                fmt_num(ssd[0]),
+                fmt_num(ssd[1]),
+                fmt_num(ssd[2])
             );
             sds.push(sd);
         }

@@ -40,7 +40,10 @@ Examples:
   tactbench run --resume runs/fig7
   # A short trial: the first 5 setpoints only:
   tactbench run experiments/fig7_magnitude.toml \\
-      --bench experiments/bench_sim.toml --out runs/try --limit 5";
+      --bench experiments/bench_sim.toml --out runs/try --limit 5
+  # Then 5 more, then the rest of the plan:
+  tactbench run --resume runs/try --limit 5
+  tactbench run --resume runs/try";
 
 /// Run an experiment plan on the bench: force-controlled setpoints, frames, forces.
 ///
@@ -95,7 +98,10 @@ pub struct Args {
     /// Run directory to create (must not hold a run already).
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
     out: Option<PathBuf>,
-    /// Continue the run in DIR.
+    /// Continue the run in DIR: the setpoints of its plan not yet in its journal
+    /// (all of them, or at most --limit N). A run stopped by --limit (status
+    /// completed, verdict INCOMPLETE) is resumable to its full plan; only a run whose
+    /// journal holds every planned setpoint is refused.
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
     /// Check everything the run would open (plan, sensor, bench file, scene, camera
@@ -118,7 +124,12 @@ pub struct Args {
     /// Elastomer build id recorded in the manifest (overrides the plan's build_id).
     #[arg(long, value_name = "ID")]
     build_id: Option<String>,
-    /// Only the first N setpoints of the plan (a short trial run; N >= 1).
+    /// At most N setpoints in this session (N >= 1): a new run measures the plan's
+    /// first N (a short trial run); `--resume DIR --limit N` measures at most N more,
+    /// the next ones not yet in the journal. The limit caps the session, not the run:
+    /// a run stopped by it stays resumable to its full plan (`run --resume DIR`, with
+    /// or without a new --limit). Each session is recorded in manifest.json
+    /// (`sessions`: started_at, limit, setpoints_before, setpoints_after).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     limit: Option<u64>,
     /// Print where the time went at the end (device waits, tracking, solving, file
@@ -511,6 +522,15 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 summary.measured,
                 dir.display()
             );
+            let planned = plan.setpoint_count();
+            if summary.done < planned {
+                // A session stopped by its --limit: say how to measure the rest.
+                eprintln!(
+                    "  {} of the plan's {planned} setpoints measured (--limit); `tactbench run --resume {}` measures the rest (add --limit N for N more)",
+                    summary.done,
+                    dir.display()
+                );
+            }
             Ok(ExitCode::SUCCESS)
         }
         RunStatus::Interrupted => {

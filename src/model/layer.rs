@@ -350,13 +350,76 @@ impl BondedLayer {
 
     /// Response with the vertical row at offset `(dx, dy)` mm and depth `0 < z ≤ h`
     /// mm (mm/N): the closed-form half-space response plus the tabulated correction.
+    ///
+    /// A table past [`MAX_TABLE_EVALUATIONS`] / [`MAX_TABLE_BYTES`] is never built:
+    /// callers check the geometry first ([`Self::check_reach`]; every `model` entry
+    /// point — `transfer_matrix`, `forward`, `forward3` — and the Fourier kernels do),
+    /// and an unchecked call beyond the cap answers NaN rather than allocating
+    /// without bound.
     pub fn point_response3(&self, dx: f64, dy: f64, z: f64) -> PointResponse3 {
         let mut r = self.half_space().point_response3(dx, dy, z);
         let rho = dx.hypot(dy);
-        let table = self.table(z, rho);
-        let v = table.eval(rho);
-        add_correction(&mut r, dx, dy, rho, v);
+        match self.table(z, rho) {
+            Some(table) => add_correction(&mut r, dx, dy, rho, table.eval(rho)),
+            None => r = [[f64::NAN; 3]; 3],
+        }
         r
+    }
+
+    /// The work and memory of the correction table for depth `z` covering distances
+    /// up to `rho` mm, computed from the geometry alone (nothing is allocated). The
+    /// table grid spacing scales with `2h − z` and its quadrature with `1/(2h − z)`,
+    /// so the cost grows like `(ρ / (2h − z))²`: a layer much thinner than the
+    /// marker–force-point distances is refused by [`Self::check_reach`].
+    pub fn table_size(&self, z: f64, rho: f64) -> TableSize {
+        let rho_max = table_reach(self.thickness_mm, rho);
+        let a = 2.0 * self.thickness_mm - z;
+        let drho = (a / 40.0).min(rho_max / 8.0);
+        let rows = (rho_max / drho).ceil() + 3.0;
+        let w = (2.0 / a).min(3.0 / (rows * drho));
+        let nodes = 16.0 * ((60.0 / a) / w).ceil().max(1.0);
+        TableSize {
+            rows,
+            nodes,
+            evaluations: rows * nodes,
+            bytes: rows * 40.0 + nodes * 48.0,
+        }
+    }
+
+    /// Checks that the tables for these marker depths and horizontal distances up to
+    /// `rho_max_mm` stay within [`MAX_TABLE_EVALUATIONS`] and [`MAX_TABLE_BYTES`]
+    /// (a few seconds, well under 1 GB), before anything is allocated. The error
+    /// names the thickness, the depth, the distance, the cost and the largest
+    /// distance this layer allows.
+    pub fn check_reach(&self, depths_mm: &[f64], rho_max_mm: f64) -> Result<(), ModelError> {
+        for &z in depths_mm {
+            if !(z.is_finite() && z > 0.0 && z <= self.thickness_mm) {
+                continue;
+            }
+            let size = self.table_size(z, rho_max_mm);
+            if size.within_limits() {
+                continue;
+            }
+            // The largest distance this layer and depth allow (the cost grows with ρ).
+            let (mut lo, mut hi) = (0.0f64, rho_max_mm.max(1e-300));
+            for _ in 0..200 {
+                let mid = 0.5 * (lo + hi);
+                if self.table_size(z, mid).within_limits() {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            return Err(ModelError::LayerTooThin {
+                thickness_mm: self.thickness_mm,
+                depth_mm: z,
+                reach_mm: rho_max_mm,
+                evaluations: size.evaluations,
+                bytes: size.bytes,
+                max_reach_mm: lo,
+            });
+        }
+        Ok(())
     }
 
     /// The correction `I_n[ΔG]` at distance `rho` computed directly (no table), with
@@ -427,25 +490,68 @@ impl BondedLayer {
         ]
     }
 
-    /// The cached table for depth `z` covering `rho`, built or grown as needed.
-    fn table(&self, z: f64, rho: f64) -> Arc<Table> {
+    /// The cached table for depth `z` covering `rho`, built or grown as needed;
+    /// `None` (nothing built) when such a table would exceed the caps.
+    fn table(&self, z: f64, rho: f64) -> Option<Arc<Table>> {
         let key = self.key(z);
         let cache = TABLES.get_or_init(|| Mutex::new(HashMap::new()));
         if let Some(t) = lock(cache).get(&key) {
             if rho <= t.rho_max {
-                return Arc::clone(t);
+                return Some(Arc::clone(t));
             }
         }
+        if !self.table_size(z, rho).within_limits() {
+            return None;
+        }
         // Built outside the lock: other depths stay usable meanwhile.
-        let want = rho.max(4.0 * self.thickness_mm) * 1.25;
-        let t = Arc::new(Table::build(self, z, want));
+        let t = Arc::new(Table::build(self, z, table_reach(self.thickness_mm, rho)));
         let mut map = lock(cache);
         let entry = map.entry(key).or_insert_with(|| Arc::clone(&t));
         if entry.rho_max < t.rho_max {
             *entry = Arc::clone(&t);
         }
-        Arc::clone(entry)
+        Some(Arc::clone(entry))
     }
+}
+
+/// Most Bessel-function evaluations one correction table may take (rows ×
+/// quadrature nodes; about 0.1 µs each, so a few seconds per marker depth). The
+/// paper's 40 mm layer needs ~1e5 per depth, a 3 mm layer over the paper's 20 × 15 mm
+/// grid ~1e6; this cap refuses layers thinner than about 1/50 of the largest
+/// marker–force-point distance (0.1 mm: 1e9 evaluations, ~100 s; 1 µm: 1e19).
+pub const MAX_TABLE_EVALUATIONS: f64 = 3e7;
+
+/// Most memory one correction table may take (rows and quadrature nodes), bytes.
+pub const MAX_TABLE_BYTES: f64 = 256.0 * 1024.0 * 1024.0;
+
+/// The size of one correction table, computed before it is built
+/// ([`BondedLayer::table_size`]). Counts are `f64` so that absurd geometries
+/// (a 1 µm layer under 30 mm distances) are computed without overflow.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TableSize {
+    /// Rows of the table (distances tabulated).
+    pub rows: f64,
+    /// Quadrature nodes in wave number.
+    pub nodes: f64,
+    /// Bessel-function evaluations to build it (`rows × nodes`).
+    pub evaluations: f64,
+    /// Memory of the rows and the nodes, bytes.
+    pub bytes: f64,
+}
+
+impl TableSize {
+    /// Within [`MAX_TABLE_EVALUATIONS`] and [`MAX_TABLE_BYTES`] (and finite).
+    pub fn within_limits(&self) -> bool {
+        self.evaluations.is_finite()
+            && self.evaluations <= MAX_TABLE_EVALUATIONS
+            && self.bytes <= MAX_TABLE_BYTES
+    }
+}
+
+/// The distance a table is built to when `rho` is asked for (with head room, so a
+/// slightly larger later request does not rebuild it).
+fn table_reach(thickness_mm: f64, rho: f64) -> f64 {
+    rho.max(4.0 * thickness_mm) * 1.25
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -546,6 +652,10 @@ impl ElasticModel for BondedLayer {
 
     fn max_depth_mm(&self) -> f64 {
         self.thickness_mm
+    }
+
+    fn check_reach(&self, depths_mm: &[f64], rho_max_mm: f64) -> Result<(), ModelError> {
+        BondedLayer::check_reach(self, depths_mm, rho_max_mm)
     }
 
     fn prepare(&self, depths_mm: &[f64], rho_max_mm: f64) {

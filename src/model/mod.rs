@@ -88,6 +88,37 @@ pub enum ModelError {
         /// The thickness given.
         thickness_mm: f64,
     },
+    /// The bonded layer is too thin for the distances asked: its real-space tables
+    /// would exceed [`layer::MAX_TABLE_EVALUATIONS`] / [`layer::MAX_TABLE_BYTES`].
+    #[error(
+        "bonded layer of thickness {} mm with markers at depth {} mm: distances up to {} mm \
+         (the largest marker-force-point distance) would need tables of {} Bessel evaluations \
+         and {} bytes, past the limit of {:e} evaluations and {:e} bytes; this layer allows \
+         distances up to {} mm. Thicknesses and depths are in mm: \
+         check `thickness_mm` and `depth_mm` (metres typed in?), or use `model = \"half-space\"`",
+        crate::solve::fmt_num(*thickness_mm),
+        crate::solve::fmt_num(*depth_mm),
+        crate::solve::fmt_num(*reach_mm),
+        crate::solve::fmt_num(*evaluations),
+        crate::solve::fmt_num(*bytes),
+        layer::MAX_TABLE_EVALUATIONS,
+        layer::MAX_TABLE_BYTES,
+        crate::solve::fmt_num(*max_reach_mm)
+    )]
+    LayerTooThin {
+        /// The layer thickness, mm.
+        thickness_mm: f64,
+        /// The marker depth whose table is too large, mm.
+        depth_mm: f64,
+        /// The largest horizontal marker–force-point distance asked for, mm.
+        reach_mm: f64,
+        /// Bessel evaluations the table would take.
+        evaluations: f64,
+        /// Bytes it would take.
+        bytes: f64,
+        /// The largest distance this thickness and depth allow, mm.
+        max_reach_mm: f64,
+    },
 }
 
 /// Horizontal displacement response of one point to unit forces: `h[a][b]` is the
@@ -129,6 +160,13 @@ pub trait ElasticModel: Send + Sync {
     /// up to `rho_max_mm` (the layer's real-space tables). Optional: a model computes
     /// what it lacks on first use.
     fn prepare(&self, _depths_mm: &[f64], _rho_max_mm: f64) {}
+
+    /// Checks, before any work, that the model can answer for these depths and
+    /// horizontal distances up to `rho_max_mm` within its caps (the layer's tables;
+    /// the half-space has none).
+    fn check_reach(&self, _depths_mm: &[f64], _rho_max_mm: f64) -> Result<(), ModelError> {
+        Ok(())
+    }
 }
 
 /// The forward model a sensor file selects.
@@ -224,6 +262,13 @@ impl ElasticModel for ForwardModel {
             m.prepare(depths_mm, rho_max_mm)
         }
     }
+
+    fn check_reach(&self, depths_mm: &[f64], rho_max_mm: f64) -> Result<(), ModelError> {
+        match self {
+            ForwardModel::HalfSpace(_) => Ok(()),
+            ForwardModel::BondedLayer(m) => m.check_reach(depths_mm, rho_max_mm),
+        }
+    }
 }
 
 /// A marker of the system: its reference position in the sensor frame and its depth.
@@ -263,7 +308,7 @@ pub fn transfer_matrix<M: ElasticModel + ?Sized>(
     force_points_mm: &[[f64; 2]],
 ) -> Result<DMatrix<f64>, ModelError> {
     check_geometry(model, markers, force_points_mm)?;
-    prepare_for(model, markers, force_points_mm);
+    prepare_for(model, markers, force_points_mm)?;
     let mut h = DMatrix::<f64>::zeros(2 * markers.len(), 3 * force_points_mm.len());
     for (j, fp) in force_points_mm.iter().enumerate() {
         for (k, m) in markers.iter().enumerate() {
@@ -325,7 +370,7 @@ fn superpose<M: ElasticModel + ?Sized, const R: usize>(
             got: forces_n.len(),
         });
     }
-    prepare_for(model, markers, force_points_mm);
+    prepare_for(model, markers, force_points_mm)?;
     let mut u = vec![0.0; R * markers.len()];
     for (m, out) in markers.iter().zip(u.chunks_exact_mut(R)) {
         for (fp, f) in force_points_mm.iter().zip(forces_n.chunks_exact(3)) {
@@ -342,15 +387,41 @@ fn superpose<M: ElasticModel + ?Sized, const R: usize>(
     Ok(u)
 }
 
-/// Lets a model with tables build them once for this geometry (distinct depths and
-/// the largest marker–force-point distance).
+/// Lets a model with tables check their size, then build them once for this
+/// geometry (distinct depths and the largest marker–force-point distance).
 fn prepare_for<M: ElasticModel + ?Sized>(
     model: &M,
     markers: &[MarkerSite],
     force_points_mm: &[[f64; 2]],
-) {
+) -> Result<(), ModelError> {
+    let Some((depths, reach)) = reach_of(markers, force_points_mm) else {
+        return Ok(());
+    };
+    model.check_reach(&depths, reach)?;
+    model.prepare(&depths, reach);
+    Ok(())
+}
+
+/// Checks, without building anything, that `model` can answer for this geometry
+/// within its caps ([`ElasticModel::check_reach`] on the distinct marker depths and
+/// the largest marker–force-point distance): what [`transfer_matrix`] and
+/// [`forward`] check before they work.
+pub fn check_reach_for<M: ElasticModel + ?Sized>(
+    model: &M,
+    markers: &[MarkerSite],
+    force_points_mm: &[[f64; 2]],
+) -> Result<(), ModelError> {
+    match reach_of(markers, force_points_mm) {
+        Some((depths, reach)) => model.check_reach(&depths, reach),
+        None => Ok(()),
+    }
+}
+
+/// The distinct marker depths and the largest horizontal marker–force-point
+/// distance (from the two bounding boxes); `None` when either set is empty.
+fn reach_of(markers: &[MarkerSite], force_points_mm: &[[f64; 2]]) -> Option<(Vec<f64>, f64)> {
     if markers.is_empty() || force_points_mm.is_empty() {
-        return;
+        return None;
     }
     let mut depths: Vec<f64> = markers.iter().map(|m| m.depth_mm).collect();
     depths.sort_by(f64::total_cmp);
@@ -369,7 +440,7 @@ fn prepare_for<M: ElasticModel + ?Sized>(
     let b = bbox(&mut force_points_mm.iter().copied());
     let dx = (a[2] - b[0]).abs().max((b[2] - a[0]).abs());
     let dy = (a[3] - b[1]).abs().max((b[3] - a[1]).abs());
-    model.prepare(&depths, dx.hypot(dy));
+    Some((depths, dx.hypot(dy)))
 }
 
 fn check_geometry<M: ElasticModel + ?Sized>(

@@ -333,6 +333,22 @@ impl VirtualBench {
         }
     }
 
+    /// The stage's pseudo-terminal itself (`/dev/pts/N`), whatever the link's name.
+    pub fn stage_device(&self) -> &Path {
+        match &self.stage {
+            StageServer::Grbl(s) => s.path(),
+            StageServer::Zaber(s) => s.path(),
+        }
+    }
+
+    /// The force sensor's pseudo-terminal itself (`/dev/pts/N`).
+    pub fn ft_device(&self) -> &Path {
+        match &self.ft {
+            FtServer::DynPick(s) => s.path(),
+            FtServer::Ft300(s) => s.path(),
+        }
+    }
+
     /// The force sensor's port (a symlink to its pseudo-terminal).
     pub fn ft_port(&self) -> &Path {
         match &self.ft {

@@ -233,6 +233,18 @@ pub enum SceneError {
     },
 }
 
+/// Checks that the elastic model `physics` can render this sensor within its caps:
+/// the bonded layer's tables cover the marker depths over twice the camera's field
+/// (what [`super::Simulation::with_physics`] prepares), and their size is checked
+/// before any is built.
+pub fn check_physics(physics: ModelKind, sensor: &Sensor) -> Result<(), crate::model::ModelError> {
+    use crate::model::ElasticModel;
+    let cam = &sensor.camera;
+    let reach = 2.0 * (cam.width_px as f64).hypot(cam.height_px as f64) * cam.mm_per_px;
+    let depths: Vec<f64> = sensor.layers.iter().map(|l| l.depth_mm).collect();
+    crate::model::ForwardModel::of_kind(physics, &sensor.elastomer).check_reach(&depths, reach)
+}
+
 /// A validated scene.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -932,6 +944,12 @@ impl RawScene {
                 allowed: "must be \"half-space\" or \"bonded-layer\"".into(),
             })?,
         };
+        check_physics(physics, &sensor).map_err(|e| SceneError::Invalid {
+            path: path.to_path_buf(),
+            key: "physics.model".into(),
+            value: format!("{:?}", physics.name()),
+            allowed: e.to_string(),
+        })?;
         Ok(Scene {
             bench,
             physics,

@@ -155,6 +155,39 @@ impl Operator {
     }
 }
 
+/// Largest working memory a dense precompute may take, bytes (1 GiB): `H`, its copy
+/// for the SVD, `U`, `V` and the operator. The paper's sensor (about 3,400 marker
+/// values for 2,800 force unknowns at the finest grids the README measures) takes
+/// ~0.3 GB; a million markers in one frame would take 15 GB.
+pub const MAX_DENSE_BYTES: f64 = 1024.0 * 1024.0 * 1024.0;
+
+/// Working memory of a dense precompute on an `m × n` system, bytes, estimated from
+/// the shapes alone (nothing is allocated): `H` (`m n`), faer's copy of it (`m n`),
+/// the thin factors `U` (`m p`) and `V` (`n p`, `p = min(m, n)`), the operator `Pᵀ`
+/// (`m n`) and the padded per-frame operator (`m n`), 8 bytes each. Measured peaks
+/// (`/usr/bin/time -v`, docs/limits.md) lie below it.
+pub fn dense_memory_bytes(m: usize, n: usize) -> f64 {
+    let (m, n) = (m as f64, n as f64);
+    let p = m.min(n);
+    8.0 * (4.0 * m * n + m * p + n * p)
+}
+
+/// Refuses a dense system whose precompute would take more than [`MAX_DENSE_BYTES`]
+/// (checked before `H` is built): the error says how much, for how many markers and
+/// force points, and that the `fourier` solver or fewer markers would do.
+pub fn check_dense_size(m: usize, n: usize) -> Result<(), SolveError> {
+    let bytes = dense_memory_bytes(m, n);
+    if bytes <= MAX_DENSE_BYTES {
+        return Ok(());
+    }
+    Err(SolveError::TooBig {
+        rows: m,
+        cols: n,
+        bytes,
+        limit_bytes: MAX_DENSE_BYTES,
+    })
+}
+
 /// A precomputed dense solver (`pinv`, `tikhonov` or `tsvd`): `f = P u` per frame.
 #[derive(Debug, Clone)]
 pub struct DenseSolver {
@@ -441,6 +474,7 @@ impl DenseSolver {
         if problem.sensor.force_grid.is_empty() {
             return Err(SolveError::Empty("the force grid has no points".into()));
         }
+        check_dense_size(2 * problem.sites.len(), 3 * problem.sensor.force_grid.len())?;
         let h = model::transfer_matrix(
             &problem.forward_model(),
             problem.sites,
@@ -460,6 +494,7 @@ impl DenseSolver {
         if m == 0 || n == 0 {
             return Err(SolveError::Empty(format!("the system is {m}×{n}")));
         }
+        check_dense_size(m, n)?;
         if config.method == Method::Fourier {
             return Err(SolveError::InvalidOption(
                 "the dense solver does not run method fourier".into(),

@@ -71,6 +71,28 @@ pub enum SolveError {
     /// Automatic λ or rank selection needs a displacement frame and none was given.
     #[error("automatic {0} selection needs a displacement frame to choose from")]
     NeedsFrame(&'static str),
+    /// The dense system would take more memory than the cap
+    /// ([`dense::MAX_DENSE_BYTES`]), checked before it is built.
+    #[error(
+        "the dense system is {rows}x{cols} ({} marker values for {} force unknowns): building \
+         and decomposing it takes about {}, past the limit of {}; the `fourier` solver \
+         (--solver fourier, markers on regular grids) or fewer markers (a coarser marker \
+         grid, or the markers of one frame at a time) would do",
+        rows,
+        cols,
+        fmt_bytes(*bytes),
+        fmt_bytes(*limit_bytes)
+    )]
+    TooBig {
+        /// Rows of `H` (2 × markers).
+        rows: usize,
+        /// Columns of `H` (3 × force points).
+        cols: usize,
+        /// Estimated working memory, bytes.
+        bytes: f64,
+        /// The cap, bytes.
+        limit_bytes: f64,
+    },
     /// Displacements so large that the forces would overflow `f64`.
     #[error("largest displacement {max_abs_mm:.3e} mm exceeds the solver's limit of {limit_mm:.3e} mm: the forces would overflow")]
     TooLarge {
@@ -444,6 +466,34 @@ pub fn check_sigma(sigma_mm: f64) -> Result<(), SolveError> {
             fmt_num(sigma_mm)
         )))
     }
+}
+
+/// A byte count for a message: `1.5 GB`, `300 MB`, `12 kB` (decimal units, 3
+/// significant digits; scientific beyond petabytes).
+pub fn fmt_bytes(b: f64) -> String {
+    const UNITS: [(f64, &str); 5] = [
+        (1e15, "PB"),
+        (1e12, "TB"),
+        (1e9, "GB"),
+        (1e6, "MB"),
+        (1e3, "kB"),
+    ];
+    if !b.is_finite() || b >= 1e18 {
+        return format!("{b:.3e} bytes");
+    }
+    for (scale, unit) in UNITS {
+        if b >= scale {
+            let v = b / scale;
+            return if v >= 100.0 {
+                format!("{v:.0} {unit}")
+            } else if v >= 10.0 {
+                format!("{v:.1} {unit}")
+            } else {
+                format!("{v:.2} {unit}")
+            };
+        }
+    }
+    format!("{b:.0} bytes")
 }
 
 /// A number for a message: up to 6 significant digits, plain notation between 1e-4

@@ -26,6 +26,19 @@
 //!
 //! Parameter standard deviations are `σ √diag((JᵀJ)⁻¹)` with `σ²` the residual
 //! variance: large values name what the frame does not determine.
+//!
+//! Gates (a calibration from a wrong frame is worse than none: every force measured
+//! with it is biased):
+//! - coverage: with distortion terms, every layer's matched markers must be at least
+//!   [`MIN_COVERAGE`] of its grid and span [`MIN_EXTENT`] of its extent on both axes
+//!   ([`CalibrationError::PartialCoverage`], which says what the fit cannot determine
+//!   and suggests `--radial-terms 0`);
+//! - residuals: the centroid noise is measured on the frame itself (robust second
+//!   differences along the grid); the fit's RMS must stay within
+//!   [`RMS_GATE_FACTOR`] × noise + [`RESIDUAL_FLOOR_PX`] and every marker within
+//!   [`MAX_GATE_FACTOR`] × noise + 2 × [`RESIDUAL_FLOOR_PX`]. A loaded frame (its
+//!   markers displaced around the contact) or a covered patch (centroids pulled by a
+//!   shadow) fails it ([`CalibrationError::NotUnloaded`]).
 
 use nalgebra::{DMatrix, DVector};
 use thiserror::Error;
@@ -102,7 +115,80 @@ pub enum CalibrationError {
         /// Iterations run.
         iterations: usize,
     },
+    /// A layer's grid is only partly in the frame: a distortion fit cannot be trusted.
+    #[error(
+        "layer {layer}: {matched} of its {total} grid markers matched ({:.0} %), covering \
+         x {:.1} ... {:.1} mm and y {:.1} ... {:.1} mm of its grid's {:.1} ... {:.1} mm and \
+         {:.1} ... {:.1} mm: part of the grid is hidden, out of view or not detected. From part \
+         of the grid the distortion (k1, k2, k3, p1, p2) and the principal point cannot be told \
+         apart from the layer's scale and origin, so the fit cannot determine them; calibrate \
+         from a frame that shows the whole grid, or fit scale and origin only with \
+         --radial-terms 0",
+        100.0 * *matched as f64 / *total as f64,
+        covered_mm[0], covered_mm[2], covered_mm[1], covered_mm[3],
+        grid_mm[0], grid_mm[2], grid_mm[1], grid_mm[3]
+    )]
+    PartialCoverage {
+        /// Layer name.
+        layer: String,
+        /// Grid markers matched.
+        matched: usize,
+        /// Grid markers of the layer.
+        total: usize,
+        /// Extent of the matched nodes `[x_min, y_min, x_max, y_max]`, mm.
+        covered_mm: [f64; 4],
+        /// Extent of the whole grid, mm.
+        grid_mm: [f64; 4],
+    },
+    /// The frame is not a clean unloaded frame: the grid does not fit within the
+    /// centroid noise measured on the frame itself.
+    #[error(
+        "the reference frame does not look like a clean unloaded frame: the fitted grid \
+         leaves residuals of {rms_px:.3} px RMS and up to {max_px:.3} px (layer {layer}, \
+         marker at pixel ({:.0}, {:.0})), while the centroid noise measured on the frame is \
+         {noise_px:.3} px (the gate: RMS at most {rms_gate_px:.3} px, any marker at most \
+         {max_gate_px:.3} px). Markers displaced from a regular grid mean the sensor is \
+         loaded or touched, or part of the frame is covered (dust, a shadow, a cable); \
+         calibrate from a clean frame of the unloaded sensor",
+        worst_px[0], worst_px[1]
+    )]
+    NotUnloaded {
+        /// Residual RMS, px.
+        rms_px: f64,
+        /// Largest marker residual, px.
+        max_px: f64,
+        /// The layer of that marker.
+        layer: String,
+        /// Its centroid, px.
+        worst_px: [f64; 2],
+        /// Centroid noise estimated from the frame, px.
+        noise_px: f64,
+        /// The RMS gate, px.
+        rms_gate_px: f64,
+        /// The per-marker gate, px.
+        max_gate_px: f64,
+    },
 }
+
+/// Least share of a layer's grid markers a fit with distortion terms needs (with
+/// `--radial-terms 0` and no tangential terms only [`MIN_MARKERS_PER_LAYER`]).
+pub const MIN_COVERAGE: f64 = 0.85;
+
+/// Least share of the grid's extent, per axis, the matched markers must span for a
+/// fit with distortion terms.
+pub const MIN_EXTENT: f64 = 0.85;
+
+/// The residual gate: the fit's RMS may be at most this many times the centroid noise
+/// measured on the frame (plus [`RESIDUAL_FLOOR_PX`]).
+pub const RMS_GATE_FACTOR: f64 = 3.0;
+
+/// The per-marker gate: no marker's residual may exceed this many times the noise
+/// (plus [`RESIDUAL_FLOOR_PX`]).
+pub const MAX_GATE_FACTOR: f64 = 8.0;
+
+/// Residual allowance independent of the measured noise, px (what any detector's
+/// centroid bias on a clean frame stays under).
+pub const RESIDUAL_FLOOR_PX: f64 = 0.05;
 
 /// A fitted calibration with the fit's statistics.
 #[derive(Debug, Clone, PartialEq)]
@@ -118,6 +204,9 @@ pub struct CalibrationFit {
     pub parameters: Vec<(String, f64, f64)>,
     /// Blobs found but matched to no grid node.
     pub unmatched: usize,
+    /// The centroid noise measured on the frame (px; NaN when too few markers for
+    /// the estimate), which the residual gate is set against.
+    pub noise_px: f64,
 }
 
 /// One matched marker: layer, node position (mm), measured centroid (px).
@@ -367,6 +456,144 @@ fn match_blobs(
     (matches, unmatched)
 }
 
+/// Refuses a layer whose matched markers cover too little of its grid, when the fit
+/// has distortion terms (they are seen only across the whole image).
+fn check_coverage(
+    sensor: &Sensor,
+    matches: &[Match],
+    config: &CalibrateConfig,
+) -> Result<(), CalibrationError> {
+    if config.radial_terms == 0 && !config.tangential {
+        return Ok(());
+    }
+    for (li, l) in sensor.layers.iter().enumerate() {
+        let Some(grid) = l.markers.map(|m| m.grid) else {
+            continue;
+        };
+        let a = grid.node_mm(0, 0);
+        let b = grid.node_mm(grid.nx.saturating_sub(1), grid.ny.saturating_sub(1));
+        let grid_mm = [
+            a[0].min(b[0]),
+            a[1].min(b[1]),
+            a[0].max(b[0]),
+            a[1].max(b[1]),
+        ];
+        let mut cov = [
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        let mut matched = 0;
+        for m in matches.iter().filter(|m| m.layer == li) {
+            matched += 1;
+            let p = m.node_mm;
+            cov = [
+                cov[0].min(p[0]),
+                cov[1].min(p[1]),
+                cov[2].max(p[0]),
+                cov[3].max(p[1]),
+            ];
+        }
+        let span = |lo: f64, hi: f64, glo: f64, ghi: f64| {
+            if ghi > glo {
+                (hi - lo) / (ghi - glo)
+            } else {
+                1.0
+            }
+        };
+        let share = matched as f64 / grid.len().max(1) as f64;
+        if share < MIN_COVERAGE
+            || span(cov[0], cov[2], grid_mm[0], grid_mm[2]) < MIN_EXTENT
+            || span(cov[1], cov[3], grid_mm[1], grid_mm[3]) < MIN_EXTENT
+        {
+            return Err(CalibrationError::PartialCoverage {
+                layer: l.name.clone(),
+                matched,
+                total: grid.len(),
+                covered_mm: cov,
+                grid_mm,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The centroid noise of the matched markers, px, measured on the frame itself: the
+/// second differences of the centroids along grid rows and columns (`p[i−1] − 2 p[i]
+/// + p[i+1]`; any smooth mapping — scale, origin, lens distortion — leaves them near
+/// zero at a grid's pitch, independent noise σ gives σ√6), taken robustly (1.4826 ×
+/// the median absolute value / √6) so that a loaded or covered region does not raise
+/// it. `None` with fewer than 10 triples.
+fn centroid_noise_px(sensor: &Sensor, matches: &[Match]) -> Option<f64> {
+    let mut d = Vec::new();
+    for (li, l) in sensor.layers.iter().enumerate() {
+        let Some(grid) = l.markers.map(|m| m.grid) else {
+            continue;
+        };
+        let mut at: Vec<Option<[f64; 2]>> = vec![None; grid.len()];
+        for m in matches.iter().filter(|m| m.layer == li) {
+            if let Some(((ix, iy), _)) = grid.nearest_node(m.node_mm) {
+                at[iy * grid.nx + ix] = Some(m.centroid_px);
+            }
+        }
+        let get = |ix: usize, iy: usize| at[iy * grid.nx + ix];
+        for iy in 0..grid.ny {
+            for ix in 0..grid.nx {
+                let c = get(ix, iy);
+                let pairs = [
+                    (ix >= 1 && ix + 1 < grid.nx).then(|| (get(ix - 1, iy), get(ix + 1, iy))),
+                    (iy >= 1 && iy + 1 < grid.ny).then(|| (get(ix, iy - 1), get(ix, iy + 1))),
+                ];
+                for (a, b) in pairs.into_iter().flatten() {
+                    if let (Some(a), Some(c), Some(b)) = (a, c, b) {
+                        d.push((a[0] - 2.0 * c[0] + b[0]).abs());
+                        d.push((a[1] - 2.0 * c[1] + b[1]).abs());
+                    }
+                }
+            }
+        }
+    }
+    if d.len() < 20 {
+        return None;
+    }
+    d.sort_by(f64::total_cmp);
+    let median = d[d.len() / 2];
+    Some(1.4826 * median / 6f64.sqrt())
+}
+
+/// The residual gate: refuses a fit whose residuals exceed what the frame's own
+/// centroid noise allows (a loaded frame, a covered patch).
+fn check_residuals(sensor: &Sensor, matches: &[Match], r: &[f64]) -> Result<(), CalibrationError> {
+    let Some(noise) = centroid_noise_px(sensor, matches) else {
+        return Ok(());
+    };
+    let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
+    let (mut worst, mut max) = (0, 0.0f64);
+    for k in 0..matches.len() {
+        let e = r[2 * k].hypot(r[2 * k + 1]);
+        if e > max {
+            max = e;
+            worst = k;
+        }
+    }
+    let rms_gate = RMS_GATE_FACTOR * noise + RESIDUAL_FLOOR_PX;
+    let max_gate = MAX_GATE_FACTOR * noise + 2.0 * RESIDUAL_FLOOR_PX;
+    if rms > rms_gate || max > max_gate {
+        let m = &matches[worst];
+        return Err(CalibrationError::NotUnloaded {
+            rms_px: rms,
+            max_px: max,
+            layer: sensor.layers[m.layer].name.clone(),
+            worst_px: m.centroid_px,
+            noise_px: noise,
+            rms_gate_px: rms_gate,
+            max_gate_px: max_gate,
+        });
+    }
+    Ok(())
+}
+
 /// Calibrates the camera from an unloaded reference frame (see the module docs).
 pub fn calibrate(
     view: &FrameView<'_>,
@@ -437,10 +664,16 @@ pub fn calibrate(
         } else {
             layout.params_of(&model)
         };
-        let (p, iterations, jtj, cost) = fit(&layout, p0, &base, &matches, config.max_iterations)?;
+        let (p, iterations, jtj, cost) =
+            match fit(&layout, p0, &base, &matches, config.max_iterations) {
+                Ok(f) => f,
+                // A fit on part of the grid fails for that reason: say so.
+                Err(e) => return Err(check_coverage(sensor, &matches, config).err().unwrap_or(e)),
+            };
         model = layout.to_calibration(&p, &base);
         let stable = last.as_ref() == Some(&matches);
         if stable || rounds >= 10 {
+            check_coverage(sensor, &matches, config)?;
             let dof = (2 * matches.len()).saturating_sub(layout.free.len()).max(1);
             let sigma2 = cost / dof as f64;
             let cov = jtj.clone().try_inverse();
@@ -457,6 +690,8 @@ pub fn calibrate(
                 })
                 .collect();
             let r = residuals(&layout, &p, &base, &matches);
+            check_residuals(sensor, &matches, &r)?;
+            let noise_px = centroid_noise_px(sensor, &matches).unwrap_or(f64::NAN);
             let mut per_layer = vec![(0.0f64, 0usize); sensor.layers.len()];
             for (k, m) in matches.iter().enumerate() {
                 per_layer[m.layer].0 += r[2 * k].powi(2) + r[2 * k + 1].powi(2);
@@ -479,6 +714,7 @@ pub fn calibrate(
                 rounds,
                 parameters,
                 unmatched,
+                noise_px,
             });
         }
         last = Some(matches);

@@ -146,6 +146,89 @@ impl BrownConrady {
     }
 }
 
+/// Largest local magnification (or demagnification, its inverse) the distortion may
+/// have anywhere over the image: the singular values of its Jacobian must lie in
+/// `[1/MAX_DISTORTION_STRETCH, MAX_DISTORTION_STRETCH]`. Real lenses stay within a
+/// factor 2 or so; a fitted distortion beyond 20 is not a lens but a failed fit.
+pub const MAX_DISTORTION_STRETCH: f64 = 20.0;
+
+impl BrownConrady {
+    /// Checks that the distortion can be inverted over a `width_px × height_px` image:
+    /// every point of a 33 × 33 grid over the image (edges and corners included)
+    /// undistorts (Newton converges and distorting the result gives the point back
+    /// to 1e-6 px), the Jacobian there has a positive determinant and singular values
+    /// within [`MAX_DISTORTION_STRETCH`], and along the ray from the centre to every
+    /// border point the determinant stays positive (no fold inside the image).
+    /// `Err` says where and why.
+    pub fn check_invertible(&self, width_px: u32, height_px: u32) -> Result<(), String> {
+        if self.is_identity() {
+            return Ok(());
+        }
+        const N: usize = 33;
+        let (w, h) = (width_px as f64, height_px as f64);
+        let n = self.norm_px;
+        let c = self.center_px;
+        let stretch = |q: [f64; 2]| -> Result<(), String> {
+            let x = (q[0] - c[0]) / n;
+            let y = (q[1] - c[1]) / n;
+            let j = self.jacobian_normalised(x, y);
+            let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
+            if !(det.is_finite() && det > 0.0) {
+                return Err(
+                    "the distortion folds over (its Jacobian determinant is not positive)".into(),
+                );
+            }
+            // Singular values of a 2 × 2 matrix from its Frobenius norm and determinant.
+            let f2: f64 = j.iter().flatten().map(|v| v * v).sum();
+            let disc = (f2 * f2 - 4.0 * det * det).max(0.0).sqrt();
+            let s_max = (0.5 * (f2 + disc)).sqrt();
+            let s_min = det / s_max;
+            if s_max > MAX_DISTORTION_STRETCH || s_min < 1.0 / MAX_DISTORTION_STRETCH {
+                return Err(format!(
+                    "the distortion stretches the image by {:.3e} to {:.3e} there (at most a factor {MAX_DISTORTION_STRETCH} either way is a lens)",
+                    s_min, s_max
+                ));
+            }
+            Ok(())
+        };
+        let at = |p: [f64; 2], why: String| {
+            format!(
+                "cannot be inverted over the {width_px} x {height_px} px image: at pixel ({:.1}, {:.1}) {why}",
+                p[0], p[1]
+            )
+        };
+        for iy in 0..N {
+            for ix in 0..N {
+                let p = [
+                    w * ix as f64 / (N - 1) as f64,
+                    h * iy as f64 / (N - 1) as f64,
+                ];
+                let q = self.undistort(p);
+                if !(q[0].is_finite() && q[1].is_finite()) {
+                    return Err(at(p, "no undistorted point maps to it".into()));
+                }
+                let back = self.distort(q);
+                if (back[0] - p[0]).hypot(back[1] - p[1]) > 1e-6 {
+                    return Err(at(p, "no undistorted point maps to it".into()));
+                }
+                stretch(q).map_err(|e| at(p, e))?;
+                let border = ix == 0 || iy == 0 || ix == N - 1 || iy == N - 1;
+                if border {
+                    // The ray from the undistorted centre to this border point.
+                    let c0 = self.undistort(c);
+                    let c0 = if c0[0].is_finite() { c0 } else { c };
+                    for t in 1..64 {
+                        let f = t as f64 / 64.0;
+                        let r = [c0[0] + f * (q[0] - c0[0]), c0[1] + f * (q[1] - c0[1])];
+                        stretch(r).map_err(|e| at(self.distort(r), e))?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
 /// One layer of a [`CameraCalibration`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct LayerCalibration {
@@ -273,6 +356,23 @@ impl CameraCalibration {
             p1: c.finite("distortion.p1", d.p1, "")?,
             p2: c.finite("distortion.p2", d.p2, "")?,
         };
+        distortion
+            .check_invertible(cam.width_px, cam.height_px)
+            .map_err(|why| {
+                c.invalid(
+                    "distortion",
+                    format!(
+                        "k1 = {}, k2 = {}, k3 = {}, p1 = {}, p2 = {} (norm_px {} px)",
+                        num(distortion.k1),
+                        num(distortion.k2),
+                        num(distortion.k3),
+                        num(distortion.p1),
+                        num(distortion.p2),
+                        num(distortion.norm_px)
+                    ),
+                    format!("the distortion must be invertible over the image: it {why}"),
+                )
+            })?;
         let mut layers: Vec<Option<LayerCalibration>> = vec![None; sensor.layers.len()];
         for (i, l) in raw.layers.iter().enumerate() {
             let names: Vec<&str> = sensor.layers.iter().map(|l| l.name.as_str()).collect();

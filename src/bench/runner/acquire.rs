@@ -495,8 +495,20 @@ impl Runner<'_, '_, '_, '_> {
                     Err(e) => format!("{health} ({e})"),
                 };
                 let diagnosis = health.diagnosis();
+                // With `run --camera` the pixels are mapped by that calibration: it is
+                // named, and it is a cause as likely as the sensor file's mapping.
+                let through = match &self.camera_path {
+                    Some(c) => format!(" through the camera calibration {c}"),
+                    None => String::new(),
+                };
+                let camera_cause = match &self.camera_path {
+                    Some(c) => format!(
+                        "; or the camera calibration {c} (its scale, origin or distortion) does not fit this camera"
+                    ),
+                    None => String::new(),
+                };
                 Err(Halt::Abort(format!(
-                    "reference frame {name} does not match the sensor file {}: {found}, below [quality] reference_min_found_fraction {gate}; stopped before any setpoint motion (nothing was pressed). Likely cause: {}. Measured: {}",
+                    "reference frame {name} does not match the sensor file {}{through}: {found}, below [quality] reference_min_found_fraction {gate}; stopped before any setpoint motion (nothing was pressed). Likely cause: {}{camera_cause}. Measured: {}",
                     self.plan.sensor_path.display(),
                     if diagnosis.is_empty() {
                         "unclear (scale, origin, colours and exposure look right: is the sensor occluded or loaded?)".to_string()

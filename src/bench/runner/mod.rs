@@ -79,7 +79,7 @@ use thiserror::Error;
 
 use super::config::BenchGeometry;
 use super::control::ForceController;
-use super::journal::{Journal, JournalError, Manifest, RunStatus};
+use super::journal::{Journal, JournalError, Manifest, RunStatus, Session};
 use super::plan::{Plan, Setpoint, Sweep};
 use crate::device::{Camera, DeviceError, ForceSensor, Stage, StagePositionMm, TravelLimits};
 use crate::sensor::Sensor;
@@ -175,8 +175,9 @@ pub struct RunOptions {
     pub home: bool,
     /// Tare the force sensor unloaded before the reference frame.
     pub tare: bool,
-    /// Only the first `limit` setpoints of the plan (a new run records the count in
-    /// the manifest; a resume takes it from there).
+    /// At most `limit` setpoints measured by this session: the next ones of the plan
+    /// not yet in the journal (a new run: the first `limit`). Recorded per session in
+    /// the manifest; a run stopped by its limit stays resumable to its full plan.
     pub limit: Option<usize>,
     /// Set by the caller (Ctrl-C) to stop the run cleanly.
     pub stop: Arc<AtomicBool>,
@@ -393,6 +394,8 @@ struct Runner<'p, 'd, 'a, 'e> {
     /// Pixels -> sensor frame: the sensor file's `[camera]` mapping, or the run's
     /// camera calibration.
     mapping: PixelMapping,
+    /// The `run --camera` calibration file the mapping came from (named in errors).
+    camera_path: Option<String>,
     solvers: HashMap<Vec<bool>, Box<dyn FrameSolver>>,
     index: Option<usize>,
     /// When the force of the current hold (`hold` sweeps) was reached; `None` when no
@@ -443,14 +446,17 @@ pub fn run(
                 }
             )));
         }
-        if manifest.status == RunStatus::Completed {
+        // A run is complete when its journal holds the whole plan; a run a `--limit`
+        // stopped ("completed" what that session was asked) stays resumable.
+        let planned_of_run = manifest.planned_setpoints.unwrap_or(planned);
+        if manifest.status == RunStatus::Completed && manifest.measured_setpoints >= planned_of_run
+        {
             return Err(RunError::Setup(format!(
-                "{}: the run is already completed ({} setpoints)",
+                "{}: the run is already completed (all {} setpoints of its plan measured)",
                 dir.display(),
-                manifest.setpoints
+                manifest.measured_setpoints
             )));
         }
-        setpoints.truncate(manifest.setpoints);
         let r = Journal::open_resume(&dir)?;
         let resume_no = manifest.resumed_at.len() + 1;
         (r.journal, manifest, r.truncated_bytes, resume_no)
@@ -463,9 +469,6 @@ pub fn run(
                 dir.display(),
                 dir.display()
             )));
-        }
-        if let Some(n) = options.limit {
-            setpoints.truncate(n);
         }
         create_dir(&dir)?;
         let manifest = Manifest {
@@ -480,7 +483,8 @@ pub fn run(
             software_version: env!("CARGO_PKG_VERSION").to_string(),
             started_at: rfc3339_now(),
             resumed_at: Vec::new(),
-            setpoints: setpoints.len(),
+            sessions: Vec::new(),
+            setpoints: planned.min(options.limit.unwrap_or(usize::MAX)),
             planned_setpoints: Some(planned),
             limit: options.limit,
             measured_setpoints: 0,
@@ -499,8 +503,18 @@ pub fn run(
     for sub in ["frames", "displacements", "forces"] {
         create_dir(&dir.join(sub))?;
     }
+    // This session's setpoints: the plan's not yet in the journal, in plan order, at
+    // most `--limit` of them (a limit caps this session, never the run).
+    let before = journal.completed().len();
+    setpoints.retain(|sp| !journal.completed().contains(&sp.index));
+    if let Some(n) = options.limit {
+        setpoints.truncate(n);
+    }
+    let session_started = rfc3339_now();
     if options.resume {
-        manifest.resumed_at.push(rfc3339_now());
+        manifest.resumed_at.push(session_started.clone());
+        manifest.limit = options.limit;
+        manifest.setpoints = before + setpoints.len();
         manifest.status = RunStatus::Running;
         manifest.end_reason = None;
         manifest.ended_at = None;
@@ -512,10 +526,16 @@ pub fn run(
         if options.devices != serde_json::Value::Null {
             manifest.devices = options.devices.clone();
         }
-        manifest.write(&dir)?;
     }
-    let total = setpoints.len();
-    let mut done = journal.completed().len();
+    manifest.sessions.push(Session {
+        started_at: session_started,
+        limit: options.limit,
+        setpoints_before: before,
+        setpoints_after: before,
+    });
+    manifest.write(&dir)?;
+    let total = before + setpoints.len();
+    let mut done = before;
     events(&RunEvent::Started {
         total,
         done,
@@ -548,6 +568,7 @@ pub fn run(
         ),
         tracker: None,
         mapping,
+        camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
         solvers: HashMap::new(),
         index: None,
         hold_t0: None,

@@ -70,7 +70,7 @@ pub(super) fn sampled_spectra<M: ElasticModel + ?Sized>(
     period: [usize; 2],
     h: f64,
     planner: &mut FftPlanner<f64>,
-) -> Vec<Vec<C64>> {
+) -> Result<Vec<Vec<C64>>, crate::model::ModelError> {
     let [nx, ny] = period;
     // Let a tabulated model build its table once for the whole window.
     let corner = |ax: usize, t: i64| s.offset_mm[ax] + h * t as f64;
@@ -79,7 +79,10 @@ pub(super) fn sampled_spectra<M: ElasticModel + ?Sized>(
             .abs()
             .max(corner(ax, s.lo[ax] + n as i64 - 1).abs())
     };
-    model.prepare(&[s.depth_mm], reach(0, nx).hypot(reach(1, ny)));
+    let rho_max = reach(0, nx).hypot(reach(1, ny));
+    // The size of a tabulated model's table is checked before it is built.
+    model.check_reach(&[s.depth_mm], rho_max)?;
+    model.prepare(&[s.depth_mm], rho_max);
     let mut comps = vec![vec![C64::default(); nx * ny]; 6];
     for ty in s.lo[1]..s.lo[1] + ny as i64 {
         let iy = ty.rem_euclid(ny as i64) as usize;
@@ -93,10 +96,10 @@ pub(super) fn sampled_spectra<M: ElasticModel + ?Sized>(
             }
         }
     }
-    comps
+    Ok(comps
         .iter_mut()
         .map(|c| fft2_transposed(planner, c, nx, ny))
-        .collect()
+        .collect())
 }
 
 /// The bonded layer's periodic kernel spectra from its closed-form Fourier kernel (the

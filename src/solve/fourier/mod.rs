@@ -507,7 +507,7 @@ impl FourierSolver {
                 period,
                 h,
                 &mut planner,
-            ));
+            )?);
             if let ForwardModel::BondedLayer(bl) = &model {
                 periodic.push(kernel::layer_spectra(bl, &sampling, period, h));
             }
