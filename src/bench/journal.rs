@@ -155,6 +155,13 @@ pub struct JournalRow {
     /// taken; empty for other sweeps.
     #[serde(default)]
     pub hold_t_s: Option<f64>,
+    /// What the force sensor reported since the previous row beyond its readings
+    /// ([`crate::device::ForceSensor::take_status`]): status flags (samples left out of
+    /// the mean as overrange / invalid / faulted), records lost on the network, and for
+    /// a Bota sensor its own timestamp and temperature. Empty when nothing was reported
+    /// (and in rows written before this column).
+    #[serde(default)]
+    pub ft_status: Option<String>,
 }
 
 /// Which way a magnitude sweep was going when a row was measured.
@@ -710,6 +717,7 @@ pub fn header() -> Vec<&'static str> {
         "direction",
         "position",
         "hold_t_s",
+        "ft_status",
     ]
 }
 
