@@ -8,7 +8,8 @@ TACTBENCH_COF_TESTER at it. Needs numpy. Run by hand:
     TACTBENCH_COF_TESTER=/tmp/ft-outside/src python3 tests/netft_cof_tester/serve.py
 
 What this harness changes, and nothing else: the sockets bind 127.0.0.1 with ports
-chosen by the OS (cof_tester binds every interface on fixed ports), and the signal is
+chosen by the OS (cof_tester binds every interface on fixed ports), its own loss and
+reorder injection is set from COF_LOSS / COF_REORDER (probabilities), and the signal is
 made constant (`signal_frequency_hz = 0`, `noise_stddev = 0`), so every record carries
 the same counts: amplitude x sin(0, pi/3, 2pi/3, pi, 4pi/3, 5pi/3) truncated to int32
 (0, 86602, 86602, 0, -86602, -86602 at amplitude 100000; Tx = 100000 sin(pi) = 1.2e-11
@@ -25,6 +26,7 @@ from http.server import HTTPServer
 sys.path.insert(0, os.environ.get("TACTBENCH_COF_TESTER", "."))
 
 from gsdv.diagnostics.sensor_simulator import (  # noqa: E402
+    FaultConfig,
     SensorSimulator,
     SimulatorConfig,
 )
@@ -58,6 +60,11 @@ def main():
         signal_amplitude=100000,
         counts_per_force=1000000,
         counts_per_torque=1000000,
+        # cof_tester's own fault injection (COF_LOSS, COF_REORDER: probabilities).
+        faults=FaultConfig(
+            loss_probability=float(os.environ.get("COF_LOSS", "0")),
+            reorder_probability=float(os.environ.get("COF_REORDER", "0")),
+        ),
     )
     sim = LoopbackSimulator(cfg)
     sim.start()
