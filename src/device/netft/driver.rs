@@ -663,14 +663,14 @@ mod tests {
             for (_, d) in out {
                 self.k += 1;
                 let k = self.k;
-                if self.silent || (self.lose > 0 && k % self.lose == 0) {
+                if self.silent || (self.lose > 0 && k.is_multiple_of(self.lose)) {
                     continue;
                 }
-                if self.swap > 0 && k % self.swap == 0 && self.held.is_none() {
+                if self.swap > 0 && k.is_multiple_of(self.swap) && self.held.is_none() {
                     self.held = Some(d);
                     continue;
                 }
-                if self.dup > 0 && k % self.dup == 0 {
+                if self.dup > 0 && k.is_multiple_of(self.dup) {
                     self.inbox.push_back(d.clone());
                 }
                 self.inbox.push_back(d);

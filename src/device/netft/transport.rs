@@ -166,7 +166,7 @@ impl DatagramReplay {
                 _ => return Err(format!("line {}: expected `> ` or `< `", n + 1)),
             };
             let hex: String = rest.chars().filter(|c| !c.is_whitespace()).collect();
-            if hex.len() % 2 != 0 {
+            if !hex.len().is_multiple_of(2) {
                 return Err(format!("line {}: odd number of hex digits", n + 1));
             }
             let bytes = (0..hex.len())
