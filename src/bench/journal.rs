@@ -567,7 +567,7 @@ pub const LEGACY_COLUMNS: usize = 29;
 /// (new columns go at its end, and their row fields are `Option`s read as absent), so
 /// a journal with one of these widths whose header is the current header's prefix is
 /// resumed by upgrading it. A change that appends columns adds the old width here.
-pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35];
+pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35, 41];
 
 /// Rewrites a legacy journal (`text`: header and complete lines, `width` columns) with
 /// the current header, appending empty new columns to every old row; returns it open
@@ -849,7 +849,7 @@ mod tests {
         assert_eq!(lines[0], header().join(","));
         let added = header().len() - LEGACY_COLUMNS;
         assert!(lines[1].ends_with(&",".repeat(added)), "{}", lines[1]);
-        assert!(lines[3].ends_with(",250,6,3,1,1,ok,,,,,,"), "{}", lines[3]);
+        assert!(lines[3].ends_with(",250,6,3,1,1,ok,,,,,,,"), "{}", lines[3]);
         assert_eq!(
             old.lines().nth(1).unwrap(),
             &lines[1][..lines[1].len() - added],
@@ -894,7 +894,7 @@ mod tests {
             let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
             let lines: Vec<&str> = text.lines().collect();
             assert_eq!(lines[0], header().join(","), "width {width}");
-            assert!(lines[2].ends_with(",0.25,down,2,1.5"), "{}", lines[2]);
+            assert!(lines[2].ends_with(",0.25,down,2,1.5,"), "{}", lines[2]);
             assert_eq!(read_rows(dir.path()).unwrap(), vec![row(0), new]);
         }
     }
