@@ -938,3 +938,52 @@ fn dry_run_and_ports_know_the_network_sensors() {
     assert!(o.status.success());
     assert!(util::stdout(&o).contains("--protocol netft"));
 }
+
+#[test]
+fn sim_bench_serves_a_netft_that_the_ft_command_reads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let links = tmp.path().join("bench");
+    let mut child = tactbench()
+        .args(["sim", "bench", "--scene"])
+        .arg(util::root("experiments/scenes/fig7_hemisphere_ramp.toml"))
+        .args(["--ft", "netft", "--links"])
+        .arg(&links)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut out = BufReader::new(child.stdout.take().unwrap());
+    let served = Served(child);
+    let mut ft_line = String::new();
+    for _ in 0..10 {
+        let mut line = String::new();
+        out.read_line(&mut line).unwrap();
+        if line.starts_with("ft ") {
+            ft_line = line;
+            break;
+        }
+    }
+    let (rdt, cal) = netft_ports(&ft_line);
+    assert!(ft_line.contains("127.0.0.1"), "{ft_line}");
+    let o = ft(&[
+        "--protocol",
+        "netft",
+        "--port",
+        "127.0.0.1",
+        "--rdt-port",
+        &rdt,
+        "--cal-port",
+        &cal,
+        "read",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    // The stage starts above the surface: no load.
+    let v: serde_json::Value = serde_json::from_str(util::stdout(&o).trim()).unwrap();
+    assert_near(
+        &json_wrench(&v["mean"]),
+        &Wrench::default(),
+        netft_scale().resolution(),
+    );
+    drop(served);
+}
