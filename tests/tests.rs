@@ -9,6 +9,7 @@ mod cli;
 mod compare;
 mod fourier;
 mod ft;
+mod ft_net_bota;
 mod layer;
 mod misuse;
 mod model_error;

@@ -17,9 +17,13 @@
 //!                                   # homing $22=1 and soft limits $20=1 are on)
 //!
 //! [force_sensor]
-//! protocol = "dynpick"              # dynpick | ft300
-//! port = "/dev/ttyUSB1"
-//! baud = 921600                     # optional (dynpick 921600, ft300 19200)
+//! protocol = "dynpick"              # dynpick | ft300 | bota (serial); netft | onrobot-hex (network)
+//! port = "/dev/ttyUSB1"             # serial sensors
+//! baud = 921600                     # optional (dynpick 921600, ft300 19200, bota 460800)
+//! # network sensors instead: host = "192.168.1.1", rdt_port = 49152 (UDP, optional),
+//! # cal_port = 49151 (TCP READCALINFO, optional, netft only); counts_per_force /
+//! # counts_per_torque (optional, both or neither) override the device's calibration
+//! # (netft, with a warning) or the HEX's fixed scale
 //!
 //! [camera]
 //! device = "0"                      # V4L2 index, "dir:PATH" (recorded frames) or
@@ -41,7 +45,7 @@
 //! [sim]
 //! scene = "scenes/fig7_hemisphere_ramp.toml"   # relative to this file
 //! stage = "grbl"                    # optional: grbl (default) | zaber
-//! force_sensor = "dynpick"          # optional: dynpick (default) | ft300
+//! force_sensor = "dynpick"          # optional: dynpick (default) | ft300 | netft | bota
 //! friction = 1.0                    # optional: indenter/elastomer friction μ
 //!                                   # (default: the scene's load.friction_coefficient)
 //! # [geometry] optional: defaults from the stage kind (see sim::bench)
@@ -74,6 +78,43 @@ pub enum FtKind {
     DynPick,
     /// Robotiq FT 300.
     Ft300,
+    /// ATI Net F/T (network: RDT over UDP, calibration over TCP).
+    NetFt,
+    /// OnRobot HEX (network: the Net F/T's RDT records, fixed scale).
+    OnRobotHex,
+    /// Bota Systems serial sensor.
+    Bota,
+}
+
+impl FtKind {
+    /// The protocol's name in bench files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            FtKind::DynPick => "dynpick",
+            FtKind::Ft300 => "ft300",
+            FtKind::NetFt => "netft",
+            FtKind::OnRobotHex => "onrobot-hex",
+            FtKind::Bota => "bota",
+        }
+    }
+
+    /// Whether the sensor is reached over the network (a host) rather than a port.
+    pub fn is_network(self) -> bool {
+        matches!(self, FtKind::NetFt | FtKind::OnRobotHex)
+    }
+}
+
+/// Where a network force sensor is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NetFtConfig {
+    /// Host name or address.
+    pub host: String,
+    /// UDP port of the RDT stream (49152).
+    pub rdt_port: u16,
+    /// TCP port of the calibration query (49151).
+    pub cal_port: u16,
+    /// Counts per N and per N·m given in the bench file (overrides the device).
+    pub counts_override: Option<[f64; 2]>,
 }
 
 /// A real stage.
@@ -99,10 +140,12 @@ pub struct StageConfig {
 pub struct FtConfig {
     /// Protocol.
     pub protocol: FtKind,
-    /// Serial port path.
+    /// Serial port path (empty for a network sensor).
     pub port: String,
     /// Baud rate.
     pub baud: u32,
+    /// A network sensor's address and calibration override.
+    pub network: Option<NetFtConfig>,
 }
 
 /// Where the sensor is in stage coordinates (mm) and how to approach it.
@@ -257,8 +300,13 @@ struct RawStage {
 #[serde(deny_unknown_fields)]
 struct RawFt {
     protocol: String,
-    port: String,
+    port: Option<String>,
     baud: Option<i64>,
+    host: Option<String>,
+    rdt_port: Option<i64>,
+    cal_port: Option<i64>,
+    counts_per_force: Option<f64>,
+    counts_per_torque: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -313,10 +361,13 @@ fn ft_kind(c: &Checker<'_>, key: &str, v: &str) -> Result<FtKind, ConfigError> {
     match v {
         "dynpick" => Ok(FtKind::DynPick),
         "ft300" => Ok(FtKind::Ft300),
+        "netft" => Ok(FtKind::NetFt),
+        "onrobot-hex" => Ok(FtKind::OnRobotHex),
+        "bota" => Ok(FtKind::Bota),
         other => Err(c.invalid(
             key,
             format!("{other:?}"),
-            "unknown force-sensor protocol: expected dynpick or ft300",
+            "unknown force-sensor protocol: expected dynpick, ft300, bota, netft or onrobot-hex",
         )),
     }
 }
@@ -383,6 +434,13 @@ impl RawBench {
                 None => FtKind::DynPick,
                 Some(v) => ft_kind(&c, "sim.force_sensor", v)?,
             };
+            if force_sensor == FtKind::OnRobotHex {
+                return Err(c.invalid(
+                    "sim.force_sensor",
+                    "\"onrobot-hex\"",
+                    "the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)",
+                ));
+            }
             let friction = match s.friction {
                 None => None,
                 Some(v) => Some(c.non_negative("sim.friction", v, "")?),
@@ -490,16 +548,7 @@ impl RawBench {
             zaber_mm_per_step,
             travel,
         };
-        let ft_protocol = ft_kind(&c, "force_sensor.protocol", &f.protocol)?;
-        let ft_default_baud = match ft_protocol {
-            FtKind::DynPick => crate::device::dynpick::driver::BAUD,
-            FtKind::Ft300 => crate::device::ft300::driver::BAUD,
-        };
-        let force_sensor = FtConfig {
-            protocol: ft_protocol,
-            port: non_empty(&c, "force_sensor.port", f.port)?,
-            baud: baud(&c, "force_sensor.baud", f.baud, ft_default_baud)?,
-        };
+        let force_sensor = ft_config(&c, f)?;
         let spec_text = match &cam.device {
             toml::Value::String(s) => s.clone(),
             toml::Value::Integer(i) => i.to_string(),
@@ -526,6 +575,145 @@ impl RawBench {
             tare,
         })
     }
+}
+
+/// Validates `[force_sensor]`: serial sensors need `port`, network sensors `host`, and
+/// neither accepts the other's keys.
+fn ft_config(c: &Checker<'_>, f: RawFt) -> Result<FtConfig, ConfigError> {
+    let protocol = ft_kind(c, "force_sensor.protocol", &f.protocol)?;
+    if !protocol.is_network() {
+        for (key, given) in [
+            ("force_sensor.host", f.host.is_some()),
+            ("force_sensor.rdt_port", f.rdt_port.is_some()),
+            ("force_sensor.cal_port", f.cal_port.is_some()),
+            (
+                "force_sensor.counts_per_force",
+                f.counts_per_force.is_some(),
+            ),
+            (
+                "force_sensor.counts_per_torque",
+                f.counts_per_torque.is_some(),
+            ),
+        ] {
+            if given {
+                return Err(c.invalid(
+                    key,
+                    "(given)",
+                    format!(
+                        "{} is a serial sensor: give port (and optionally baud), not network keys",
+                        protocol.name()
+                    ),
+                ));
+            }
+        }
+        let default_baud = match protocol {
+            FtKind::DynPick => crate::device::dynpick::driver::BAUD,
+            FtKind::Ft300 => crate::device::ft300::driver::BAUD,
+            _ => crate::device::bota::driver::BAUD,
+        };
+        let port = f.port.ok_or_else(|| {
+            c.invalid(
+                "force_sensor.port",
+                "(missing)",
+                "a serial force sensor needs port, e.g. /dev/ttyUSB1",
+            )
+        })?;
+        return Ok(FtConfig {
+            protocol,
+            port: non_empty(c, "force_sensor.port", port)?,
+            baud: baud(c, "force_sensor.baud", f.baud, default_baud)?,
+            network: None,
+        });
+    }
+    if let Some(p) = &f.port {
+        return Err(c.invalid(
+            "force_sensor.port",
+            format!("{p:?}"),
+            format!(
+                "{} is a network sensor: give host = \"<address>\" (and optionally rdt_port, cal_port), not a serial port",
+                protocol.name()
+            ),
+        ));
+    }
+    if f.baud.is_some() {
+        return Err(c.invalid(
+            "force_sensor.baud",
+            "(given)",
+            format!(
+                "{} is a network sensor: it has no baud rate",
+                protocol.name()
+            ),
+        ));
+    }
+    let host = f.host.ok_or_else(|| {
+        c.invalid(
+            "force_sensor.host",
+            "(missing)",
+            format!(
+                "{} is a network sensor: give host = \"<address>\", e.g. \"192.168.1.1\"",
+                protocol.name()
+            ),
+        )
+    })?;
+    if host.trim().is_empty() || host.contains(char::is_whitespace) {
+        return Err(c.invalid(
+            "force_sensor.host",
+            format!("{host:?}"),
+            "must be a host name or address, e.g. 192.168.1.1",
+        ));
+    }
+    let net_port = |key: &str, v: Option<i64>, default: u16| match v {
+        None => Ok(default),
+        Some(p) if (1..=65535).contains(&p) => Ok(p as u16),
+        Some(p) => Err(c.invalid(key, p, "must be a port number in [1, 65535]")),
+    };
+    let rdt_port = net_port(
+        "force_sensor.rdt_port",
+        f.rdt_port,
+        crate::device::netft::codec::RDT_PORT,
+    )?;
+    let cal_port = net_port(
+        "force_sensor.cal_port",
+        f.cal_port,
+        crate::device::netft::codec::CAL_PORT,
+    )?;
+    if protocol == FtKind::OnRobotHex && f.cal_port.is_some() {
+        return Err(c.invalid(
+            "force_sensor.cal_port",
+            "(given)",
+            "the OnRobot HEX has no calibration query (its scale is fixed): remove cal_port",
+        ));
+    }
+    let counts_override = match (f.counts_per_force, f.counts_per_torque) {
+        (None, None) => None,
+        (Some(cf), Some(ct)) => Some([
+            c.positive("force_sensor.counts_per_force", cf, "counts/N")?,
+            c.positive("force_sensor.counts_per_torque", ct, "counts/(N·m)")?,
+        ]),
+        (Some(_), None) | (None, Some(_)) => {
+            let key = if f.counts_per_force.is_none() {
+                "force_sensor.counts_per_force"
+            } else {
+                "force_sensor.counts_per_torque"
+            };
+            return Err(c.invalid(
+                key,
+                "(missing)",
+                "give both counts_per_force (counts/N) and counts_per_torque (counts/(N·m)), or neither",
+            ));
+        }
+    };
+    Ok(FtConfig {
+        protocol,
+        port: String::new(),
+        baud: 0,
+        network: Some(NetFtConfig {
+            host,
+            rdt_port,
+            cal_port,
+            counts_override,
+        }),
+    })
 }
 
 fn non_empty(c: &Checker<'_>, key: &str, v: String) -> Result<String, ConfigError> {
@@ -628,6 +816,62 @@ press_direction = -1
         .unwrap_err()
         .to_string();
         assert!(e.contains("force_sensor.baud = 7"), "{e}");
+    }
+
+    #[test]
+    fn network_force_sensors_take_a_host_and_reject_a_serial_port() {
+        let net = HW.replace(
+            "protocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"",
+            "protocol = \"netft\"\nhost = \"192.168.1.1\"",
+        );
+        let BenchDevices::Hardware { force_sensor, .. } = parse(&net).unwrap().devices else {
+            panic!("hardware expected")
+        };
+        let n = force_sensor.network.unwrap();
+        assert_eq!(
+            (n.host.as_str(), n.rdt_port, n.cal_port),
+            ("192.168.1.1", 49152, 49151)
+        );
+        assert_eq!(n.counts_override, None);
+        let e = parse(&HW.replace("protocol = \"dynpick\"", "protocol = \"netft\""))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("force_sensor.port") && e.contains("network sensor") && e.contains("host"),
+            "{e}"
+        );
+        let e = parse(&net.replace(
+            "host = \"192.168.1.1\"",
+            "host = \"192.168.1.1\"\ncounts_per_force = 1e6",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("force_sensor.counts_per_torque = (missing)"),
+            "{e}"
+        );
+        let e = parse(&net.replace("host = \"192.168.1.1\"", "host = \"h\"\nrdt_port = 70000"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("force_sensor.rdt_port = 70000"), "{e}");
+        let e = parse(&HW.replace(
+            "port = \"/dev/ttyUSB1\"",
+            "port = \"/dev/ttyUSB1\"\nhost = \"x\"",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("force_sensor.host") && e.contains("serial sensor"),
+            "{e}"
+        );
+        let bota = HW.replace("\"dynpick\"", "\"bota\"");
+        let BenchDevices::Hardware { force_sensor, .. } = parse(&bota).unwrap().devices else {
+            panic!("hardware expected")
+        };
+        assert_eq!(
+            (force_sensor.protocol, force_sensor.baud),
+            (FtKind::Bota, 460_800)
+        );
     }
 
     #[test]

@@ -8,15 +8,20 @@ use std::time::Duration;
 use serde_json::json;
 use thiserror::Error;
 
-use super::config::{BenchConfig, BenchDevices, BenchGeometry, FtKind, StageKind};
+use super::config::{BenchConfig, BenchDevices, BenchGeometry, FtKind, NetFtConfig, StageKind};
+use crate::device::bota::driver::{self as bota, Bota, BotaOptions};
 use crate::device::camera::{self, SocketCamera};
 use crate::device::dynpick::driver::{self as dynpick, DynPick};
 use crate::device::fault::FaultConfig;
 use crate::device::ft300::driver::{self as ft300, Ft300};
 use crate::device::ft_common::open_serial;
 use crate::device::grbl::{self, Grbl, GrblConfig};
+use crate::device::netft::codec::Scale;
+use crate::device::netft::driver::{self as netft, read_calinfo, NetFt, NetFtOptions};
+use crate::device::netft::UdpTransport;
 use crate::device::zaber::{self, Zaber, ZaberConfig, DEFAULT_MM_PER_STEP};
 use crate::device::{Camera, DeviceError, ForceSensor, Stage};
+use crate::sim::bench::FtEndpoint;
 use crate::sim::bench::{BenchError, BenchOptions, FtProtocol, StageProtocol, VirtualBench};
 use crate::sim::scene::{Scene, SceneError};
 use crate::sim::world::WorldGeometry;
@@ -75,6 +80,9 @@ pub struct Connected {
     pub identities: serde_json::Value,
     /// The bench description for the manifest.
     pub description: serde_json::Value,
+    /// Things the user should know about how the devices were opened (a calibration
+    /// overridden by the bench file), to print before the run.
+    pub warnings: Vec<String>,
     /// The simulated bench, when simulated (dropped after the devices).
     pub sim: Option<VirtualBench>,
 }
@@ -119,20 +127,44 @@ fn open_stage(
 /// 500 ms per status report, Zaber 500 ms) already allow for this and are kept.
 pub const SIM_FT_REPLY_TIMEOUT: Duration = Duration::from_millis(500);
 
+/// Where a force sensor is reached.
+enum FtTarget<'a> {
+    /// A serial port (or a simulator's pseudo-terminal) at a baud rate.
+    Serial { port: &'a str, baud: u32 },
+    /// A network sensor.
+    Network(&'a NetFtConfig),
+}
+
 fn open_ft(
     kind: FtKind,
-    port: &str,
-    baud: u32,
+    target: FtTarget<'_>,
     simulated: bool,
+    warnings: &mut Vec<String>,
 ) -> Result<(Box<dyn ForceSensor>, serde_json::Value), ConnectError> {
     let reply_timeout = match (simulated, kind) {
         (true, _) => SIM_FT_REPLY_TIMEOUT,
         (false, FtKind::DynPick) => dynpick::REPLY_TIMEOUT,
         (false, FtKind::Ft300) => ft300::REPLY_TIMEOUT,
+        (false, FtKind::Bota) => bota::REPLY_TIMEOUT,
+        (false, FtKind::NetFt | FtKind::OnRobotHex) => netft::READ_TIMEOUT,
+    };
+    let serial = |device: &'static str| match target {
+        FtTarget::Serial { port, baud } => {
+            open_serial(device, port, baud).map(|p| (p, port.to_string()))
+        }
+        FtTarget::Network(n) => Err(DeviceError::new(
+            crate::device::ErrorKind::Other,
+            device,
+            "open",
+            format!(
+                "{device} is a serial sensor, but a host ({}) was given",
+                n.host
+            ),
+        )),
     };
     Ok(match kind {
         FtKind::DynPick => {
-            let p = open_serial(dynpick::DEVICE, port, baud).map_err(dev("force sensor"))?;
+            let (p, port) = serial(dynpick::DEVICE).map_err(dev("force sensor"))?;
             let mut d = DynPick::connect_with(p, reply_timeout).map_err(dev("force sensor"))?;
             let fw = d.firmware_version().ok();
             (
@@ -141,7 +173,7 @@ fn open_ft(
             )
         }
         FtKind::Ft300 => {
-            let p = open_serial(ft300::DEVICE, port, baud).map_err(dev("force sensor"))?;
+            let (p, port) = serial(ft300::DEVICE).map_err(dev("force sensor"))?;
             let mut d =
                 Ft300::connect_with(p, crate::device::ft300::codec::SLAVE_ADDRESS, reply_timeout)
                     .map_err(dev("force sensor"))?;
@@ -154,6 +186,120 @@ fn open_ft(
                 json!({"protocol": "ft300", "port": port, "info": info, "mode": "stream"}),
             )
         }
+        FtKind::Bota => {
+            let (p, port) = serial(bota::DEVICE).map_err(dev("force sensor"))?;
+            let d = Bota::connect(
+                p,
+                BotaOptions {
+                    reply_timeout: reply_timeout.max(bota::REPLY_TIMEOUT),
+                    ..BotaOptions::default()
+                },
+            )
+            .map_err(dev("force sensor"))?;
+            let last = d.last_frame();
+            (
+                Box::new(d),
+                json!({
+                    "protocol": "bota",
+                    "port": port,
+                    "sinc_len": bota::DEFAULT_SINC_LEN,
+                    "temperature_c": last.map(|f| f.temperature_c),
+                }),
+            )
+        }
+        FtKind::NetFt | FtKind::OnRobotHex => {
+            let FtTarget::Network(n) = target else {
+                return Err(ConnectError::Device {
+                    what: "force sensor",
+                    source: DeviceError::new(
+                        crate::device::ErrorKind::Other,
+                        kind.name(),
+                        "open",
+                        format!(
+                            "{} is a network sensor: give host, not a serial port",
+                            kind.name()
+                        ),
+                    ),
+                });
+            };
+            let (scale, source) = netft_scale(kind, n, warnings)?;
+            let device = if kind == FtKind::NetFt {
+                netft::DEVICE
+            } else {
+                netft::DEVICE_HEX
+            };
+            let link =
+                UdpTransport::connect(device, &n.host, n.rdt_port).map_err(dev("force sensor"))?;
+            let opts = NetFtOptions {
+                scale,
+                read_timeout: reply_timeout,
+                device,
+                stale_after: netft::MEAN_WINDOW,
+            };
+            let d = NetFt::connect(link, opts).map_err(dev("force sensor"))?;
+            let id = json!({
+                "protocol": kind.name(),
+                "host": n.host,
+                "rdt_port": n.rdt_port,
+                "cal_port": (kind == FtKind::NetFt).then_some(n.cal_port),
+                "counts_per_n": scale.counts_per_n,
+                "counts_per_nm": scale.counts_per_nm,
+                "calibration": source,
+                "measured_rate_hz": d.measured_rate_hz(),
+            });
+            (Box::new(d), id)
+        }
+    })
+}
+
+/// The scale of a network sensor: the Net F/T's READCALINFO (a bench-file override
+/// wins, with a warning when it differs), the HEX's fixed scale (or the override).
+fn netft_scale(
+    kind: FtKind,
+    n: &NetFtConfig,
+    warnings: &mut Vec<String>,
+) -> Result<(Scale, &'static str), ConnectError> {
+    let given = n.counts_override.map(|[f, t]| Scale {
+        counts_per_n: f,
+        counts_per_nm: t,
+    });
+    if kind == FtKind::OnRobotHex {
+        return Ok(match given {
+            Some(s) => (s, "bench file"),
+            None => (Scale::ONROBOT_HEX, "OnRobot HEX fixed scale"),
+        });
+    }
+    let device = match read_calinfo(&n.host, n.cal_port) {
+        Ok(c) => c.scale().map_err(|e| ConnectError::Device {
+            what: "force sensor",
+            source: DeviceError::new(
+                crate::device::ErrorKind::Protocol,
+                netft::DEVICE,
+                format!("READCALINFO {}:{}", n.host, n.cal_port),
+                e.to_string(),
+            ),
+        })?,
+        Err(e) => match given {
+            Some(g) => {
+                warnings.push(format!(
+                    "force sensor: the calibration query failed ({e}); using counts_per_force / counts_per_torque from the bench file"
+                ));
+                return Ok((g, "bench file (device query failed)"));
+            }
+            None => return Err(dev("force sensor")(e)),
+        },
+    };
+    Ok(match given {
+        Some(g) => {
+            if g != device {
+                warnings.push(format!(
+                    "force sensor: the bench file overrides the device's calibration ({} counts/N, {} counts/(N·m)) with {} counts/N, {} counts/(N·m)",
+                    device.counts_per_n, device.counts_per_nm, g.counts_per_n, g.counts_per_nm
+                ));
+            }
+            (g, "bench file (overrides the device)")
+        }
+        None => (device, "device (READCALINFO)"),
     })
 }
 
@@ -183,12 +329,15 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 stage.zaber_mm_per_step,
                 stage.travel,
             )?;
-            let (f, fid) = open_ft(
-                force_sensor.protocol,
-                &force_sensor.port,
-                force_sensor.baud,
-                false,
-            )?;
+            let mut warnings = Vec::new();
+            let target = match &force_sensor.network {
+                Some(n) => FtTarget::Network(n),
+                None => FtTarget::Serial {
+                    port: &force_sensor.port,
+                    baud: force_sensor.baud,
+                },
+            };
+            let (f, fid) = open_ft(force_sensor.protocol, target, false, &mut warnings)?;
             let c = camera::open(spec).map_err(dev("camera"))?;
             Ok(Connected {
                 stage: s,
@@ -202,6 +351,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                     "file": bench.path.display().to_string(),
                     "cwd": working_dir(),
                 }),
+                warnings,
                 sim: None,
             })
         }
@@ -236,6 +386,10 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 match cfg.force_sensor {
                     FtKind::DynPick => FtProtocol::DynPick,
                     FtKind::Ft300 => FtProtocol::Ft300,
+                    // The HEX speaks the Net F/T's records: simulated by the same device
+                    // (config.rs refuses it for [sim] benches).
+                    FtKind::NetFt | FtKind::OnRobotHex => FtProtocol::NetFt,
+                    FtKind::Bota => FtProtocol::Bota,
                 },
                 &sim.links,
                 BenchOptions {
@@ -257,12 +411,32 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 DEFAULT_MM_PER_STEP,
                 None,
             )?;
-            let ft_port = port_name(vb.ft_port(), vb.ft_device())?;
             let baud = match cfg.force_sensor {
                 FtKind::DynPick => dynpick::BAUD,
                 FtKind::Ft300 => ft300::BAUD,
+                _ => bota::BAUD,
             };
-            let (f, fid) = open_ft(cfg.force_sensor, &ft_port, baud, true)?;
+            let mut warnings = Vec::new();
+            let (f, fid) = match vb.ft_endpoint() {
+                FtEndpoint::Serial(p) => {
+                    let port = port_name(p, vb.ft_device().unwrap_or(p))?;
+                    open_ft(
+                        cfg.force_sensor,
+                        FtTarget::Serial { port: &port, baud },
+                        true,
+                        &mut warnings,
+                    )?
+                }
+                FtEndpoint::Network { rdt, cal } => {
+                    let n = NetFtConfig {
+                        host: rdt.ip().to_string(),
+                        rdt_port: rdt.port(),
+                        cal_port: cal.map_or(0, |c| c.port()),
+                        counts_override: None,
+                    };
+                    open_ft(cfg.force_sensor, FtTarget::Network(&n), true, &mut warnings)?
+                }
+            };
             let c = SocketCamera::connect(vb.camera_socket()).map_err(dev("camera"))?;
             Ok(Connected {
                 stage: s,
@@ -284,6 +458,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                     "file": bench.path.display().to_string(),
                     "cwd": working_dir(),
                 }),
+                warnings,
                 sim: Some(vb),
             })
         }

@@ -155,6 +155,13 @@ pub struct JournalRow {
     /// taken; empty for other sweeps.
     #[serde(default)]
     pub hold_t_s: Option<f64>,
+    /// What the force sensor reported since the previous row beyond its readings
+    /// ([`crate::device::ForceSensor::take_status`]): status flags (samples left out of
+    /// the mean as overrange / invalid / faulted), records lost on the network, and for
+    /// a Bota sensor its own timestamp and temperature. Empty when nothing was reported
+    /// (and in rows written before this column).
+    #[serde(default)]
+    pub ft_status: Option<String>,
 }
 
 /// Which way a magnitude sweep was going when a row was measured.
@@ -585,7 +592,7 @@ pub const LEGACY_COLUMNS: usize = 29;
 /// (new columns go at its end, and their row fields are `Option`s read as absent), so
 /// a journal with one of these widths whose header is the current header's prefix is
 /// resumed by upgrading it. A change that appends columns adds the old width here.
-pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35];
+pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35, 41];
 
 /// Rewrites a legacy journal (`text`: header and complete lines, `width` columns) with
 /// the current header, appending empty new columns to every old row; returns it open
@@ -735,6 +742,7 @@ pub fn header() -> Vec<&'static str> {
         "direction",
         "position",
         "hold_t_s",
+        "ft_status",
     ]
 }
 
@@ -866,7 +874,7 @@ mod tests {
         assert_eq!(lines[0], header().join(","));
         let added = header().len() - LEGACY_COLUMNS;
         assert!(lines[1].ends_with(&",".repeat(added)), "{}", lines[1]);
-        assert!(lines[3].ends_with(",250,6,3,1,1,ok,,,,,,"), "{}", lines[3]);
+        assert!(lines[3].ends_with(",250,6,3,1,1,ok,,,,,,,"), "{}", lines[3]);
         assert_eq!(
             old.lines().nth(1).unwrap(),
             &lines[1][..lines[1].len() - added],
@@ -911,7 +919,7 @@ mod tests {
             let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
             let lines: Vec<&str> = text.lines().collect();
             assert_eq!(lines[0], header().join(","), "width {width}");
-            assert!(lines[2].ends_with(",0.25,down,2,1.5"), "{}", lines[2]);
+            assert!(lines[2].ends_with(",0.25,down,2,1.5,"), "{}", lines[2]);
             assert_eq!(read_rows(dir.path()).unwrap(), vec![row(0), new]);
         }
     }

@@ -1,6 +1,7 @@
-//! `tactbench ft`: read, tare and identify a 6-axis force/torque sensor (WACOH DynPick
-//! or Robotiq FT 300) on a serial port; the hidden `sim-serve-ft` command serves a
-//! simulated sensor on a pseudo-terminal for tests and dry runs.
+//! `tactbench ft`: read, tare and identify a 6-axis force/torque sensor (WACOH DynPick,
+//! Robotiq FT 300 or Bota on a serial port; ATI Net F/T or OnRobot HEX on the network);
+//! the hidden `sim-serve-ft` command serves a simulated sensor (on a pseudo-terminal, or
+//! on loopback sockets for the Net F/T) for tests and dry runs.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -11,10 +12,16 @@ use anyhow::{bail, Context};
 use clap::{Args as ClapArgs, Subcommand, ValueEnum};
 use serde::Serialize;
 
+use tactbench::device::bota::{self, Bota, BotaOptions, BotaSim, BotaSimConfig};
 use tactbench::device::dynpick::{DynPick, DynPickSim, DynPickSimConfig};
 use tactbench::device::ft300::{Ft300, Ft300Sim, Ft300SimConfig};
 use tactbench::device::ft_common::{
     no_faults, open_serial, FaultConfig, FaultKind, FaultTarget, SharedWrench,
+};
+use tactbench::device::netft::codec::Scale;
+use tactbench::device::netft::driver::NetFtOptions;
+use tactbench::device::netft::{
+    read_calinfo, NetFt, NetFtCore, NetFtServer, NetFtSimConfig, UdpTransport,
 };
 use tactbench::device::pty::{PtyServer, Simulator};
 use tactbench::device::{ForceSensor, Wrench};
@@ -22,12 +29,19 @@ use tactbench::device::{ForceSensor, Wrench};
 /// Force/torque sensor commands.
 #[derive(ClapArgs)]
 pub struct Args {
-    /// Serial port of the sensor (e.g. /dev/ttyUSB0).
+    /// Serial port of the sensor (e.g. /dev/ttyUSB0); for netft / onrobot-hex the
+    /// sensor's host name or IP address.
     #[arg(long, global = true)]
     port: Option<String>,
     /// Wire protocol.
     #[arg(long, value_enum, global = true)]
     protocol: Option<Protocol>,
+    /// netft / onrobot-hex: UDP port of the RDT stream.
+    #[arg(long, global = true, default_value_t = tactbench::device::netft::codec::RDT_PORT)]
+    rdt_port: u16,
+    /// netft: TCP port of the calibration query (READCALINFO).
+    #[arg(long, global = true, default_value_t = tactbench::device::netft::codec::CAL_PORT)]
+    cal_port: u16,
     #[command(subcommand)]
     action: Action,
 }
@@ -39,18 +53,44 @@ pub struct ServeArgs {
     /// Wire protocol to simulate.
     #[arg(long, value_enum)]
     protocol: Protocol,
-    /// Symlink to create pointing at the pseudo-terminal.
+    /// Symlink to create pointing at the pseudo-terminal (serial protocols).
     #[arg(long)]
-    link: PathBuf,
+    link: Option<PathBuf>,
+    /// netft / onrobot-hex: UDP port to serve RDT on, on 127.0.0.1 (0: chosen by the OS).
+    #[arg(long, default_value_t = 0)]
+    rdt_port: u16,
+    /// netft: TCP port to serve READCALINFO on, on 127.0.0.1 (0: chosen by the OS).
+    #[arg(long, default_value_t = 0)]
+    cal_port: u16,
+    /// netft / onrobot-hex: records per second.
+    #[arg(long, default_value_t = 1000.0)]
+    rate_hz: f64,
+    /// netft: status word of every record; bota: status bits of every frame (e.g. 0x2
+    /// overrange). Hexadecimal with 0x, or decimal.
+    #[arg(long, default_value = "0")]
+    status: String,
+    /// bota: repeat the boot text `App Init` this often until configured (a real sensor
+    /// reboots when its port is opened; a pseudo-terminal cannot tell the simulator).
+    #[arg(long)]
+    banner_every_ms: Option<u64>,
+    /// Fault probability per reply / record for the --fault kinds (seeded, unlimited);
+    /// without it, one fault after --fault-skip replies.
+    #[arg(long)]
+    fault_probability: Option<f64>,
+    /// Seed of the fault draws.
+    #[arg(long, default_value_t = 1)]
+    fault_seed: u64,
     /// Constant load: Fx,Fy,Fz (N),Mx,My,Mz (N·m).
     #[arg(long, default_value = "0,0,0,0,0,0", allow_hyphen_values = true)]
     wrench: String,
     /// Stop after this many seconds (default: serve until killed).
     #[arg(long)]
     duration_s: Option<f64>,
-    /// Inject one fault of this kind (as `sim-serve-stage --fault`).
+    /// Inject faults of these kinds (repeatable; as `sim-serve-stage --fault`). On UDP
+    /// (netft): loss, duplicate, reorder, garbled (a truncated datagram), reset,
+    /// disconnect.
     #[arg(long, value_enum)]
-    fault: Option<FaultArg>,
+    fault: Vec<FaultArg>,
     /// Replies passed untouched before the fault.
     #[arg(long, default_value_t = 0)]
     fault_skip: u32,
@@ -75,6 +115,12 @@ enum FaultArg {
     Unsolicited,
     Reset,
     Disconnect,
+    /// UDP: a record lost (the dropped-byte fault of the serial simulators).
+    Loss,
+    /// UDP: a record sent twice (the unsolicited fault of the serial simulators).
+    Duplicate,
+    /// UDP: a record delayed past later ones (the late fault of the serial simulators).
+    Reorder,
 }
 
 /// Supported sensors.
@@ -84,6 +130,12 @@ enum Protocol {
     Dynpick,
     /// Robotiq FT 300 (19200 baud, Modbus RTU + stream).
     Ft300,
+    /// ATI Net F/T (network: RDT over UDP, calibration over TCP; --port HOST).
+    Netft,
+    /// OnRobot HEX (network: the Net F/T's RDT records, fixed scale; --port HOST).
+    OnrobotHex,
+    /// Bota Systems serial sensor (460800 baud, binary stream).
+    Bota,
 }
 
 impl Protocol {
@@ -91,8 +143,34 @@ impl Protocol {
         match self {
             Protocol::Dynpick => "dynpick",
             Protocol::Ft300 => "ft300",
+            Protocol::Netft => "netft",
+            Protocol::OnrobotHex => "onrobot-hex",
+            Protocol::Bota => "bota",
         }
     }
+}
+
+/// Opens a Net F/T (scale from READCALINFO) or an OnRobot HEX (fixed scale).
+fn open_netft(
+    protocol: Protocol,
+    host: &str,
+    rdt_port: u16,
+    cal_port: u16,
+) -> anyhow::Result<(
+    NetFt<UdpTransport>,
+    Option<tactbench::device::netft::codec::CalInfo>,
+)> {
+    let (opts, cal) = if protocol == Protocol::Netft {
+        let cal = read_calinfo(host, cal_port)?;
+        let scale: Scale = cal
+            .scale()
+            .with_context(|| format!("READCALINFO from {host}:{cal_port}"))?;
+        (NetFtOptions::netft(scale), Some(cal))
+    } else {
+        (NetFtOptions::onrobot_hex(), None)
+    };
+    let link = UdpTransport::connect(opts.device, host, rdt_port)?;
+    Ok((NetFt::connect(link, opts)?, cal))
 }
 
 #[derive(Subcommand)]
@@ -157,8 +235,12 @@ fn show(w: &Wrench) -> String {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let protocol = args
         .protocol
-        .context("--protocol is required (dynpick or ft300)")?;
-    let port_path = args.port.as_deref().context("--port is required")?;
+        .context("--protocol is required (dynpick, ft300, bota, netft or onrobot-hex)")?;
+    let port_path = args
+        .port
+        .as_deref()
+        .context("--port is required (a serial port; for netft / onrobot-hex the sensor's host)")?;
+    let (rdt_port, cal_port) = (args.rdt_port, args.cal_port);
     match args.action {
         Action::Read {
             samples,
@@ -192,6 +274,29 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                         let mut d = d;
                         read_n(&mut d, samples, tare)?
                     }
+                }
+                Protocol::Netft | Protocol::OnrobotHex => {
+                    if stream {
+                        bail!("--stream is only available for the ft300 protocol (netft always streams)");
+                    }
+                    let (mut d, _) = open_netft(protocol, port_path, rdt_port, cal_port)?;
+                    let ws = read_n(&mut d, samples, tare)?;
+                    if let Some(s) = d.take_status() {
+                        eprintln!("{s}");
+                    }
+                    ws
+                }
+                Protocol::Bota => {
+                    if stream {
+                        bail!("--stream is only available for the ft300 protocol (bota always streams)");
+                    }
+                    let port = open_serial(bota::driver::DEVICE, port_path, bota::driver::BAUD)?;
+                    let mut d = Bota::connect(port, BotaOptions::default())?;
+                    let ws = read_n(&mut d, samples, tare)?;
+                    if let Some(s) = d.take_status() {
+                        eprintln!("{s}");
+                    }
+                    ws
                 }
             };
             let m = Wrench::mean(&ws);
@@ -238,6 +343,32 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 "the ft300 tare is a software offset held by the driver for one run; \
                  it cannot persist across commands: use `tactbench ft read --tare`"
             ),
+            Protocol::Netft | Protocol::OnrobotHex => {
+                let (mut d, _) = open_netft(protocol, port_path, rdt_port, cal_port)?;
+                // The device's software bias (0x0042) persists until the sensor is
+                // power-cycled or biased again; the residual is checked by reading.
+                d.tare()?;
+                let residual = d.offset();
+                let w = d.read()?;
+                println!(
+                    "biased (RDT 0x0042; residual after the bias {}); now {}",
+                    show(&residual),
+                    show(&w)
+                );
+            }
+            Protocol::Bota => {
+                let port = open_serial(bota::driver::DEVICE, port_path, bota::driver::BAUD)?;
+                let mut d = Bota::connect(port, BotaOptions::default())?;
+                d.tare()?;
+                let w = d.read()?;
+                println!(
+                    "software offset {} taken (the Bota serial protocol has no zeroing command: \
+                     the offset holds for this command only; runs tare at start and on resume, \
+                     or use `tactbench ft read --tare`); now {}",
+                    show(&d.offset()),
+                    show(&w)
+                );
+            }
         },
         Action::Info { json } => {
             let fields: Vec<(&str, String)> = match protocol {
@@ -267,6 +398,70 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                         ("firmware", i.firmware),
                         ("serial", i.serial),
                         ("production_year", i.year.to_string()),
+                    ]
+                }
+                Protocol::Netft | Protocol::OnrobotHex => {
+                    let (mut d, cal) = open_netft(protocol, port_path, rdt_port, cal_port)?;
+                    let w = d.read()?;
+                    let st = d.stats();
+                    let scale = d.scale();
+                    let mut v = vec![
+                        ("protocol", protocol.name().to_string()),
+                        ("host", format!("{port_path} (RDT UDP {rdt_port})")),
+                    ];
+                    if let Some(c) = cal {
+                        v.push((
+                            "calibration",
+                            format!(
+                                "READCALINFO TCP {cal_port}: force unit {}, torque unit {}, {} counts per force unit, {} counts per torque unit",
+                                c.force_unit, c.torque_unit, c.counts_per_force, c.counts_per_torque
+                            ),
+                        ));
+                    } else {
+                        v.push(("calibration", "OnRobot HEX fixed scale".into()));
+                    }
+                    v.push(("counts_per_n", format!("{}", scale.counts_per_n)));
+                    v.push(("counts_per_nm", format!("{}", scale.counts_per_nm)));
+                    v.push(("rate_hz", format!("{:.0}", d.measured_rate_hz())));
+                    v.push((
+                        "stream",
+                        format!(
+                            "{} records, {} lost, {} duplicate, {} stale, {} with a status word, {} malformed, {} start requests",
+                            st.records, st.lost, st.duplicates, st.stale, st.bad_status, st.malformed, st.start_requests
+                        ),
+                    ));
+                    v.push(("reading", show(&w)));
+                    v
+                }
+                Protocol::Bota => {
+                    let port = open_serial(bota::driver::DEVICE, port_path, bota::driver::BAUD)?;
+                    let mut d = Bota::connect(port, BotaOptions::default())?;
+                    let w = d.read()?;
+                    let f = d
+                        .last_frame()
+                        .context("no frame received from the sensor")?;
+                    let st = d.stats();
+                    vec![
+                        ("protocol", "bota".into()),
+                        (
+                            "sample_period",
+                            format!(
+                                "{} ms (sinc {})",
+                                d.sample_period_s() * 1000.0,
+                                bota::driver::DEFAULT_SINC_LEN
+                            ),
+                        ),
+                        ("status", format!("0x{:04x} {}", f.status, bota::codec::status_names(f.status))),
+                        ("timestamp_us", f.timestamp.to_string()),
+                        ("temperature_c", format!("{:.2}", f.temperature_c)),
+                        (
+                            "stream",
+                            format!(
+                                "{} frames, {} left out (overrange/invalid), {} bad CRC, {} bytes skipped",
+                                st.frames, st.bad, st.bad_crc, st.skipped
+                            ),
+                        ),
+                        ("reading", show(&w)),
                     ]
                 }
             };
@@ -313,6 +508,13 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     let ServeArgs {
         protocol,
         link,
+        rdt_port,
+        cal_port,
+        rate_hz,
+        status,
+        banner_every_ms,
+        fault_probability,
+        fault_seed,
         wrench,
         duration_s,
         fault,
@@ -321,21 +523,49 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         drop_stream_echo,
         tare_ignored,
     } = args;
-    let link = link.as_path();
     let source = SharedWrench::new(parse_wrench(&wrench)?);
-    let faults = match fault {
-        None => no_faults(),
-        Some(f) => {
-            let kind = match f {
-                FaultArg::Late => FaultKind::LateReply,
-                FaultArg::DroppedByte => FaultKind::DroppedByte,
-                FaultArg::Garbled => FaultKind::Garbled,
-                FaultArg::Unsolicited => FaultKind::Unsolicited,
-                FaultArg::Reset => FaultKind::DeviceReset,
-                FaultArg::Disconnect => FaultKind::Disconnect,
-            };
-            FaultConfig::once(kind, FaultTarget::Any, fault_skip)
+    let kinds: Vec<FaultKind> = fault
+        .iter()
+        .map(|f| match f {
+            FaultArg::Late | FaultArg::Reorder => FaultKind::LateReply,
+            FaultArg::DroppedByte | FaultArg::Loss => FaultKind::DroppedByte,
+            FaultArg::Garbled => FaultKind::Garbled,
+            FaultArg::Unsolicited | FaultArg::Duplicate => FaultKind::Unsolicited,
+            FaultArg::Reset => FaultKind::DeviceReset,
+            FaultArg::Disconnect => FaultKind::Disconnect,
+        })
+        .collect();
+    let faults = match (kinds.is_empty(), fault_probability) {
+        (true, _) => no_faults(),
+        (false, None) => FaultConfig {
+            kinds,
+            ..FaultConfig::once(FaultKind::LateReply, FaultTarget::Any, fault_skip)
+        },
+        (false, Some(p)) => {
+            if !(0.0..=1.0).contains(&p) {
+                bail!("--fault-probability {p} must be in [0, 1]");
+            }
+            FaultConfig {
+                seed: fault_seed,
+                kinds,
+                probability: p,
+                target: FaultTarget::Any,
+                skip: fault_skip,
+                max_faults: u32::MAX,
+                // Late enough that a record arrives after later ones; short enough
+                // that a late reply still arrives within a serial driver's retries.
+                late_by: Duration::from_millis(20),
+            }
         }
+    };
+    let status_word = parse_status(&status)?;
+    let need_link = || {
+        link.as_deref().with_context(|| {
+            format!(
+                "--link is required for the serial protocol {}",
+                protocol.name()
+            )
+        })
     };
     match protocol {
         Protocol::Dynpick => {
@@ -346,7 +576,11 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
                 ..Default::default()
             };
             let sim = DynPickSim::new(cfg, source);
-            serve_until(PtyServer::spawn(sim, Some(link))?, protocol, duration_s)
+            serve_until(
+                PtyServer::spawn(sim, Some(need_link()?))?,
+                protocol,
+                duration_s,
+            )
         }
         Protocol::Ft300 => {
             let cfg = Ft300SimConfig {
@@ -356,9 +590,75 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
                 ..Default::default()
             };
             let sim = Ft300Sim::new(cfg, source);
-            serve_until(PtyServer::spawn(sim, Some(link))?, protocol, duration_s)
+            serve_until(
+                PtyServer::spawn(sim, Some(need_link()?))?,
+                protocol,
+                duration_s,
+            )
+        }
+        Protocol::Bota => {
+            let cfg = BotaSimConfig {
+                faults,
+                status: u16::try_from(status_word)
+                    .with_context(|| format!("--status {status}: bota status is 16 bits"))?,
+                banner_every: banner_every_ms.map(Duration::from_millis),
+                ..Default::default()
+            };
+            let sim = BotaSim::new(cfg, source);
+            serve_until(
+                PtyServer::spawn(sim, Some(need_link()?))?,
+                protocol,
+                duration_s,
+            )
+        }
+        Protocol::Netft | Protocol::OnrobotHex => {
+            if !(rate_hz.is_finite() && (1.0..=20_000.0).contains(&rate_hz)) {
+                bail!("--rate-hz {rate_hz} must be in [1, 20000]");
+            }
+            let cfg = NetFtSimConfig {
+                faults,
+                status: status_word,
+                rate_hz,
+                onrobot_hex: protocol == Protocol::OnrobotHex,
+                ..Default::default()
+            };
+            let server = NetFtServer::spawn(NetFtCore::new(cfg, source), rdt_port, cal_port)?;
+            match server.cal_addr() {
+                Some(c) => println!(
+                    "serving simulated {} on {} --rdt-port {} --cal-port {}",
+                    protocol.name(),
+                    server.rdt_addr().ip(),
+                    server.rdt_addr().port(),
+                    c.port()
+                ),
+                None => println!(
+                    "serving simulated {} on {} --rdt-port {}",
+                    protocol.name(),
+                    server.rdt_addr().ip(),
+                    server.rdt_addr().port()
+                ),
+            }
+            std::io::stdout().flush()?;
+            let start = std::time::Instant::now();
+            while !server.is_finished()
+                && duration_s.is_none_or(|d| start.elapsed().as_secs_f64() < d)
+            {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            drop(server);
+            Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// `--status`: hexadecimal with `0x`, or decimal.
+fn parse_status(text: &str) -> anyhow::Result<u32> {
+    let t = text.trim();
+    let v = match t.strip_prefix("0x").or_else(|| t.strip_prefix("0X")) {
+        Some(h) => u32::from_str_radix(h, 16),
+        None => t.parse(),
+    };
+    v.with_context(|| format!("--status {text:?} is not a number (0x… or decimal)"))
 }
 
 /// Serves until the duration passes, the simulator hangs up, or the process is killed.

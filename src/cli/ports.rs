@@ -1,5 +1,7 @@
 //! `tactbench ports`: list the serial ports the system knows (USB adapters, built-in
 //! UARTs). Pseudo-terminals (simulators) are not listed: use their path directly.
+//! Network force sensors (ATI Net F/T, OnRobot HEX) have no port: the listing ends
+//! with a line saying how to address them.
 
 use std::process::ExitCode;
 
@@ -15,6 +17,7 @@ pub fn run(_a: Args) -> anyhow::Result<ExitCode> {
         .map_err(|e| anyhow::anyhow!("cannot list serial ports: {e}"))?;
     if ports.is_empty() {
         println!("no serial ports found (is the controller plugged in and powered? simulators on pseudo-terminals are not listed)");
+        println!("{NETWORK_NOTE}");
         return Ok(ExitCode::SUCCESS);
     }
     for p in ports {
@@ -38,5 +41,9 @@ pub fn run(_a: Args) -> anyhow::Result<ExitCode> {
         };
         println!("{}\t{}", p.port_name, kind);
     }
+    println!("{NETWORK_NOTE}");
     Ok(ExitCode::SUCCESS)
 }
+
+/// How network force sensors are addressed (they are not serial ports).
+const NETWORK_NOTE: &str = "network force sensors are not listed: ATI Net F/T (--protocol netft) and OnRobot HEX (--protocol onrobot-hex) take --port HOST (the sensor's address; RDT on UDP 49152, calibration on TCP 49151), bench.toml [force_sensor] host = \"...\"";

@@ -345,6 +345,9 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             return Err(anyhow::Error::new(e).context("cannot open the bench"));
         }
     };
+    for w in &c.warnings {
+        eprintln!("warning: {w}");
+    }
     let options = RunOptions {
         dir: dir.clone(),
         resume,

@@ -20,9 +20,10 @@ pub enum SimCommand {
 
 /// Serve a simulated bench: stage, force sensor and camera around one virtual world.
 ///
-/// The stage simulator (GRBL or Zaber) and the force-sensor simulator (DynPick or
-/// FT 300) speak their real protocols on pseudo-terminals, linked as DIR/stage and
-/// DIR/ft; the camera serves frames on DIR/camera.sock (use `--device sim:DIR/camera.sock`
+/// The stage simulator (GRBL or Zaber) and the force-sensor simulator (DynPick, FT 300
+/// or Bota) speak their real protocols on pseudo-terminals, linked as DIR/stage and
+/// DIR/ft (the ATI Net F/T, `--ft netft`, on 127.0.0.1 UDP/TCP ports chosen by the OS,
+/// printed as `ft      127.0.0.1 --rdt-port N --cal-port M`); the camera serves frames on DIR/camera.sock (use `--device sim:DIR/camera.sock`
 /// with `tactbench camera`). Where the stage is decides the contact: the force sensor
 /// reports the matching wrench (N, N·m) and the camera renders the matching markers,
 /// with the scene's effects only. The scene's [load] is not used.
@@ -76,6 +77,9 @@ enum StageArg {
 enum FtArg {
     Dynpick,
     Ft300,
+    /// ATI Net F/T on loopback UDP/TCP (ports chosen by the OS, printed).
+    Netft,
+    Bota,
 }
 
 /// Render a scene: the unloaded reference frame, the loaded frames and ground truth.
@@ -133,6 +137,8 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let ft = match a.ft {
         FtArg::Dynpick => FtProtocol::DynPick,
         FtArg::Ft300 => FtProtocol::Ft300,
+        FtArg::Netft => FtProtocol::NetFt,
+        FtArg::Bota => FtProtocol::Bota,
     };
     if !(a.friction.is_finite() && a.friction >= 0.0) {
         anyhow::bail!("--friction {} must be a finite number >= 0", a.friction);
@@ -154,7 +160,7 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let bench = VirtualBench::start(&scene, stage, ft, &a.links, Some(geometry))?;
     let g = bench.world().geometry();
     println!("stage   {}", bench.stage_port().display());
-    println!("ft      {}", bench.ft_port().display());
+    println!("ft      {}", bench.ft_endpoint());
     println!("camera  {}", bench.camera_socket().display());
     println!(
         "world   sensor origin at stage ({}, {}) mm, surface at z = {} mm, pressing towards {}z, friction {}",

@@ -1,6 +1,7 @@
 //! Devices: the capability traits the bench runner drives, and one folder per wire
-//! protocol (pure codec, driver generic over `Read + Write`, simulator serving the same
-//! protocol; the spec lives in `protocols/`).
+//! protocol (pure codec, driver generic over `Read + Write` (the Net F/T: over a
+//! datagram transport), simulator serving the same protocol; the spec lives in
+//! `protocols/`).
 //!
 //! Drivers never name a concrete port type: they take any `Read + Write` (a
 //! `serialport` port on hardware, a pseudo-terminal in tests and in the simulated
@@ -8,10 +9,12 @@
 //! can hang. Each driver keeps a rich error but exposes a small [`ErrorKind`] the
 //! runner can act on, and every error carries the command that failed.
 
+pub mod bota;
 pub mod camera;
 pub mod dynpick;
 pub mod ft300;
 pub mod ft_common;
+pub mod netft;
 
 use std::fmt;
 use std::time::{Duration, SystemTime};
@@ -232,6 +235,13 @@ pub trait ForceSensor {
     fn tare(&mut self) -> DeviceResult<()>;
     /// Nominal sample rate in Hz of [`ForceSensor::read`] at full speed.
     fn sample_rate_hz(&self) -> f64;
+    /// What the sensor reported since the last call that a reading alone does not
+    /// show (status flags such as overrange, records lost on the network, samples left
+    /// out of a mean), as one line for the journal; `None` when there was nothing.
+    /// Default: `None` (sensors without status words).
+    fn take_status(&mut self) -> Option<String> {
+        None
+    }
 }
 
 /// A captured camera frame.

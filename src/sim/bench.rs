@@ -5,8 +5,9 @@
 //! - The stage simulator (GRBL or Zaber) is wrapped in [`WorldStage`], which publishes
 //!   the stage position to the world after every simulator step (and wakes every
 //!   [`WORLD_TICK`] so motion is seen while nobody talks to the stage).
-//! - The force-sensor simulator (DynPick or FT 300) reads its wrench from the world
-//!   through [`WorldWrench`].
+//! - The force-sensor simulator (DynPick, FT 300 or Bota on a pseudo-terminal; the
+//!   ATI Net F/T on loopback UDP/TCP sockets with OS-chosen ports) reads its wrench from
+//!   the world through [`WorldWrench`].
 //! - The camera serves frames rendered from the world's current contact on
 //!   `camera.sock` (protocol in [`crate::device::camera::socket`]), with the scene's
 //!   effects and nothing else.
@@ -27,11 +28,13 @@ use super::render::to_rgb8;
 use super::scene::Scene;
 use super::simulate::Simulation;
 use super::world::{World, WorldGeometry};
+use crate::device::bota::sim::{BotaSim, BotaSimConfig};
 use crate::device::dynpick::sim::{DynPickSim, DynPickSimConfig};
 use crate::device::fault::FaultConfig;
 use crate::device::ft300::sim::{Ft300Sim, Ft300SimConfig};
 use crate::device::ft_common::{no_faults, WrenchSource};
 use crate::device::grbl::sim::{GrblSim, GrblSimConfig};
+use crate::device::netft::sim::{NetFtCore, NetFtServer, NetFtSimConfig, NetFtSimError};
 use crate::device::pty::{Flow, PtyError, PtyServer, Simulator};
 use crate::device::zaber::sim::{ZaberSim, ZaberSimConfig};
 use crate::device::zaber::DEFAULT_MM_PER_STEP;
@@ -54,6 +57,9 @@ pub enum BenchError {
         /// The cause.
         source: PtyError,
     },
+    /// The simulated Net F/T's sockets could not be set up.
+    #[error(transparent)]
+    NetFt(#[from] NetFtSimError),
     /// The links directory or the camera socket could not be set up.
     #[error("{path}: {source}")]
     Io {
@@ -80,6 +86,39 @@ pub enum FtProtocol {
     DynPick,
     /// Robotiq FT 300.
     Ft300,
+    /// ATI Net F/T (loopback UDP and TCP).
+    NetFt,
+    /// Bota Systems serial sensor.
+    Bota,
+}
+
+/// Where a simulated force sensor is reached.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FtEndpoint<'a> {
+    /// A pseudo-terminal (its symlink).
+    Serial(&'a Path),
+    /// Loopback sockets: the RDT (UDP) address and the calibration (TCP) address.
+    Network {
+        /// UDP address of the RDT stream.
+        rdt: std::net::SocketAddr,
+        /// TCP address of the calibration query.
+        cal: Option<std::net::SocketAddr>,
+    },
+}
+
+impl std::fmt::Display for FtEndpoint<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FtEndpoint::Serial(p) => write!(f, "{}", p.display()),
+            FtEndpoint::Network { rdt, cal } => {
+                write!(f, "{} --rdt-port {}", rdt.ip(), rdt.port())?;
+                if let Some(c) = cal {
+                    write!(f, " --cal-port {}", c.port())?;
+                }
+                Ok(())
+            }
+        }
+    }
 }
 
 impl StageProtocol {
@@ -188,6 +227,8 @@ enum StageServer {
 enum FtServer {
     DynPick(PtyServer<DynPickSim>),
     Ft300(PtyServer<Ft300Sim>),
+    NetFt(NetFtServer),
+    Bota(PtyServer<BotaSim>),
 }
 
 /// Options of [`VirtualBench::start_with`] beyond the scene and protocols.
@@ -309,6 +350,30 @@ impl VirtualBench {
                 )
                 .map_err(pty("force sensor"))?,
             ),
+            FtProtocol::NetFt => FtServer::NetFt(NetFtServer::spawn(
+                NetFtCore::new(
+                    NetFtSimConfig {
+                        faults: options.ft_faults.clone().unwrap_or_else(no_faults),
+                        ..NetFtSimConfig::default()
+                    },
+                    source,
+                ),
+                0,
+                0,
+            )?),
+            FtProtocol::Bota => FtServer::Bota(
+                PtyServer::spawn(
+                    BotaSim::new(
+                        BotaSimConfig {
+                            faults: options.ft_faults.clone().unwrap_or_else(no_faults),
+                            ..BotaSimConfig::default()
+                        },
+                        source,
+                    ),
+                    Some(&ft_link),
+                )
+                .map_err(pty("force sensor"))?,
+            ),
         };
         let camera = CameraServer::start(&links.join("camera.sock"), Arc::clone(&world))?;
         Ok(VirtualBench {
@@ -341,19 +406,28 @@ impl VirtualBench {
         }
     }
 
-    /// The force sensor's pseudo-terminal itself (`/dev/pts/N`).
-    pub fn ft_device(&self) -> &Path {
+    /// The force sensor's pseudo-terminal itself (`/dev/pts/N`); `None` for the
+    /// simulated Net F/T, which is served on loopback sockets.
+    pub fn ft_device(&self) -> Option<&Path> {
         match &self.ft {
-            FtServer::DynPick(s) => s.path(),
-            FtServer::Ft300(s) => s.path(),
+            FtServer::DynPick(s) => Some(s.path()),
+            FtServer::Ft300(s) => Some(s.path()),
+            FtServer::Bota(s) => Some(s.path()),
+            FtServer::NetFt(_) => None,
         }
     }
 
-    /// The force sensor's port (a symlink to its pseudo-terminal).
-    pub fn ft_port(&self) -> &Path {
+    /// Where the force sensor is reached: a symlink to its pseudo-terminal, or the
+    /// simulated Net F/T's loopback addresses.
+    pub fn ft_endpoint(&self) -> FtEndpoint<'_> {
         match &self.ft {
-            FtServer::DynPick(s) => s.port_path(),
-            FtServer::Ft300(s) => s.port_path(),
+            FtServer::DynPick(s) => FtEndpoint::Serial(s.port_path()),
+            FtServer::Ft300(s) => FtEndpoint::Serial(s.port_path()),
+            FtServer::Bota(s) => FtEndpoint::Serial(s.port_path()),
+            FtServer::NetFt(s) => FtEndpoint::Network {
+                rdt: s.rdt_addr(),
+                cal: s.cal_addr(),
+            },
         }
     }
 
@@ -376,6 +450,8 @@ impl VirtualBench {
         let ft = match &self.ft {
             FtServer::DynPick(s) => s.is_finished(),
             FtServer::Ft300(s) => s.is_finished(),
+            FtServer::Bota(s) => s.is_finished(),
+            FtServer::NetFt(s) => s.is_finished(),
         };
         stage || ft
     }

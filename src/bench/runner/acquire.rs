@@ -304,6 +304,9 @@ impl Runner<'_, '_, '_, '_> {
             samples.push(w);
         }
         let (mean, sd) = mean_sd(&samples);
+        // Flags and counts the sensor reported since the previous row (samples it left
+        // out of the readings, network losses, Bota's timestamp and temperature).
+        let ft_status = self.dev.take_ft_status();
         let stage = self
             .dev
             .position()
@@ -407,6 +410,7 @@ impl Runner<'_, '_, '_, '_> {
             direction: sp.direction,
             position: sp.position,
             hold_t_s,
+            ft_status,
         })
     }
 

@@ -273,7 +273,43 @@ pub fn check_bench_inputs(
             force_sensor,
             camera,
         } => {
-            for (what, port) in [("stage", &stage.port), ("force sensor", &force_sensor.port)] {
+            let mut ports = vec![("stage", &stage.port)];
+            match &force_sensor.network {
+                None => ports.push(("force sensor", &force_sensor.port)),
+                Some(n) => {
+                    // A network sensor: the host must resolve; it is not contacted.
+                    let resolved = crate::device::netft::transport::resolve(
+                        force_sensor.protocol.name(),
+                        &n.host,
+                        n.rdt_port,
+                    );
+                    let ports = if force_sensor.protocol == crate::bench::config::FtKind::NetFt {
+                        format!("UDP {} (RDT), TCP {} (calibration)", n.rdt_port, n.cal_port)
+                    } else {
+                        format!("UDP {} (RDT)", n.rdt_port)
+                    };
+                    out.push(match resolved {
+                        Ok(a) => (
+                            true,
+                            format!(
+                                "force sensor {} at {} ({}), {ports} (not contacted by a dry run)",
+                                force_sensor.protocol.name(),
+                                n.host,
+                                a.ip()
+                            ),
+                        ),
+                        Err(e) => (
+                            false,
+                            format!(
+                                "force sensor {}: {}",
+                                force_sensor.protocol.name(),
+                                e.message
+                            ),
+                        ),
+                    });
+                }
+            }
+            for (what, port) in ports {
                 let present = Path::new(port).exists();
                 out.push((
                     true,

@@ -137,6 +137,9 @@ impl Timed<'_, '_> {
     pub(super) fn tare(&mut self) -> DeviceResult<()> {
         timed!(self, self.dev.ft.tare())
     }
+    pub(super) fn take_ft_status(&mut self) -> Option<String> {
+        self.dev.ft.take_status()
+    }
     pub(super) fn move_to(&mut self, p: StagePositionMm, v: f64) -> DeviceResult<()> {
         timed!(self, self.dev.stage.move_to(p, Some(v)))
     }
