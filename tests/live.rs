@@ -673,23 +673,17 @@ fn twenty_viewers_and_a_hung_one_leave_the_run_and_its_journal_intact() {
     let viewers: Vec<_> = (0..20)
         .map(|_| {
             let addr = s.addr.clone();
-            std::thread::spawn(move || {
-                read_events(&addr, "/api/events", usize::MAX, Duration::from_secs(600))
-            })
+            std::thread::spawn(move || viewer(&addr))
         })
         .collect();
     assert_eq!(wait_exit(&mut s.child, 300), 0);
     drop(hung);
     for v in viewers {
-        let ev = v.join().unwrap();
-        let last_state = ev
-            .iter()
-            .rev()
-            .find(|e| e.0 == "state")
-            .map(|e| serde_json::from_str::<Value>(&e.1).unwrap())
-            .expect("a state event");
-        assert_eq!(last_state["state"], "completed", "{last_state}");
-        assert_eq!(ev.last().unwrap().0, "end");
+        let seen = v.join().unwrap();
+        let last = seen.last_state.expect("a state event");
+        assert_eq!(last["state"], "completed", "{last}");
+        assert!(seen.ended, "the stream ended with `end`");
+        assert!(seen.frames >= 1, "a frame was fetched");
     }
     let rows = tactbench::bench::journal::read_rows(&out).unwrap();
     assert_eq!(
@@ -707,43 +701,165 @@ fn chromium() -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
-/// Headless Chromium on `url` with a fresh profile: `--dump-dom` (returns the DOM
-/// after `budget_ms` of page time) or, with `screenshot`, a PNG of the page.
-fn headless(browser: &Path, url: &str, budget_ms: u64, screenshot: Option<&Path>) -> String {
-    let profile = tempfile::tempdir().unwrap();
-    let mut cmd = Command::new(browser);
-    cmd.args([
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--hide-scrollbars",
-        "--window-size=1400,1500",
-    ])
-    .arg(format!("--user-data-dir={}", profile.path().display()))
-    .arg(format!("--timeout={budget_ms}"));
-    match screenshot {
-        Some(p) => cmd.arg(format!("--screenshot={}", p.display())),
-        None => cmd.arg("--dump-dom"),
-    };
-    let o = cmd
-        .arg(url)
-        .stdin(Stdio::null())
-        .output()
-        .expect("run chromium");
-    String::from_utf8_lossy(&o.stdout).into_owned()
+/// Headless Chromium driven over the DevTools protocol on a pipe
+/// (`--remote-debugging-pipe`: commands on fd 3, answers on fd 4, NUL-terminated
+/// JSON), so one page stays open while the run advances and the test reads its DOM.
+struct Browser {
+    child: Child,
+    tx: std::fs::File,
+    rx: BufReader<std::fs::File>,
+    next: u64,
+    session: Option<String>,
+    _profile: tempfile::TempDir,
 }
 
-/// The text of the element with `id` in a dumped DOM.
-fn by_id(dom: &str, id: &str) -> Option<String> {
-    let start = dom.find(&format!("id=\"{id}\""))?;
-    let open = start + dom[start..].find('>')? + 1;
-    let close = open + dom[open..].find('<')?;
-    Some(dom[open..close].to_string())
+impl Browser {
+    fn launch(path: &Path) -> Browser {
+        use std::os::fd::FromRawFd;
+        use std::os::unix::process::CommandExt;
+        let pipe = || {
+            let mut fds = [0i32; 2];
+            // SAFETY: pipe2 fills two descriptors; close-on-exec keeps them out of the
+            // child except where dup2 places them.
+            assert_eq!(unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC) }, 0);
+            fds
+        };
+        let (to_browser, from_browser) = (pipe(), pipe());
+        let profile = tempfile::tempdir().unwrap();
+        let mut cmd = Command::new(path);
+        cmd.args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--hide-scrollbars",
+            "--remote-debugging-pipe",
+        ])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .arg("about:blank")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+        let (r3, w4) = (to_browser[0], from_browser[1]);
+        // SAFETY: only async-signal-safe dup2 between fork and exec.
+        unsafe {
+            cmd.pre_exec(move || {
+                // Out of the way first: either end may itself be fd 3 or 4.
+                let a = libc::fcntl(r3, libc::F_DUPFD, 10);
+                let b = libc::fcntl(w4, libc::F_DUPFD, 10);
+                if a < 0 || b < 0 || libc::dup2(a, 3) < 0 || libc::dup2(b, 4) < 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let child = cmd.spawn().expect("start chromium");
+        // SAFETY: our ends of the pipes, owned from here on; the child's are closed.
+        let (tx, rx) = unsafe {
+            libc::close(r3);
+            libc::close(w4);
+            (
+                std::fs::File::from_raw_fd(to_browser[1]),
+                std::fs::File::from_raw_fd(from_browser[0]),
+            )
+        };
+        Browser {
+            child,
+            tx,
+            rx: BufReader::new(rx),
+            next: 1,
+            session: None,
+            _profile: profile,
+        }
+    }
+
+    /// One command; returns its `result` (events in between are skipped).
+    fn call(&mut self, method: &str, params: Value) -> Value {
+        let id = self.next;
+        self.next += 1;
+        let mut msg = serde_json::json!({ "id": id, "method": method, "params": params });
+        if let Some(s) = &self.session {
+            msg["sessionId"] = Value::String(s.clone());
+        }
+        let mut bytes = msg.to_string().into_bytes();
+        bytes.push(0);
+        self.tx.write_all(&bytes).unwrap();
+        loop {
+            let mut buf = Vec::new();
+            let k = self.rx.read_until(0, &mut buf).unwrap();
+            assert!(k > 0, "chromium closed the DevTools pipe");
+            buf.pop();
+            let v: Value = serde_json::from_slice(&buf).unwrap();
+            if v["id"] == id {
+                assert!(v.get("error").is_none(), "{method}: {v}");
+                return v["result"].clone();
+            }
+        }
+    }
+
+    /// Opens `url` in a new page of 1400x1500 px and attaches to it.
+    fn open(&mut self, url: &str) {
+        self.session = None;
+        let t = self.call(
+            "Target.createTarget",
+            serde_json::json!({ "url": "about:blank" }),
+        );
+        let a = self.call(
+            "Target.attachToTarget",
+            serde_json::json!({ "targetId": t["targetId"], "flatten": true }),
+        );
+        self.session = Some(a["sessionId"].as_str().unwrap().to_string());
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            serde_json::json!({ "width": 1400, "height": 1500, "deviceScaleFactor": 1, "mobile": false }),
+        );
+        self.call("Page.enable", serde_json::json!({}));
+        self.call("Page.navigate", serde_json::json!({ "url": url }));
+    }
+
+    /// The text of the element `id` (`None` when there is none).
+    fn text(&mut self, id: &str) -> Option<String> {
+        let r = self.call(
+            "Runtime.evaluate",
+            serde_json::json!({
+                "expression": format!("(e => e ? e.textContent : null)(document.getElementById({id:?}))"),
+                "returnByValue": true
+            }),
+        );
+        r["result"]["value"].as_str().map(str::to_string)
+    }
+
+    fn exists(&mut self, id: &str) -> bool {
+        let r = self.call(
+            "Runtime.evaluate",
+            serde_json::json!({ "expression": format!("!!document.getElementById({id:?})"), "returnByValue": true }),
+        );
+        r["result"]["value"] == true
+    }
+
+    /// A PNG of the page.
+    fn screenshot(&mut self, to: &Path) {
+        use base64::Engine as _;
+        let r = self.call(
+            "Page.captureScreenshot",
+            serde_json::json!({ "format": "png", "captureBeyondViewport": true }),
+        );
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(r["data"].as_str().unwrap())
+            .unwrap();
+        std::fs::write(to, png).unwrap();
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
 
 /// Where screenshots go: `TACTBENCH_SCREENSHOTS` (to look at them), else a temporary
@@ -756,7 +872,7 @@ fn screenshot_dir(tmp: &Path) -> PathBuf {
 
 #[test]
 fn headless_chromium_sees_the_numbers_advance_and_the_final_state() {
-    let Some(browser) = chromium() else {
+    let Some(path) = chromium() else {
         eprintln!("SKIPPED: no /usr/bin/chromium (apt-get install chromium; .ci/run installs it)");
         return;
     };
@@ -764,64 +880,54 @@ fn headless_chromium_sees_the_numbers_advance_and_the_final_state() {
     let shots = screenshot_dir(tmp.path());
     std::fs::create_dir_all(&shots).unwrap();
     let out = tmp.path().join("run");
-    let n = 8;
+    let n = 12;
     let mut s = spawn_run(&out, n, &["--serve", "127.0.0.1:0"]);
-    wait_for(120, "a measured setpoint", || {
-        state(&s.addr)["setpoints_done"].as_u64().unwrap_or(0) >= 1
-    });
-    let dom1 = headless(&browser, &s.url, 4000, None);
-    let done1: u64 = by_id(&dom1, "r0-done")
-        .and_then(|t| t.parse().ok())
-        .unwrap_or_else(|| panic!("no r0-done in {dom1}"));
-    assert_eq!(
-        by_id(&dom1, "r0-state").as_deref(),
-        Some("running"),
-        "{dom1}"
-    );
-    assert_eq!(by_id(&dom1, "r0-total").as_deref(), Some("8"));
-    assert!(done1 >= 1);
-    headless(
-        &browser,
-        &s.url,
-        6000,
-        Some(&shots.join("live_running.png")),
-    );
-    // Later the page (a fresh load) shows more setpoints.
-    wait_for(240, "two more setpoints", || {
-        state(&s.addr)["setpoints_done"].as_u64().unwrap_or(0) >= done1 + 2
-            || s.child.try_wait().unwrap().is_some()
-    });
-    if s.child.try_wait().unwrap().is_none() {
-        let dom2 = headless(&browser, &s.url, 4000, None);
-        let done2: u64 = by_id(&dom2, "r0-done").unwrap().parse().unwrap();
-        assert!(done2 > done1, "{done1} then {done2}");
+    let mut b = Browser::launch(&path);
+    b.open(&s.url);
+    // One page, never reloaded: its numbers advance by push.
+    let num = |b: &mut Browser| -> Option<u64> { b.text("r0-done")?.parse().ok() };
+    let mut seen: Vec<u64> = Vec::new();
+    let mut shot = false;
+    let t0 = Instant::now();
+    while s.child.try_wait().unwrap().is_none() {
+        assert!(t0.elapsed() < Duration::from_secs(300), "run too slow");
+        if let Some(d) = num(&mut b) {
+            if seen.last() != Some(&d) {
+                seen.push(d);
+            }
+            if !shot && d >= 3 && b.text("r0-state").as_deref() == Some("running") {
+                assert_eq!(b.text("r0-total").as_deref(), Some("12"));
+                b.screenshot(&shots.join("live_running.png"));
+                shot = true;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(150));
     }
-    assert_eq!(wait_exit(&mut s.child, 300), 0);
+    assert_eq!(wait_exit(&mut s.child, 10), 0);
+    assert!(
+        seen.iter().filter(|d| **d > 0 && **d < n as u64).count() >= 2,
+        "the page's setpoint count advanced while running: {seen:?}"
+    );
+    assert!(seen.windows(2).all(|w| w[0] < w[1]), "{seen:?}");
+    // The final state reached the same page before the view closed.
+    assert_eq!(b.text("r0-state").as_deref(), Some("completed"));
+    assert_eq!(num(&mut b), Some(n as u64));
     // The finished run, served by `serve`, with its report link.
     let o = util::run(&["report", out.to_str().unwrap()]);
-    assert!(o.status.code().is_some(), "{}", util::stderr(&o));
+    assert!(out.join("report.html").exists(), "{}", util::stderr(&o));
     let mut v = spawn_serve(&[&out], &["--addr", "127.0.0.1:0"]);
-    wait_for(30, "served", || state(&v.addr)["state"] == "completed");
-    let dom = headless(&browser, &v.url, 4000, None);
-    assert_eq!(
-        by_id(&dom, "r0-state").as_deref(),
-        Some("completed"),
-        "{dom}"
-    );
-    assert_eq!(by_id(&dom, "r0-done").as_deref(), Some("8"));
-    assert!(dom.contains("id=\"r0-reportlink\""), "report link: {dom}");
-    headless(
-        &browser,
-        &v.url,
-        6000,
-        Some(&shots.join("live_finished.png")),
-    );
+    b.open(&v.url);
+    wait_for(30, "the finished page", || {
+        b.text("r0-state").as_deref() == Some("completed") && b.exists("r0-reportlink")
+    });
+    assert_eq!(b.text("r0-done").as_deref(), Some("12"));
+    std::thread::sleep(Duration::from_millis(1500));
+    b.screenshot(&shots.join("live_finished.png"));
+    if !shot {
+        panic!("no screenshot of the running page: {seen:?}");
+    }
     let _ = v.child.kill();
     let _ = v.child.wait();
-    for f in ["live_running.png", "live_finished.png"] {
-        let b = std::fs::read(shots.join(f)).unwrap_or_default();
-        assert!(b.starts_with(b"\x89PNG"), "{f} is a screenshot");
-    }
 }
 
 /// `--timings`' summary line: (setpoints, wall s, controller overhead mean ms).
@@ -892,7 +998,7 @@ fn live_view_overhead_per_setpoint_with_twenty_viewers() {
                     })
                     .collect();
                 let code = wait_exit(&mut s.child, 3600);
-                let frames: usize = viewers.into_iter().map(|v| v.join().unwrap()).sum();
+                let frames: usize = viewers.into_iter().map(|v| v.join().unwrap().frames).sum();
                 eprintln!("  20 viewers fetched {frames} frames");
                 (s.lines.try_iter().collect::<Vec<_>>(), code)
             } else {
@@ -924,28 +1030,40 @@ fn live_view_overhead_per_setpoint_with_twenty_viewers() {
     );
 }
 
+/// What a viewer saw.
+#[derive(Default)]
+struct Seen {
+    frames: usize,
+    last_state: Option<Value>,
+    ended: bool,
+}
+
 /// A viewer: reads the event stream until it ends, fetching each pushed frame as the
-/// page does. Returns the frames fetched.
-fn viewer(addr: &str) -> usize {
+/// page does.
+fn viewer(addr: &str) -> Seen {
+    let mut seen = Seen::default();
     let Ok(mut s) = TcpStream::connect(addr) else {
-        return 0;
+        return seen;
     };
     let _ = s.set_read_timeout(Some(Duration::from_secs(120)));
     let _ = write!(s, "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n");
     let mut buf = Vec::new();
     let mut chunk = [0u8; 65536];
-    let mut frames = 0;
     let mut last_index = None;
     loop {
         match s.read(&mut chunk) {
-            Ok(0) | Err(_) => return frames,
+            Ok(0) | Err(_) => return seen,
             Ok(k) => buf.extend_from_slice(&chunk[..k]),
         }
         while let Some(end) = buf.windows(2).position(|w| w == b"\n\n") {
             let block = String::from_utf8_lossy(&buf[..end]).into_owned();
             buf.drain(..end + 2);
             if block.contains("event: end") {
-                return frames;
+                seen.ended = true;
+                return seen;
+            }
+            if let Some(data) = block.strip_prefix("event: state\ndata: ") {
+                seen.last_state = serde_json::from_str(data).ok();
             }
             if let Some(data) = block.strip_prefix("event: evidence\ndata: ") {
                 if let Ok(v) = serde_json::from_str::<Value>(data) {
@@ -953,7 +1071,7 @@ fn viewer(addr: &str) -> usize {
                     if idx.is_some() && idx != last_index {
                         last_index = idx;
                         if get(addr, "/api/frame.png").status == 200 {
-                            frames += 1;
+                            seen.frames += 1;
                         }
                     }
                 }

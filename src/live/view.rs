@@ -142,8 +142,18 @@ pub struct RunView {
     error: Option<String>,
     /// Warnings from the file reads (torn line, bad live.json), newest last.
     notes: VecDeque<String>,
-    writer_pid: Option<u32>,
+    /// The pid `live.json` names.
+    live_pid: Option<u32>,
+    /// The pid of the process holding `run.lock`, when it recorded one.
+    holder_pid: Option<u32>,
+    /// The run is on the simulated bench.
+    simulated: bool,
+    /// The manifest's `write_failure` (issue 23), when recorded.
+    write_failure: Value,
+    /// A process holds `run.lock` (or the run is in this process).
     writer_alive: bool,
+    /// `live.json` is the lock holder's (not a stale one from an earlier session).
+    live_trusted: bool,
 }
 
 impl RunView {
@@ -198,8 +208,12 @@ impl RunView {
             report: false,
             error: None,
             notes: VecDeque::new(),
-            writer_pid: None,
+            live_pid: None,
+            holder_pid: None,
+            simulated: false,
+            write_failure: Value::Null,
             writer_alive: false,
+            live_trusted: false,
         };
         v.take_manifest();
         Ok(v)
@@ -209,11 +223,23 @@ impl RunView {
     /// `live.json` is not read.
     pub fn set_in_process(&mut self) {
         self.in_process = true;
-        self.writer_pid = Some(std::process::id());
+        self.holder_pid = Some(std::process::id());
         self.writer_alive = true;
+        self.live_trusted = true;
     }
 
     fn take_manifest(&mut self) {
+        // Fields other issues add to the manifest (`simulated`, `write_failure`),
+        // shown when present: read from the raw document, not the typed one.
+        let raw: Value = std::fs::read_to_string(self.dir.join(MANIFEST_FILE))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or(Value::Null);
+        self.simulated = raw
+            .get("simulated")
+            .and_then(Value::as_bool)
+            .unwrap_or_else(|| simulated(&self.manifest));
+        self.write_failure = raw.get("write_failure").cloned().unwrap_or(Value::Null);
         let m = &self.manifest;
         self.plan = Plan::from_toml_str(&m.plan_toml, &m.plan_path).ok();
         self.unit = self
@@ -408,7 +434,7 @@ impl RunView {
             self.live_mtime = mtime;
             match LiveDoc::read(&self.dir) {
                 Ok(Some(doc)) => {
-                    self.writer_pid = Some(doc.pid);
+                    self.live_pid = Some(doc.pid);
                     self.live = doc;
                     changed = true;
                 }
@@ -417,12 +443,23 @@ impl RunView {
                 Err(e) => self.note(e.to_string()),
             }
         }
-        // The writer: the process holding run.lock (the runner); live.json's pid
-        // must be alive too (a stale file from a killed run says nothing).
-        let held = matches!(lock::probe(&self.dir), Ok(LockState::Held(_)));
-        let alive = held && self.writer_pid.is_some_and(pid_alive);
-        if alive != self.writer_alive {
+        // The writer is the process holding run.lock; live.json is trusted only when
+        // it is that process's (a stale file of a killed session says nothing).
+        let holder = match lock::probe(&self.dir) {
+            Ok(LockState::Held(h)) => Some(h.pid),
+            _ => None,
+        };
+        let alive = holder.is_some();
+        let trusted = match holder {
+            Some(Some(h)) => self.live_pid == Some(h),
+            Some(None) => self.live_pid.is_some_and(pid_alive),
+            None => false,
+        };
+        let holder_pid = holder.flatten();
+        if (alive, trusted, holder_pid) != (self.writer_alive, self.live_trusted, self.holder_pid) {
             self.writer_alive = alive;
+            self.live_trusted = trusted;
+            self.holder_pid = holder_pid;
             changed = true;
         }
         changed
@@ -522,8 +559,10 @@ impl RunView {
         if self.error.is_some() && !self.dir.is_dir() {
             return "missing";
         }
-        let status = if self.in_process || self.writer_alive {
+        let status = if self.in_process || (self.writer_alive && self.live_trusted) {
             self.live.state
+        } else if self.writer_alive {
+            RunStatus::Running
         } else {
             self.manifest.status
         };
@@ -543,7 +582,9 @@ impl RunView {
 
     /// The pid of the process writing the run, when one is.
     pub fn writer_pid(&self) -> Option<u32> {
-        self.writer_alive().then_some(self.writer_pid).flatten()
+        self.writer_alive()
+            .then_some(self.holder_pid.or(self.live_pid))
+            .flatten()
     }
 
     /// Changes of the plotted series (a row added, the journal read again).
@@ -585,13 +626,16 @@ impl RunView {
     /// The state document of `GET /api/state` (and of each pushed `state` update).
     pub fn state_json(&self, run: usize) -> Value {
         let m = &self.manifest;
-        let live_run = self.writer_alive() && self.state_word() == "running";
+        // The runner's own fields (phase, readings) only from a live, trusted source.
+        let live_run = self.writer_alive()
+            && (self.in_process || self.live_trusted)
+            && self.state_word() == "running";
         let done = self.rows.max(if self.in_process {
             self.live.setpoints_done
         } else {
             0
         });
-        let total = if self.live.setpoints_total > 0 && self.writer_alive() {
+        let total = if self.live.setpoints_total > 0 && live_run {
             self.live.setpoints_total
         } else {
             m.setpoints
@@ -652,8 +696,8 @@ impl RunView {
             "writer_pid": self.writer_pid(),
             "stop_allowed": live_run,
             "build_id": m.build_id,
-            "simulated": simulated(m),
-            "write_failure": Value::Null,
+            "simulated": self.simulated,
+            "write_failure": self.write_failure,
             "report": self.report.then_some("report.html"),
             "notes": self.notes,
             "error": self.error,
@@ -668,8 +712,8 @@ impl RunView {
     }
 }
 
-/// Whether the manifest says the simulated bench ran (issue 23's `simulated`
-/// field when present; else the bench description names a `[sim]` scene).
+/// Whether the bench description names a `[sim]` scene (manifests without issue
+/// 23's `simulated` field).
 fn simulated(m: &Manifest) -> bool {
     m.bench.get("sim").is_some_and(|s| !s.is_null())
 }
