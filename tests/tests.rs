@@ -11,6 +11,7 @@ mod fourier;
 mod ft;
 mod ft_net_bota;
 mod layer;
+mod live;
 mod misuse;
 mod model_error;
 mod plans;

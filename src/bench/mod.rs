@@ -2,13 +2,15 @@
 //! file ([`config`]), the runner's pure decision logic ([`control`]: settle detection,
 //! force limits, force control), the runner itself ([`runner`]: setpoints, safety
 //! watchdog, resume), the crash-safe run directory ([`journal`]) and its one-writer
-//! lock ([`lock`]). Nothing here prints or draws: the runner emits
+//! lock ([`lock`]); `live.json`, the runner's current activity for watchers
+//! ([`live`]). Nothing here prints or draws: the runner emits
 //! [`runner::RunEvent`]s.
 
 pub mod config;
 pub mod connect;
 pub mod control;
 pub mod journal;
+pub mod live;
 pub mod lock;
 pub mod plan;
 pub mod runner;

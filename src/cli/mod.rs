@@ -17,6 +17,7 @@ mod report;
 mod reproduce;
 mod run;
 mod sensor;
+mod serve;
 mod sim;
 mod solver_args;
 mod stage;
@@ -40,6 +41,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     Run(run::Args),
+    Serve(serve::Args),
     Reconstruct(reconstruct::Args),
     Report(report::Args),
     Compare(compare::Args),
@@ -77,6 +79,7 @@ pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => run::run(args),
+        Command::Serve(args) => serve::run(args),
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Report(args) => report::run(args),
         Command::Compare(args) => compare::run(args),

@@ -140,6 +140,16 @@ pub struct Args {
     /// when stderr is not a terminal: nohup, CI, a pipe).
     #[arg(long)]
     no_progress: bool,
+    /// Watch the run in a browser: serve the live view on ADDR (default
+    /// 127.0.0.1:7878; port 0 = any free port) and print its URL on stderr. A
+    /// non-loopback address turns on a token (in the URL). The run never waits for
+    /// the view. Give ADDR after the plan (or as --serve=ADDR).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = tactbench::live::DEFAULT_ADDR)]
+    serve: Option<String>,
+    /// With --serve: acceptance criteria (as `report --acceptance`) for the live
+    /// view's provisional verdict.
+    #[arg(long, value_name = "CRITERIA.toml", requires = "serve")]
+    acceptance: Option<PathBuf>,
 }
 
 /// What the manifest says about the bench, to reopen it on resume. Relative paths
@@ -184,16 +194,20 @@ extern "C" fn on_stop_signal(signal: libc::c_int) {
     }
 }
 
+/// The flags [`on_stop_signal`] sets (and the live view's Stop button).
+fn stop_flags() -> (Arc<AtomicBool>, Arc<AtomicI32>) {
+    STOP.get_or_init(|| {
+        (
+            Arc::new(AtomicBool::new(false)),
+            Arc::new(AtomicI32::new(0)),
+        )
+    })
+    .clone()
+}
+
 /// Installs [`on_stop_signal`] for SIGINT, SIGTERM and SIGHUP; returns the flags.
 fn install_stop_handlers() -> anyhow::Result<(Arc<AtomicBool>, Arc<AtomicI32>)> {
-    let flags = STOP
-        .get_or_init(|| {
-            (
-                Arc::new(AtomicBool::new(false)),
-                Arc::new(AtomicI32::new(0)),
-            )
-        })
-        .clone();
+    let flags = stop_flags();
     for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
         // SAFETY: `action` is fully initialised (zeroed, then handler, empty mask,
         // SA_RESTART) before sigaction reads it; the handler only touches atomics.
@@ -300,6 +314,33 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         (None, Some(d)) => (d.clone(), true),
         _ => bail!("give --out DIR for a new run or --resume DIR to continue one"),
     };
+    // The live view binds before anything is created or opened: a bad address is an
+    // error that leaves nothing behind.
+    let live = match &a.serve {
+        Some(addr) => {
+            let (stop, signal) = stop_flags();
+            let server = tactbench::live::LiveServer::start(
+                std::slice::from_ref(&dir),
+                &tactbench::live::ServeOptions {
+                    addr: addr.clone(),
+                    criteria: a.acceptance.clone(),
+                },
+                Some(tactbench::live::StopHandle { stop, signal }),
+            )?;
+            eprintln!(
+                "live view: {}{}",
+                server.url(),
+                if server.url().contains("token=") {
+                    " (not a loopback address: requests need this token)"
+                } else {
+                    ""
+                }
+            );
+            Some(server)
+        }
+        None => None,
+    };
+    let live_events = live.as_ref().and_then(|s| s.sender());
     // Created here (the simulated bench's links live in it), removed again if the
     // bench cannot be opened: a failed start leaves nothing behind.
     let created = !resume && !dir.exists();
@@ -388,91 +429,98 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         None => eprintln!("{line}"),
     };
     let run_dir = dir.display().to_string();
-    let mut on_event = |e: &RunEvent| match e {
-        RunEvent::Started {
-            total,
-            done,
-            truncated_bytes,
-        } => {
-            if let Some(b) = &bar {
-                b.set_length(*total as u64);
-                b.set_position(*done as u64);
-                b.reset_eta();
-            }
-            if *done > 0 {
-                log(format!(
-                    "resuming {run_dir}: {done} of {total} setpoints already measured{}",
-                    if *truncated_bytes > 0 {
-                        format!(" (cut a torn journal line of {truncated_bytes} bytes)")
-                    } else {
-                        String::new()
-                    }
-                ));
-            } else {
-                log(format!("run {run_dir}: {total} setpoints"));
-            }
+    let mut on_event = |e: &RunEvent| {
+        // The live view never makes the run wait: a bounded queue, dropped when full.
+        if let Some(s) = &live_events {
+            s.send(e);
         }
-        RunEvent::Homing => log("homing the stage".into()),
-        RunEvent::Tared { residual_n } => log(format!(
-            "force sensor tared (|F| = {residual_n:.4} N after)"
-        )),
-        RunEvent::Reference {
-            path,
-            markers,
-            missing,
-        } => log(format!(
-            "reference frame {path}: {markers} markers, {missing} missing"
-        )),
-        RunEvent::SetpointStarted { setpoint, .. } => {
-            if let Some(b) = &bar {
-                b.set_message(format!(
-                    "#{} target {:.1} {sym}",
-                    setpoint.index,
-                    unit.from_newtons(setpoint.normal_n)
-                ));
+        match e {
+            RunEvent::Started {
+                total,
+                done,
+                truncated_bytes,
+            } => {
+                if let Some(b) = &bar {
+                    b.set_length(*total as u64);
+                    b.set_position(*done as u64);
+                    b.reset_eta();
+                }
+                if *done > 0 {
+                    log(format!(
+                        "resuming {run_dir}: {done} of {total} setpoints already measured{}",
+                        if *truncated_bytes > 0 {
+                            format!(" (cut a torn journal line of {truncated_bytes} bytes)")
+                        } else {
+                            String::new()
+                        }
+                    ));
+                } else {
+                    log(format!("run {run_dir}: {total} setpoints"));
+                }
             }
-        }
-        RunEvent::Contact { .. } => {}
-        RunEvent::Retry {
-            index,
-            attempt,
-            reason,
-        } => log(format!(
-            "retry {attempt}{}: {reason}",
-            index
-                .map(|i| format!(" at setpoint {i}"))
-                .unwrap_or_default()
-        )),
-        RunEvent::Warning { index, message } => {
-            log(format!("warning: setpoint {index}: {message}"))
-        }
-        RunEvent::SetpointMeasured {
-            index,
-            done,
-            total,
-            target_n,
-            force_n,
-            fsum_n,
-            settled,
-            elapsed_s,
-            ..
-        } => match &bar {
-            Some(b) => {
-                b.set_position(*done as u64);
-                b.set_message(format!(
-                    "last fz {:.1} {sym}",
-                    unit.from_newtons(force_n[2])
-                ));
+            RunEvent::Homing => log("homing the stage".into()),
+            RunEvent::Tared { residual_n } => log(format!(
+                "force sensor tared (|F| = {residual_n:.4} N after)"
+            )),
+            RunEvent::Reference {
+                path,
+                markers,
+                missing,
+            } => log(format!(
+                "reference frame {path}: {markers} markers, {missing} missing"
+            )),
+            RunEvent::SetpointStarted { setpoint, .. } => {
+                if let Some(b) = &bar {
+                    b.set_message(format!(
+                        "#{} target {:.1} {sym}",
+                        setpoint.index,
+                        unit.from_newtons(setpoint.normal_n)
+                    ));
+                }
             }
-            None => eprintln!(
-                "{}",
-                setpoint_line(
-                    *index, *done, *total, unit, target_n, force_n, fsum_n, *settled, *elapsed_s
-                )
-            ),
-        },
-        RunEvent::SafetyTrip { reason, .. } => log(format!("SAFETY STOP: {reason}")),
-        RunEvent::Finished { .. } => {}
+            RunEvent::Contact { .. } => {}
+            RunEvent::Retry {
+                index,
+                attempt,
+                reason,
+            } => log(format!(
+                "retry {attempt}{}: {reason}",
+                index
+                    .map(|i| format!(" at setpoint {i}"))
+                    .unwrap_or_default()
+            )),
+            RunEvent::Warning { index, message } => {
+                log(format!("warning: setpoint {index}: {message}"))
+            }
+            RunEvent::SetpointMeasured {
+                index,
+                done,
+                total,
+                target_n,
+                force_n,
+                fsum_n,
+                settled,
+                elapsed_s,
+                ..
+            } => match &bar {
+                Some(b) => {
+                    b.set_position(*done as u64);
+                    b.set_message(format!(
+                        "last fz {:.1} {sym}",
+                        unit.from_newtons(force_n[2])
+                    ));
+                }
+                None => eprintln!(
+                    "{}",
+                    setpoint_line(
+                        *index, *done, *total, unit, target_n, force_n, fsum_n, *settled,
+                        *elapsed_s
+                    )
+                ),
+            },
+            RunEvent::SafetyTrip { reason, .. } => log(format!("SAFETY STOP: {reason}")),
+            RunEvent::Finished { .. } | RunEvent::Phase { .. } | RunEvent::Reading { .. } => {}
+        }
     };
 
     let summary = {
@@ -492,6 +540,10 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     };
     if let Some(b) = &bar {
         b.finish_and_clear();
+    }
+    if let Some(server) = live {
+        // Viewers get the final state, then the view closes with the process.
+        server.finish(Duration::from_secs(3));
     }
     // Drivers first, then the simulated bench they talk to.
     drop(c.stage);

@@ -6,7 +6,7 @@
 use std::time::{Duration, Instant};
 
 use super::{
-    dev_abort, Halt, RunEvent, Runner, Step, CONTROL_SAMPLES, INITIAL_STIFFNESS_N_PER_MM,
+    dev_abort, Halt, Phase, RunEvent, Runner, Step, CONTROL_SAMPLES, INITIAL_STIFFNESS_N_PER_MM,
     MAX_CONTROL_STEP_MM, READ_RETRIES, SETTLE_RETRIES,
 };
 use crate::bench::control::{check_force_limits, ForceController, SettleDetector};
@@ -33,7 +33,10 @@ impl Runner<'_, '_, '_, '_> {
         let mut attempt = 0;
         loop {
             match self.dev.read() {
-                Ok(w) => return Ok(w),
+                Ok(w) => {
+                    self.reading(&w);
+                    return Ok(w);
+                }
                 Err(e) if attempt < READ_RETRIES && e.kind() != ErrorKind::Disconnected => {
                     attempt += 1;
                     (self.events)(&RunEvent::Retry {
@@ -82,6 +85,7 @@ impl Runner<'_, '_, '_, '_> {
 
     /// Normal (and tangential) force control at the setpoint.
     pub(super) fn control(&mut self, sp: &Setpoint, lateral: &mut [f64; 2]) -> Step<()> {
+        self.set_phase(Phase::ForceControl);
         let tol = self.plan.force_tolerance_n;
         let t_mag = sp.tangential_n[0].hypot(sp.tangential_n[1]);
         let dir = if t_mag > 0.0 {
@@ -163,6 +167,7 @@ impl Runner<'_, '_, '_, '_> {
 
     /// Waits for the force to settle (or the fixed dwell). Returns whether it settled.
     pub(super) fn settle(&mut self) -> Step<bool> {
+        self.set_phase(Phase::Settle);
         let st = self.plan.settle;
         let t0 = Instant::now();
         if st.dwell_s > 0.0 {
@@ -198,6 +203,7 @@ impl Runner<'_, '_, '_, '_> {
 
     /// One setpoint, from motion to the journal row (not yet appended).
     pub(super) fn measure(&mut self, sp: &Setpoint, retract: bool) -> Step<JournalRow> {
+        self.set_phase(Phase::Approach);
         let t_move0 = Instant::now();
         let target_xy = [
             sp.position_mm[0] + sp.shift_mm[0],
@@ -253,6 +259,7 @@ impl Runner<'_, '_, '_, '_> {
                 .hold_t0
                 .ok_or_else(|| Halt::Abort("hold: the force was not reached".into()))?;
             let t_w = Instant::now();
+            self.set_phase(Phase::Settle);
             self.hold_wait(t0 + Duration::from_secs_f64(t_sched))?;
             t_settle = t_w.elapsed().as_secs_f64();
             settled = !self.hold_restarted;
@@ -293,6 +300,7 @@ impl Runner<'_, '_, '_, '_> {
         }
 
         // Acquire.
+        self.set_phase(Phase::Acquire);
         let t_acq = Instant::now();
         let n = self.plan.samples;
         let mut samples = Vec::with_capacity(n);
@@ -367,6 +375,7 @@ impl Runner<'_, '_, '_, '_> {
             }
         };
         let rel: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
+        self.set_phase(Phase::Solve);
         let (fsum, fsum_sd, t_solve) = self.reconstruct(sp.index, &tracked)?;
         Ok(JournalRow {
             index: sp.index,

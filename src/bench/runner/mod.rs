@@ -80,8 +80,12 @@ use thiserror::Error;
 use super::config::BenchGeometry;
 use super::control::ForceController;
 use super::journal::{Journal, JournalError, Manifest, RunStatus, Session};
+use super::live::LiveWriter;
+pub use super::live::Phase;
 use super::plan::{Plan, Setpoint, Sweep};
-use crate::device::{Camera, DeviceError, ForceSensor, Stage, StagePositionMm, TravelLimits};
+use crate::device::{
+    Camera, DeviceError, ForceSensor, Stage, StagePositionMm, TravelLimits, Wrench,
+};
 use crate::sensor::Sensor;
 use crate::solve::FrameSolver;
 use crate::vision::camera::{CameraCalibration, PixelMapping};
@@ -103,6 +107,9 @@ pub const MAX_CONTROL_STEP_MM: f64 = 0.5;
 /// Initial contact stiffness estimate of the force controller, N/mm (stiff enough
 /// that the first step undershoots on the paper's elastomer; the secant takes over).
 pub const INITIAL_STIFFNESS_N_PER_MM: f64 = 4.0;
+
+/// Most [`RunEvent::Reading`]s per second.
+pub const READING_EVENTS_PER_S: u32 = 5;
 
 /// Position tolerance for "the stage reached its target", mm.
 pub const POSITION_TOLERANCE_MM: f64 = 0.005;
@@ -200,6 +207,23 @@ pub enum RunEvent {
     },
     /// The stage is homing.
     Homing,
+    /// The runner entered a phase (sent when the phase changes).
+    Phase {
+        /// Setpoint index, when in a setpoint.
+        index: Option<usize>,
+        /// The phase.
+        phase: Phase,
+    },
+    /// The latest force reading and commanded stage position, at most
+    /// [`READING_EVENTS_PER_S`] times a second (for live views).
+    Reading {
+        /// Setpoint index, when in a setpoint.
+        index: Option<usize>,
+        /// fx, fy, fz (N), mx, my, mz (N·m).
+        ft: [f64; 6],
+        /// Commanded stage position, machine mm (`None` before the first move).
+        stage_mm: Option<[f64; 3]>,
+    },
     /// The force sensor was tared; `residual_n` = |F| right after.
     Tared {
         /// |F| after taring, N.
@@ -404,6 +428,10 @@ struct Runner<'p, 'd, 'a, 'e> {
     /// The current hold was re-established part-way (a resumed run): its samples are
     /// journalled `settled = false`.
     hold_restarted: bool,
+    /// The phase last reported ([`RunEvent::Phase`]).
+    phase: Option<Phase>,
+    /// When the last [`RunEvent::Reading`] was sent.
+    last_reading: Option<Instant>,
     /// Per-setpoint accounting.
     track_s: f64,
     solve_s: f64,
@@ -425,6 +453,12 @@ pub fn run(
     events: &mut dyn FnMut(&RunEvent),
 ) -> Result<RunSummary, RunError> {
     let dir = options.dir.clone();
+    // Every event also goes into live.json (a hint for watchers in other processes).
+    let mut live = LiveWriter::new(&dir);
+    let events = &mut |e: &RunEvent| {
+        live.observe(e);
+        events(e);
+    };
     let mut setpoints = plan.setpoints();
     let planned = setpoints.len();
     let (mut journal, mut manifest, truncated_bytes, resume_no) = if options.resume {
@@ -573,6 +607,8 @@ pub fn run(
         index: None,
         hold_t0: None,
         hold_restarted: false,
+        phase: None,
+        last_reading: None,
         track_s: 0.0,
         solve_s: 0.0,
         precompute_s: 0.0,
@@ -643,9 +679,13 @@ pub fn run(
             prev = Some(*sp);
         }
         r.index = None;
+        r.set_phase(Phase::Retract);
         r.retract()?;
         Ok(())
     })();
+    if outcome.is_err() {
+        r.set_phase(Phase::Retract);
+    }
 
     let signal = options.stop_signal.load(Ordering::SeqCst);
     let (status, reason) = match outcome {
@@ -704,11 +744,44 @@ impl Runner<'_, '_, '_, '_> {
         self.stop.load(Ordering::SeqCst)
     }
 
+    /// Reports a phase change ([`RunEvent::Phase`]); nothing when the phase is the same.
+    fn set_phase(&mut self, phase: Phase) {
+        if self.phase != Some(phase) {
+            self.phase = Some(phase);
+            (self.events)(&RunEvent::Phase {
+                index: self.index,
+                phase,
+            });
+        }
+    }
+
+    /// Reports a force reading ([`RunEvent::Reading`]), at most
+    /// [`READING_EVENTS_PER_S`] times a second: one `Instant` comparison otherwise.
+    fn reading(&mut self, w: &Wrench) {
+        let now = Instant::now();
+        let interval = Duration::from_secs(1) / READING_EVENTS_PER_S;
+        if self
+            .last_reading
+            .is_some_and(|t| now.duration_since(t) < interval)
+        {
+            return;
+        }
+        self.last_reading = Some(now);
+        let (f, t) = (w.force_n, w.torque_nm);
+        (self.events)(&RunEvent::Reading {
+            index: self.index,
+            ft: [f[0], f[1], f[2], t[0], t[1], t[2]],
+            stage_mm: self.commanded,
+        });
+    }
+
     /// Homing, retract, tare and the reference frame.
     fn prepare(&mut self, options: &RunOptions, resume_no: usize) -> Step<()> {
         // Leave any contact a killed run left behind before anything else moves.
+        self.set_phase(Phase::Retract);
         self.retract()?;
         if options.home {
+            self.set_phase(Phase::Home);
             (self.events)(&RunEvent::Homing);
             self.dev.home().map_err(|e| dev_abort("homing", &e))?;
             self.commanded = None;
@@ -716,6 +789,7 @@ impl Runner<'_, '_, '_, '_> {
         let xy = self.plan.approach_position_mm;
         self.move_lateral_at_clearance(xy)?;
         if options.tare {
+            self.set_phase(Phase::Tare);
             self.dev.tare().map_err(|e| dev_abort("taring", &e))?;
             // The next samples reflect the new offset (DynPick applies it to the next
             // record; FT 300 at once).
@@ -726,6 +800,7 @@ impl Runner<'_, '_, '_, '_> {
                 residual_n: (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt(),
             });
         }
+        self.set_phase(Phase::Reference);
         let frame = self.grab_retry()?;
         let name = if resume_no == 0 {
             "frames/reference.png".to_string()

@@ -288,6 +288,7 @@ impl Runner<'_, '_, '_, '_> {
             if let Some(trip) = check_force_limits(&w, &self.plan.safety.max_force_n) {
                 return Err(self.trip(format!("{trip}"), Instant::now()));
             }
+            self.reading(&w);
             if let Some(c) = contact_n {
                 if w.force_n[2] >= c {
                     self.dev
