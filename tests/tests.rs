@@ -10,6 +10,7 @@ mod compare;
 mod fourier;
 mod ft;
 mod layer;
+mod marlin;
 mod model_error;
 mod plans;
 mod report;

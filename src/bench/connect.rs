@@ -15,6 +15,7 @@ use crate::device::fault::FaultConfig;
 use crate::device::ft300::driver::{self as ft300, Ft300};
 use crate::device::ft_common::open_serial;
 use crate::device::grbl::{self, Grbl, GrblConfig};
+use crate::device::marlin::{self, Marlin, MarlinConfig};
 use crate::device::zaber::{self, Zaber, ZaberConfig, DEFAULT_MM_PER_STEP};
 use crate::device::{Camera, DeviceError, ForceSensor, Stage};
 use crate::sim::bench::{BenchError, BenchOptions, FtProtocol, StageProtocol, VirtualBench};
@@ -87,6 +88,7 @@ fn open_stage(
     devices: [u8; 3],
     mm_per_step: f64,
     travel: Option<crate::device::TravelLimits>,
+    marlin_max_feed_mm_min: Option<[f64; 3]>,
 ) -> Result<(Box<dyn Stage>, serde_json::Value), ConnectError> {
     Ok(match kind {
         StageKind::Grbl => {
@@ -105,6 +107,25 @@ fn open_stage(
                 .map_err(dev("stage"))?;
             let id = json!({"protocol": "zaber", "port": port, "devices": devices});
             (Box::new(z), id)
+        }
+        StageKind::Marlin => {
+            let p = marlin::open_serial(port, baud).map_err(dev("stage"))?;
+            let cfg = MarlinConfig {
+                limits: travel,
+                max_feed_mm_min: marlin_max_feed_mm_min,
+                ..MarlinConfig::default()
+            };
+            let m = Marlin::connect(p, cfg).map_err(dev("stage"))?;
+            let i = m.info();
+            let id = json!({
+                "protocol": "marlin",
+                "port": port,
+                "firmware": i.firmware,
+                "steps_per_mm": i.steps_per_mm,
+                "max_feed_mm_min": i.max_feed_mm_min,
+                "soft_endstops": i.soft_endstops.map(|s| json!({"enabled": s.enabled, "min_mm": s.min_mm, "max_mm": s.max_mm})),
+            });
+            (Box::new(m), id)
         }
     })
 }
@@ -179,6 +200,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 stage.zaber_devices,
                 stage.zaber_mm_per_step,
                 stage.travel,
+                stage.marlin_max_feed_mm_min,
             )?;
             let (f, fid) = open_ft(
                 force_sensor.protocol,
@@ -207,6 +229,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
             let protocol = match cfg.stage {
                 StageKind::Grbl => StageProtocol::Grbl,
                 StageKind::Zaber => StageProtocol::Zaber,
+                StageKind::Marlin => StageProtocol::Marlin,
             };
             let (mut world, _) = protocol.default_geometry();
             let geometry = match bench.geometry {
@@ -249,6 +272,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 115_200,
                 [1, 2, 3],
                 DEFAULT_MM_PER_STEP,
+                None,
                 None,
             )?;
             let ft_port = vb.ft_port().display().to_string();
@@ -306,6 +330,7 @@ pub fn geometry_of(bench: &BenchConfig) -> BenchGeometry {
             let p = match cfg.stage {
                 StageKind::Grbl => StageProtocol::Grbl,
                 StageKind::Zaber => StageProtocol::Zaber,
+                StageKind::Marlin => StageProtocol::Marlin,
             };
             let (w, _): (WorldGeometry, _) = p.default_geometry();
             BenchGeometry {
