@@ -49,9 +49,12 @@ fn assert_step_exact(got: [f64; 3], want_steps: [i64; 3]) {
 
 #[test]
 fn marlin_homes_moves_jogs_and_reports_positions_to_the_step() {
+    // Homing from z = 40 mm takes 6 s (z at 10 mm/s): keep-alives every 200 ms keep
+    // it within the tests' 0.6 s silence limit.
     let cfg = MarlinSimConfig {
         homed: false,
         start_mm: [12.0, 7.0, 40.0],
+        keepalive: Duration::from_millis(200),
         ..MarlinSimConfig::default()
     };
     let (server, mut m) = on_pty(cfg, fast());
@@ -529,7 +532,7 @@ mod cli {
 /// `TACTBENCH_PYTHON` overrides the interpreter). With `TACTBENCH_RECORD_TRANSCRIPTS=1`
 /// the sessions are recorded to `protocols/transcripts/marlin_emulator_*.txt`, which
 /// the `replay` tests replay in CI. Run:
-/// `cargo test --test tests marlin::outside -- --ignored --nocapture`.
+/// `cargo test --test integration marlin::outside -- --ignored --nocapture`.
 mod outside {
     use super::*;
     use std::io::BufRead;
@@ -616,7 +619,7 @@ mod outside {
             m.wait_idle(Duration::from_secs(20)).unwrap();
             assert_step_exact(m.position().unwrap(), steps([11.0, 19.0, 49.5]));
         }
-        add_header(&rec, "# Marlin driver against tests/marlin_emulator/emulator.py (written from Marlin's\n# gcode/queue.cpp and handlers): connect (banner, M110 N0, M115, M92, M203, M211,\n# G21, G90), G28, a move (M114, G1, M400, M114), a jog, the position.\n# Regenerate: TACTBENCH_RECORD_TRANSCRIPTS=1 cargo test --test tests marlin::outside -- --ignored\n");
+        add_header(&rec, "# Marlin driver against tests/marlin_emulator/emulator.py (written from Marlin's\n# gcode/queue.cpp and handlers): connect (banner, M110 N0, M115, M92, M203, M211,\n# G21, G90), G28, a move (M114, G1, M400, M114), a jog, the position.\n# Regenerate: TACTBENCH_RECORD_TRANSCRIPTS=1 cargo test --test integration marlin::outside -- --ignored\n");
 
         // A lost ok (of the first G1), a garbled reply (the M114 report after the
         // second move) and a corrupted line (the third G1): recorded for CI.
@@ -644,7 +647,7 @@ mod outside {
             eprintln!("faults: {resends} resend(s), {probes} probe(s)");
             assert_eq!((resends, probes), (1, 1));
         }
-        add_header(&rec, "# Marlin driver against tests/marlin_emulator/emulator.py with --drop-ok 9\n# (the first G1's ok is lost: silence, the driver re-sends the line, the emulator\n# refuses the copy by line number: acknowledged), --garble-reply 16 (the M114\n# report after the second move: asked again) and --corrupt-line 21 (the third G1:\n# Error:checksum mismatch, Resend, ok: re-sent).\n# Regenerate: TACTBENCH_RECORD_TRANSCRIPTS=1 cargo test --test tests marlin::outside -- --ignored\n");
+        add_header(&rec, "# Marlin driver against tests/marlin_emulator/emulator.py with --drop-ok 9\n# (the first G1's ok is lost: silence, the driver re-sends the line, the emulator\n# refuses the copy by line number: acknowledged), --garble-reply 16 (the M114\n# report after the second move: asked again) and --corrupt-line 21 (the third G1:\n# Error:checksum mismatch, Resend, ok: re-sent).\n# Regenerate: TACTBENCH_RECORD_TRANSCRIPTS=1 cargo test --test integration marlin::outside -- --ignored\n");
 
         // Not recorded (timing-dependent): the refusals, the quick stop mid-move.
         let e = Emulator::start(&["--unhomed"], None);

@@ -173,8 +173,9 @@ pub struct Marlin<P> {
     history: VecDeque<(u32, String)>,
     /// Lines sent and not yet acknowledged, oldest first.
     outstanding: VecDeque<u32>,
-    /// `ok`s to ignore (the one after each `Resend:`).
-    swallow_ok: u32,
+    /// The `Resend:` that will follow the refusal of a copy (a probe answer): it asks
+    /// for a line not sent yet when the refusal was read, so it is no request.
+    stale_resend: Option<u32>,
     /// `echo:` and other text lines seen since the last command was sent.
     text: Vec<String>,
     /// A position report seen since the last command was sent.
@@ -200,7 +201,7 @@ impl<P: Read + Write> Marlin<P> {
             next_n: 1,
             history: VecDeque::new(),
             outstanding: VecDeque::new(),
-            swallow_ok: 0,
+            stale_resend: None,
             text: Vec::new(),
             report: None,
             home_first: None,
@@ -451,9 +452,7 @@ impl<P: Read + Write> Marlin<P> {
         };
         match reply {
             Reply::Ok(rest) => {
-                if self.swallow_ok > 0 {
-                    self.swallow_ok -= 1;
-                } else if self.outstanding.pop_front().is_some() {
+                if self.outstanding.pop_front().is_some() {
                     if let Some(p) = parse_position(&rest) {
                         self.report = Some(p);
                     }
@@ -462,8 +461,7 @@ impl<P: Read + Write> Marlin<P> {
             Reply::Resend(r) => {
                 // Marlin prints `ok` right after `Resend:`; it acknowledges nothing.
                 self.swallow_resend_ok(deadline, command)?;
-                let last_sent = self.next_n.saturating_sub(1);
-                if r > last_sent {
+                if self.stale_resend.take() == Some(r) {
                     // The answer to a probe of a line the firmware already had.
                     return Ok(Some(()));
                 }
@@ -499,7 +497,12 @@ impl<P: Read + Write> Marlin<P> {
             Reply::Error(ErrorLine::LineNumber { last }) => {
                 // The refusal of a copy (a probe): every line up to `last` was taken.
                 // Lines taken but not finished cannot be refused this way: the
-                // firmware reads the copy only once it is free again.
+                // firmware reads the copy only once it is free again. When `last` is
+                // the newest line sent, the `Resend: last+1` that follows asks for
+                // nothing; otherwise (a line lost on the way in) it is a real request.
+                if last >= self.next_n.saturating_sub(1) {
+                    self.stale_resend = Some(last + 1);
+                }
                 self.outstanding.retain(|k| *k > last);
             }
             Reply::Error(ErrorLine::Checksum { .. } | ErrorLine::NoChecksum { .. }) => {}
