@@ -996,9 +996,9 @@ impl<P: Read + Write> Stage for Marlin<P> {
             .limits
             .map_or([[f64::NEG_INFINITY, f64::INFINITY]; 3], |l| l.axes_mm);
         if let Some(s) = self.info.soft_endstops.filter(|s| s.enabled) {
-            for i in 0..3 {
-                axes_mm[i][0] = axes_mm[i][0].max(s.min_mm[i]);
-                axes_mm[i][1] = axes_mm[i][1].min(s.max_mm[i]);
+            for (i, axis) in axes_mm.iter_mut().enumerate() {
+                axis[0] = axis[0].max(s.min_mm[i]);
+                axis[1] = axis[1].min(s.max_mm[i]);
             }
         }
         TravelLimits { axes_mm }

@@ -291,10 +291,7 @@ impl MarlinSim {
     /// Advances the motion to `now`.
     fn advance(&mut self, now: Duration) {
         self.now = now;
-        loop {
-            let Some(seg) = self.planner.front_mut() else {
-                break;
-            };
+        while let Some(seg) = self.planner.front_mut() {
             let t0 = *seg.t0.get_or_insert(now);
             let t = now.saturating_sub(t0).as_secs_f64();
             if t >= seg.duration() {
@@ -353,9 +350,9 @@ impl MarlinSim {
         }
         // Per-axis limit: the path speed at which no axis exceeds its maximum.
         let mut vmax = f64::INFINITY;
-        for i in 0..3 {
-            if d[i] != 0.0 {
-                vmax = vmax.min(self.cfg.max_feed_mm_s[i] * len / d[i].abs());
+        for (di, max) in d.iter().zip(self.cfg.max_feed_mm_s) {
+            if *di != 0.0 {
+                vmax = vmax.min(max * len / di.abs());
             }
         }
         let v = feed_mm_s.map_or(vmax, |f| f.min(vmax));
@@ -521,8 +518,8 @@ impl MarlinSim {
                     }
                 }
                 if self.soft {
-                    for i in 0..3 {
-                        to[i] = to[i].clamp(self.cfg.soft_min_mm[i], self.cfg.soft_max_mm[i]);
+                    for (i, t) in to.iter_mut().enumerate() {
+                        *t = t.clamp(self.cfg.soft_min_mm[i], self.cfg.soft_max_mm[i]);
                     }
                 }
                 let to = self.snap(to);
