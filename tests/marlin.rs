@@ -692,3 +692,38 @@ fn replay_driver() -> MarlinConfig {
         ..MarlinConfig::default()
     }
 }
+
+#[test]
+fn marlin_bench_files_parse_with_their_keys_and_home_by_default() {
+    use tactbench::bench::config::{BenchConfig, BenchDevices, StageKind};
+    let hw = "[stage]\nprotocol = \"marlin\"\nport = \"/dev/ttyACM0\"\nbaud = 250000\nmax_feed_mm_min = [18000.0, 18000.0, 600.0]\n[force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"\n[camera]\ndevice = 0\n[geometry]\nsensor_origin_in_stage_mm = [150.0, 150.0]\nsurface_z_mm = 30.0\npress_direction = -1\n";
+    let b = BenchConfig::from_toml_str(hw, "bench.toml").unwrap();
+    assert!(b.home, "a Marlin machine homes by default");
+    let BenchDevices::Hardware { stage, .. } = b.devices else {
+        panic!("hardware expected")
+    };
+    assert_eq!(stage.protocol, StageKind::Marlin);
+    assert_eq!(stage.baud, 250_000);
+    assert_eq!(
+        stage.marlin_max_feed_mm_min,
+        Some([18000.0, 18000.0, 600.0])
+    );
+    let e = BenchConfig::from_toml_str(&hw.replace("600.0]", "0.0]"), "bench.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("stage.max_feed_mm_min[2]"), "{e}");
+    let e = BenchConfig::from_toml_str(&hw.replace("\"marlin\"", "\"grbl\""), "bench.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("max_feed_mm_min applies to marlin stages only"),
+        "{e}"
+    );
+    let sim =
+        BenchConfig::from_toml_str("[sim]\nscene = \"s.toml\"\nstage = \"marlin\"\n", "b.toml")
+            .unwrap();
+    let BenchDevices::Sim(s) = sim.devices else {
+        panic!("sim expected")
+    };
+    assert_eq!(s.stage, StageKind::Marlin);
+}
