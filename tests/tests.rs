@@ -12,6 +12,7 @@ mod ft;
 mod ft_net_bota;
 mod layer;
 mod live;
+mod marlin;
 mod misuse;
 mod model_error;
 mod plans;

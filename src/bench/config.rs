@@ -6,10 +6,13 @@
 //!
 //! ```toml
 //! [stage]
-//! protocol = "grbl"                 # grbl | zaber
+//! protocol = "grbl"                 # grbl | zaber | marlin
 //! port = "/dev/ttyUSB0"
-//! baud = 115200                     # optional (grbl, zaber: 115200)
+//! baud = 115200                     # optional (grbl, zaber, marlin: 115200; many
+//!                                   # Marlin printers use 250000)
 //! # zaber only: devices = [1, 2, 3] (x, y, z addresses), mm_per_step = 0.000047625
+//! # marlin only: max_feed_mm_min = [18000.0, 18000.0, 600.0] (x, y, z; used only
+//! #   when the firmware does not report M203; a feed above it is refused)
 //! travel_min_mm = [-200.0, -200.0, -200.0]  # optional, stage machine coordinates:
 //! travel_max_mm = [0.0, 0.0, 0.0]           # what `run --dry-run` checks targets
 //!                                   # against; a GRBL driver also enforces it on
@@ -44,7 +47,7 @@
 //! ```toml
 //! [sim]
 //! scene = "scenes/fig7_hemisphere_ramp.toml"   # relative to this file
-//! stage = "grbl"                    # optional: grbl (default) | zaber
+//! stage = "grbl"                    # optional: grbl (default) | zaber | marlin
 //! force_sensor = "dynpick"          # optional: dynpick (default) | ft300 | netft | bota
 //! friction = 1.0                    # optional: indenter/elastomer friction μ
 //!                                   # (default: the scene's load.friction_coefficient)
@@ -69,6 +72,8 @@ pub enum StageKind {
     Grbl,
     /// Zaber ASCII.
     Zaber,
+    /// Marlin (3D printers, small CNCs).
+    Marlin,
 }
 
 /// Which force-sensor protocol.
@@ -130,6 +135,9 @@ pub struct StageConfig {
     pub zaber_devices: [u8; 3],
     /// Zaber: resolution, mm per microstep.
     pub zaber_mm_per_step: f64,
+    /// Marlin: maximum feed rates x, y, z in mm/min, for firmware that does not
+    /// report `M203`.
+    pub marlin_max_feed_mm_min: Option<[f64; 3]>,
     /// The stage's travel box as the bench file states it (`travel_min_mm`,
     /// `travel_max_mm`), for dry runs; `None` when not given.
     pub travel: Option<TravelLimits>,
@@ -292,6 +300,7 @@ struct RawStage {
     baud: Option<i64>,
     devices: Option<[i64; 3]>,
     mm_per_step: Option<f64>,
+    max_feed_mm_min: Option<[f64; 3]>,
     travel_min_mm: Option<[f64; 3]>,
     travel_max_mm: Option<[f64; 3]>,
 }
@@ -349,10 +358,11 @@ fn stage_kind(c: &Checker<'_>, key: &str, v: &str) -> Result<StageKind, ConfigEr
     match v {
         "grbl" => Ok(StageKind::Grbl),
         "zaber" => Ok(StageKind::Zaber),
+        "marlin" => Ok(StageKind::Marlin),
         other => Err(c.invalid(
             key,
             format!("{other:?}"),
-            "unknown stage protocol: expected grbl or zaber",
+            "unknown stage protocol: expected grbl, zaber or marlin",
         )),
     }
 }
@@ -498,16 +508,34 @@ impl RawBench {
                 .unwrap_or(crate::device::zaber::DEFAULT_MM_PER_STEP),
             "mm",
         )?;
-        if protocol == StageKind::Grbl && (s.devices.is_some() || s.mm_per_step.is_some()) {
+        if protocol != StageKind::Zaber && (s.devices.is_some() || s.mm_per_step.is_some()) {
             return Err(c.invalid(
                 "stage.devices",
                 "(given)",
                 "devices and mm_per_step apply to zaber stages only",
             ));
         }
+        let marlin_max_feed_mm_min = match s.max_feed_mm_min {
+            None => None,
+            Some(_) if protocol != StageKind::Marlin => {
+                return Err(c.invalid(
+                    "stage.max_feed_mm_min",
+                    "(given)",
+                    "max_feed_mm_min applies to marlin stages only",
+                ))
+            }
+            Some(v) => {
+                let mut out = [0.0; 3];
+                for i in 0..3 {
+                    out[i] = c.positive(&format!("stage.max_feed_mm_min[{i}]"), v[i], "mm/min")?;
+                }
+                Some(out)
+            }
+        };
         let stage_default_baud = match protocol {
             StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
             StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
+            StageKind::Marlin => crate::device::marlin::DEFAULT_BAUD,
         };
         let travel = match (s.travel_min_mm, s.travel_max_mm) {
             (None, None) => None,
@@ -546,6 +574,7 @@ impl RawBench {
             baud: baud(&c, "stage.baud", s.baud, stage_default_baud)?,
             zaber_devices,
             zaber_mm_per_step,
+            marlin_max_feed_mm_min,
             travel,
         };
         let force_sensor = ft_config(&c, f)?;
@@ -570,8 +599,9 @@ impl RawBench {
                 camera,
             },
             geometry: Some(geometry),
-            // Zaber stages lose their reference at power-up: home by default.
-            home: home_given.unwrap_or(protocol == StageKind::Zaber),
+            // Zaber stages lose their reference at power-up, and so does a Marlin
+            // machine (which resets when the port opens): home by default.
+            home: home_given.unwrap_or(matches!(protocol, StageKind::Zaber | StageKind::Marlin)),
             tare,
         })
     }
@@ -784,13 +814,13 @@ press_direction = -1
 
     #[test]
     fn rejects_bad_benches_naming_key_and_value() {
-        let e = parse(&HW.replace("\"grbl\"", "\"marlin\""))
+        let e = parse(&HW.replace("\"grbl\"", "\"marlinx\""))
             .unwrap_err()
             .to_string();
         assert!(
             e.contains("experiments/bench.toml")
                 && e.contains("stage.protocol")
-                && e.contains("marlin"),
+                && e.contains("marlinx"),
             "{e}"
         );
         let e = parse(&HW.replace("press_direction = -1", "press_direction = 0"))

@@ -19,6 +19,7 @@ use crate::device::grbl::{self, Grbl, GrblConfig};
 use crate::device::netft::codec::Scale;
 use crate::device::netft::driver::{self as netft, read_calinfo, NetFt, NetFtOptions};
 use crate::device::netft::UdpTransport;
+use crate::device::marlin::{self, Marlin, MarlinConfig};
 use crate::device::zaber::{self, Zaber, ZaberConfig, DEFAULT_MM_PER_STEP};
 use crate::device::{Camera, DeviceError, ForceSensor, Stage};
 use crate::sim::bench::FtEndpoint;
@@ -98,6 +99,7 @@ fn open_stage(
     devices: [u8; 3],
     mm_per_step: f64,
     travel: Option<crate::device::TravelLimits>,
+    marlin_max_feed_mm_min: Option<[f64; 3]>,
 ) -> Result<(Box<dyn Stage>, serde_json::Value), ConnectError> {
     Ok(match kind {
         StageKind::Grbl => {
@@ -116,6 +118,25 @@ fn open_stage(
                 .map_err(dev("stage"))?;
             let id = json!({"protocol": "zaber", "port": port, "devices": devices});
             (Box::new(z), id)
+        }
+        StageKind::Marlin => {
+            let p = marlin::open_serial(port, baud).map_err(dev("stage"))?;
+            let cfg = MarlinConfig {
+                limits: travel,
+                max_feed_mm_min: marlin_max_feed_mm_min,
+                ..MarlinConfig::default()
+            };
+            let m = Marlin::connect(p, cfg).map_err(dev("stage"))?;
+            let i = m.info();
+            let id = json!({
+                "protocol": "marlin",
+                "port": port,
+                "firmware": i.firmware,
+                "steps_per_mm": i.steps_per_mm,
+                "max_feed_mm_min": i.max_feed_mm_min,
+                "soft_endstops": i.soft_endstops.map(|s| json!({"enabled": s.enabled, "min_mm": s.min_mm, "max_mm": s.max_mm})),
+            });
+            (Box::new(m), id)
         }
     })
 }
@@ -328,6 +349,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 stage.zaber_devices,
                 stage.zaber_mm_per_step,
                 stage.travel,
+                stage.marlin_max_feed_mm_min,
             )?;
             let mut warnings = Vec::new();
             let target = match &force_sensor.network {
@@ -360,6 +382,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
             let protocol = match cfg.stage {
                 StageKind::Grbl => StageProtocol::Grbl,
                 StageKind::Zaber => StageProtocol::Zaber,
+                StageKind::Marlin => StageProtocol::Marlin,
             };
             let (mut world, _) = protocol.default_geometry();
             let geometry = match bench.geometry {
@@ -409,6 +432,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 115_200,
                 [1, 2, 3],
                 DEFAULT_MM_PER_STEP,
+                None,
                 None,
             )?;
             let baud = match cfg.force_sensor {
@@ -503,6 +527,7 @@ pub fn geometry_of(bench: &BenchConfig) -> BenchGeometry {
             let p = match cfg.stage {
                 StageKind::Grbl => StageProtocol::Grbl,
                 StageKind::Zaber => StageProtocol::Zaber,
+                StageKind::Marlin => StageProtocol::Marlin,
             };
             let (w, _): (WorldGeometry, _) = p.default_geometry();
             BenchGeometry {

@@ -71,6 +71,7 @@ pub struct BenchArgs {
 enum StageArg {
     Grbl,
     Zaber,
+    Marlin,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -133,6 +134,7 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let stage = match a.stage {
         StageArg::Grbl => StageProtocol::Grbl,
         StageArg::Zaber => StageProtocol::Zaber,
+        StageArg::Marlin => StageProtocol::Marlin,
     };
     let ft = match a.ft {
         FtArg::Dynpick => FtProtocol::DynPick,

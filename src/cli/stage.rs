@@ -1,4 +1,4 @@
-//! `tactbench stage`: drive an xyz stage (GRBL or Zaber ASCII) over a serial port,
+//! `tactbench stage`: drive an xyz stage (GRBL, Zaber ASCII or Marlin) over a serial port,
 //! and the hidden `tactbench sim-serve-stage` helper that serves a stage
 //! simulator on a pseudo-terminal (used by the CLI tests and for manual trials).
 
@@ -14,6 +14,8 @@ use serde::Serialize;
 use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
 use tactbench::device::grbl::sim::{GrblSim, GrblSimConfig};
 use tactbench::device::grbl::{self, Grbl, GrblConfig};
+use tactbench::device::marlin::sim::{Boot, MarlinSim, MarlinSimConfig};
+use tactbench::device::marlin::{self, Marlin, MarlinConfig};
 use tactbench::device::pty::PtyServer;
 use tactbench::device::zaber::sim::{ZaberSim, ZaberSimConfig};
 use tactbench::device::zaber::{self, Zaber, ZaberAxis, ZaberConfig};
@@ -26,19 +28,24 @@ pub enum Protocol {
     Grbl,
     /// Zaber ASCII (motorised linear stages, one device or axis per stage axis).
     Zaber,
+    /// Marlin (3D printers and small CNCs; line numbers and checksums, M400 + M114).
+    Marlin,
 }
 
 /// Drive an xyz stage: status, unlock, home, position, move, jog.
 ///
 /// Positions are in mm in the controller's own frame: GRBL machine coordinates
 /// (MPos; after homing GRBL's travel is negative, e.g. x in [-200, 0] mm), Zaber
-/// device positions (microsteps × resolution). Moves wait until the stage is idle.
+/// device positions (microsteps × resolution), Marlin's logical position (from the
+/// step counts of M114). Moves wait until the stage is idle (Marlin: M400, then
+/// M114 checked against the target to the step).
 ///
 /// Examples:
 ///   tactbench stage --port /dev/ttyUSB0 --protocol grbl status
 ///   tactbench stage --port /dev/ttyUSB0 --protocol grbl unlock
 ///   tactbench stage --port /dev/ttyUSB0 --protocol grbl move -10 -10 -2.5 --speed 5
 ///   tactbench stage --port /dev/ttyUSB0 --protocol zaber --zaber-devices 1,2,3 position --json
+///   tactbench stage --port /dev/ttyUSB0 --protocol marlin --baud 250000 home
 #[derive(Debug, ClapArgs)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -48,7 +55,8 @@ pub struct Args {
     /// Controller protocol.
     #[arg(long, global = true, value_enum)]
     protocol: Option<Protocol>,
-    /// Baud rate [default: 115200 for both protocols; older Zaber devices use 9600].
+    /// Baud rate [default: 115200 for all protocols; older Zaber devices use 9600,
+    /// many Marlin printers 250000].
     #[arg(long, global = true, value_name = "N")]
     baud: Option<u32>,
     /// Print machine-readable JSON instead of text.
@@ -73,6 +81,14 @@ pub struct Args {
     /// Zaber: send commands without LRC checksums.
     #[arg(long, global = true)]
     zaber_no_checksum: bool,
+    /// Marlin: how long to wait for the boot banner after opening the port (the
+    /// board resets when the port opens), seconds.
+    #[arg(long, global = true, value_name = "S", default_value_t = 3.0)]
+    marlin_banner_timeout: f64,
+    /// Marlin: maximum feed rates x,y,z in mm/min, for firmware that does not report
+    /// M203 (a faster move is refused).
+    #[arg(long, global = true, value_name = "X,Y,Z", value_delimiter = ',')]
+    marlin_max_feed: Vec<f64>,
     #[command(subcommand)]
     action: Action,
 }
@@ -86,15 +102,18 @@ enum Action {
     Status,
     /// Clear an alarm and say what was done (GRBL: `$X`; a critical alarm, or a
     /// controller that answers nothing, first gets a soft reset 0x18; sleep: reset;
-    /// check mode: `$C`. Zaber: `warnings clear`). Does not establish a reference
+    /// check mode: `$C`. Zaber: `warnings clear`. Marlin: `M999` after a stop on
+    /// errors; a halt by M112 needs a board reset). Does not establish a reference
     /// position: home does.
     Unlock,
-    /// Resume motion paused by a feed hold or a closed safety door (GRBL `~`).
+    /// Resume motion paused by a feed hold or a closed safety door (GRBL `~`;
+    /// Marlin `M108`, which ends a firmware wait for the user).
     Resume,
     /// Stop motion now (GRBL: feed hold, then a soft reset that discards the queued
-    /// moves and keeps the position; jogs are cancelled; Zaber `stop`).
+    /// moves and keeps the position; jogs are cancelled; Zaber `stop`; Marlin `M410`
+    /// quick stop, then M114 re-syncs the position).
     Stop,
-    /// Run the homing cycle and wait for it (GRBL `$H` needs `$22=1`).
+    /// Run the homing cycle and wait for it (GRBL `$H` needs `$22=1`; Marlin `G28`).
     Home,
     /// Print the position in mm (`--json`: {"x_mm":…,"y_mm":…,"z_mm":…}).
     Position,
@@ -109,7 +128,8 @@ enum Action {
         /// Target z, mm.
         z: f64,
     },
-    /// Move by DX DY DZ mm (GRBL `$J=` jog; Zaber `move rel`) and wait until idle.
+    /// Move by DX DY DZ mm (GRBL `$J=` jog; Zaber `move rel`; Marlin: a G1 to the
+    /// position + the step, checked like a move) and wait until idle.
     #[command(allow_negative_numbers = true)]
     Jog {
         /// Step in x, mm.
@@ -163,10 +183,11 @@ fn validate(a: &Args) -> anyhow::Result<Conn> {
         .port
         .clone()
         .context("missing --port PATH (list ports with `tactbench ports`)")?;
-    let protocol = a.protocol.context("missing --protocol grbl|zaber")?;
+    let protocol = a.protocol.context("missing --protocol grbl|zaber|marlin")?;
     let baud = a.baud.unwrap_or(match protocol {
         Protocol::Grbl => grbl::DEFAULT_BAUD,
         Protocol::Zaber => zaber::DEFAULT_BAUD,
+        Protocol::Marlin => marlin::DEFAULT_BAUD,
     });
     if !(a.timeout.is_finite() && a.timeout > 0.0) {
         bail!(
@@ -224,6 +245,68 @@ fn zaber_config(a: &Args) -> anyhow::Result<ZaberConfig> {
     Ok(c)
 }
 
+fn marlin_config(a: &Args) -> anyhow::Result<MarlinConfig> {
+    if !(a.marlin_banner_timeout.is_finite() && a.marlin_banner_timeout >= 0.0) {
+        bail!(
+            "--marlin-banner-timeout {} s must be a number of seconds >= 0",
+            a.marlin_banner_timeout
+        );
+    }
+    let max_feed_mm_min = match a.marlin_max_feed.as_slice() {
+        [] => None,
+        [x, y, z] => {
+            if let Some(bad) = [x, y, z].iter().find(|v| !(v.is_finite() && ***v > 0.0)) {
+                bail!("--marlin-max-feed {bad} mm/min must be a positive feed rate");
+            }
+            Some([*x, *y, *z])
+        }
+        other => bail!(
+            "--marlin-max-feed takes 3 values (x,y,z mm/min), got {}",
+            other.len()
+        ),
+    };
+    Ok(MarlinConfig {
+        banner_timeout: Duration::from_secs_f64(a.marlin_banner_timeout),
+        max_feed_mm_min,
+        ..MarlinConfig::default()
+    })
+}
+
+/// The Marlin part of `status`: firmware, capabilities and limits read at connect.
+fn marlin_detail<P: std::io::Read + std::io::Write>(m: &Marlin<P>) -> String {
+    let i = m.info();
+    let mut d = format!(
+        "marlin {}; emergency parser {}",
+        i.firmware
+            .as_deref()
+            .unwrap_or("(M115 gave no FIRMWARE_NAME)"),
+        if i.emergency_parser { "yes" } else { "no" }
+    );
+    if let Some(s) = i.steps_per_mm {
+        d.push_str(&format!("; steps/mm {} {} {}", s[0], s[1], s[2]));
+    }
+    if let Some(f) = i.max_feed_mm_min {
+        d.push_str(&format!(
+            "; max feed {:.0} {:.0} {:.0} mm/min",
+            f[0], f[1], f[2]
+        ));
+    }
+    match i.soft_endstops {
+        Some(s) => d.push_str(&format!(
+            "; soft endstops {} x {}..{} y {}..{} z {}..{} mm",
+            if s.enabled { "on" } else { "off" },
+            s.min_mm[0],
+            s.max_mm[0],
+            s.min_mm[1],
+            s.max_mm[1],
+            s.min_mm[2],
+            s.max_mm[2]
+        )),
+        None => d.push_str("; soft endstops not reported"),
+    }
+    d
+}
+
 /// Runs `tactbench stage`.
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let conn = validate(&a)?;
@@ -278,6 +361,30 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             let w = z.warnings();
             let d = format!("zaber warnings x {} y {} z {}", w[0], w[1], w[2]);
             act(&mut z, &a, d)
+        }
+        Protocol::Marlin => {
+            let cfg = marlin_config(&a)?;
+            let port = marlin::open_serial(&conn.port, conn.baud)?;
+            let mut m = Marlin::connect(port, cfg)
+                .with_context(|| format!("connecting to Marlin on {}", conn.port))?;
+            match a.action {
+                Action::Jog { dx, dy, dz } => {
+                    m.jog([dx, dy, dz], a.speed.unwrap_or(DEFAULT_JOG_SPEED_MM_S))?;
+                    m.wait_idle(Duration::from_secs_f64(a.timeout))?;
+                    print_position(&mut m, a.json)?;
+                    return Ok(ExitCode::SUCCESS);
+                }
+                Action::Resume => {
+                    m.resume()?;
+                    if !a.json {
+                        println!("resumed (`M108`); state: {}", state_name(m.state()?));
+                    }
+                    return Ok(ExitCode::SUCCESS);
+                }
+                _ => {}
+            }
+            let d = marlin_detail(&m);
+            act(&mut m, &a, d)
         }
     }
 }
@@ -405,9 +512,14 @@ pub struct ServeArgs {
     #[arg(long, value_name = "PATH")]
     link: PathBuf,
     /// GRBL: homing and soft limits on ($22=1, $20=1, travel 100×100×50 mm),
-    /// starting in alarm as at power-up.
+    /// starting in alarm as at power-up. Marlin: starts unhomed and refuses moves
+    /// before `G28` (NO_MOTION_BEFORE_HOMING).
     #[arg(long)]
     homing: bool,
+    /// Marlin: how the board boots (banner; silent: never answers; noise: prints
+    /// garbage as at a wrong baud rate).
+    #[arg(long, value_enum, default_value = "banner")]
+    marlin_boot: BootArg,
     /// Inject one fault of this kind.
     #[arg(long, value_enum)]
     fault: Option<FaultArg>,
@@ -420,7 +532,16 @@ pub struct ServeArgs {
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
+enum BootArg {
+    Banner,
+    Silent,
+    Noise,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
 enum FaultArg {
+    /// Marlin: the received line arrives corrupted (checksum error, `Resend:`).
+    Checksum,
     Late,
     DroppedByte,
     Garbled,
@@ -439,8 +560,13 @@ enum TargetArg {
 
 /// Runs the hidden `sim-serve-stage` helper.
 pub fn serve(a: ServeArgs) -> anyhow::Result<ExitCode> {
+    let checksum = matches!(a.fault, Some(FaultArg::Checksum));
+    if checksum && !matches!(a.protocol, Protocol::Marlin) {
+        bail!("--fault checksum is a Marlin fault (a corrupted line answered by `Resend:`)");
+    }
     let faults = a.fault.map(|f| {
         let kind = match f {
+            FaultArg::Checksum => FaultKind::Garbled,
             FaultArg::Late => FaultKind::LateReply,
             FaultArg::DroppedByte => FaultKind::DroppedByte,
             FaultArg::Garbled => FaultKind::Garbled,
@@ -465,6 +591,28 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<ExitCode> {
             };
             cfg.faults = faults;
             let server = PtyServer::spawn(GrblSim::new(cfg), Some(&a.link))?;
+            wait_for_stdin_eof(&server.path().display().to_string(), || {
+                server.is_finished()
+            });
+        }
+        Protocol::Marlin => {
+            let mut cfg = MarlinSimConfig {
+                boot: match a.marlin_boot {
+                    BootArg::Banner => Boot::Banner,
+                    BootArg::Silent => Boot::Silent,
+                    BootArg::Noise => Boot::Noise,
+                },
+                ..MarlinSimConfig::default()
+            };
+            if a.homing {
+                cfg.homed = false;
+            }
+            if checksum {
+                cfg.checksum_faults = faults;
+            } else {
+                cfg.faults = faults;
+            }
+            let server = PtyServer::spawn(MarlinSim::new(cfg), Some(&a.link))?;
             wait_for_stdin_eof(&server.path().display().to_string(), || {
                 server.is_finished()
             });

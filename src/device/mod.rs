@@ -195,6 +195,13 @@ pub trait Stage {
     /// Zaber: its driver's polling interval). The runner's motion loop paces its
     /// status queries to it (`src/bench/runner/motion.rs`).
     fn status_interval(&self) -> Duration;
+    /// The stage's position resolution per axis, mm: a controller that moves in whole
+    /// steps (Marlin) stops up to half of it from a target off its step grid, and the
+    /// runner's "reached" check allows for that. Default: 0 (positions are exact to
+    /// the reported decimals).
+    fn resolution_mm(&self) -> [f64; 3] {
+        [0.0; 3]
+    }
 }
 
 /// A force/torque reading: force in N, torque in N·m, in the sensor's frame.
@@ -262,6 +269,7 @@ pub trait Camera {
 pub mod fault;
 pub mod grbl;
 pub mod lineio;
+pub mod marlin;
 pub mod pty;
 pub mod replay;
 pub mod zaber;

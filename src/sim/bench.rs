@@ -2,7 +2,7 @@
 //! served on real pseudo-terminals and a Unix socket around one shared [`World`], so
 //! the same drivers and commands that run a real bench run this one.
 //!
-//! - The stage simulator (GRBL or Zaber) is wrapped in [`WorldStage`], which publishes
+//! - The stage simulator (GRBL, Zaber or Marlin) is wrapped in [`WorldStage`], which publishes
 //!   the stage position to the world after every simulator step (and wakes every
 //!   [`WORLD_TICK`] so motion is seen while nobody talks to the stage).
 //! - The force-sensor simulator (DynPick, FT 300 or Bota on a pseudo-terminal; the
@@ -35,6 +35,7 @@ use crate::device::ft300::sim::{Ft300Sim, Ft300SimConfig};
 use crate::device::ft_common::{no_faults, WrenchSource};
 use crate::device::grbl::sim::{GrblSim, GrblSimConfig};
 use crate::device::netft::sim::{NetFtCore, NetFtServer, NetFtSimConfig, NetFtSimError};
+use crate::device::marlin::sim::{MarlinSim, MarlinSimConfig};
 use crate::device::pty::{Flow, PtyError, PtyServer, Simulator};
 use crate::device::zaber::sim::{ZaberSim, ZaberSimConfig};
 use crate::device::zaber::DEFAULT_MM_PER_STEP;
@@ -77,6 +78,8 @@ pub enum StageProtocol {
     Grbl,
     /// Zaber ASCII, three single-axis devices (1, 2, 3 = x, y, z).
     Zaber,
+    /// Marlin on a CR-10-like printer (travel 300 × 300 × 100 mm, +z up).
+    Marlin,
 }
 
 /// Which force-sensor protocol to simulate.
@@ -129,6 +132,10 @@ impl StageProtocol {
     /// the stage starts at the origin (30 mm above the surface).
     /// Zaber: travel 0–47.6 mm, +z pressing: the sensor origin at stage xy (15, 15),
     /// the surface at z = 30 mm; the stage starts mid-travel (23.8 mm, above it).
+    /// Marlin: travel 0..300 × 0..300 × 0..100 mm (soft endstops), +z up: the sensor
+    /// on the bed with its origin at stage xy (150, 150), the surface at z = 30 mm,
+    /// pressing towards −z; the head starts (homed) over the origin at z = 60 mm,
+    /// 30 mm above the surface, as the GRBL bench does.
     pub fn default_geometry(self) -> (WorldGeometry, [f64; 3]) {
         match self {
             StageProtocol::Grbl => (
@@ -152,6 +159,15 @@ impl StageProtocol {
                     [mid; 3],
                 )
             }
+            StageProtocol::Marlin => (
+                WorldGeometry {
+                    sensor_origin_in_stage_mm: [150.0, 150.0],
+                    surface_z_mm: 30.0,
+                    press_direction: -1.0,
+                    ..WorldGeometry::default()
+                },
+                [150.0, 150.0, 60.0],
+            ),
         }
     }
 }
@@ -199,6 +215,10 @@ fn grbl_position(s: &GrblSim) -> [f64; 3] {
     s.mpos_mm()
 }
 
+fn marlin_position(s: &MarlinSim) -> [f64; 3] {
+    s.position_mm()
+}
+
 fn zaber_position(s: &ZaberSim) -> [f64; 3] {
     let mut p = [0.0; 3];
     for (i, dev) in [1u8, 2, 3].into_iter().enumerate() {
@@ -222,6 +242,7 @@ impl WrenchSource for WorldWrench {
 enum StageServer {
     Grbl(PtyServer<WorldStage<GrblSim>>),
     Zaber(PtyServer<WorldStage<ZaberSim>>),
+    Marlin(PtyServer<WorldStage<MarlinSim>>),
 }
 
 enum FtServer {
@@ -320,6 +341,15 @@ impl VirtualBench {
                 let s = WorldStage::new(ZaberSim::new(cfg), Arc::clone(&world), zaber_position);
                 StageServer::Zaber(PtyServer::spawn(s, Some(&stage_link)).map_err(pty("stage"))?)
             }
+            StageProtocol::Marlin => {
+                let cfg = MarlinSimConfig {
+                    start_mm,
+                    faults: options.stage_faults.clone(),
+                    ..MarlinSimConfig::default()
+                };
+                let s = WorldStage::new(MarlinSim::new(cfg), Arc::clone(&world), marlin_position);
+                StageServer::Marlin(PtyServer::spawn(s, Some(&stage_link)).map_err(pty("stage"))?)
+            }
         };
         let ft_link = links.join("ft");
         let source = WorldWrench(Arc::clone(&world));
@@ -395,6 +425,7 @@ impl VirtualBench {
         match &self.stage {
             StageServer::Grbl(s) => s.port_path(),
             StageServer::Zaber(s) => s.port_path(),
+            StageServer::Marlin(s) => s.port_path(),
         }
     }
 
@@ -403,6 +434,7 @@ impl VirtualBench {
         match &self.stage {
             StageServer::Grbl(s) => s.path(),
             StageServer::Zaber(s) => s.path(),
+            StageServer::Marlin(s) => s.path(),
         }
     }
 
@@ -446,6 +478,7 @@ impl VirtualBench {
         let stage = match &self.stage {
             StageServer::Grbl(s) => s.is_finished(),
             StageServer::Zaber(s) => s.is_finished(),
+            StageServer::Marlin(s) => s.is_finished(),
         };
         let ft = match &self.ft {
             FtServer::DynPick(s) => s.is_finished(),

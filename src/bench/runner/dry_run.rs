@@ -235,6 +235,16 @@ pub fn stage_limits_of(bench: &BenchConfig) -> Option<(TravelLimits, String)> {
                     format!("the simulated Zaber stage (0..{hi} mm)"),
                 )
             }
+            StageKind::Marlin => {
+                let c = crate::device::marlin::sim::MarlinSimConfig::default();
+                (
+                    TravelLimits {
+                        axes_mm: [0, 1, 2].map(|i| [c.soft_min_mm[i], c.soft_max_mm[i]]),
+                    },
+                    "the simulated Marlin stage (soft endstops 0..300 × 0..300 × 0..100 mm)"
+                        .to_string(),
+                )
+            }
         }),
     }
 }

@@ -317,8 +317,8 @@ impl Runner<'_, '_, '_, '_> {
                                 .dev
                                 .position()
                                 .map_err(|e| dev_abort("reading the position", &e))?;
-                            let off = (0..3).map(|i| (p[i] - target[i]).abs()).fold(0.0, f64::max);
-                            if off <= POSITION_TOLERANCE_MM {
+                            let tol = self.reached_tolerance();
+                            if (0..3).all(|i| (p[i] - target[i]).abs() <= tol[i]) {
                                 return Ok(false);
                             }
                         }
@@ -339,6 +339,14 @@ impl Runner<'_, '_, '_, '_> {
                 )));
             }
         }
+    }
+
+    /// Per axis, how far from its target a stage standing still counts as arrived:
+    /// [`POSITION_TOLERANCE_MM`], or half the stage's step where that is coarser
+    /// (Marlin rounds targets to whole steps, e.g. 12.5 µm at 80 steps/mm).
+    fn reached_tolerance(&self) -> [f64; 3] {
+        let r = self.dev.dev.stage.resolution_mm();
+        [0, 1, 2].map(|i| POSITION_TOLERANCE_MM.max(0.5 * r[i] + 1e-9))
     }
 
     /// A paced status query during a move: the state, or `None` when the controller
@@ -461,7 +469,8 @@ impl Runner<'_, '_, '_, '_> {
                         .dev
                         .position()
                         .map_err(|e| dev_abort("reading the position", &e))?;
-                    if (0..3).all(|i| (p[i] - target[i]).abs() <= POSITION_TOLERANCE_MM) {
+                    let tol = self.reached_tolerance();
+                    if (0..3).all(|i| (p[i] - target[i]).abs() <= tol[i]) {
                         return Ok(());
                     }
                 }
