@@ -183,7 +183,11 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
             r.build_id().map_or("&mdash;".to_string(), escape),
             escape(&r.analysis.run.manifest.plan_name),
             escape(r.date()),
-            crate::report::html::bench_text(r.verdict.simulated),
+            match r.verdict.simulated {
+                Some(true) => "<span class=\"sim\">SIMULATED</span>",
+                Some(false) => "real",
+                None => "not recorded",
+            },
             s.measured_setpoints,
             s.planned_setpoints,
             class_of(r.verdict.outcome),
