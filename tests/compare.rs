@@ -323,6 +323,11 @@ fn relative_criteria_follow_the_baseline_and_pass_the_better_build() {
         tmp.path().join("plain").to_str().unwrap(),
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("comparison: NOT JUDGED"),
+        "{}",
+        stdout(&o)
+    );
 }
 
 #[test]

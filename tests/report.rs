@@ -137,6 +137,8 @@ pub(crate) fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mu
         software_commit: Some("0123abcd".into()),
         camera_path: None,
         camera_toml: None,
+        simulated: None,
+        write_failure: None,
     }
     .write(dir)
     .unwrap();
@@ -227,10 +229,23 @@ fn magnitude_report_has_known_values_figures_and_escaped_provenance() {
         .all(|m| m.0 != "magnitude.hysteresis_pct"));
 
     let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
-    // The values printed in the report are those of summary.csv (6 significant digits).
+    // The values printed in the report are those of summary.csv (6 significant digits),
+    // forces in the plan's unit (gf): one unit per quantity on the page.
     assert!(
-        html.contains(&tactbench::report::acceptance::fmt_value(res)),
+        html.contains(&tactbench::report::acceptance::fmt_value(res_gf)),
         "resolution missing"
+    );
+    let offset_gf = tactbench::units::ForceUnit::GramForce.from_newtons(0.01);
+    assert!(
+        html.contains(&format!(
+            "<td>{}</td><td class=\"l\">gf</td>",
+            tactbench::report::acceptance::fmt_value(offset_gf)
+        )),
+        "the offset is shown in gf on a gf plan"
+    );
+    assert!(
+        !html.contains("<code>magnitude.resolution_n</code>"),
+        "the resolution in N is left off a gf page"
     );
     assert!(html.contains("magnitude.r2"));
     // Provenance, escaped.
@@ -369,17 +384,21 @@ fn bad_criteria_are_errors_with_exit_code_two() {
 }
 
 #[test]
-fn incomplete_run_directories_are_named_in_the_error() {
+fn missing_evidence_is_noted_and_broken_run_directories_are_named_in_the_error() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     magnitude_run(dir);
-    // The field figures use the row with the largest F^sum: setpoint 3 (300 gf, trial 0).
+    // The field figures use the row with the largest F^sum: setpoint 3 (300 gf, trial
+    // 0). Its forces file is evidence, not record: the report says what it cannot show.
     std::fs::remove_file(forces_path(dir, 3)).unwrap();
     let out = report(dir, &[]);
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
     let e = stderr(&out);
     assert!(
-        e.contains("forces/00003.csv: missing") && e.contains("journal line 5"),
+        e.contains("not shown: force-field figure")
+            && e.contains(
+                "forces/00003.csv (reconstructed forces of setpoint 3) is not in the run directory"
+            ),
         "{e}"
     );
 

@@ -13,7 +13,7 @@ use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
 use tactbench::bench::journal::{self, JournalRow, Manifest, RowQuality, RunStatus};
 use tactbench::bench::plan::Plan;
-use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions, RunSummary};
+use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions, RunSummary, WriteFault};
 use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
 use tactbench::sensor::Sensor;
 use tactbench::sim::scene::Scene;
@@ -305,6 +305,30 @@ fn run_in_process(
     stage_faults: Option<FaultConfig>,
     ft_faults: Option<FaultConfig>,
 ) -> (RunSummary, Vec<RunEvent>, [f64; 3], f64) {
+    run_in_process_with(
+        plan,
+        scene,
+        out,
+        resume,
+        limit,
+        stage_faults,
+        ft_faults,
+        None,
+    )
+}
+
+/// As [`run_in_process`], with injected write failures.
+#[allow(clippy::too_many_arguments)]
+fn run_in_process_with(
+    plan: &Plan,
+    scene: &Path,
+    out: &Path,
+    resume: bool,
+    limit: Option<usize>,
+    stage_faults: Option<FaultConfig>,
+    ft_faults: Option<FaultConfig>,
+    write_fault: Option<WriteFault>,
+) -> (RunSummary, Vec<RunEvent>, [f64; 3], f64) {
     let bench = BenchConfig::sim(scene);
     let sim = SimOptions {
         links: out.with_extension("links"),
@@ -326,6 +350,8 @@ fn run_in_process(
         devices: c.identities.clone(),
         home: c.home,
         tare: c.tare,
+        simulated: c.sim.is_some(),
+        write_fault,
         limit,
         stop: Arc::new(AtomicBool::new(false)),
         stop_signal: Default::default(),
@@ -1254,4 +1280,117 @@ fn journalled_force_sum_sd_matches_the_scatter_over_trials_and_is_zero_on_an_ide
             "ideal scene: identical frames carry no noise"
         );
     }
+}
+
+/// The Fig. 7 plan cut to 0..150 gf, two trials (8 setpoints), in `dir`.
+fn eight_setpoint_plan(dir: &Path) -> Plan {
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {:?}", sensor.display().to_string()),
+        )
+        .replace("to = 750.0", "to = 150.0")
+        .replace("trials = 10", "trials = 2");
+    let p = write(dir, "short.toml", &text);
+    Plan::from_path(&p).unwrap()
+}
+
+#[test]
+fn a_write_failure_mid_run_aborts_retracts_and_is_recorded_in_the_manifest() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = eight_setpoint_plan(tmp.path());
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+    let out = tmp.path().join("run");
+    // Writes: the reference frame, then per setpoint frame, displacements, forces,
+    // journal row. The 7th write (displacements of setpoint 1) fails; then the disk
+    // has room again (someone freed space), so the closing manifest can say why.
+    let fault = WriteFault {
+        after_writes: 6,
+        failures: Some(1),
+        errno: 28,
+    };
+    let (summary, _, stage, fz) =
+        run_in_process_with(&plan, &scene, &out, false, None, None, None, Some(fault));
+    assert_eq!(summary.status, RunStatus::Aborted);
+    assert_eq!(summary.done, 1, "setpoint 0 was journalled");
+    assert!(summary.manifest_error.is_none());
+    let reason = summary.reason.clone().unwrap();
+    assert!(
+        reason.contains("displacements/00001.csv") && reason.contains("No space left on device"),
+        "{reason}"
+    );
+    // Retracted: nothing presses on the sensor.
+    assert!(
+        fz.abs() < 1e-6,
+        "contact force after the abort: {fz} N (stage {stage:?})"
+    );
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Aborted);
+    assert_eq!(m.simulated, Some(true));
+    let w = m.write_failure.expect("the first failed write is recorded");
+    assert_eq!(w.path, "displacements/00001.csv");
+    assert!(w.error.contains("os error 28"), "{}", w.error);
+    assert!(w.at.ends_with('Z'));
+
+    // `report` names it; `run --resume` says it and completes the run.
+    let o = util::run(&["report", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
+    assert!(
+        util::stderr(&o).contains("aborted by a failed write: writing displacements/00001.csv"),
+        "{}",
+        util::stderr(&o)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("verdict.json")).unwrap()).unwrap();
+    assert_eq!(v["run"]["write_failure"]["path"], "displacements/00001.csv");
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(
+        html.contains("<th class=\"l\">write failure</th>"),
+        "banner row"
+    );
+    let o = util::run(&["run", "--resume", out.to_str().unwrap(), "--no-progress"]);
+    assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
+    assert!(
+        util::stderr(&o).contains("an earlier session of this run was aborted by a failed write"),
+        "{}",
+        util::stderr(&o)
+    );
+    assert_eq!(rows(&out).len(), 8);
+}
+
+#[test]
+fn a_disk_that_stays_full_exits_3_and_reports_the_unrecorded_end_on_stderr() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = eight_setpoint_plan(tmp.path());
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+    let out = tmp.path().join("run");
+    let o = util::run(&[
+        "run",
+        plan.path.to_str().unwrap(),
+        "--sim",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-progress",
+        "--fail-writes-after",
+        "6",
+    ]);
+    assert_eq!(o.status.code(), Some(3), "{}", util::stderr(&o));
+    let e = util::stderr(&o);
+    assert!(
+        e.contains("write failure: writing displacements/00001.csv failed")
+            && e.contains("No space left on device"),
+        "{e}"
+    );
+    assert!(
+        e.contains("the end of the run could not be recorded"),
+        "{e}"
+    );
+    // The manifest could not be written: it still says running, and the journal
+    // holds the completed setpoint.
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.status, RunStatus::Running);
+    assert_eq!(rows(&out).len(), 1);
 }

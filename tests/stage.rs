@@ -1622,6 +1622,8 @@ mod runs_from_a_stage_left_in_a_state {
             devices: c.identities.clone(),
             home: c.home,
             tare: c.tare,
+            simulated: c.sim.is_some(),
+            write_fault: None,
             limit: Some(2),
             stop: Arc::new(AtomicBool::new(false)),
             stop_signal: Default::default(),

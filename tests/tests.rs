@@ -3,6 +3,7 @@
 
 mod util;
 
+mod archive;
 mod bench;
 mod camera;
 mod cli;

@@ -173,7 +173,7 @@ impl Criterion {
     pub fn symbol(self) -> &'static str {
         match self {
             Criterion::Reproducibility => "b",
-            Criterion::Repeatability => "b'",
+            Criterion::Repeatability => "b′",
             Criterion::Interpolation => "f_c",
             Criterion::Zero => "f_0",
             Criterion::Reversibility => "v",

@@ -25,6 +25,17 @@
 //! rows cannot support (0 or 1 rows, a single level) is left out and listed in
 //! [`RunAnalysis::absent`] with the reason, so every run gets a report.
 //!
+//! **Archived runs.** The record is `manifest.json` + `journal.csv`; `frames/`,
+//! `displacements/` and `forces/` are evidence that may be gone (`tactbench archive`,
+//! or a lab that keeps old runs as journals). Every metric the journal carries is
+//! computed from the journal alone, so it is the same with or without them. The field
+//! figures then have no snapshot, and each thing that could not be shown is listed in
+//! [`RunAnalysis::missing`] (one line each). Two analyses are not in the journal:
+//! Fig. 9 (`spatial`: the force profile of each point load) and Table I
+//! (`displacement`: the tracked displacements of each shift) read their per-setpoint
+//! files; without them those analyses are absent with the reason (and
+//! `tactbench archive` always keeps those files for those sweeps).
+//!
 //! The simulation studies live here too: [`accuracy_time`] (force error against time
 //! per frame over solver, force-grid, tracking and averaging choices; Pareto front and
 //! budgets), [`layer_separation`] (force error against the distance between the two
@@ -323,6 +334,22 @@ pub struct RunAnalysis {
     /// Analyses left out because the rows cannot support them: (metric prefix, e.g.
     /// `magnitude`, and why). Their metrics are absent.
     pub absent: Vec<(String, String)>,
+    /// What could not be shown because an evidence file (`frames/`, `displacements/`,
+    /// `forces/`) is not in the run directory: one line each, naming the file.
+    pub missing: Vec<String>,
+}
+
+/// Whether an analysis error is an evidence file missing from the run directory.
+fn missing_file(e: &AnalysisError) -> Option<String> {
+    match e {
+        AnalysisError::MissingFile {
+            path, what, index, ..
+        } => Some(format!(
+            "{} ({what} of setpoint {index}) is not in the run directory",
+            path.display()
+        )),
+        _ => None,
+    }
 }
 
 /// A named scalar result.
@@ -432,12 +459,12 @@ pub const METRICS: &[(&str, &str, &str)] = &[
     (
         "metrology.repeatability_pct_fs",
         "%FS",
-        "ISO 376 b' (SD form): pooled SD of F^sum residuals over trials at the same position, level and direction",
+        "repeatability SD s_r: pooled SD of F^sum residuals over trials at the same position, level and direction (ISO 376 b′, the range the class table compares, is 1.128 s_r)",
     ),
     (
         "metrology.reproducibility_pct_fs",
         "%FS",
-        "ISO 376 b (SD form): pooled SD of F^sum residuals over trials and contact positions at the same level and direction",
+        "reproducibility SD s_R: pooled SD of F^sum residuals over trials and contact positions at the same level and direction (ISO 376 b, the range the class table compares, is 1.693 s_R)",
     ),
     (
         "metrology.interpolation_pct_fs",
@@ -651,6 +678,7 @@ impl RunAnalysis {
         let rows = &run.rows;
         let (mut magnitude, mut angle, mut spatial, mut displacement) = (None, None, None, None);
         let mut absent: Vec<(String, String)> = Vec::new();
+        let mut missing: Vec<String> = Vec::new();
         let n_rows = format!(
             "{} journal row{}",
             rows.len(),
@@ -669,33 +697,74 @@ impl RunAnalysis {
                 start_mm, end_mm, ..
             } => {
                 let mut loads = Vec::with_capacity(rows.len());
+                let mut gone = None;
                 for r in rows {
+                    let forces = match run.forces(r.index) {
+                        Ok(f) => f,
+                        Err(e) => match missing_file(&e) {
+                            Some(m) => {
+                                gone = Some(m);
+                                break;
+                            }
+                            None => return Err(e),
+                        },
+                    };
                     loads.push(spatial::PointLoad {
                         index: r.index,
                         position_mm: run.setpoints[r.index].position_mm,
-                        forces: run.forces(r.index)?,
+                        forces,
                     });
                 }
-                let dir = [end_mm[0] - start_mm[0], end_mm[1] - start_mm[1]];
-                let tol = 0.25 * run.sensor.force_grid.pitch_mm;
-                match spatial::analyze(&loads, dir, tol) {
-                    Ok(s) => spatial = Some(s),
-                    Err(e) => absent.push(("spatial".into(), format!("{n_rows}: {e}"))),
+                if let Some(m) = gone {
+                    missing.push(format!("spatial profile (Fig. 9) and its metrics: {m}"));
+                    absent.push((
+                        "spatial".into(),
+                        format!("{m}: the force profile is not in the journal; it needs every setpoint's forces file"),
+                    ));
+                } else {
+                    let dir = [end_mm[0] - start_mm[0], end_mm[1] - start_mm[1]];
+                    let tol = 0.25 * run.sensor.force_grid.pitch_mm;
+                    match spatial::analyze(&loads, dir, tol) {
+                        Ok(s) => spatial = Some(s),
+                        Err(e) => absent.push(("spatial".into(), format!("{n_rows}: {e}"))),
+                    }
                 }
             }
             Sweep::Displacement { .. } => {
                 let mut ms = Vec::with_capacity(rows.len());
+                let mut gone = None;
                 for r in rows {
+                    let frames = match run.displacements(r.index) {
+                        Ok(f) => f,
+                        Err(e) => match missing_file(&e) {
+                            Some(m) => {
+                                gone = Some(m);
+                                break;
+                            }
+                            None => return Err(e),
+                        },
+                    };
                     ms.push(displacement::ShiftMeasurement {
                         index: r.index,
                         shift_mm: run.setpoints[r.index].shift_mm,
-                        frames: run.displacements(r.index)?,
+                        frames,
                     });
                 }
-                let names: Vec<String> = run.sensor.layers.iter().map(|l| l.name.clone()).collect();
-                match displacement::analyze(&ms, &names, run.sensor.camera.mm_per_px) {
-                    Ok(d) => displacement = Some(d),
-                    Err(e) => absent.push(("displacement".into(), format!("{n_rows}: {e}"))),
+                if let Some(m) = gone {
+                    missing.push(format!(
+                        "displacement accuracy (Table I) and its metrics: {m}"
+                    ));
+                    absent.push((
+                        "displacement".into(),
+                        format!("{m}: the tracked displacements are not in the journal; Table I needs every setpoint's displacements file"),
+                    ));
+                } else {
+                    let names: Vec<String> =
+                        run.sensor.layers.iter().map(|l| l.name.clone()).collect();
+                    match displacement::analyze(&ms, &names, run.sensor.camera.mm_per_px) {
+                        Ok(d) => displacement = Some(d),
+                        Err(e) => absent.push(("displacement".into(), format!("{n_rows}: {e}"))),
+                    }
                 }
             }
             Sweep::Setpoints(_) => {}
@@ -745,13 +814,19 @@ impl RunAnalysis {
             hold,
             snapshot: None,
             absent,
+            missing,
             run,
         };
         out.snapshot = out.load_snapshot(options.snapshot_index)?;
         Ok(out)
     }
 
-    fn load_snapshot(&self, requested: Option<usize>) -> Result<Option<Snapshot>, AnalysisError> {
+    /// The field figures' setpoint; `None` (and a line in [`RunAnalysis::missing`])
+    /// when its displacements file is not in the run directory.
+    fn load_snapshot(
+        &mut self,
+        requested: Option<usize>,
+    ) -> Result<Option<Snapshot>, AnalysisError> {
         let run = &self.run;
         let index = match requested {
             Some(i) => {
@@ -774,11 +849,28 @@ impl RunAnalysis {
                 None => return Ok(None),
             },
         };
-        let mut frames = run.displacements(index)?;
+        let mut frames = match run.displacements(index) {
+            Ok(f) => f,
+            Err(e) => match missing_file(&e) {
+                Some(m) => {
+                    self.missing
+                        .push(format!("marker displacement and force-field figures: {m}"));
+                    return Ok(None);
+                }
+                None => return Err(e),
+            },
+        };
+        if frames.is_empty() {
+            return Ok(None);
+        }
         let displacements = frames.swap_remove(0);
-        let forces = if matches!(run.plan.sweep, Sweep::Displacement { .. })
-            && !forces_path(&run.dir, index).is_file()
-        {
+        let forces = if !forces_path(&run.dir, index).is_file() {
+            if !matches!(run.plan.sweep, Sweep::Displacement { .. }) {
+                self.missing.push(format!(
+                    "force-field figure: {} (reconstructed forces of setpoint {index}) is not in the run directory",
+                    forces_path(&run.dir, index).display()
+                ));
+            }
             None
         } else {
             Some(run.forces(index)?)

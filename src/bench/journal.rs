@@ -8,6 +8,7 @@
 //! The runner then continues with the first setpoint index not in the journal.
 
 use std::collections::BTreeSet;
+use std::fmt;
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
@@ -292,6 +293,36 @@ pub struct Manifest {
     /// file's linear `[camera]` mapping.
     #[serde(default)]
     pub camera_toml: Option<String>,
+    /// Whether the run was measured on the built-in simulated bench (a `[sim]` bench
+    /// file or `run --sim`); true when any session of it was. `None` in manifests
+    /// written before it was recorded ("not recorded": a gate cannot tell).
+    #[serde(default)]
+    pub simulated: Option<bool>,
+    /// The first write into the run directory that failed during a session (the run
+    /// ended `aborted` because of it); `None` when every write succeeded.
+    #[serde(default)]
+    pub write_failure: Option<WriteFailure>,
+}
+
+/// The first failed write of a run (`manifest.json` `write_failure`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WriteFailure {
+    /// The file, relative to the run directory.
+    pub path: String,
+    /// The operating system's error text (e.g. `No space left on device (os error 28)`).
+    pub error: String,
+    /// When it failed, RFC 3339 UTC.
+    pub at: String,
+}
+
+impl fmt::Display for WriteFailure {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "writing {} failed at {}: {}",
+            self.path, self.at, self.error
+        )
+    }
 }
 
 /// One session of a run: a `run` or a `run --resume` invocation.
@@ -977,6 +1008,8 @@ mod tests {
             software_commit: None,
             camera_path: None,
             camera_toml: None,
+            simulated: None,
+            write_failure: None,
         };
         m.finish(RunStatus::Completed, None, 8, None, "t1".into());
         assert_eq!(
@@ -1085,6 +1118,8 @@ mod tests {
             software_commit: Some(GIT_COMMIT.into()),
             camera_path: None,
             camera_toml: None,
+            simulated: None,
+            write_failure: None,
         };
         m.write(dir.path()).unwrap();
         assert_eq!(Manifest::read(dir.path()).unwrap(), m);

@@ -24,7 +24,10 @@ use tactbench::report::verdict::{EXIT_FAIL, EXIT_INCOMPLETE, EXIT_PASS};
 /// The baseline is the first RUN_DIR, or --baseline (one of the RUN_DIRs, or an extra
 /// run). Differences are value - baseline; significant when the difference's 95 % CI
 /// (d ± 1.96 √(SE² + SE_b²), SE = CI half-width / 1.96, runs independent) excludes 0;
-/// n/a where either run states no CI. The worst run is named per metric where
+/// n/a where either run states no CI. Runs of different sweep kinds, plans (plan
+/// SHA-256) or sensors (sensor SHA-256) are refused (exit 2, naming what differs)
+/// unless --allow-different-plans, which the banner then states. The worst run is
+/// named per metric where
 /// "better" has a direction (lower resolution, SD, errors, times; R² higher; slope
 /// closer to 1; biases and offsets closer to 0).
 ///
@@ -34,7 +37,7 @@ use tactbench::report::verdict::{EXIT_FAIL, EXIT_INCOMPLETE, EXIT_PASS};
 /// (value >= b - d), with b the baseline's value, apply to the other runs.
 ///
 /// Exit codes, decided by the runs other than the baseline: 0 = every compared run
-/// PASS or MARGINAL (also without criteria); 1 = a compared run FAILs; 5 = no FAIL,
+/// PASS or MARGINAL (or NOT JUDGED: no criteria); 1 = a compared run FAILs; 5 = no FAIL,
 /// but a compared run, or the baseline, did not measure its whole plan (not graded;
 /// --allow-partial grades it); 2 = error (not a run directory, the same run twice,
 /// fewer than two runs, a bad criteria file, a criterion naming a metric a run does
@@ -58,6 +61,10 @@ pub struct Args {
     /// INCOMPLETE.
     #[arg(long)]
     allow_partial: bool,
+    /// Compare runs of different sweep kinds, plans or sensors anyway (refused
+    /// otherwise, exit 2); the banner then says the runs are not like for like.
+    #[arg(long)]
+    allow_different_plans: bool,
     /// Output directory (created if missing).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
@@ -74,7 +81,7 @@ fn after_help() -> String {
          [[criterion]]\n  metric = \"magnitude.r2\"\n  min = 0.99                        # absolute: every run\n  \
          max_decrease = 0.002              # value >= b - 0.002\n\n\
          Exit codes (the runs other than the baseline decide):\n  \
-         {EXIT_PASS}  every compared run PASS or MARGINAL (or no criteria given)\n  \
+         {EXIT_PASS}  every compared run PASS or MARGINAL (or NOT JUDGED: no criteria given)\n  \
          {EXIT_FAIL}  a compared run FAILs a criterion or a provenance requirement\n  \
          2  error: nothing judged\n  \
          {EXIT_INCOMPLETE}  INCOMPLETE: a compared run or the baseline did not measure its whole plan (--allow-partial grades it)\n\n\
@@ -93,7 +100,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for d in &dirs {
         loaded.push(compare::load_run(d)?);
     }
-    let c = Comparison::new(loaded, baseline, criteria.as_ref(), args.allow_partial)?;
+    let c = Comparison::new(
+        loaded,
+        baseline,
+        criteria.as_ref(),
+        args.allow_partial,
+        args.allow_different_plans,
+    )?;
+    for d in &c.differences {
+        eprintln!("warning: not like for like (--allow-different-plans): {d}");
+    }
     let written = compare::write_comparison(&c, &args.out)?;
     for r in &c.runs {
         let s = &r.verdict.run;
@@ -133,13 +149,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
         }
         let s = &r.verdict.run;
         println!(
-            "{}{}: {} ({}, {} of {} planned setpoints)",
+            "{}{}: {} ({}, {} of {} planned setpoints{})",
             r.label,
             if r.is_baseline { " (baseline)" } else { "" },
             r.verdict.outcome,
             s.status,
             s.measured_setpoints,
-            s.planned_setpoints
+            s.planned_setpoints,
+            match r.verdict.simulated {
+                Some(true) => ", SIMULATED bench",
+                Some(false) => ", real bench",
+                None => ", bench kind not recorded",
+            }
         );
     }
     if c.outcome == Outcome::Incomplete {

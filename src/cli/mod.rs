@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+mod archive;
 mod calibrate;
 mod camera;
 mod compare;
@@ -45,6 +46,7 @@ enum Command {
     Reconstruct(reconstruct::Args),
     Report(report::Args),
     Compare(compare::Args),
+    Archive(archive::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
     Calibrate(calibrate::Args),
@@ -83,6 +85,7 @@ pub fn main() -> ExitCode {
         Command::Reconstruct(args) => reconstruct::run(args),
         Command::Report(args) => report::run(args),
         Command::Compare(args) => compare::run(args),
+        Command::Archive(args) => archive::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Calibrate(args) => calibrate::run(args),

@@ -34,7 +34,12 @@ use tactbench::report::{self, ReportOptions};
 /// criterion of CRITERIA.toml is PASS, MARGINAL (within limits, in the marginal band)
 /// or FAIL, printed with the value and the threshold; the verdict is the worst of them.
 ///
-/// Exit codes: 0 = PASS or MARGINAL (also: no criteria given, complete run);
+/// Without criteria (or with neither criteria nor requirements) a complete run is NOT
+/// JUDGED (exit 0, never called PASS). A run on the simulated bench says SIMULATED on
+/// the banner and `"simulated": true` in verdict.json; `require_real_bench = true`
+/// FAILs it.
+///
+/// Exit codes: 0 = PASS, MARGINAL or NOT JUDGED (no criteria given, complete run);
 /// 1 = FAIL (a criterion or a provenance requirement failed); 5 = INCOMPLETE (the run
 /// did not measure its whole plan; not graded); 2 = error (unreadable or invalid run
 /// directory or criteria file, a criterion naming a metric the run's sweep kind does
@@ -72,12 +77,13 @@ fn after_help() -> String {
          tactbench report runs/try --allow-partial   # grade a --limit / interrupted run\n  \
          tactbench report runs/fig7 --setpoint 15    # field figures of setpoint 15\n\n\
          Criteria file (bounds inclusive, at least one of min / max):\n  \
-         require_build_id = true     # optional: no build id recorded -> FAIL\n\n  \
+         require_build_id = true     # optional: no build id recorded -> FAIL\n  \
+         require_real_bench = true   # optional: simulated (or not recorded) -> FAIL\n\n  \
          [[criterion]]\n  metric = \"magnitude.r2\"\n  min = 0.99\n  \
          marginal_min = 0.995        # optional: r2 <= 0.995 (but >= 0.99) is MARGINAL\n\n  \
          [[criterion]]\n  metric = \"timing.forces_ms\"\n  max = 2.9\n\n\
          Exit codes:\n  \
-         {EXIT_PASS}  PASS or MARGINAL (or no criteria given, complete run)\n  \
+         {EXIT_PASS}  PASS, MARGINAL, or NOT JUDGED (no criteria given, complete run)\n  \
          {EXIT_FAIL}  FAIL: a criterion or a provenance requirement failed\n  \
          2  error: nothing judged (bad run directory or criteria file)\n  \
          {EXIT_INCOMPLETE}  INCOMPLETE: the run did not measure its whole plan (--allow-partial grades it)\n\n\
@@ -121,8 +127,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(w) = &v.run.writer {
         eprintln!("note: the run is still in progress ({w})");
     }
+    if let Some(w) = &v.run.write_failure {
+        eprintln!("note: the run was aborted by a failed write: {w}");
+    }
     for (name, why) in &analysis.absent {
         eprintln!("note: no {name} analysis: {why}");
+    }
+    for m in &analysis.missing {
+        eprintln!("note: not shown: {m}");
     }
     println!("wrote {}", outcome.html.display());
     println!("wrote {}", outcome.verdict_file.display());
@@ -142,8 +154,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         );
     }
     println!(
-        "run: {}, {} of {} planned setpoints measured",
-        v.run.status, v.run.measured_setpoints, v.run.planned_setpoints
+        "run: {}, {} of {} planned setpoints measured; bench: {}",
+        v.run.status,
+        v.run.measured_setpoints,
+        v.run.planned_setpoints,
+        report::html::bench_text(v.simulated)
     );
     if criteria.is_some() {
         println!("acceptance: {}", acceptance_line(v, &outcome.verdicts));
@@ -170,6 +185,7 @@ fn acceptance_line(v: &VerdictDoc, verdicts: &[Verdict]) -> String {
         ""
     };
     match v.outcome {
+        Outcome::NotJudged => "NOT JUDGED (no criteria, no requirement)".to_string(),
         Outcome::Pass => format!("PASS ({n} criteria{partial})"),
         Outcome::Marginal => format!("MARGINAL ({marginal} of {n} criteria marginal{partial})"),
         Outcome::Fail => format!("FAIL ({failed} of {n} criteria failed{partial})"),

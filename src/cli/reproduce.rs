@@ -1,8 +1,10 @@
 //! `tactbench reproduce-paper`: regenerates the paper reproduction (`reports/paper/`)
 //! from the simulated bench with the same public commands a user runs by hand:
-//! `run --sim` for each paper plan, `report` on each run, the three `study` commands
-//! (layer separation, accuracy against time, model error), then a README that puts our
-//! figures beside the paper's.
+//! `run --sim` for each paper plan, `report` on each run, `archive --keep evidence`
+//! (the committed runs are archives: record, report, the reference frame and the
+//! frames the camera evidence shows), the three `study` commands (layer separation,
+//! accuracy against time, model error), then a README that puts our figures beside the
+//! paper's.
 //!
 //! Each step is a child process of this same executable, so the reproduction exercises
 //! exactly the command-line contracts (arguments, exit codes, files) it documents, and
@@ -24,8 +26,11 @@ use tactbench::bench::journal::MANIFEST_FILE;
 /// Fig. 9 spatial plans (each `tactbench run PLAN --sim SCENE`, then `tactbench report`),
 /// the layer-separation study (Fig. 6), the accuracy-against-time study and the
 /// model-error study (the half-space against a bonded layer of the paper's 40 mm and
-/// thinner), and writes OUT/README.md with our figures beside the paper's. Run directories are replaced
-/// (only directories holding a manifest.json, i.e. earlier runs, are ever removed).
+/// thinner), and writes OUT/README.md with our figures beside the paper's. Each run is
+/// measured into OUT/runs/.work/NAME, reported there, and archived into OUT/runs/NAME
+/// with `tactbench archive --keep evidence` (the full run is then removed). Run
+/// directories are replaced (only directories holding a manifest.json, i.e. earlier
+/// runs, are ever removed).
 ///
 /// The full reproduction measures 351 setpoints (Table I 10, Fig. 7 2 × 160 with an
 /// ideal and a noisy camera, Fig. 8 10, Fig. 9 11) and takes about 5 minutes in a
@@ -141,9 +146,12 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         return write_readme(&a.out, a.quick, started);
     }
 
+    let work = runs.join(".work");
     for e in EXPERIMENTS {
-        let dir = runs.join(e.name);
+        let dir = work.join(e.name);
+        let archived = runs.join(e.name);
         clear_run_dir(&dir)?;
+        clear_run_dir(&archived)?;
         let plan = a.experiments.join(e.plan);
         let scene = a.experiments.join(e.scene);
         let mut args: Vec<String> = vec![
@@ -166,7 +174,19 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             report.push("--allow-partial".into());
         }
         step(&exe, &format!("report {}", e.name), &report)?;
+        let archive: Vec<String> = vec![
+            "archive".into(),
+            path_arg(&dir),
+            "--keep".into(),
+            "evidence".into(),
+            "--out".into(),
+            path_arg(&archived),
+        ];
+        step(&exe, &format!("archive {}", e.name), &archive)?;
+        std::fs::remove_dir_all(&dir)
+            .with_context(|| format!("cannot remove the full run {}", dir.display()))?;
     }
+    let _ = std::fs::remove_dir(&work);
 
     let fig6 = a.out.join("fig6_layer_separation");
     let mut args: Vec<String> = vec![

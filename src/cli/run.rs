@@ -150,6 +150,27 @@ pub struct Args {
     /// view's provisional verdict.
     #[arg(long, value_name = "CRITERIA.toml", requires = "serve")]
     acceptance: Option<PathBuf>,
+    /// Test seam: the first N writes into the run directory succeed, then K writes
+    /// fail with "No space left on device" (`N`: every later write, a disk that stays
+    /// full; `N:K`: K writes, then the disk has room again).
+    #[arg(long, value_name = "N[:K]", hide = true, value_parser = parse_write_fault)]
+    fail_writes_after: Option<runner::WriteFault>,
+}
+
+/// `N` or `N:K` for --fail-writes-after.
+fn parse_write_fault(text: &str) -> Result<runner::WriteFault, String> {
+    let num = |s: &str| {
+        s.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{s:?} is not a whole number: {e}"))
+    };
+    Ok(match text.split_once(':') {
+        Some((n, k)) => runner::WriteFault {
+            failures: Some(num(k)?),
+            ..runner::WriteFault::disk_full_after(num(n)?)
+        },
+        None => runner::WriteFault::disk_full_after(num(text)?),
+    })
 }
 
 /// What the manifest says about the bench, to reopen it on resume. Relative paths
@@ -244,6 +265,9 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             })?),
             None => None,
         };
+    if let Some(w) = manifest.as_ref().and_then(|m| m.write_failure.as_ref()) {
+        eprintln!("note: an earlier session of this run was aborted by a failed write: {w}");
+    }
     let (plan, plan_toml) = match (&a.plan, &manifest) {
         (Some(p), _) => {
             let text = std::fs::read_to_string(p)
@@ -400,6 +424,8 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         devices: c.identities.clone(),
         home: c.home,
         tare: c.tare,
+        simulated: c.sim.is_some(),
+        write_fault: a.fail_writes_after,
         limit,
         stop,
         stop_signal,
@@ -567,6 +593,24 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             t.io_s,
             t.overhead_s / n * 1e3,
             t.max_overhead_s * 1e3
+        );
+    }
+    if let Some(w) = &summary.write_failure {
+        eprintln!(
+            "write failure: {w}{}",
+            if summary.manifest_error.is_none() {
+                " (recorded in the manifest's write_failure)"
+            } else {
+                ""
+            }
+        );
+    }
+    if let Some(e) = &summary.manifest_error {
+        eprintln!(
+            "error: the end of the run could not be recorded: {e}; manifest.json still says \
+             `running` (the journal holds every completed setpoint: free space, then \
+             `tactbench run --resume {}`)",
+            dir.display()
         );
     }
     match summary.status {

@@ -4,6 +4,9 @@
 //! # Optional: the run must record an elastomer build id (`--build-id` or the plan's
 //! # `build_id`), else the verdict is FAIL.
 //! require_build_id = true
+//! # Optional: the run must have been measured on a real bench: a run on the simulated
+//! # bench FAILs, and so does one whose manifest predates the `simulated` flag.
+//! require_real_bench = true
 //!
 //! # Each criterion bounds one metric of the run (names: `tactbench report --help`,
 //! # the README, or analysis::METRICS). At least one of min / max; bounds inclusive.
@@ -81,7 +84,7 @@ pub enum AcceptanceError {
         message: String,
     },
     /// The file defines no criterion.
-    #[error("{path}: no [[criterion]] entries")]
+    #[error("{path}: no [[criterion]] entries and no requirement (require_build_id, require_real_bench): nothing to judge")]
     Empty {
         /// The criteria file.
         path: PathBuf,
@@ -123,6 +126,10 @@ pub const RELATIVE_KEYS: [&str; 4] = [
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
 #[serde(rename_all = "UPPERCASE")]
 pub enum Outcome {
+    /// Nothing was judged: no criteria and no requirements (verdicts only; exit 0,
+    /// shown neutrally, never as a pass).
+    #[serde(rename = "NOT JUDGED")]
+    NotJudged,
     /// Within the limits and outside any marginal band.
     Pass,
     /// Within the limits but in a marginal band (exit 0, shown).
@@ -134,13 +141,22 @@ pub enum Outcome {
 }
 
 impl Outcome {
-    /// `PASS`, `MARGINAL`, `FAIL`, `INCOMPLETE`.
+    /// `NOT JUDGED`, `PASS`, `MARGINAL`, `FAIL`, `INCOMPLETE`.
     pub fn word(self) -> &'static str {
         match self {
+            Outcome::NotJudged => "NOT JUDGED",
             Outcome::Pass => "PASS",
             Outcome::Marginal => "MARGINAL",
             Outcome::Fail => "FAIL",
             Outcome::Incomplete => "INCOMPLETE",
+        }
+    }
+
+    /// The word as one token (`NOT_JUDGED`, `PASS`, ...): an HTML class name.
+    pub fn token(self) -> &'static str {
+        match self {
+            Outcome::NotJudged => "NOT_JUDGED",
+            o => o.word(),
         }
     }
 }
@@ -198,6 +214,9 @@ pub struct Criteria {
     pub criteria: Vec<Criterion>,
     /// `require_build_id = true`: a run without a build id FAILs.
     pub require_build_id: bool,
+    /// `require_real_bench = true`: a run on the simulated bench FAILs (and so does a
+    /// run whose manifest does not record whether it was simulated).
+    pub require_real_bench: bool,
 }
 
 #[derive(Deserialize)]
@@ -205,6 +224,8 @@ pub struct Criteria {
 struct RawCriteria {
     #[serde(default)]
     require_build_id: bool,
+    #[serde(default)]
+    require_real_bench: bool,
     #[serde(default)]
     criterion: Vec<RawCriterion>,
 }
@@ -242,7 +263,8 @@ impl Criteria {
     /// Parses and validates criteria TOML; `path` names the file in errors.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Criteria, AcceptanceError> {
         let raw: RawCriteria = config::parse_toml(text, path)?;
-        if raw.criterion.is_empty() {
+        // A file of provenance requirements alone judges something; an empty one not.
+        if raw.criterion.is_empty() && !raw.require_build_id && !raw.require_real_bench {
             return Err(AcceptanceError::Empty {
                 path: path.to_path_buf(),
             });
@@ -333,6 +355,7 @@ impl Criteria {
             path: path.to_path_buf(),
             criteria,
             require_build_id: raw.require_build_id,
+            require_real_bench: raw.require_real_bench,
         })
     }
 

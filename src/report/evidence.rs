@@ -577,6 +577,13 @@ pub fn camera_evidence(analysis: &RunAnalysis) -> Result<Vec<CameraPanel>, Strin
     let (pitch_mm, _) = marker_geometry(run);
     let mut reference_done = false;
     for &index in &chosen {
+        let tracks = crate::analysis::displacements_path(&run.dir, index);
+        if !tracks.is_file() {
+            return Err(format!(
+                "{} (tracked displacements of setpoint {index}) is not in the run directory",
+                tracks.display()
+            ));
+        }
         let (frame, markers) = read_tracks(run, index)?;
         if !frame.is_file() {
             return Err(format!(

@@ -18,7 +18,9 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use super::force_map::{arrow_parts, draw_arrows};
-use super::plot::{Figure, FigureResult, FONT};
+use super::plot::{
+    legend_rows, legend_strip, Figure, FigureResult, LegendGlyph, FONT, LEGEND_ROW_PX,
+};
 use crate::analysis::calibration::Calibration;
 use crate::analysis::spatial::SpatialAnalysis;
 use crate::analysis::tracking::{SetpointHealth, TrackingAnalysis};
@@ -300,8 +302,31 @@ impl Figure for MarkerHealthFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let t = &self.tracking;
         let n = t.setpoints.len();
-        let mut chart = ChartBuilder::on(root)
-            .caption("marker health per setpoint", (FONT, 20))
+        let bands: [(&str, RGBColor, CountOf); 4] = [
+            ("ok", RGBColor(60, 150, 60), |s| s.ok),
+            ("outlier", RGBColor(230, 160, 30), |s| s.outlier),
+            ("merged", RGBColor(140, 80, 170), |s| s.merged),
+            ("lost", RGBColor(200, 40, 40), |s| s.lost),
+        ];
+        let gate = t.gate;
+        let any_flagged = t.setpoints.iter().any(|s| s.flagged);
+        // The legend in a strip above the plot: the bars fill the whole plot area.
+        let mut entries: Vec<(LegendGlyph, String)> = bands
+            .iter()
+            .map(|(name, color, _)| (LegendGlyph::Swatch(*color), name.to_string()))
+            .collect();
+        entries.push((
+            LegendGlyph::Dashed(BLACK),
+            format!("min_ok_fraction {gate}"),
+        ));
+        if any_flagged {
+            entries.push((LegendGlyph::Cross(RED), "flagged row".into()));
+        }
+        let area = root.titled("marker health per setpoint", (FONT, 20))?;
+        let rows = legend_rows(&entries, area.dim_in_pixel().0);
+        let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
+        legend_strip(&strip, &entries)?;
+        let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(60)
@@ -323,15 +348,9 @@ impl Figure for MarkerHealthFigure {
             .disable_x_mesh()
             .label_style((FONT, 13))
             .draw()?;
-        let bands: [(&str, RGBColor, CountOf); 4] = [
-            ("ok", RGBColor(60, 150, 60), |s| s.ok),
-            ("outlier", RGBColor(230, 160, 30), |s| s.outlier),
-            ("merged", RGBColor(140, 80, 170), |s| s.merged),
-            ("lost", RGBColor(200, 40, 40), |s| s.lost),
-        ];
         let half = 0.4;
         let mut base = vec![0.0f64; n];
-        for (name, color, count) in bands {
+        for (_, color, count) in bands {
             let rects: Vec<_> = t
                 .setpoints
                 .iter()
@@ -346,20 +365,14 @@ impl Figure for MarkerHealthFigure {
                     )
                 })
                 .collect();
-            chart.draw_series(rects)?.label(name).legend(move |(x, y)| {
-                Rectangle::new([(x, y - 5), (x + 14, y + 5)], color.filled())
-            });
+            chart.draw_series(rects)?;
         }
-        let gate = t.gate;
-        chart
-            .draw_series(DashedLineSeries::new(
-                [(-0.5, gate), (n as f64 - 0.5, gate)],
-                6,
-                4,
-                BLACK.stroke_width(2),
-            ))?
-            .label(format!("min_ok_fraction {gate}"))
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.stroke_width(2)));
+        chart.draw_series(DashedLineSeries::new(
+            [(-0.5, gate), (n as f64 - 0.5, gate)],
+            6,
+            4,
+            BLACK.stroke_width(2),
+        ))?;
         let flagged: Vec<_> = t
             .setpoints
             .iter()
@@ -368,18 +381,8 @@ impl Figure for MarkerHealthFigure {
             .map(|(i, _)| Cross::new((i as f64, 1.04), 6, RED.stroke_width(3)))
             .collect();
         if !flagged.is_empty() {
-            chart
-                .draw_series(flagged)?
-                .label("flagged row")
-                .legend(|(x, y)| Cross::new((x + 10, y), 5, RED.stroke_width(3)));
+            chart.draw_series(flagged)?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerLeft)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
         Ok(())
     }
 }

@@ -15,7 +15,9 @@
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::plot::{Figure, FigureResult, FONT};
+use super::plot::{
+    legend_rows, legend_strip, Figure, FigureResult, LegendGlyph, FONT, LEGEND_ROW_PX,
+};
 use crate::analysis::hold::HoldAnalysis;
 use crate::analysis::metrology::MetrologyAnalysis;
 
@@ -84,10 +86,31 @@ impl Figure for ResidualFigure {
                 .chain([line(xs.start), line(xs.end), 0.0]),
             0.08,
         );
-        // Head room for the legend above the points.
-        let ys = ys.start..(ys.end + 0.25 * (ys.end - ys.start));
-        let mut chart = ChartBuilder::on(root)
-            .caption("measured − applied", (FONT, 20))
+        // The legend in a strip above the plot, clear of every point.
+        let mut entries = vec![
+            (
+                LegendGlyph::Dashed(BLACK),
+                format!(
+                    "calibration line error: (slope − 1)·F + offset, slope {:.4}",
+                    m.fit.slope
+                ),
+            ),
+            (
+                LegendGlyph::Dot(PALETTE[0]),
+                "loading (up); colour = trial".to_string(),
+            ),
+        ];
+        if pts.iter().any(|p| p.3) {
+            entries.push((
+                LegendGlyph::Triangle(PALETTE[0]),
+                "unloading (down)".to_string(),
+            ));
+        }
+        let area = root.titled("measured − applied", (FONT, 20))?;
+        let rows = legend_rows(&entries, area.dim_in_pixel().0);
+        let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
+        legend_strip(&strip, &entries)?;
+        let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(70)
@@ -102,41 +125,19 @@ impl Figure for ResidualFigure {
             [(xs.start, 0.0), (xs.end, 0.0)],
             BLACK.mix(0.3),
         ))?;
-        chart
-            .draw_series(DashedLineSeries::new(
-                [xs.start, xs.end].map(|x| (x, line(x))),
-                8,
-                5,
-                BLACK.stroke_width(1),
-            ))?
-            .label(format!(
-                "calibration line error: (slope − 1)·F + offset, slope {:.4}",
-                m.fit.slope
-            ))
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+        chart.draw_series(DashedLineSeries::new(
+            [xs.start, xs.end].map(|x| (x, line(x))),
+            8,
+            5,
+            BLACK.stroke_width(1),
+        ))?;
         let up = pts.iter().filter(|p| !p.3);
-        chart
-            .draw_series(up.map(|p| Circle::new((p.0, p.1), 3, PALETTE[p.2 % 8].filled())))?
-            .label("loading (up), colour = trial")
-            .legend(|(x, y)| Circle::new((x + 10, y), 3, PALETTE[0].filled()));
-        let down: Vec<_> = pts.iter().filter(|p| p.3).collect();
-        if !down.is_empty() {
-            chart
-                .draw_series(
-                    down.iter().map(|p| {
-                        TriangleMarker::new((p.0, p.1), 5, PALETTE[p.2 % 8].stroke_width(1))
-                    }),
-                )?
-                .label("unloading (down)")
-                .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, PALETTE[0].stroke_width(1)));
-        }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
+        chart.draw_series(up.map(|p| Circle::new((p.0, p.1), 3, PALETTE[p.2 % 8].filled())))?;
+        chart.draw_series(
+            pts.iter()
+                .filter(|p| p.3)
+                .map(|p| TriangleMarker::new((p.0, p.1), 5, PALETTE[p.2 % 8].stroke_width(1))),
+        )?;
         Ok(())
     }
 }
@@ -277,7 +278,44 @@ impl Figure for CreepFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.scale;
         let h = &self.hold;
-        let (top, bottom) = root.split_vertically(root.dim_in_pixel().1 / 2);
+        let title = format!(
+            "creep during the holds: {:.4} %FS/min (F sum − F/T)",
+            h.creep_pct_fs_per_min()
+        );
+        let area = root.titled(&title, (FONT, 20))?;
+        // Every colour keyed (one per hold; line styles for the two readings), in a
+        // strip clear of the data.
+        let mut entries = vec![
+            (LegendGlyph::Line(BLACK), "F/T (solid)".to_string()),
+            (LegendGlyph::Dashed(BLACK), "F sum (dashed)".to_string()),
+        ];
+        for hold in 0..h.holds {
+            let at = h
+                .samples
+                .iter()
+                .filter(|s| s.hold == hold)
+                .map(|s| s.applied_n * k)
+                .sum::<f64>()
+                / h.samples.iter().filter(|s| s.hold == hold).count().max(1) as f64;
+            entries.push((
+                LegendGlyph::Swatch(PALETTE[hold % 8]),
+                format!("hold {} (≈ {:.0} {})", hold + 1, at, self.unit),
+            ));
+        }
+        if !h.creep_intercepts_n.is_empty() {
+            entries.push((
+                LegendGlyph::Line(BLACK),
+                format!(
+                    "below: fitted creep line, slope {:.4} {}/min",
+                    h.creep.slope * 60.0 * k,
+                    self.unit
+                ),
+            ));
+        }
+        let rows = legend_rows(&entries, area.dim_in_pixel().0);
+        let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
+        legend_strip(&strip, &entries)?;
+        let (top, bottom) = area.split_vertically(area.dim_in_pixel().1 / 2);
         let ts = span(h.samples.iter().map(|s| s.t_s), 0.03);
         let ys = span(
             h.samples
@@ -286,13 +324,6 @@ impl Figure for CreepFigure {
             0.08,
         );
         let mut c1 = ChartBuilder::on(&top)
-            .caption(
-                format!(
-                    "creep during the holds: {:.4} %FS/min (F sum − F/T)",
-                    h.creep_pct_fs_per_min()
-                ),
-                (FONT, 20),
-            )
             .margin(12)
             .x_label_area_size(35)
             .y_label_area_size(70)
@@ -305,33 +336,17 @@ impl Figure for CreepFigure {
         for hold in 0..h.holds {
             let c = PALETTE[hold % 8];
             let pts: Vec<_> = h.samples.iter().filter(|s| s.hold == hold).collect();
-            let s1 = c1.draw_series(LineSeries::new(
+            c1.draw_series(LineSeries::new(
                 pts.iter().map(|s| (s.t_s, s.applied_n * k)),
                 c.stroke_width(2),
             ))?;
-            if hold == 0 {
-                s1.label("F/T (solid)").legend(move |(x, y)| {
-                    PathElement::new([(x, y), (x + 20, y)], c.stroke_width(2))
-                });
-            }
-            let s2 = c1.draw_series(DashedLineSeries::new(
+            c1.draw_series(DashedLineSeries::new(
                 pts.iter().map(|s| (s.t_s, s.measured_n * k)),
                 6,
                 4,
                 c.stroke_width(2),
             ))?;
-            if hold == 0 {
-                s2.label("F sum (dashed)").legend(move |(x, y)| {
-                    PathElement::new([(x, y), (x + 6, y)], c.stroke_width(2))
-                });
-            }
         }
-        c1.configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
         let d = |s: &crate::analysis::hold::HoldSample| (s.measured_n - s.applied_n) * k;
         let ys = span(h.samples.iter().map(d), 0.1);
         let mut c2 = ChartBuilder::on(&bottom)
@@ -360,29 +375,12 @@ impl Figure for CreepFigure {
                     (a.min(s.t_s), b.max(s.t_s))
                 });
             if let Some(&b0) = h.creep_intercepts_n.get(hold) {
-                let series = c2.draw_series(LineSeries::new(
+                c2.draw_series(LineSeries::new(
                     [t0, t1].map(|t| (t, (b0 + h.creep.slope * t) * k)),
                     BLACK.stroke_width(2),
                 ))?;
-                if hold == 0 {
-                    series
-                        .label(format!(
-                            "fitted creep line, slope {:.4} {}/min",
-                            h.creep.slope * 60.0 * k,
-                            self.unit
-                        ))
-                        .legend(|(x, y)| {
-                            PathElement::new([(x, y), (x + 20, y)], BLACK.stroke_width(2))
-                        });
-                }
             }
         }
-        c2.configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
         Ok(())
     }
 }

@@ -4,13 +4,71 @@
 //! table (human-readable names with units; the machine names that acceptance criteria,
 //! `summary.csv` and `verdict.json` use are kept visible in a small column), and the
 //! **ISO 376** section (the class table and what each criterion implies).
+//!
+//! One unit per quantity on a page: forces are shown in the plan's force unit
+//! ([`in_plan_unit`]: a plan in gf shows the offset, residual SDs and drifts in gf, with
+//! criterion limits converted alike); the machine names and `summary.csv` keep their
+//! own units (`magnitude.offset_n` is in N there). The metric of the other unit
+//! (`magnitude.resolution_n` on a gf plan) is left off the page.
 
 use std::fmt::Write;
 
-use super::acceptance::{fmt_value, Outcome, Verdict};
+use super::acceptance::{fmt_value, Criterion, Outcome, Verdict};
 use super::html::escape;
 use crate::analysis::metrology::{MetrologyAnalysis, ISO376_CLASSES, NO_CLASS};
-use crate::analysis::{Metric, RunAnalysis};
+use crate::analysis::{Ci95, Metric, RunAnalysis};
+use crate::units::ForceUnit;
+
+/// `m` in the plan's force unit: a metric in N is converted to `unit` (value and CI);
+/// every other metric is returned as it is.
+pub fn in_plan_unit(m: &Metric, unit: ForceUnit) -> Metric {
+    if m.unit != "N" || unit == ForceUnit::Newton {
+        return m.clone();
+    }
+    let k = unit.from_newtons(1.0);
+    Metric {
+        name: m.name.clone(),
+        value: m.value * k,
+        unit: unit.symbol(),
+        ci95: m.ci95.map(|c| Ci95 {
+            low: c.low * k,
+            high: c.high * k,
+            method: c.method,
+        }),
+    }
+}
+
+/// A criterion's absolute bounds scaled by `k` (relative fractions unchanged), to show
+/// it in the unit its metric is shown in.
+pub fn scaled_criterion(c: &Criterion, k: f64) -> Criterion {
+    let s = |v: Option<f64>| v.map(|v| v * k);
+    Criterion {
+        min: s(c.min),
+        max: s(c.max),
+        marginal_min: s(c.marginal_min),
+        marginal_max: s(c.marginal_max),
+        max_increase: s(c.max_increase),
+        max_decrease: s(c.max_decrease),
+        ..c.clone()
+    }
+}
+
+/// The factor from a metric's unit to the unit it is shown in on a page of `unit`.
+pub fn display_factor(metric_unit: &str, unit: ForceUnit) -> f64 {
+    if metric_unit == "N" {
+        unit.from_newtons(1.0)
+    } else {
+        1.0
+    }
+}
+
+/// The resolution metric in the other force unit, left off a page in `unit`.
+pub fn other_resolution(unit: ForceUnit) -> &'static str {
+    match unit {
+        ForceUnit::GramForce => "magnitude.resolution_n",
+        ForceUnit::Newton => "magnitude.resolution_gf",
+    }
+}
 
 /// Human-readable names of the metrics (exact names; patterns with `<layer>` fall back
 /// to the machine name).
@@ -39,11 +97,11 @@ const TITLES: &[(&str, &str)] = &[
     ),
     (
         "metrology.repeatability_pct_fs",
-        "repeatability (ISO 376 b', SD)",
+        "repeatability SD s_r (ISO 376 b′ = 1.128 s_r)",
     ),
     (
         "metrology.reproducibility_pct_fs",
-        "reproducibility across positions (ISO 376 b, SD)",
+        "reproducibility SD across positions s_R (ISO 376 b = 1.693 s_R)",
     ),
     (
         "metrology.interpolation_pct_fs",
@@ -165,26 +223,18 @@ fn ci_cells(m: &Metric) -> (String, String) {
 
 fn class_of(o: Outcome) -> &'static str {
     match o {
+        Outcome::NotJudged => "",
         Outcome::Pass => "pass",
         Outcome::Marginal => "marginal",
         Outcome::Fail | Outcome::Incomplete => "fail",
     }
 }
 
-/// The headline table: key metrics (the resolution in the plan's force unit
-/// `unit_symbol`), then any other metric an acceptance criterion bounds.
-pub fn headline(
-    o: &mut String,
-    metrics: &[Metric],
-    verdicts: Option<&[Verdict]>,
-    unit_symbol: &str,
-) {
+/// The headline table: key metrics (forces in the plan's force unit `unit`), then any
+/// other metric an acceptance criterion bounds.
+pub fn headline(o: &mut String, metrics: &[Metric], verdicts: Option<&[Verdict]>, unit: ForceUnit) {
     let vs = verdicts.unwrap_or(&[]);
-    let other_resolution = if unit_symbol == "gf" {
-        "magnitude.resolution_n"
-    } else {
-        "magnitude.resolution_gf"
-    };
+    let other_resolution = other_resolution(unit);
     let mut names: Vec<&str> = HEADLINE
         .iter()
         .copied()
@@ -204,9 +254,12 @@ pub fn headline(
          <th class=\"l\">limit</th><th class=\"l\">outcome</th></tr>\n",
     );
     for name in names {
-        let m = metrics.iter().find(|m| m.name == name);
+        let m = metrics
+            .iter()
+            .find(|m| m.name == name)
+            .map(|m| in_plan_unit(m, unit));
         let v = vs.iter().find(|v| v.criterion.metric == name);
-        let (value, unit, (ci, method)) = match m {
+        let (value, shown_unit, (ci, method)) = match &m {
             Some(m) => (shown(m), unit_of(m), ci_cells(m)),
             None => (
                 v.and_then(|v| v.note.clone())
@@ -217,7 +270,7 @@ pub fn headline(
         };
         let (limit, outcome) = match v {
             Some(v) => (
-                escape(&v.criterion.to_string()),
+                escape(&scaled_criterion(&v.criterion, display_factor(v.unit, unit)).to_string()),
                 format!(
                     "<span class=\"{}\">{}</span>",
                     class_of(v.outcome),
@@ -233,7 +286,7 @@ pub fn headline(
              <td class=\"l\">{limit}</td><td class=\"l\">{outcome}</td></tr>",
             escape(title(name)),
             escape(name),
-            escape(unit)
+            escape(shown_unit)
         );
     }
     o.push_str(
@@ -245,14 +298,15 @@ pub fn headline(
     );
 }
 
-/// The full metrics table.
-pub fn metrics_table(o: &mut String, metrics: &[Metric]) {
+/// The full metrics table (forces in the plan's force unit `unit`).
+pub fn metrics_table(o: &mut String, metrics: &[Metric], unit: ForceUnit) {
     o.push_str(
         "<h2>Metrics</h2>\n<table>\n<tr><th class=\"l\">metric</th><th>value</th>\
          <th class=\"l\">unit</th><th>95 % CI</th><th class=\"l\">CI method</th>\
          <th class=\"l\">name</th></tr>\n",
     );
-    for m in metrics {
+    for m in metrics.iter().filter(|m| m.name != other_resolution(unit)) {
+        let m = &in_plan_unit(m, unit);
         let (ci, method) = ci_cells(m);
         let _ = writeln!(
             o,
@@ -271,6 +325,7 @@ pub fn metrics_table(o: &mut String, metrics: &[Metric]) {
 /// The ISO 376 section: definitions in short, the class table and the class each
 /// criterion of the run implies.
 pub fn iso376_section(o: &mut String, analysis: &RunAnalysis) {
+    let unit = analysis.run.plan.force_unit;
     let m: Option<&MetrologyAnalysis> = analysis.metrology.as_ref();
     let class = m
         .and_then(|m| m.class.as_ref())
@@ -283,17 +338,20 @@ pub fn iso376_section(o: &mut String, analysis: &RunAnalysis) {
     let _ = writeln!(
         o,
         "<h2 id=\"iso376\">Force metrology (ISO 376 style)</h2>\n<p>F<sup>sum</sup> against the F/T \
-         reference, errors in % of full scale FS = {} N (the largest applied force of the run). \
-         ISO 376:2011 (calibration of force-proving instruments) relates b, b', f<sub>c</sub> and v to \
+         reference, errors in % of full scale FS = {} {} (the largest applied force of the run). \
+         ISO 376:2011 (calibration of force-proving instruments) relates b, b′, f<sub>c</sub> and v to \
          the reading at each force; dividing by FS instead is more lenient below full scale. \
-         Definitions: repeatability b' = pooled SD of the residuals about the calibration line over \
-         trials at the same position, level and direction (7.5.1); reproducibility b = the same over \
-         all contact positions (7.5.1); interpolation f<sub>c</sub> = largest level mean residual of \
+         Definitions: repeatability SD s<sub>r</sub> = pooled SD of the residuals about the \
+         calibration line over trials at the same position, level and direction, and b′ = 1.128 \
+         s<sub>r</sub>, the expected range of two series, which the class table compares (7.5.1); \
+         reproducibility SD s<sub>R</sub> = the same over all contact positions, and b = 1.693 \
+         s<sub>R</sub>, the expected range of three series (7.5.1); interpolation f<sub>c</sub> = largest level mean residual of \
          the loading rows (7.5.2); zero f<sub>0</sub> = unloaded error at the end of a trial minus \
          at its start (7.5.3); reversibility v = unloading minus loading mean residual (7.5.4); creep \
          c = slope of F<sup>sum</sup> &minus; F/T against the time in a hold (7.5.5). Bootstrap \
          intervals: {} resamples of whole trials within each position, seed {}.</p>",
-        fmt_value(fs),
+        fmt_value(unit.from_newtons(fs)),
+        unit.symbol(),
         crate::analysis::metrology::BOOTSTRAP_RESAMPLES,
         crate::analysis::metrology::BOOTSTRAP_SEED
     );

@@ -52,6 +52,8 @@ pre{background:#f6f6f6;padding:.5em;overflow:auto}figure{margin:1em 0}img{max-wi
 #verdict.MARGINAL{border-color:#c80;background:#fff6e0}#verdict.MARGINAL .outcome{color:#a60}\
 #verdict.FAIL{border-color:#b00;background:#fee}#verdict.FAIL .outcome{color:#b00}\
 #verdict.INCOMPLETE{border-color:#555;background:#eee}#verdict.INCOMPLETE .outcome{color:#333}\
+#verdict.NOT_JUDGED{border-color:#468;background:#eef2f7}#verdict.NOT_JUDGED .outcome{color:#346}\
+.simflag{display:inline-block;border:2px solid #804;color:#804;font-weight:bold;padding:0 .4em;margin-left:.5em;border-radius:4px;font-size:.4em;vertical-align:middle}\
 #verdict table{margin:.3em 0}#verdict td,#verdict th{border:none;padding:1px 8px 1px 0}";
 
 /// The verdict banner: the first thing on the page.
@@ -67,10 +69,15 @@ fn banner(o: &mut String, v: &VerdictDoc) {
     };
     let _ = write!(
         o,
-        "<section id=\"verdict\" class=\"{}\">\n<div class=\"outcome\">{}</div>\n\
+        "<section id=\"verdict\" class=\"{}\">\n<div class=\"outcome\">{}{}</div>\n\
          <p>{}</p>\n<table>\n",
+        v.outcome.token(),
         v.outcome.word(),
-        v.outcome.word(),
+        if v.simulated == Some(true) {
+            "<span class=\"simflag\">SIMULATED</span>"
+        } else {
+            ""
+        },
         escape(&v.summary)
     );
     let items = [
@@ -91,6 +98,7 @@ fn banner(o: &mut String, v: &VerdictDoc) {
                 .as_deref()
                 .map_or("&mdash; (none recorded)".to_string(), escape),
         ),
+        ("bench", bench_text(v.simulated).to_string()),
     ];
     for (k, val) in items {
         let _ = writeln!(
@@ -105,6 +113,13 @@ fn banner(o: &mut String, v: &VerdictDoc) {
             escape(why)
         );
     }
+    if let Some(w) = &r.write_failure {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">write failure</th><td class=\"l\">{}</td></tr>",
+            escape(&w.to_string())
+        );
+    }
     if let Some(t) = &r.torn_journal_line {
         let _ = writeln!(
             o,
@@ -114,6 +129,15 @@ fn banner(o: &mut String, v: &VerdictDoc) {
         );
     }
     o.push_str("</table>\n</section>\n");
+}
+
+/// The bench line of a banner: simulated, real, or not recorded (old manifests).
+pub fn bench_text(simulated: Option<bool>) -> &'static str {
+    match simulated {
+        Some(true) => "SIMULATED (the built-in simulated bench, not hardware)",
+        Some(false) => "real bench",
+        None => "not recorded (manifest from before the simulated flag)",
+    }
 }
 
 fn row(out: &mut String, cells: &[String]) {
@@ -190,10 +214,15 @@ pub fn render(
     );
     banner(&mut o, verdict);
     let _ = writeln!(o, "<h1>{}</h1>", escape(&title));
-    super::headline::headline(&mut o, metrics, verdicts, run.plan.force_unit.symbol());
+    super::headline::headline(&mut o, metrics, verdicts, run.plan.force_unit);
 
     if let Some(vs) = verdicts {
-        let worst = vs.iter().map(|v| v.outcome).max().unwrap_or(Outcome::Pass);
+        let worst = vs
+            .iter()
+            .map(|v| v.outcome)
+            .chain(verdict.requirements.iter().map(|r| r.outcome))
+            .max()
+            .unwrap_or(Outcome::NotJudged);
         // On an INCOMPLETE run the criteria are shown but are not the verdict: no
         // coloured PASS next to them.
         let class = if verdict.outcome == Outcome::Incomplete {
@@ -217,10 +246,14 @@ pub fn render(
             }
         );
         header(&mut o, &["verdict", "metric", "value", "unit", "threshold"]);
+        let plan_unit = run.plan.force_unit;
         for v in vs {
+            // In the page's force unit, as the metrics are shown.
+            let k = super::headline::display_factor(v.unit, plan_unit);
+            let shown_unit = if k == 1.0 { v.unit } else { plan_unit.symbol() };
             let value = match &v.note {
                 Some(n) => escape(n),
-                None => fmt_value(v.value),
+                None => fmt_value(v.value * k),
             };
             let _ = writeln!(
                 o,
@@ -229,8 +262,8 @@ pub fn render(
                 class_of(v.outcome),
                 v.outcome.word(),
                 escape(&v.criterion.metric),
-                escape(v.unit),
-                escape(&v.criterion.to_string())
+                escape(shown_unit),
+                escape(&super::headline::scaled_criterion(&v.criterion, k).to_string())
             );
         }
         for r in &verdict.requirements {
@@ -310,7 +343,7 @@ pub fn render(
         o.push_str("</ul>\n");
     }
 
-    super::headline::metrics_table(&mut o, metrics);
+    super::headline::metrics_table(&mut o, metrics, run.plan.force_unit);
     super::headline::iso376_section(&mut o, analysis);
 
     let unit = run.plan.force_unit;
@@ -442,8 +475,17 @@ pub fn render(
         marker_health(&mut o, t);
     }
 
-    if !figures.is_empty() {
+    if !figures.is_empty() || !analysis.missing.is_empty() {
         o.push_str("<h2>Figures</h2>\n");
+    }
+    if !analysis.missing.is_empty() {
+        // An archived run (or one whose evidence files were removed): each thing not
+        // shown, in one line; every metric above comes from the journal.
+        o.push_str("<ul class=\"missing-evidence\">\n");
+        for m in &analysis.missing {
+            let _ = writeln!(o, "<li>Not shown: {}.</li>", escape(m));
+        }
+        o.push_str("</ul>\n");
     }
     let b64 = base64::engine::general_purpose::STANDARD;
     for f in figures {
@@ -537,6 +579,7 @@ fn marker_health(o: &mut String, t: &TrackingAnalysis) {
 
 fn class_of(o: Outcome) -> &'static str {
     match o {
+        Outcome::NotJudged => "",
         Outcome::Pass => "pass",
         Outcome::Marginal => "marginal",
         Outcome::Fail | Outcome::Incomplete => "fail",

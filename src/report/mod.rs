@@ -19,6 +19,7 @@
 //! journal, frames), so it can run while the run is still going, or on a torn journal.
 
 pub mod acceptance;
+pub mod archive;
 pub mod compare;
 pub mod evidence;
 pub mod figures;

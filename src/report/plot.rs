@@ -538,3 +538,89 @@ mod tests {
         }
     }
 }
+
+/// The symbol of one legend entry drawn by [`legend_strip`].
+#[derive(Debug, Clone, Copy)]
+pub enum LegendGlyph {
+    /// A filled square (bars, bands).
+    Swatch(RGBColor),
+    /// A solid line.
+    Line(RGBColor),
+    /// A dashed line.
+    Dashed(RGBColor),
+    /// A filled circle (points).
+    Dot(RGBColor),
+    /// An open triangle (points).
+    Triangle(RGBColor),
+    /// A cross (flags).
+    Cross(RGBColor),
+}
+
+/// Height of one row of a [`legend_strip`], pixels.
+pub const LEGEND_ROW_PX: u32 = 22;
+
+/// Rows [`legend_strip`] needs for `entries` on a strip `width_px` wide (the same
+/// estimate it lays out with: 7.5 px per character at 13 px type).
+pub fn legend_rows(entries: &[(LegendGlyph, String)], width_px: u32) -> u32 {
+    let mut rows = 1;
+    let mut x = 10.0;
+    for (_, label) in entries {
+        let w = 34.0 + 7.5 * label.chars().count() as f64 + 18.0;
+        if x + w > width_px as f64 && x > 10.0 {
+            rows += 1;
+            x = 10.0;
+        }
+        x += w;
+    }
+    rows
+}
+
+/// Draws a legend as rows of entries across `area` (a strip outside the plotting
+/// area, so no entry ever covers data), wrapping when a row is full.
+pub fn legend_strip<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    entries: &[(LegendGlyph, String)],
+) -> FigureResult<DB> {
+    let width = area.dim_in_pixel().0 as f64;
+    let style = TextStyle::from((FONT, 13).into_font()).color(&BLACK);
+    let (mut x, mut row) = (10.0f64, 0i32);
+    for (glyph, label) in entries {
+        let w = 34.0 + 7.5 * label.chars().count() as f64 + 18.0;
+        if x + w > width && x > 10.0 {
+            row += 1;
+            x = 10.0;
+        }
+        let y = row * LEGEND_ROW_PX as i32 + LEGEND_ROW_PX as i32 / 2;
+        let x0 = x as i32;
+        match *glyph {
+            LegendGlyph::Swatch(c) => area.draw(&Rectangle::new(
+                [(x0, y - 6), (x0 + 22, y + 6)],
+                Color::filled(&c),
+            ))?,
+            LegendGlyph::Line(c) => area.draw(&PathElement::new(
+                [(x0, y), (x0 + 24, y)],
+                Color::stroke_width(&c, 2),
+            ))?,
+            LegendGlyph::Dashed(c) => {
+                for k in 0..3 {
+                    area.draw(&PathElement::new(
+                        [(x0 + 9 * k, y), (x0 + 9 * k + 5, y)],
+                        Color::stroke_width(&c, 2),
+                    ))?;
+                }
+            }
+            LegendGlyph::Dot(c) => area.draw(&Circle::new((x0 + 12, y), 4, Color::filled(&c)))?,
+            LegendGlyph::Triangle(c) => area.draw(&TriangleMarker::new(
+                (x0 + 12, y),
+                5,
+                Color::stroke_width(&c, 1),
+            ))?,
+            LegendGlyph::Cross(c) => {
+                area.draw(&Cross::new((x0 + 12, y), 5, Color::stroke_width(&c, 3)))?
+            }
+        }
+        area.draw(&Text::new(label.clone(), (x0 + 32, y - 7), style.clone()))?;
+        x += w;
+    }
+    Ok(())
+}

@@ -6,16 +6,22 @@
 //! 1. A run that did not measure its whole plan (`--limit`, interrupted, aborted,
 //!    killed, still in progress) is **INCOMPLETE**, whatever its metrics, unless the
 //!    caller grades it anyway (`--allow-partial`; the verdict then says so).
-//! 2. Otherwise the worst outcome over the criteria and the provenance requirements:
-//!    any FAIL gives **FAIL**, else any MARGINAL gives **MARGINAL**, else **PASS**
-//!    (also with no criteria: nothing was required).
+//! 2. Otherwise, with no criteria and no provenance requirement, **NOT JUDGED** (exit
+//!    0 like PASS, but never called a pass: nothing was required, nothing was checked).
+//! 3. Otherwise the worst outcome over the criteria and the provenance requirements:
+//!    any FAIL gives **FAIL**, else any MARGINAL gives **MARGINAL**, else **PASS**.
+//!
+//! Provenance requirements: `require_build_id` (a build id recorded) and
+//! `require_real_bench` (the manifest records `simulated: false`; a simulated run
+//! FAILs, and so does a manifest from before the flag was recorded: a gate does not
+//! pass what it cannot verify).
 
 use serde::Serialize;
 
 use super::acceptance::{Criteria, Outcome, Verdict};
 use super::sha256::sha256_hex;
 use crate::analysis::{Ci95, Metric, RunAnalysis};
-use crate::bench::journal::{RunStatus, GIT_COMMIT};
+use crate::bench::journal::{RunStatus, WriteFailure, GIT_COMMIT};
 use crate::bench::lock::{Holder, LockState};
 
 /// File name of the verdict inside the report's output directory.
@@ -24,7 +30,7 @@ pub const VERDICT_FILE: &str = "verdict.json";
 /// `verdict.json`'s schema identifier (bumped on incompatible changes).
 pub const SCHEMA: &str = "tactbench-verdict/1";
 
-/// Exit code of `report` for PASS and MARGINAL.
+/// Exit code of `report` for PASS, MARGINAL and NOT JUDGED.
 pub const EXIT_PASS: u8 = 0;
 /// Exit code of `report` for FAIL.
 pub const EXIT_FAIL: u8 = 1;
@@ -34,7 +40,7 @@ pub const EXIT_INCOMPLETE: u8 = 5;
 /// The exit code of an outcome (errors, exit 2, never get this far).
 pub fn exit_code(outcome: Outcome) -> u8 {
     match outcome {
-        Outcome::Pass | Outcome::Marginal => EXIT_PASS,
+        Outcome::NotJudged | Outcome::Pass | Outcome::Marginal => EXIT_PASS,
         Outcome::Fail => EXIT_FAIL,
         Outcome::Incomplete => EXIT_INCOMPLETE,
     }
@@ -72,6 +78,8 @@ pub struct RunState {
     pub incomplete_reason: Option<String>,
     /// A torn last journal line that was skipped: `{line, bytes}`.
     pub torn_journal_line: Option<TornLineJson>,
+    /// The first write into the run directory that failed (`null`: none recorded).
+    pub write_failure: Option<WriteFailure>,
 }
 
 /// A torn journal line in `verdict.json`.
@@ -153,6 +161,7 @@ impl RunState {
                 line: t.line,
                 bytes: t.bytes,
             }),
+            write_failure: m.write_failure.clone(),
         }
     }
 }
@@ -276,8 +285,11 @@ pub struct ReportJson {
 pub struct VerdictDoc {
     /// [`SCHEMA`].
     pub schema: String,
-    /// PASS, MARGINAL, FAIL or INCOMPLETE.
+    /// NOT JUDGED, PASS, MARGINAL, FAIL or INCOMPLETE.
     pub outcome: Outcome,
+    /// The run was measured on the built-in simulated bench (`null`: the manifest
+    /// predates the flag, not recorded).
+    pub simulated: Option<bool>,
     /// The exit code `report` returns for it.
     pub exit_code: u8,
     /// One line: the outcome and why.
@@ -324,12 +336,28 @@ impl VerdictDoc {
                 value,
             });
         }
+        if criteria.is_some_and(|c| c.require_real_bench) {
+            let (value, outcome) = match m.simulated {
+                Some(false) => ("real bench", Outcome::Pass),
+                Some(true) => ("simulated bench", Outcome::Fail),
+                None => (
+                    "not recorded (manifest from before the simulated flag)",
+                    Outcome::Fail,
+                ),
+            };
+            requirements.push(RequirementJson {
+                requirement: "real_bench".into(),
+                value: Some(value.into()),
+                outcome,
+            });
+        }
+        // Nothing required, nothing checked: NOT JUDGED, never PASS.
         let graded = verdicts
             .iter()
             .map(|v| v.outcome)
             .chain(requirements.iter().map(|r| r.outcome))
             .max()
-            .unwrap_or(Outcome::Pass);
+            .unwrap_or(Outcome::NotJudged);
         let partial = !run.complete;
         let outcome = if partial && !allow_partial {
             Outcome::Incomplete
@@ -358,10 +386,14 @@ impl VerdictDoc {
                 "{}; not graded (grade a partial run with --allow-partial)",
                 run.incomplete_reason.clone().unwrap_or_default()
             ),
-            _ if criteria.is_none() => "no acceptance criteria given".to_string(),
+            Outcome::NotJudged => "no acceptance criteria given; nothing was judged".to_string(),
             Outcome::Fail => format!("{failed} of {judged} criteria failed"),
             Outcome::Marginal => format!("{marginal} of {judged} criteria marginal"),
             Outcome::Pass => format!("{judged} criteria"),
+        };
+        let detail = match m.simulated {
+            Some(true) => format!("{detail}; SIMULATED bench"),
+            _ => detail,
         };
         let mut summary = format!("{outcome}: {detail}");
         if partial && allow_partial {
@@ -390,6 +422,7 @@ impl VerdictDoc {
         VerdictDoc {
             schema: SCHEMA.into(),
             outcome,
+            simulated: m.simulated,
             exit_code: exit_code(outcome),
             summary,
             graded_partial: partial && allow_partial,

@@ -542,9 +542,8 @@ impl Runner<'_, '_, '_, '_> {
         for (k, f) in frames.iter().enumerate() {
             let name = format!("frames/{index:05}_{k}.png");
             let t_io = Instant::now();
-            f.image
-                .save(self.dir.join(&name))
-                .map_err(|e| Halt::Abort(format!("cannot write {name}: {e}")))?;
+            let path = self.dir.join(&name);
+            self.fs.step(&name, || f.image.save(&path))?;
             self.io_s += t_io.elapsed().as_secs_f64();
             let t0 = Instant::now();
             let tracker = self
@@ -579,14 +578,11 @@ impl Runner<'_, '_, '_, '_> {
             .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
         let t_io = Instant::now();
         let dpath = format!("displacements/{index:05}.csv");
-        vision::write_tracks_mapped(
-            &self.dir.join(&dpath),
-            sensor,
-            tracker.reference(),
-            tracked,
-            &self.mapping,
-        )
-        .map_err(|e| Halt::Abort(format!("cannot write {dpath}: {e}")))?;
+        let path = self.dir.join(&dpath);
+        let mapping = &self.mapping;
+        self.fs.step(&dpath, || {
+            vision::write_tracks_mapped(&path, sensor, tracker.reference(), tracked, mapping)
+        })?;
         self.io_s += t_io.elapsed().as_secs_f64();
 
         // Mean displacement over the frames; a marker lost in any frame is lost.
@@ -673,12 +669,10 @@ impl Runner<'_, '_, '_, '_> {
         }
         let t_io = Instant::now();
         let fpath = format!("forces/{index:05}.csv");
-        formats::write_forces(
-            &self.dir.join(&fpath),
-            &sensor.force_grid,
-            &[(String::new(), f)],
-        )
-        .map_err(|e| Halt::Abort(format!("cannot write {fpath}: {e}")))?;
+        let path = self.dir.join(&fpath);
+        self.fs.step(&fpath, || {
+            formats::write_forces(&path, &sensor.force_grid, &[(String::new(), f)])
+        })?;
         self.io_s += t_io.elapsed().as_secs_f64();
         self.solve_s += t_solve;
         Ok((fsum, fsum_sd, t_solve))

@@ -79,7 +79,9 @@ use thiserror::Error;
 
 use super::config::BenchGeometry;
 use super::control::ForceController;
-use super::journal::{Journal, JournalError, Manifest, RunStatus, Session};
+use super::journal::{
+    Journal, JournalError, Manifest, RunStatus, Session, WriteFailure, MANIFEST_FILE,
+};
 use super::live::LiveWriter;
 pub use super::live::Phase;
 use super::plan::{Plan, Setpoint, Sweep};
@@ -120,12 +122,15 @@ pub const MOVE_GRACE: Duration = Duration::from_secs(5);
 mod acquire;
 mod dry_run;
 mod motion;
+mod record;
 
 pub use dry_run::{
     check_bench_inputs, dry_run, needs_retract, sensor_area_checks, stage_limits_of, DryRun,
     InputError, StageTargets,
 };
 use motion::Timed;
+pub use record::WriteFault;
+use record::WriteGate;
 
 /// An error that prevents a run from starting or recording (device and safety
 /// problems during the run end it as `aborted` instead, see [`RunSummary`]).
@@ -186,6 +191,11 @@ pub struct RunOptions {
     /// not yet in the journal (a new run: the first `limit`). Recorded per session in
     /// the manifest; a run stopped by its limit stays resumable to its full plan.
     pub limit: Option<usize>,
+    /// The bench is the built-in simulated bench (recorded in the manifest as
+    /// `simulated`, shown on reports; `require_real_bench` criteria fail such a run).
+    pub simulated: bool,
+    /// Injected write failures (tests; `None` on every real run): see [`WriteFault`].
+    pub write_fault: Option<WriteFault>,
     /// Set by the caller (Ctrl-C) to stop the run cleanly.
     pub stop: Arc<AtomicBool>,
     /// The signal number that set `stop` (0: none, or not a signal), recorded in the
@@ -353,6 +363,12 @@ pub struct RunSummary {
     pub measured: usize,
     /// Where the time went.
     pub timings: Timings,
+    /// The first write into the run directory that failed this session (the run then
+    /// ends `aborted`; recorded in the manifest when it could still be written).
+    pub write_failure: Option<WriteFailure>,
+    /// Why the closing manifest could not be written (the manifest still says
+    /// `running`; the caller must report the end and the write failure itself).
+    pub manifest_error: Option<String>,
 }
 
 /// Why the run stops early.
@@ -432,6 +448,8 @@ struct Runner<'p, 'd, 'a, 'e> {
     phase: Option<Phase>,
     /// When the last [`RunEvent::Reading`] was sent.
     last_reading: Option<Instant>,
+    /// Every write into the run directory goes through it (first failure, faults).
+    fs: WriteGate,
     /// Per-setpoint accounting.
     track_s: f64,
     solve_s: f64,
@@ -530,6 +548,8 @@ pub fn run(
             software_commit: Some(super::journal::GIT_COMMIT.to_string()),
             camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
             camera_toml: options.camera.as_ref().map(|(_, t)| t.clone()),
+            simulated: Some(options.simulated),
+            write_failure: None,
         };
         manifest.write(&dir)?;
         (Journal::create(&dir)?, manifest, 0, 0)
@@ -557,6 +577,11 @@ pub fn run(
         manifest.planned_setpoints.get_or_insert(planned);
         manifest.measured_setpoints = journal.completed().len();
         manifest.software_commit = Some(super::journal::GIT_COMMIT.to_string());
+        // A run is simulated when any of its sessions was; a manifest from before the
+        // flag stays "not recorded" unless this session is simulated.
+        if options.simulated || manifest.simulated.is_some() {
+            manifest.simulated = Some(options.simulated || manifest.simulated == Some(true));
+        }
         if options.devices != serde_json::Value::Null {
             manifest.devices = options.devices.clone();
         }
@@ -609,6 +634,7 @@ pub fn run(
         hold_restarted: false,
         phase: None,
         last_reading: None,
+        fs: WriteGate::new(options.write_fault),
         track_s: 0.0,
         solve_s: 0.0,
         precompute_s: 0.0,
@@ -645,9 +671,7 @@ pub fn run(
             let mut row = r.measure(sp, retract)?;
             let t_io = Instant::now();
             row.completed_at = rfc3339_now();
-            journal
-                .append(&row)
-                .map_err(|e| Halt::Abort(format!("cannot write the journal: {e}")))?;
+            r.fs.step(super::journal::JOURNAL_FILE, || journal.append(&row))?;
             r.io_s += t_io.elapsed().as_secs_f64();
             done += 1;
             measured += 1;
@@ -717,7 +741,27 @@ pub fn run(
         (status == RunStatus::Interrupted && signal != 0).then_some(signal),
         rfc3339_now(),
     );
-    manifest.write(&dir)?;
+    let write_failure = r.fs.first_failure().cloned();
+    if manifest.write_failure.is_none() {
+        // The run's first failed write (an earlier session's stays: it was first).
+        manifest.write_failure = write_failure.clone();
+    }
+    // Through the gate too: on a full disk the manifest usually fails as well, and the
+    // run's end is then only on stderr (the caller prints `manifest_error`).
+    let m = &manifest;
+    let manifest_error =
+        r.fs.write(MANIFEST_FILE, || m.write(&dir))
+            .err()
+            .map(|e| format!("{}: {e}", dir.join(MANIFEST_FILE).display()));
+    let (status, reason) = match (&manifest_error, status) {
+        (Some(e), RunStatus::Completed) => (
+            RunStatus::Aborted,
+            Some(format!(
+                "every setpoint was measured, but the closing manifest could not be written: {e}"
+            )),
+        ),
+        _ => (status, reason),
+    };
     (r.events)(&RunEvent::Finished {
         status,
         reason: reason.clone(),
@@ -729,6 +773,8 @@ pub fn run(
         done: journal.completed().len(),
         measured,
         timings,
+        write_failure: write_failure.or_else(|| r.fs.first_failure().cloned()),
+        manifest_error,
     })
 }
 
@@ -808,10 +854,8 @@ impl Runner<'_, '_, '_, '_> {
             format!("frames/reference_resume{resume_no}.png")
         };
         let t_io = Instant::now();
-        frame
-            .image
-            .save(self.dir.join(&name))
-            .map_err(|e| Halt::Abort(format!("cannot write {name}: {e}")))?;
+        let path = self.dir.join(&name);
+        self.fs.step(&name, || frame.image.save(&path))?;
         self.io_s += t_io.elapsed().as_secs_f64();
         let reference = self.reference_layout(&name, &frame)?;
         self.tracker = Some(Tracker::new(reference, TrackConfig::default()));

@@ -76,6 +76,23 @@ pub struct TrendFigure {
     pub panels: Vec<TrendPanel>,
 }
 
+/// Smallest half-span of a trend panel's y axis, as a fraction of the baseline's value
+/// (of the first run's without a baseline value): the axis always includes
+/// `b ± 5 % |b|`, so a 1 % change between runs moves a point a tenth of the axis, not
+/// from bottom to top (autoscaling alone makes noise look like a cliff).
+pub const TREND_MIN_HALF_SPAN: f64 = 0.05;
+
+/// `ys` widened to include `b ± TREND_MIN_HALF_SPAN · |b|`.
+pub fn trend_axis(ys: std::ops::Range<f64>, b: Option<f64>) -> std::ops::Range<f64> {
+    match b.filter(|b| b.is_finite() && *b != 0.0) {
+        Some(b) => {
+            let h = TREND_MIN_HALF_SPAN * b.abs();
+            ys.start.min(b - h)..ys.end.max(b + h)
+        }
+        None => ys,
+    }
+}
+
 /// Panels per row of the trend figure.
 const TREND_COLUMNS: usize = 3;
 /// Largest number of trend panels (the rest are in the table and the CSV).
@@ -195,6 +212,7 @@ impl Figure for TrendFigure {
                     })
                     .chain(panel.baseline),
             );
+            let ys = trend_axis(ys, panel.baseline.or(panel.points.first().map(|p| p.1)));
             let better = match panel.better {
                 Some(b) => format!(" · {} is better", b.word().replace('_', " ")),
                 None => String::new(),

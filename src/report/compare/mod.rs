@@ -29,7 +29,17 @@
 //! is decided by the runs other than the baseline: FAIL if any FAILs; else INCOMPLETE
 //! if any is INCOMPLETE or the baseline itself did not measure its whole plan (the
 //! relative limits come from it; `--allow-partial` grades partial runs); else MARGINAL
-//! if any is MARGINAL; else PASS. The baseline's own criteria are shown, not counted.
+//! if any is MARGINAL; else PASS. Without criteria (or when no compared run has
+//! anything to judge) the outcome is NOT JUDGED (exit 0), never PASS. The baseline's own
+//! criteria are shown, not counted; a baseline that FAILs its own absolute criteria is
+//! flagged on the banner and in `compare.csv` (`baseline_outcome`): relative limits
+//! taken from a failing run are no assurance.
+//!
+//! **Like for like.** Runs of different sweep kinds, plans (SHA-256 of the plan text in
+//! the manifest) or sensors (SHA-256 of the sensor text) measure different things:
+//! [`Comparison::new`] refuses them ([`CompareError::NotLikeForLike`], naming each
+//! difference against the baseline) unless `allow_different_plans` is set, and then the
+//! banner says so ([`Comparison::differences`]).
 
 mod figures;
 mod page;
@@ -59,7 +69,7 @@ pub const PLOTS_DIR: &str = "plots";
 pub const Z95: f64 = 1.959_963_984_540_054;
 
 /// The columns of `compare.csv` (a public contract: documented in the README).
-pub const CSV_HEADER: [&str; 20] = [
+pub const CSV_HEADER: [&str; 22] = [
     "metric",
     "unit",
     "run",
@@ -80,6 +90,8 @@ pub const CSV_HEADER: [&str; 20] = [
     "difference_ci95_high",
     "better",
     "worst",
+    "simulated",
+    "baseline_outcome",
 ];
 
 /// An error comparing runs. Every variant names the run directory or file.
@@ -132,6 +144,12 @@ pub enum CompareError {
         dir: PathBuf,
         /// The criteria error.
         source: Box<AcceptanceError>,
+    },
+    /// Runs that do not measure the same thing (sweep kind, plan or sensor differ).
+    #[error("the runs are not like for like: {}; compare runs of one plan on one sensor, or give --allow-different-plans to compare them anyway", .differences.join("; "))]
+    NotLikeForLike {
+        /// Each difference against the baseline, in words.
+        differences: Vec<String>,
     },
     /// Drawing or writing a figure failed.
     #[error(transparent)]
@@ -529,6 +547,9 @@ pub struct Comparison {
     pub summary: String,
     /// Partial runs graded (`--allow-partial`).
     pub allow_partial: bool,
+    /// How the runs differ from the baseline in sweep kind, plan or sensor (empty:
+    /// like for like; non-empty only with `--allow-different-plans`).
+    pub differences: Vec<String>,
 }
 
 /// Unique short labels: the build id, else the directory's name; repeated labels get
@@ -574,11 +595,16 @@ impl Comparison {
         baseline: usize,
         criteria: Option<&Criteria>,
         allow_partial: bool,
+        allow_different_plans: bool,
     ) -> Result<Comparison, CompareError> {
         if loaded.len() < 2 {
             return Err(CompareError::TooFewRuns {
                 given: loaded.len(),
             });
+        }
+        let differences = like_for_like(&loaded, baseline);
+        if !differences.is_empty() && !allow_different_plans {
+            return Err(CompareError::NotLikeForLike { differences });
         }
         for (i, a) in loaded.iter().enumerate() {
             for b in &loaded[..i] {
@@ -661,6 +687,7 @@ impl Comparison {
             outcome,
             summary,
             allow_partial,
+            differences,
         })
     }
 
@@ -675,6 +702,59 @@ impl Comparison {
         order.sort_by(|&a, &b| self.runs[a].date().cmp(self.runs[b].date()).then(a.cmp(&b)));
         order
     }
+}
+
+/// How each run differs from the baseline in sweep kind, plan or sensor, in words
+/// (empty when every run measures the same plan on the same sensor).
+pub fn like_for_like(loaded: &[LoadedRun], baseline: usize) -> Vec<String> {
+    let key = |r: &LoadedRun| {
+        let run = &r.analysis.run;
+        let m = &run.manifest;
+        (
+            run.sweep_kind(),
+            super::sha256::sha256_hex(m.plan_toml.as_bytes()),
+            super::sha256::sha256_hex(m.sensor_toml.as_bytes()),
+        )
+    };
+    let b = &loaded[baseline];
+    let (bk, bp, bs) = key(b);
+    let bm = &b.analysis.run.manifest;
+    let mut out = Vec::new();
+    for (i, r) in loaded.iter().enumerate() {
+        if i == baseline {
+            continue;
+        }
+        let (k, p, s) = key(r);
+        let m = &r.analysis.run.manifest;
+        let name = r.dir.display();
+        if k != bk {
+            out.push(format!(
+                "{name} has sweep kind `{k}`, the baseline {} sweep kind `{bk}`",
+                b.dir.display()
+            ));
+        }
+        if p != bp {
+            out.push(format!(
+                "{name} ran plan {:?} ({}, sha256 {}), the baseline plan {:?} ({}, sha256 {})",
+                m.plan_name,
+                m.plan_path,
+                &p[..12],
+                bm.plan_name,
+                bm.plan_path,
+                &bp[..12]
+            ));
+        }
+        if s != bs {
+            out.push(format!(
+                "{name} used sensor {} (sha256 {}), the baseline sensor {} (sha256 {})",
+                m.sensor_path,
+                &s[..12],
+                bm.sensor_path,
+                &bs[..12]
+            ));
+        }
+    }
+    out
 }
 
 /// Every metric of any run, with differences to the baseline and the worst run.
@@ -786,12 +866,23 @@ fn overall(runs: &[ComparedRun], baseline: usize, has_criteria: bool) -> (Outcom
             ),
         );
     }
-    let detail = if has_criteria {
-        format!("every one of the {n} compared run(s) passed")
-    } else {
-        format!("no acceptance criteria given; {n} run(s) compared with the baseline")
-    };
-    (Outcome::Pass, format!("PASS: {detail}"))
+    // Nothing judged in any compared run (no criteria, no requirement): NOT JUDGED.
+    if !has_criteria
+        || compared
+            .iter()
+            .all(|r| r.verdict.outcome == Outcome::NotJudged)
+    {
+        return (
+            Outcome::NotJudged,
+            format!(
+                "NOT JUDGED: no acceptance criteria given; {n} run(s) compared with the baseline"
+            ),
+        );
+    }
+    (
+        Outcome::Pass,
+        format!("PASS: every one of the {n} compared run(s) passed"),
+    )
 }
 
 /// What [`write_comparison`] wrote.
@@ -839,6 +930,7 @@ pub fn csv_bytes(c: &Comparison) -> Result<Vec<u8>, csv::Error> {
     let mut w = csv::Writer::from_writer(Vec::new());
     w.write_record(CSV_HEADER)?;
     let base = c.baseline_run();
+    let base_outcome = base.verdict.outcome.word().to_string();
     for m in &c.metrics {
         let base_value = base
             .metric(&m.name)
@@ -901,6 +993,11 @@ pub fn csv_bytes(c: &Comparison) -> Result<Vec<u8>, csv::Error> {
                 opt(d.and_then(|d| d.ci95.map(|c| c.1))),
                 m.better.map(Better::word).unwrap_or_default(),
                 worst,
+                r.verdict
+                    .simulated
+                    .map(|s| s.to_string())
+                    .unwrap_or_default(),
+                base_outcome.clone(),
             ])?;
         }
     }
@@ -939,8 +1036,11 @@ pub fn write_comparison(c: &Comparison, out_dir: &Path) -> Result<CompareOutcome
             format!(
                 "Metrics over the runs, in order of their start date (x labels: build id or \
                  directory). Points: value; bars: 95 % CI where the analysis states one; \
-                 dashed: the baseline {}'s value. Title: metric [unit] and which way is better.",
-                c.baseline_run().label
+                 dashed: the baseline {}'s value. Each y axis includes at least ± {} % of the \
+                 baseline's value, so small differences look small. Title: metric [unit] and \
+                 which way is better.",
+                c.baseline_run().label,
+                figures::TREND_MIN_HALF_SPAN * 100.0
             ),
             &t,
             size,

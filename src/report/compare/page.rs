@@ -25,10 +25,13 @@ td.base{background:#f3f3f3}figure{margin:1em 0}img{max-width:100%}\
 #verdict.PASS{border-color:#070;background:#efe}#verdict.PASS .outcome{color:#070}\
 #verdict.MARGINAL{border-color:#c80;background:#fff6e0}#verdict.MARGINAL .outcome{color:#a60}\
 #verdict.FAIL{border-color:#b00;background:#fee}#verdict.FAIL .outcome{color:#b00}\
-#verdict.INCOMPLETE{border-color:#555;background:#eee}#verdict.INCOMPLETE .outcome{color:#333}";
+#verdict.INCOMPLETE{border-color:#555;background:#eee}#verdict.INCOMPLETE .outcome{color:#333}\
+#verdict.NOT_JUDGED{border-color:#468;background:#eef2f7}#verdict.NOT_JUDGED .outcome{color:#346}\
+.sim{color:#804;font-weight:bold}";
 
 fn class_of(o: Outcome) -> &'static str {
     match o {
+        Outcome::NotJudged => "",
         Outcome::Pass => "pass",
         Outcome::Marginal => "marginal",
         Outcome::Fail => "fail",
@@ -58,6 +61,57 @@ fn signed(v: f64) -> String {
     }
 }
 
+/// The banner's warnings: runs not like for like, a baseline failing its own
+/// criteria, simulated runs and runs whose manifest does not say.
+fn banner_flags(c: &Comparison) -> String {
+    let mut o = String::new();
+    if !c.differences.is_empty() {
+        let _ = writeln!(
+            o,
+            "<p class=\"fail\">NOT LIKE FOR LIKE (--allow-different-plans): {}</p>",
+            escape(&c.differences.join("; "))
+        );
+    }
+    let base = c.baseline_run();
+    if base.verdict.outcome == Outcome::Fail {
+        let _ = writeln!(
+            o,
+            "<p class=\"fail\">The baseline {} FAILS its own absolute criteria ({}): limits \
+             relative to it are no assurance.</p>",
+            escape(&base.label),
+            escape(&base.verdict.summary)
+        );
+    }
+    let sim: Vec<String> = c
+        .runs
+        .iter()
+        .filter(|r| r.verdict.simulated == Some(true))
+        .map(|r| escape(&r.label))
+        .collect();
+    if !sim.is_empty() {
+        let _ = writeln!(
+            o,
+            "<p class=\"sim\">SIMULATED bench: {} (not hardware)</p>",
+            sim.join(", ")
+        );
+    }
+    let unknown: Vec<String> = c
+        .runs
+        .iter()
+        .filter(|r| r.verdict.simulated.is_none())
+        .map(|r| escape(&r.label))
+        .collect();
+    if !unknown.is_empty() {
+        let _ = writeln!(
+            o,
+            "<p class=\"small\">Bench kind not recorded (manifest from before the simulated \
+             flag): {}</p>",
+            unknown.join(", ")
+        );
+    }
+    o
+}
+
 /// Renders the page.
 pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
     let mut o = String::new();
@@ -72,8 +126,8 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
     // Banner.
     let _ = write!(
         o,
-        "<section id=\"verdict\" class=\"{w}\">\n<div class=\"outcome\">{w}</div>\n<p>{}</p>\n\
-         <p>baseline: <b>{}</b> ({}); exit code {}; criteria: {}{}</p>\n</section>\n",
+        "<section id=\"verdict\" class=\"{t}\">\n<div class=\"outcome\">{w}</div>\n<p>{}</p>\n\
+         <p>baseline: <b>{}</b> ({}); exit code {}; criteria: {}{}</p>\n{}</section>\n",
         escape(&c.summary),
         escape(&base.label),
         escape(&base.dir.display().to_string()),
@@ -86,7 +140,9 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
         } else {
             ""
         },
+        banner_flags(c),
         w = c.outcome.word(),
+        t = c.outcome.token(),
     );
     let _ = writeln!(o, "<h1>{}</h1>", escape(&title));
 
@@ -97,7 +153,7 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
          the comparison's outcome is decided by the runs other than the baseline.</p>\n\
          <table id=\"runs\">\n<tr><th class=\"l\">run</th><th class=\"l\">role</th>\
          <th class=\"l\">directory</th><th class=\"l\">build id</th><th class=\"l\">plan</th>\
-         <th class=\"l\">started</th><th class=\"l\">status</th><th>setpoints measured / planned</th>\
+         <th class=\"l\">started</th><th class=\"l\">bench</th><th class=\"l\">status</th><th>setpoints measured / planned</th>\
          <th class=\"l\">outcome</th></tr>\n",
     );
     for (i, r) in c.runs.iter().enumerate() {
@@ -118,7 +174,7 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
         let _ = writeln!(
             o,
             "<tr class=\"run\"><td class=\"l\">{}{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td>\
-             <td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{status}</td>\
+             <td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{status}</td>\
              <td>{} / {}</td><td class=\"l\"><span class=\"{}\">{}</span><br><span class=\"small\">{}</span></td></tr>",
             swatch(i),
             escape(&r.label),
@@ -127,6 +183,11 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
             r.build_id().map_or("&mdash;".to_string(), escape),
             escape(&r.analysis.run.manifest.plan_name),
             escape(r.date()),
+            match r.verdict.simulated {
+                Some(true) => "<span class=\"sim\">SIMULATED</span>",
+                Some(false) => "real",
+                None => "not recorded",
+            },
             s.measured_setpoints,
             s.planned_setpoints,
             class_of(r.verdict.outcome),

@@ -1,0 +1,521 @@
+//! The run record (issue 23): archived runs (`report` and `compare` on a run without
+//! its frames and per-setpoint files, `tactbench archive`), verdicts that say what they
+//! judged (NOT JUDGED, SIMULATED, `require_real_bench`), like-for-like comparisons and
+//! the committed reproduction runs.
+//!
+//! One short simulated Fig. 7 run (8 setpoints) is measured once for the module; the
+//! tests copy it and change the copies.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use crate::util::{self, run, stderr, stdout};
+
+struct Fixture {
+    _tmp: tempfile::TempDir,
+    root: PathBuf,
+}
+
+impl Fixture {
+    /// The complete simulated run (never changed by a test).
+    fn full(&self) -> PathBuf {
+        self.root.join("full")
+    }
+}
+
+/// The Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints).
+fn short_plan(dir: &Path) -> PathBuf {
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {:?}", sensor.display().to_string()),
+        )
+        .replace("to = 750.0", "to = 150.0")
+        .replace("trials = 10", "trials = 2");
+    let p = dir.join("plan.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn fixture() -> &'static Fixture {
+    static F: OnceLock<Fixture> = OnceLock::new();
+    F.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let root = tmp.path().to_path_buf();
+        let plan = short_plan(&root);
+        let scene = util::root("experiments/scenes/fig7_hemisphere_camera_noise.toml");
+        let o = run(&[
+            "run",
+            plan.to_str().unwrap(),
+            "--sim",
+            scene.to_str().unwrap(),
+            "--out",
+            root.join("full").to_str().unwrap(),
+            "--build-id",
+            "build-full",
+            "--no-progress",
+        ]);
+        assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+        Fixture { _tmp: tmp, root }
+    })
+}
+
+/// Copies a run directory (regular files, recursively).
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let t = e.file_type().unwrap();
+        if t.is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else if t.is_file() {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap())
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// Edits a run's manifest.json as JSON.
+fn edit_manifest(dir: &Path, f: impl FnOnce(&mut serde_json::Map<String, serde_json::Value>)) {
+    let p = dir.join("manifest.json");
+    let mut v = json(&p);
+    f(v.as_object_mut().unwrap());
+    std::fs::write(&p, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+}
+
+fn report(dir: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "report",
+        dir.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+const CRITERIA: &str = "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.5\n\n\
+                        [[criterion]]\nmetric = \"magnitude.resolution_gf\"\nmax = 1000.0\n";
+
+#[test]
+fn a_run_without_its_frames_and_per_setpoint_files_reports_the_same_metrics_and_verdict() {
+    let f = fixture();
+    let tmp = tempfile::tempdir().unwrap();
+    let stripped = tmp.path().join("stripped");
+    copy_dir(&f.full(), &stripped);
+    for d in ["frames", "displacements", "forces"] {
+        std::fs::remove_dir_all(stripped.join(d)).unwrap();
+    }
+    let crit = tmp.path().join("c.toml");
+    std::fs::write(&crit, CRITERIA).unwrap();
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    let oa = report(&f.full(), &a, &["--acceptance", crit.to_str().unwrap()]);
+    assert_eq!(oa.status.code(), Some(0), "{}", stderr(&oa));
+    let ob = report(&stripped, &b, &["--acceptance", crit.to_str().unwrap()]);
+    assert_eq!(ob.status.code(), Some(0), "{}", stderr(&ob));
+    // Every metric, with its CI, to the last digit.
+    assert_eq!(
+        std::fs::read_to_string(a.join("summary.csv")).unwrap(),
+        std::fs::read_to_string(b.join("summary.csv")).unwrap()
+    );
+    let (va, vb) = (json(&a.join("verdict.json")), json(&b.join("verdict.json")));
+    for key in [
+        "outcome",
+        "exit_code",
+        "summary",
+        "criteria",
+        "metrics",
+        "simulated",
+    ] {
+        assert_eq!(va[key], vb[key], "verdict.json {key}");
+    }
+    assert_eq!(va["outcome"], "PASS");
+    // What could not be shown is said, one line each, naming the file.
+    let e = stderr(&ob);
+    assert!(
+        e.contains("not shown: marker displacement and force-field figures")
+            && e.contains("is not in the run directory"),
+        "{e}"
+    );
+    let html = std::fs::read_to_string(b.join("report.html")).unwrap();
+    assert!(
+        html.contains("class=\"missing-evidence\""),
+        "no missing list"
+    );
+    assert!(html.contains("No camera evidence"), "camera section");
+    assert!(!b.join("plots/displacements.png").exists());
+    assert!(a.join("plots/displacements.png").exists());
+}
+
+#[test]
+fn archive_keeps_the_record_checks_the_metrics_and_refuses_to_overwrite() {
+    let f = fixture();
+    let tmp = tempfile::tempdir().unwrap();
+    // A source with a report, as `archive` expects (else it writes one).
+    let src = tmp.path().join("src");
+    copy_dir(&f.full(), &src);
+    let o = run(&["report", src.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+
+    let none = tmp.path().join("none");
+    let o = run(&[
+        "archive",
+        src.to_str().unwrap(),
+        "--out",
+        none.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let so = stdout(&o);
+    assert!(so.contains("kept: ") && so.contains("saved"), "{so}");
+    assert!(so.contains("the same") && so.contains("metrics"), "{so}");
+    let a = json(&none.join("archive.json"));
+    assert_eq!(a["schema"], "tactbench-archive/1");
+    assert_eq!(a["keep"], "none");
+    assert_eq!(a["metrics_match"], true);
+    assert_eq!(a["source"], src.display().to_string());
+    assert!(a["created_at"].as_str().unwrap().ends_with('Z'));
+    let files: Vec<&str> = a["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    for must in [
+        "manifest.json",
+        "journal.csv",
+        "report.html",
+        "verdict.json",
+        "summary.csv",
+    ] {
+        assert!(files.contains(&must), "{must} not kept: {files:?}");
+    }
+    assert!(
+        !files.iter().any(|f| f.starts_with("frames/")
+            || f.starts_with("displacements/")
+            || f.starts_with("forces/")),
+        "--keep none keeps no evidence: {files:?}"
+    );
+    assert!(!files.contains(&"run.lock"));
+    let (bs, ba) = (
+        a["bytes_source"].as_u64().unwrap(),
+        a["bytes_archive"].as_u64().unwrap(),
+    );
+    assert!(ba < bs, "archive {ba} B, source {bs} B");
+    // The source is untouched and the archive reports exactly the source's metrics.
+    let (r1, r2) = (tmp.path().join("r1"), tmp.path().join("r2"));
+    assert_eq!(report(&src, &r1, &[]).status.code(), Some(0));
+    assert_eq!(report(&none, &r2, &[]).status.code(), Some(0));
+    assert_eq!(
+        std::fs::read_to_string(r1.join("summary.csv")).unwrap(),
+        std::fs::read_to_string(r2.join("summary.csv")).unwrap()
+    );
+
+    // --keep evidence: the reference and the frames the camera evidence shows.
+    let ev = tmp.path().join("evidence");
+    let o = run(&[
+        "archive",
+        src.to_str().unwrap(),
+        "--keep",
+        "evidence",
+        "--out",
+        ev.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let a = json(&ev.join("archive.json"));
+    let files: Vec<&str> = a["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert!(files.contains(&"frames/reference.png"), "{files:?}");
+    let frames = files
+        .iter()
+        .filter(|f| f.starts_with("frames/0") && f.ends_with(".png"))
+        .count();
+    assert!((1..=3).contains(&frames), "{files:?}");
+    let r3 = tmp.path().join("r3");
+    let o = report(&ev, &r3, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let html = std::fs::read_to_string(r3.join("report.html")).unwrap();
+    assert!(
+        html.contains("id=\"camera_reference\""),
+        "camera evidence kept"
+    );
+    assert!(html.contains("id=\"force_field\""), "force field kept");
+
+    // An existing non-empty --out is refused, and left as it was.
+    let before = std::fs::read(none.join("archive.json")).unwrap();
+    let o = run(&[
+        "archive",
+        src.to_str().unwrap(),
+        "--out",
+        none.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stdout(&o));
+    assert!(
+        stderr(&o).contains("exists and is not empty"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(std::fs::read(none.join("archive.json")).unwrap(), before);
+    // ... and so is an --out inside the run, and a directory that is not a run.
+    let o = run(&[
+        "archive",
+        src.to_str().unwrap(),
+        "--out",
+        src.join("arch").to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("inside the run directory"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!src.join("arch").exists());
+    let o = run(&[
+        "archive",
+        tmp.path().join("nothing").to_str().unwrap(),
+        "--out",
+        tmp.path().join("x").to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("not a run directory"), "{}", stderr(&o));
+    assert!(!tmp.path().join("x").exists());
+}
+
+#[test]
+fn without_criteria_the_verdict_is_not_judged_and_a_simulated_run_says_so() {
+    let f = fixture();
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("r");
+    let o = report(&f.full(), &out, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let v = json(&out.join("verdict.json"));
+    assert_eq!(v["outcome"], "NOT JUDGED");
+    assert_eq!(v["exit_code"], 0);
+    assert_eq!(v["simulated"], true);
+    let summary = v["summary"].as_str().unwrap();
+    assert!(
+        summary.starts_with("NOT JUDGED: no acceptance criteria"),
+        "{summary}"
+    );
+    assert!(summary.contains("SIMULATED"), "{summary}");
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("id=\"verdict\" class=\"NOT_JUDGED\""));
+    assert!(html.contains("<span class=\"simflag\">SIMULATED</span>"));
+    assert!(!html.contains("class=\"PASS\""), "never a green PASS");
+    assert_eq!(
+        json(&f.full().join("manifest.json"))["simulated"],
+        true,
+        "the runner records it"
+    );
+
+    // require_real_bench: a simulated run FAILs, alone or beside criteria.
+    let real = tmp.path().join("real.toml");
+    std::fs::write(&real, "require_real_bench = true\n").unwrap();
+    let o = report(&f.full(), &out, &["--acceptance", real.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let v = json(&out.join("verdict.json"));
+    assert_eq!(v["outcome"], "FAIL");
+    assert_eq!(v["requirements"][0]["requirement"], "real_bench");
+    assert_eq!(v["requirements"][0]["value"], "simulated bench");
+    assert!(stdout(&o).contains("FAIL provenance: real_bench = simulated bench"));
+
+    // A manifest from before the flag: not recorded, and the gate cannot pass it.
+    let old = tmp.path().join("old");
+    copy_dir(&f.full(), &old);
+    edit_manifest(&old, |m| {
+        m.remove("simulated");
+    });
+    let o = report(&old, &out, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let v = json(&out.join("verdict.json"));
+    assert_eq!(v["simulated"], serde_json::Value::Null);
+    assert!(std::fs::read_to_string(out.join("report.html"))
+        .unwrap()
+        .contains("not recorded (manifest from before the simulated flag)"));
+    let o = report(&old, &out, &["--acceptance", real.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let v = json(&out.join("verdict.json"));
+    assert!(v["requirements"][0]["value"]
+        .as_str()
+        .unwrap()
+        .starts_with("not recorded"));
+
+    // A run the manifest records as real passes the gate.
+    edit_manifest(&old, |m| {
+        m.insert("simulated".into(), false.into());
+    });
+    let o = report(&old, &out, &["--acceptance", real.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert_eq!(json(&out.join("verdict.json"))["outcome"], "PASS");
+}
+
+#[test]
+fn compare_refuses_unlike_runs_and_flags_a_failing_baseline() {
+    let f = fixture();
+    let tmp = tempfile::tempdir().unwrap();
+    // Another build of the same plan on the same sensor: a copy with its own build id.
+    let other = tmp.path().join("other");
+    copy_dir(&f.full(), &other);
+    edit_manifest(&other, |m| {
+        m.insert("build_id".into(), "build-other".into());
+    });
+    let full = f.full();
+    let out = tmp.path().join("cmp");
+    let o = run(&[
+        "compare",
+        full.to_str().unwrap(),
+        other.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("comparison: NOT JUDGED"),
+        "{}",
+        stdout(&o)
+    );
+    assert!(stdout(&o).contains("SIMULATED bench"), "{}", stdout(&o));
+    let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
+    assert!(html.contains("class=\"NOT_JUDGED\""));
+    assert!(
+        html.contains("SIMULATED bench: build-full, build-other"),
+        "sim flag"
+    );
+
+    // A baseline failing its own absolute criteria is flagged.
+    let strict = tmp.path().join("strict.toml");
+    std::fs::write(
+        &strict,
+        "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99999999\n",
+    )
+    .unwrap();
+    let o = run(&[
+        "compare",
+        full.to_str().unwrap(),
+        other.to_str().unwrap(),
+        "--acceptance",
+        strict.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
+    assert!(
+        html.contains("The baseline build-full FAILS its own absolute criteria"),
+        "banner"
+    );
+    let mut rd = csv::Reader::from_path(out.join("compare.csv")).unwrap();
+    let h = rd.headers().unwrap().clone();
+    let col = h.iter().position(|c| c == "baseline_outcome").unwrap();
+    let sim = h.iter().position(|c| c == "simulated").unwrap();
+    for rec in rd.records() {
+        let rec = rec.unwrap();
+        assert_eq!(&rec[col], "FAIL");
+        assert_eq!(&rec[sim], "true");
+    }
+
+    // A different plan (here: the same sweep with one more trial) is refused, naming
+    // it, unless --allow-different-plans; then the banner says so.
+    let longer = tmp.path().join("longer");
+    copy_dir(&f.full(), &longer);
+    edit_manifest(&longer, |m| {
+        let plan = m["plan_toml"]
+            .as_str()
+            .unwrap()
+            .replace("trials = 2", "trials = 3");
+        m.insert("plan_toml".into(), plan.into());
+    });
+    let args = |extra: &[&'static str]| {
+        let mut a: Vec<String> = vec![
+            "compare".into(),
+            full.display().to_string(),
+            longer.display().to_string(),
+            "--out".into(),
+            out.display().to_string(),
+        ];
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    let a = args(&[]);
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(o.status.code(), Some(2), "{}", stdout(&o));
+    let e = stderr(&o);
+    assert!(
+        e.contains("not like for like") && e.contains("ran plan"),
+        "{e}"
+    );
+    assert!(e.contains("--allow-different-plans"), "{e}");
+    let a = args(&["--allow-different-plans"]);
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
+    assert!(html.contains("NOT LIKE FOR LIKE (--allow-different-plans)"));
+}
+
+#[test]
+fn the_committed_reproduction_runs_report_and_compare() {
+    let tmp = tempfile::tempdir().unwrap();
+    let runs = util::root("reports/paper/runs");
+    let fig7 = runs.join("fig7_magnitude");
+    let noisy = runs.join("fig7_magnitude_camera_noise");
+    let o = report(&fig7, &tmp.path().join("r"), &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let v = json(&tmp.path().join("r/verdict.json"));
+    assert_eq!(v["outcome"], "NOT JUDGED");
+    let committed = json(&fig7.join("verdict.json"));
+    // The key metrics the committed report recorded come back from its journal.
+    let value = |doc: &serde_json::Value, name: &str| {
+        doc["metrics"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|x| x["name"] == name)
+            .and_then(|x| x["value"].as_f64())
+            .unwrap_or_else(|| panic!("{name} missing"))
+    };
+    for name in [
+        "magnitude.slope",
+        "magnitude.offset_n",
+        "magnitude.r2",
+        "magnitude.resolution_gf",
+    ] {
+        let (a, b) = (value(&committed, name), value(&v, name));
+        assert!(
+            (a - b).abs() <= 1e-9 * a.abs().max(1e-12),
+            "{name}: {a} vs {b}"
+        );
+    }
+    let out = tmp.path().join("cmp");
+    let o = run(&[
+        "compare",
+        fig7.to_str().unwrap(),
+        noisy.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(out.join("compare.csv").is_file());
+    // Fig. 7 against Fig. 8: different sweep kinds, refused.
+    let o = run(&[
+        "compare",
+        fig7.to_str().unwrap(),
+        runs.join("fig8_angle").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stdout(&o));
+    let e = stderr(&o);
+    assert!(
+        e.contains("has sweep kind `angle`") && e.contains("sweep kind `magnitude`"),
+        "{e}"
+    );
+}
