@@ -361,6 +361,16 @@ pub fn require_usable_marker(
     })
 }
 
+/// The value of a field for a message: as written, unless that is long (`1` and 306
+/// zeros), then in scientific notation.
+fn short_value(raw: &str, v: f64) -> String {
+    if raw.len() > 24 {
+        format!("{v:.3e}")
+    } else {
+        raw.to_string()
+    }
+}
+
 /// Sorted ids as ranges (`0-9, 12, 20-25`), at most `max` ranges then `…`.
 fn id_ranges(ids: &[u64], max: usize) -> String {
     let mut ranges: Vec<(u64, u64)> = Vec::new();
@@ -532,7 +542,7 @@ pub fn read_displacements_from(
             let axis = if i == 2 { 0 } else { 1 };
             plausible
                 .position(axis, v)
-                .map_err(|m| bad(col, &rec[i], m))?;
+                .map_err(|m| bad(col, &short_value(&rec[i], v), m))?;
             pos[axis] = v;
         }
         let mut comp = [None; 2];
@@ -556,7 +566,9 @@ pub fn read_displacements_from(
                 ));
             }
             if !v.is_nan() {
-                plausible.displacement(v).map_err(|m| bad(col, raw, m))?;
+                plausible
+                    .displacement(v)
+                    .map_err(|m| bad(col, &short_value(raw, v), m))?;
                 comp[k] = Some(v);
             }
         }
