@@ -303,9 +303,8 @@ impl Plausible {
             Ok(())
         } else {
             Err(format!(
-                "displacement {} mm is larger than the sensor itself ({} mm across): no \
-                 marker can move that far (is the unit mm?)",
-                crate::solve::fmt_num(v_mm),
+                "displacement {v_mm:.3e} mm is larger than the sensor itself ({} mm across): \
+                 no marker can move that far (is the unit mm?)",
                 crate::solve::fmt_num(self.size_mm)
             ))
         }
@@ -360,6 +359,16 @@ pub fn require_usable_marker(
         frames: frames.len(),
         markers: markers.join("; "),
     })
+}
+
+/// The value of a field for a message: as written, unless that is long (`1` and 306
+/// zeros), then in scientific notation.
+fn short_value(raw: &str, v: f64) -> String {
+    if raw.len() > 24 {
+        format!("{v:.3e}")
+    } else {
+        raw.to_string()
+    }
 }
 
 /// Sorted ids as ranges (`0-9, 12, 20-25`), at most `max` ranges then `…`.
@@ -533,7 +542,7 @@ pub fn read_displacements_from(
             let axis = if i == 2 { 0 } else { 1 };
             plausible
                 .position(axis, v)
-                .map_err(|m| bad(col, &rec[i], m))?;
+                .map_err(|m| bad(col, &short_value(&rec[i], v), m))?;
             pos[axis] = v;
         }
         let mut comp = [None; 2];
@@ -557,7 +566,9 @@ pub fn read_displacements_from(
                 ));
             }
             if !v.is_nan() {
-                plausible.displacement(v).map_err(|m| bad(col, raw, m))?;
+                plausible
+                    .displacement(v)
+                    .map_err(|m| bad(col, &short_value(raw, v), m))?;
                 comp[k] = Some(v);
             }
         }
@@ -757,15 +768,16 @@ pub struct ForceRecord {
     pub f_n: [f64; 3],
 }
 
-/// Reads a forces file (the first frame's rows when there are several). Positions
-/// and forces must be finite, forces within [`MAX_FORCE_N`]; [`read_forces_for`]
-/// also checks the positions against a sensor.
+/// Reads a forces file (the first frame's rows when there are several), as written:
+/// what a run recorded is evidence, read back whatever it holds (NaN rows, the
+/// forces of a flagged setpoint). [`read_forces_for`] checks input files.
 pub fn read_forces(path: &Path) -> Result<Vec<ForceRecord>, FormatError> {
     read_forces_checked(path, None)
 }
 
-/// As [`read_forces`], with every position within the sensor's plausible extent
-/// ([`Plausible`]).
+/// As [`read_forces`], for a forces file given as input (`model forward --forces`):
+/// positions finite and within the sensor's plausible extent ([`Plausible`]), forces
+/// finite (or NaN) and within [`MAX_FORCE_N`].
 pub fn read_forces_for(path: &Path, sensor: &Sensor) -> Result<Vec<ForceRecord>, FormatError> {
     read_forces_checked(path, Some(&Plausible::of(sensor)))
 }
@@ -801,16 +813,15 @@ fn read_forces_checked(
             let v = rec[i]
                 .parse::<f64>()
                 .map_err(|_| bad(i, "expected a number".into()))?;
+            let Some(p) = plausible else {
+                return Ok(v);
+            };
             // NaN forces are what `reconstruct` writes for a frame it could not solve.
             if v.is_infinite() || (v.is_nan() && i < 4) {
                 return Err(bad(i, "must be a finite number".into()));
             }
             match i {
-                2 | 3 => {
-                    if let Some(p) = plausible {
-                        p.position(i - 2, v).map_err(|m| bad(i, m))?;
-                    }
-                }
+                2 | 3 => p.position(i - 2, v).map_err(|m| bad(i, m))?,
                 4..=6 if !v.is_nan() => plausible_force(v).map_err(|m| bad(i, m))?,
                 _ => {}
             }

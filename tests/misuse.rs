@@ -413,8 +413,10 @@ fn case8_a_run_directory_whose_name_is_not_utf8_works() {
 
 #[test]
 fn case9_forces_written_for_tiny_displacements_are_the_scaled_forces() {
-    // The same frame at 1 and at 1e-12 (and 1e6): every force value scales exactly
-    // (to the CSV's 12 digits), none is cut to zero by an absolute threshold.
+    // The same frame at 1, 1e-12 and 1e-13: every force value scales exactly (to the
+    // CSV's 12 digits), none is cut to zero by an absolute threshold. (Scaled up by
+    // 1e6 a file is refused: 5 m displacements; the solvers' own linearity up to 1e6
+    // is the next test.)
     let dir = tempfile::tempdir().unwrap();
     let field = |li: usize, k: usize| {
         [
@@ -437,7 +439,7 @@ fn case9_forces_written_for_tiny_displacements_are_the_scaled_forces() {
             .collect()
     };
     let mut results = Vec::new();
-    for scale in [1.0, 1e-12, 1e-13, 1e6] {
+    for scale in [1.0, 1e-12, 1e-13] {
         let d = displacement_csv(dir.path(), "d.csv", |li, k| {
             let u = field(li, k);
             Some([u[0] * scale, u[1] * scale])
@@ -576,8 +578,15 @@ fn case9_every_solver_is_linear_over_scalings_from_1e_minus_12_to_1e6() {
                 .zip(&f1)
                 .map(|(a, b)| (a / scale - b).abs())
                 .fold(0.0f64, f64::max);
+            // f64 is linear to rounding; f32 rounds the (power-of-two scaled) inputs
+            // and the operator to 24 bits, its documented ~1e-5 relative accuracy.
+            let tol = if precision == Precision::F32 {
+                1e-5
+            } else {
+                1e-9
+            };
             assert!(
-                worst <= 1e-9 * peak,
+                worst <= tol * peak,
                 "{method:?} {precision:?} x{scale:e}: worst deviation {worst:e} of peak {peak:e}"
             );
         }

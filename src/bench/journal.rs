@@ -375,9 +375,7 @@ impl Manifest {
             let of = format!("{measured} of the plan's {planned} setpoints measured");
             Some(match status {
                 RunStatus::Completed | RunStatus::Running => match self.limit {
-                    Some(n) => {
-                        format!("limited by --limit {n}: {of} (`run --resume` measures the rest)")
-                    }
+                    Some(n) => format!("limited by --limit {n}: {of}"),
                     None => of,
                 },
                 RunStatus::Interrupted => {

@@ -40,10 +40,7 @@ Examples:
   tactbench run --resume runs/fig7
   # A short trial: the first 5 setpoints only:
   tactbench run experiments/fig7_magnitude.toml \\
-      --bench experiments/bench_sim.toml --out runs/try --limit 5
-  # Then 5 more, then the rest of the plan:
-  tactbench run --resume runs/try --limit 5
-  tactbench run --resume runs/try";
+      --bench experiments/bench_sim.toml --out runs/try --limit 5";
 
 /// Run an experiment plan on the bench: force-controlled setpoints, frames, forces.
 ///
