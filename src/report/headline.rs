@@ -8,7 +8,7 @@
 use std::fmt::Write;
 
 use super::acceptance::{fmt_value, Outcome, Verdict};
-use super::html::escape;
+use super::markup::escape;
 use crate::analysis::metrology::{MetrologyAnalysis, ISO376_CLASSES, NO_CLASS};
 use crate::analysis::{Metric, RunAnalysis};
 
