@@ -125,7 +125,13 @@ impl LengthMismatch {
         span: Option<std::ops::Range<usize>>,
     ) -> ConfigError {
         let line = span
-            .map(|s| text.as_bytes()[..s.start.min(text.len())].iter().filter(|&&b| b == b'\n').count() + 1)
+            .map(|s| {
+                text.as_bytes()[..s.start.min(text.len())]
+                    .iter()
+                    .filter(|&&b| b == b'\n')
+                    .count()
+                    + 1
+            })
             .map_or(String::new(), |l| format!(" (line {l})"));
         ConfigError::Invalid {
             path: path.to_path_buf(),
@@ -349,7 +355,8 @@ mod tests {
 
     #[test]
     fn fixed_length_arrays_take_exactly_their_length() {
-        let a = arrays("xy = [1.0, 2.0]\nxyz = [1, 2, 3]\nlist = [[1.0, 2.0], [3.0, 4.0]]").unwrap();
+        let a =
+            arrays("xy = [1.0, 2.0]\nxyz = [1, 2, 3]\nlist = [[1.0, 2.0], [3.0, 4.0]]").unwrap();
         assert_eq!((a.xy, a.xyz), ([1.0, 2.0], Some([1, 2, 3])));
         assert_eq!(a.list.unwrap(), vec![[1.0, 2.0], [3.0, 4.0]]);
         assert!(arrays("xy = [1.0, 2.0]").unwrap().xyz.is_none());
@@ -358,7 +365,13 @@ mod tests {
             ("xy = [1.0]", "xy", 1, 2, 1),
             ("xy = []", "xy", 0, 2, 1),
             ("xy = [1.0, 2.0]\nxyz = [1, 2, 3, 4]", "xyz", 4, 3, 2),
-            ("xy = [1.0, 2.0]\n\nlist = [[1.0, 2.0], [3.0, 4.0, 5.0]]", "list[1]", 3, 2, 3),
+            (
+                "xy = [1.0, 2.0]\n\nlist = [[1.0, 2.0], [3.0, 4.0, 5.0]]",
+                "list[1]",
+                3,
+                2,
+                3,
+            ),
             // Extra elements of another type are counted, not a type error.
             ("xy = [1.0, 2.0, \"z\"]", "xy", 3, 2, 1),
         ] {
@@ -385,32 +398,48 @@ mod tests {
     fn case7_sensor_scene_bench_and_camera_arrays_with_extra_elements_are_refused() {
         let sensor_text = crate::sensor::PAPER_SENSOR_TOML;
         let e = crate::sensor::Sensor::from_toml_str(
-            &sensor_text.replacen("origin_px = [25.0, 25.0]", "origin_px = [25.0, 25.0, 1.0]", 1),
+            &sensor_text.replacen(
+                "origin_px = [25.0, 25.0]",
+                "origin_px = [25.0, 25.0, 1.0]",
+                1,
+            ),
             "s.toml",
         )
         .unwrap_err()
         .to_string();
-        assert!(e.contains("camera.origin_px") && e.contains("3 elements given, exactly 2"), "{e}");
+        assert!(
+            e.contains("camera.origin_px") && e.contains("3 elements given, exactly 2"),
+            "{e}"
+        );
         let e = crate::sensor::Sensor::from_toml_str(
             &sensor_text.replacen("origin_mm = [0.0, 0.0]", "origin_mm = [0.0, 0.0, 0.0]", 1),
             "s.toml",
         )
         .unwrap_err()
         .to_string();
-        assert!(e.contains("layers[0].markers.origin_mm") && e.contains("3 elements given"), "{e}");
+        assert!(
+            e.contains("layers[0].markers.origin_mm") && e.contains("3 elements given"),
+            "{e}"
+        );
 
         let sensor = crate::sensor::paper_sensor();
         let scene = "sensor = \"s.toml\"\n[indenter]\nkind = \"hemisphere\"\nradius_mm = 2.5\n[load]\nposition_mm = [9.0, 6.75, 1.0]\nnormal_force_gf = 100.0\n";
         let e = crate::sim::scene::Scene::from_toml_str(scene, "scene.toml", sensor.clone())
             .unwrap_err()
             .to_string();
-        assert!(e.contains("load.position_mm") && e.contains("3 elements given"), "{e}");
+        assert!(
+            e.contains("load.position_mm") && e.contains("3 elements given"),
+            "{e}"
+        );
         let occlusion = scene.replace("[9.0, 6.75, 1.0]", "[9.0, 6.75]")
             + "[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 10.0, 10.0, 5.0]\n";
         let e = crate::sim::scene::Scene::from_toml_str(&occlusion, "scene.toml", sensor.clone())
             .unwrap_err()
             .to_string();
-        assert!(e.contains("effects") && e.contains("5 elements given, exactly 4"), "{e}");
+        assert!(
+            e.contains("effects") && e.contains("5 elements given, exactly 4"),
+            "{e}"
+        );
 
         let bench = "[stage]\nprotocol = \"grbl\"\nport = \"/dev/ttyUSB0\"\n[force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"\n[camera]\ndevice = 0\n[geometry]\nsensor_origin_in_stage_mm = [-100.0, -100.0, 0.0]\nsurface_z_mm = -30.0\npress_direction = -1\n";
         let e = crate::bench::config::BenchConfig::from_toml_str(bench, "bench.toml")
@@ -433,6 +462,9 @@ mod tests {
         )
         .unwrap_err()
         .to_string();
-        assert!(e.contains("distortion.center_px") && e.contains("3 elements given"), "{e}");
+        assert!(
+            e.contains("distortion.center_px") && e.contains("3 elements given"),
+            "{e}"
+        );
     }
 }

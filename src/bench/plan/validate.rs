@@ -1230,7 +1230,9 @@ mod tests {
             let msg = e.to_string();
             assert!(
                 msg.contains("experiments/p.toml")
-                    && msg.contains(&format!("{given} elements given, exactly {expected} expected")),
+                    && msg.contains(&format!(
+                        "{given} elements given, exactly {expected} expected"
+                    )),
                 "{msg}"
             );
         }
@@ -1239,7 +1241,10 @@ mod tests {
             "kind = \"spatial\"\nforce = 200.0\nstart_mm = [8.9, 6.75, 0.0]\nend_mm = [11.1, 6.75]\nsubdivisions = 6",
         );
         let e = parse(&spatial).unwrap_err().to_string();
-        assert!(e.contains("sweep.start_mm") && e.contains("3 elements given"), "{e}");
+        assert!(
+            e.contains("sweep.start_mm") && e.contains("3 elements given"),
+            "{e}"
+        );
         let points = with_sweep(
             "kind = \"setpoints\"\n[[sweep.points]]\nposition_mm = [9.0, 6.75]\nnormal = 100.0\ntangential = [1.0, 2.0, 3.0]",
         );
