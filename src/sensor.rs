@@ -525,6 +525,7 @@ struct RawMarkerGrid {
     nx: i64,
     ny: i64,
     pitch_mm: f64,
+    #[serde(deserialize_with = "crate::config::exact")]
     origin_mm: [f64; 2],
     diameter_mm: f64,
 }
@@ -535,6 +536,7 @@ struct RawGrid {
     nx: i64,
     ny: i64,
     pitch_mm: f64,
+    #[serde(deserialize_with = "crate::config::exact")]
     origin_mm: [f64; 2],
 }
 
@@ -542,6 +544,7 @@ struct RawGrid {
 #[serde(deny_unknown_fields)]
 struct RawCamera {
     mm_per_px: f64,
+    #[serde(deserialize_with = "crate::config::exact")]
     origin_px: [f64; 2],
     width_px: i64,
     height_px: i64,

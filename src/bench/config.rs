@@ -298,10 +298,14 @@ struct RawStage {
     protocol: String,
     port: String,
     baud: Option<i64>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     devices: Option<[i64; 3]>,
     mm_per_step: Option<f64>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     max_feed_mm_min: Option<[f64; 3]>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     travel_min_mm: Option<[f64; 3]>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     travel_max_mm: Option<[f64; 3]>,
 }
 
@@ -336,6 +340,7 @@ struct RawSim {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawGeometry {
+    #[serde(deserialize_with = "crate::config::exact")]
     sensor_origin_in_stage_mm: [f64; 2],
     surface_z_mm: f64,
     press_direction: i64,

@@ -34,7 +34,7 @@ use base64::Engine;
 use plotters::prelude::*;
 
 use super::force_map::{arrow_parts, nice_floor, ForceMapFigure, NodeSd};
-use super::html::escape;
+use super::markup::escape;
 use super::plot::{encode_png, register_fonts, PngBackend, FONT};
 use crate::analysis::{RunAnalysis, RunData, Snapshot};
 use crate::bench::journal::JournalRow;

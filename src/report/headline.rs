@@ -14,7 +14,7 @@
 use std::fmt::Write;
 
 use super::acceptance::{fmt_value, Criterion, Outcome, Verdict};
-use super::html::escape;
+use super::markup::escape;
 use crate::analysis::metrology::{MetrologyAnalysis, ISO376_CLASSES, NO_CLASS};
 use crate::analysis::{Ci95, Metric, RunAnalysis};
 use crate::units::ForceUnit;

@@ -27,6 +27,7 @@ pub mod figures_metrology;
 pub mod force_map;
 pub mod headline;
 pub mod html;
+pub mod markup;
 pub mod plot;
 pub mod sha256;
 pub mod study_plots;

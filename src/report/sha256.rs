@@ -1,80 +1,17 @@
-//! SHA-256 (FIPS 180-4) of the plan and sensor texts for `verdict.json`'s provenance:
-//! two identical hashes mean byte-identical inputs. A plain implementation (inputs are
-//! a few kB, once per report); checked against the FIPS 180-4 example vectors.
+//! SHA-256 of the plan and sensor texts for `verdict.json`'s provenance: two identical
+//! hashes mean byte-identical inputs. Computed by the `sha2` crate (RustCrypto), which
+//! replaced a hand-written FIPS 180-4 implementation; the tests keep that
+//! implementation's outputs (block-boundary lengths included) as test vectors, so the
+//! hashes in existing `verdict.json` files stay reproducible.
 
-const K: [u32; 64] = [
-    0x428a2f98, 0x71374491, 0xb5c0fbcf, 0xe9b5dba5, 0x3956c25b, 0x59f111f1, 0x923f82a4, 0xab1c5ed5,
-    0xd807aa98, 0x12835b01, 0x243185be, 0x550c7dc3, 0x72be5d74, 0x80deb1fe, 0x9bdc06a7, 0xc19bf174,
-    0xe49b69c1, 0xefbe4786, 0x0fc19dc6, 0x240ca1cc, 0x2de92c6f, 0x4a7484aa, 0x5cb0a9dc, 0x76f988da,
-    0x983e5152, 0xa831c66d, 0xb00327c8, 0xbf597fc7, 0xc6e00bf3, 0xd5a79147, 0x06ca6351, 0x14292967,
-    0x27b70a85, 0x2e1b2138, 0x4d2c6dfc, 0x53380d13, 0x650a7354, 0x766a0abb, 0x81c2c92e, 0x92722c85,
-    0xa2bfe8a1, 0xa81a664b, 0xc24b8b70, 0xc76c51a3, 0xd192e819, 0xd6990624, 0xf40e3585, 0x106aa070,
-    0x19a4c116, 0x1e376c08, 0x2748774c, 0x34b0bcb5, 0x391c0cb3, 0x4ed8aa4a, 0x5b9cca4f, 0x682e6ff3,
-    0x748f82ee, 0x78a5636f, 0x84c87814, 0x8cc70208, 0x90befffa, 0xa4506ceb, 0xbef9a3f7, 0xc67178f2,
-];
-
-const H0: [u32; 8] = [
-    0x6a09e667, 0xbb67ae85, 0x3c6ef372, 0xa54ff53a, 0x510e527f, 0x9b05688c, 0x1f83d9ab, 0x5be0cd19,
-];
-
-fn compress(h: &mut [u32; 8], block: &[u8]) {
-    let mut w = [0u32; 64];
-    for (i, c) in block.chunks_exact(4).enumerate() {
-        w[i] = u32::from_be_bytes([c[0], c[1], c[2], c[3]]);
-    }
-    for i in 16..64 {
-        let s0 = w[i - 15].rotate_right(7) ^ w[i - 15].rotate_right(18) ^ (w[i - 15] >> 3);
-        let s1 = w[i - 2].rotate_right(17) ^ w[i - 2].rotate_right(19) ^ (w[i - 2] >> 10);
-        w[i] = w[i - 16]
-            .wrapping_add(s0)
-            .wrapping_add(w[i - 7])
-            .wrapping_add(s1);
-    }
-    let [mut a, mut b, mut c, mut d, mut e, mut f, mut g, mut hh] = *h;
-    for i in 0..64 {
-        let s1 = e.rotate_right(6) ^ e.rotate_right(11) ^ e.rotate_right(25);
-        let ch = (e & f) ^ (!e & g);
-        let t1 = hh
-            .wrapping_add(s1)
-            .wrapping_add(ch)
-            .wrapping_add(K[i])
-            .wrapping_add(w[i]);
-        let s0 = a.rotate_right(2) ^ a.rotate_right(13) ^ a.rotate_right(22);
-        let maj = (a & b) ^ (a & c) ^ (b & c);
-        let t2 = s0.wrapping_add(maj);
-        hh = g;
-        g = f;
-        f = e;
-        e = d.wrapping_add(t1);
-        d = c;
-        c = b;
-        b = a;
-        a = t1.wrapping_add(t2);
-    }
-    for (x, v) in h.iter_mut().zip([a, b, c, d, e, f, g, hh]) {
-        *x = x.wrapping_add(v);
-    }
-}
+use sha2::{Digest, Sha256};
 
 /// SHA-256 of `data` as 64 lowercase hex digits.
 pub fn sha256_hex(data: &[u8]) -> String {
-    let mut h = H0;
-    let mut blocks = data.chunks_exact(64);
-    for b in &mut blocks {
-        compress(&mut h, b);
-    }
-    let rest = blocks.remainder();
-    let mut tail = Vec::with_capacity(128);
-    tail.extend_from_slice(rest);
-    tail.push(0x80);
-    while tail.len() % 64 != 56 {
-        tail.push(0);
-    }
-    tail.extend_from_slice(&((data.len() as u64).wrapping_mul(8)).to_be_bytes());
-    for b in tail.chunks_exact(64) {
-        compress(&mut h, b);
-    }
-    h.iter().map(|x| format!("{x:08x}")).collect()
+    Sha256::digest(data)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 #[cfg(test)]
@@ -99,6 +36,60 @@ mod tests {
         assert_eq!(
             sha256_hex(&vec![b'a'; 1_000_000]),
             "cdc76e5c9914fb9281a1c7e284d73e67f1809a48a497200e046d39ccc7112cd0"
+        );
+    }
+
+    /// Hashes the hand-written implementation gave before `sha2` replaced it (also
+    /// checked against Python's hashlib), at the padding's edge cases: 55 and 56
+    /// bytes (the length fits in the last block or not), 63/64/65 and 119/120/127/128.
+    #[test]
+    fn same_hashes_as_the_hand_written_implementation_at_block_boundaries() {
+        let recorded = [
+            (
+                55,
+                "8af594de0e003fdee5c8bb088216c824349b4137070f559574f4a4bddd27b714",
+            ),
+            (
+                56,
+                "db81bc2bfd43620591df192139062da77d4c376f1888ea3d2190bd07c8d901f9",
+            ),
+            (
+                63,
+                "bd535b38bf0d0d1a09d370b7e34b2696cea3767801a45d5611a4aaa6954e8527",
+            ),
+            (
+                64,
+                "292be91abe8c0909fe3d26575af5755eee74d23816dc68c3ba41765136967654",
+            ),
+            (
+                65,
+                "ba65aedf7884642499a59ae124894611d986cf429e69f569488048af3a99e25a",
+            ),
+            (
+                119,
+                "d367ab298e74477421127b0b448667c37c006c636f5738f081c39388756e5fad",
+            ),
+            (
+                120,
+                "be7beb9c82089eb08da8fe6eb30c13b9d56869014e228a8c3eb0fdfe832efab2",
+            ),
+            (
+                127,
+                "770cba7b80c7615a327db5812ccd3f80895d801b587448fcd0b2c1a10f5c88a3",
+            ),
+            (
+                128,
+                "cb5311e1d7aa8e11d6af7081f3ffc3e4efa008c7483a1a791fe170bf37546ba7",
+            ),
+        ];
+        for (n, hex) in recorded {
+            let data: Vec<u8> = (0..n).map(|i| (i * 7 % 251) as u8).collect();
+            assert_eq!(sha256_hex(&data), hex, "{n} bytes");
+        }
+        // A plan text as `verdict.json` hashes it.
+        assert_eq!(
+            sha256_hex(b"name = \"fig7\"\nsensor = \"paper_sensor.toml\"\n"),
+            "c30c5e0d9ead2dbad5d4707bd892371ce2b9929c7171f06d6fbc8c6d9145c79d"
         );
     }
 }

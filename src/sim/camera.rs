@@ -48,18 +48,12 @@
 //! centre only). The small ellipticity of an off-axis sphere's image and of a disc
 //! under distortion is not modelled: centroids follow the projected centres.
 
+// `Focal` is declared with the effect it parameterises (effects does not import this
+// module); re-exported here under its old path.
+pub use super::effects::Focal;
 use super::effects::{Effect, EffectError, Pipeline};
 use crate::sensor::{CameraMapping, Sensor};
 use crate::vision::BrownConrady;
-
-/// How the focal length of `perspective` is given.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Focal {
-    /// Focal length in px (focal length / pixel pitch).
-    Px(f64),
-    /// The depth (mm) at which the camera shows exactly the `[camera]` `mm_per_px`.
-    ReferenceDepthMm(f64),
-}
 
 /// The resolved pinhole camera.
 #[derive(Debug, Clone, Copy, PartialEq)]

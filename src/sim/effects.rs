@@ -35,9 +35,17 @@
 use image::Rgb32FImage;
 use thiserror::Error;
 
-use super::camera::Focal;
 use super::render::{disc_visit, fill, round_code, Marker, RenderError, Renderer};
 use super::rng::Rng;
+
+/// How the focal length of `perspective` is given.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Focal {
+    /// Focal length in px (focal length / pixel pitch).
+    Px(f64),
+    /// The depth (mm) at which the camera shows exactly the `[camera]` `mm_per_px`.
+    ReferenceDepthMm(f64),
+}
 
 /// An invalid effect parameter.
 #[derive(Debug, Error, PartialEq)]

@@ -126,9 +126,9 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use thiserror::Error;
 
-use super::camera::{CameraOptics, Focal};
+use super::camera::CameraOptics;
 use super::contact::{Indenter, LoadCase, Normal, Tangential};
-use super::effects::{Effect, EffectError, Pipeline};
+use super::effects::{Effect, EffectError, Focal, Pipeline};
 use super::render::PixelFilter;
 use crate::sensor::{ModelKind, Sensor, SensorError};
 use crate::units;
@@ -308,9 +308,26 @@ impl Scene {
 }
 
 fn parse_raw(text: &str, path: &Path) -> Result<RawScene, SceneError> {
-    toml::from_str(text).map_err(|e| SceneError::Parse {
-        path: path.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
+    // Through the shared parser so fixed-length arrays are checked alike (config::exact).
+    crate::config::parse_toml(text, path).map_err(|e| match e {
+        crate::config::ConfigError::Invalid {
+            path,
+            key,
+            value,
+            allowed,
+        } => SceneError::Invalid {
+            path,
+            key,
+            value,
+            allowed,
+        },
+        other => SceneError::Parse {
+            path: path.to_path_buf(),
+            message: match other {
+                crate::config::ConfigError::Parse { message, .. } => message,
+                e => e.to_string(),
+            },
+        },
     })
 }
 
@@ -343,6 +360,7 @@ struct RawSceneBench {
     force_relaxation: Option<RawRelaxation>,
     #[serde(default)]
     stage_carries_sensor: bool,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     carry_zero_mm: Option<[f64; 2]>,
     viscoelastic: Option<RawViscoelastic>,
 }
@@ -380,6 +398,7 @@ enum RawIndenter {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawLoad {
+    #[serde(deserialize_with = "crate::config::exact")]
     position_mm: [f64; 2],
     normal_force_n: Option<f64>,
     normal_force_gf: Option<f64>,
@@ -415,10 +434,12 @@ enum RawEffect {
         sigma_px: std::collections::BTreeMap<String, f64>,
     },
     Illumination {
+        #[serde(deserialize_with = "crate::config::exact")]
         gradient: [f64; 2],
     },
     Vignetting {
         strength: f64,
+        #[serde(default, deserialize_with = "crate::config::exact_opt")]
         center_px: Option<[f64; 2]>,
     },
     Glare {
@@ -435,22 +456,27 @@ enum RawEffect {
         seed: u64,
     },
     Shift {
+        #[serde(deserialize_with = "crate::config::exact")]
         shift_px: [f64; 2],
     },
     Drift {
+        #[serde(deserialize_with = "crate::config::exact")]
         px_per_frame: [f64; 2],
         random_walk_px: Option<f64>,
         seed: Option<u64>,
     },
     Occlusion {
+        #[serde(deserialize_with = "crate::config::exact")]
         rect_px: [f64; 4],
         level: Option<f64>,
+        #[serde(default, deserialize_with = "crate::config::exact_opt")]
         frames: Option<[u64; 2]>,
     },
     Perspective {
         distance_mm: f64,
         focal_px: Option<f64>,
         reference_depth_mm: Option<f64>,
+        #[serde(default, deserialize_with = "crate::config::exact_opt")]
         principal_point_px: Option<[f64; 2]>,
     },
     Refraction {
@@ -464,6 +490,7 @@ enum RawEffect {
         k3: Option<f64>,
         p1: Option<f64>,
         p2: Option<f64>,
+        #[serde(default, deserialize_with = "crate::config::exact_opt")]
         center_px: Option<[f64; 2]>,
         norm_px: Option<f64>,
     },

@@ -288,6 +288,7 @@ struct RawCamera {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawDistortion {
+    #[serde(deserialize_with = "crate::config::exact")]
     center_px: [f64; 2],
     norm_px: f64,
     k1: f64,
@@ -302,6 +303,7 @@ struct RawDistortion {
 struct RawLayer {
     name: String,
     px_per_mm: f64,
+    #[serde(deserialize_with = "crate::config::exact")]
     origin_px: [f64; 2],
     rms_px: Option<f64>,
     markers: Option<i64>,

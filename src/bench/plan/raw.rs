@@ -54,6 +54,7 @@ pub(super) struct RawIndenter {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct RawApproach {
+    #[serde(deserialize_with = "crate::config::exact")]
     pub(super) position_mm: [f64; 2],
     pub(super) speed_mm_s: f64,
     pub(super) contact_force: f64,
@@ -85,8 +86,11 @@ pub(super) struct RawAcquire {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct RawSafety {
+    #[serde(deserialize_with = "crate::config::exact")]
     pub(super) max_force: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub(super) travel_min_mm: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub(super) travel_max_mm: [f64; 3],
     pub(super) max_speed_mm_s: f64,
 }
@@ -104,12 +108,16 @@ pub(super) struct RawSweep {
     pub(super) angle_to_deg: Option<f64>,
     pub(super) angle_step_deg: Option<f64>,
     pub(super) direction_deg: Option<f64>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     pub(super) start_mm: Option<[f64; 2]>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     pub(super) end_mm: Option<[f64; 2]>,
     pub(super) subdivisions: Option<i64>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     pub(super) shift_mm: Option<[f64; 2]>,
     pub(super) points: Option<Vec<RawPoint>>,
     pub(super) direction: Option<String>,
+    #[serde(default, deserialize_with = "crate::config::exact_each_opt")]
     pub(super) positions_mm: Option<Vec<[f64; 2]>>,
     pub(super) duration_s: Option<f64>,
     pub(super) sample_interval_s: Option<f64>,
@@ -118,7 +126,9 @@ pub(super) struct RawSweep {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct RawPoint {
+    #[serde(deserialize_with = "crate::config::exact")]
     pub(super) position_mm: [f64; 2],
     pub(super) normal: f64,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
     pub(super) tangential: Option<[f64; 2]>,
 }

@@ -1186,4 +1186,72 @@ mod tests {
             "{e}"
         );
     }
+
+    /// Issue 24, case 7: extra elements were silently cut (`[f64; N]` takes the first
+    /// N); now they are refused like missing ones, naming the key, the length given
+    /// and the length expected.
+    #[test]
+    fn case7_plan_arrays_with_extra_elements_are_refused_naming_key_and_lengths() {
+        for (from, to, key, given, expected) in [
+            (
+                "max_force = [300.0, 300.0, 1000.0]",
+                "max_force = [300.0, 300.0, 1000.0, 5.0]",
+                "safety.max_force",
+                4,
+                3,
+            ),
+            (
+                "position_mm = [9.0, 6.75]",
+                "position_mm = [9.0, 6.75, 2.0]",
+                "approach.position_mm",
+                3,
+                2,
+            ),
+            (
+                "trials = 10",
+                "trials = 10\npositions_mm = [[9.0, 6.75, 1.0]]",
+                "sweep.positions_mm[0]",
+                3,
+                2,
+            ),
+            (
+                "travel_min_mm = [0.0, 0.0, -2.0]",
+                "travel_min_mm = [0.0, 0.0]",
+                "safety.travel_min_mm",
+                2,
+                3,
+            ),
+        ] {
+            let e = parse(&FIG7.replace(from, to)).unwrap_err();
+            let ConfigError::Invalid { key: k, .. } = &e else {
+                panic!("{to}: not an Invalid error: {e}")
+            };
+            assert_eq!(k, key, "{e}");
+            let msg = e.to_string();
+            assert!(
+                msg.contains("experiments/p.toml")
+                    && msg.contains(&format!(
+                        "{given} elements given, exactly {expected} expected"
+                    )),
+                "{msg}"
+            );
+        }
+        // Spatial, displacement and explicit sweeps: optional arrays and arrays in tables.
+        let spatial = with_sweep(
+            "kind = \"spatial\"\nforce = 200.0\nstart_mm = [8.9, 6.75, 0.0]\nend_mm = [11.1, 6.75]\nsubdivisions = 6",
+        );
+        let e = parse(&spatial).unwrap_err().to_string();
+        assert!(
+            e.contains("sweep.start_mm") && e.contains("3 elements given"),
+            "{e}"
+        );
+        let points = with_sweep(
+            "kind = \"setpoints\"\n[[sweep.points]]\nposition_mm = [9.0, 6.75]\nnormal = 100.0\ntangential = [1.0, 2.0, 3.0]",
+        );
+        let e = parse(&points).unwrap_err().to_string();
+        assert!(
+            e.contains("sweep.points[0].tangential") && e.contains("3 elements given"),
+            "{e}"
+        );
+    }
 }
