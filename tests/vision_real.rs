@@ -107,7 +107,10 @@ fn gelsight_dark_dots_under_a_colour_gradient_are_all_found() {
         assert_eq!(expected.len(), 99);
         let mut d = nearest(&expected, &found);
         let worst = d.iter().cloned().fold(0.0, f64::max);
-        assert!(worst < 7.0, "frame {k}: a FOTS marker is {worst:.2} px from ours");
+        assert!(
+            worst < 7.0,
+            "frame {k}: a FOTS marker is {worst:.2} px from ours"
+        );
         d.sort_by(f64::total_cmp);
         assert!(d[49] < 1.0, "frame {k}: median distance {:.2} px", d[49]);
     }
@@ -141,21 +144,49 @@ fn gelsight_background_without_markers_gives_no_marker_and_a_refusal() {
 #[test]
 fn gelsight_bright_dots_on_stripes_are_all_found() {
     let Some(dir) = real_frames() else { return };
-    let r = reference(&dir.join("gelsight_bright/raw_1280x720.png"), "bright", None);
+    let r = reference(
+        &dir.join("gelsight_bright/raw_1280x720.png"),
+        "bright",
+        None,
+    );
     let found = centroids(&r);
     // The grid is slightly rotated and distorted: columns drift right by ~5 px over
     // the rows on the left and ~20 px on the right. The dots' centres (whole px) as the
     // OpenCV detector of `tests/opencv_ref` gives them, checked one by one on the
     // image: per row its y and the eight x.
     let rows: [(f64, [f64; 8]); 8] = [
-        (61.0, [321.0, 408.0, 495.0, 581.0, 669.0, 754.0, 842.0, 929.0]),
-        (148.0, [322.0, 409.0, 495.0, 582.0, 669.0, 756.0, 843.0, 931.0]),
-        (233.0, [321.0, 408.0, 495.0, 582.0, 670.0, 758.0, 846.0, 934.0]),
-        (318.0, [322.0, 408.0, 496.0, 582.0, 672.0, 760.0, 849.0, 937.0]),
-        (403.0, [322.0, 408.0, 496.0, 584.0, 674.0, 763.0, 851.0, 939.0]),
-        (487.0, [321.0, 409.0, 497.0, 585.0, 675.0, 764.0, 853.0, 943.0]),
-        (573.0, [322.0, 411.0, 499.0, 588.0, 678.0, 768.0, 857.0, 946.0]),
-        (660.0, [326.0, 414.0, 503.0, 591.0, 682.0, 771.0, 861.0, 949.0]),
+        (
+            61.0,
+            [321.0, 408.0, 495.0, 581.0, 669.0, 754.0, 842.0, 929.0],
+        ),
+        (
+            148.0,
+            [322.0, 409.0, 495.0, 582.0, 669.0, 756.0, 843.0, 931.0],
+        ),
+        (
+            233.0,
+            [321.0, 408.0, 495.0, 582.0, 670.0, 758.0, 846.0, 934.0],
+        ),
+        (
+            318.0,
+            [322.0, 408.0, 496.0, 582.0, 672.0, 760.0, 849.0, 937.0],
+        ),
+        (
+            403.0,
+            [322.0, 408.0, 496.0, 584.0, 674.0, 763.0, 851.0, 939.0],
+        ),
+        (
+            487.0,
+            [321.0, 409.0, 497.0, 585.0, 675.0, 764.0, 853.0, 943.0],
+        ),
+        (
+            573.0,
+            [322.0, 411.0, 499.0, 588.0, 678.0, 768.0, 857.0, 946.0],
+        ),
+        (
+            660.0,
+            [326.0, 414.0, 503.0, 591.0, 682.0, 771.0, 861.0, 949.0],
+        ),
     ];
     let expected: Vec<[f64; 2]> = rows
         .iter()
@@ -192,7 +223,10 @@ fn tactip_pins_inside_the_field_are_all_found_and_the_leds_ignored() {
         .iter()
         .map(|p| (p[0] - centre[0]).hypot(p[1] - centre[1]))
         .fold(0.0, f64::max);
-    assert!(far < 176.0, "a detection {far:.1} px from the centre: not a pin");
+    assert!(
+        far < 176.0,
+        "a detection {far:.1} px from the centre: not a pin"
+    );
     // Without the ROI the LEDs and their reflections come in too.
     let all = reference(&path, "bright", None);
     assert!(all.markers.len() > found.len());
@@ -235,7 +269,11 @@ fn opencv_reference_agrees_on_real_frames() {
             cmd.arg(arg);
         }
         let out = cmd.output().expect("run python");
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let theirs: Vec<[f64; 2]> = String::from_utf8_lossy(&out.stdout)
             .lines()
             .map(|l| {
