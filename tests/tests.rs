@@ -28,3 +28,4 @@ mod stage;
 mod study;
 mod sweeps;
 mod vision;
+mod vision_real;

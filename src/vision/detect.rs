@@ -15,8 +15,8 @@
 //! within `match_tolerance` pitches of it (the nearer of two claimants wins).
 
 use super::camera::PixelMapping;
-use super::image::FrameView;
 use super::contrast;
+use super::image::FrameView;
 use super::window::{score, score_bias, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Roi, Sensor};
@@ -217,8 +217,7 @@ pub fn detect_mapped(
         let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
         let used: Vec<MarkerColor> = sensor.layers.iter().map(|l| l.color).collect();
         let weights = score_weights(layer.color, &used);
-        let found =
-            with_raw!(view, img => detect_layer(img, layer.color, weights, expected_r, sensor.camera.roi_px.as_ref(), config));
+        let found = with_raw!(view, img => detect_layer(img, layer.color, weights, expected_r, sensor.camera.roi_px.as_ref(), config));
         layers.push(LayerReference {
             name: layer.name.clone(),
             color: layer.color,
@@ -316,6 +315,11 @@ pub fn detect_mapped(
     })
 }
 
+/// Largest elongation (√ of the ratio of the principal second moments) of a blob of a
+/// brightness layer: a disc is 1, a disc seen at 60° from its normal 2; on the striped
+/// GelSight frame a scratch measures 4.1 and the markers at most 1.3.
+const MAX_ELONGATION: f64 = 2.2;
+
 /// The `k`-th smallest of `v` (reorders `v`).
 fn kth(v: &mut [i32], k: usize) -> i32 {
     let k = k.min(v.len() - 1);
@@ -355,7 +359,12 @@ fn detect_layer<T: Sample, const C: usize>(
     // in, with every pixel outside the ROI below any threshold.
     let inside_values = |m: &[i32]| -> Vec<i32> {
         match &inside {
-            Some(mask) => m.iter().zip(mask).filter(|(_, &i)| i).map(|(&v, _)| v).collect(),
+            Some(mask) => m
+                .iter()
+                .zip(mask)
+                .filter(|(_, &i)| i)
+                .map(|(&v, _)| v)
+                .collect(),
             None => m.to_vec(),
         }
     };
@@ -391,7 +400,7 @@ fn detect_layer<T: Sample, const C: usize>(
     // The map blobs are found in, its median and the threshold: the colour score itself
     // for colour layers (their score cancels grey illumination), the contrast against
     // the local illumination for brightness layers (their score does not; `contrast.rs`).
-    let (map, median, threshold) = if color.is_brightness() {
+    let (map, median, threshold, map_per_score) = if color.is_brightness() {
         let noise = contrast::score_noise(&score, w, inside.as_deref());
         let min_contrast = contrast::min_contrast::<T>(color);
         let stats = |m: &[i32], map_per_score: f64| {
@@ -404,9 +413,8 @@ fn detect_layer<T: Sample, const C: usize>(
                 // measures it, the second uses the element that follows from it.
                 let first_size = contrast::default_element_size(w, h);
                 let (first, k) = contrast::contrast_map::<T>(&score, w, h, color, first_size);
-                let r = stats(&first, k).and_then(|t| {
-                    contrast::blob_radius(&masked(first), w, h, &t)
-                });
+                let r =
+                    stats(&first, k).and_then(|t| contrast::blob_radius(&masked(first), w, h, &t));
                 match r {
                     Some(r) => contrast::element_size(r),
                     None => return empty(1.0),
@@ -417,7 +425,7 @@ fn detect_layer<T: Sample, const C: usize>(
         let Some(t) = stats(&m, k) else {
             return empty(expected_radius_px.unwrap_or(1.0));
         };
-        (masked(m), t.median, t.threshold)
+        (masked(m), t.median, t.threshold, k)
     } else {
         let mut tmp = inside_values(&score);
         let n = tmp.len();
@@ -433,7 +441,7 @@ fn detect_layer<T: Sample, const C: usize>(
             return empty(expected_radius_px.unwrap_or(1.0));
         }
         let threshold = (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32;
-        (masked(score.clone()), median, threshold)
+        (masked(score.clone()), median, threshold, 1.0)
     };
     let map = &map[..];
     let b = median as f64;
@@ -445,6 +453,28 @@ fn detect_layer<T: Sample, const C: usize>(
         sx: f64,
         sy: f64,
         peak: i32,
+        /// Unweighted pixel moments Σx, Σy, Σx², Σy², Σxy (shape).
+        shape: [f64; 5],
+        /// A pixel on the image's outermost rows or columns: the blob may be a marker
+        /// cut by the edge.
+        at_edge: bool,
+    }
+    impl Comp {
+        /// √(λ₁/λ₂) of the pixels' covariance: 1 for a disc, large for a line.
+        fn elongation(&self) -> f64 {
+            let n = self.area as f64;
+            let [x, y, xx, yy, xy] = self.shape;
+            let (cxx, cyy, cxy) = (
+                xx / n - (x / n).powi(2),
+                yy / n - (y / n).powi(2),
+                xy / n - x * y / (n * n),
+            );
+            let (m, d) = (
+                0.5 * (cxx + cyy),
+                (0.25 * (cxx - cyy).powi(2) + cxy * cxy).sqrt(),
+            );
+            ((m + d) / (m - d).max(1e-9)).sqrt()
+        }
     }
     let n = map.len();
     let mut label = vec![false; n];
@@ -462,6 +492,8 @@ fn detect_layer<T: Sample, const C: usize>(
             sx: 0.0,
             sy: 0.0,
             peak: 0,
+            shape: [0.0; 5],
+            at_edge: false,
         };
         while let Some(i) = stack.pop() {
             let (x, y) = (i % w, i / w);
@@ -471,6 +503,11 @@ fn detect_layer<T: Sample, const C: usize>(
             c.sx += s * x as f64;
             c.sy += s * y as f64;
             c.peak = c.peak.max(map[i]);
+            c.at_edge |= x == 0 || y == 0 || x + 1 == w || y + 1 == h;
+            let (fx, fy) = (x as f64, y as f64);
+            for (m, v) in c.shape.iter_mut().zip([fx, fy, fx * fx, fy * fy, fx * fy]) {
+                *m += v;
+            }
             for dy in -1i64..=1 {
                 for dx in -1i64..=1 {
                     let (nx, ny) = (x as i64 + dx, y as i64 + dy);
@@ -490,17 +527,49 @@ fn detect_layer<T: Sample, const C: usize>(
     let mut areas: Vec<usize> = comps.iter().map(|c| c.area).collect();
     areas.sort_unstable();
     let radius_px = expected_radius_px.unwrap_or_else(|| {
-        // Median blob size, ignoring the smallest half (noise specks).
-        let big = &areas[areas.len() / 2..];
-        big.get(big.len() / 2)
-            .map(|&a| (a as f64 / std::f64::consts::PI).sqrt())
-            .unwrap_or(1.0)
+        if color.is_brightness() {
+            // The area of the blob holding the median pixel above the threshold: noise
+            // specks and dust, however many, hold few pixels.
+            let total: usize = areas.iter().sum();
+            let mut acc = 0;
+            areas
+                .iter()
+                .find(|&&a| {
+                    acc += a;
+                    2 * acc >= total
+                })
+                .map(|&a| (a as f64 / std::f64::consts::PI).sqrt())
+                .unwrap_or(1.0)
+        } else {
+            // Median blob size, ignoring the smallest half (noise specks).
+            let big = &areas[areas.len() / 2..];
+            big.get(big.len() / 2)
+                .map(|&a| (a as f64 / std::f64::consts::PI).sqrt())
+                .unwrap_or(1.0)
+        }
     });
-    let min_area = (0.2 * std::f64::consts::PI * radius_px * radius_px).max(3.0);
-    let comps: Vec<Comp> = comps
-        .into_iter()
-        .filter(|c| c.area as f64 >= min_area && c.sum > 0.0)
-        .collect();
+    let disc_area = std::f64::consts::PI * radius_px * radius_px;
+    // Brightness layers see more than markers (dust, scratches, reflections of similar
+    // contrast on real gels): a blob must hold 40 % of a marker's area and be round
+    // (elongation ≤ MAX_ELONGATION; a disc seen obliquely stays below it). A blob at
+    // the image's edge may be a marker cut by it: 25 % of the area and an elongation
+    // of 3 suffice there (a disc cut through its centre has 1.9). Colour layers keep
+    // the plain size check.
+    let keep = |c: &Comp| {
+        if c.sum <= 0.0 {
+            return false;
+        }
+        if !color.is_brightness() {
+            return c.area as f64 >= (0.2 * disc_area).max(3.0);
+        }
+        let (area, elongation) = if c.at_edge {
+            (0.25, 3.0)
+        } else {
+            (0.4, MAX_ELONGATION)
+        };
+        c.area as f64 >= (area * disc_area).max(3.0) && c.elongation() <= elongation
+    };
+    let comps: Vec<Comp> = comps.into_iter().filter(keep).collect();
     if comps.is_empty() {
         return empty(radius_px);
     }
@@ -553,13 +622,53 @@ fn detect_layer<T: Sample, const C: usize>(
     let window = Window::new(aperture, weights);
 
     let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
-    for s in &seeds {
+    for (s, comp) in seeds.iter().zip(&comps) {
+        let located = window.locate::<T, C>(img, *s, 20, false);
+        if color.is_brightness() && matches!(located, Located::OutOfImage) {
+            // A marker at the image border, its window cut by the edge: found (it is
+            // there, and `sensor init` counts it near the border) at its blob's
+            // centroid, but never measured — the tracker reports it lost while its
+            // window does not fit. Its reference signal is the blob's contrast in
+            // score units (the above-threshold core only: an underestimate of a
+            // window's signal, used only if it moves inside).
+            if roi.is_some_and(|r| !r.contains(*s)) {
+                continue;
+            }
+            // Its background: the median linear score on the window's ring, where the
+            // ring lies in the image.
+            let ring = window.ring_radius_px();
+            let mut level: Vec<i32> = (0..64)
+                .filter_map(|k| {
+                    let a = k as f64 * std::f64::consts::TAU / 64.0;
+                    let (x, y) = (
+                        (s[0] + ring * a.cos()).round(),
+                        (s[1] + ring * a.sin()).round(),
+                    );
+                    (x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64)
+                        .then(|| score[y as usize * w + x as usize])
+                })
+                .collect();
+            let background = if level.is_empty() {
+                score_median
+            } else {
+                let half = level.len() / 2;
+                kth(&mut level, half) as f64
+            } - score_bias::<T>(&weights) as f64;
+            blobs.push(Blob {
+                centroid_px: *s,
+                signal: comp.sum / map_per_score,
+                peak: (comp.peak - median) as f64 / map_per_score,
+                background,
+                slope: [0.0; 2],
+            });
+            continue;
+        }
         if let Located::Found {
             centroid_px,
             m0,
             background,
             slope,
-        } = window.locate::<T, C>(img, *s, 20, false)
+        } = located
         {
             if roi.is_some_and(|r| !r.contains(centroid_px)) {
                 continue;
