@@ -23,3 +23,4 @@ mod stage;
 mod study;
 mod sweeps;
 mod vision;
+mod vision_tracking;
