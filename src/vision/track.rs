@@ -52,7 +52,9 @@
 //! **Any layout.** Every scale is per marker, from the reference layout around it:
 //! its local spacing is the distance to its nearest same-layer marker at rest; the
 //! search square's half-size is half of it, the acceptance radius that plus the
-//! aperture, the neighbours those within 1.6 local spacings (a square grid's
+//! aperture, and a marker found farther than 0.6 local spacings from both its
+//! prediction and its field-corrected start is lost (the local-spacing gate of the
+//! matching: it sits on a neighbour's blob), the neighbours those within 1.6 local spacings (a square grid's
 //! diagonals, a hexagonal packing's first ring). So hexagonal, perspective-distorted
 //! and irregular layouts of hundreds of markers, found in the reference frame without
 //! a grid in the sensor file, are tracked like the grids: displacements up to about
@@ -234,6 +236,11 @@ pub const DEFAULT_APPEARANCE_TOLERANCE: f64 = 0.06;
 /// merged in the image (two markers' worth of colour), whoever is nearer.
 const SHARED_BLOB_MERGE_RATIO: f64 = 1.2;
 
+/// A window's result farther than this many local spacings from where the attempt
+/// expected the marker is rejected (matching gate: a neighbour's blob lies about one
+/// spacing away, the marker's own within about half of one).
+const GATE_FRACTION: f64 = 0.6;
+
 /// Two claimants of one blob whose distances from their own predictions differ by
 /// less than this fraction of the local spacing cannot be told apart: both merged.
 const CLAIM_MARGIN: f64 = 0.25;
@@ -335,21 +342,19 @@ impl Tracker {
             .layers
             .iter()
             .enumerate()
-            .map(|(li, l)| {
-                LayerState {
-                    window: Window::new(l.aperture_radius_px, l.score_weights),
-                    weights: l.score_weights,
-                    merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
-                    aperture_px: l.aperture_radius_px,
-                    marker_radius_px: l.marker_radius_px,
-                    overlap_reach2_px: 0.0,
-                    background_score: l.background_score,
-                    markers: {
-                        let m = &reference.markers;
-                        let lo = m.partition_point(|r| r.layer < li);
-                        lo..lo + m[lo..].partition_point(|r| r.layer == li)
-                    },
-                }
+            .map(|(li, l)| LayerState {
+                window: Window::new(l.aperture_radius_px, l.score_weights),
+                weights: l.score_weights,
+                merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
+                aperture_px: l.aperture_radius_px,
+                marker_radius_px: l.marker_radius_px,
+                overlap_reach2_px: 0.0,
+                background_score: l.background_score,
+                markers: {
+                    let m = &reference.markers;
+                    let lo = m.partition_point(|r| r.layer < li);
+                    lo..lo + m[lo..].partition_point(|r| r.layer == li)
+                },
             })
             .collect();
         let max_support = layers
@@ -393,9 +398,7 @@ impl Tracker {
                 spacing_px: spacing,
                 search_half: search_half.round() as i32,
                 max_jump2: max_jump * max_jump,
-                outlier_px: config
-                    .outlier_px
-                    .min(OUTLIER_SPACING_FRACTION * spacing),
+                outlier_px: config.outlier_px.min(OUTLIER_SPACING_FRACTION * spacing),
             });
             // Neighbours: within 1.6 local spacings (a square grid's diagonals, a
             // hexagonal packing's first ring), the nearest first.
@@ -765,6 +768,15 @@ impl Tracker {
             let a = self.out[i];
             if a.status == MarkerStatus::Lost {
                 continue;
+            }
+            // Local-spacing gate: a blob farther than `GATE_FRACTION` local spacings
+            // from both the prediction and the field-corrected start is a
+            // neighbour's, not this marker's.
+            let gate2 = (GATE_FRACTION * self.local[i].spacing_px).powi(2);
+            if dist2(a.centroid_px, self.predicted_px[i]) > gate2
+                && dist2(a.centroid_px, self.field_start_px[i]) > gate2
+            {
+                self.claim[i] = self.claim[i].max(Claim::Lost);
             }
             if a.signal_ratio > ratio {
                 self.claim[i] = self.claim[i].max(Claim::Merged);
