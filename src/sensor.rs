@@ -14,7 +14,7 @@
 //!
 //! [[layers]]                   # one per marker layer, at least one
 //! name = "blue"                # unique
-//! color = "blue"               # blue | red | green
+//! color = "blue"               # blue | red | green | dark | bright
 //! depth_mm = 3.0               # > 0
 //! [layers.markers]             # optional regular grid of this layer
 //! nx = 13
@@ -34,6 +34,8 @@
 //! origin_px = [25.0, 25.0]     # pixel position of the sensor-frame origin
 //! width_px = 430
 //! height_px = 340
+//! roi_px = { center = [215.0, 170.0], radius = 160.0 }  # optional: markers sought only
+//!                              # inside; or { min = [x0, y0], max = [x1, y1] } (px)
 //! ```
 //!
 //! Grids are row-major: node `(ix, iy)` has index `iy * nx + ix` and sits at
@@ -53,7 +55,12 @@ use crate::units;
 /// An error reading or validating a sensor file (file, key, value, allowed range).
 pub type SensorError = ConfigError;
 
-/// Colour of a marker layer, used by the tracker and the renderer.
+/// Appearance of a marker layer (`[[layers]] color`), used by the tracker and the
+/// renderer: a colour (`blue`, `red`, `green`: markers told apart from each other and
+/// from grey light by their colour), or a brightness (`dark`: dark markers on a lit
+/// gel, as GelSight-type sensors; `bright`: light markers or pins on a dark skin, as
+/// the TacTip). Dark and bright layers are found by their contrast against the local
+/// illumination (see `vision::window`), not by colour.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum MarkerColor {
     /// Blue markers.
@@ -62,11 +69,22 @@ pub enum MarkerColor {
     Red,
     /// Green markers.
     Green,
+    /// Dark markers on a brighter, possibly unevenly lit background.
+    Dark,
+    /// Bright markers on a darker background.
+    Bright,
 }
 
 impl MarkerColor {
-    /// All colours, in the order used by the tracker's channel separation.
-    pub const ALL: [MarkerColor; 3] = [MarkerColor::Blue, MarkerColor::Red, MarkerColor::Green];
+    /// All appearances, in the order used by the tracker's channel separation and the
+    /// error messages.
+    pub const ALL: [MarkerColor; 5] = [
+        MarkerColor::Blue,
+        MarkerColor::Red,
+        MarkerColor::Green,
+        MarkerColor::Dark,
+        MarkerColor::Bright,
+    ];
 
     /// The name used in sensor files.
     pub fn name(self) -> &'static str {
@@ -74,7 +92,15 @@ impl MarkerColor {
             MarkerColor::Blue => "blue",
             MarkerColor::Red => "red",
             MarkerColor::Green => "green",
+            MarkerColor::Dark => "dark",
+            MarkerColor::Bright => "bright",
         }
+    }
+
+    /// True for `dark` and `bright`: markers told apart from the background by
+    /// brightness (measured against the local illumination), not by colour.
+    pub fn is_brightness(self) -> bool {
+        matches!(self, MarkerColor::Dark | MarkerColor::Bright)
     }
 
     /// Parses a colour name as written in sensor files.
@@ -239,7 +265,125 @@ pub struct CameraMapping {
     pub width_px: u32,
     /// Image height in pixels.
     pub height_px: u32,
+    /// Where markers are sought (`[camera] roi_px`); `None`: the whole image.
+    pub roi_px: Option<Roi>,
 }
+
+/// The region of interest of `[camera] roi_px`, in pixels (pixel `(i, j)` is centred
+/// on `(i, j)`): markers are sought only inside it, and a marker whose tracking window
+/// crosses its border is not trusted (see `vision`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Roi {
+    /// `{ center = [x, y], radius = r }`.
+    Circle {
+        /// Centre, px.
+        center_px: [f64; 2],
+        /// Radius, px (> 0).
+        radius_px: f64,
+    },
+    /// `{ min = [x0, y0], max = [x1, y1] }`, `x0 < x1`, `y0 < y1`.
+    Rect {
+        /// Corner with the smallest coordinates, px.
+        min_px: [f64; 2],
+        /// Corner with the largest coordinates, px.
+        max_px: [f64; 2],
+    },
+}
+
+impl Roi {
+    /// Whether the point lies inside (border included).
+    pub fn contains(&self, p: [f64; 2]) -> bool {
+        self.inset_contains(p, 0.0)
+    }
+
+    /// Whether the whole disc of radius `r` around `c` lies inside.
+    pub fn contains_disc(&self, c: [f64; 2], r: f64) -> bool {
+        self.inset_contains(c, r)
+    }
+
+    /// Distance from `p` to the border, px: positive inside, negative outside.
+    pub fn depth(&self, p: [f64; 2]) -> f64 {
+        match *self {
+            Roi::Circle {
+                center_px,
+                radius_px,
+            } => radius_px - (p[0] - center_px[0]).hypot(p[1] - center_px[1]),
+            Roi::Rect { min_px, max_px } => (p[0] - min_px[0])
+                .min(max_px[0] - p[0])
+                .min(p[1] - min_px[1])
+                .min(max_px[1] - p[1]),
+        }
+    }
+
+    fn inset_contains(&self, p: [f64; 2], inset: f64) -> bool {
+        self.depth(p) >= inset
+    }
+
+    /// The bounding box `(min, max)`, px.
+    pub fn bounds(&self) -> ([f64; 2], [f64; 2]) {
+        match *self {
+            Roi::Circle {
+                center_px: c,
+                radius_px: r,
+            } => ([c[0] - r, c[1] - r], [c[0] + r, c[1] + r]),
+            Roi::Rect { min_px, max_px } => (min_px, max_px),
+        }
+    }
+
+    /// Checks that the ROI has a positive size and lies inside a `width × height` px
+    /// image (within [`ROI_IMAGE_MARGIN_PX`] of the outer pixel centres); the error
+    /// says what is allowed, in px.
+    pub fn check_in_image(&self, width: u32, height: u32) -> Result<(), String> {
+        let size_ok = match *self {
+            Roi::Circle { radius_px, .. } => radius_px.is_finite() && radius_px > 0.0,
+            Roi::Rect { min_px, max_px } => max_px[0] > min_px[0] && max_px[1] > min_px[1],
+        };
+        if !size_ok {
+            return Err("zero or negative size: a circle needs radius > 0 px, a rectangle max > min along x and y".to_string());
+        }
+        let (lo, hi) = self.bounds();
+        let m = ROI_IMAGE_MARGIN_PX;
+        let (xmax, ymax) = (width as f64 - 1.0 + m, height as f64 - 1.0 + m);
+        let inside = |v: f64, top: f64| v.is_finite() && v >= -m && v <= top;
+        if inside(lo[0], xmax) && inside(hi[0], xmax) && inside(lo[1], ymax) && inside(hi[1], ymax)
+        {
+            Ok(())
+        } else {
+            Err(format!(
+                "must lie inside the {width}×{height} px image (x in [{}, {xmax}] px, y in [{}, {ymax}] px)",
+                -m, -m
+            ))
+        }
+    }
+
+    /// The inline TOML table of `roi_px`.
+    pub fn to_toml(&self) -> String {
+        match self {
+            Roi::Circle {
+                center_px,
+                radius_px,
+            } => format!(
+                "{{ center = [{:?}, {:?}], radius = {:?} }}",
+                center_px[0], center_px[1], radius_px
+            ),
+            Roi::Rect { min_px, max_px } => format!(
+                "{{ min = [{:?}, {:?}], max = [{:?}, {:?}] }}",
+                min_px[0], min_px[1], max_px[0], max_px[1]
+            ),
+        }
+    }
+}
+
+impl fmt::Display for Roi {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.to_toml())
+    }
+}
+
+/// How far an ROI may reach past the image's pixel centres, px: pixel `(i, j)` covers
+/// `[i − ½, i + ½]`, so a rectangle `max = [width, height]` (the image's size) is the
+/// whole image.
+pub const ROI_IMAGE_MARGIN_PX: f64 = 1.0;
 
 impl CameraMapping {
     /// Pixel position to sensor-frame position in mm.
@@ -339,6 +483,9 @@ impl Sensor {
             "[camera]\nmm_per_px = {:?}\norigin_px = [{:?}, {:?}]\nwidth_px = {}\nheight_px = {}",
             c.mm_per_px, c.origin_px[0], c.origin_px[1], c.width_px, c.height_px
         );
+        if let Some(roi) = &c.roi_px {
+            let _ = writeln!(s, "roi_px = {roi}");
+        }
         s
     }
 }
@@ -398,6 +545,82 @@ struct RawCamera {
     origin_px: [f64; 2],
     width_px: i64,
     height_px: i64,
+    roi_px: Option<RawRoi>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRoi {
+    center: Option<[f64; 2]>,
+    radius: Option<f64>,
+    min: Option<[f64; 2]>,
+    max: Option<[f64; 2]>,
+}
+
+impl RawRoi {
+    /// Validates the ROI against the image of `width × height` px.
+    fn validate(&self, c: &Checker<'_>, width: u32, height: u32) -> Result<Roi, SensorError> {
+        const KEY: &str = "camera.roi_px";
+        let roi = match (self.center, self.radius, self.min, self.max) {
+            (Some(center), Some(radius), None, None) => {
+                let center_px = [
+                    c.finite(&format!("{KEY}.center[0]"), center[0], "px")?,
+                    c.finite(&format!("{KEY}.center[1]"), center[1], "px")?,
+                ];
+                let radius_px = c.positive(&format!("{KEY}.radius"), radius, "px")?;
+                Roi::Circle {
+                    center_px,
+                    radius_px,
+                }
+            }
+            (None, None, Some(min), Some(max)) => {
+                for (i, axis) in ["x", "y"].into_iter().enumerate() {
+                    c.finite(&format!("{KEY}.min[{i}]"), min[i], "px")?;
+                    c.finite(&format!("{KEY}.max[{i}]"), max[i], "px")?;
+                    if max[i] <= min[i] {
+                        return Err(c.invalid(
+                            &format!("{KEY}.max[{i}]"),
+                            format!("{} px", max[i]),
+                            format!(
+                                "zero or negative size: max must exceed min = {} px along {axis}",
+                                min[i]
+                            ),
+                        ));
+                    }
+                }
+                Roi::Rect {
+                    min_px: min,
+                    max_px: max,
+                }
+            }
+            _ => {
+                let given: Vec<&str> = [
+                    ("center", self.center.is_some()),
+                    ("radius", self.radius.is_some()),
+                    ("min", self.min.is_some()),
+                    ("max", self.max.is_some()),
+                ]
+                .into_iter()
+                .filter(|(_, g)| *g)
+                .map(|(k, _)| k)
+                .collect();
+                return Err(c.invalid(
+                    KEY,
+                    format!("{{ {} }}", given.join(", ")),
+                    "must be a circle { center = [x, y], radius = r } or a rectangle { min = [x0, y0], max = [x1, y1] } (px)",
+                ));
+            }
+        };
+        if let Err(allowed) = roi.check_in_image(width, height) {
+            let (lo, hi) = roi.bounds();
+            return Err(c.invalid(
+                KEY,
+                format!("{roi} (spans x {}..{} px, y {}..{} px)", lo[0], hi[0], lo[1], hi[1]),
+                allowed,
+            ));
+        }
+        Ok(roi)
+    }
 }
 
 /// A regular grid's keys, checked.
@@ -477,7 +700,7 @@ impl RawSensor {
                 c.invalid(
                     &format!("{key}.color"),
                     format!("{:?}", l.color),
-                    "unknown colour: expected one of blue, red, green",
+                    "unknown colour: expected one of blue, red, green, dark, bright",
                 )
             })?;
             let depth = c.positive(&format!("{key}.depth_mm"), l.depth_mm, "mm")?;
@@ -512,14 +735,20 @@ impl RawSensor {
         let force_grid = check_grid(&c, "force_grid", g.nx, g.ny, g.pitch_mm, g.origin_mm)?;
 
         let cam = &self.camera;
+        let width_px = c.count("camera.width_px", cam.width_px, 65_535)? as u32;
+        let height_px = c.count("camera.height_px", cam.height_px, 65_535)? as u32;
         let camera = CameraMapping {
             mm_per_px: c.positive("camera.mm_per_px", cam.mm_per_px, "mm/px")?,
             origin_px: [
                 c.finite("camera.origin_px[0]", cam.origin_px[0], "px")?,
                 c.finite("camera.origin_px[1]", cam.origin_px[1], "px")?,
             ],
-            width_px: c.count("camera.width_px", cam.width_px, 65_535)? as u32,
-            height_px: c.count("camera.height_px", cam.height_px, 65_535)? as u32,
+            width_px,
+            height_px,
+            roi_px: match &cam.roi_px {
+                Some(r) => Some(r.validate(&c, width_px, height_px)?),
+                None => None,
+            },
         };
 
         Ok(Sensor {
@@ -598,6 +827,7 @@ pub fn grid_sensor(
             origin_px: [1.0 / mm_per_px, 1.0 / mm_per_px],
             width_px: ((span[0] + marker_pitch_mm + 2.0) / mm_per_px).ceil() as u32,
             height_px: ((span[1] + marker_pitch_mm + 2.0) / mm_per_px).ceil() as u32,
+            roi_px: None,
         },
     }
 }

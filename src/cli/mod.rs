@@ -16,6 +16,7 @@ mod reconstruct;
 mod report;
 mod reproduce;
 mod run;
+mod sensor;
 mod sim;
 mod solver_args;
 mod stage;
@@ -45,6 +46,8 @@ enum Command {
     ReproducePaper(reproduce::Args),
     Track(track::Args),
     Calibrate(calibrate::Args),
+    #[command(subcommand)]
+    Sensor(sensor::SensorCommand),
     #[command(subcommand)]
     Model(model::ModelCommand),
     #[command(subcommand)]
@@ -80,6 +83,7 @@ pub fn main() -> ExitCode {
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Calibrate(args) => calibrate::run(args),
+        Command::Sensor(cmd) => sensor::run(cmd),
         Command::Model(cmd) => model::run(cmd),
         Command::Sim(cmd) => sim::run(cmd),
         Command::Ports(args) => ports::run(args),

@@ -20,8 +20,12 @@ use tactbench::vision::{
 /// Images: PNG (RGB, RGBA or palette), JPEG or BMP, 8-bit or 16-bit, of the size given
 /// in the sensor's [camera] section; the reference and the frames may differ in bit
 /// depth (8-bit samples count as 257 × their value on a 16-bit scale, so a mixed pair
-/// tracks like a matched one). Grayscale images are rejected (layers are told apart by
-/// colour: blue, red, green).
+/// tracks like a matched one). Grayscale images are rejected (coloured layers are told
+/// apart by colour: blue, red, green). Layers of color dark (dark markers on a lit gel)
+/// or bright (light pins or dots on a dark skin) are found by their contrast against
+/// the local illumination, so gradients, vignetting and stripes do not hide them. With
+/// [camera] roi_px markers are sought only inside the ROI, and a marker whose window
+/// crosses its border is reported lost.
 ///
 /// Output columns: layer,marker,x_mm,y_mm,ux_mm,uy_mm,frame,x_px,y_px,ux_px,uy_px,status.
 /// x_mm, y_mm: reference position in the sensor frame (mm); ux_mm, uy_mm: displacement

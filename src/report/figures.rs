@@ -188,6 +188,8 @@ fn layer_color(c: MarkerColor) -> RGBColor {
         MarkerColor::Blue => RGBColor(20, 60, 220),
         MarkerColor::Red => RGBColor(210, 30, 30),
         MarkerColor::Green => RGBColor(20, 150, 40),
+        MarkerColor::Dark => RGBColor(40, 40, 40),
+        MarkerColor::Bright => RGBColor(230, 159, 0),
     }
 }
 

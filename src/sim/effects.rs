@@ -16,7 +16,7 @@
 //!    layer's Gaussian σ and composites the layers (a layer can only be blurred before
 //!    it is composited behind the deeper ones).
 //! 3. **Image** (per frame, on the float RGB frame, in list order):
-//!    [`Effect::Illumination`], [`Effect::Vignetting`], [`Effect::ShotNoise`],
+//!    [`Effect::Illumination`], [`Effect::Vignetting`], [`Effect::Glare`], [`Effect::ShotNoise`],
 //!    [`Effect::PixelNoise`], [`Effect::Quantize8`], [`Effect::Occlusion`].
 //!
 //! The camera effects [`Effect::Perspective`], [`Effect::Refraction`] and
@@ -113,6 +113,17 @@ pub enum Effect {
         strength: f64,
         /// Optical centre in px (default: the image centre).
         center_px: Option<[f64; 2]>,
+    },
+    /// Glare: a bright spot (a reflection of the light source on the gel or the
+    /// plate) added to every channel, `amplitude · exp(−ρ² / (2σ²))`, `ρ` the distance
+    /// from `center_px`; deterministic, in every frame.
+    Glare {
+        /// Centre of the spot, px.
+        center_px: [f64; 2],
+        /// Gaussian σ of the spot, px (> 0).
+        sigma_px: f64,
+        /// Added level at the centre (1 = full scale), in [0, 1].
+        amplitude: f64,
     },
     /// Marker diameters perturbed once: `d + N(0, σ)`, clamped at 0.
     SizeJitter {
@@ -215,6 +226,7 @@ impl Effect {
             Effect::Blur { .. } => "blur",
             Effect::Illumination { .. } => "illumination",
             Effect::Vignetting { .. } => "vignetting",
+            Effect::Glare { .. } => "glare",
             Effect::SizeJitter { .. } => "size_jitter",
             Effect::PlacementJitter { .. } => "placement_jitter",
             Effect::Shift { .. } => "shift",
@@ -325,6 +337,28 @@ impl Effect {
                     Some(c) => finite2("center_px", *c, "px"),
                     None => Ok(()),
                 }
+            }
+            Effect::Glare {
+                center_px,
+                sigma_px,
+                amplitude,
+            } => {
+                finite2("center_px", *center_px, "px")?;
+                if !(sigma_px.is_finite() && *sigma_px > 0.0) {
+                    return Err(bad(
+                        "sigma_px",
+                        format!("{sigma_px} px"),
+                        "must be a finite number > 0 px (Gaussian σ of the spot)",
+                    ));
+                }
+                if !(amplitude.is_finite() && (0.0..=1.0).contains(amplitude)) {
+                    return Err(bad(
+                        "amplitude",
+                        amplitude.to_string(),
+                        "must be in [0, 1] (added level at the centre, 1 = full scale)",
+                    ));
+                }
+                Ok(())
             }
             Effect::SizeJitter { sigma_mm, .. } | Effect::PlacementJitter { sigma_mm, .. } => {
                 nonneg("sigma_mm", *sigma_mm, "mm")
@@ -880,6 +914,26 @@ pub fn apply_image_effect(e: &Effect, out: &mut Rgb32FImage, frame: u64) {
                 let rho2 = (i as f64 - c[0]).powi(2) + (j as f64 - c[1]).powi(2);
                 let g = 1.0 - strength * rho2 / rho2_max;
                 p.0.iter_mut().for_each(|v| *v *= g as f32);
+            }
+        }
+        Effect::Glare {
+            center_px,
+            sigma_px,
+            amplitude,
+        } => {
+            let k = -0.5 / (sigma_px * sigma_px);
+            // Beyond 6σ the spot adds less than 1e-7 of full scale: not visited.
+            let reach = 6.0 * sigma_px;
+            let x0 = (center_px[0] - reach).floor().max(0.0) as u32;
+            let y0 = (center_px[1] - reach).floor().max(0.0) as u32;
+            let x1 = ((center_px[0] + reach).ceil().max(0.0) as u32).min(w.saturating_sub(1));
+            let y1 = ((center_px[1] + reach).ceil().max(0.0) as u32).min(h.saturating_sub(1));
+            for j in y0..=y1.min(h.saturating_sub(1)) {
+                for i in x0..=x1 {
+                    let r2 = (i as f64 - center_px[0]).powi(2) + (j as f64 - center_px[1]).powi(2);
+                    let add = (amplitude * (k * r2).exp()) as f32;
+                    out.get_pixel_mut(i, j).0.iter_mut().for_each(|v| *v += add);
+                }
             }
         }
         Effect::Occlusion {

@@ -135,6 +135,12 @@ pub struct Palette {
     pub red: [f32; 3],
     /// Green markers.
     pub green: [f32; 3],
+    /// `dark` markers (drawn on [`Palette::lit_background`]).
+    pub dark: [f32; 3],
+    /// `bright` markers (light pins on the dark background).
+    pub bright: [f32; 3],
+    /// The lit gel a sensor with `dark` layers shows instead of `background`.
+    pub lit_background: [f32; 3],
 }
 
 impl Default for Palette {
@@ -147,6 +153,9 @@ impl Default for Palette {
             blue: [0.10, 0.20, 0.90],
             red: [0.90, 0.12, 0.10],
             green: [0.12, 0.85, 0.18],
+            dark: [0.06, 0.06, 0.07],
+            bright: [0.85, 0.86, 0.88],
+            lit_background: [0.82, 0.80, 0.78],
         }
     }
 }
@@ -158,7 +167,21 @@ impl Palette {
             MarkerColor::Blue => self.blue,
             MarkerColor::Red => self.red,
             MarkerColor::Green => self.green,
+            MarkerColor::Dark => self.dark,
+            MarkerColor::Bright => self.bright,
         }
+    }
+
+    /// The palette for `sensor`: the default, except that a sensor with a `dark`
+    /// layer is seen against the lit gel (dark markers on a dark background would be
+    /// invisible). Sensors of coloured and bright layers keep the dark background, so
+    /// their frames are unchanged.
+    pub fn for_sensor(sensor: &Sensor) -> Palette {
+        let mut p = Palette::default();
+        if sensor.layers.iter().any(|l| l.color == MarkerColor::Dark) {
+            p.background = p.lit_background;
+        }
+        p
     }
 }
 
@@ -209,9 +232,10 @@ pub struct Renderer {
 }
 
 impl Renderer {
-    /// A renderer for `sensor` with the default [`Palette`].
+    /// A renderer for `sensor` with [`Palette::for_sensor`] (the default palette,
+    /// with the lit gel behind `dark` layers).
     pub fn new(sensor: &Sensor) -> Self {
-        Self::with_palette(sensor, Palette::default())
+        Self::with_palette(sensor, Palette::for_sensor(sensor))
     }
 
     /// A renderer with explicit colours.

@@ -47,6 +47,7 @@
 //! | `blur` | `sigma_px = { <layer name> = σ, … }` (px; unlisted layers stay sharp) |
 //! | `illumination` | `gradient = [g_x, g_y]` (relative gain change across the image) |
 //! | `vignetting` | `strength` (relative loss at the farthest corner), optional `center_px` |
+//! | `glare` | `center_px = [x, y]`, `sigma_px` (Gaussian σ of the bright spot), `amplitude` (level added at its centre, in [0, 1]) |
 //! | `size_jitter` | `sigma_mm` (marker diameter σ), `seed` |
 //! | `placement_jitter` | `sigma_mm` (per-axis marker position σ), `seed` |
 //! | `shift` | `shift_px = [dx, dy]` (whole image, loaded frames only) |
@@ -78,7 +79,7 @@
 //!
 //! Marker-level effects (`size_jitter`, `placement_jitter`, `shift`, `drift`, `blur`,
 //! the camera effects)
-//! must come before image effects (`illumination`, `vignetting`, `shot_noise`,
+//! must come before image effects (`illumination`, `vignetting`, `glare`, `shot_noise`,
 //! `pixel_noise`, `quantize8`, `occlusion`).
 //!
 //! Effects of the simulated bench (`tactbench sim bench`, `tactbench run --sim`), all
@@ -408,6 +409,11 @@ enum RawEffect {
         strength: f64,
         center_px: Option<[f64; 2]>,
     },
+    Glare {
+        center_px: [f64; 2],
+        sigma_px: f64,
+        amplitude: f64,
+    },
     SizeJitter {
         sigma_mm: f64,
         seed: u64,
@@ -707,6 +713,15 @@ impl RawScene {
                 } => Effect::Vignetting {
                     strength,
                     center_px,
+                },
+                RawEffect::Glare {
+                    center_px,
+                    sigma_px,
+                    amplitude,
+                } => Effect::Glare {
+                    center_px,
+                    sigma_px,
+                    amplitude,
                 },
                 RawEffect::SizeJitter { sigma_mm, seed } => Effect::SizeJitter { sigma_mm, seed },
                 RawEffect::PlacementJitter { sigma_mm, seed } => {

@@ -16,9 +16,10 @@
 
 use super::camera::PixelMapping;
 use super::image::FrameView;
-use super::window::{score, score_weights, Located, Raw, Sample, Window};
+use super::contrast;
+use super::window::{score, score_bias, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
-use crate::sensor::{MarkerColor, Sensor};
+use crate::sensor::{MarkerColor, Roi, Sensor};
 
 /// Options of [`detect`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -123,6 +124,9 @@ pub struct Reference {
     /// peaks and background scores above are in that image's levels; the tracker
     /// rescales them (× 257 or ÷ 257) for a frame of the other depth.
     pub bit_depth: u32,
+    /// The sensor file's `[camera] roi_px`: markers were sought only inside it, and the
+    /// tracker reports a marker whose window crosses its border `lost`.
+    pub roi_px: Option<Roi>,
 }
 
 macro_rules! with_raw {
@@ -213,7 +217,8 @@ pub fn detect_mapped(
         let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
         let used: Vec<MarkerColor> = sensor.layers.iter().map(|l| l.color).collect();
         let weights = score_weights(layer.color, &used);
-        let found = with_raw!(view, img => detect_layer(img, weights, expected_r, config));
+        let found =
+            with_raw!(view, img => detect_layer(img, layer.color, weights, expected_r, sensor.camera.roi_px.as_ref(), config));
         layers.push(LayerReference {
             name: layer.name.clone(),
             color: layer.color,
@@ -307,6 +312,7 @@ pub fn detect_mapped(
         missing,
         unmatched,
         bit_depth: view.bit_depth(),
+        roi_px: sensor.camera.roi_px,
     })
 }
 
@@ -318,11 +324,19 @@ fn kth(v: &mut [i32], k: usize) -> i32 {
 
 fn detect_layer<T: Sample, const C: usize>(
     img: Raw<'_, T, C>,
+    color: MarkerColor,
     weights: [i32; 3],
     expected_radius_px: Option<f64>,
+    roi: Option<&Roi>,
     config: &DetectConfig,
 ) -> LayerBlobs {
     let (w, h) = (img.width, img.height);
+    // Pixels whose centre lies inside the ROI (all without one).
+    let inside: Option<Vec<bool>> = roi.map(|r| {
+        (0..w * h)
+            .map(|i| r.contains([(i % w) as f64, (i / w) as f64]))
+            .collect()
+    });
     let score: Vec<i32> = img
         .data
         .chunks_exact(C)
@@ -337,27 +351,92 @@ fn detect_layer<T: Sample, const C: usize>(
             background_score: 0.0,
         };
     }
-    let mut tmp = score.clone();
-    let n = tmp.len();
-    let median = kth(&mut tmp, n / 2);
+    // The values the statistics see (inside the ROI), and the map the blobs are found
+    // in, with every pixel outside the ROI below any threshold.
+    let inside_values = |m: &[i32]| -> Vec<i32> {
+        match &inside {
+            Some(mask) => m.iter().zip(mask).filter(|(_, &i)| i).map(|(&v, _)| v).collect(),
+            None => m.to_vec(),
+        }
+    };
+    let masked = |m: Vec<i32>| -> Vec<i32> {
+        match &inside {
+            Some(mask) => m
+                .into_iter()
+                .zip(mask)
+                .map(|(v, &i)| if i { v } else { i32::MIN })
+                .collect(),
+            None => m,
+        }
+    };
+    let mut score_values = inside_values(&score);
+    if score_values.is_empty() {
+        return LayerBlobs {
+            blobs: Vec::new(),
+            marker_radius_px: expected_radius_px.unwrap_or(1.0),
+            aperture_radius_px: config.aperture_radius_px.unwrap_or(1.0),
+            spacing_px: f64::INFINITY,
+            background_score: 0.0,
+        };
+    }
+    let half = score_values.len() / 2;
+    let score_median = kth(&mut score_values, half) as f64;
     let empty = |r: f64| LayerBlobs {
         blobs: Vec::new(),
         marker_radius_px: r,
         aperture_radius_px: config.aperture_radius_px.unwrap_or(r + 1.5),
         spacing_px: f64::INFINITY,
-        background_score: median as f64,
+        background_score: score_median,
     };
-    let peak = kth(&mut tmp, n.saturating_sub(20));
-    for v in tmp.iter_mut() {
-        *v = (*v - median).abs();
-    }
-    let mad = kth(&mut tmp, n / 2);
-    let noise = (1.4826 * mad as f64).max(1.0);
-    let (b, p) = (median as f64, peak as f64);
-    if p - b <= 8.0 * noise {
-        return empty(expected_radius_px.unwrap_or(1.0));
-    }
-    let threshold = (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32;
+    // The map blobs are found in, its median and the threshold: the colour score itself
+    // for colour layers (their score cancels grey illumination), the contrast against
+    // the local illumination for brightness layers (their score does not; `contrast.rs`).
+    let (map, median, threshold) = if color.is_brightness() {
+        let noise = contrast::score_noise(&score, w, inside.as_deref());
+        let min_contrast = contrast::min_contrast::<T>(color);
+        let stats = |m: &[i32], map_per_score: f64| {
+            contrast::threshold(&inside_values(m), noise * map_per_score, min_contrast)
+        };
+        let size = match expected_radius_px {
+            Some(r) => contrast::element_size(r),
+            None => {
+                // Marker size unknown (no grid): a first pass with a long element
+                // measures it, the second uses the element that follows from it.
+                let first_size = contrast::default_element_size(w, h);
+                let (first, k) = contrast::contrast_map::<T>(&score, w, h, color, first_size);
+                let r = stats(&first, k).and_then(|t| {
+                    contrast::blob_radius(&masked(first), w, h, &t)
+                });
+                match r {
+                    Some(r) => contrast::element_size(r),
+                    None => return empty(1.0),
+                }
+            }
+        };
+        let (m, k) = contrast::contrast_map::<T>(&score, w, h, color, size);
+        let Some(t) = stats(&m, k) else {
+            return empty(expected_radius_px.unwrap_or(1.0));
+        };
+        (masked(m), t.median, t.threshold)
+    } else {
+        let mut tmp = inside_values(&score);
+        let n = tmp.len();
+        let median = kth(&mut tmp, n / 2);
+        let peak = kth(&mut tmp, n.saturating_sub(20));
+        for v in tmp.iter_mut() {
+            *v = (*v - median).abs();
+        }
+        let mad = kth(&mut tmp, n / 2);
+        let noise = (1.4826 * mad as f64).max(1.0);
+        let (b, p) = (median as f64, peak as f64);
+        if p - b <= 8.0 * noise {
+            return empty(expected_radius_px.unwrap_or(1.0));
+        }
+        let threshold = (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32;
+        (masked(score.clone()), median, threshold)
+    };
+    let map = &map[..];
+    let b = median as f64;
 
     // 8-connected components above the threshold (flood fill with an explicit stack).
     struct Comp {
@@ -367,11 +446,12 @@ fn detect_layer<T: Sample, const C: usize>(
         sy: f64,
         peak: i32,
     }
+    let n = map.len();
     let mut label = vec![false; n];
     let mut comps = Vec::new();
     let mut stack = Vec::new();
     for start in 0..n {
-        if label[start] || score[start] <= threshold {
+        if label[start] || map[start] <= threshold {
             continue;
         }
         label[start] = true;
@@ -385,12 +465,12 @@ fn detect_layer<T: Sample, const C: usize>(
         };
         while let Some(i) = stack.pop() {
             let (x, y) = (i % w, i / w);
-            let s = (score[i] - median) as f64;
+            let s = (map[i] - median) as f64;
             c.area += 1;
             c.sum += s;
             c.sx += s * x as f64;
             c.sy += s * y as f64;
-            c.peak = c.peak.max(score[i]);
+            c.peak = c.peak.max(map[i]);
             for dy in -1i64..=1 {
                 for dx in -1i64..=1 {
                     let (nx, ny) = (x as i64 + dx, y as i64 + dy);
@@ -398,7 +478,7 @@ fn detect_layer<T: Sample, const C: usize>(
                         continue;
                     }
                     let j = ny as usize * w + nx as usize;
-                    if !label[j] && score[j] > threshold {
+                    if !label[j] && map[j] > threshold {
                         label[j] = true;
                         stack.push(j);
                     }
@@ -438,7 +518,7 @@ fn detect_layer<T: Sample, const C: usize>(
                 if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 || r > 200 {
                     break;
                 }
-                if (score[y as usize * w + x as usize] as f64) <= level {
+                if (map[y as usize * w + x as usize] as f64) <= level {
                     break;
                 }
                 r += 1;
@@ -481,12 +561,23 @@ fn detect_layer<T: Sample, const C: usize>(
             slope,
         } = window.locate::<T, C>(img, *s, 20, false)
         {
+            if roi.is_some_and(|r| !r.contains(centroid_px)) {
+                continue;
+            }
             let c = [centroid_px[0].round() as i32, centroid_px[1].round() as i32];
             let pk = window.peak::<T, C>(img, c[0], c[1]).unwrap_or(0);
+            // Above the layer's background: the image's median score for colour
+            // layers, the window's own ring level for brightness layers (whose
+            // background varies over the image).
+            let base = if color.is_brightness() {
+                background + score_bias::<T>(&weights) as f64
+            } else {
+                median as f64
+            };
             blobs.push(Blob {
                 centroid_px,
                 signal: m0,
-                peak: (pk - median).max(1) as f64,
+                peak: (pk as f64 - base).max(1.0).round(),
                 background,
                 slope,
             });
@@ -509,6 +600,6 @@ fn detect_layer<T: Sample, const C: usize>(
         marker_radius_px: radius_px,
         aperture_radius_px: aperture,
         spacing_px: spacing,
-        background_score: median as f64,
+        background_score: score_median,
     }
 }

@@ -161,6 +161,19 @@ impl Frame {
 /// Errors (each naming the file): missing or unreadable file, undecodable data,
 /// grayscale or floating-point pixels, a size other than `[camera] width_px × height_px`.
 pub fn load_frame(path: &Path, camera: &CameraMapping) -> Result<Frame, VisionError> {
+    let image = decode(path)?;
+    if image.width() != camera.width_px || image.height() != camera.height_px {
+        return Err(VisionError::WrongSize {
+            path: path.to_path_buf(),
+            found: [image.width(), image.height()],
+            expected: [camera.width_px, camera.height_px],
+        });
+    }
+    Frame::from_dynamic(image, path)
+}
+
+/// Opens and decodes an image file (format guessed from the content).
+fn decode(path: &Path) -> Result<DynamicImage, VisionError> {
     let reader = image::ImageReader::open(path).map_err(|source| VisionError::Open {
         path: path.to_path_buf(),
         source,
@@ -171,16 +184,17 @@ pub fn load_frame(path: &Path, camera: &CameraMapping) -> Result<Frame, VisionEr
             path: path.to_path_buf(),
             source,
         })?;
-    let image = reader.decode().map_err(|e| VisionError::Decode {
+    reader.decode().map_err(|e| VisionError::Decode {
         path: path.to_path_buf(),
         message: e.to_string(),
-    })?;
-    if image.width() != camera.width_px || image.height() != camera.height_px {
-        return Err(VisionError::WrongSize {
-            path: path.to_path_buf(),
-            found: [image.width(), image.height()],
-            expected: [camera.width_px, camera.height_px],
-        });
+    })
+}
+
+impl Frame {
+    /// Reads a PNG, JPEG or BMP colour image of any size (`sensor init`: no sensor
+    /// file yet). Errors name the file: missing or unreadable, undecodable, grayscale
+    /// or floating-point pixels.
+    pub fn open(path: &Path) -> Result<Frame, VisionError> {
+        Frame::from_dynamic(decode(path)?, path)
     }
-    Frame::from_dynamic(image, path)
 }

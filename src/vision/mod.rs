@@ -36,9 +36,11 @@ use thiserror::Error;
 
 pub mod calibrate;
 pub mod camera;
+mod contrast;
 mod detect;
 mod health;
 mod image;
+pub mod onboard;
 mod output;
 mod track;
 mod window;
@@ -137,7 +139,8 @@ pub enum MarkerStatus {
     /// Measured; the displacement is trusted.
     Ok,
     /// Not found: no signal, too weak, outside the image, missing from the reference,
-    /// or its window ended on a blob that belongs to a nearer-predicted neighbour.
+    /// its window crosses the border of the sensor file's `[camera] roi_px`, or its
+    /// window ended on a blob that belongs to a nearer-predicted neighbour.
     Lost,
     /// Its window converged onto the same blob as a neighbour's (or onto a blob with
     /// about twice the reference signal), or another layer's marker overlaps it too

@@ -68,7 +68,7 @@
 use super::camera::PixelMapping;
 use super::detect::{with_raw, Reference};
 use super::image::FrameView;
-use super::window::{search, Foreign, Located, Raw, Sample, Window};
+use super::window::{score_bias, search, Foreign, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::CameraMapping;
@@ -283,6 +283,10 @@ struct LayerState {
     overlap_reach2_px: f64,
     /// The layer's background score in the reference's levels (search threshold base).
     background_score: f64,
+    /// A brightness layer (`dark`/`bright`): the illumination varies over the image,
+    /// so the search threshold starts from each marker's own ring level instead of
+    /// the layer's median score.
+    local_background: bool,
     /// This layer's markers in `Reference::markers`.
     markers: std::ops::Range<usize>,
 }
@@ -350,6 +354,7 @@ impl Tracker {
                 marker_radius_px: l.marker_radius_px,
                 overlap_reach2_px: 0.0,
                 background_score: l.background_score,
+                local_background: l.color.is_brightness(),
                 markers: {
                     let m = &reference.markers;
                     let lo = m.partition_point(|r| r.layer < li);
@@ -492,6 +497,7 @@ impl Tracker {
             self.measure_all(img);
             self.resolve_overlaps(img);
         });
+        self.flag_outside_roi();
         self.resolve_claims();
         self.flag_outliers();
         self.flag_appearance();
@@ -641,8 +647,14 @@ impl Tracker {
                 found = accept(locate(start));
             }
             if found.is_none() {
-                let threshold =
-                    (ls.background_score * k).round() as i32 + (0.4 * peak).round() as i32;
+                let base = if ls.local_background {
+                    // The window's ring level is the linear score; the search reads
+                    // the clamped one, which adds the bias.
+                    (background + score_bias::<T>(&ls.weights) as f64).round() as i32
+                } else {
+                    (ls.background_score * k).round() as i32
+                };
+                let threshold = base + (0.4 * peak).round() as i32;
                 if let Some(seed) =
                     search::<T, C>(img, &ls.weights, start, local.search_half, threshold)
                 {
@@ -747,6 +759,28 @@ impl Tracker {
             }
             if !any {
                 break;
+            }
+        }
+    }
+
+    /// A marker whose window (aperture and background ring) crosses the border of the
+    /// reference's ROI is `lost`: part of what it measured lies where the sensor file
+    /// says nothing is to be trusted (LEDs, the gel's edge, glare).
+    fn flag_outside_roi(&mut self) {
+        let Some(roi) = self.reference.roi_px else {
+            return;
+        };
+        for i in 0..self.out.len() {
+            if self.out[i].status == MarkerStatus::Lost {
+                continue;
+            }
+            let ls = &self.layers[self.reference.markers[i].layer];
+            let reach = ls.window.ring_radius_px() + 1.0;
+            if !roi.contains_disc(self.out[i].centroid_px, reach) {
+                self.out[i] = MarkerTrack {
+                    signal_ratio: self.out[i].signal_ratio,
+                    ..MarkerTrack::LOST
+                };
             }
         }
     }

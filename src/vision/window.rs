@@ -76,6 +76,8 @@ use crate::sensor::MarkerColor;
 pub(crate) trait Sample: Copy {
     /// Score offset `K` (see the module docs): 8 levels of an 8-bit image.
     const OFFSET: i32;
+    /// Full scale: 255 or 65535.
+    const MAX: i32;
     fn value(self) -> i32;
     /// The samples as bytes when they are 8-bit (the SIMD kernel reads only those).
     #[inline(always)]
@@ -86,6 +88,7 @@ pub(crate) trait Sample: Copy {
 
 impl Sample for u8 {
     const OFFSET: i32 = 8;
+    const MAX: i32 = 255;
     #[inline(always)]
     fn value(self) -> i32 {
         self as i32
@@ -98,6 +101,7 @@ impl Sample for u8 {
 
 impl Sample for u16 {
     const OFFSET: i32 = 8 * 257;
+    const MAX: i32 = 65535;
     #[inline(always)]
     fn value(self) -> i32 {
         self as i32
@@ -106,21 +110,33 @@ impl Sample for u16 {
 
 /// Per-channel weights `w` of a layer's colour score `w · (R, G, B)`.
 ///
-/// For colour `c`, with `U` the channels that no layer of the sensor uses:
+/// For colour `c`, with `U` the channels that no coloured layer of the sensor uses:
 /// `w = |U|·e_c − Σ_{u∈U} e_u` when `U` is not empty, else `2·e_c − Σ_{o≠c} e_o`.
 /// The weights sum to zero, so grey light (and uneven grey illumination) scores 0.
 /// Subtracting an unused channel makes the other layers' markers score near 0
 /// instead of strongly negative (a blue+red sensor scores `B − G` and `R − G`): their
 /// pixels then look like background when they come near a window.
+///
+/// Brightness layers score the brightness: `bright` `R + G + B`, `dark`
+/// `−(R + G + B)` (so a dark marker is a positive signal, like every other marker).
+/// Their weights do not sum to zero: the illumination is *not* cancelled by the score
+/// but by the background estimate (the window's ring plane, the detector's local
+/// top-hat; see `detect.rs`). They use no colour channel, so they leave the colour
+/// layers' weights as they were.
 pub(crate) fn score_weights(color: MarkerColor, used: &[MarkerColor]) -> [i32; 3] {
     let idx = |c: MarkerColor| match c {
-        MarkerColor::Red => 0,
-        MarkerColor::Green => 1,
-        MarkerColor::Blue => 2,
+        MarkerColor::Red => Some(0),
+        MarkerColor::Green => Some(1),
+        MarkerColor::Blue => Some(2),
+        MarkerColor::Dark | MarkerColor::Bright => None,
     };
-    let ci = idx(color);
+    let ci = match color {
+        MarkerColor::Dark => return [-1; 3],
+        MarkerColor::Bright => return [1; 3],
+        c => idx(c).unwrap_or(0),
+    };
     let unused: Vec<usize> = (0..3)
-        .filter(|&k| !used.iter().any(|&u| idx(u) == k))
+        .filter(|&k| !used.iter().any(|&u| idx(u) == Some(k)))
         .collect();
     let mut w = [0i32; 3];
     if unused.is_empty() {
@@ -135,10 +151,22 @@ pub(crate) fn score_weights(color: MarkerColor, used: &[MarkerColor]) -> [i32; 3
     w
 }
 
-/// The clamped colour score of one pixel: `max(0, w · (R, G, B) + 2K)`.
+/// The constant added to the linear score before clamping: `2K`, plus `−Σw · max`
+/// when the weights sum below zero (`dark`), so that every pixel of a dark layer
+/// scores in `[0, 3·max + 2K]` instead of clamping to 0. Colour weights sum to 0
+/// and bright weights above it: their bias is the `2K` of the module docs.
+#[inline(always)]
+pub(crate) fn score_bias<T: Sample>(w: &[i32; 3]) -> i32 {
+    let sum = w[0] + w[1] + w[2];
+    2 * T::OFFSET + if sum < 0 { -sum * T::MAX } else { 0 }
+}
+
+/// The clamped colour score of one pixel: `max(0, w · (R, G, B) + bias)`, the bias of
+/// [`score_bias`] (`2K` for colour layers).
 #[inline(always)]
 pub(crate) fn score<T: Sample>(px: &[T], w: &[i32; 3]) -> i32 {
-    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + 2 * T::OFFSET).max(0)
+    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + score_bias::<T>(w))
+        .max(0)
 }
 
 /// `(Σ s, Σ s·i)` over consecutive pixels, `i` counted from 0.
