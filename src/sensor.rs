@@ -615,7 +615,10 @@ impl RawRoi {
             let (lo, hi) = roi.bounds();
             return Err(c.invalid(
                 KEY,
-                format!("{roi} (spans x {}..{} px, y {}..{} px)", lo[0], hi[0], lo[1], hi[1]),
+                format!(
+                    "{roi} (spans x {}..{} px, y {}..{} px)",
+                    lo[0], hi[0], lo[1], hi[1]
+                ),
                 allowed,
             ));
         }

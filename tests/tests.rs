@@ -24,3 +24,4 @@ mod study;
 mod sweeps;
 mod vision;
 mod vision_tracking;
+mod vision_tracking_real;

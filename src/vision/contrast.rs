@@ -75,10 +75,17 @@ pub(crate) fn contrast_map<T: Sample>(
                 .collect();
             let mut lit: Vec<i32> = opening.iter().map(|&o| illumination(o)).collect();
             let n = lit.len();
-            let median = if n == 0 { floor } else { *lit.select_nth_unstable(n / 2).1 };
+            let median = if n == 0 {
+                floor
+            } else {
+                *lit.select_nth_unstable(n / 2).1
+            };
             (map, DARK_UNIT as f64 / median as f64)
         }
-        _ => (score.iter().zip(&opening).map(|(&s, &o)| s - o).collect(), 1.0),
+        _ => (
+            score.iter().zip(&opening).map(|(&s, &o)| s - o).collect(),
+            1.0,
+        ),
     }
 }
 
@@ -140,8 +147,20 @@ impl LineOpening {
         self.padded.extend_from_slice(src);
         self.padded.extend(std::iter::repeat_n(src[n - 1], r));
         let m = self.padded.len();
-        sliding(&self.padded, &mut self.eroded[..m], r, true, &mut self.queue);
-        sliding(&self.eroded[..m], &mut self.dilated[..m], r, false, &mut self.queue);
+        sliding(
+            &self.padded,
+            &mut self.eroded[..m],
+            r,
+            true,
+            &mut self.queue,
+        );
+        sliding(
+            &self.eroded[..m],
+            &mut self.dilated[..m],
+            r,
+            false,
+            &mut self.queue,
+        );
         out.copy_from_slice(&self.dilated[r..r + n]);
     }
 }
@@ -154,7 +173,13 @@ fn filter2(v: &[i32], width: usize, height: usize, r: usize, min: bool) -> Vec<i
     let mut queue = VecDeque::new();
     for y in 0..height {
         let line = &v[y * width..(y + 1) * width];
-        sliding(line, &mut rows[y * width..(y + 1) * width], r, min, &mut queue);
+        sliding(
+            line,
+            &mut rows[y * width..(y + 1) * width],
+            r,
+            min,
+            &mut queue,
+        );
     }
     let mut out = vec![0i32; v.len()];
     let mut col = vec![0i32; height];
@@ -206,12 +231,7 @@ fn sliding(src: &[i32], out: &mut [i32], r: usize, min: bool, queue: &mut VecDeq
 /// threshold `t.threshold`, the area of the component that holds the median pixel
 /// above it (an area-weighted median: noise specks, however many, hold few pixels),
 /// as a disc. `None` when nothing stands out.
-pub(crate) fn blob_radius(
-    map: &[i32],
-    width: usize,
-    height: usize,
-    t: &Threshold,
-) -> Option<f64> {
+pub(crate) fn blob_radius(map: &[i32], width: usize, height: usize, t: &Threshold) -> Option<f64> {
     let threshold = t.threshold;
     let mut label = vec![false; map.len()];
     let mut stack = Vec::new();
@@ -360,7 +380,11 @@ mod tests {
             .collect();
         for r in [0, 1, 2, 5, 30] {
             for min in [true, false] {
-                assert_eq!(filter2(&v, w, h, r, min), naive(&v, w, h, r, min), "r={r} min={min}");
+                assert_eq!(
+                    filter2(&v, w, h, r, min),
+                    naive(&v, w, h, r, min),
+                    "r={r} min={min}"
+                );
             }
         }
     }

@@ -15,8 +15,8 @@
 //! within `match_tolerance` pitches of it (the nearer of two claimants wins).
 
 use super::camera::PixelMapping;
-use super::image::FrameView;
 use super::contrast;
+use super::image::FrameView;
 use super::window::{score, score_bias, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Roi, Sensor};
@@ -217,8 +217,7 @@ pub fn detect_mapped(
         let expected_r = layer.markers.map(|m| 0.5 * m.diameter_mm / mm_per_px);
         let used: Vec<MarkerColor> = sensor.layers.iter().map(|l| l.color).collect();
         let weights = score_weights(layer.color, &used);
-        let found =
-            with_raw!(view, img => detect_layer(img, layer.color, weights, expected_r, sensor.camera.roi_px.as_ref(), config));
+        let found = with_raw!(view, img => detect_layer(img, layer.color, weights, expected_r, sensor.camera.roi_px.as_ref(), config));
         layers.push(LayerReference {
             name: layer.name.clone(),
             color: layer.color,
@@ -355,7 +354,12 @@ fn detect_layer<T: Sample, const C: usize>(
     // in, with every pixel outside the ROI below any threshold.
     let inside_values = |m: &[i32]| -> Vec<i32> {
         match &inside {
-            Some(mask) => m.iter().zip(mask).filter(|(_, &i)| i).map(|(&v, _)| v).collect(),
+            Some(mask) => m
+                .iter()
+                .zip(mask)
+                .filter(|(_, &i)| i)
+                .map(|(&v, _)| v)
+                .collect(),
             None => m.to_vec(),
         }
     };
@@ -404,9 +408,8 @@ fn detect_layer<T: Sample, const C: usize>(
                 // measures it, the second uses the element that follows from it.
                 let first_size = contrast::default_element_size(w, h);
                 let (first, k) = contrast::contrast_map::<T>(&score, w, h, color, first_size);
-                let r = stats(&first, k).and_then(|t| {
-                    contrast::blob_radius(&masked(first), w, h, &t)
-                });
+                let r =
+                    stats(&first, k).and_then(|t| contrast::blob_radius(&masked(first), w, h, &t));
                 match r {
                     Some(r) => contrast::element_size(r),
                     None => return empty(1.0),

@@ -20,9 +20,7 @@ use thiserror::Error;
 use super::detect::{detect, DetectConfig};
 use super::image::FrameView;
 use super::{Pixels, VisionError};
-use crate::sensor::{
-    CameraMapping, Elastomer, Grid, Layer, MarkerColor, ModelKind, Roi, Sensor,
-};
+use crate::sensor::{CameraMapping, Elastomer, Grid, Layer, MarkerColor, ModelKind, Roi, Sensor};
 
 /// What sets the draft's `mm_per_px`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -172,11 +170,12 @@ pub fn sensor_draft(
 ) -> Result<SensorDraft, DraftError> {
     let (w, h) = (view.width_px(), view.height_px());
     if let Some(roi) = &options.roi_px {
-        roi.check_in_image(w, h).map_err(|allowed| DraftError::Roi {
-            path: path.to_path_buf(),
-            roi: *roi,
-            allowed,
-        })?;
+        roi.check_in_image(w, h)
+            .map_err(|allowed| DraftError::Roi {
+                path: path.to_path_buf(),
+                roi: *roi,
+                allowed,
+            })?;
     }
     let (flag, value, unit) = match options.scale {
         Scale::PitchMm(v) => ("--pitch-mm", v, "mm"),
@@ -207,7 +206,12 @@ pub fn sensor_draft(
     if markers_px.is_empty() {
         return Err(no_markers());
     }
-    let full = 3.0 * if view.bit_depth() == 16 { 65535.0 } else { 255.0 };
+    let full = 3.0
+        * if view.bit_depth() == 16 {
+            65535.0
+        } else {
+            255.0
+        };
     let mut peaks: Vec<f64> = reference.markers.iter().map(|m| m.peak).collect();
     let contrast_percent = 100.0 * median(&mut peaks) / full;
     let relative_contrast_percent = (options.color == MarkerColor::Dark).then(|| {
@@ -270,7 +274,10 @@ pub fn roi_arg(roi: &Roi) -> String {
             radius_px,
         } => format!("circle:{},{},{}", center_px[0], center_px[1], radius_px),
         Roi::Rect { min_px, max_px } => {
-            format!("rect:{},{},{},{}", min_px[0], min_px[1], max_px[0], max_px[1])
+            format!(
+                "rect:{},{},{},{}",
+                min_px[0], min_px[1], max_px[0], max_px[1]
+            )
         }
     }
 }
@@ -364,11 +371,8 @@ fn check_levels(view: &FrameView<'_>, roi: Option<&Roi>, path: &Path) -> Result<
     if values.is_empty() {
         return Ok(());
     }
-    let saturated = values
-        .iter()
-        .filter(|v| v.1 as f64 >= 0.98 * max)
-        .count() as f64
-        / values.len() as f64;
+    let saturated =
+        values.iter().filter(|v| v.1 as f64 >= 0.98 * max).count() as f64 / values.len() as f64;
     if saturated > MAX_SATURATED_FRACTION {
         return Err(DraftError::Saturated {
             path: path.to_path_buf(),
@@ -703,7 +707,13 @@ mod tests {
                 max_px: [99.5, 50.0]
             }
         );
-        for bad in ["circle:1,2", "square:1,2,3", "rect:1,2,3,x", "304,250,182", "circle:1,2,inf"] {
+        for bad in [
+            "circle:1,2",
+            "square:1,2,3",
+            "rect:1,2,3,x",
+            "304,250,182",
+            "circle:1,2,inf",
+        ] {
             assert!(parse_roi_arg(bad).is_err(), "{bad}");
         }
         let r = parse_roi_arg("rect:1,2,3,4").unwrap();

@@ -165,8 +165,7 @@ pub(crate) fn score_bias<T: Sample>(w: &[i32; 3]) -> i32 {
 /// [`score_bias`] (`2K` for colour layers).
 #[inline(always)]
 pub(crate) fn score<T: Sample>(px: &[T], w: &[i32; 3]) -> i32 {
-    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + score_bias::<T>(w))
-        .max(0)
+    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + score_bias::<T>(w)).max(0)
 }
 
 /// `(Σ s, Σ s·i)` over consecutive pixels, `i` counted from 0.
