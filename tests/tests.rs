@@ -29,3 +29,5 @@ mod study;
 mod sweeps;
 mod vision;
 mod vision_real;
+mod vision_tracking;
+mod vision_tracking_real;

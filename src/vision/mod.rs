@@ -56,7 +56,9 @@ pub use self::image::{load_frame, Frame, FrameView, Pixels};
 pub use self::output::{
     write_tracks, write_tracks_mapped, write_tracks_mapped_to, write_tracks_to, TRACK_EXTRA_COLUMNS,
 };
-pub use self::track::{MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker};
+pub use self::track::{
+    MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker, DEFAULT_APPEARANCE_TOLERANCE,
+};
 
 /// An error of the vision module. File errors name the file.
 #[derive(Debug, Error)]
@@ -137,13 +139,16 @@ pub enum MarkerStatus {
     /// Measured; the displacement is trusted.
     Ok,
     /// Not found: no signal, too weak, outside the image, missing from the reference,
-    /// or its window crosses the border of the sensor file's `[camera] roi_px`.
+    /// its window crosses the border of the sensor file's `[camera] roi_px`, or its
+    /// window ended on a blob that belongs to a nearer-predicted neighbour.
     Lost,
     /// Its window converged onto the same blob as a neighbour's (or onto a blob with
     /// about twice the reference signal), or another layer's marker overlaps it too
     /// much: two markers merged in the image.
     Merged,
-    /// Found, but its displacement disagrees with its neighbours'.
+    /// Found, but not trusted: its displacement disagrees with its neighbours', or
+    /// its appearance changed against the reference (its signal differs from its
+    /// neighbours': part of it covered, a blob of another size or contrast).
     Outlier,
 }
 

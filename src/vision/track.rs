@@ -23,13 +23,43 @@
 //!   marker's disc left out, together with its images under the disc's point, axis
 //!   and diagonal reflections (`Window::locate_masked`), two sweeps so both use each
 //!   other's corrected positions;
-//! * **merged** — two same-layer neighbours closer than `merge_distance` (default:
-//!   the marker radius), a signal above `merge_signal_ratio` × reference, or a marker
+//! * **one blob, one marker** (global matching) — when two same-layer markers'
+//!   windows end on the same blob (closer than `merge_distance`, default the marker
+//!   radius), the blob is given to the marker whose field-corrected prediction (its
+//!   window start: the prediction moved by the nearest measured neighbour's
+//!   correction) is nearer by at least a quarter of the local spacing (mutual nearest
+//!   neighbours), and the other is **lost**: a neighbour's position is never reported
+//!   as a marker's own. When the blob carries more than 1.2 markers' signal, or is
+//!   about as near to both predictions, both are **merged**;
+//! * **merged** — also a signal above `merge_signal_ratio` × reference, or a marker
 //!   of another layer closer than 0.8 × the sum of the radii (or hiding over 80 % of
 //!   the aperture);
-//! * **outlier** — displacement farther than `outlier_px + 3·spread` from the median
-//!   of its (ok) neighbours' displacements, where `spread` is the median distance of
-//!   the neighbours' displacements from that median (needs ≥ 3 neighbours).
+//! * **outlier** — displacement farther than `tol + 3·spread` from the median of its
+//!   (ok) neighbours' displacements, where `spread` is the median distance of the
+//!   neighbours' displacements from that median (needs ≥ 3 neighbours) and `tol` is
+//!   `outlier_px`, at most a quarter of the local spacing (a marker matched to its
+//!   neighbour's blob is off by a whole spacing, whatever the spacing);
+//! * **outlier** (appearance changed, issue 24) — an ok marker whose signal relative
+//!   to the median of its ok neighbours' signals (relative to their reference
+//!   signals) differs from 1 by more than `appearance_tolerance` (6 %), or by more
+//!   than 5 robust SDs of the frame's relative signals in its layer when those vary
+//!   more: part of it is covered (dust, a shadow, the edge of a patch), or it is a
+//!   blob of another size or contrast than in the reference; its centroid may carry
+//!   a false displacement. Markers measured with another layer's marker masked out
+//!   are not judged. Uniform or smooth illumination changes move the neighbours'
+//!   signals too and flag nothing.
+//!
+//! **Any layout.** Every scale is per marker, from the reference layout around it:
+//! its local spacing is the distance to its nearest same-layer marker at rest; the
+//! search square's half-size is half of it, the acceptance radius that plus the
+//! aperture, and a marker found farther than 0.6 local spacings from both its
+//! prediction and its field-corrected start is lost (the local-spacing gate of the
+//! matching: it sits on a neighbour's blob), the neighbours those within 1.6 local spacings (a square grid's
+//! diagonals, a hexagonal packing's first ring). So hexagonal, perspective-distorted
+//! and irregular layouts of hundreds of markers, found in the reference frame without
+//! a grid in the sensor file, are tracked like the grids: displacements up to about
+//! half the local spacing from the reference alone (per window), larger ones over a
+//! sequence (frame to frame).
 //!
 //! Only ok markers' displacements are meant for the solver. In frame-to-frame mode,
 //! lost and merged markers keep their last good position for the next frame.
@@ -67,8 +97,14 @@ pub struct TrackConfig {
     pub merge_distance_px: Option<f64>,
     /// Base tolerance of the neighbour-consistency check, px (default 3).
     pub outlier_px: f64,
-    /// Half-size of the acquisition search square, px (default: 0.5 × marker spacing).
+    /// Half-size of the acquisition search square, px (default: half the marker's
+    /// local spacing, the distance to its nearest same-layer marker at rest).
     pub search_half_px: Option<f64>,
+    /// A marker whose signal differs from its neighbours' by more than this fraction
+    /// (after the frame's own spread, see the module docs) changed appearance (part of
+    /// it covered, a blob of another size or contrast) and is flagged `outlier`
+    /// (default 0.06; `f64::INFINITY` turns the check off).
+    pub appearance_tolerance: f64,
 }
 
 impl Default for TrackConfig {
@@ -81,6 +117,7 @@ impl Default for TrackConfig {
             merge_distance_px: None,
             outlier_px: 3.0,
             search_half_px: None,
+            appearance_tolerance: DEFAULT_APPEARANCE_TOLERANCE,
         }
     }
 }
@@ -192,11 +229,50 @@ const MIN_VISIBLE: f64 = 0.2;
 /// noise in 8 bits by 0.11 px (mean 0.033 px) at 9 px: not accurate enough to report.
 const MIN_CROSS_LAYER_DISTANCE: f64 = 0.8;
 
+/// Default of [`TrackConfig::appearance_tolerance`].
+pub const DEFAULT_APPEARANCE_TOLERANCE: f64 = 0.06;
+
+/// Two markers on one blob whose signal is at least this multiple of a marker's are
+/// merged in the image (two markers' worth of colour), whoever is nearer.
+const SHARED_BLOB_MERGE_RATIO: f64 = 1.2;
+
+/// A window's result farther than this many local spacings from where the attempt
+/// expected the marker is rejected (matching gate: a neighbour's blob lies about one
+/// spacing away, the marker's own within about half of one).
+const GATE_FRACTION: f64 = 0.6;
+
+/// Two claimants of one blob whose distances from their own predictions differ by
+/// less than this fraction of the local spacing cannot be told apart: both merged.
+const CLAIM_MARGIN: f64 = 0.25;
+
+/// The neighbour-consistency tolerance is at most this fraction of the local spacing
+/// (a marker matched to its neighbour's blob is off by a whole spacing).
+const OUTLIER_SPACING_FRACTION: f64 = 0.25;
+
+/// The appearance check's tolerance is at least this many robust SDs (1.4826 · MAD)
+/// of the frame's relative signals: frames whose markers vary more by nature (real
+/// skins, pins that tilt) are not flagged wholesale.
+const APPEARANCE_SPREAD_FACTOR: f64 = 5.0;
+
+/// Per-marker scales taken from the reference layout around that marker, so layouts
+/// that are perspective-distorted, irregular or hexagonal get the right scale
+/// everywhere (a layer-wide median would be too large on one side of the image and
+/// too small on the other).
+#[derive(Debug, Clone, Copy)]
+struct Local {
+    /// Distance to the nearest same-layer marker at rest, px.
+    spacing_px: f64,
+    /// Half-size of the acquisition search square, px.
+    search_half: i32,
+    /// Square of the farthest accepted distance from the window's start, px².
+    max_jump2: f64,
+    /// Base tolerance of the neighbour-consistency check, px.
+    outlier_px: f64,
+}
+
 struct LayerState {
     window: Window,
     weights: [i32; 3],
-    search_half: i32,
-    max_jump_px: f64,
     merge_distance_px: f64,
     /// Aperture radius, px: a marker of this layer colours at most this far.
     aperture_px: f64,
@@ -230,6 +306,8 @@ pub struct Tracker {
     reference: Reference,
     config: TrackConfig,
     layers: Vec<LayerState>,
+    /// Per-marker scales from the reference layout.
+    local: Vec<Local>,
     neighbours: Vec<[u32; MAX_NEIGHBOURS]>,
     neighbour_count: Vec<u8>,
     /// The nearest other-layer markers at rest, for the overlap check.
@@ -241,6 +319,18 @@ pub struct Tracker {
     /// (reference or last position plus velocity), px.
     predicted_px: Vec<[f64; 2]>,
     out: Vec<MarkerTrack>,
+    /// Each marker's first window start of the current frame: the prediction moved
+    /// by the nearest measured neighbour's correction (the displacement field's local
+    /// estimate), px.
+    field_start_px: Vec<[f64; 2]>,
+    /// Per marker, this frame: measured with other layers' markers masked out.
+    masked: Vec<bool>,
+    /// Per marker, this frame: the verdict of [`Tracker::resolve_claims`].
+    claim: Vec<Claim>,
+    /// Scratch, one value per marker (relative signals of the appearance check).
+    relative: Vec<f64>,
+    /// Scratch, one value per marker (medians and spreads).
+    scratch: Vec<f64>,
     /// The current frame's sample levels per reference level: 1, or 257 / (1/257)
     /// when the frame's bit depth differs from the reference image's.
     level_scale: f64,
@@ -256,33 +346,20 @@ impl Tracker {
             .layers
             .iter()
             .enumerate()
-            .map(|(li, l)| {
-                let spacing = if l.spacing_px.is_finite() {
-                    l.spacing_px
-                } else {
-                    4.0 * l.aperture_radius_px
-                };
-                let search_half = config
-                    .search_half_px
-                    .unwrap_or(0.5 * spacing)
-                    .max(l.aperture_radius_px);
-                LayerState {
-                    window: Window::new(l.aperture_radius_px, l.score_weights),
-                    weights: l.score_weights,
-                    search_half: search_half.round() as i32,
-                    max_jump_px: search_half + l.aperture_radius_px,
-                    merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
-                    aperture_px: l.aperture_radius_px,
-                    marker_radius_px: l.marker_radius_px,
-                    overlap_reach2_px: 0.0,
-                    background_score: l.background_score,
-                    local_background: l.color.is_brightness(),
-                    markers: {
-                        let m = &reference.markers;
-                        let lo = m.partition_point(|r| r.layer < li);
-                        lo..lo + m[lo..].partition_point(|r| r.layer == li)
-                    },
-                }
+            .map(|(li, l)| LayerState {
+                window: Window::new(l.aperture_radius_px, l.score_weights),
+                weights: l.score_weights,
+                merge_distance_px: config.merge_distance_px.unwrap_or(l.marker_radius_px),
+                aperture_px: l.aperture_radius_px,
+                marker_radius_px: l.marker_radius_px,
+                overlap_reach2_px: 0.0,
+                background_score: l.background_score,
+                local_background: l.color.is_brightness(),
+                markers: {
+                    let m = &reference.markers;
+                    let lo = m.partition_point(|r| r.layer < li);
+                    lo..lo + m[lo..].partition_point(|r| r.layer == li)
+                },
             })
             .collect();
         let max_support = layers
@@ -295,9 +372,8 @@ impl Tracker {
         let m = &reference.markers;
         let mut neighbours = vec![[0u32; MAX_NEIGHBOURS]; m.len()];
         let mut neighbour_count = vec![0u8; m.len()];
+        let mut local = Vec::with_capacity(m.len());
         for (i, a) in m.iter().enumerate() {
-            let spacing = reference.layers[a.layer].spacing_px;
-            let radius = 1.6 * spacing;
             let mut near: Vec<(f64, usize)> = m
                 .iter()
                 .enumerate()
@@ -307,10 +383,37 @@ impl Tracker {
                         .hypot(a.centroid_px[1] - b.centroid_px[1]);
                     (d, j)
                 })
-                .filter(|(d, _)| *d <= radius)
                 .collect();
             near.sort_by(|x, y| x.0.total_cmp(&y.0));
-            for (k, (_, j)) in near.iter().take(MAX_NEIGHBOURS).enumerate() {
+            let l = &reference.layers[a.layer];
+            // The nearest same-layer marker sets this marker's scale; a marker alone
+            // in its layer takes the layer's (or four apertures).
+            let spacing = near
+                .first()
+                .map(|n| n.0)
+                .filter(|d| d.is_finite() && *d > 0.0)
+                .or_else(|| l.spacing_px.is_finite().then_some(l.spacing_px))
+                .unwrap_or(4.0 * l.aperture_radius_px);
+            let search_half = config
+                .search_half_px
+                .unwrap_or(0.5 * spacing)
+                .max(l.aperture_radius_px);
+            let max_jump = search_half + l.aperture_radius_px;
+            local.push(Local {
+                spacing_px: spacing,
+                search_half: search_half.round() as i32,
+                max_jump2: max_jump * max_jump,
+                outlier_px: config.outlier_px.min(OUTLIER_SPACING_FRACTION * spacing),
+            });
+            // Neighbours: within 1.6 local spacings (a square grid's diagonals, a
+            // hexagonal packing's first ring), the nearest first.
+            let radius = 1.6 * spacing;
+            for (k, (_, j)) in near
+                .iter()
+                .take_while(|(d, _)| *d <= radius)
+                .take(MAX_NEIGHBOURS)
+                .enumerate()
+            {
                 neighbours[i][k] = *j as u32;
                 neighbour_count[i] = k as u8 + 1;
             }
@@ -335,6 +438,12 @@ impl Tracker {
             velocity_px: vec![[0.0; 2]; m.len()],
             predicted_px: vec![[0.0; 2]; m.len()],
             out: vec![MarkerTrack::LOST; m.len()],
+            field_start_px: vec![[0.0; 2]; m.len()],
+            masked: vec![false; m.len()],
+            claim: vec![Claim::Keep; m.len()],
+            relative: vec![0.0; m.len()],
+            scratch: vec![0.0; m.len()],
+            local,
             reference,
             config,
             layers,
@@ -389,8 +498,9 @@ impl Tracker {
             self.resolve_overlaps(img);
         });
         self.flag_outside_roi();
-        self.flag_merged();
+        self.resolve_claims();
         self.flag_outliers();
+        self.flag_appearance();
         if self.config.mode == TrackMode::FrameToFrame {
             for i in 0..self.out.len() {
                 let t = &self.out[i];
@@ -461,9 +571,11 @@ impl Tracker {
         let k = self.level_scale;
         let ls = &self.layers[layer];
         let range = ls.markers.clone();
-        let search_half2 = (ls.search_half * ls.search_half) as f64;
         for i in range {
             let r = &self.reference.markers[i];
+            let local = self.local[i];
+            let search_half2 = (local.search_half * local.search_half) as f64;
+            self.masked[i] = false;
             let start = match cfg.mode {
                 TrackMode::PerWindow => r.centroid_px,
                 TrackMode::FrameToFrame => [
@@ -490,7 +602,7 @@ impl Tracker {
             let (signal, peak, background) = (r.signal * k, r.peak * k, r.background * k);
             let slope = [r.background_slope[0] * k, r.background_slope[1] * k];
             let min_signal = cfg.min_signal_ratio * signal;
-            let max_jump2 = ls.max_jump_px * ls.max_jump_px;
+            let max_jump2 = local.max_jump2;
             let max_background_change = 0.05 * peak;
             let ring_px = ls.window.ring_radius_px();
             // Linear score first (fast); when the ring's background plane moved away
@@ -526,6 +638,7 @@ impl Tracker {
                 }
                 _ => None,
             };
+            self.field_start_px[i] = hint.unwrap_or(start);
             let mut found = None;
             if let Some(h) = hint {
                 found = accept(locate(h));
@@ -543,7 +656,7 @@ impl Tracker {
                 };
                 let threshold = base + (0.4 * peak).round() as i32;
                 if let Some(seed) =
-                    search::<T, C>(img, &ls.weights, start, ls.search_half, threshold)
+                    search::<T, C>(img, &ls.weights, start, local.search_half, threshold)
                 {
                     found = accept(locate(seed));
                 }
@@ -619,7 +732,8 @@ impl Tracker {
                         .locate_masked::<T, C>(img, c, self.config.max_iterations, &masks[..n])
                 };
                 let start = self.predicted_px[i];
-                let max_jump2 = ls.max_jump_px * ls.max_jump_px;
+                let max_jump2 = self.local[i].max_jump2;
+                self.masked[i] = true;
                 self.out[i] = match found {
                     Some(f)
                         if !too_close
@@ -671,35 +785,154 @@ impl Tracker {
         }
     }
 
-    fn flag_merged(&mut self) {
+    /// One blob, one marker: finds markers of a layer whose windows converged onto
+    /// the same blob (closer than the merge distance) and decides per pair. A blob
+    /// with more than one marker's signal (`SHARED_BLOB_MERGE_RATIO`), or one that is
+    /// about as near to both markers' field-corrected predictions (within
+    /// `CLAIM_MARGIN` local spacings), holds two merged markers; otherwise it belongs
+    /// to the marker whose prediction is nearer (mutual nearest neighbours) and the
+    /// other one is lost: its own blob was not found, and a neighbour's position is
+    /// never reported as its. A signal above `merge_signal_ratio` is merged as before.
+    fn resolve_claims(&mut self) {
         let ratio = self.config.merge_signal_ratio;
+        for c in &mut self.claim {
+            *c = Claim::Keep;
+        }
         for i in 0..self.out.len() {
-            if self.out[i].status == MarkerStatus::Lost {
+            let a = self.out[i];
+            if a.status == MarkerStatus::Lost {
                 continue;
             }
+            // Local-spacing gate: a blob farther than `GATE_FRACTION` local spacings
+            // from both the prediction and the field-corrected start is a
+            // neighbour's, not this marker's.
+            let gate2 = (GATE_FRACTION * self.local[i].spacing_px).powi(2);
+            if dist2(a.centroid_px, self.predicted_px[i]) > gate2
+                && dist2(a.centroid_px, self.field_start_px[i]) > gate2
+            {
+                self.claim[i] = self.claim[i].max(Claim::Lost);
+            }
+            if a.signal_ratio > ratio {
+                self.claim[i] = self.claim[i].max(Claim::Merged);
+            }
             let ls = &self.layers[self.reference.markers[i].layer];
-            let a = self.out[i].centroid_px;
-            let mut merged = self.out[i].signal_ratio > ratio;
+            let md2 = ls.merge_distance_px * ls.merge_distance_px;
             for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
-                let b = &self.out[j as usize];
-                if b.status != MarkerStatus::Lost
-                    && dist2(a, b.centroid_px) < ls.merge_distance_px * ls.merge_distance_px
-                {
-                    merged = true;
+                let j = j as usize;
+                let b = self.out[j];
+                if b.status == MarkerStatus::Lost || dist2(a.centroid_px, b.centroid_px) >= md2 {
+                    continue;
+                }
+                let (ci, cj) = self.decide_claim(i, j);
+                self.claim[i] = self.claim[i].max(ci);
+                self.claim[j] = self.claim[j].max(cj);
+            }
+        }
+        for (t, c) in self.out.iter_mut().zip(&self.claim) {
+            match c {
+                Claim::Keep => {}
+                Claim::Lost => *t = MarkerTrack::LOST,
+                Claim::Merged => t.status = MarkerStatus::Merged,
+            }
+        }
+    }
+
+    /// The verdicts for markers `i` and `j` found on one blob (see
+    /// [`Tracker::resolve_claims`]); symmetric in `i` and `j`.
+    fn decide_claim(&self, i: usize, j: usize) -> (Claim, Claim) {
+        let (a, b) = (&self.out[i], &self.out[j]);
+        if a.status == MarkerStatus::Merged
+            || b.status == MarkerStatus::Merged
+            || a.signal_ratio.max(b.signal_ratio) >= SHARED_BLOB_MERGE_RATIO
+        {
+            return (Claim::Merged, Claim::Merged);
+        }
+        let blob = [
+            0.5 * (a.centroid_px[0] + b.centroid_px[0]),
+            0.5 * (a.centroid_px[1] + b.centroid_px[1]),
+        ];
+        let di = dist2(blob, self.field_start_px[i]).sqrt();
+        let dj = dist2(blob, self.field_start_px[j]).sqrt();
+        let margin = CLAIM_MARGIN * self.local[i].spacing_px.min(self.local[j].spacing_px);
+        if (di - dj).abs() < margin {
+            (Claim::Merged, Claim::Merged)
+        } else if di < dj {
+            (Claim::Keep, Claim::Lost)
+        } else {
+            (Claim::Lost, Claim::Keep)
+        }
+    }
+
+    /// Flags `outlier` every ok marker whose signal, relative to the median of its ok
+    /// neighbours' (at least 3; else of its layer's), differs from 1 by more than
+    /// `appearance_tolerance`, or by more than `APPEARANCE_SPREAD_FACTOR` robust SDs of
+    /// the layer's relative signals in this frame when those vary more: the marker
+    /// changed appearance against the reference (part of it covered, another size or
+    /// contrast), so its centroid may carry a false displacement. Markers measured
+    /// with another layer's marker masked out are not judged (their signal counts only
+    /// the visible part).
+    fn flag_appearance(&mut self) {
+        let tol = self.config.appearance_tolerance;
+        if tol.is_nan() || tol == f64::INFINITY {
+            return;
+        }
+        for li in 0..self.layers.len() {
+            let range = self.layers[li].markers.clone();
+            let eligible = |out: &[MarkerTrack], masked: &[bool], i: usize| {
+                out[i].status == MarkerStatus::Ok && !masked[i] && out[i].signal_ratio > 0.0
+            };
+            let mut n = 0;
+            for i in range.clone() {
+                if eligible(&self.out, &self.masked, i) {
+                    self.scratch[n] = self.out[i].signal_ratio;
+                    n += 1;
                 }
             }
-            if merged {
-                self.out[i].status = MarkerStatus::Merged;
+            if n < 3 {
+                continue;
+            }
+            let layer_median = median_select(&mut self.scratch[..n]);
+            let mut m = 0;
+            for i in range.clone() {
+                self.relative[i] = f64::NAN;
+                if !eligible(&self.out, &self.masked, i) {
+                    continue;
+                }
+                let mut v = [0.0f64; MAX_NEIGHBOURS];
+                let mut k = 0;
+                for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
+                    if eligible(&self.out, &self.masked, j as usize) {
+                        v[k] = self.out[j as usize].signal_ratio;
+                        k += 1;
+                    }
+                }
+                let typical = if k >= 3 {
+                    median(&mut v[..k])
+                } else {
+                    layer_median
+                };
+                let rel = self.out[i].signal_ratio / typical - 1.0;
+                self.relative[i] = rel;
+                self.scratch[m] = rel.abs();
+                m += 1;
+            }
+            let spread = 1.4826 * median_select(&mut self.scratch[..m]);
+            let limit = tol.max(APPEARANCE_SPREAD_FACTOR * spread);
+            for i in range {
+                // NaN (not judged) compares false.
+                if self.relative[i].abs() > limit {
+                    self.out[i].status = MarkerStatus::Outlier;
+                }
             }
         }
     }
 
     fn flag_outliers(&mut self) {
-        let tol = self.config.outlier_px;
         for i in 0..self.out.len() {
             if self.out[i].status != MarkerStatus::Ok {
                 continue;
             }
+            let tol = self.local[i].outlier_px;
             let u = self.out[i].displacement_px;
             let mut ux = [0.0f64; MAX_NEIGHBOURS];
             let mut uy = [0.0f64; MAX_NEIGHBOURS];
@@ -770,6 +1003,32 @@ fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
 #[inline]
 fn same_pixel(a: [f64; 2], b: [f64; 2]) -> bool {
     a[0].round() == b[0].round() && a[1].round() == b[1].round()
+}
+
+/// Median of a slice of any length (reorders it; NaN-free input). Selection, not a
+/// sort: one layer's worth of values per frame.
+fn median_select(v: &mut [f64]) -> f64 {
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let (_, hi, _) = v.select_nth_unstable_by(n / 2, f64::total_cmp);
+    let hi = *hi;
+    if n % 2 == 1 {
+        hi
+    } else {
+        let lo = v[..n / 2].iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        0.5 * (lo + hi)
+    }
+}
+
+/// A frame's verdict on one marker's claim to its blob ([`Tracker::resolve_claims`]),
+/// ordered by severity.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Claim {
+    Keep,
+    Lost,
+    Merged,
 }
 
 /// Median of a small slice (reorders it). Insertion sort with a plain `>`: the slices
