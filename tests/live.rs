@@ -1079,3 +1079,70 @@ fn viewer(addr: &str) -> Seen {
         }
     }
 }
+
+/// The provisional verdict the live view shows (`serve --acceptance`) judges the run as
+/// `report --acceptance` does: the same criteria, the same outcomes, the same values.
+#[test]
+fn provisional_verdict_matches_what_report_judges() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = finished_run(tmp.path(), 6);
+    let criteria = util::root("experiments/acceptance_example.toml");
+    let mut s = spawn_serve(
+        &[&run],
+        &[
+            "--addr",
+            "127.0.0.1:0",
+            "--acceptance",
+            criteria.to_str().unwrap(),
+        ],
+    );
+    let mut live = Value::Null;
+    wait_for(60, "the provisional verdict", || {
+        live = state(&s.addr)["verdict"].clone();
+        live["rows"].as_array().is_some_and(|r| !r.is_empty())
+    });
+    let _ = s.child.kill();
+    let _ = s.child.wait();
+    let report_dir = tmp.path().join("report");
+    let o = util::run(&[
+        "report",
+        run.to_str().unwrap(),
+        "--acceptance",
+        criteria.to_str().unwrap(),
+        "--allow-partial",
+        "--out",
+        report_dir.to_str().unwrap(),
+    ]);
+    assert!(
+        o.status.code().is_some_and(|c| c == 0 || c == 1),
+        "{}",
+        util::stderr(&o)
+    );
+    let verdict: Value =
+        serde_json::from_str(&std::fs::read_to_string(report_dir.join("verdict.json")).unwrap())
+            .unwrap();
+    let rows = live["rows"].as_array().unwrap();
+    let judged = verdict["criteria"].as_array().unwrap();
+    assert_eq!(rows.len(), judged.len(), "live {live}\nreport {verdict}");
+    for row in rows {
+        let metric = row["metric"].as_str().unwrap();
+        let r = judged
+            .iter()
+            .find(|c| c["metric"] == metric)
+            .unwrap_or_else(|| panic!("{metric} judged live but not by report"));
+        assert_eq!(
+            row["outcome"], r["outcome"],
+            "{metric}: live {row}, report {r}"
+        );
+        if row["unit"] == r["unit"] {
+            let (a, b) = (row["value"].as_f64(), r["value"].as_f64());
+            if let (Some(a), Some(b)) = (a, b) {
+                assert!(
+                    (a - b).abs() <= 1e-9 * b.abs().max(1.0),
+                    "{metric}: {a} vs {b}"
+                );
+            }
+        }
+    }
+    assert!(live["overall"].is_string(), "{live}");
+}

@@ -378,13 +378,16 @@ mod tests {
         }
         let (c, k) = contrast_map::<u8>(&v, w, h, MarkerColor::Bright, element_size(2.5));
         assert_eq!(k, 1.0);
-        assert_eq!(c[20 * w + 30], 300);
-        // Off the bump the ramp is gone (the opening of a ramp is the ramp), except
-        // within r = 5 px of the right border, where the clipped windows leave the
-        // ramp's rise over the missing part (≤ 5 × 10 levels).
+        // On the bump the larger opening is the horizontal one, which on a ramp takes
+        // the level of the first column past the bump (3 columns right of its centre):
+        // the bump's contrast is measured against its brighter side, 300 - 3 × 10.
+        assert_eq!(c[20 * w + 30], 270);
+        // Off the bump the ramp is gone everywhere, borders included: the vertical
+        // opening of a ramp along x is the ramp itself, and the larger opening is taken.
         assert_eq!(c[5 * w + 5], 0);
         assert_eq!(c[35 * w + 50], 0);
-        assert_eq!(c[35 * w + 59], 50);
+        assert_eq!(c[35 * w + 59], 0);
+        assert!((0..w).all(|x| c[5 * w + x] == 0), "{:?}", &c[5 * w..6 * w]);
     }
 
     #[test]
