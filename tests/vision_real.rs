@@ -248,7 +248,9 @@ fn opencv_reference_agrees_on_real_frames() {
     let Some(dir) = real_frames() else { return };
     let python = std::env::var("TACTBENCH_PYTHON").unwrap_or_else(|_| "python3".into());
     let script = util::root("tests/opencv_ref/detect.py");
-    let cases: [(&str, &str, Option<(&str, &str)>); 4] = [
+    // (frame, color, optional (sensor init --roi, sensor file roi_px))
+    type Case<'a> = (&'a str, &'a str, Option<(&'a str, &'a str)>);
+    let cases: [Case; 4] = [
         ("gelsight_fots/0.png", "dark", None),
         ("gelsight_fots/1.png", "dark", None),
         ("gelsight_bright/raw_1280x720.png", "bright", None),
