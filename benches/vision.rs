@@ -2,7 +2,9 @@
 //! reference detection, and tracking one 8-bit frame per-window and frame-to-frame,
 //! and per-window with the two layers slid into one another (every marker partly
 //! covered: the overlap path, `Window::locate_masked`, runs for all 260).
-//! Frames come from the `sim` ideal renderer with σ = 2 pixel noise added here.
+//! Frames come from the `sim` ideal renderer with σ = 2 pixel noise added here; and
+//! real frames of real sensors (`../shared/real_frames`: TacTip 640×480, GelSight
+//! 1280×720 and 320×240), tracked per window.
 //! Paper (Table II): 2.9 ms for tracking + reconstruction on a 1.8 GHz Pentium 4.
 //!
 //! The tracking benches run twice: timed by the wall clock, and by this thread's CPU
@@ -16,6 +18,8 @@ use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{criterion_group, criterion_main, Criterion};
 #[path = "common/paper_frame.rs"]
 mod paper_frame;
+#[path = "common/real_frames.rs"]
+mod real_frames;
 
 use image::RgbImage;
 use paper_frame::frame;
@@ -58,10 +62,45 @@ impl Measurement for CpuTime {
 fn vision(c: &mut Criterion) {
     detection(c);
     tracking(c, "");
+    real(c, "");
 }
 
 fn vision_cpu(c: &mut Criterion<CpuTime>) {
     tracking(c, "cpu_");
+    real(c, "cpu_");
+}
+
+/// Per-window tracking of real frames (issue 19, part 6; `benches/common/real_frames.rs`):
+/// TacTip 640×480 with ~330 pins (target ≤ 1 ms on one core), the GelSight bright
+/// dots at 1280×720, the FOTS dark dots at 320×240. Skipped, with a message, when
+/// `../shared/real_frames` is absent. The OpenCV pipeline on the same files runs
+/// beside ours in `examples/tracking_side_by_side.rs`.
+fn real<M: Measurement + 'static>(c: &mut Criterion<M>, prefix: &str) {
+    let scratch = std::env::temp_dir().join(format!("tactbench_bench_{}", std::process::id()));
+    let Some(cases) = real_frames::cases(&scratch) else {
+        eprintln!(
+            "{}: real frames absent, real-frame benches skipped",
+            real_frames::dir().display()
+        );
+        return;
+    };
+    for case in &cases {
+        let (_reference, frame, r) = real_frames::load(case);
+        let n = r.markers.len();
+        let mut t = Tracker::new(
+            r,
+            TrackConfig {
+                mode: TrackMode::PerWindow,
+                ..TrackConfig::default()
+            },
+        );
+        let view = frame.view();
+        c.bench_function(
+            &format!("vision/{prefix}track_real_{}_{n}_markers", case.name),
+            |b| b.iter(|| t.track(black_box(&view)).unwrap().len()),
+        );
+    }
+    let _ = std::fs::remove_dir_all(&scratch);
 }
 
 fn detection(c: &mut Criterion) {

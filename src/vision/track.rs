@@ -970,14 +970,7 @@ impl Tracker {
             if fx * fx + fy * fy <= tol * tol {
                 continue;
             }
-            let mx = median(&mut ux[..n]);
-            let my = median(&mut uy[..n]);
-            let mut dev = [0.0f64; MAX_NEIGHBOURS];
-            for k in 0..n {
-                dev[k] = dist2([ux[k], uy[k]], [mx, my]).sqrt();
-            }
-            let spread = median(&mut dev[..n]);
-            if dist2(u, [mx, my]).sqrt() > tol + 3.0 * spread {
+            if displacement_outlier(u, &ux[..n], &uy[..n], tol) {
                 self.out[i].status = MarkerStatus::Outlier;
             }
         }
@@ -1031,10 +1024,29 @@ enum Claim {
     Merged,
 }
 
+/// Whether displacement `u` is an outlier among its neighbours' displacements
+/// `(ux[k], uy[k])` (see the module docs): farther than `tol + 3·spread` from their
+/// component-wise median, `spread` being the median distance of the neighbours' own
+/// displacements — each neighbour's x with its own y — from that median.
+fn displacement_outlier(u: [f64; 2], ux: &[f64], uy: &[f64], tol: f64) -> bool {
+    let n = ux.len().min(uy.len()).min(MAX_NEIGHBOURS);
+    let (mut x, mut y) = ([0.0f64; MAX_NEIGHBOURS], [0.0f64; MAX_NEIGHBOURS]);
+    x[..n].copy_from_slice(&ux[..n]);
+    y[..n].copy_from_slice(&uy[..n]);
+    let m = [median(&mut x[..n]), median(&mut y[..n])];
+    let mut dev = [0.0f64; MAX_NEIGHBOURS];
+    for k in 0..n {
+        dev[k] = dist2([ux[k], uy[k]], m).sqrt();
+    }
+    let spread = median(&mut dev[..n]);
+    dist2(u, m).sqrt() > tol + 3.0 * spread
+}
+
 /// Median of a small slice (reorders it). Insertion sort with a plain `>`: the slices
-/// hold at most `MAX_NEIGHBOURS` finite displacements (of ok markers), where this
-/// beats the general sort's call and dispatch and `total_cmp`'s bit twiddling (three
-/// medians per marker per frame were a third of the frame-to-frame tracking time).
+/// hold at most `MAX_NEIGHBOURS` finite values (neighbours' displacements or signal
+/// ratios), where this beats the general sort's call and dispatch and `total_cmp`'s
+/// bit twiddling (three medians per marker per frame were a third of the
+/// frame-to-frame tracking time; a branch-free rank count was slower still).
 fn median(v: &mut [f64]) -> f64 {
     for i in 1..v.len() {
         let x = v[i];
@@ -1055,7 +1067,7 @@ fn median(v: &mut [f64]) -> f64 {
 
 #[cfg(test)]
 mod tests {
-    use super::median;
+    use super::{displacement_outlier, median};
 
     #[test]
     fn median_of_small_slices_matches_the_sorted_middle() {
@@ -1072,5 +1084,21 @@ mod tests {
             assert_eq!(median(&mut v), e, "{c:?}");
             assert!(v.windows(2).all(|w| w[0] <= w[1]), "{v:?} not sorted");
         }
+    }
+
+    /// Regression: the spread of the neighbours' displacements was taken over the
+    /// x and y components sorted separately (each median sorted its slice in place),
+    /// pairing one neighbour's x with another's y. Three neighbours at rest and one
+    /// moved by (4, −4): their spread is 0 (paired) but was 2 px (x sorted
+    /// [0, 0, 0, 4], y sorted [−4, 0, 0, 0]: pairs (0, −4) and (4, 0) at 4 px), which
+    /// let a marker displaced 2 px against its resting neighbours pass a 1 px tolerance.
+    #[test]
+    fn outlier_spread_pairs_each_neighbours_x_with_its_own_y() {
+        let (ux, uy) = ([0.0, 0.0, 0.0, 4.0], [0.0, 0.0, 0.0, -4.0]);
+        assert!(displacement_outlier([2.0, 0.0], &ux, &uy, 1.0));
+        assert!(!displacement_outlier([0.5, 0.0], &ux, &uy, 1.0));
+        // Order of the neighbours does not matter.
+        let (ux, uy) = ([4.0, 0.0, 0.0, 0.0], [-4.0, 0.0, 0.0, 0.0]);
+        assert!(displacement_outlier([2.0, 0.0], &ux, &uy, 1.0));
     }
 }
