@@ -217,7 +217,12 @@ fn fots_pair_displacements_agree_with_the_fots_tracker_to_about_a_pixel() {
                 .markers
                 .iter()
                 .enumerate()
-                .map(|(k, m)| (k, (m.centroid_px[0] - p0[0]).hypot(m.centroid_px[1] - p0[1])))
+                .map(|(k, m)| {
+                    (
+                        k,
+                        (m.centroid_px[0] - p0[0]).hypot(m.centroid_px[1] - p0[1]),
+                    )
+                })
                 .min_by(|a, b| a.1.total_cmp(&b.1))
                 .unwrap();
             assert!(dist < 7.0, "FOTS marker at {p0:?}: ours {dist:.1} px away");
@@ -232,7 +237,10 @@ fn fots_pair_displacements_agree_with_the_fots_tracker_to_about_a_pixel() {
                     // Only where the window (aperture + 1 px gap + 2 px ring = 11 px
                     // half-size here) crosses the image edge, 1 px slack for rounding.
                     let edge = at1[0].min(319.0 - at1[0]).min(at1[1]).min(239.0 - at1[1]);
-                    assert!(edge < 12.0, "{mode:?}: marker at {p0:?} lost {edge:.1} px from the edge");
+                    assert!(
+                        edge < 12.0,
+                        "{mode:?}: marker at {p0:?} lost {edge:.1} px from the edge"
+                    );
                     continue;
                 }
                 MarkerStatus::Merged => panic!("{mode:?}: marker at {p0:?} merged"),
@@ -280,7 +288,11 @@ fn opencv_track(
         cmd.arg("--roi")
             .args([x.to_string(), y.to_string(), r.to_string()]);
     }
-    let out = cmd.arg(real(reference)).arg(real(frame)).output().expect("run python");
+    let out = cmd
+        .arg(real(reference))
+        .arg(real(frame))
+        .output()
+        .expect("run python");
     assert!(
         out.status.success(),
         "{}",
@@ -357,7 +369,10 @@ fn opencv_tracker_side_by_side_on_the_fots_pair_and_the_tactip_taps() {
     };
     eprintln!("FOTS 0 -> 1, |ours - FOTS|: {}", stats(&mut e_ours));
     eprintln!("FOTS 0 -> 1, |OpenCV - FOTS|: {}", stats(&mut e_cv));
-    eprintln!("FOTS 0 -> 1, |ours - OpenCV| (ok in both): {}", stats(&mut e_both));
+    eprintln!(
+        "FOTS 0 -> 1, |ours - OpenCV| (ok in both): {}",
+        stats(&mut e_both)
+    );
     assert!(quantile(&e_both, 0.5) <= 0.5, "ours and OpenCV disagree");
 
     // TacTip: mean displacement of each tracker's ok pins against the tilt change.
@@ -366,7 +381,10 @@ fn opencv_tracker_side_by_side_on_the_fots_pair_and_the_tactip_taps() {
     let (mut ox, mut oy, mut cx, mut cy, mut d4, mut d5) =
         (vec![], vec![], vec![], vec![], vec![], vec![]);
     for k in 1..=9 {
-        let (a, b) = (format!("tactip/image_{k}.png"), format!("tactip/image_{}.png", k + 1));
+        let (a, b) = (
+            format!("tactip/image_{k}.png"),
+            format!("tactip/image_{}.png", k + 1),
+        );
         let r = reference(&s, &frame(&s, &a));
         let n = r.markers.len();
         let mut t = Tracker::new(r, per_window());
