@@ -578,7 +578,8 @@ fn table_i_bright_marker_under_a_specular_highlight_is_off_by_0_42_px() {
 /// shift carrying the sensor, pixel noise σ = 2, 8-bit) with the paper sensor's blue
 /// layer drawn `dark` on the lit gel under the illumination gradient and the broad
 /// glare (static while the sensor moves), and `bright` under the glare: `run` accepts
-/// the new appearances. Measured (`verdict.json`, `displacement.max_sd_px` /
+/// the new appearances, and an ROI (`roi_px` rectangle 5 px inside the image, for the
+/// dark sensor: every marker's window stays inside it, all 130 ok). Measured (`verdict.json`, `displacement.max_sd_px` /
 /// `max_abs_bias_px`): dark 0.005496 / 0.000119 px, bright 0.004920 / 0.000046 px
 /// (paper sensor 0.014063 / 0.001887 px).
 #[test]
@@ -590,18 +591,21 @@ fn run_table_i_plan_with_dark_and_bright_sensors_under_glare() {
         paper.find("[force_grid]").unwrap(),
     );
     let one_layer = format!("{}{}", &paper[..red], &paper[grid..]);
-    for (color, effects, max_sd) in [
-        ("dark", format!("{GRADIENT}{GLARE}"), 0.0065),
-        ("bright", GLARE.to_string(), 0.006),
+    let roi = "height_px = 340\nroi_px = { min = [5.0, 5.0], max = [425.0, 335.0] }";
+    for (color, effects, roi, max_sd) in [
+        ("dark", format!("{GRADIENT}{GLARE}"), roi, 0.0065),
+        ("bright", GLARE.to_string(), "height_px = 340", 0.006),
     ] {
         let dir = tempfile::tempdir().unwrap();
         let d = dir.path();
         std::fs::write(
             d.join("sensor.toml"),
-            one_layer.replace(
-                "name = \"blue\"\ncolor = \"blue\"",
-                &format!("name = \"dots\"\ncolor = \"{color}\""),
-            ),
+            one_layer
+                .replace(
+                    "name = \"blue\"\ncolor = \"blue\"",
+                    &format!("name = \"dots\"\ncolor = \"{color}\""),
+                )
+                .replace("height_px = 340", roi),
         )
         .unwrap();
         std::fs::write(
@@ -647,6 +651,13 @@ fn run_table_i_plan_with_dark_and_bright_sensors_under_glare() {
             metric("displacement.max_sd_px"),
             metric("displacement.max_abs_bias_px"),
         );
+        let journal = std::fs::read_to_string(d.join("R/journal.csv")).unwrap();
+        let mut lines = journal.lines();
+        let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let ok_col = head.iter().position(|h| *h == "markers_ok").unwrap();
+        for l in lines {
+            assert_eq!(l.split(',').nth(ok_col), Some("130"), "{color}: {l}");
+        }
         eprintln!("run Table I, {color}: max SD {sd:.6} px, max |bias| {bias:.6} px");
         assert!(
             sd <= max_sd && bias <= 0.001,
