@@ -831,7 +831,11 @@ fn blank_reference_is_an_error_naming_the_layers() {
     let s = paper_sensor();
     let img = RgbImage::from_pixel(430, 340, Rgb([12, 12, 12]));
     let e = detect(&FrameView::rgb8(&img), &s, &DetectConfig::default()).unwrap_err();
-    assert!(e.to_string().contains("blue (blue), red (red)"), "{e}");
+    assert!(
+        e.to_string()
+            .contains(r#"blue: layers[0].color = "blue", red: layers[1].color = "red""#),
+        "{e}"
+    );
 }
 
 // ---- command line -------------------------------------------------------------------

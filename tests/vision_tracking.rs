@@ -417,3 +417,251 @@ fn appearance_check_off_reports_edge_markers_ok() {
     eprintln!("check off: {c:?}");
     assert_eq!(c.outlier, 0, "{c:?}");
 }
+
+// ---- Table I for the dark and bright appearances ------------------------------------
+
+/// A one-layer sensor of the paper's geometry (13 × 10 markers of 0.6 mm every
+/// 1.5 mm, 0.05 mm/px, 430 × 340 px) whose markers have the appearance `color`.
+fn table_i_sensor(color: &str) -> Sensor {
+    let text = format!(
+        "[elastomer]\nyoung_modulus_kpa = 1000.0\npoisson_ratio = 0.5\nthickness_mm = 40.0\n\n\
+         [[layers]]\nname = \"markers\"\ncolor = \"{color}\"\ndepth_mm = 3.0\n\
+         [layers.markers]\nnx = 13\nny = 10\npitch_mm = 1.5\norigin_mm = [0.0, 0.0]\ndiameter_mm = 0.6\n\n\
+         [force_grid]\nnx = 10\nny = 8\npitch_mm = 2.2\norigin_mm = [-0.9, -0.95]\n\n\
+         [camera]\nmm_per_px = 0.05\norigin_px = [25.0, 25.0]\nwidth_px = 430\nheight_px = 340\n"
+    );
+    Sensor::from_toml_str(&text, "table1.toml").unwrap()
+}
+
+/// The illumination gradient of the `dark` cases: gain 0.775 … 1.225 across the
+/// image (the lit gel from 0.64 to 1.0 of full scale, as on a GelSight).
+const GRADIENT: &str = "[[effects]]\nkind = \"illumination\"\ngradient = [0.3, 0.15]\n";
+/// A broad glare over the image centre: it saturates the lit gel around four
+/// `dark` markers and lifts four `bright` markers and their background by up to 0.3.
+const GLARE: &str =
+    "[[effects]]\nkind = \"glare\"\ncenter_px = [215.0, 170.0]\nsigma_px = 25.0\namplitude = 0.3\n";
+
+/// Paper Table I with the `sim` renderer: reference and a frame shifted by 3 px
+/// along x (the scene's `shift` effect), no load, 8-bit with pixel noise σ = 2 levels
+/// drawn independently in both (as `experiments/scenes/table1_shift.toml`), plus the
+/// image effects `extra`; tracked per window. Returns the status counts and (mean x,
+/// SD x, SD y, largest error, px) over the ok markers.
+fn table_i_track(color: &str, extra: &str) -> (StatusCounts, (f64, f64, f64, f64)) {
+    use tactbench::sim::{scene::Scene, simulate::Simulation};
+    let s = table_i_sensor(color);
+    let text = format!(
+        "sensor = \"table1.toml\"\n[indenter]\nkind = \"point\"\n[load]\nposition_mm = [9.0, 6.75]\nnormal_force_n = 0.0\n\
+         [[effects]]\nkind = \"shift\"\nshift_px = [3.0, 0.0]\n{extra}\
+         [[effects]]\nkind = \"pixel_noise\"\nsigma_8bit = 2.0\nseed = 1\n[[effects]]\nkind = \"quantize8\"\n"
+    );
+    let scene = Scene::from_toml_str(&text, "table1_scene.toml", s.clone()).unwrap();
+    let mut sim = Simulation::from_scene(&scene);
+    let mut f = sim.blank_frame();
+    sim.render_reference(&mut f).unwrap();
+    let reference = to_rgb8(&f);
+    sim.render_load(&scene.frame_load(1), 1, &mut f).unwrap();
+    let shifted = to_rgb8(&f);
+    let r = reference_of(&reference, &s);
+    assert_eq!((r.markers.len(), r.missing.len()), (130, 0));
+    let mut t = Tracker::new(r, per_window());
+    let tracks = t.track(&FrameView::rgb8(&shifted)).unwrap();
+    let c = StatusCounts::of(tracks, 0);
+    let (ux, uy): (Vec<f64>, Vec<f64>) = tracks
+        .iter()
+        .filter(|t| t.status == MarkerStatus::Ok)
+        .map(|t| (t.displacement_px[0], t.displacement_px[1]))
+        .unzip();
+    let n = ux.len() as f64;
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / n;
+    let sd =
+        |v: &[f64], m: f64| (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+    let (mx, my) = (mean(&ux), mean(&uy));
+    let worst = ux
+        .iter()
+        .zip(&uy)
+        .map(|(x, y)| (x - 3.0).hypot(*y))
+        .fold(0.0, f64::max);
+    let figures = (mx, sd(&ux, mx), sd(&uy, my), worst);
+    eprintln!(
+        "Table I, {color} {}: {c:?}; x {:.4} ± {:.4} px, y SD {:.4} px, largest error {:.3} px",
+        extra.replace('\n', " "),
+        figures.0,
+        figures.1,
+        figures.2,
+        figures.3
+    );
+    (c, figures)
+}
+
+/// As [`table_i_track`], checking that every marker is found and ok.
+fn table_i_figures(color: &str, extra: &str) -> (f64, f64, f64, f64) {
+    let (c, figures) = table_i_track(color, extra);
+    assert_eq!(c.ok, 130, "{color} {extra}: {c:?}");
+    figures
+}
+
+/// `dark` markers on a lit gel with an illumination gradient. Measured: x 3.0001 ±
+/// 0.0054 px, y SD 0.0056 px, largest error 0.026 px (paper sensor on the same
+/// renderer: 2.9991 ± 0.0132 px; the paper: 2.98 ± 0.06 / 3.00 ± 0.09 px).
+#[test]
+fn table_i_dark_markers_under_an_illumination_gradient() {
+    let (mx, sx, sy, worst) = table_i_figures("dark", GRADIENT);
+    assert!((mx - 3.0).abs() <= 0.002, "mean {mx}");
+    assert!(sx <= 0.007 && sy <= 0.007, "SD {sx} / {sy}");
+    assert!(worst <= 0.035, "largest error {worst}");
+}
+
+/// The same with a broad glare saturating the gel around the central markers.
+/// Measured: x 3.0001 ± 0.0056 px, y SD 0.0058 px, largest error 0.026 px: the glare
+/// is static while the markers move, but over a window it is nearly flat or
+/// clipped flat, and the ring plane removes its slope.
+#[test]
+fn table_i_dark_markers_under_a_gradient_and_glare() {
+    let (mx, sx, sy, worst) = table_i_figures("dark", &format!("{GRADIENT}{GLARE}"));
+    assert!((mx - 3.0).abs() <= 0.002, "mean {mx}");
+    assert!(sx <= 0.007 && sy <= 0.007, "SD {sx} / {sy}");
+    assert!(worst <= 0.035, "largest error {worst}");
+}
+
+/// `bright` markers on the dark background. Measured: x 2.9998 ± 0.0047 px, y SD
+/// 0.0049 px, largest error 0.022 px.
+#[test]
+fn table_i_bright_markers() {
+    let (mx, sx, sy, worst) = table_i_figures("bright", "");
+    assert!((mx - 3.0).abs() <= 0.002, "mean {mx}");
+    assert!(sx <= 0.006 && sy <= 0.006, "SD {sx} / {sy}");
+    assert!(worst <= 0.03, "largest error {worst}");
+}
+
+/// `bright` markers under the broad glare. Measured: x 3.0000 ± 0.0048 px, y SD
+/// 0.0049 px, largest error 0.022 px.
+#[test]
+fn table_i_bright_markers_under_glare() {
+    let (mx, sx, sy, worst) = table_i_figures("bright", GLARE);
+    assert!((mx - 3.0).abs() <= 0.002, "mean {mx}");
+    assert!(sx <= 0.006 && sy <= 0.006, "SD {sx} / {sy}");
+    assert!(worst <= 0.03, "largest error {worst}");
+}
+
+/// A small saturating specular highlight (σ 2.5 px, full scale) 2 px right of the
+/// centre of the `dark` marker at (205, 175) px, static while the sensor shifts by
+/// 3 px: it hides a different part of the marker in each frame. Measured before the
+/// highlight check: that marker off by 2.15 px and reported ok (its signal changed
+/// little; 2.15 px is below the neighbour check's 3 px), the layer's SD 0.19 px.
+/// Now it is an `outlier` (a saturated pixel on its disc) and the other 129 markers
+/// keep the figures of the plain case.
+#[test]
+fn table_i_dark_marker_under_a_specular_highlight_is_an_outlier() {
+    let spot = "[[effects]]\nkind = \"glare\"\ncenter_px = [207.0, 175.0]\nsigma_px = 2.5\namplitude = 1.0\n";
+    let (c, (mx, sx, sy, worst)) = table_i_track("dark", &format!("{GRADIENT}{spot}"));
+    assert_eq!((c.ok, c.outlier, c.lost, c.merged), (129, 1, 0, 0), "{c:?}");
+    assert!((mx - 3.0).abs() <= 0.002, "mean {mx}");
+    assert!(sx <= 0.007 && sy <= 0.007, "SD {sx} / {sy}");
+    assert!(worst <= 0.035, "largest error {worst}");
+}
+
+/// The same highlight on a `bright` marker (which may saturate by itself, so no
+/// highlight check applies): measured 0.42 px off, reported ok; the layer's SD
+/// 0.037 px. Asserted as measured, a known limitation (`docs/tracking.md`).
+#[test]
+fn table_i_bright_marker_under_a_specular_highlight_is_off_by_0_42_px() {
+    let spot = "[[effects]]\nkind = \"glare\"\ncenter_px = [207.0, 175.0]\nsigma_px = 2.5\namplitude = 1.0\n";
+    let (c, (_, sx, _, worst)) = table_i_track("bright", spot);
+    assert_eq!(c.ok, 130, "{c:?}");
+    assert!(sx <= 0.04, "SD {sx}");
+    assert!(worst <= 0.45, "largest error {worst}");
+}
+
+/// Paper Table I through `tactbench run --sim` and `tactbench report` (the
+/// committed plan `experiments/table1_displacement.toml` and scene
+/// `experiments/scenes/table1_carried.toml`: 10 trials of a 0.15 mm = 3 px stage
+/// shift carrying the sensor, pixel noise σ = 2, 8-bit) with the paper sensor's blue
+/// layer drawn `dark` on the lit gel under the illumination gradient and the broad
+/// glare (static while the sensor moves), and `bright` under the glare: `run` accepts
+/// the new appearances, and an ROI (`roi_px` rectangle 5 px inside the image, for the
+/// dark sensor: every marker's window stays inside it, all 130 ok). Measured (`verdict.json`, `displacement.max_sd_px` /
+/// `max_abs_bias_px`): dark 0.005496 / 0.000119 px, bright 0.004920 / 0.000046 px
+/// (paper sensor 0.014063 / 0.001887 px).
+#[test]
+fn run_table_i_plan_with_dark_and_bright_sensors_under_glare() {
+    let root = |rel: &str| std::fs::read_to_string(crate::util::root(rel)).unwrap();
+    let paper = root("experiments/paper_sensor.toml");
+    let (red, grid) = (
+        paper.find("[[layers]]\nname = \"red\"").unwrap(),
+        paper.find("[force_grid]").unwrap(),
+    );
+    let one_layer = format!("{}{}", &paper[..red], &paper[grid..]);
+    let roi = "height_px = 340\nroi_px = { min = [5.0, 5.0], max = [425.0, 335.0] }";
+    for (color, effects, roi, max_sd) in [
+        ("dark", format!("{GRADIENT}{GLARE}"), roi, 0.0065),
+        ("bright", GLARE.to_string(), "height_px = 340", 0.006),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        std::fs::write(
+            d.join("sensor.toml"),
+            one_layer
+                .replace(
+                    "name = \"blue\"\ncolor = \"blue\"",
+                    &format!("name = \"dots\"\ncolor = \"{color}\""),
+                )
+                .replace("height_px = 340", roi),
+        )
+        .unwrap();
+        std::fs::write(
+            d.join("plan.toml"),
+            root("experiments/table1_displacement.toml")
+                .replace("sensor = \"paper_sensor.toml\"", "sensor = \"sensor.toml\""),
+        )
+        .unwrap();
+        std::fs::write(
+            d.join("scene.toml"),
+            root("experiments/scenes/table1_carried.toml")
+                .replace(
+                    "sensor = \"../paper_sensor.toml\"",
+                    "sensor = \"sensor.toml\"",
+                )
+                .replacen(
+                    "[[effects]]\nkind = \"pixel_noise\"",
+                    &format!("{effects}\n[[effects]]\nkind = \"pixel_noise\""),
+                    1,
+                ),
+        )
+        .unwrap();
+        let o = crate::util::run_in(
+            d,
+            &["run", "plan.toml", "--sim", "scene.toml", "--out", "R"],
+        );
+        assert!(o.status.success(), "{color}: {}", crate::util::stderr(&o));
+        let o = crate::util::run_in(d, &["report", "R"]);
+        assert!(o.status.success(), "{color}: {}", crate::util::stderr(&o));
+        let verdict: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join("R/verdict.json")).unwrap())
+                .unwrap();
+        let metric = |name: &str| {
+            verdict["metrics"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|m| m["name"] == name)
+                .and_then(|m| m["value"].as_f64())
+                .unwrap_or_else(|| panic!("{color}: no {name} in verdict.json"))
+        };
+        let (sd, bias) = (
+            metric("displacement.max_sd_px"),
+            metric("displacement.max_abs_bias_px"),
+        );
+        let journal = std::fs::read_to_string(d.join("R/journal.csv")).unwrap();
+        let mut lines = journal.lines();
+        let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let ok_col = head.iter().position(|h| *h == "markers_ok").unwrap();
+        for l in lines {
+            assert_eq!(l.split(',').nth(ok_col), Some("130"), "{color}: {l}");
+        }
+        eprintln!("run Table I, {color}: max SD {sd:.6} px, max |bias| {bias:.6} px");
+        assert!(
+            sd <= max_sd && bias <= 0.001,
+            "{color}: SD {sd}, bias {bias}"
+        );
+    }
+}

@@ -143,3 +143,283 @@ fn tactip_mean_pin_displacement_follows_the_robot_tilt() {
     assert!(rx >= 0.58 && ry >= 0.58, "R² {rx} / {ry}");
     assert!(median_share >= 0.93, "median ok share {median_share}");
 }
+
+/// `(Mx + dx, My + dy)` and `(dx, dy)` per row of a FOTS CSV (whole pixels; the same
+/// markers in the same order in `0.csv` and `1.csv`).
+fn fots_rows(rel: &str) -> Vec<([f64; 2], [f64; 2])> {
+    let text = std::fs::read_to_string(real(rel)).unwrap();
+    text.lines()
+        .skip(1)
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.trim().parse().unwrap()).collect();
+            ([v[0] + v[2], v[1] + v[3]], [v[2], v[3]])
+        })
+        .collect()
+}
+
+/// Sorted absolute values' quantile (nearest rank).
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    let k = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+    sorted[k]
+}
+
+/// Issue 19: the FOTS GelSight pair (`gelsight_fots/0.png` → `1.png`, dark dots on a
+/// white gel under coloured LEDs, a dilation with displacements up to 12.2 px, 0.45
+/// of the 27 px spacing) tracked with `color = "dark"`, no grid, from `0.png` as the
+/// reference, against the FOTS project's own Lucas–Kanade tracks: each marker's
+/// displacement should equal `(dx, dy)₁ − (dx, dy)₀` of `1.csv` and `0.csv`. Markers are
+/// matched by position (`(Mx + dx₀, My + dy₀)` is the marker's position in frame 0).
+/// Both CSVs are rounded to whole pixels: their difference alone scatters by a
+/// median |error| of 0.51 px and a 95th percentile of 0.94 px (two uniform roundings
+/// per axis), so that is the best agreement possible.
+///
+/// Measured (both modes give the same): 65 ok, 15 outlier, 19 lost, 0 merged of 99.
+/// * ok: |ours − FOTS| median 0.518 px, p95 0.860 px, max 1.089 px (the rounding
+///   limit);
+/// * ok + outlier (80 found): median 0.503 px, p95 0.860 px; the one beyond 1.1 px
+///   is the dot at (141, 174) px with a specular highlight that changes shape between
+///   the frames (ours +9.4 px in y, FOTS +6; its neighbours above and below moved
+///   11 and 6 px): flagged `outlier`, as are 14 dots stretched or shaded under the
+///   indentation (signal 0.83–1.24 × their neighbours'), whose displacements agree
+///   with FOTS to 1.1 px: not trusted although right (the appearance check cannot
+///   tell a stretched dot from a covered one);
+/// * lost: the 19 dots whose tracking window (11 px half-size) crosses the image edge
+///   in frame 1: the right column (cut by the edge) and the bottom row (moved 2–5 px
+///   down towards the edge).
+#[test]
+fn fots_pair_displacements_agree_with_the_fots_tracker_to_about_a_pixel() {
+    let s = sensor("dark", 320, 240, 1.0 / 19.58, "");
+    let f0 = frame(&s, "gelsight_fots/0.png");
+    let f1 = frame(&s, "gelsight_fots/1.png");
+    let r = reference(&s, &f0);
+    assert_eq!(r.markers.len(), 99);
+    let rows0 = fots_rows("gelsight_fots/0.csv");
+    let rows1 = fots_rows("gelsight_fots/1.csv");
+    assert_eq!((rows0.len(), rows1.len()), (99, 99));
+    for mode in [TrackMode::PerWindow, TrackMode::FrameToFrame] {
+        let mut t = Tracker::new(
+            r.clone(),
+            TrackConfig {
+                mode,
+                ..TrackConfig::default()
+            },
+        );
+        let tracks = t.track(&f1.view()).unwrap().to_vec();
+        let c = StatusCounts::of(&tracks, 0);
+        // |ours − FOTS| of the ok markers and of every found (ok or outlier) marker.
+        let (mut ok, mut found) = (Vec::new(), Vec::new());
+        let mut largest: f64 = 0.0;
+        let mut matched = vec![false; r.markers.len()];
+        for ((p0, d0), (_, d1)) in rows0.iter().zip(&rows1) {
+            // Our reference marker nearest to FOTS's frame-0 position.
+            let (k, dist) = r
+                .markers
+                .iter()
+                .enumerate()
+                .map(|(k, m)| {
+                    (
+                        k,
+                        (m.centroid_px[0] - p0[0]).hypot(m.centroid_px[1] - p0[1]),
+                    )
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap();
+            assert!(dist < 7.0, "FOTS marker at {p0:?}: ours {dist:.1} px away");
+            assert!(!matched[k], "two FOTS markers on our marker {k}");
+            matched[k] = true;
+            let theirs = [d1[0] - d0[0], d1[1] - d0[1]];
+            largest = largest.max(theirs[0].hypot(theirs[1]));
+            let tr = &tracks[k];
+            let at1 = [p0[0] + theirs[0], p0[1] + theirs[1]];
+            match tr.status {
+                MarkerStatus::Lost => {
+                    // Only where the window (aperture + 1 px gap + 2 px ring = 11 px
+                    // half-size here) crosses the image edge, 1 px slack for rounding.
+                    let edge = at1[0].min(319.0 - at1[0]).min(at1[1]).min(239.0 - at1[1]);
+                    assert!(
+                        edge < 12.0,
+                        "{mode:?}: marker at {p0:?} lost {edge:.1} px from the edge"
+                    );
+                    continue;
+                }
+                MarkerStatus::Merged => panic!("{mode:?}: marker at {p0:?} merged"),
+                MarkerStatus::Ok | MarkerStatus::Outlier => {}
+            }
+            let e = (tr.displacement_px[0] - theirs[0]).hypot(tr.displacement_px[1] - theirs[1]);
+            if tr.status == MarkerStatus::Ok {
+                ok.push(e);
+            }
+            found.push(e);
+        }
+        ok.sort_by(f64::total_cmp);
+        found.sort_by(f64::total_cmp);
+        let stats = |v: &[f64]| (quantile(v, 0.5), quantile(v, 0.95), v[v.len() - 1]);
+        let (m_ok, p_ok, w_ok) = stats(&ok);
+        let (m_all, p_all, _) = stats(&found);
+        let what = format!(
+            "FOTS 0 -> 1, {mode:?}: {c:?}; largest FOTS displacement {largest:.1} px; |ours − FOTS| over {} ok: median {m_ok:.3} px, p95 {p_ok:.3} px, max {w_ok:.3} px; over {} found: median {m_all:.3} px, p95 {p_all:.3} px",
+            ok.len(),
+            found.len()
+        );
+        eprintln!("{what}");
+        assert!(found.len() >= 80 && ok.len() >= 65, "{what}");
+        assert!(m_ok <= 0.6 && p_ok <= 1.0 && w_ok <= 1.25, "{what}");
+        assert!(m_all <= 0.6 && p_all <= 1.0, "{what}");
+        // Every disagreement beyond the rounding is flagged, never reported ok.
+        assert!(found.iter().filter(|&&e| e > 1.25).count() <= 1, "{what}");
+    }
+}
+
+/// Runs the OpenCV reference tracker `tests/opencv_ref/track_ref.py` (interpreter:
+/// `TACTBENCH_PYTHON`, default `python3`) from `reference` to `frame`: per reference
+/// blob its position and, unless lost, its position in the frame, px.
+fn opencv_track(
+    appearance: &str,
+    roi: Option<[f64; 3]>,
+    reference: &str,
+    frame: &str,
+) -> Vec<([f64; 2], Option<[f64; 2]>)> {
+    let python = std::env::var("TACTBENCH_PYTHON").unwrap_or_else(|_| "python3".into());
+    let mut cmd = std::process::Command::new(python);
+    cmd.arg(crate::util::root("tests/opencv_ref/track_ref.py"))
+        .args(["--appearance", appearance]);
+    if let Some([x, y, r]) = roi {
+        cmd.arg("--roi")
+            .args([x.to_string(), y.to_string(), r.to_string()]);
+    }
+    let out = cmd
+        .arg(real(reference))
+        .arg(real(frame))
+        .output()
+        .expect("run python");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.rsplitn(6, ',').collect();
+            // Reversed: status, y, x, y_ref, x_ref, frame.
+            let v = |k: usize| f[k].parse::<f64>().unwrap();
+            let at = (f[0] == "ok").then(|| [v(2), v(1)]);
+            ([v(4), v(3)], at)
+        })
+        .collect()
+}
+
+/// The OpenCV reference tracker side by side with ours (issue 19): on the FOTS pair
+/// against the FOTS CSVs, and on the nine TacTip tap pairs against the robot's
+/// tilt. Printed per case: markers matched, |displacement − FOTS| median / p95 /
+/// max, R², ok shares. Run with
+/// `pip install numpy opencv-python-headless` and
+/// `cargo test --test integration opencv_tracker -- --ignored --nocapture`.
+#[test]
+#[ignore = "needs python3 with opencv-python-headless and numpy"]
+fn opencv_tracker_side_by_side_on_the_fots_pair_and_the_tactip_taps() {
+    // FOTS: both trackers against the FOTS CSVs, markers matched by position.
+    let s = sensor("dark", 320, 240, 1.0 / 19.58, "");
+    let r = reference(&s, &frame(&s, "gelsight_fots/0.png"));
+    let mut t = Tracker::new(r.clone(), per_window());
+    let ours = t
+        .track(&frame(&s, "gelsight_fots/1.png").view())
+        .unwrap()
+        .to_vec();
+    let theirs = opencv_track("dark", None, "gelsight_fots/0.png", "gelsight_fots/1.png");
+    let rows0 = fots_rows("gelsight_fots/0.csv");
+    let rows1 = fots_rows("gelsight_fots/1.csv");
+    let (mut e_ours, mut e_cv, mut e_both) = (Vec::new(), Vec::new(), Vec::new());
+    for ((p0, d0), (_, d1)) in rows0.iter().zip(&rows1) {
+        let fots = [d1[0] - d0[0], d1[1] - d0[1]];
+        let near = |q: [f64; 2]| (q[0] - p0[0]).hypot(q[1] - p0[1]);
+        let k = (0..r.markers.len())
+            .min_by(|&a, &b| {
+                near(r.markers[a].centroid_px).total_cmp(&near(r.markers[b].centroid_px))
+            })
+            .unwrap();
+        let mine = (ours[k].status == MarkerStatus::Ok).then_some(ours[k].displacement_px);
+        let cv = theirs
+            .iter()
+            .filter(|(q, _)| near(*q) < 7.0)
+            .min_by(|a, b| near(a.0).total_cmp(&near(b.0)))
+            .and_then(|(q, at)| at.map(|a| [a[0] - q[0], a[1] - q[1]]));
+        let err = |u: [f64; 2], v: [f64; 2]| (u[0] - v[0]).hypot(u[1] - v[1]);
+        if let Some(u) = mine {
+            e_ours.push(err(u, fots));
+        }
+        if let Some(u) = cv {
+            e_cv.push(err(u, fots));
+        }
+        if let (Some(u), Some(v)) = (mine, cv) {
+            e_both.push(err(u, v));
+        }
+    }
+    let stats = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        format!(
+            "{} markers, median {:.3} px, p95 {:.3} px, max {:.3} px",
+            v.len(),
+            quantile(v, 0.5),
+            quantile(v, 0.95),
+            v[v.len() - 1]
+        )
+    };
+    eprintln!("FOTS 0 -> 1, |ours - FOTS|: {}", stats(&mut e_ours));
+    eprintln!("FOTS 0 -> 1, |OpenCV - FOTS|: {}", stats(&mut e_cv));
+    eprintln!(
+        "FOTS 0 -> 1, |ours - OpenCV| (ok in both): {}",
+        stats(&mut e_both)
+    );
+    assert!(quantile(&e_both, 0.5) <= 0.5, "ours and OpenCV disagree");
+
+    // TacTip: mean displacement of each tracker's ok pins against the tilt change.
+    let s = tactip_sensor();
+    let poses = tactip_poses();
+    let (mut ox, mut oy, mut cx, mut cy, mut d4, mut d5) =
+        (vec![], vec![], vec![], vec![], vec![], vec![]);
+    for k in 1..=9 {
+        let (a, b) = (
+            format!("tactip/image_{k}.png"),
+            format!("tactip/image_{}.png", k + 1),
+        );
+        let r = reference(&s, &frame(&s, &a));
+        let n = r.markers.len();
+        let mut t = Tracker::new(r, per_window());
+        let tracks = t.track(&frame(&s, &b).view()).unwrap();
+        let ok: Vec<[f64; 2]> = tracks
+            .iter()
+            .filter(|t| t.status == MarkerStatus::Ok)
+            .map(|t| t.displacement_px)
+            .collect();
+        let cv: Vec<[f64; 2]> = opencv_track("bright", Some([300.0, 245.0, 205.0]), &a, &b)
+            .iter()
+            .filter_map(|(q, at)| at.map(|p| [p[0] - q[0], p[1] - q[1]]))
+            .collect();
+        let n_cv = opencv_track("bright", Some([300.0, 245.0, 205.0]), &a, &b).len();
+        let mean = |v: &[[f64; 2]], c: usize| v.iter().map(|u| u[c]).sum::<f64>() / v.len() as f64;
+        eprintln!(
+            "tap {k} -> {}: ours {}/{n} ok, mean ({:.2}, {:.2}) px; OpenCV {}/{n_cv} ok, mean ({:.2}, {:.2}) px",
+            k + 1,
+            ok.len(),
+            mean(&ok, 0),
+            mean(&ok, 1),
+            cv.len(),
+            mean(&cv, 0),
+            mean(&cv, 1)
+        );
+        ox.push(mean(&ok, 0));
+        oy.push(mean(&ok, 1));
+        cx.push(mean(&cv, 0));
+        cy.push(mean(&cv, 1));
+        d4.push(poses[k][0] - poses[k - 1][0]);
+        d5.push(poses[k][1] - poses[k - 1][1]);
+    }
+    let (rx, ry, cvx, cvy) = (r2(&d5, &ox), r2(&d4, &oy), r2(&d5, &cx), r2(&d4, &cy));
+    eprintln!(
+        "TacTip R² dx~Δpose_5 / dy~Δpose_4: ours {rx:.3} / {ry:.3}, OpenCV {cvx:.3} / {cvy:.3}"
+    );
+    assert!(rx >= 0.58 && ry >= 0.58 && cvx > 0.0 && cvy > 0.0);
+}

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use tactbench::sensor::Sensor;
+use tactbench::vision::onboard::check_frame_levels;
 use tactbench::vision::{calibrate, load_frame, CalibrateConfig};
 
 /// Calibrate the camera from an unloaded reference frame: writes camera.toml.
@@ -73,8 +74,25 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         tangential: args.tangential,
         ..CalibrateConfig::default()
     };
-    let fit = calibrate(&image.view(), &sensor, &config)
-        .with_context(|| format!("calibrating from {}", args.reference.display()))?;
+    let fit = match calibrate(&image.view(), &sensor, &config) {
+        Ok(fit) => fit,
+        Err(e) => {
+            // A blank or saturated reference is the likelier cause: say so first.
+            check_frame_levels(
+                &image.view(),
+                sensor.camera.roi_px.as_ref(),
+                &args.reference,
+            )
+            .with_context(|| format!("calibrating with sensor {}", args.sensor.display()))?;
+            return Err(e).with_context(|| {
+                format!(
+                    "calibrating from {} with sensor {}",
+                    args.reference.display(),
+                    args.sensor.display()
+                )
+            });
+        }
+    };
     let c = &fit.calibration;
     if let Err(why) = c.distortion.check_invertible(c.width_px, c.height_px) {
         anyhow::bail!(

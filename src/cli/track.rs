@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use tactbench::sensor::Sensor;
+use tactbench::vision::onboard::check_frame_levels;
 use tactbench::vision::{
     detect_mapped, load_frame, write_tracks_mapped, CameraCalibration, DetectConfig, PixelMapping,
     ReferenceHealth, StatusCounts, TrackConfig, TrackMode, Tracker,
@@ -122,8 +123,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             eprintln!("  likely {d}");
         }
     }
-    let reference =
-        detected.with_context(|| format!("reference image {}", args.reference.display()))?;
+    if detected.is_err() {
+        // A blank or saturated reference is the likelier cause: say so first.
+        check_frame_levels(
+            &reference_image.view(),
+            sensor.camera.roi_px.as_ref(),
+            &args.reference,
+        )
+        .with_context(|| format!("reference image for sensor {}", args.sensor.display()))?;
+    }
+    let reference = detected.with_context(|| {
+        format!(
+            "reference image {} with sensor {}",
+            args.reference.display(),
+            args.sensor.display()
+        )
+    })?;
     eprintln!(
         "reference {}: {} markers found, {} grid nodes without a marker, {} blobs without a grid node",
         args.reference.display(),

@@ -47,7 +47,7 @@ use super::camera::{BrownConrady, CameraCalibration, LayerCalibration};
 use super::detect::{detect, DetectConfig};
 use super::image::FrameView;
 use super::VisionError;
-use crate::sensor::Sensor;
+use crate::sensor::{MarkerColor, Sensor};
 
 /// Fewest matched markers a layer needs (3 layer parameters, and a margin).
 pub const MIN_MARKERS_PER_LAYER: usize = 6;
@@ -91,10 +91,14 @@ pub enum CalibrationError {
         layer: String,
     },
     /// Too few markers of a layer were found and matched to its grid.
-    #[error("layer {layer}: {found} markers matched to the grid, calibration needs at least {needed} per layer (check the reference frame: unloaded, in focus, the right sensor file)")]
+    #[error("layer {layer} (layers[{index}].color = \"{color}\"): {found} markers matched to the grid, calibration needs at least {needed} per layer (check the reference frame: unloaded, in focus, the right sensor file, the layer's color)")]
     TooFewMarkers {
         /// Layer name.
         layer: String,
+        /// Its index in the sensor file's `[[layers]]`.
+        index: usize,
+        /// Its `color`.
+        color: MarkerColor,
         /// Markers matched.
         found: usize,
         /// Markers needed.
@@ -612,6 +616,8 @@ pub fn calibrate(
         Err(VisionError::NoMarkers { .. }) => {
             return Err(CalibrationError::TooFewMarkers {
                 layer: sensor.layers[0].name.clone(),
+                index: 0,
+                color: sensor.layers[0].color,
                 found: 0,
                 needed: MIN_MARKERS_PER_LAYER,
             })
@@ -645,6 +651,8 @@ pub fn calibrate(
             if found < MIN_MARKERS_PER_LAYER {
                 return Err(CalibrationError::TooFewMarkers {
                     layer: l.name.clone(),
+                    index: li,
+                    color: l.color,
                     found,
                     needed: MIN_MARKERS_PER_LAYER,
                 });

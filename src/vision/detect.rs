@@ -81,6 +81,11 @@ pub struct ReferenceMarker {
     /// radius) is re-measured with the clamped score: another layer's marker is in the
     /// window.
     pub background_slope: [f64; 2],
+    /// A `dark` marker with a specular highlight on it in the reference: a pixel
+    /// within 60 % of its radius of its centroid at ≥ 98 % of full scale. Its reference
+    /// centroid is pulled away from the highlight, so the tracker never reports it
+    /// `ok`. Always `false` for other appearances.
+    pub highlight: bool,
 }
 
 /// A grid node with no marker found near it.
@@ -227,7 +232,10 @@ pub fn detect_mapped(
             background_score: found.background_score,
             score_weights: weights,
         });
+        let inner_px = highlight_radius_px(found.marker_radius_px);
         let to_marker = |b: &Blob, id: u64| ReferenceMarker {
+            highlight: layer.color == MarkerColor::Dark
+                && with_raw!(view, img => highlight_within(&img, b.centroid_px, inner_px)),
             layer: li,
             id,
             centroid_px: b.centroid_px,
@@ -298,7 +306,8 @@ pub fn detect_mapped(
             layers: sensor
                 .layers
                 .iter()
-                .map(|l| format!("{} ({})", l.name, l.color))
+                .enumerate()
+                .map(|(i, l)| format!("{}: layers[{i}].color = \"{}\"", l.name, l.color))
                 .collect::<Vec<_>>()
                 .join(", "),
         });
@@ -313,6 +322,59 @@ pub fn detect_mapped(
         bit_depth: view.bit_depth(),
         roi_px: sensor.camera.roi_px,
     })
+}
+
+/// A sample at or above this share of full scale is saturated: on a `dark` marker, a
+/// specular highlight (the reflection of a light source on the gel).
+pub(crate) const HIGHLIGHT_LEVEL: f64 = 0.98;
+
+/// The radius around a `dark` marker's centroid searched for highlights: 60 % of the
+/// marker's, so that a dot stretched or compressed by the load (0.7–1.3 × on the real
+/// FOTS pair) still covers it and the lit gel around the dot, saturated on many
+/// GelSight-type sensors, stays out.
+pub(crate) fn highlight_radius_px(marker_radius_px: f64) -> f64 {
+    (0.6 * marker_radius_px).max(1.0)
+}
+
+/// Whether a pixel whose centre lies within `radius_px` of `centre_px` reaches
+/// [`HIGHLIGHT_LEVEL`] of full scale in any colour channel. Inside a dark marker that
+/// is a specular highlight: it hides part of the marker, and since it stays where the
+/// light's reflection is while the marker moves (or changes shape with the load), it
+/// moves the centroid by up to a pixel or more — a displacement no neighbour check
+/// catches when it stays below a quarter spacing (measured: 2.15 px on a 30 px
+/// pitch, `tests/vision_tracking.rs`).
+pub(crate) fn highlight_within<T: Sample, const C: usize>(
+    img: &Raw<'_, T, C>,
+    centre_px: [f64; 2],
+    radius_px: f64,
+) -> bool {
+    if !(centre_px[0].is_finite() && centre_px[1].is_finite() && radius_px.is_finite()) {
+        return false;
+    }
+    let limit = (HIGHLIGHT_LEVEL * T::MAX as f64).ceil() as i32;
+    let (w, h) = (img.width as f64, img.height as f64);
+    let x0 = (centre_px[0] - radius_px).ceil().max(0.0);
+    let x1 = (centre_px[0] + radius_px).floor().min(w - 1.0);
+    let y0 = (centre_px[1] - radius_px).ceil().max(0.0);
+    let y1 = (centre_px[1] + radius_px).floor().min(h - 1.0);
+    if x1 < x0 || y1 < y0 {
+        return false;
+    }
+    let r2 = radius_px * radius_px;
+    for y in y0 as usize..=y1 as usize {
+        let dy = y as f64 - centre_px[1];
+        for x in x0 as usize..=x1 as usize {
+            let dx = x as f64 - centre_px[0];
+            if dx * dx + dy * dy > r2 {
+                continue;
+            }
+            let px = &img.data[(y * img.width + x) * C..][..3];
+            if px.iter().any(|v| v.value() >= limit) {
+                return true;
+            }
+        }
+    }
+    false
 }
 
 /// Largest elongation (√ of the ratio of the principal second moments) of a blob of a

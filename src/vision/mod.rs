@@ -126,9 +126,9 @@ pub enum VisionError {
         expected: [u32; 2],
     },
     /// No marker of any layer was found in the reference image.
-    #[error("no markers found in the reference image (layers searched: {layers})")]
+    #[error("no markers found in the reference image (layers searched: {layers}): nothing in the frame stands out as a marker of that color; check each layer's color against the frame (dark: dark dots on a lit gel; bright: light pins or dots on a dark skin; blue, red, green: coloured markers), [camera] roi_px and the exposure")]
     NoMarkers {
-        /// The layer names searched.
+        /// The layers searched: `name: layers[i].color = "color"`, comma-separated.
         layers: String,
     },
 }

@@ -185,7 +185,7 @@ pub fn sensor_draft(
     if !(value.is_finite() && value > 0.0) {
         return Err(DraftError::Scale { flag, value, unit });
     }
-    check_levels(view, options.roi_px.as_ref(), path)?;
+    check_frame_levels(view, options.roi_px.as_ref(), path)?;
 
     let sensor = probe_sensor(options.color, w, h, options.roi_px);
     let no_markers = || DraftError::NoMarkers {
@@ -341,8 +341,17 @@ fn probe_sensor(color: MarkerColor, w: u32, h: u32, roi_px: Option<Roi>) -> Sens
     }
 }
 
-/// Refuses blank and saturated frames (inside the ROI).
-fn check_levels(view: &FrameView<'_>, roi: Option<&Roi>, path: &Path) -> Result<(), DraftError> {
+/// Refuses blank frames (1st–99th percentile brightness spread below
+/// [`MIN_SPREAD_FRACTION`] of full scale) and saturated ones (over
+/// [`MAX_SATURATED_FRACTION`] of the pixels at ≥ 98 % of full scale), counting the
+/// pixels inside `roi`; `path` names the frame in the error. `sensor init` refuses such
+/// a reference before searching it; `track` and `calibrate` name the cause this way
+/// when their reference shows no marker.
+pub fn check_frame_levels(
+    view: &FrameView<'_>,
+    roi: Option<&Roi>,
+    path: &Path,
+) -> Result<(), DraftError> {
     let w = view.width_px() as usize;
     let (max, values): (f64, Vec<(u32, u32)>) = {
         // (sum of the channels, brightest channel) per pixel inside the ROI.
