@@ -1089,7 +1089,9 @@ fn displacement_outlier(u: [f64; 2], ux: &[f64], uy: &[f64], tol: f64) -> bool {
 /// hold at most `MAX_NEIGHBOURS` finite values (neighbours' displacements or signal
 /// ratios), where this beats the general sort's call and dispatch and `total_cmp`'s
 /// bit twiddling (three medians per marker per frame were a third of the
-/// frame-to-frame tracking time; a branch-free rank count was slower still).
+/// frame-to-frame tracking time). Measured slower on the paper frame: a branch-free
+/// rank count, and the 19-comparator network for eight inputs (12 → 22 µs per frame
+/// for the appearance check's medians).
 fn median(v: &mut [f64]) -> f64 {
     for i in 1..v.len() {
         let x = v[i];
@@ -1143,5 +1145,39 @@ mod tests {
         // Order of the neighbours does not matter.
         let (ux, uy) = ([4.0, 0.0, 0.0, 0.0], [-4.0, 0.0, 0.0, 0.0]);
         assert!(displacement_outlier([2.0, 0.0], &ux, &uy, 1.0));
+    }
+
+    /// Every slice of length 1–8 (all 0/1 inputs, and random values with ties) comes
+    /// out sorted, with the sorted middle as its median.
+    #[test]
+    fn median_sorts_every_length_up_to_eight() {
+        for n in 1..=8usize {
+            for bits in 0u32..(1 << n) {
+                let mut v: Vec<f64> = (0..n).map(|k| ((bits >> k) & 1) as f64).collect();
+                let mut sorted = v.clone();
+                sorted.sort_by(f64::total_cmp);
+                median(&mut v);
+                assert_eq!(v, sorted, "n = {n}, bits = {bits:b}");
+            }
+        }
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        for _ in 0..2000 {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let n = 1 + (state % 8) as usize;
+            let mut v: Vec<f64> = (0..n)
+                .map(|k| ((state >> (3 * k + 8)) % 5) as f64 - 2.0)
+                .collect();
+            let mut sorted = v.clone();
+            sorted.sort_by(f64::total_cmp);
+            let expected = if n % 2 == 1 {
+                sorted[n / 2]
+            } else {
+                0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
+            };
+            assert_eq!(median(&mut v), expected);
+            assert_eq!(v, sorted);
+        }
     }
 }
