@@ -23,28 +23,12 @@ impl Fixture {
     }
 }
 
-/// The Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints).
-fn short_plan(dir: &Path) -> PathBuf {
-    let sensor = util::root("experiments/paper_sensor.toml");
-    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
-        .unwrap()
-        .replace(
-            "sensor = \"paper_sensor.toml\"",
-            &format!("sensor = {:?}", sensor.display().to_string()),
-        )
-        .replace("to = 750.0", "to = 150.0")
-        .replace("trials = 10", "trials = 2");
-    let p = dir.join("plan.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
         let root = tmp.path().to_path_buf();
-        let plan = short_plan(&root);
+        let plan = util::eight_setpoint_fig7_plan(&root, "plan.toml");
         let scene = util::root("experiments/scenes/fig7_hemisphere_camera_noise.toml");
         let o = run(&[
             "run",

@@ -32,23 +32,6 @@ impl Runs {
     }
 }
 
-/// The Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints).
-fn short_plan(dir: &Path) -> PathBuf {
-    let sensor = util::root("experiments/paper_sensor.toml");
-    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
-        .unwrap()
-        .replace(
-            "sensor = \"paper_sensor.toml\"",
-            &format!("sensor = {:?}", sensor.display().to_string()),
-        )
-        .replace("to = 750.0", "to = 150.0")
-        .replace("trials = 10", "trials = 2");
-    assert!(text.contains("to = 150.0") && text.contains("trials = 2"));
-    let p = dir.join("plan.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
 fn sim_run(plan: &Path, scene: &str, out: &Path, build: &str, limit: Option<&str>) {
     let scene = util::root(scene);
     let mut args = vec![
@@ -74,7 +57,7 @@ fn runs() -> &'static Runs {
     RUNS.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
         let root = tmp.path().to_path_buf();
-        let plan = short_plan(&root);
+        let plan = util::eight_setpoint_fig7_plan(&root, "plan.toml");
         sim_run(
             &plan,
             "experiments/scenes/fig7_hemisphere_ramp.toml",

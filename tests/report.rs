@@ -429,12 +429,9 @@ fn missing_evidence_is_noted_and_broken_run_directories_are_named_in_the_error()
     assert!(stderr(&out).contains("manifest.json"), "{}", stderr(&out));
 }
 
-#[test]
-fn spatial_run_reports_the_profile_width() {
-    // fz = 2·max(0, 1 − r/3) around each load (r the distance to it): along the load
-    // line the profile is triangular, FWHM exactly 3 mm.
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path();
+/// A spatial run: fz = 2·max(0, 1 − r/3) around each load (r the distance to it):
+/// along the load line the profile is triangular, FWHM exactly 3 mm.
+fn spatial_run(dir: &Path) {
     write_run(dir, SPATIAL, |dir, r| {
         let p = [r.stage_x_mm, r.stage_y_mm];
         r.fz_n = r.target_normal_n;
@@ -444,6 +441,13 @@ fn spatial_run_reports_the_profile_width() {
             2.0 * (1.0 - (q[0] - p[0]).hypot(q[1] - p[1]) / 3.0).max(0.0)
         });
     });
+}
+
+#[test]
+fn spatial_run_reports_the_profile_width() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    spatial_run(dir);
     let out = report(dir, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!((metric(dir, "spatial.fwhm_mm") - 3.0).abs() < 1e-9);
@@ -536,15 +540,7 @@ fn legends_sit_above_the_plot_and_key_every_colour() {
 
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    write_run(dir, SPATIAL, |dir, r| {
-        let p = [r.stage_x_mm, r.stage_y_mm];
-        r.fz_n = r.target_normal_n;
-        r.fsum_z_n = r.fz_n;
-        write_displacements(dir, r.index, |_, _, _| [0.0, 0.0]);
-        write_forces(dir, r.index, |q| {
-            2.0 * (1.0 - (q[0] - p[0]).hypot(q[1] - p[1]) / 3.0).max(0.0)
-        });
-    });
+    spatial_run(dir);
     let out = report(dir, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     check(

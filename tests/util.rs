@@ -150,3 +150,25 @@ pub fn svg_top_tick_y(svg: &str) -> f64 {
         .map(|(_, y, _)| y)
         .fold(f64::INFINITY, f64::min)
 }
+
+/// The paper's Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints),
+/// its sensor path made absolute, written to `dir/name`: the short simulated run the
+/// run, archive and compare tests measure.
+pub fn eight_setpoint_fig7_plan(dir: &Path, name: &str) -> PathBuf {
+    let sensor = root("experiments/paper_sensor.toml");
+    let text = std::fs::read_to_string(root("experiments/fig7_magnitude.toml"))
+        .expect("experiments/fig7_magnitude.toml")
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {:?}", sensor.display().to_string()),
+        )
+        .replace("to = 750.0", "to = 150.0")
+        .replace("trials = 10", "trials = 2");
+    assert!(
+        text.contains("to = 150.0") && text.contains("trials = 2"),
+        "the Fig. 7 plan no longer has the lines this cut replaces"
+    );
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
