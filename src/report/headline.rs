@@ -412,3 +412,34 @@ pub fn iso376_section(o: &mut String, analysis: &RunAnalysis) {
         }
     );
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// "Two different numbers are both called b′" (and `hold.zero_drift_n` and
+    /// `hold.zero_drift_pct_fs` were both "zero drift over the run"): no two metrics
+    /// that can stand on one page share a name. The exceptions never meet: the
+    /// resolution in N and in gf (a page shows the plan's unit only) and the resolution
+    /// method of a magnitude and of an angle run.
+    #[test]
+    fn no_two_metrics_on_one_page_share_a_name() {
+        let never_together = [
+            ("magnitude.resolution_n", "magnitude.resolution_gf"),
+            ("magnitude.resolution_method", "angle.resolution_method"),
+        ];
+        for (i, (a, ta)) in TITLES.iter().enumerate() {
+            for (b, tb) in &TITLES[i + 1..] {
+                if ta == tb {
+                    assert!(
+                        never_together.contains(&(a, b)) || never_together.contains(&(b, a)),
+                        "{a} and {b} are both called {ta:?}"
+                    );
+                }
+            }
+        }
+        // b′ names the range the class table compares, not the repeatability SD.
+        let sr = title("metrology.repeatability_pct_fs");
+        assert!(sr.starts_with("repeatability SD s_r") && sr.contains("b′ = 1.128 s_r"));
+    }
+}
