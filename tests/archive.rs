@@ -23,28 +23,12 @@ impl Fixture {
     }
 }
 
-/// The Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints).
-fn short_plan(dir: &Path) -> PathBuf {
-    let sensor = util::root("experiments/paper_sensor.toml");
-    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
-        .unwrap()
-        .replace(
-            "sensor = \"paper_sensor.toml\"",
-            &format!("sensor = {:?}", sensor.display().to_string()),
-        )
-        .replace("to = 750.0", "to = 150.0")
-        .replace("trials = 10", "trials = 2");
-    let p = dir.join("plan.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
         let root = tmp.path().to_path_buf();
-        let plan = short_plan(&root);
+        let plan = util::eight_setpoint_fig7_plan(&root, "plan.toml");
         let scene = util::root("experiments/scenes/fig7_hemisphere_camera_noise.toml");
         let o = run(&[
             "run",
@@ -461,6 +445,90 @@ fn compare_refuses_unlike_runs_and_flags_a_failing_baseline() {
     assert!(html.contains("NOT LIKE FOR LIKE (--allow-different-plans)"));
 }
 
+/// The runs `reproduce-paper` commits under `reports/paper/runs/`.
+const COMMITTED_RUNS: [&str; 7] = [
+    "table1_displacement",
+    "fig7_magnitude",
+    "fig7_magnitude_camera_noise",
+    "fig8_angle",
+    "fig9_spatial",
+    "updown_viscoelastic",
+    "hold_viscoelastic",
+];
+
+/// Every committed reproduction run is an archive written by `reproduce-paper`
+/// (`--keep evidence`, simulated), and `report` on it gives the metrics the committed
+/// report recorded — the Fig. 9 and Table I ones too, from the per-setpoint files the
+/// archive keeps for them — with every force of the page in the plans' gf.
+#[test]
+fn every_committed_reproduction_run_is_an_archive_that_reports_its_metrics() {
+    let tmp = tempfile::tempdir().unwrap();
+    let runs = util::root("reports/paper/runs");
+    for name in COMMITTED_RUNS {
+        let dir = runs.join(name);
+        let a = json(&dir.join("archive.json"));
+        assert_eq!(a["schema"], "tactbench-archive/1", "{name}");
+        assert_eq!(a["keep"], "evidence", "{name}");
+        assert_eq!(
+            json(&dir.join("manifest.json"))["simulated"],
+            true,
+            "{name}"
+        );
+        let out = tmp.path().join(name);
+        let o = report(&dir, &out, &[]);
+        assert_eq!(o.status.code(), Some(0), "{name}: {}", stderr(&o));
+        assert!(
+            stdout(&o).contains("bench: SIMULATED"),
+            "{name}: {}",
+            stdout(&o)
+        );
+        let committed = json(&dir.join("verdict.json"));
+        let v = json(&out.join("verdict.json"));
+        assert_eq!(v["outcome"], "NOT JUDGED", "{name}");
+        let metrics = |doc: &serde_json::Value| -> Vec<(String, f64)> {
+            doc["metrics"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|m| {
+                    (
+                        m["name"].as_str().unwrap().to_string(),
+                        m["value"].as_f64().unwrap_or(f64::NAN),
+                    )
+                })
+                .collect()
+        };
+        let (was, now) = (metrics(&committed), metrics(&v));
+        let names = |m: &[(String, f64)]| m.iter().map(|x| x.0.clone()).collect::<Vec<_>>();
+        assert_eq!(names(&was), names(&now), "{name}: metric names differ");
+        for ((m, a), (_, b)) in was.iter().zip(&now) {
+            assert!(
+                a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
+                "{name}: {m}: committed {a}, now {b}"
+            );
+        }
+        let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+        let n = util::newton_units(&util::page_text(&html));
+        assert!(n.is_empty(), "{name}: forces in N on a gf page: {n:?}");
+        let has = |m: &str| now.iter().any(|x| x.0 == m && x.1.is_finite());
+        match name {
+            "fig9_spatial" => assert!(has("spatial.fwhm_mm"), "{name}: no Fig. 9 metric"),
+            "table1_displacement" => {
+                assert!(has("displacement.max_sd_px"), "{name}: no Table I metric")
+            }
+            _ => {}
+        }
+        if name.starts_with("fig7") {
+            // The camera evidence and the force field come back from the archive.
+            assert!(
+                html.contains("id=\"force_field\""),
+                "{name}: no force field"
+            );
+            assert!(out.join("plots/camera_reference.png").is_file());
+        }
+    }
+}
+
 #[test]
 fn the_committed_reproduction_runs_report_and_compare() {
     let tmp = tempfile::tempdir().unwrap();
@@ -504,6 +572,15 @@ fn the_committed_reproduction_runs_report_and_compare() {
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     assert!(out.join("compare.csv").is_file());
+    let so = stdout(&o);
+    assert!(
+        so.contains("fig7_magnitude_camera_noise: NOT JUDGED (completed, 160 of 160"),
+        "{so}"
+    );
+    assert!(so.contains("worst magnitude.resolution_gf: fig7_magnitude_camera_noise"));
+    let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
+    let n = util::newton_units(&util::page_text(&html));
+    assert!(n.is_empty(), "forces in N on the gf comparison: {n:?}");
     // Fig. 7 against Fig. 8: different sweep kinds, refused.
     let o = run(&[
         "compare",

@@ -32,23 +32,6 @@ impl Runs {
     }
 }
 
-/// The Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints).
-fn short_plan(dir: &Path) -> PathBuf {
-    let sensor = util::root("experiments/paper_sensor.toml");
-    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
-        .unwrap()
-        .replace(
-            "sensor = \"paper_sensor.toml\"",
-            &format!("sensor = {:?}", sensor.display().to_string()),
-        )
-        .replace("to = 750.0", "to = 150.0")
-        .replace("trials = 10", "trials = 2");
-    assert!(text.contains("to = 150.0") && text.contains("trials = 2"));
-    let p = dir.join("plan.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
 fn sim_run(plan: &Path, scene: &str, out: &Path, build: &str, limit: Option<&str>) {
     let scene = util::root(scene);
     let mut args = vec![
@@ -74,7 +57,7 @@ fn runs() -> &'static Runs {
     RUNS.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
         let root = tmp.path().to_path_buf();
-        let plan = short_plan(&root);
+        let plan = util::eight_setpoint_fig7_plan(&root, "plan.toml");
         sim_run(
             &plan,
             "experiments/scenes/fig7_hemisphere_ramp.toml",
@@ -478,5 +461,67 @@ fn bad_input_is_a_clear_error_never_a_panic() {
     check(
         &["report", &noisy, "--acceptance", &relative, "--out", out],
         &["needs a baseline", "tactbench compare"],
+    );
+}
+
+/// "The compare page still shows N on gf plans": the runs' plans are in gf, so the
+/// page's table, criteria and figures show forces in gf, and the resolution in N (the
+/// same number in the other unit) is left off the page; `compare.csv` keeps each
+/// metric's own unit, as `summary.csv` does.
+#[test]
+fn a_gf_plan_comparison_shows_forces_in_gf_on_the_page_and_in_its_figures() {
+    let r = runs();
+    let tmp = tempfile::tempdir().unwrap();
+    let crit = write(
+        tmp.path(),
+        "crit.toml",
+        "[[criterion]]\nmetric = \"magnitude.residual_sd_n\"\nmax = 5.0\nmax_relative_to_baseline = 1000.0\n",
+    );
+    let out = tmp.path().join("cmp");
+    let o = run(&[
+        "compare",
+        &r.arg("ideal"),
+        &r.arg("noisy"),
+        "--acceptance",
+        crit.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(matches!(o.status.code(), Some(0 | 1)), "{}", stderr(&o));
+    let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
+    let n = util::newton_units(&util::page_text(&html));
+    assert!(n.is_empty(), "forces in N on a gf comparison: {n:?}");
+    assert!(html.contains("where metrics named <code>…_n</code> are in N"));
+    assert!(!html.contains("<code>magnitude.resolution_n</code>"));
+    assert!(html.contains("<code>magnitude.resolution_gf</code>"));
+    // The 5 N limit is shown as 509.9 gf.
+    assert!(html.contains("&lt;= 509.858"), "criterion not converted");
+    for stem in ["compare_trends", "compare_magnitude"] {
+        let svg = std::fs::read_to_string(out.join(format!("plots/{stem}.svg"))).unwrap();
+        let n = util::newton_units(&svg);
+        assert!(n.is_empty(), "{stem}: forces in N: {n:?}");
+        // The legend strip keys every run's colour, above the panels.
+        let top = util::svg_top_tick_y(&svg);
+        let texts = util::svg_texts(&svg);
+        for label in ["build-ideal", "build-noisy"] {
+            let y = texts
+                .iter()
+                .filter(|(_, _, t)| t.starts_with(label))
+                .map(|t| t.1)
+                .fold(f64::INFINITY, f64::min);
+            assert!(y < top - 5.0, "{stem}: {label} at {y}, plot from {top}");
+        }
+    }
+    let trends = std::fs::read_to_string(out.join("plots/compare_trends.svg")).unwrap();
+    assert!(trends.contains("magnitude.offset_n [gf]"));
+    assert!(!trends.contains("magnitude.resolution_n"));
+    let (_, rows) = read_csv(&out.join("compare.csv"));
+    assert_eq!(
+        row(&rows, "magnitude.offset_n", &r.arg("ideal"))["unit"],
+        "N"
+    );
+    assert_eq!(
+        row(&rows, "magnitude.resolution_n", &r.arg("noisy"))["unit"],
+        "N"
     );
 }

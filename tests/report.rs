@@ -12,7 +12,7 @@ use tactbench::formats::{self, DisplacementRecord};
 use tactbench::sensor::{Sensor, PAPER_SENSOR_TOML};
 use tactbench::units::gf_to_n;
 
-use crate::util::{run, stderr, stdout};
+use crate::util::{self, run, stderr, stdout};
 
 pub(crate) const PLAN_HEAD: &str = r#"
 name = "report test <b>&amp;</b>"
@@ -429,12 +429,9 @@ fn missing_evidence_is_noted_and_broken_run_directories_are_named_in_the_error()
     assert!(stderr(&out).contains("manifest.json"), "{}", stderr(&out));
 }
 
-#[test]
-fn spatial_run_reports_the_profile_width() {
-    // fz = 2·max(0, 1 − r/3) around each load (r the distance to it): along the load
-    // line the profile is triangular, FWHM exactly 3 mm.
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path();
+/// A spatial run: fz = 2·max(0, 1 − r/3) around each load (r the distance to it):
+/// along the load line the profile is triangular, FWHM exactly 3 mm.
+fn spatial_run(dir: &Path) {
     write_run(dir, SPATIAL, |dir, r| {
         let p = [r.stage_x_mm, r.stage_y_mm];
         r.fz_n = r.target_normal_n;
@@ -444,6 +441,13 @@ fn spatial_run_reports_the_profile_width() {
             2.0 * (1.0 - (q[0] - p[0]).hypot(q[1] - p[1]) / 3.0).max(0.0)
         });
     });
+}
+
+#[test]
+fn spatial_run_reports_the_profile_width() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    spatial_run(dir);
     let out = report(dir, &[]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!((metric(dir, "spatial.fwhm_mm") - 3.0).abs() < 1e-9);
@@ -451,6 +455,99 @@ fn spatial_run_reports_the_profile_width() {
     let img = image::open(dir.join("plots/spatial_profile.png")).unwrap();
     assert_eq!(image::GenericImageView::dimensions(&img), (900, 680));
     assert!(dir.join("plots/spatial_profile.svg").is_file());
+    // The plan is in gf: the profile's forces too (they were in N).
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("<th>fz (gf)</th>"), "profile table not in gf");
+    let n = util::newton_units(&util::page_text(&html));
+    assert!(n.is_empty(), "forces in N on a gf page: {n:?}");
+}
+
+/// The complaint that started issue 23: "one plan in gf, yet the key metrics show the
+/// offset in N", and the force-field figure and camera evidence stayed in N after the
+/// metrics were converted. Every force on the page and in every figure of a gf plan
+/// is in gf; only the machine names (`magnitude.offset_n`) keep theirs.
+#[test]
+fn a_gf_plan_report_shows_no_force_in_newtons_on_the_page_or_in_its_figures() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    let text = util::page_text(&html);
+    let n = util::newton_units(&text);
+    assert!(n.is_empty(), "forces in N on a gf page: {n:?}");
+    // What used to be in N: the field's caption (the camera evidence, which these
+    // synthetic track files cannot show, is checked on the committed reproduction runs
+    // in archive::the_committed_reproduction_runs_report_and_compare).
+    assert!(text.contains("largest |fz|") && text.contains("(gf; red presses"));
+    assert!(html.contains("where metrics named <code>…_n</code> are in N"));
+    let mut svgs = 0;
+    for e in std::fs::read_dir(dir.join("plots")).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "svg") {
+            let svg = std::fs::read_to_string(&p).unwrap();
+            let n = util::newton_units(&svg);
+            assert!(n.is_empty(), "{}: forces in N: {n:?}", p.display());
+            svgs += 1;
+        }
+    }
+    assert!(svgs >= 4, "{svgs} figures");
+    let field = std::fs::read_to_string(dir.join("plots/force_field.svg")).unwrap();
+    assert!(field.contains("fz (gf), red presses in") && field.contains("gf per mm)"));
+}
+
+/// "The residual and marker-health legends sit on the data, the creep plot's colours
+/// have no key": every report figure with a legend draws it in a strip between its
+/// title and the plot (above the topmost axis label), and every colour is keyed —
+/// here the Fig. 7 plot, the marker displacements (one colour per layer), the
+/// residuals (one colour per trial, each named) and the Fig. 9 profile.
+#[test]
+fn legends_sit_above_the_plot_and_key_every_colour() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let check = |dir: &Path, stem: &str, labels: &[&str]| {
+        let svg = std::fs::read_to_string(dir.join(format!("plots/{stem}.svg"))).unwrap();
+        let top = util::svg_top_tick_y(&svg);
+        assert!(top.is_finite(), "{stem}: no tick labels");
+        let texts = util::svg_texts(&svg);
+        for l in labels {
+            let (_, y, _) = texts
+                .iter()
+                .find(|(_, _, t)| t.starts_with(l))
+                .unwrap_or_else(|| panic!("{stem}: no legend entry {l:?} in {texts:?}"));
+            assert!(
+                *y < top - 5.0,
+                "{stem}: legend {l:?} at y {y}, plot from {top}"
+            );
+        }
+    };
+    check(
+        dir,
+        "magnitude",
+        &["identity", "samples", "level mean", "fit: slope"],
+    );
+    check(dir, "displacements", &["layer blue", "layer red"]);
+    // magnitude_run: 3 trials at one position, each colour named.
+    check(
+        dir,
+        "residuals",
+        &["loading (up)", "trial 0", "trial 1", "trial 2"],
+    );
+
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    spatial_run(dir);
+    let out = report(dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    check(
+        dir,
+        "spatial_profile",
+        &["fz / max fz", "half maximum", "full width at half maximum"],
+    );
 }
 
 #[test]
@@ -1056,7 +1153,7 @@ fn embedded_png(html: &str, id: &str) -> image::RgbImage {
 }
 
 /// A loaded run's force field is an fz map with a colour bar and arrows; the caption
-/// states the arrow scale (N per mm) and why there is no σ panel.
+/// states the arrow scale (in the plan's unit, gf per mm) and why there is no σ panel.
 #[test]
 fn force_field_is_a_heat_map_with_arrow_scale_and_colour_bar() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1076,7 +1173,7 @@ fn force_field_is_a_heat_map_with_arrow_scale_and_colour_bar() {
     let red = img.pixels().filter(|p| near([178, 24, 43], p)).count();
     let blue = img.pixels().filter(|p| near([33, 102, 172], p)).count();
     assert!(red > 200 && blue > 20, "red {red}, blue {blue}");
-    assert!(html.contains("N per mm of arrow"), "arrow scale missing");
+    assert!(html.contains("gf per mm of arrow"), "arrow scale missing");
     assert!(html.contains("No per-node uncertainty"), "σ note missing");
     assert!(!html.contains("class=\"no-force-field\""));
 }

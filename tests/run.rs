@@ -1311,17 +1311,7 @@ fn journalled_force_sum_sd_matches_the_scatter_over_trials_and_is_zero_on_an_ide
 
 /// The Fig. 7 plan cut to 0..150 gf, two trials (8 setpoints), in `dir`.
 fn eight_setpoint_plan(dir: &Path) -> Plan {
-    let sensor = util::root("experiments/paper_sensor.toml");
-    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
-        .unwrap()
-        .replace(
-            "sensor = \"paper_sensor.toml\"",
-            &format!("sensor = {:?}", sensor.display().to_string()),
-        )
-        .replace("to = 750.0", "to = 150.0")
-        .replace("trials = 10", "trials = 2");
-    let p = write(dir, "short.toml", &text);
-    Plan::from_path(&p).unwrap()
+    Plan::from_path(util::eight_setpoint_fig7_plan(dir, "short.toml")).unwrap()
 }
 
 #[test]

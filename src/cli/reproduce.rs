@@ -19,6 +19,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 
 use tactbench::bench::journal::MANIFEST_FILE;
+use tactbench::units::n_to_gf;
 
 /// Regenerate the paper's evaluation (Table I, Fig. 6-9, Table II) on the simulated bench.
 ///
@@ -370,9 +371,13 @@ fn paper_readme(out: &Path, quick: Option<u64>) -> anyhow::Result<String> {
         s,
         "Every run below went through `tactbench run --sim`: the GRBL stage and DynPick \
          F/T simulators on pseudo-terminals, the socket camera rendering the scene, the \
-         same drivers, tracker and solver as on a real bench. Each run directory holds \
-         its `report.html`, plots (PNG + SVG), `summary.csv`, `journal.csv` and \
-         `manifest.json`.\n"
+         same drivers, tracker and solver as on a real bench. Each run directory is an \
+         archive of the run (`tactbench archive --keep evidence`, `archive.json` says \
+         so): the record (`manifest.json`, `journal.csv`), its report (`report.html`, \
+         `verdict.json`, `summary.csv`, plots as PNG + SVG), the reference frame and the \
+         frames, tracked displacements and forces of the setpoints the report shows, and \
+         the per-setpoint files the Fig. 9 and Table I metrics are computed from; \
+         `tactbench report` and `tactbench compare` work on it as on the full run.\n"
     );
     let _ = writeln!(s, "| quantity | paper | ours | from |");
     let _ = writeln!(s, "|---|---|---|---|");
@@ -558,23 +563,29 @@ fn metrology_lines(summaries: &BTreeMap<&str, BTreeMap<String, SummaryEntry>>) -
             "zero drift over the run",
             "hold_viscoelastic",
             "hold.zero_drift_n",
-            4,
+            2,
         ),
     ];
     for (quantity, run, metric, digits) in rows {
         let entry = summaries.get(run).and_then(|m| m.get(metric));
         let (ours, ci) = match entry {
             Some((v, unit, ci)) if v.is_finite() => {
+                // One unit per quantity: the paper's plans are in gf, so a force kept in
+                // N by summary.csv (`hold.zero_drift_n`) is shown in gf like the others.
+                let k = if unit == "N" { n_to_gf(1.0) } else { 1.0 };
                 let unit = match unit.as_str() {
                     "1" | "" => String::new(),
                     "%" => " %".to_string(),
+                    "N" => " gf".to_string(),
                     u => format!(" {u}"),
                 };
                 let ci = match ci {
-                    Some((lo, hi, m)) => format!("{lo:.digits$} – {hi:.digits$} ({m})"),
+                    Some((lo, hi, m)) => {
+                        format!("{:.digits$} – {:.digits$} ({m})", lo * k, hi * k)
+                    }
                     None => "—".to_string(),
                 };
-                (format!("{v:.digits$}{unit}"), ci)
+                (format!("{:.digits$}{unit}", v * k), ci)
             }
             _ => ("n/a".to_string(), "—".to_string()),
         };

@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use base64::Engine;
 use plotters::prelude::*;
 
-use super::force_map::{arrow_parts, nice_floor, ForceMapFigure, NodeSd};
+use super::force_map::{arrow_parts, fmt_force, fmt_short, nice_floor, ForceMapFigure, NodeSd};
 use super::markup::escape;
 use super::plot::{encode_png, register_fonts, PngBackend, FONT};
 use crate::analysis::{RunAnalysis, RunData, Snapshot};
@@ -61,6 +61,7 @@ fn applied_n(r: &JournalRow) -> f64 {
 /// The force field of the analysis's snapshot, or why the run has none.
 pub fn force_field(analysis: &RunAnalysis) -> Option<ForceField> {
     let run = &analysis.run;
+    let unit = run.plan.force_unit;
     let snap = analysis.snapshot.as_ref()?;
     let fzmax = |f: &[crate::formats::ForceRecord]| {
         f.iter()
@@ -71,8 +72,8 @@ pub fn force_field(analysis: &RunAnalysis) -> Option<ForceField> {
     if matches!(run.plan.sweep, Sweep::Displacement { .. }) {
         let got = snap.forces.as_deref().map_or(String::new(), |f| {
             format!(
-                " (the solver's output here reaches |fz| = {:.3} N)",
-                fzmax(f)
+                " (the solver's output here reaches |fz| = {})",
+                fmt_force(fzmax(f), unit)
             )
         });
         return Some(ForceField::Absent(format!(
@@ -88,31 +89,37 @@ pub fn force_field(analysis: &RunAnalysis) -> Option<ForceField> {
     if applied < floor {
         return Some(ForceField::Absent(format!(
             "No force field: at setpoint {} (the most loaded by the reconstruction) the F/T \
-             sensor measured |F| = {:.4} N, below {:.4} N (max of {UNLOADED_N} N and 3 × its \
-             SD): nothing loaded the sensor, so a reconstructed field would show only noise.",
-            snap.index, applied, floor
+             sensor measured |F| = {}, below {} (max of {} and 3 × its SD): nothing loaded \
+             the sensor, so a reconstructed field would show only noise.",
+            snap.index,
+            fmt_force(applied, unit),
+            fmt_force(floor, unit),
+            fmt_force(UNLOADED_N, unit)
         )));
     }
     let forces = snap.forces.clone()?;
     let sd = node_sd(run, snap, row);
     Some(ForceField::Map(Box::new(ForceMapFigure {
         title: format!(
-            "force field, setpoint {} (F/T |F| = {:.3} N)",
-            snap.index, applied
+            "force field, setpoint {} (F/T |F| = {})",
+            snap.index,
+            fmt_force(applied, unit)
         ),
         pitch_mm: run.sensor.force_grid.pitch_mm,
         forces,
         sd: sd.ok(),
+        unit,
     })))
 }
 
 /// The caption of a force map.
 pub fn force_map_caption(fig: &ForceMapFigure, why_no_sd: Option<&str>) -> String {
     let (kf, kl) = fig.key();
+    let u = fig.unit.symbol();
     let mut c = format!(
         "Reconstructed force field (paper Fig. 5): each force-grid cell coloured by fz \
-         (N; red presses into the sensor, blue pulls out; largest |fz| {:.4} N); arrows are \
-         the tangential force (fx, fy) at the node, {} N per mm of arrow (key arrow {} N = \
+         ({u}; red presses into the sensor, blue pulls out; largest |fz| {}); arrows are \
+         the tangential force (fx, fy) at the node, {} {u} per mm of arrow (key arrow {} {u} = \
          {} mm), at most {} of the {} mm pitch so neighbouring arrows never cross. y grows \
          upward here (downward in the camera images). Around a contact between nodes the \
          nearest nodes carry tangential forces pointing in towards the load although the \
@@ -120,10 +127,10 @@ pub fn force_map_caption(fig: &ForceMapFigure, why_no_sd: Option<&str>) -> Strin
          the real contact pressure, and the least-squares solution corrects the marker \
          displacements this misplacement causes with inward shear; they cancel in the sum \
          (F_sum x, y ≈ 0).",
-        fig.fz_max(),
-        super::force_map::fmt_short(fig.n_per_mm()),
-        super::force_map::fmt_short(kf),
-        super::force_map::fmt_short(kl),
+        fmt_force(fig.fz_max(), fig.unit),
+        fmt_short(fig.per_mm()),
+        fmt_short(kf),
+        fmt_short(kl),
         super::force_map::ARROW_FRACTION,
         fig.pitch_mm
     );
@@ -132,10 +139,10 @@ pub fn force_map_caption(fig: &ForceMapFigure, why_no_sd: Option<&str>) -> Strin
             let m = sd.fz_sd_n.iter().copied().fold(0.0, f64::max);
             let _ = write!(
                 c,
-                " Right: σ(fz) per node (largest {:.4} N) for displacement noise {} px ({}), \
+                " Right: σ(fz) per node (largest {}) for displacement noise {} px ({}), \
                  propagated through the run's solver.",
-                m,
-                super::force_map::fmt_short(sd.noise_px),
+                fmt_force(m, fig.unit),
+                fmt_short(sd.noise_px),
                 sd.source
             );
         }
@@ -647,7 +654,7 @@ pub fn camera_evidence(analysis: &RunAnalysis) -> Result<Vec<CameraPanel>, Strin
                 let s = run.setpoints[index].shift_mm;
                 format!("shift ({:.3}, {:.3}) mm", s[0], s[1])
             }
-            (_, Some(r)) => format!("F/T |F| = {:.3} N", applied_n(r)),
+            (_, Some(r)) => format!("F/T |F| = {}", fmt_force(applied_n(r), run.plan.force_unit)),
             _ => String::new(),
         };
         let rel = frame

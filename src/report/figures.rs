@@ -18,9 +18,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use super::force_map::{arrow_parts, draw_arrows};
-use super::plot::{
-    legend_rows, legend_strip, Figure, FigureResult, LegendGlyph, FONT, LEGEND_ROW_PX,
-};
+use super::plot::{titled_with_legend, Figure, FigureResult, LegendGlyph, FONT};
 use crate::analysis::calibration::Calibration;
 use crate::analysis::spatial::SpatialAnalysis;
 use crate::analysis::tracking::{SetpointHealth, TrackingAnalysis};
@@ -60,18 +58,43 @@ fn range(values: impl Iterator<Item = f64>, pad_frac: f64) -> std::ops::Range<f6
     (lo - pad_frac * span)..(hi + pad_frac * span)
 }
 
+/// The colour of the samples behind the level means (light blue, opaque, so the
+/// legend swatch is the colour drawn).
+const SAMPLE_COLOR: RGBColor = RGBColor(166, 166, 255);
+
 impl Figure for CalibrationFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.display_scale;
         let c = &self.calibration;
+        let fit = c.fit;
+        let grey = RGBColor(179, 179, 179);
+        // The legend in a strip above the plot, clear of every point.
+        let entries = [
+            (LegendGlyph::Line(grey), "identity".to_string()),
+            (LegendGlyph::Dot(SAMPLE_COLOR), "samples".to_string()),
+            (
+                LegendGlyph::ErrorBar(BLACK),
+                "level mean ± 1 SD".to_string(),
+            ),
+            (
+                LegendGlyph::Line(RED),
+                format!(
+                    "fit: slope {:.4}, offset {:.4} {}, R² {:.5}",
+                    fit.slope,
+                    fit.offset * k,
+                    self.unit,
+                    fit.r2
+                ),
+            ),
+        ];
+        let area = titled_with_legend(root, &self.title, &entries)?;
         let xs = range(self.samples.iter().map(|s| s.0 * k), 0.05);
         let ys = range(self.samples.iter().map(|s| s.1 * k), 0.05);
         // Same span on both axes when the identity line is near the data (they are
         // the same quantity), so the eye can judge the slope.
         let lo = xs.start.min(ys.start);
         let hi = xs.end.max(ys.end);
-        let mut chart = ChartBuilder::on(root)
-            .caption(&self.title, (FONT, 20))
+        let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(60)
@@ -82,57 +105,26 @@ impl Figure for CalibrationFigure {
             .y_desc(self.y_label.as_str())
             .label_style((FONT, 13))
             .draw()?;
-        chart
-            .draw_series(LineSeries::new(
-                [(lo, lo), (hi, hi)],
-                ShapeStyle::from(&BLACK.mix(0.3)).stroke_width(1),
-            ))?
-            .label("identity")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.3)));
-        chart
-            .draw_series(
-                self.samples
-                    .iter()
-                    .map(|s| Circle::new((s.0 * k, s.1 * k), 2, BLUE.mix(0.35).filled())),
-            )?
-            .label("samples")
-            .legend(|(x, y)| Circle::new((x + 10, y), 3, BLUE.mix(0.35).filled()));
-        chart
-            .draw_series(c.levels.iter().map(|l| {
-                ErrorBar::new_vertical(
-                    l.applied_mean * k,
-                    (l.measured_mean - l.measured_sd) * k,
-                    l.measured_mean * k,
-                    (l.measured_mean + l.measured_sd) * k,
-                    BLACK.stroke_width(2),
-                    8,
-                )
-            }))?
-            .label("level mean ± 1 SD")
-            .legend(|(x, y)| {
-                PathElement::new([(x + 10, y - 6), (x + 10, y + 6)], BLACK.stroke_width(2))
-            });
-        let fit = c.fit;
-        chart
-            .draw_series(LineSeries::new(
-                [lo, hi].map(|x| (x, fit.at(x / k) * k)),
-                RED.stroke_width(2),
-            ))?
-            .label(format!(
-                "fit: slope {:.4}, offset {:.4} {}, R² {:.5}",
-                fit.slope,
-                fit.offset * k,
-                self.unit,
-                fit.r2
-            ))
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED.stroke_width(2)));
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
+        chart.draw_series(LineSeries::new([(lo, lo), (hi, hi)], grey.stroke_width(1)))?;
+        chart.draw_series(
+            self.samples
+                .iter()
+                .map(|s| Circle::new((s.0 * k, s.1 * k), 2, SAMPLE_COLOR.filled())),
+        )?;
+        chart.draw_series(c.levels.iter().map(|l| {
+            ErrorBar::new_vertical(
+                l.applied_mean * k,
+                (l.measured_mean - l.measured_sd) * k,
+                l.measured_mean * k,
+                (l.measured_mean + l.measured_sd) * k,
+                BLACK.stroke_width(2),
+                8,
+            )
+        }))?;
+        chart.draw_series(LineSeries::new(
+            [lo, hi].map(|x| (x, fit.at(x / k) * k)),
+            RED.stroke_width(2),
+        ))?;
         Ok(())
     }
 }
@@ -147,13 +139,26 @@ pub struct ProfileFigure {
 impl Figure for ProfileFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let s = &self.spatial;
+        let grey = RGBColor(153, 153, 153);
+        let entries = [
+            (
+                LegendGlyph::Line(BLUE),
+                "fz / max fz of the force nodes, by distance from the load".to_string(),
+            ),
+            (LegendGlyph::Line(grey), "half maximum".to_string()),
+            (
+                LegendGlyph::Line(RED),
+                format!("full width at half maximum, {:.2} mm", s.fwhm_mm),
+            ),
+        ];
+        let area = titled_with_legend(
+            root,
+            &format!("normalised fz profile, FWHM {:.2} mm", s.fwhm_mm),
+            &entries,
+        )?;
         let xs = range(s.profile.iter().map(|p| p.distance_mm), 0.03);
         let ymin = s.profile.iter().fold(0.0f64, |m, p| m.min(p.normalized)) - 0.05;
-        let mut chart = ChartBuilder::on(root)
-            .caption(
-                format!("normalised fz profile, FWHM {:.2} mm", s.fwhm_mm),
-                (FONT, 20),
-            )
+        let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(50)
@@ -175,7 +180,7 @@ impl Figure for ProfileFigure {
         )?;
         chart.draw_series(LineSeries::new(
             [(xs.start, 0.5), (xs.end, 0.5)],
-            BLACK.mix(0.4),
+            grey.stroke_width(1),
         ))?;
         chart.draw_series(LineSeries::new(
             [(s.half_left_mm, 0.5), (s.half_right_mm, 0.5)],
@@ -234,10 +239,28 @@ impl Figure for QuiverFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.scale();
         let recs = &self.frame.records;
+        // One colour per layer, keyed in a strip above the plot (the arrows fill it).
+        let mut entries: Vec<(LegendGlyph, String)> = self
+            .sensor
+            .layers
+            .iter()
+            .map(|l| {
+                (
+                    LegendGlyph::Line(layer_color(l.color)),
+                    format!("layer {}", l.name),
+                )
+            })
+            .collect();
+        if recs.iter().any(|r| r.u_mm.is_none()) {
+            entries.push((
+                LegendGlyph::Cross(BLACK),
+                "lost marker (cross, in its layer's colour)".to_string(),
+            ));
+        }
+        let area = titled_with_legend(root, &format!("{} (arrows ×{k:.1})", self.title), &entries)?;
         let xs = range(recs.iter().map(|r| r.position_mm[0]), 0.05);
         let ys = range(recs.iter().map(|r| r.position_mm[1]), 0.05);
-        let mut chart = ChartBuilder::on(root)
-            .caption(format!("{} (arrows ×{k:.1})", self.title), (FONT, 20))
+        let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(50)
@@ -262,26 +285,12 @@ impl Figure for QuiverFigure {
                 })
                 .collect();
             draw_arrows(&mut chart, &arrows, color, 1)?;
-            // An empty series carries the legend entry.
-            chart
-                .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())?
-                .label(layer.name.clone())
-                .legend(move |(x, y)| {
-                    PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2))
-                });
             chart.draw_series(
                 recs.iter()
                     .filter(|r| r.layer == li && r.u_mm.is_none())
                     .map(|r| Cross::new((r.position_mm[0], r.position_mm[1]), 3, color)),
             )?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
         Ok(())
     }
 }
@@ -322,10 +331,7 @@ impl Figure for MarkerHealthFigure {
         if any_flagged {
             entries.push((LegendGlyph::Cross(RED), "flagged row".into()));
         }
-        let area = root.titled("marker health per setpoint", (FONT, 20))?;
-        let rows = legend_rows(&entries, area.dim_in_pixel().0);
-        let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
-        legend_strip(&strip, &entries)?;
+        let area = titled_with_legend(root, "marker health per setpoint", &entries)?;
         let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)

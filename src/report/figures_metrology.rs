@@ -15,14 +15,13 @@
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::plot::{
-    legend_rows, legend_strip, Figure, FigureResult, LegendGlyph, FONT, LEGEND_ROW_PX,
-};
+use super::plot::{titled_with_legend, Figure, FigureResult, LegendGlyph, FONT};
 use crate::analysis::hold::HoldAnalysis;
 use crate::analysis::metrology::MetrologyAnalysis;
 
-/// Colours cycled over trials / holds.
-const PALETTE: [RGBColor; 8] = [
+/// Colours cycled over trials / holds (matplotlib's tab10: ten distinct colours, so
+/// the paper's ten trials and three positions × three trials each get their own).
+const PALETTE: [RGBColor; 10] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
@@ -31,7 +30,31 @@ const PALETTE: [RGBColor; 8] = [
     RGBColor(140, 86, 75),
     RGBColor(227, 119, 194),
     RGBColor(127, 127, 127),
+    RGBColor(188, 189, 34),
+    RGBColor(23, 190, 207),
 ];
+
+/// The colour of item `i` (trial, hold) of a figure.
+fn palette(i: usize) -> RGBColor {
+    PALETTE[i % PALETTE.len()]
+}
+
+/// The legend entries keying each colour of `items` (item `i` drawn in
+/// [`palette`]`(i)`): one swatch per colour, naming every item drawn in it (past ten
+/// items the colours repeat, and the key says which items share one).
+pub fn colour_key(items: &[String]) -> Vec<(LegendGlyph, String)> {
+    (0..items.len().min(PALETTE.len()))
+        .map(|c| {
+            let names: Vec<&str> = items
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| i % PALETTE.len() == c)
+                .map(|(_, n)| n.as_str())
+                .collect();
+            (LegendGlyph::Swatch(palette(c)), names.join(" and "))
+        })
+        .collect()
+}
 
 /// Padded range of `values` (0..1 when empty).
 fn span(values: impl Iterator<Item = f64>, pad: f64) -> std::ops::Range<f64> {
@@ -62,11 +85,11 @@ impl Figure for ResidualFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.scale;
         let m = &self.metrology;
+        let mut units: Vec<(Option<usize>, usize)> =
+            m.readings.iter().map(|r| (r.position, r.trial)).collect();
+        units.sort();
+        units.dedup();
         let pts: Vec<(f64, f64, usize, bool)> = {
-            let mut units: Vec<(Option<usize>, usize)> =
-                m.readings.iter().map(|r| (r.position, r.trial)).collect();
-            units.sort();
-            units.dedup();
             m.readings
                 .iter()
                 .map(|r| {
@@ -86,7 +109,8 @@ impl Figure for ResidualFigure {
                 .chain([line(xs.start), line(xs.end), 0.0]),
             0.08,
         );
-        // The legend in a strip above the plot, clear of every point.
+        // The legend in a strip above the plot, clear of every point; every trial's
+        // colour keyed (journal numbering of trials and positions).
         let mut entries = vec![
             (
                 LegendGlyph::Dashed(BLACK),
@@ -95,21 +119,20 @@ impl Figure for ResidualFigure {
                     m.fit.slope
                 ),
             ),
-            (
-                LegendGlyph::Dot(PALETTE[0]),
-                "loading (up); colour = trial".to_string(),
-            ),
+            (LegendGlyph::Dot(BLACK), "loading (up)".to_string()),
         ];
         if pts.iter().any(|p| p.3) {
-            entries.push((
-                LegendGlyph::Triangle(PALETTE[0]),
-                "unloading (down)".to_string(),
-            ));
+            entries.push((LegendGlyph::Triangle(BLACK), "unloading (down)".to_string()));
         }
-        let area = root.titled("measured − applied", (FONT, 20))?;
-        let rows = legend_rows(&entries, area.dim_in_pixel().0);
-        let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
-        legend_strip(&strip, &entries)?;
+        let names: Vec<String> = units
+            .iter()
+            .map(|(p, t)| match p {
+                Some(p) => format!("position {p} trial {t}"),
+                None => format!("trial {t}"),
+            })
+            .collect();
+        entries.extend(colour_key(&names));
+        let area = titled_with_legend(root, "measured − applied", &entries)?;
         let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
@@ -132,11 +155,11 @@ impl Figure for ResidualFigure {
             BLACK.stroke_width(1),
         ))?;
         let up = pts.iter().filter(|p| !p.3);
-        chart.draw_series(up.map(|p| Circle::new((p.0, p.1), 3, PALETTE[p.2 % 8].filled())))?;
+        chart.draw_series(up.map(|p| Circle::new((p.0, p.1), 3, palette(p.2).filled())))?;
         chart.draw_series(
             pts.iter()
                 .filter(|p| p.3)
-                .map(|p| TriangleMarker::new((p.0, p.1), 5, PALETTE[p.2 % 8].stroke_width(1))),
+                .map(|p| TriangleMarker::new((p.0, p.1), 5, palette(p.2).stroke_width(1))),
         )?;
         Ok(())
     }
@@ -190,11 +213,28 @@ impl Figure for HysteresisFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.scale;
         let m = &self.metrology;
-        let (main, inset) = root.split_vertically(root.dim_in_pixel().1 * 64 / 100);
+        let blue = RGBColor(31, 90, 200);
+        let red = RGBColor(200, 40, 40);
+        let sample = RGBColor(204, 204, 204);
+        let (up, down) = loop_branches(&m.levels, k);
+        let mut entries = vec![
+            (LegendGlyph::Dot(sample), "samples".to_string()),
+            (
+                LegendGlyph::Line(blue),
+                "loading (up), level means".to_string(),
+            ),
+        ];
+        if !down.is_empty() {
+            entries.push((
+                LegendGlyph::Line(red),
+                "unloading (down), level means; below: down − up per level".to_string(),
+            ));
+        }
+        let area = titled_with_legend(root, "hysteresis loop: F sum against applied", &entries)?;
+        let (main, inset) = area.split_vertically(area.dim_in_pixel().1 * 62 / 100);
         let xs = span(m.readings.iter().map(|r| r.applied_n * k), 0.05);
         let ys = span(m.readings.iter().map(|r| r.measured_n * k), 0.05);
         let mut chart = ChartBuilder::on(&main)
-            .caption("hysteresis loop: F sum against applied", (FONT, 20))
             .margin(12)
             .x_label_area_size(35)
             .y_label_area_size(70)
@@ -205,37 +245,19 @@ impl Figure for HysteresisFigure {
             .y_desc(format!("F sum ({})", self.unit))
             .label_style((FONT, 13))
             .draw()?;
-        chart.draw_series(m.readings.iter().map(|r| {
-            Circle::new(
-                (r.applied_n * k, r.measured_n * k),
-                2,
-                BLACK.mix(0.2).filled(),
-            )
-        }))?;
-        let (up, down) = loop_branches(&m.levels, k);
-        let blue = RGBColor(31, 90, 200);
-        let red = RGBColor(200, 40, 40);
-        chart
-            .draw_series(LineSeries::new(up, blue.stroke_width(2)))?
-            .label("loading (up), level means")
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], blue.stroke_width(2)));
+        chart.draw_series(
+            m.readings
+                .iter()
+                .map(|r| Circle::new((r.applied_n * k, r.measured_n * k), 2, sample.filled())),
+        )?;
+        chart.draw_series(LineSeries::new(up, blue.stroke_width(2)))?;
         if !down.is_empty() {
             chart.draw_series(
                 down.iter()
                     .map(|&p| TriangleMarker::new(p, 5, red.filled())),
             )?;
-            chart
-                .draw_series(LineSeries::new(down, red.stroke_width(2)))?
-                .label("unloading (down), level means")
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
+            chart.draw_series(LineSeries::new(down, red.stroke_width(2)))?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
         // Inset: down − up per level (the loop's width).
         let diffs: Vec<(f64, f64)> = m
             .levels
@@ -282,7 +304,6 @@ impl Figure for CreepFigure {
             "creep during the holds: {:.4} %FS/min (F sum − F/T)",
             h.creep_pct_fs_per_min()
         );
-        let area = root.titled(&title, (FONT, 20))?;
         // Every colour keyed (one per hold; line styles for the two readings), in a
         // strip clear of the data.
         let mut entries = vec![
@@ -298,7 +319,7 @@ impl Figure for CreepFigure {
                 .sum::<f64>()
                 / h.samples.iter().filter(|s| s.hold == hold).count().max(1) as f64;
             entries.push((
-                LegendGlyph::Swatch(PALETTE[hold % 8]),
+                LegendGlyph::Swatch(palette(hold)),
                 format!("hold {} (≈ {:.0} {})", hold + 1, at, self.unit),
             ));
         }
@@ -312,9 +333,7 @@ impl Figure for CreepFigure {
                 ),
             ));
         }
-        let rows = legend_rows(&entries, area.dim_in_pixel().0);
-        let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
-        legend_strip(&strip, &entries)?;
+        let area = titled_with_legend(root, &title, &entries)?;
         let (top, bottom) = area.split_vertically(area.dim_in_pixel().1 / 2);
         let ts = span(h.samples.iter().map(|s| s.t_s), 0.03);
         let ys = span(
@@ -334,7 +353,7 @@ impl Figure for CreepFigure {
             .label_style((FONT, 13))
             .draw()?;
         for hold in 0..h.holds {
-            let c = PALETTE[hold % 8];
+            let c = palette(hold);
             let pts: Vec<_> = h.samples.iter().filter(|s| s.hold == hold).collect();
             c1.draw_series(LineSeries::new(
                 pts.iter().map(|s| (s.t_s, s.applied_n * k)),
@@ -360,7 +379,7 @@ impl Figure for CreepFigure {
             .label_style((FONT, 13))
             .draw()?;
         for hold in 0..h.holds {
-            let c = PALETTE[hold % 8];
+            let c = palette(hold);
             c2.draw_series(
                 h.samples
                     .iter()
@@ -400,6 +419,27 @@ mod tests {
             down_measured_n: down,
             down_residual_n: down.map(|d| d - target),
         }
+    }
+
+    /// "The creep plot's colours have no key" (and the residual plot's trials had
+    /// none): every colour drawn is named; past ten items the shared colours say which
+    /// items they stand for.
+    #[test]
+    fn every_trial_colour_is_keyed_and_a_shared_colour_names_each_of_its_trials() {
+        let names: Vec<String> = (0..9).map(|t| format!("trial {t}")).collect();
+        let key = colour_key(&names);
+        assert_eq!(key.len(), 9);
+        for (i, (g, label)) in key.iter().enumerate() {
+            assert_eq!(label, &format!("trial {i}"));
+            assert!(matches!(g, LegendGlyph::Swatch(c) if *c == palette(i)));
+        }
+        let names: Vec<String> = (0..12).map(|t| format!("trial {t}")).collect();
+        let key = colour_key(&names);
+        assert_eq!(key.len(), PALETTE.len());
+        assert_eq!(key[0].1, "trial 0 and trial 10");
+        assert_eq!(key[1].1, "trial 1 and trial 11");
+        assert_eq!(key[2].1, "trial 2");
+        assert_eq!(palette(10), palette(0));
     }
 
     #[test]

@@ -1,9 +1,13 @@
 //! The reconstructed force field (paper Fig. 5) as a map: one cell of the force grid
 //! per node, coloured by the signed normal force fz (diverging scale, red presses into
-//! the sensor, blue pulls out, with a colour bar in N), the tangential force (fx, fy)
-//! as an arrow from the node on a stated scale (N per mm of arrow, with a key arrow),
+//! the sensor, blue pulls out, with a colour bar), the tangential force (fx, fy) as an
+//! arrow from the node on a stated scale (force per mm of arrow, with a key arrow),
 //! and, where a displacement noise is known, a second panel with the per-node standard
 //! deviation σ(fz) from [`crate::solve::FrameSolver::force_sd`].
+//!
+//! The forces are held in newtons (as the forces CSV records them) and drawn in the
+//! plan's force unit ([`ForceMapFigure::unit`]): a plan in gf gets a colour bar, key
+//! arrow, arrow scale and title in gf, like every other force on its report page.
 //!
 //! Arrows are at most [`ARROW_FRACTION`] of the pitch long, so arrows from neighbouring
 //! nodes pointing at each other never cross: at 0.9 pitch (the earlier figure), the four
@@ -14,6 +18,7 @@ use plotters::prelude::*;
 
 use super::plot::{Figure, FigureResult, FONT};
 use crate::formats::ForceRecord;
+use crate::units::ForceUnit;
 
 /// Longest arrow as a fraction of the force-grid pitch.
 pub const ARROW_FRACTION: f64 = 0.45;
@@ -43,6 +48,8 @@ pub struct ForceMapFigure {
     pub forces: Vec<ForceRecord>,
     /// Per-node σ(fz), when a noise estimate exists.
     pub sd: Option<NodeSd>,
+    /// The unit the forces are drawn in (the plan's force unit).
+    pub unit: ForceUnit,
 }
 
 /// The largest of 1, 2, 5 × 10^k that is ≤ `v` (`v` > 0).
@@ -160,10 +167,17 @@ impl ForceMapFigure {
             .fold(0.0, f64::max)
     }
 
-    /// Arrow scale, N per mm of arrow: the round value ([`nice_ceil`]) that keeps the longest arrow
-    /// within [`ARROW_FRACTION`] of the pitch (0 when there is no tangential force).
-    pub fn n_per_mm(&self) -> f64 {
-        let t = self.tangential_max();
+    /// Newtons to [`Self::unit`].
+    pub fn shown(&self, newtons: f64) -> f64 {
+        self.unit.from_newtons(newtons)
+    }
+
+    /// Arrow scale, in [`Self::unit`] per mm of arrow: the round value ([`nice_ceil`])
+    /// that keeps the longest arrow within [`ARROW_FRACTION`] of the pitch (0 when there
+    /// is no tangential force). Round in the unit shown, so the key reads 50 gf, not
+    /// 0.5 N = 50.99 gf.
+    pub fn per_mm(&self) -> f64 {
+        let t = self.shown(self.tangential_max());
         if t > 0.0 {
             nice_ceil(t / (ARROW_FRACTION * self.pitch_mm))
         } else {
@@ -171,9 +185,10 @@ impl ForceMapFigure {
         }
     }
 
-    /// The key arrow: (force N, length mm), at most [`ARROW_FRACTION`] of the pitch.
+    /// The key arrow: (force in [`Self::unit`], length mm), at most [`ARROW_FRACTION`]
+    /// of the pitch.
     pub fn key(&self) -> (f64, f64) {
-        let k = self.n_per_mm();
+        let k = self.per_mm();
         if k <= 0.0 {
             return (0.0, 0.0);
         }
@@ -181,9 +196,9 @@ impl ForceMapFigure {
         (f, f / k)
     }
 
-    /// The tangential arrows on the scale of [`Self::n_per_mm`].
+    /// The tangential arrows on the scale of [`Self::per_mm`].
     pub fn arrows(&self) -> Vec<ArrowParts> {
-        let k = self.n_per_mm();
+        let k = self.per_mm();
         if k <= 0.0 {
             return Vec::new();
         }
@@ -191,7 +206,10 @@ impl ForceMapFigure {
             .iter()
             .filter_map(|r| {
                 let a = (r.position_mm[0], r.position_mm[1]);
-                let b = (a.0 + r.f_n[0] / k, a.1 + r.f_n[1] / k);
+                let b = (
+                    a.0 + self.shown(r.f_n[0]) / k,
+                    a.1 + self.shown(r.f_n[1]) / k,
+                );
                 let len = (b.0 - a.0).hypot(b.1 - a.1);
                 arrow_parts(a, b, (0.4 * len).min(0.2 * self.pitch_mm))
             })
@@ -288,11 +306,12 @@ impl ForceMapFigure {
                 if let Some(k) = arrow_parts(a, (a.0 + kl, a.1), (0.4 * kl).min(0.2 * p)) {
                     draw_arrows(&mut chart, &[k], BLACK, 2)?;
                 }
+                let u = self.unit.symbol();
                 chart.draw_series(std::iter::once(Text::new(
                     format!(
-                        "= {} N  (arrows: {} N per mm)",
+                        "= {} {u}  (arrows: {} {u} per mm)",
                         fmt_short(kf),
-                        fmt_short(self.n_per_mm())
+                        fmt_short(self.per_mm())
                     ),
                     (a.0 + kl + 0.15 * p, top + 0.2 * p),
                     (FONT, 14).into_font(),
@@ -343,6 +362,17 @@ fn bar_tick(v: f64, span: f64) -> String {
     }
 }
 
+/// A force given in newtons, shown in `unit` with 4 significant digits and the unit's
+/// symbol: `fmt_force(7.317, GramForce)` = "746.1 gf".
+pub fn fmt_force(newtons: f64, unit: ForceUnit) -> String {
+    let v = unit.from_newtons(newtons);
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v} {}", unit.symbol());
+    }
+    let digits = (3 - v.abs().log10().floor() as i32).max(0) as usize;
+    format!("{v:.digits$} {}", unit.symbol())
+}
+
 /// A number with at most 3 significant digits, no trailing zeros.
 pub fn fmt_short(v: f64) -> String {
     if v == 0.0 || !v.is_finite() {
@@ -360,7 +390,8 @@ pub fn fmt_short(v: f64) -> String {
 impl Figure for ForceMapFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let root = root.titled(&self.title, (FONT, 20))?;
-        let l = self.fz_max();
+        let u = self.unit.symbol();
+        let l = self.shown(self.fz_max());
         let l = if l > 0.0 { l } else { 1.0 };
         let panels = match &self.sd {
             Some(_) => root.split_evenly((1, 2)),
@@ -369,27 +400,27 @@ impl Figure for ForceMapFigure {
         self.panel(
             &panels[0],
             "fz (colour) and tangential force (arrows)",
-            &|i| self.forces[i].f_n[2],
+            &|i| self.shown(self.forces[i].f_n[2]),
             &|v| diverging(v / l),
             -l..l,
-            "fz (N), red presses in",
+            &format!("fz ({u}), red presses in"),
             true,
         )?;
         if let (Some(sd), Some(area)) = (&self.sd, panels.get(1)) {
             let m = sd
                 .fz_sd_n
                 .iter()
-                .copied()
+                .map(|v| self.shown(*v))
                 .filter(|v| v.is_finite())
                 .fold(0.0, f64::max);
             let m = if m > 0.0 { m } else { 1.0 };
             self.panel(
                 area,
                 &format!("σ(fz) per node, noise {} px", fmt_short(sd.noise_px)),
-                &|i| sd.fz_sd_n.get(i).copied().unwrap_or(f64::NAN),
+                &|i| sd.fz_sd_n.get(i).map_or(f64::NAN, |v| self.shown(*v)),
                 &|v| sequential(v / m),
                 0.0..m,
-                "σ(fz) (N)",
+                &format!("σ(fz) ({u})"),
                 false,
             )?;
         }
@@ -417,6 +448,51 @@ mod tests {
             position_mm: [ix as f64 * p, iy as f64 * p],
             f_n: f,
         }
+    }
+
+    #[test]
+    fn forces_are_shown_in_the_plans_unit_with_four_significant_digits() {
+        assert_eq!(fmt_force(7.317, ForceUnit::Newton), "7.317 N");
+        assert_eq!(fmt_force(7.317, ForceUnit::GramForce), "746.1 gf");
+        assert_eq!(fmt_force(0.0098, ForceUnit::GramForce), "0.9993 gf");
+        assert_eq!(fmt_force(0.0, ForceUnit::GramForce), "0 gf");
+    }
+
+    /// A gf plan's force map: the key arrow is a round force in gf (not a round N
+    /// converted), on the same scale as the arrows, and the scale is the N one × 1/g.
+    #[test]
+    fn a_gf_force_map_keys_its_arrows_in_round_gram_force() {
+        let p = 2.2;
+        let forces = vec![
+            rec(0, 0, p, [0.3, 0.0, 1.0]),
+            rec(1, 0, p, [0.0, -0.1, 0.5]),
+        ];
+        let fig = |unit| ForceMapFigure {
+            title: String::new(),
+            pitch_mm: p,
+            forces: forces.clone(),
+            sd: None,
+            unit,
+        };
+        let (n, gf) = (fig(ForceUnit::Newton), fig(ForceUnit::GramForce));
+        let (kf, kl) = gf.key();
+        assert_eq!(kf, nice_floor(kf), "key force {kf} gf is a 1-2-5 value");
+        assert!((kf / kl - gf.per_mm()).abs() < 1e-9);
+        // The longest arrow stays within the limit in either unit.
+        for f in [&n, &gf] {
+            let longest = f
+                .arrows()
+                .iter()
+                .map(|(s, h)| (h[0].0 - s[0].0).hypot(h[0].1 - s[0].1))
+                .fold(0.0, f64::max);
+            assert!(longest > 0.0 && longest <= ARROW_FRACTION * p + 1e-12);
+        }
+        assert!(
+            gf.per_mm() > 50.0 * n.per_mm(),
+            "{} {}",
+            gf.per_mm(),
+            n.per_mm()
+        );
     }
 
     #[test]
@@ -449,6 +525,7 @@ mod tests {
             pitch_mm: p,
             forces: forces.clone(),
             sd: None,
+            unit: ForceUnit::Newton,
         };
         let arrows = fig.arrows();
         assert_eq!(arrows.len(), 4);
@@ -470,7 +547,7 @@ mod tests {
         // The key: a 1-2-5 force, length within the arrow limit, on the arrows' scale.
         let (kf, kl) = fig.key();
         assert!(kl > 0.0 && kl <= ARROW_FRACTION * p + 1e-12);
-        assert!((kf / kl - fig.n_per_mm()).abs() < 1e-12);
+        assert!((kf / kl - fig.per_mm()).abs() < 1e-12);
     }
 
     #[test]

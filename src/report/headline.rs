@@ -124,7 +124,10 @@ const TITLES: &[(&str, &str)] = &[
     ),
     ("hold.ft_drift_pct_fs_per_min", "F/T drift during the holds"),
     ("hold.zero_drift_n", "zero drift over the run"),
-    ("hold.zero_drift_pct_fs", "zero drift over the run"),
+    (
+        "hold.zero_drift_pct_fs",
+        "zero drift over the run, of full scale",
+    ),
     ("angle.bias_deg", "angle bias"),
     ("angle.sd_deg", "angle error SD"),
     ("angle.bias_vs_target_deg", "angle bias against the target"),
@@ -298,6 +301,21 @@ pub fn headline(o: &mut String, metrics: &[Metric], verdicts: Option<&[Verdict]>
     );
 }
 
+/// The sentence under a table whose forces are converted: the page's unit, and the
+/// unit the machine names keep elsewhere (empty on a page in N).
+pub fn unit_note(unit: ForceUnit) -> String {
+    if unit == ForceUnit::Newton {
+        return String::new();
+    }
+    format!(
+        "<p class=\"unit-note\"><small>Forces are shown in the plan's force unit, {u}. The \
+         names (<code>magnitude.offset_n</code>, …) are those of <code>summary.csv</code>, \
+         <code>verdict.json</code> and acceptance criteria, where metrics named \
+         <code>…_n</code> are in N.</small></p>\n",
+        u = unit.symbol()
+    )
+}
+
 /// The full metrics table (forces in the plan's force unit `unit`).
 pub fn metrics_table(o: &mut String, metrics: &[Metric], unit: ForceUnit) {
     o.push_str(
@@ -320,6 +338,7 @@ pub fn metrics_table(o: &mut String, metrics: &[Metric], unit: ForceUnit) {
         );
     }
     o.push_str("</table>\n");
+    o.push_str(&unit_note(unit));
 }
 
 /// The ISO 376 section: definitions in short, the class table and the class each
@@ -392,4 +411,35 @@ pub fn iso376_section(o: &mut String, analysis: &RunAnalysis) {
              calibration certificate."
         }
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// "Two different numbers are both called b′" (and `hold.zero_drift_n` and
+    /// `hold.zero_drift_pct_fs` were both "zero drift over the run"): no two metrics
+    /// that can stand on one page share a name. The exceptions never meet: the
+    /// resolution in N and in gf (a page shows the plan's unit only) and the resolution
+    /// method of a magnitude and of an angle run.
+    #[test]
+    fn no_two_metrics_on_one_page_share_a_name() {
+        let never_together = [
+            ("magnitude.resolution_n", "magnitude.resolution_gf"),
+            ("magnitude.resolution_method", "angle.resolution_method"),
+        ];
+        for (i, (a, ta)) in TITLES.iter().enumerate() {
+            for (b, tb) in &TITLES[i + 1..] {
+                if ta == tb {
+                    assert!(
+                        never_together.contains(&(a, b)) || never_together.contains(&(b, a)),
+                        "{a} and {b} are both called {ta:?}"
+                    );
+                }
+            }
+        }
+        // b′ names the range the class table compares, not the repeatability SD.
+        let sr = title("metrology.repeatability_pct_fs");
+        assert!(sr.starts_with("repeatability SD s_r") && sr.contains("b′ = 1.128 s_r"));
+    }
 }

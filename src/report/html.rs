@@ -362,26 +362,30 @@ pub fn render(
         calibration_table(&mut o, &a.calibration, "deg", 1.0);
     }
     if let Some(s) = &analysis.spatial {
+        let u = unit.symbol();
         let _ = writeln!(
             o,
             "<h2>Spatial resolution (paper Fig. 9)</h2>\n<p>Full width at half maximum of the \
              normalised fz profile: <b>{} mm</b> (half-maximum crossings at {} and {} mm; maximum \
-             {} N at {} mm from the load; profiled grid nodes {} mm from the load line).</p>\n\
+             {} {u} at {} mm from the load; profiled grid nodes {} mm from the load line).</p>\n\
              <details><summary>profile</summary><table>",
             fmt_value(s.fwhm_mm),
             fmt_value(s.half_left_mm),
             fmt_value(s.half_right_mm),
-            fmt_value(s.peak_fz_n),
+            fmt_value(s.peak_fz_n * scale),
             fmt_value(s.peak_distance_mm),
             fmt_value(s.line_offset_mm)
         );
-        header(&mut o, &["distance (mm)", "fz (N)", "fz / max", "samples"]);
+        header(
+            &mut o,
+            &["distance (mm)", &format!("fz ({u})"), "fz / max", "samples"],
+        );
         for p in &s.profile {
             row(
                 &mut o,
                 &[
                     fmt_value(p.distance_mm),
-                    fmt_value(p.fz_n),
+                    fmt_value(p.fz_n * scale),
                     fmt_value(p.normalized),
                     p.n.to_string(),
                 ],

@@ -554,6 +554,8 @@ pub enum LegendGlyph {
     Triangle(RGBColor),
     /// A cross (flags).
     Cross(RGBColor),
+    /// A vertical error bar with caps (means ± SD).
+    ErrorBar(RGBColor),
 }
 
 /// Height of one row of a [`legend_strip`], pixels.
@@ -618,9 +620,31 @@ pub fn legend_strip<DB: DrawingBackend>(
             LegendGlyph::Cross(c) => {
                 area.draw(&Cross::new((x0 + 12, y), 5, Color::stroke_width(&c, 3)))?
             }
+            LegendGlyph::ErrorBar(c) => {
+                let st = Color::stroke_width(&c, 2);
+                area.draw(&PathElement::new([(x0 + 12, y - 7), (x0 + 12, y + 7)], st))?;
+                area.draw(&PathElement::new([(x0 + 8, y - 7), (x0 + 16, y - 7)], st))?;
+                area.draw(&PathElement::new([(x0 + 8, y + 7), (x0 + 16, y + 7)], st))?;
+                area.draw(&Circle::new((x0 + 12, y), 3, Color::filled(&c)))?;
+            }
         }
         area.draw(&Text::new(label.clone(), (x0 + 32, y - 7), style.clone()))?;
         x += w;
     }
     Ok(())
+}
+
+/// `root` with `title` on top and `entries` in a [`legend_strip`] below it: the area
+/// left for the plot. Every report and comparison figure with a legend draws it this
+/// way, so no legend entry ever covers data and every colour the figure uses is keyed.
+pub fn titled_with_legend<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    title: &str,
+    entries: &[(LegendGlyph, String)],
+) -> Result<DrawingArea<DB, Shift>, DrawingAreaErrorKind<DB::ErrorType>> {
+    let area = root.titled(title, (FONT, 20))?;
+    let rows = legend_rows(entries, area.dim_in_pixel().0);
+    let (strip, area) = area.split_vertically(rows * LEGEND_ROW_PX + 8);
+    legend_strip(&strip, entries)?;
+    Ok(area)
 }

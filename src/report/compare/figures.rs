@@ -14,7 +14,10 @@ use plotters::prelude::*;
 
 use super::{Better, Comparison};
 use crate::report::acceptance::fmt_value;
-use crate::report::plot::{self, Figure, FigureFiles, FigureResult, PlotError, FONT};
+use crate::report::headline::{display_factor, other_resolution};
+use crate::report::plot::{
+    self, titled_with_legend, Figure, FigureFiles, FigureResult, LegendGlyph, PlotError, FONT,
+};
 
 /// One colour per run, in [`Comparison::runs`] order (cycled past eight): the
 /// Okabe–Ito colour-blind-safe palette, as the study plots use. The page shows the
@@ -99,22 +102,30 @@ const TREND_COLUMNS: usize = 3;
 pub const MAX_TREND_PANELS: usize = 30;
 
 impl TrendFigure {
-    /// Pixel size: 3 columns, 250 px per row of panels.
+    /// Pixel size: 3 columns, 250 px per row of panels, and the title and legend.
     pub fn size(&self) -> (u32, u32) {
         let rows = self.panels.len().div_ceil(TREND_COLUMNS).max(1);
-        (1200, 250 * rows as u32)
+        let legend = plot::legend_rows(&self.legend(), 1200) * plot::LEGEND_ROW_PX + 8;
+        (1200, 250 * rows as u32 + legend + 30)
     }
 }
 
 /// The trend figure of a comparison (`None` when no metric qualifies).
+/// Forces in the page's unit ([`Comparison::force_unit`]); the resolution metric of the
+/// other unit gets no panel.
 pub fn trend_figure(c: &Comparison) -> Option<TrendFigure> {
     let order = c.date_order();
     let labels: Vec<String> = order.iter().map(|&i| c.runs[i].label.clone()).collect();
+    let unit = c.force_unit();
     let mut panels = Vec::new();
     for m in &c.metrics {
-        if m.better.is_none() || panels.len() >= MAX_TREND_PANELS {
+        if m.better.is_none()
+            || panels.len() >= MAX_TREND_PANELS
+            || m.name == other_resolution(unit)
+        {
             continue;
         }
+        let k = display_factor(m.unit, unit);
         let points: Vec<TrendPoint> = order
             .iter()
             .enumerate()
@@ -123,10 +134,10 @@ pub fn trend_figure(c: &Comparison) -> Option<TrendFigure> {
                 mt.value.is_finite().then(|| {
                     (
                         x,
-                        mt.value,
+                        mt.value * k,
                         mt.ci95
                             .filter(|ci| ci.low.is_finite() && ci.high.is_finite())
-                            .map(|ci| (ci.low, ci.high)),
+                            .map(|ci| (ci.low * k, ci.high * k)),
                     )
                 })
             })
@@ -136,13 +147,13 @@ pub fn trend_figure(c: &Comparison) -> Option<TrendFigure> {
         }
         panels.push(TrendPanel {
             metric: m.name.clone(),
-            unit: m.unit.to_string(),
+            unit: if k == 1.0 { m.unit } else { unit.symbol() }.to_string(),
             better: m.better,
             points,
             baseline: c
                 .baseline_run()
                 .metric(&m.name)
-                .map(|b| b.value)
+                .map(|b| b.value * k)
                 .filter(|v| v.is_finite()),
         });
     }
@@ -195,9 +206,26 @@ fn short(label: &str, n: usize) -> String {
     }
 }
 
+impl TrendFigure {
+    /// The key: each run's colour with its full label (the x labels are cut to 14
+    /// characters), the baseline's dashed line and the CI bars.
+    pub fn legend(&self) -> Vec<(LegendGlyph, String)> {
+        let mut entries: Vec<(LegendGlyph, String)> = self
+            .colors
+            .iter()
+            .zip(&self.labels)
+            .map(|(&c, l)| (LegendGlyph::Dot(run_color(c)), l.clone()))
+            .collect();
+        entries.push((LegendGlyph::Dashed(BLACK), "the baseline's value".into()));
+        entries.push((LegendGlyph::ErrorBar(BLACK), "value and 95 % CI".into()));
+        entries
+    }
+}
+
 impl Figure for TrendFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let rows = self.panels.len().div_ceil(TREND_COLUMNS).max(1);
+        let root = titled_with_legend(root, "metrics over the runs", &self.legend())?;
         let areas = root.split_evenly((rows, TREND_COLUMNS));
         let n = self.labels.len();
         let labels: Vec<String> = self.labels.iter().map(|l| short(l, 14)).collect();
@@ -418,13 +446,25 @@ impl BTreeUnits {
 
 impl Figure for OverlayFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
+        let grey = RGBColor(179, 179, 179);
+        // The key in a strip above the plot, clear of the data.
+        let mut entries = vec![(LegendGlyph::Line(grey), "identity".to_string())];
+        entries.extend(
+            self.curves
+                .iter()
+                .map(|c| (LegendGlyph::Line(run_color(c.color)), c.label.clone())),
+        );
+        entries.push((
+            LegendGlyph::ErrorBar(BLACK),
+            "level mean ± 1 SD, in the run's colour (light dots: its samples)".into(),
+        ));
+        let root = titled_with_legend(root, &self.title, &entries)?;
         let all = || self.curves.iter().flat_map(|c| c.samples.iter());
         let xs = span(all().map(|s| s.0));
         let ys = span(all().map(|s| s.1));
         let lo = xs.start.min(ys.start);
         let hi = xs.end.max(ys.end);
-        let mut chart = ChartBuilder::on(root)
-            .caption(&self.title, (FONT, 20))
+        let mut chart = ChartBuilder::on(&root)
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(64)
@@ -437,13 +477,7 @@ impl Figure for OverlayFigure {
             .y_label_formatter(&|v| fmt_value(snap(*v, &(lo..hi))))
             .label_style((FONT, 13))
             .draw()?;
-        chart
-            .draw_series(LineSeries::new(
-                [(lo, lo), (hi, hi)],
-                ShapeStyle::from(&BLACK.mix(0.3)).stroke_width(1),
-            ))?
-            .label("identity")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.3)));
+        chart.draw_series(LineSeries::new([(lo, lo), (hi, hi)], grey.stroke_width(1)))?;
         for c in &self.curves {
             let color = run_color(c.color);
             chart.draw_series(
@@ -454,23 +488,11 @@ impl Figure for OverlayFigure {
             chart.draw_series(c.levels.iter().map(|&(x, m, sd)| {
                 ErrorBar::new_vertical(x, m - sd, m, m + sd, color.stroke_width(2), 8)
             }))?;
-            chart
-                .draw_series(LineSeries::new(
-                    c.levels.iter().map(|&(x, m, _)| (x, m)),
-                    color.stroke_width(2),
-                ))?
-                .label(c.label.as_str())
-                .legend(move |(x, y)| {
-                    PathElement::new([(x, y), (x + 20, y)], color.stroke_width(3))
-                });
+            chart.draw_series(LineSeries::new(
+                c.levels.iter().map(|&(x, m, _)| (x, m)),
+                color.stroke_width(2),
+            ))?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
         Ok(())
     }
 }

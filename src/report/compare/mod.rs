@@ -691,6 +691,17 @@ impl Comparison {
         })
     }
 
+    /// The force unit of the page (`compare.html`, its figures): the plans' force unit
+    /// when every run's plan has the same one, else newtons. `compare.csv` keeps each
+    /// metric's own unit, as `summary.csv` does.
+    pub fn force_unit(&self) -> crate::units::ForceUnit {
+        let mut units = self.runs.iter().map(|r| r.analysis.run.plan.force_unit);
+        match units.next() {
+            Some(u) if units.all(|v| v == u) => u,
+            _ => crate::units::ForceUnit::Newton,
+        }
+    }
+
     /// The baseline run.
     pub fn baseline_run(&self) -> &ComparedRun {
         &self.runs[self.baseline]
@@ -899,9 +910,17 @@ pub struct CompareOutcome {
 /// Text of a criterion verdict for the CSV and the page: the bound, and with a
 /// baseline the limits it gives.
 pub fn criterion_text(v: &Verdict) -> String {
-    let mut s = v.criterion.to_string();
-    if let Some(b) = v.baseline {
-        let (lo, hi) = v.criterion.limits(Some(b));
+    criterion_text_scaled(v, 1.0)
+}
+
+/// [`criterion_text`] with every force bound, the baseline and the limits multiplied
+/// by `k` (the page shows an N metric in the plans' unit; relative fractions are
+/// unchanged).
+pub fn criterion_text_scaled(v: &Verdict, k: f64) -> String {
+    let c = super::headline::scaled_criterion(&v.criterion, k);
+    let mut s = c.to_string();
+    if let Some(b) = v.baseline.map(|b| b * k) {
+        let (lo, hi) = c.limits(Some(b));
         let limits = match (lo, hi) {
             (Some(lo), Some(hi)) => format!("in [{}, {}]", fmt_value(lo), fmt_value(hi)),
             (Some(lo), None) => format!(">= {}", fmt_value(lo)),
@@ -1038,9 +1057,15 @@ pub fn write_comparison(c: &Comparison, out_dir: &Path) -> Result<CompareOutcome
                  directory). Points: value; bars: 95 % CI where the analysis states one; \
                  dashed: the baseline {}'s value. Each y axis includes at least ± {} % of the \
                  baseline's value, so small differences look small. Title: metric [unit] and \
-                 which way is better.",
+                 which way is better{}.",
                 c.baseline_run().label,
-                figures::TREND_MIN_HALF_SPAN * 100.0
+                figures::TREND_MIN_HALF_SPAN * 100.0,
+                match c.force_unit() {
+                    crate::units::ForceUnit::Newton => String::new(),
+                    u => format!(
+                        "; forces in the plans' unit, {u} (see the note on the metrics table)"
+                    ),
+                }
             ),
             &t,
             size,

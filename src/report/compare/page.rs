@@ -9,8 +9,9 @@ use std::fmt::Write;
 use base64::Engine;
 
 use super::figures::RUN_COLORS;
-use super::{criterion_text, verdicts_of, Better, Comparison, Significance, Z95};
+use super::{criterion_text_scaled, verdicts_of, Better, Comparison, Significance, Z95};
 use crate::report::acceptance::{fmt_value, Outcome};
+use crate::report::headline::{display_factor, other_resolution};
 use crate::report::html::{escape, EmbeddedFigure};
 
 const STYLE: &str = "body{font-family:sans-serif;max-width:90em;margin:1em auto;padding:0 1em;color:#222}\
@@ -112,10 +113,35 @@ fn banner_flags(c: &Comparison) -> String {
     o
 }
 
+/// The sentence saying which unit the page's forces are in, when it is not the unit
+/// the machine names and `compare.csv` use.
+fn unit_note(unit: crate::units::ForceUnit) -> String {
+    if unit == crate::units::ForceUnit::Newton {
+        return String::new();
+    }
+    format!(
+        "<p class=\"unit-note\">Forces are shown in the plans' unit, {u}, in the table and \
+         the figures; the machine names under each metric are those of \
+         <code>compare.csv</code>, <code>summary.csv</code> and acceptance criteria, where \
+         metrics named <code>…_n</code> are in N.</p>\n",
+        u = unit.symbol()
+    )
+}
+
 /// Renders the page.
 pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
     let mut o = String::new();
     let base = c.baseline_run();
+    // One unit per quantity on the page: forces in the plans' unit (N when the plans
+    // differ); the resolution metric of the other unit is left off.
+    let unit = c.force_unit();
+    let shown_unit = |u: &'static str| {
+        if display_factor(u, unit) == 1.0 {
+            u
+        } else {
+            unit.symbol()
+        }
+    };
     let title = format!("tactbench comparison: {} runs", c.runs.len());
     let _ = write!(
         o,
@@ -215,10 +241,11 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
          analysis states one; for the other runs the difference to the baseline <b>{}</b> \
          (absolute and %), its 95 % CI and whether it is significant (<b>sig.</b>: the CI of \
          the difference excludes 0; n/a: no CI in one of the two runs). A red cell is the \
-         worst run for the metric, where the direction of “better” is defined.</p>\n\
+         worst run for the metric, where the direction of “better” is defined.</p>\n{}\
          <table id=\"metrics\">\n<tr><th class=\"l\">metric</th><th class=\"l\">unit</th>\
          <th class=\"l\">better</th>",
-        escape(&base.label)
+        escape(&base.label),
+        unit_note(unit)
     );
     for (i, r) in c.runs.iter().enumerate() {
         let _ = write!(
@@ -230,13 +257,23 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
         );
     }
     o.push_str("<th class=\"l\">worst</th></tr>\n");
-    for m in &c.metrics {
+    for m in c
+        .metrics
+        .iter()
+        .filter(|m| m.name != other_resolution(unit))
+    {
+        let k = display_factor(m.unit, unit);
         let _ = write!(
             o,
-            "<tr class=\"metric\"><td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td>",
+            "<tr class=\"metric\"><td class=\"l\">{}<br><small><code>{}</code></small></td>\
+             <td class=\"l\">{}</td><td class=\"l\">{}</td>",
+            escape(crate::report::headline::title(&m.name)),
             escape(&m.name),
-            escape(m.unit),
-            better_text(m.better)
+            escape(shown_unit(m.unit)),
+            better_text(m.better.map(|b| match b {
+                Better::CloserTo(t) => Better::CloserTo(t * k),
+                b => b,
+            }))
         );
         for (i, r) in c.runs.iter().enumerate() {
             let mut cell = String::new();
@@ -250,13 +287,13 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
             match r.metric(&m.name) {
                 None => cell.push_str("&mdash;"),
                 Some(mt) => {
-                    cell.push_str(&fmt_value(mt.value));
+                    cell.push_str(&fmt_value(mt.value * k));
                     if let Some(ci) = mt.ci95 {
                         let _ = write!(
                             cell,
                             "<br><span class=\"small\">[{}, {}] {}</span>",
-                            fmt_value(ci.low),
-                            fmt_value(ci.high),
+                            fmt_value(ci.low * k),
+                            fmt_value(ci.high * k),
                             escape(ci.method)
                         );
                     }
@@ -266,14 +303,14 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
                 let pct = d
                     .pct
                     .map_or(String::new(), |p| format!(" ({} %)", signed(p)));
-                let _ = write!(cell, "<br>Δ {}{pct}", signed(d.value));
+                let _ = write!(cell, "<br>Δ {}{pct}", signed(d.value * k));
                 match (d.ci95, d.significance) {
                     (Some((lo, hi)), s) => {
                         let _ = write!(
                             cell,
                             "<br><span class=\"small\">Δ CI [{}, {}]</span> {}",
-                            fmt_value(lo),
-                            fmt_value(hi),
+                            fmt_value(lo * k),
+                            fmt_value(hi * k),
                             if s == Significance::Significant {
                                 "<span class=\"sig\">sig.</span>"
                             } else {
@@ -290,7 +327,7 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
                     "<br><span class=\"{}\">{}</span> <span class=\"small\">{}</span>",
                     class_of(v.outcome),
                     v.outcome.word(),
-                    escape(&criterion_text(v))
+                    escape(&criterion_text_scaled(v, k))
                 );
             }
             let _ = write!(o, "<td class=\"{}\">{cell}</td>", classes.join(" "));
@@ -317,9 +354,10 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
         );
         for r in &c.runs {
             for v in &r.verdicts {
+                let k = display_factor(v.unit, unit);
                 let value = match &v.note {
                     Some(n) => escape(n),
-                    None => fmt_value(v.value),
+                    None => fmt_value(v.value * k),
                 };
                 let _ = writeln!(
                     o,
@@ -329,8 +367,8 @@ pub fn render(c: &Comparison, figures: &[EmbeddedFigure]) -> String {
                     class_of(v.outcome),
                     v.outcome.word(),
                     escape(&v.criterion.metric),
-                    escape(v.unit),
-                    escape(&criterion_text(v))
+                    escape(shown_unit(v.unit)),
+                    escape(&criterion_text_scaled(v, k))
                 );
             }
             for q in &r.verdict.requirements {
