@@ -233,6 +233,19 @@ impl QuiverFigure {
             1.0
         }
     }
+
+    /// The plot's x and y ranges: every marker and every arrow's tip (a rigid shift
+    /// carries the tips of the last column past the markers' extent), padded 5 %.
+    pub fn extent(&self) -> (std::ops::Range<f64>, std::ops::Range<f64>) {
+        let k = self.scale();
+        let ends = |axis: usize| {
+            self.frame.records.iter().flat_map(move |r| {
+                let p = r.position_mm[axis];
+                [p, p + k * r.u_mm.map_or(0.0, |u| u[axis])]
+            })
+        };
+        (range(ends(0), 0.05), range(ends(1), 0.05))
+    }
 }
 
 impl Figure for QuiverFigure {
@@ -258,8 +271,7 @@ impl Figure for QuiverFigure {
             ));
         }
         let area = titled_with_legend(root, &format!("{} (arrows ×{k:.1})", self.title), &entries)?;
-        let xs = range(recs.iter().map(|r| r.position_mm[0]), 0.05);
-        let ys = range(recs.iter().map(|r| r.position_mm[1]), 0.05);
+        let (xs, ys) = self.extent();
         let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(40)
@@ -390,5 +402,47 @@ impl Figure for MarkerHealthFigure {
             chart.draw_series(flagged)?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::QuiverFigure;
+    use crate::formats::{DisplacementFrame, DisplacementRecord};
+    use crate::sensor::paper_sensor;
+
+    /// Regression (the committed Table I page): the x range covered the markers only,
+    /// so under a rigid shift along +x the arrows of the last column ran off the plot.
+    #[test]
+    fn quiver_range_holds_the_arrow_tips_of_a_rigid_shift() {
+        let records: Vec<DisplacementRecord> = (0..5)
+            .flat_map(|ix| {
+                (0..3).map(move |iy| DisplacementRecord {
+                    layer: 0,
+                    marker: (iy * 5 + ix) as u64,
+                    position_mm: [1.5 * ix as f64, 1.5 * iy as f64],
+                    u_mm: Some([0.05, -0.01]),
+                    line: 0,
+                })
+            })
+            .collect();
+        let fig = QuiverFigure {
+            title: "t".into(),
+            sensor: paper_sensor(),
+            frame: DisplacementFrame {
+                frame: String::new(),
+                records,
+            },
+        };
+        let k = fig.scale();
+        let (xs, ys) = fig.extent();
+        let tip_x = 6.0 + k * 0.05;
+        assert!(
+            xs.end > tip_x,
+            "x range {xs:?} ends before the last tip {tip_x}"
+        );
+        assert!(xs.start < 0.0);
+        assert!(ys.start < -k * 0.01, "y range {ys:?}");
+        assert!(ys.end > 3.0);
     }
 }
