@@ -17,7 +17,9 @@
 //! detected at run time, an explicit kernel does it 16 samples per `vpmaddwd`: the
 //! compiler alone uses 4 lanes on baseline x86-64; with AVX-512 F+BW a 512-bit variant
 //! takes 32 samples per `vpmaddwd`, so a paper-sensor window row is two blocks instead
-//! of four; the sums are bit-identical on every path); the
+//! of four, and, when every weight fits a byte of at most ±64, 64 samples per
+//! `vpmaddubsw` on byte weights: one block per paper-sensor row; the sums are
+//! bit-identical on every path); the
 //! *clamped* one scores `max(0, s + 2K)` per pixel (`K` = 8 levels of 8 bits, so the
 //! background noise is not clipped) and is used by the tracker when the ring's
 //! background plane moved away from the reference's: a strongly negative foreign blob
@@ -217,8 +219,11 @@ pub(crate) struct Window {
     linear: [LinearWeights; 2],
     /// The CPU has AVX2: 8-bit frames take the SIMD kernel [`sums_u8_avx2`].
     avx2: bool,
-    /// The CPU has AVX-512 F and BW: 8-bit frames take [`sums_u8_avx512`] (preferred).
+    /// The CPU has AVX-512 F and BW: 8-bit frames take [`sums_u8_avx512_bytes`]
+    /// (preferred, when the weights fit bytes) or [`sums_u8_avx512`].
     avx512: bool,
+    /// Whether the AVX-512 byte kernel may be used (tests turn it off to compare).
+    byte_kernel: bool,
 }
 
 /// One row of the linear kernel: samples `[start, start + len)` of the row `dy`,
@@ -237,6 +242,10 @@ struct LinearRow {
     block512_offset: usize,
     /// Blocks of [`LANES512`] samples covering `len` (the last one zero-padded).
     blocks512: usize,
+    /// Start of this row's blocks in [`LinearWeights::bytes512`].
+    byte_block_offset: usize,
+    /// Blocks of [`BYTES512`] samples covering `len` (the last one zero-padded).
+    byte_blocks: usize,
 }
 
 /// Samples per block of the SIMD kernel (one 256-bit register of 16-bit lanes).
@@ -244,6 +253,13 @@ const LANES: usize = 16;
 
 /// Samples per block of the AVX-512 kernel (one 512-bit register of 16-bit lanes).
 const LANES512: usize = 32;
+
+/// Samples per block of the AVX-512 byte kernel (one 512-bit register of 8-bit lanes).
+const BYTES512: usize = 64;
+
+/// Largest |weight| the byte kernel takes: `vpmaddubsw` adds two `u8 × i8` products
+/// into an i16 with saturation, and 2 × 255 × 64 = 32640 stays below 2¹⁵.
+const MAX_BYTE_WEIGHT: i16 = 64;
 
 /// Per-sample weights of the linear kernel for one pixel layout and colour: the score
 /// `3·I_c − (R + G + B)` times aperture / ring membership, and times `dx`. Summing
@@ -262,6 +278,10 @@ struct LinearWeights {
     blocks: Vec<i16>,
     /// As `blocks`, in blocks of [`LANES512`] samples for the AVX-512 kernel.
     blocks512: Vec<i16>,
+    /// As `blocks`, as bytes, in blocks of [`BYTES512`] samples for the AVX-512 byte
+    /// kernel; empty when a weight exceeds [`MAX_BYTE_WEIGHT`] (windows wider than
+    /// 2 × 32 px with colour weight 2), which then take the 16-bit kernel.
+    bytes512: Vec<i8>,
 }
 
 /// Background-corrected moments of one window.
@@ -349,6 +369,7 @@ impl Window {
                 && std::is_x86_feature_detected!("avx512bw"),
             #[cfg(not(target_arch = "x86_64"))]
             avx512: false,
+            byte_kernel: true,
         };
         for dy in -half..=half {
             let row = Row {
@@ -380,6 +401,8 @@ impl Window {
 
     fn linear_weights(&self, channels: usize) -> LinearWeights {
         let mut lw = LinearWeights::default();
+        // The byte kernel's weights, packed as i16 first (all rows), kept when they fit.
+        let mut byte_weights: Vec<i16> = Vec::new();
         let h = self.half;
         for (k, row) in self.rows.iter().enumerate() {
             if row.outer < 0 {
@@ -418,6 +441,7 @@ impl Window {
             let (block_offset, blocks) = pack(LANES, &mut packed);
             let mut packed512 = std::mem::take(&mut lw.blocks512);
             let (block512_offset, blocks512) = pack(LANES512, &mut packed512);
+            let (byte_block_offset, byte_blocks) = pack(BYTES512, &mut byte_weights);
             lw.blocks = packed;
             lw.blocks512 = packed512;
             lw.rows.push(LinearRow {
@@ -429,7 +453,12 @@ impl Window {
                 blocks,
                 block512_offset,
                 blocks512,
+                byte_block_offset,
+                byte_blocks,
             });
+        }
+        if byte_weights.iter().all(|w| w.abs() <= MAX_BYTE_WEIGHT) {
+            lw.bytes512 = byte_weights.iter().map(|&w| w as i8).collect();
         }
         lw
     }
@@ -502,6 +531,16 @@ impl Window {
                 ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C + blocks(r) * lanes
             })
         };
+        #[cfg(target_arch = "x86_64")]
+        if self.avx512 && self.byte_kernel && !lw.bytes512.is_empty() {
+            if let Some(bytes) = T::as_bytes(img.data) {
+                if last_read(BYTES512, |r| r.byte_blocks) <= bytes.len() {
+                    // SAFETY: AVX-512 F/BW were detected at run time (`Window::new`),
+                    // and every block read lies inside `bytes` (checked just above).
+                    return unsafe { sums_u8_avx512_bytes::<C>(lw, bytes, img.width, cx, cy) };
+                }
+            }
+        }
         #[cfg(target_arch = "x86_64")]
         if self.avx512 {
             if let Some(bytes) = T::as_bytes(img.data) {
@@ -1001,6 +1040,57 @@ unsafe fn sums_u8_avx512<const C: usize>(
     [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
 }
 
+/// [`sums_u8_avx512`] on bytes: 64 samples per block, one plain 512-bit load and
+/// four `vpmaddubsw` (64 × u8·i8 → 32 × i16, pairs added) against the block's four
+/// byte-weight vectors, each widened and pair-added into i32 lanes by `vpmaddwd` with
+/// ones. A window row of the paper sensor (≤ 63 samples) is one block instead of two,
+/// with no widening load. The i16 pair sums cannot saturate (|weight| ≤
+/// [`MAX_BYTE_WEIGHT`]), so the integer sums are those of the other kernels,
+/// bit-identical.
+///
+/// # Safety
+/// The CPU must support AVX-512 F and BW, `lw.bytes512` must hold the byte weights,
+/// and for every row `r` of `lw` the `r.byte_blocks × 64` bytes from the row's start
+/// must lie inside `data`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn sums_u8_avx512_bytes<const C: usize>(
+    lw: &LinearWeights,
+    data: &[u8],
+    width: usize,
+    cx: i32,
+    cy: i32,
+) -> [i64; 6] {
+    use std::arch::x86_64::*;
+    let z = _mm512_setzero_si512();
+    let ones = _mm512_set1_epi16(1);
+    let (mut a0, mut a1, mut a0y, mut b0, mut b1, mut b0y) = (z, z, z, z, z, z);
+    let w = lw.bytes512.as_ptr();
+    for r in &lw.rows {
+        let start = ((cy + r.dy) as usize * width + (cx + r.lo) as usize) * C;
+        let p = data.as_ptr().add(start);
+        let (mut ra0, mut rb0) = (z, z);
+        for b in 0..r.byte_blocks {
+            let v = _mm512_loadu_si512(p.add(b * BYTES512) as *const __m512i);
+            let wb = w.add(r.byte_block_offset + b * 4 * BYTES512) as *const __m512i;
+            let dot = |k: usize| {
+                _mm512_madd_epi16(_mm512_maddubs_epi16(v, _mm512_loadu_si512(wb.add(k))), ones)
+            };
+            ra0 = _mm512_add_epi32(ra0, dot(0));
+            a1 = _mm512_add_epi32(a1, dot(1));
+            rb0 = _mm512_add_epi32(rb0, dot(2));
+            b1 = _mm512_add_epi32(b1, dot(3));
+        }
+        let dy = _mm512_set1_epi32(r.dy);
+        a0 = _mm512_add_epi32(a0, ra0);
+        a0y = _mm512_add_epi32(a0y, _mm512_mullo_epi32(ra0, dy));
+        b0 = _mm512_add_epi32(b0, rb0);
+        b0y = _mm512_add_epi32(b0y, _mm512_mullo_epi32(rb0, dy));
+    }
+    let hsum = |v: __m512i| -> i64 { _mm512_reduce_add_epi32(v) as i64 };
+    [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
+}
+
 /// Largest window half-size whose scores and foreign-disc mask
 /// [`Window::locate_masked`] tabulates on the stack (a 33 × 33 score table, 4.4 kB,
 /// zeroed per call: the paper sensor's windows have half-size 10–11).
@@ -1280,6 +1370,8 @@ mod tests {
         let d4: Vec<u8> = (0..wd * ht * 4).map(|_| next()).collect();
         for (radius, weights) in [(6.0, [0, -1, 1]), (8.5, [-1, -1, 2]), (2.0, [1, -1, 0])] {
             let simd512 = Window::new(radius, weights);
+            let mut simd512_words = simd512.clone();
+            simd512_words.byte_kernel = false;
             let mut simd = simd512.clone();
             simd.avx512 = false;
             let mut scalar = simd.clone();
@@ -1313,9 +1405,63 @@ mod tests {
                         "avx-512 rgba r={radius} at ({cx}, {cy})"
                     );
                     assert_eq!(
+                        simd512_words.sums_linear::<u8, 3>(i3, cx, cy),
+                        scalar.sums_linear::<u8, 3>(i3, cx, cy),
+                        "avx-512 16-bit rgb r={radius} at ({cx}, {cy})"
+                    );
+                    assert_eq!(
+                        simd512_words.sums_linear::<u8, 4>(i4, cx, cy),
+                        scalar.sums_linear::<u8, 4>(i4, cx, cy),
+                        "avx-512 16-bit rgba r={radius} at ({cx}, {cy})"
+                    );
+                    assert_eq!(
                         simd.sums_linear::<u8, 4>(i4, cx, cy),
                         scalar.sums_linear::<u8, 4>(i4, cx, cy),
                         "rgba r={radius} at ({cx}, {cy})"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The byte kernel at its limit: weights up to ±64 (half-size 32, colour weight 2)
+    /// on saturated and random samples still give the scalar sums (no i16
+    /// saturation); one more pixel of half-size and the byte weights are dropped, the
+    /// 16-bit kernel takes over.
+    #[test]
+    fn byte_kernel_is_exact_at_its_weight_limit_and_refused_beyond() {
+        let w = Window::new(29.0, [-1, -1, 2]);
+        assert_eq!(w.half, 32);
+        assert!(!w.linear[0].bytes512.is_empty());
+        assert!(Window::new(30.0, [-1, -1, 2]).linear[0].bytes512.is_empty());
+        assert!(!Window::new(30.0, [1, 1, 1]).linear[0].bytes512.is_empty());
+        let mut scalar = w.clone();
+        scalar.avx512 = false;
+        scalar.avx2 = false;
+        let (wd, ht) = (72usize, 70usize);
+        let mut state = 0x2545_F491_4F6C_DD1Du64;
+        for fill in [Some(255u8), Some(0), None] {
+            let d3: Vec<u8> = (0..wd * ht * 3)
+                .map(|_| {
+                    fill.unwrap_or_else(|| {
+                        state ^= state << 13;
+                        state ^= state >> 7;
+                        state ^= state << 17;
+                        (state >> 56) as u8
+                    })
+                })
+                .collect();
+            let img = Raw::<u8, 3> {
+                data: &d3,
+                width: wd,
+                height: ht,
+            };
+            for cy in 32..ht as i32 - 32 {
+                for cx in 32..wd as i32 - 32 {
+                    assert_eq!(
+                        w.sums_linear::<u8, 3>(img, cx, cy),
+                        scalar.sums_linear::<u8, 3>(img, cx, cy),
+                        "fill {fill:?} at ({cx}, {cy})"
                     );
                 }
             }
