@@ -1376,49 +1376,42 @@ mod tests {
             simd.avx512 = false;
             let mut scalar = simd.clone();
             scalar.avx2 = false;
+            // Every kernel the CPU has (AVX-512 bytes, AVX-512 16-bit, AVX2) against
+            // the scalar one.
+            let kernels = [
+                ("avx-512", &simd512),
+                ("avx-512 16-bit", &simd512_words),
+                ("avx2", &simd),
+            ];
+            let i3 = Raw::<u8, 3> {
+                data: &d3,
+                width: wd,
+                height: ht,
+            };
+            let i4 = Raw::<u8, 4> {
+                data: &d4,
+                width: wd,
+                height: ht,
+            };
             let h = simd.half;
             for cy in h..ht as i32 - h {
                 for cx in h..wd as i32 - h {
-                    let i3 = Raw::<u8, 3> {
-                        data: &d3,
-                        width: wd,
-                        height: ht,
-                    };
-                    let i4 = Raw::<u8, 4> {
-                        data: &d4,
-                        width: wd,
-                        height: ht,
-                    };
-                    assert_eq!(
-                        simd.sums_linear::<u8, 3>(i3, cx, cy),
+                    let (rgb, rgba) = (
                         scalar.sums_linear::<u8, 3>(i3, cx, cy),
-                        "rgb r={radius} at ({cx}, {cy})"
-                    );
-                    assert_eq!(
-                        simd512.sums_linear::<u8, 3>(i3, cx, cy),
-                        scalar.sums_linear::<u8, 3>(i3, cx, cy),
-                        "avx-512 rgb r={radius} at ({cx}, {cy})"
-                    );
-                    assert_eq!(
-                        simd512.sums_linear::<u8, 4>(i4, cx, cy),
                         scalar.sums_linear::<u8, 4>(i4, cx, cy),
-                        "avx-512 rgba r={radius} at ({cx}, {cy})"
                     );
-                    assert_eq!(
-                        simd512_words.sums_linear::<u8, 3>(i3, cx, cy),
-                        scalar.sums_linear::<u8, 3>(i3, cx, cy),
-                        "avx-512 16-bit rgb r={radius} at ({cx}, {cy})"
-                    );
-                    assert_eq!(
-                        simd512_words.sums_linear::<u8, 4>(i4, cx, cy),
-                        scalar.sums_linear::<u8, 4>(i4, cx, cy),
-                        "avx-512 16-bit rgba r={radius} at ({cx}, {cy})"
-                    );
-                    assert_eq!(
-                        simd.sums_linear::<u8, 4>(i4, cx, cy),
-                        scalar.sums_linear::<u8, 4>(i4, cx, cy),
-                        "rgba r={radius} at ({cx}, {cy})"
-                    );
+                    for (name, k) in kernels {
+                        assert_eq!(
+                            k.sums_linear::<u8, 3>(i3, cx, cy),
+                            rgb,
+                            "{name} rgb r={radius} at ({cx}, {cy})"
+                        );
+                        assert_eq!(
+                            k.sums_linear::<u8, 4>(i4, cx, cy),
+                            rgba,
+                            "{name} rgba r={radius} at ({cx}, {cy})"
+                        );
+                    }
                 }
             }
         }
