@@ -335,6 +335,32 @@ impl LevelBranches {
     }
 }
 
+/// The up and down branch means of the readings at level `target_n` (N), residuals
+/// by `res`.
+fn level_branches(
+    readings: &[Reading],
+    target_n: f64,
+    res: impl Fn(&Reading) -> f64,
+) -> LevelBranches {
+    let mean = |v: Vec<f64>| stats::mean(&v);
+    let pick = |down: bool| -> Vec<&Reading> {
+        readings
+            .iter()
+            .filter(|r| r.down == down && same_level(r.target_n, target_n))
+            .collect()
+    };
+    let (up, dn) = (pick(false), pick(true));
+    LevelBranches {
+        target_n,
+        up_applied_n: mean(up.iter().map(|r| r.applied_n).collect()),
+        up_measured_n: mean(up.iter().map(|r| r.measured_n).collect()),
+        up_residual_n: mean(up.iter().map(|r| res(r)).collect()),
+        down_applied_n: mean(dn.iter().map(|r| r.applied_n).collect()),
+        down_measured_n: mean(dn.iter().map(|r| r.measured_n).collect()),
+        down_residual_n: mean(dn.iter().map(|r| res(r)).collect()),
+    }
+}
+
 /// The statistics of one set of readings (the data, or one bootstrap resample), N.
 #[derive(Debug, Clone, PartialEq)]
 struct Core {
@@ -395,27 +421,9 @@ fn core(readings: &[Reading]) -> Option<Core> {
         None
     };
 
-    let mean = |v: Vec<f64>| stats::mean(&v);
     let levels: Vec<LevelBranches> = targets
         .iter()
-        .map(|&t| {
-            let pick = |down: bool| -> Vec<&Reading> {
-                readings
-                    .iter()
-                    .filter(|r| r.down == down && same_level(r.target_n, t))
-                    .collect()
-            };
-            let (up, dn) = (pick(false), pick(true));
-            LevelBranches {
-                target_n: t,
-                up_applied_n: mean(up.iter().map(|r| r.applied_n).collect()),
-                up_measured_n: mean(up.iter().map(|r| r.measured_n).collect()),
-                up_residual_n: mean(up.iter().map(|r| res(r)).collect()),
-                down_applied_n: mean(dn.iter().map(|r| r.applied_n).collect()),
-                down_measured_n: mean(dn.iter().map(|r| r.measured_n).collect()),
-                down_residual_n: mean(dn.iter().map(|r| res(r)).collect()),
-            }
-        })
+        .map(|&t| level_branches(readings, t, res))
         .collect();
     // A line through two levels (0 and one load) fits them exactly.
     let all_levels = targets.len() + usize::from(readings.iter().any(|r| r.unloaded()));
@@ -478,6 +486,11 @@ pub struct MetrologyAnalysis {
     pub readings: Vec<Reading>,
     /// Loaded levels with their branches.
     pub levels: Vec<LevelBranches>,
+    /// The unloaded level (target 0) with its branches, when the run recorded one: the
+    /// trials' starts (loading) and returns (unloading). Not a loaded level, so neither
+    /// in `levels` nor in the interpolation and reversibility errors (ISO 376 judges the
+    /// return to zero as f_0); the hysteresis loop starts and ends on it.
+    pub unloaded_level: Option<LevelBranches>,
     /// Distinct positions.
     pub positions: usize,
     /// Trials (position, trial pairs).
@@ -684,11 +697,17 @@ pub fn analyze_readings(readings: Vec<Reading>) -> Option<MetrologyAnalysis> {
     if let Some(e) = reversibility {
         checks.push((Criterion::Reversibility, e.pct_fs, "reversibility error"));
     }
+    // Outside `core`: no bootstrap statistic needs it.
+    let unloaded_level = readings
+        .iter()
+        .any(Reading::unloaded)
+        .then(|| level_branches(&readings, 0.0, |r| r.measured_n - c.fit.at(r.applied_n)));
     Some(MetrologyAnalysis {
         full_scale_n: fs,
         fit: c.fit,
         readings,
         levels: c.levels,
+        unloaded_level,
         positions,
         trials,
         repeatability,

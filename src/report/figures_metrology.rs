@@ -17,7 +17,7 @@ use plotters::prelude::*;
 
 use super::plot::{titled_with_legend, Figure, FigureResult, LegendGlyph, FONT};
 use crate::analysis::hold::HoldAnalysis;
-use crate::analysis::metrology::MetrologyAnalysis;
+use crate::analysis::metrology::{LevelBranches, MetrologyAnalysis};
 
 /// Colours cycled over trials / holds (matplotlib's tab10: ten distinct colours, so
 /// the paper's ten trials and three positions × three trials each get their own).
@@ -183,10 +183,17 @@ type Branch = Vec<(f64, f64)>;
 /// by applied force: loading, and unloading. The unloading branch starts where loading
 /// turned: the top level is measured once (on the way up), so it opens the down line
 /// too and the loop closes (with one down level the down line was a lone point before).
-fn loop_branches(levels: &[crate::analysis::metrology::LevelBranches], k: f64) -> (Branch, Branch) {
+/// `levels` are the unloaded level (when recorded) and the loaded ones: the analysis
+/// keeps the unloaded level apart from the loaded ones, and without it both lines
+/// started at the first load although the run measured 0.
+fn loop_branches<'a>(
+    levels: impl IntoIterator<Item = &'a LevelBranches> + Clone,
+    k: f64,
+) -> (Branch, Branch) {
     let branch = |down: bool| -> Vec<(f64, f64)> {
         let mut v: Vec<(f64, f64)> = levels
-            .iter()
+            .clone()
+            .into_iter()
             .filter_map(|l| {
                 let (a, y) = if down {
                     (l.down_applied_n?, l.down_measured_n?)
@@ -209,6 +216,15 @@ fn loop_branches(levels: &[crate::analysis::metrology::LevelBranches], k: f64) -
     (up, down)
 }
 
+impl HysteresisFigure {
+    /// The loading and unloading lines drawn, from the unloaded level through the
+    /// loaded ones (see [`loop_branches`]).
+    fn branches(&self) -> (Branch, Branch) {
+        let m = &self.metrology;
+        loop_branches(m.unloaded_level.iter().chain(&m.levels), self.scale)
+    }
+}
+
 impl Figure for HysteresisFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let k = self.scale;
@@ -216,7 +232,7 @@ impl Figure for HysteresisFigure {
         let blue = RGBColor(31, 90, 200);
         let red = RGBColor(200, 40, 40);
         let sample = RGBColor(204, 204, 204);
-        let (up, down) = loop_branches(&m.levels, k);
+        let (up, down) = self.branches();
         let mut entries = vec![
             (LegendGlyph::Dot(sample), "samples".to_string()),
             (
@@ -407,7 +423,7 @@ impl Figure for CreepFigure {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::analysis::metrology::LevelBranches;
+    use crate::analysis::metrology::{analyze_readings, Reading};
 
     fn level(target: f64, up: Option<f64>, down: Option<f64>) -> LevelBranches {
         LevelBranches {
@@ -457,5 +473,59 @@ mod tests {
         // Without any unloading row there is no down branch at all.
         let only_up = [level(0.0, Some(0.0), None), level(1.0, Some(1.0), None)];
         assert!(loop_branches(&only_up, 1.0).1.is_empty());
+    }
+
+    /// "The loading line starts at 150 gf and is not joined to the 0 gf point" of the
+    /// committed up-down run (0, 150, 300, 150, 0 gf per trial, every row recorded):
+    /// the analysis keeps the unloaded level out of its loaded `levels`, and the figure
+    /// drew only those. Both lines now run from the recorded 0 gf means.
+    #[test]
+    fn loading_line_is_joined_to_the_recorded_zero_level() {
+        let gf = crate::units::NEWTONS_PER_GF;
+        let targets = [0.0, 150.0, 300.0, 150.0, 0.0];
+        let mut readings = Vec::new();
+        for trial in 0..3 {
+            for (k, &t) in targets.iter().enumerate() {
+                let down = k > 2;
+                // F^sum reads 10 % low loading, 10 % high unloading, +0.01 N at zero
+                // on the way back.
+                let f = t * gf;
+                let measured = if down { 1.1 * f + 0.01 } else { 0.9 * f };
+                readings.push(Reading {
+                    index: 5 * trial + k,
+                    trial,
+                    position: None,
+                    target_n: f,
+                    applied_n: f,
+                    measured_n: measured + 0.001 * trial as f64,
+                    down,
+                });
+            }
+        }
+        let m = analyze_readings(readings).unwrap();
+        // The analysis' loaded levels are unchanged: 150 and 300 gf only.
+        assert_eq!(m.levels.len(), 2);
+        let zero = m.unloaded_level.clone().unwrap();
+        assert_eq!(zero.up_applied_n, Some(0.0));
+        assert!((zero.down_measured_n.unwrap() - 0.011).abs() < 1e-12);
+        let fig = HysteresisFigure {
+            metrology: m,
+            scale: 1.0 / gf,
+            unit: "gf".into(),
+        };
+        let (up, down) = fig.branches();
+        let near =
+            |a: (f64, f64), b: (f64, f64)| (a.0 - b.0).abs() < 1e-9 && (a.1 - b.1).abs() < 1e-9;
+        let zero_up = 0.001 / gf;
+        let zero_down = 0.011 / gf;
+        assert_eq!(up.len(), 3, "{up:?}");
+        assert!(near(up[0], (0.0, zero_up)), "{up:?}");
+        assert!(near(up[1], (150.0, 135.0 + zero_up)), "{up:?}");
+        assert!(near(up[2], (300.0, 270.0 + zero_up)), "{up:?}");
+        assert_eq!(down.len(), 3, "{down:?}");
+        assert!(near(down[0], (0.0, zero_down)), "{down:?}");
+        assert!(near(down[1], (150.0, 165.0 + zero_down)), "{down:?}");
+        // The down line opens where loading turned (the top is measured once).
+        assert!(near(down[2], up[2]), "{down:?}");
     }
 }
