@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use crate::util::{self, run, stderr, stdout};
+use crate::util::{self, json, run, stderr, stdout};
 
 struct Fixture {
     _tmp: tempfile::TempDir,
@@ -60,11 +60,6 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
-fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap())
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
 /// Edits a run's manifest.json as JSON.
 fn edit_manifest(dir: &Path, f: impl FnOnce(&mut serde_json::Map<String, serde_json::Value>)) {
     let p = dir.join("manifest.json");
@@ -80,6 +75,22 @@ fn report(dir: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
         "--out",
         out.to_str().unwrap(),
     ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+/// `tactbench archive SRC EXTRA --out OUT`.
+fn archive(src: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["archive", util::arg(src), "--out", util::arg(out)];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+/// `tactbench compare RUNS... EXTRA --out OUT`.
+fn compare(runs: &[&Path], out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["compare"];
+    args.extend(runs.iter().map(|r| util::arg(r)));
+    args.extend(["--out", util::arg(out)]);
     args.extend_from_slice(extra);
     run(&args)
 }
@@ -148,12 +159,7 @@ fn archive_keeps_the_record_checks_the_metrics_and_refuses_to_overwrite() {
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
 
     let none = tmp.path().join("none");
-    let o = run(&[
-        "archive",
-        src.to_str().unwrap(),
-        "--out",
-        none.to_str().unwrap(),
-    ]);
+    let o = archive(&src, &none, &[]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let so = stdout(&o);
     assert!(so.contains("kept: ") && so.contains("saved"), "{so}");
@@ -202,14 +208,7 @@ fn archive_keeps_the_record_checks_the_metrics_and_refuses_to_overwrite() {
 
     // --keep evidence: the reference and the frames the camera evidence shows.
     let ev = tmp.path().join("evidence");
-    let o = run(&[
-        "archive",
-        src.to_str().unwrap(),
-        "--keep",
-        "evidence",
-        "--out",
-        ev.to_str().unwrap(),
-    ]);
+    let o = archive(&src, &ev, &["--keep", "evidence"]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let a = json(&ev.join("archive.json"));
     let files: Vec<&str> = a["files"]
@@ -236,12 +235,7 @@ fn archive_keeps_the_record_checks_the_metrics_and_refuses_to_overwrite() {
 
     // An existing non-empty --out is refused, and left as it was.
     let before = std::fs::read(none.join("archive.json")).unwrap();
-    let o = run(&[
-        "archive",
-        src.to_str().unwrap(),
-        "--out",
-        none.to_str().unwrap(),
-    ]);
+    let o = archive(&src, &none, &[]);
     assert_eq!(o.status.code(), Some(2), "{}", stdout(&o));
     assert!(
         stderr(&o).contains("exists and is not empty"),
@@ -250,12 +244,7 @@ fn archive_keeps_the_record_checks_the_metrics_and_refuses_to_overwrite() {
     );
     assert_eq!(std::fs::read(none.join("archive.json")).unwrap(), before);
     // ... and so is an --out inside the run, and a directory that is not a run.
-    let o = run(&[
-        "archive",
-        src.to_str().unwrap(),
-        "--out",
-        src.join("arch").to_str().unwrap(),
-    ]);
+    let o = archive(&src, &src.join("arch"), &[]);
     assert_eq!(o.status.code(), Some(2));
     assert!(
         stderr(&o).contains("inside the run directory"),
@@ -263,12 +252,7 @@ fn archive_keeps_the_record_checks_the_metrics_and_refuses_to_overwrite() {
         stderr(&o)
     );
     assert!(!src.join("arch").exists());
-    let o = run(&[
-        "archive",
-        tmp.path().join("nothing").to_str().unwrap(),
-        "--out",
-        tmp.path().join("x").to_str().unwrap(),
-    ]);
+    let o = archive(&tmp.path().join("nothing"), &tmp.path().join("x"), &[]);
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("not a run directory"), "{}", stderr(&o));
     assert!(!tmp.path().join("x").exists());
@@ -354,13 +338,7 @@ fn compare_refuses_unlike_runs_and_flags_a_failing_baseline() {
     });
     let full = f.full();
     let out = tmp.path().join("cmp");
-    let o = run(&[
-        "compare",
-        full.to_str().unwrap(),
-        other.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = compare(&[&full, &other], &out, &[]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     assert!(
         stdout(&o).contains("comparison: NOT JUDGED"),
@@ -382,15 +360,11 @@ fn compare_refuses_unlike_runs_and_flags_a_failing_baseline() {
         "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.99999999\n",
     )
     .unwrap();
-    let o = run(&[
-        "compare",
-        full.to_str().unwrap(),
-        other.to_str().unwrap(),
-        "--acceptance",
-        strict.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = compare(
+        &[&full, &other],
+        &out,
+        &["--acceptance", util::arg(&strict)],
+    );
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     let html = std::fs::read_to_string(out.join("compare.html")).unwrap();
     assert!(
@@ -563,13 +537,7 @@ fn the_committed_reproduction_runs_report_and_compare() {
         );
     }
     let out = tmp.path().join("cmp");
-    let o = run(&[
-        "compare",
-        fig7.to_str().unwrap(),
-        noisy.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = compare(&[&fig7, &noisy], &out, &[]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     assert!(out.join("compare.csv").is_file());
     let so = stdout(&o);
@@ -582,13 +550,7 @@ fn the_committed_reproduction_runs_report_and_compare() {
     let n = util::newton_units(&util::page_text(&html));
     assert!(n.is_empty(), "forces in N on the gf comparison: {n:?}");
     // Fig. 7 against Fig. 8: different sweep kinds, refused.
-    let o = run(&[
-        "compare",
-        fig7.to_str().unwrap(),
-        runs.join("fig8_angle").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = compare(&[&fig7, &runs.join("fig8_angle")], &out, &[]);
     assert_eq!(o.status.code(), Some(2), "{}", stdout(&o));
     let e = stderr(&o);
     assert!(

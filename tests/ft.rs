@@ -3,6 +3,7 @@
 //! simulator over a real pseudo-terminal, every injected fault and its outcome, the
 //! FT 300 stream without frame loss, and the `tactbench ft` / `camera` CLI.
 
+use std::ffi::OsStr;
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -19,13 +20,11 @@ use tactbench::device::pty::PtyServer;
 use tactbench::device::replay::{Dir, Replay, Transcript};
 use tactbench::device::{ErrorKind, ForceSensor, Wrench};
 
-type Port = Box<dyn serialport::SerialPort>;
-
-/// The load used throughout: distinct values per channel, within both sensors' ranges.
-const LOAD: Wrench = Wrench {
-    force_n: [1.5, -2.25, 12.34],
-    torque_nm: [0.125, -0.05, 0.3],
+use crate::util::{
+    self, assert_wrench_near, ft_faults, json_wrench, wrench_channels, Served, FT_LOAD,
 };
+
+type Port = Box<dyn serialport::SerialPort>;
 
 /// DynPick quantum per channel (1 LSB) with the simulator's sensitivities.
 const DP_LSB: [f64; 6] = [
@@ -38,44 +37,6 @@ const DP_LSB: [f64; 6] = [
 ];
 /// FT 300 quantum: 0.01 N, 0.001 N·m.
 const FT_LSB: [f64; 6] = [0.01, 0.01, 0.01, 0.001, 0.001, 0.001];
-
-fn channels(w: &Wrench) -> [f64; 6] {
-    [
-        w.force_n[0],
-        w.force_n[1],
-        w.force_n[2],
-        w.torque_nm[0],
-        w.torque_nm[1],
-        w.torque_nm[2],
-    ]
-}
-
-/// Asserts `got` equals `want` within half a quantum (plus rounding slack) per channel.
-fn assert_wrench_near(got: &Wrench, want: &Wrench, lsb: [f64; 6]) {
-    let (g, w) = (channels(got), channels(want));
-    for i in 0..6 {
-        assert!(
-            (g[i] - w[i]).abs() <= 0.5 * lsb[i] + 1e-9,
-            "channel {i}: got {} want {} (tolerance {})",
-            g[i],
-            w[i],
-            0.5 * lsb[i]
-        );
-    }
-}
-
-/// Faults of `kinds` (drawn uniformly) on each reply with probability `p`, seeded,
-/// unlimited in number, from the first reply on.
-fn faults(seed: u64, kinds: &[FaultKind], p: f64) -> FaultConfig {
-    FaultConfig {
-        seed,
-        kinds: kinds.to_vec(),
-        probability: p,
-        skip: 0,
-        max_faults: u32::MAX,
-        ..no_faults()
-    }
-}
 
 fn dynpick_sim(
     faults: FaultConfig,
@@ -215,7 +176,7 @@ fn ft300_session<P: Read + Write>(port: P) -> (Wrench, ft::Ft300Info) {
 #[test]
 #[ignore]
 fn regenerate_transcripts() {
-    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let log = Arc::new(Mutex::new(Vec::new()));
     let port = Recorder {
         inner: open("dynpick", server.path(), dp::BAUD),
@@ -232,7 +193,7 @@ fn regenerate_transcripts() {
         &log.lock().unwrap(),
         false,
     );
-    let (server, _) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, _) = ft300_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let log = Arc::new(Mutex::new(Vec::new()));
     let port = Recorder {
         inner: open("ft300", server.path(), ft::BAUD),
@@ -256,7 +217,7 @@ fn dynpick_transcript_replays_exactly() {
     replay.finish().expect("every expectation used");
     assert_eq!(fw, "DynPick simulator 1.0 (tactbench)");
     assert_eq!(f, FilterDivider::D2);
-    assert_wrench_near(&ws[0], &LOAD, DP_LSB);
+    assert_wrench_near(&ws[0], &FT_LOAD, DP_LSB);
     assert_wrench_near(&ws[1], &Wrench::default(), DP_LSB);
 }
 
@@ -268,7 +229,7 @@ fn ft300_transcript_replays_exactly() {
     assert_eq!(info.serial, "FTS-1234");
     assert_eq!(info.year, 2026);
     assert_eq!(info.firmware, "FTS-3.0.1");
-    assert_wrench_near(&w, &LOAD, FT_LSB);
+    assert_wrench_near(&w, &FT_LOAD, FT_LSB);
 }
 
 #[test]
@@ -283,7 +244,7 @@ fn dynpick_replay_fails_when_the_session_stops_early() {
 
 #[test]
 fn dynpick_reads_the_simulated_load_over_a_pty() {
-    let load = SharedWrench::new(LOAD);
+    let load = SharedWrench::new(FT_LOAD);
     let (server, counters) = dynpick_sim(no_faults(), load.clone());
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     assert_eq!(
@@ -291,7 +252,7 @@ fn dynpick_reads_the_simulated_load_over_a_pty() {
         [32.8, 32.8, 32.8, 1638.4, 1638.4, 1638.4]
     );
     for _ in 0..20 {
-        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, DP_LSB);
     }
     // The counter digit advances once per record (p was reply 1, records follow).
     assert_eq!(d.last_counter(), Some(19 % 10));
@@ -307,7 +268,7 @@ fn dynpick_reads_the_simulated_load_over_a_pty() {
 
 #[test]
 fn dynpick_tare_zeroes_the_current_load_on_the_device() {
-    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     d.tare().unwrap();
     assert_wrench_near(&d.read().unwrap(), &Wrench::default(), DP_LSB);
@@ -326,7 +287,7 @@ fn dynpick_with(faults: FaultConfig) -> (PtyServer<DynPickSim>, Arc<SimCounters>
             skip: faults.skip.max(1),
             ..faults
         },
-        SharedWrench::new(LOAD),
+        SharedWrench::new(FT_LOAD),
     );
     let d = DynPick::connect(open("dynpick", server.path(), dp::BAUD));
     (server, counters, d.expect("connect"))
@@ -336,11 +297,11 @@ fn dynpick_with(faults: FaultConfig) -> (PtyServer<DynPickSim>, Arc<SimCounters>
 fn dynpick_late_reply_within_timeout_is_simply_slower() {
     let faults = FaultConfig {
         late_by: dp::REPLY_TIMEOUT / 2,
-        ..faults(0, &[FaultKind::LateReply], 1.0)
+        ..ft_faults(0, &[FaultKind::LateReply], 1.0)
     };
     let (_s, c, mut d) = dynpick_with(faults);
     for _ in 0..5 {
-        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, DP_LSB);
     }
     assert_eq!(d.stats().retries, 0);
     assert_eq!(get(&c.late), 5);
@@ -352,14 +313,14 @@ fn dynpick_late_reply_past_timeout_is_discarded_and_retried() {
     // discards the late record, the retry gets a fresh one.
     let faults = FaultConfig {
         late_by: dp::REPLY_TIMEOUT * 3 / 2,
-        ..faults(7, &[FaultKind::LateReply], 0.4)
+        ..ft_faults(7, &[FaultKind::LateReply], 0.4)
     };
     let (_s, c, mut d) = dynpick_with(faults);
     let mut ok = 0;
     for _ in 0..15 {
         match d.read() {
             Ok(w) => {
-                assert_wrench_near(&w, &LOAD, DP_LSB);
+                assert_wrench_near(&w, &FT_LOAD, DP_LSB);
                 ok += 1;
             }
             // Three late replies in a row: a clear timeout, never a wrong value.
@@ -377,13 +338,13 @@ fn dynpick_late_reply_past_timeout_is_discarded_and_retried() {
 
 #[test]
 fn dynpick_dropped_and_garbled_bytes_are_retried() {
-    let faults = faults(3, &[FaultKind::DroppedByte, FaultKind::Garbled], 0.2);
+    let faults = ft_faults(3, &[FaultKind::DroppedByte, FaultKind::Garbled], 0.2);
     let (_s, c, mut d) = dynpick_with(faults);
     let mut ok = 0;
     for _ in 0..30 {
         match d.read() {
             Ok(w) => {
-                assert_wrench_near(&w, &LOAD, DP_LSB);
+                assert_wrench_near(&w, &FT_LOAD, DP_LSB);
                 ok += 1;
             }
             // Three bad replies in a row: a clear protocol error, never a wrong value.
@@ -405,8 +366,8 @@ fn dynpick_dropped_and_garbled_bytes_are_retried() {
 
 #[test]
 fn dynpick_always_garbled_is_a_protocol_error_with_the_bytes() {
-    let faults = faults(0, &[FaultKind::Garbled], 1.0);
-    let (server, _) = dynpick_sim(faults, SharedWrench::new(LOAD));
+    let faults = ft_faults(0, &[FaultKind::Garbled], 1.0);
+    let (server, _) = dynpick_sim(faults, SharedWrench::new(FT_LOAD));
     let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD))
         .err()
         .expect("must fail");
@@ -420,10 +381,10 @@ fn dynpick_always_garbled_is_a_protocol_error_with_the_bytes() {
 
 #[test]
 fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
-    let faults = faults(11, &[FaultKind::Unsolicited], 1.0);
+    let faults = ft_faults(11, &[FaultKind::Unsolicited], 1.0);
     let (_s, c, mut d) = dynpick_with(faults);
     for _ in 0..20 {
-        assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, DP_LSB);
     }
     assert_eq!(get(&c.unsolicited), 20);
     assert_eq!(d.stats().retries, 0, "{:?}", d.stats());
@@ -432,19 +393,19 @@ fn dynpick_unsolicited_bytes_are_skipped_without_retry() {
 
 #[test]
 fn dynpick_reset_recovers_by_retry_but_loses_the_device_tare() {
-    let faults = faults(5, &[FaultKind::DeviceReset], 0.15);
+    let faults = ft_faults(5, &[FaultKind::DeviceReset], 0.15);
     let (_s, c, mut d) = dynpick_with(faults);
     d.tare().unwrap();
     let mut saw_untared = false;
     for _ in 0..30 {
         let w = d.read().unwrap();
-        let near_zero = channels(&w)
+        let near_zero = wrench_channels(&w)
             .iter()
             .zip(DP_LSB)
             .all(|(v, l)| v.abs() <= 0.5 * l + 1e-9);
         if !near_zero {
             // After a reset the device offset is gone: the full load reads again.
-            assert_wrench_near(&w, &LOAD, DP_LSB);
+            assert_wrench_near(&w, &FT_LOAD, DP_LSB);
             saw_untared = true;
         }
     }
@@ -476,7 +437,7 @@ fn dynpick_connect_ends_continuous_output_left_running() {
                 streaming_at_start: true,
                 ..Default::default()
             },
-            SharedWrench::new(LOAD),
+            SharedWrench::new(FT_LOAD),
         );
         let server = PtyServer::spawn(sim, None).expect("pty");
         // Let records pile up in the pty before the host connects.
@@ -489,7 +450,7 @@ fn dynpick_connect_ends_continuous_output_left_running() {
         );
         assert_eq!(d.filter().unwrap(), FilterDivider::D1);
         for _ in 0..5 {
-            assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+            assert_wrench_near(&d.read().unwrap(), &FT_LOAD, DP_LSB);
         }
         assert_eq!(d.stats().retries, 0, "run {run}: {:?}", d.stats());
     }
@@ -516,7 +477,7 @@ fn dynpick_tare_is_verified_and_repeated_until_it_takes() {
             tare_ignored: 2,
             ..Default::default()
         },
-        SharedWrench::new(LOAD),
+        SharedWrench::new(FT_LOAD),
     );
     let server = PtyServer::spawn(sim, None).expect("pty");
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
@@ -534,7 +495,7 @@ fn dynpick_tare_that_never_takes_is_a_clear_error() {
             tare_ignored: 100,
             ..Default::default()
         },
-        SharedWrench::new(LOAD),
+        SharedWrench::new(FT_LOAD),
     );
     let counters = sim.counters();
     let server = PtyServer::spawn(sim, None).expect("pty");
@@ -563,7 +524,7 @@ fn ft300_with(faults: FaultConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>, Ft
             skip: faults.skip.max(1),
             ..faults
         },
-        SharedWrench::new(LOAD),
+        SharedWrench::new(FT_LOAD),
     );
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).expect("connect");
     (server, counters, d)
@@ -573,7 +534,7 @@ fn ft300_with(faults: FaultConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>, Ft
 fn ft300_polled_reads_info_and_software_tare() {
     let (_s, _c, mut d) = ft300_with(no_faults());
     for _ in 0..10 {
-        assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, FT_LSB);
     }
     let info = d.info().unwrap();
     assert_eq!(
@@ -582,7 +543,7 @@ fn ft300_polled_reads_info_and_software_tare() {
     );
     d.tare().unwrap();
     assert_wrench_near(&d.read().unwrap(), &Wrench::default(), FT_LSB);
-    assert_wrench_near(&d.read_raw_wrench().unwrap(), &LOAD, FT_LSB);
+    assert_wrench_near(&d.read_raw_wrench().unwrap(), &FT_LOAD, FT_LSB);
 }
 
 #[test]
@@ -602,7 +563,7 @@ fn ft300_exception_is_rejected_and_not_retried() {
 fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
     let faults = FaultConfig {
         late_by: ft::REPLY_TIMEOUT * 3 / 2,
-        ..faults(
+        ..ft_faults(
             21,
             &[
                 FaultKind::LateReply,
@@ -618,7 +579,7 @@ fn ft300_late_dropped_garbled_and_unsolicited_replies_recover() {
     for _ in 0..30 {
         match d.read() {
             Ok(w) => {
-                assert_wrench_near(&w, &LOAD, FT_LSB);
+                assert_wrench_near(&w, &FT_LOAD, FT_LSB);
                 ok += 1;
             }
             Err(e) => assert!(
@@ -639,19 +600,19 @@ fn ft300_and_dynpick_reply_deadlines_are_set_at_connect() {
     // above shows the retries), inside the 500 ms the simulated bench allows.
     let late = FaultConfig {
         late_by: Duration::from_millis(150),
-        ..faults(0, &[FaultKind::LateReply], 1.0)
+        ..ft_faults(0, &[FaultKind::LateReply], 1.0)
     };
-    let (server, c) = ft300_sim(late.clone(), SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(late.clone(), SharedWrench::new(FT_LOAD));
     let slow = Duration::from_millis(500);
     let mut d = Ft300::connect_with(open("ft300", server.path(), ft::BAUD), 9, slow)
         .expect("a 150 ms late reply is within a 500 ms deadline");
     for _ in 0..3 {
-        assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, FT_LSB);
     }
     assert_eq!(d.stats().timeouts, 0, "{:?}", d.stats());
     assert!(get(&c.late) >= 4);
     // The same late device with the default deadline: every attempt times out.
-    let (server, _) = ft300_sim(late, SharedWrench::new(LOAD));
+    let (server, _) = ft300_sim(late, SharedWrench::new(FT_LOAD));
     let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
         .err()
         .expect("150 ms late is past the default deadline");
@@ -661,14 +622,14 @@ fn ft300_and_dynpick_reply_deadlines_are_set_at_connect() {
     // DynPick: 75 ms late, past its 50 ms default.
     let late = FaultConfig {
         late_by: dp::REPLY_TIMEOUT * 3 / 2,
-        ..faults(0, &[FaultKind::LateReply], 1.0)
+        ..ft_faults(0, &[FaultKind::LateReply], 1.0)
     };
-    let (server, _) = dynpick_sim(late.clone(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(late.clone(), SharedWrench::new(FT_LOAD));
     let mut d = DynPick::connect_with(open("dynpick", server.path(), dp::BAUD), slow)
         .expect("within 500 ms");
-    assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    assert_wrench_near(&d.read().unwrap(), &FT_LOAD, DP_LSB);
     assert_eq!(d.stats().timeouts, 0, "{:?}", d.stats());
-    let (server, _) = dynpick_sim(late, SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(late, SharedWrench::new(FT_LOAD));
     let e = DynPick::connect(open("dynpick", server.path(), dp::BAUD))
         .err()
         .expect("past the default deadline");
@@ -683,10 +644,10 @@ fn read_once_makes_one_attempt_and_the_next_read_discards_its_late_reply() {
         late_by: dp::REPLY_TIMEOUT * 3 / 2,
         ..FaultConfig::once(FaultKind::LateReply, FaultTarget::Any, 3)
     };
-    let (server, c) = dynpick_sim(late, SharedWrench::new(LOAD));
+    let (server, c) = dynpick_sim(late, SharedWrench::new(FT_LOAD));
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     for _ in 0..2 {
-        assert_wrench_near(&d.read_once().unwrap(), &LOAD, DP_LSB);
+        assert_wrench_near(&d.read_once().unwrap(), &FT_LOAD, DP_LSB);
     }
     assert_eq!(d.last_counter(), Some(1));
     let e = d.read_once().unwrap_err();
@@ -695,7 +656,7 @@ fn read_once_makes_one_attempt_and_the_next_read_discards_its_late_reply() {
     assert_eq!((d.stats().timeouts, d.stats().retries), (1, 0));
     // The late record (counter 2) arrives after the deadline; the next read drains it
     // and takes a fresh one (counter 3), not the stale reply.
-    assert_wrench_near(&d.read().unwrap(), &LOAD, DP_LSB);
+    assert_wrench_near(&d.read().unwrap(), &FT_LOAD, DP_LSB);
     assert_eq!(d.last_counter(), Some(3));
     assert_eq!(get(&c.late), 1);
 
@@ -704,13 +665,13 @@ fn read_once_makes_one_attempt_and_the_next_read_discards_its_late_reply() {
         late_by: ft::REPLY_TIMEOUT * 3 / 2,
         ..FaultConfig::once(FaultKind::LateReply, FaultTarget::Any, 1)
     };
-    let (server, c) = ft300_sim(late, SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(late, SharedWrench::new(FT_LOAD));
     let mut d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let e = d.read_once().unwrap_err();
     assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
     assert_eq!((d.stats().timeouts, d.stats().retries), (1, 0));
     for _ in 0..3 {
-        assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, FT_LSB);
     }
     assert_eq!(d.stats().retries, 0, "{:?}", d.stats());
     assert_eq!(get(&c.late), 1);
@@ -719,8 +680,8 @@ fn read_once_makes_one_attempt_and_the_next_read_discards_its_late_reply() {
 #[test]
 fn ft300_always_bad_crc_is_a_protocol_error() {
     let (server, _) = ft300_sim(
-        faults(0, &[FaultKind::Garbled], 1.0),
-        SharedWrench::new(LOAD),
+        ft_faults(0, &[FaultKind::Garbled], 1.0),
+        SharedWrench::new(FT_LOAD),
     );
     let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
         .err()
@@ -732,8 +693,8 @@ fn ft300_always_bad_crc_is_a_protocol_error() {
 #[test]
 fn ft300_always_dropped_byte_is_a_timeout_on_the_incomplete_reply() {
     let (server, _) = ft300_sim(
-        faults(0, &[FaultKind::DroppedByte], 1.0),
-        SharedWrench::new(LOAD),
+        ft_faults(0, &[FaultKind::DroppedByte], 1.0),
+        SharedWrench::new(FT_LOAD),
     );
     let e = Ft300::connect(open("ft300", server.path(), ft::BAUD))
         .err()
@@ -746,7 +707,7 @@ fn ft300_always_dropped_byte_is_a_timeout_on_the_incomplete_reply() {
 
 #[test]
 fn ft300_reset_is_retried_and_keeps_the_software_tare() {
-    let faults = faults(9, &[FaultKind::DeviceReset], 0.15);
+    let faults = ft_faults(9, &[FaultKind::DeviceReset], 0.15);
     let (_s, c, mut d) = ft300_with(faults);
     d.tare().unwrap();
     for _ in 0..30 {
@@ -772,7 +733,7 @@ fn ft300_disconnect_is_reported() {
 
 #[test]
 fn ft300_stream_delivers_every_frame_for_1_5_s() {
-    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     assert_eq!(s.sample_rate_hz(), 100.0);
@@ -780,7 +741,7 @@ fn ft300_stream_delivers_every_frame_for_1_5_s() {
     let mut samples = Vec::new();
     let mut reads = 0;
     while start.elapsed() < Duration::from_millis(1500) {
-        assert_wrench_near(&s.read().unwrap(), &LOAD, FT_LSB);
+        assert_wrench_near(&s.read().unwrap(), &FT_LOAD, FT_LSB);
         reads += 1;
         samples.extend(s.take_samples());
     }
@@ -801,18 +762,18 @@ fn ft300_stream_delivers_every_frame_for_1_5_s() {
     );
     for (i, x) in samples.iter().enumerate() {
         assert_eq!(x.seq, i as u64 + 1, "stream sequence");
-        assert_wrench_near(&x.raw_wrench, &LOAD, FT_LSB);
+        assert_wrench_near(&x.raw_wrench, &FT_LOAD, FT_LSB);
     }
     assert!(reads > 0);
     // After the stream, polled reads work again.
-    assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+    assert_wrench_near(&d.read().unwrap(), &FT_LOAD, FT_LSB);
 }
 
 #[test]
 fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
     let faults = FaultConfig {
         late_by: Duration::from_millis(25),
-        ..faults(
+        ..ft_faults(
             4,
             &[
                 FaultKind::LateReply,
@@ -823,14 +784,14 @@ fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
             0.2,
         )
     };
-    let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(faults, SharedWrench::new(FT_LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     let start = Instant::now();
     let mut samples = Vec::new();
     while start.elapsed() < Duration::from_millis(1000) {
         // Every sample that gets through is correct (CRC-checked).
-        assert_wrench_near(&s.read().unwrap(), &LOAD, FT_LSB);
+        assert_wrench_near(&s.read().unwrap(), &FT_LOAD, FT_LSB);
         samples.extend(s.take_samples());
     }
     let (_d, summary) = s.stop().unwrap();
@@ -854,8 +815,8 @@ fn ft300_stream_resyncs_after_dropped_garbled_and_unsolicited_bytes() {
 
 #[test]
 fn ft300_stream_restarts_after_a_device_reset() {
-    let faults = faults(2, &[FaultKind::DeviceReset], 0.01);
-    let (server, c) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let faults = ft_faults(2, &[FaultKind::DeviceReset], 0.01);
+    let (server, c) = ft300_sim(faults, SharedWrench::new(FT_LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     let start = Instant::now();
@@ -863,7 +824,7 @@ fn ft300_stream_restarts_after_a_device_reset() {
     while start.elapsed() < Duration::from_millis(2000) {
         match s.read() {
             Ok(w) => {
-                assert_wrench_near(&w, &LOAD, FT_LSB);
+                assert_wrench_near(&w, &FT_LOAD, FT_LSB);
                 ok += 1;
             }
             // While the stream is down, reads time out clearly.
@@ -879,7 +840,7 @@ fn ft300_stream_restarts_after_a_device_reset() {
 #[test]
 fn ft300_stream_disconnect_is_reported() {
     let faults = FaultConfig::once(FaultKind::Disconnect, FaultTarget::Any, 30);
-    let (server, _) = ft300_sim(faults, SharedWrench::new(LOAD));
+    let (server, _) = ft300_sim(faults, SharedWrench::new(FT_LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     let e = loop {
@@ -892,7 +853,7 @@ fn ft300_stream_disconnect_is_reported() {
 }
 
 fn ft300_sim_with(cfg: Ft300SimConfig) -> (PtyServer<Ft300Sim>, Arc<SimCounters>) {
-    let sim = Ft300Sim::new(cfg, SharedWrench::new(LOAD));
+    let sim = Ft300Sim::new(cfg, SharedWrench::new(FT_LOAD));
     let c = sim.counters();
     (PtyServer::spawn(sim, None).expect("pty"), c)
 }
@@ -928,7 +889,7 @@ fn ft300_stream_start_without_echo_is_confirmed_by_the_stream() {
         .start_stream()
         .expect("the arriving stream confirms the start");
     for _ in 0..20 {
-        assert_wrench_near(&s.read().unwrap(), &LOAD, FT_LSB);
+        assert_wrench_near(&s.read().unwrap(), &FT_LOAD, FT_LSB);
     }
     let (mut d, summary) = s.stop().unwrap();
     // Confirmed on the first attempt by the first frame: no frame lost, none repeated.
@@ -936,7 +897,7 @@ fn ft300_stream_start_without_echo_is_confirmed_by_the_stream() {
     assert_eq!(summary.stats.frames, get(&c.frames));
     assert_eq!((summary.stats.bad_crc, summary.stats.bytes_skipped), (0, 0));
     assert!(ft300_sim_is_quiet(&c), "stopped");
-    assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+    assert_wrench_near(&d.read().unwrap(), &FT_LOAD, FT_LSB);
 }
 
 #[test]
@@ -947,7 +908,7 @@ fn ft300_failed_stream_start_leaves_the_sensor_stopped() {
         drop_stream_echo: true,
         faults: FaultConfig {
             skip: 1, // the connect read
-            ..faults(6, &[FaultKind::Garbled], 1.0)
+            ..ft_faults(6, &[FaultKind::Garbled], 1.0)
         },
         ..Default::default()
     });
@@ -991,7 +952,7 @@ fn ft300_connect_stops_a_stream_left_running() {
     assert!(get(&c.frames) > 0, "was streaming");
     assert!(ft300_sim_is_quiet(&c), "stopped at connect");
     assert_eq!(d.info().unwrap().serial, "FTS-1234");
-    assert_wrench_near(&d.read().unwrap(), &LOAD, FT_LSB);
+    assert_wrench_near(&d.read().unwrap(), &FT_LOAD, FT_LSB);
     assert_eq!(d.stats().retries, 0, "{:?}", d.stats());
 }
 
@@ -999,7 +960,7 @@ fn ft300_connect_stops_a_stream_left_running() {
 fn ft300_dropped_stream_is_stopped_on_the_device() {
     // An error path that drops the stream without `stop()` (e.g. `?` on a read) must
     // not leave the sensor streaming.
-    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     s.read().unwrap();
@@ -1009,22 +970,6 @@ fn ft300_dropped_stream_is_stopped_on_the_device() {
 
 // ---------------------------------------------------------------- CLI end to end
 
-/// A `tactbench` child process, killed on drop (so a failing test leaks nothing).
-struct Served(std::process::Child);
-
-impl Drop for Served {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn tactbench() -> std::process::Command {
-    std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
-}
-
-const LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
-
 /// Starts `tactbench sim-serve-ft` and waits for its "serving" line.
 fn serve(protocol: &str, link: &Path) -> Served {
     serve_with(protocol, link, &[])
@@ -1032,35 +977,15 @@ fn serve(protocol: &str, link: &Path) -> Served {
 
 /// As [`serve`], with extra arguments (faults).
 fn serve_with(protocol: &str, link: &Path, extra: &[&str]) -> Served {
-    use std::io::BufRead;
-    let mut child = tactbench()
-        .args([
-            "sim-serve-ft",
-            "--protocol",
-            protocol,
-            "--wrench",
-            LOAD_ARG,
-            "--duration-s",
-            "60",
-            "--link",
-        ])
-        .arg(link)
-        .args(extra)
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .expect("spawn tactbench");
-    let stdout = child.stdout.take().expect("stdout");
-    let served = Served(child);
-    let mut line = String::new();
-    std::io::BufReader::new(stdout)
-        .read_line(&mut line)
-        .expect("serving line");
+    let mut args = vec![OsStr::new("--link"), link.as_os_str()];
+    args.extend(extra.iter().map(OsStr::new));
+    let (served, line) = util::serve_ft(protocol, &args);
     assert!(line.starts_with("serving simulated"), "{line}");
     served
 }
 
 fn run_ok(args: &[&str], port: &Path) -> String {
-    let out = tactbench()
+    let out = util::command()
         .args(["ft", "--port"])
         .arg(port)
         .args(args)
@@ -1072,17 +997,6 @@ fn run_ok(args: &[&str], port: &Path) -> String {
         String::from_utf8_lossy(&out.stderr)
     );
     String::from_utf8(out.stdout).expect("utf-8")
-}
-
-fn json_wrench(v: &serde_json::Value) -> Wrench {
-    let f = |k: &str| {
-        v[k].as_f64()
-            .unwrap_or_else(|| panic!("missing {k} in {v}"))
-    };
-    Wrench {
-        force_n: [f("fx_n"), f("fy_n"), f("fz_n")],
-        torque_nm: [f("mx_nm"), f("my_nm"), f("mz_nm")],
-    }
 }
 
 #[test]
@@ -1099,9 +1013,9 @@ fn cli_ft_dynpick_read_info_tare_against_a_served_simulator() {
     let samples = v["samples"].as_array().expect("samples");
     assert_eq!(samples.len(), 3);
     for s in samples {
-        assert_wrench_near(&json_wrench(s), &LOAD, DP_LSB);
+        assert_wrench_near(&json_wrench(s), &FT_LOAD, DP_LSB);
     }
-    assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, DP_LSB);
+    assert_wrench_near(&json_wrench(&v["mean"]), &FT_LOAD, DP_LSB);
     let text = run_ok(&["--protocol", "dynpick", "read"], &link);
     assert!(
         text.contains("Fz   +12.317 N") || text.contains("Fz   +12.348 N"),
@@ -1128,7 +1042,7 @@ fn cli_ft_ft300_polled_stream_and_info_against_a_served_simulator() {
         args.extend_from_slice(extra);
         let v: serde_json::Value = serde_json::from_str(&run_ok(&args, &link)).expect("json");
         assert_eq!(v["samples"].as_array().map(Vec::len), Some(5));
-        assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, FT_LSB);
+        assert_wrench_near(&json_wrench(&v["mean"]), &FT_LOAD, FT_LSB);
     }
     let v: serde_json::Value = serde_json::from_str(&run_ok(
         &["--protocol", "ft300", "read", "--tare", "--json"],
@@ -1141,7 +1055,7 @@ fn cli_ft_ft300_polled_stream_and_info_against_a_served_simulator() {
         info.contains("serial: FTS-1234") && info.contains("production_year: 2026"),
         "{info}"
     );
-    let out = tactbench()
+    let out = util::command()
         .args(["ft", "--port"])
         .arg(&link)
         .args(["--protocol", "ft300", "tare"])
@@ -1185,12 +1099,12 @@ fn cli_ft_ft300_left_streaming_serial_and_stream_without_echo() {
     ];
     let v: serde_json::Value = serde_json::from_str(&run_ok(&args, &link)).expect("json");
     assert_eq!(v["samples"].as_array().map(Vec::len), Some(5));
-    assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, FT_LSB);
+    assert_wrench_near(&json_wrench(&v["mean"]), &FT_LOAD, FT_LSB);
     // Stopped after the read: polled reads answer.
     let v: serde_json::Value =
         serde_json::from_str(&run_ok(&["--protocol", "ft300", "read", "--json"], &link))
             .expect("json");
-    assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, FT_LSB);
+    assert_wrench_near(&json_wrench(&v["mean"]), &FT_LOAD, FT_LSB);
 }
 
 #[test]
@@ -1203,7 +1117,7 @@ fn cli_ft_reports_a_simulated_disconnect_with_exit_code_2() {
         &link,
         &["--fault", "disconnect", "--fault-skip", "3"],
     );
-    let out = tactbench()
+    let out = util::command()
         .args(["ft", "--port"])
         .arg(&link)
         .args(["--protocol", "dynpick", "read", "--samples", "5"])
@@ -1216,7 +1130,7 @@ fn cli_ft_reports_a_simulated_disconnect_with_exit_code_2() {
 
 #[test]
 fn cli_ft_missing_port_is_a_clear_error() {
-    let out = tactbench()
+    let out = util::command()
         .args([
             "ft",
             "--port",
@@ -1243,7 +1157,7 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
     let img = image::RgbImage::from_fn(8, 6, |x, y| image::Rgb([x as u8 * 30, y as u8 * 40, 99]));
     img.save(frames.join("0001.png")).unwrap();
     let out_png = dir.path().join("grab.png");
-    let out = tactbench()
+    let out = util::command()
         .args(["camera", "grab", "--device"])
         .arg(format!("dir:{}", frames.display()))
         .arg("--out")
@@ -1260,7 +1174,7 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
     // No camera on this machine: V4L2 index 0 must fail clearly (skipped where one exists).
     // Only with the `v4l` feature; the default build's refusal is tested in `cli`.
     if cfg!(feature = "v4l") && !Path::new("/dev/video0").exists() {
-        let out = tactbench()
+        let out = util::command()
             .args(["camera", "grab", "--device", "0", "--out"])
             .arg(dir.path().join("x.png"))
             .output()
@@ -1271,7 +1185,7 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
             err.contains("cannot open V4L2 camera 0") && err.contains("0 V4L2 camera(s) found"),
             "{err}"
         );
-        let list = tactbench().args(["camera", "list"]).output().unwrap();
+        let list = util::command().args(["camera", "list"]).output().unwrap();
         assert!(list.status.success());
         assert!(String::from_utf8_lossy(&list.stdout).contains("no V4L2 cameras found"));
     }
@@ -1283,7 +1197,7 @@ fn cli_camera_grab_from_an_image_directory_and_clear_error_without_a_camera() {
 #[test]
 #[ignore]
 fn measure_sustained_rates() {
-    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, c) = ft300_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let d = Ft300::connect(open("ft300", server.path(), ft::BAUD)).unwrap();
     let mut s = d.start_stream().unwrap();
     let start = Instant::now();
@@ -1323,7 +1237,7 @@ fn measure_sustained_rates() {
         "ft300 polled over pty: {:.0} reads/s",
         n as f64 / t.elapsed().as_secs_f64()
     );
-    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(LOAD));
+    let (server, _) = dynpick_sim(no_faults(), SharedWrench::new(FT_LOAD));
     let mut d = DynPick::connect(open("dynpick", server.path(), dp::BAUD)).unwrap();
     let t = Instant::now();
     let mut n = 0;
@@ -1421,7 +1335,7 @@ fn ft300_against_pymodbus_serial_number_and_session() {
     assert_eq!(info.serial, "FTS-1234");
     assert_eq!(info.firmware, "FTS-3.0.4");
     assert_eq!(info.year, 2019);
-    assert_wrench_near(&w, &LOAD, FT_LSB);
+    assert_wrench_near(&w, &FT_LOAD, FT_LSB);
     write_transcript(
         "ft300_pymodbus_session.txt",
         &format!("{PYMODBUS_HEADER}# connect (stop bytes, read 180+6), info (500+3, 510+4, 514+1), read 180+6.\n"),
@@ -1444,7 +1358,7 @@ fn ft300_against_pymodbus_stream_start_without_echo() {
     let (samples, stats) = ft300_stream_session(port);
     assert!(samples.len() >= 10, "{} samples", samples.len());
     for x in &samples {
-        assert_wrench_near(&x.raw_wrench, &LOAD, FT_LSB);
+        assert_wrench_near(&x.raw_wrench, &FT_LOAD, FT_LSB);
     }
     assert_eq!(stats.retries, 0, "confirmed by the first frames: {stats:?}");
     write_transcript(
@@ -1467,7 +1381,7 @@ fn ft300_against_pymodbus_stream_start_without_echo() {
         "--json",
     ];
     let v: serde_json::Value = serde_json::from_str(&run_ok(&args, &link)).expect("json");
-    assert_wrench_near(&json_wrench(&v["mean"]), &LOAD, FT_LSB);
+    assert_wrench_near(&json_wrench(&v["mean"]), &FT_LOAD, FT_LSB);
 }
 
 #[test]
@@ -1520,7 +1434,7 @@ fn ft300_pymodbus_session_replays() {
         (info.serial.as_str(), info.firmware.as_str(), info.year),
         ("FTS-1234", "FTS-3.0.4", 2019)
     );
-    assert_wrench_near(&w, &LOAD, FT_LSB);
+    assert_wrench_near(&w, &FT_LOAD, FT_LSB);
 }
 
 #[test]
@@ -1537,7 +1451,7 @@ fn ft300_pymodbus_stream_without_echo_replays() {
     assert!(samples.len() >= 10);
     for (i, x) in samples.iter().enumerate() {
         assert_eq!(x.seq, i as u64 + 1);
-        assert_wrench_near(&x.raw_wrench, &LOAD, FT_LSB);
+        assert_wrench_near(&x.raw_wrench, &FT_LOAD, FT_LSB);
     }
     assert_eq!(stats.retries, 0);
 }

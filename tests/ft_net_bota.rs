@@ -8,7 +8,7 @@
 use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpListener, UdpSocket};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use tactbench::bench::journal::{self, Manifest};
@@ -28,59 +28,23 @@ use tactbench::device::pty::PtyServer;
 use tactbench::device::replay::{Replay, Transcript};
 use tactbench::device::{ErrorKind, ForceSensor, Wrench};
 
-use crate::util;
-
-const LOAD: Wrench = Wrench {
-    force_n: [1.5, -2.25, 12.34],
-    torque_nm: [0.125, -0.05, 0.3],
-};
-const LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
-
-fn ch(w: &Wrench) -> [f64; 6] {
-    [
-        w.force_n[0],
-        w.force_n[1],
-        w.force_n[2],
-        w.torque_nm[0],
-        w.torque_nm[1],
-        w.torque_nm[2],
-    ]
-}
-
-/// `got` equals `want` to half a quantum per channel (`q`: N for forces, N·m for
-/// torques), plus floating-point slack.
-fn assert_near(got: &Wrench, want: &Wrench, q: [f64; 6]) {
-    let (g, w) = (ch(got), ch(want));
-    for i in 0..6 {
-        assert!(
-            (g[i] - w[i]).abs() <= 0.5 * q[i] + 1e-9,
-            "channel {i}: got {} want {} (quantum {})",
-            g[i],
-            w[i],
-            q[i]
-        );
-    }
-}
+use crate::util::{self, assert_wrench_near, json_wrench, wrench_channels, Served, FT_LOAD};
 
 /// The Bota sends f32: its quantum is the f32 spacing at the value.
 fn f32_quantum(w: &Wrench) -> [f64; 6] {
-    ch(w).map(|v| (v.abs() as f32 * f32::EPSILON) as f64 * 2.0 + 1e-12)
+    wrench_channels(w).map(|v| (v.abs() as f32 * f32::EPSILON) as f64 * 2.0 + 1e-12)
 }
 
 fn netft_scale() -> Scale {
     DEFAULT_CALINFO.scale().unwrap()
 }
 
-/// Seeded faults of `kinds` with probability `p` on every record / reply.
+/// Seeded faults of `kinds` with probability `p` on every record / reply; a late reply
+/// comes 20 ms late.
 fn faults(seed: u64, kinds: &[FaultKind], p: f64) -> FaultConfig {
     FaultConfig {
-        seed,
-        kinds: kinds.to_vec(),
-        probability: p,
-        target: FaultTarget::Any,
-        skip: 0,
-        max_faults: u32::MAX,
         late_by: Duration::from_millis(20),
+        ..util::ft_faults(seed, kinds, p)
     }
 }
 
@@ -91,7 +55,7 @@ fn netft_server(faults: FaultConfig, status: u32) -> NetFtServer {
             status,
             ..NetFtSimConfig::default()
         },
-        SharedWrench::new(LOAD),
+        SharedWrench::new(FT_LOAD),
     );
     NetFtServer::spawn(core, 0, 0).expect("serve netft")
 }
@@ -120,7 +84,7 @@ fn netft_readings_are_exact_with_loss_duplicates_reordering_and_truncated_datagr
     let mut d = NetFt::connect(link, NetFtOptions::netft(info.scale().unwrap())).unwrap();
     let q = netft_scale().resolution();
     for _ in 0..50 {
-        assert_near(&d.read().unwrap(), &LOAD, q);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, q);
         std::thread::sleep(Duration::from_millis(2));
     }
     let s = d.stats();
@@ -134,7 +98,7 @@ fn netft_readings_are_exact_with_loss_duplicates_reordering_and_truncated_datagr
         "{note}"
     );
     d.tare().unwrap();
-    assert_near(&d.read().unwrap(), &Wrench::default(), q);
+    assert_wrench_near(&d.read().unwrap(), &Wrench::default(), q);
 }
 
 #[test]
@@ -182,7 +146,7 @@ fn netft_reset_device_is_restarted_by_the_driver() {
     let link = UdpTransport::connect("netft", "127.0.0.1", server.rdt_addr().port()).unwrap();
     let mut d = NetFt::connect(link, NetFtOptions::netft(netft_scale())).unwrap();
     for _ in 0..40 {
-        assert_near(&d.read().unwrap(), &LOAD, netft_scale().resolution());
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, netft_scale().resolution());
         std::thread::sleep(Duration::from_millis(10));
     }
     assert!(d.stats().start_requests >= 2, "{:?}", d.stats());
@@ -190,42 +154,6 @@ fn netft_reset_device_is_restarted_by_the_driver() {
 }
 
 // ---- Net F/T: CLI --------------------------------------------------------------------
-
-struct Served(Child);
-
-impl Drop for Served {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn tactbench() -> Command {
-    Command::new(util::bin())
-}
-
-/// Starts `tactbench sim-serve-ft` and returns its "serving" line.
-fn serve(protocol: &str, extra: &[&str]) -> (Served, String) {
-    let mut child = tactbench()
-        .args([
-            "sim-serve-ft",
-            "--protocol",
-            protocol,
-            "--wrench",
-            LOAD_ARG,
-            "--duration-s",
-            "60",
-        ])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn tactbench");
-    let stdout = child.stdout.take().expect("stdout");
-    let mut line = String::new();
-    BufReader::new(stdout).read_line(&mut line).expect("line");
-    (Served(child), line)
-}
 
 /// `--rdt-port N --cal-port M` from a netft "serving" line.
 fn netft_ports(line: &str) -> (String, String) {
@@ -239,21 +167,13 @@ fn netft_ports(line: &str) -> (String, String) {
     (after("--rdt-port"), after("--cal-port"))
 }
 
-fn ft(args: &[&str]) -> std::process::Output {
-    tactbench().arg("ft").args(args).output().expect("run")
-}
-
-fn json_wrench(v: &serde_json::Value) -> Wrench {
-    let f = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("{k} in {v}"));
-    Wrench {
-        force_n: [f("fx_n"), f("fy_n"), f("fz_n")],
-        torque_nm: [f("mx_nm"), f("my_nm"), f("mz_nm")],
-    }
+fn ft(args: &[&str]) -> Output {
+    util::command().arg("ft").args(args).output().expect("run")
 }
 
 #[test]
 fn netft_cli_info_read_tare_work_with_faults_injected() {
-    let (_s, line) = serve(
+    let (_s, line) = util::serve_ft(
         "netft",
         &[
             "--fault",
@@ -269,20 +189,8 @@ fn netft_cli_info_read_tare_work_with_faults_injected() {
         ],
     );
     let (rdt, cal) = netft_ports(&line);
-    let base = [
-        "--protocol",
-        "netft",
-        "--port",
-        "127.0.0.1",
-        "--rdt-port",
-        &rdt,
-        "--cal-port",
-        &cal,
-    ];
     let run = |extra: &[&str]| {
-        let mut a = base.to_vec();
-        a.extend_from_slice(extra);
-        let o = ft(&a);
+        let o = ft_on_loopback("netft", &rdt, Some(&cal), extra);
         assert!(o.status.success(), "{extra:?}: {}", util::stderr(&o));
         util::stdout(&o)
     };
@@ -293,17 +201,35 @@ fn netft_cli_info_read_tare_work_with_faults_injected() {
     let v: serde_json::Value = serde_json::from_str(read.trim()).unwrap();
     assert_eq!(v["protocol"], "netft");
     for s in v["samples"].as_array().unwrap() {
-        assert_near(&json_wrench(s), &LOAD, netft_scale().resolution());
+        assert_wrench_near(&json_wrench(s), &FT_LOAD, netft_scale().resolution());
     }
     let tare = run(&["tare"]);
     assert!(tare.contains("biased"), "{tare}");
     // The simulator keeps the bias: the next command reads zero.
     let v: serde_json::Value = serde_json::from_str(run(&["read", "--json"]).trim()).unwrap();
-    assert_near(
+    assert_wrench_near(
         &json_wrench(&v["mean"]),
         &Wrench::default(),
         netft_scale().resolution(),
     );
+}
+
+/// `tactbench ft --protocol PROTOCOL --port 127.0.0.1 --rdt-port RDT [--cal-port CAL]
+/// ARGS`.
+fn ft_on_loopback(protocol: &str, rdt: &str, cal: Option<&str>, args: &[&str]) -> Output {
+    let mut a = vec![
+        "--protocol",
+        protocol,
+        "--port",
+        "127.0.0.1",
+        "--rdt-port",
+        rdt,
+    ];
+    if let Some(cal) = cal {
+        a.extend(["--cal-port", cal]);
+    }
+    a.extend_from_slice(args);
+    ft(&a)
 }
 
 /// A port nothing listens on: bound, then released.
@@ -327,32 +253,14 @@ fn free_tcp_port() -> u16 {
 fn netft_missing_device_and_unresolvable_host_are_clear_errors_within_seconds() {
     let (rdt, cal) = (free_udp_port().to_string(), free_tcp_port().to_string());
     let t0 = Instant::now();
-    let o = ft(&[
-        "--protocol",
-        "netft",
-        "--port",
-        "127.0.0.1",
-        "--rdt-port",
-        &rdt,
-        "--cal-port",
-        &cal,
-        "read",
-    ]);
+    let o = ft_on_loopback("netft", &rdt, Some(&cal), &["read"]);
     assert!(!o.status.success());
     let e = util::stderr(&o);
     assert!(e.contains("127.0.0.1") && e.contains(&cal), "{e}");
     assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
     // The HEX has no calibration query: the RDT port itself is found dead.
     let t0 = Instant::now();
-    let o = ft(&[
-        "--protocol",
-        "onrobot-hex",
-        "--port",
-        "127.0.0.1",
-        "--rdt-port",
-        &rdt,
-        "read",
-    ]);
+    let o = ft_on_loopback("onrobot-hex", &rdt, None, &["read"]);
     assert!(!o.status.success());
     let e = util::stderr(&o);
     assert!(e.contains(&format!("127.0.0.1:{rdt}")), "{e}");
@@ -376,7 +284,7 @@ fn netft_missing_device_and_unresolvable_host_are_clear_errors_within_seconds() 
 fn netft_simulator_on_a_port_in_use_is_a_clear_error() {
     let busy = UdpSocket::bind("127.0.0.1:0").unwrap();
     let port = busy.local_addr().unwrap().port().to_string();
-    let o = tactbench()
+    let o = util::command()
         .args(["sim-serve-ft", "--protocol", "netft", "--rdt-port", &port])
         .output()
         .unwrap();
@@ -387,24 +295,15 @@ fn netft_simulator_on_a_port_in_use_is_a_clear_error() {
 
 #[test]
 fn onrobot_hex_reads_the_rdt_records_with_its_fixed_scale() {
-    let (_s, line) = serve("onrobot-hex", &[]);
+    let (_s, line) = util::serve_ft::<&str>("onrobot-hex", &[]);
     let w: Vec<&str> = line.split_whitespace().collect();
     let rdt = w[w.iter().position(|x| *x == "--rdt-port").unwrap() + 1];
-    let o = ft(&[
-        "--protocol",
-        "onrobot-hex",
-        "--port",
-        "127.0.0.1",
-        "--rdt-port",
-        rdt,
-        "read",
-        "--json",
-    ]);
+    let o = ft_on_loopback("onrobot-hex", rdt, None, &["read", "--json"]);
     assert!(o.status.success(), "{}", util::stderr(&o));
     let v: serde_json::Value = serde_json::from_str(util::stdout(&o).trim()).unwrap();
-    assert_near(
+    assert_wrench_near(
         &json_wrench(&v["mean"]),
-        &LOAD,
+        &FT_LOAD,
         Scale::ONROBOT_HEX.resolution(),
     );
 }
@@ -450,7 +349,7 @@ fn netft_transcript_from_cof_tester_replays() {
     let mut d = NetFt::connect(replay, opts).unwrap();
     let w = d.read().unwrap();
     let want = cal.scale().unwrap().wrench(&COF_COUNTS);
-    assert_near(&w, &want, cal.scale().unwrap().resolution());
+    assert_wrench_near(&w, &want, cal.scale().unwrap().resolution());
     let s = d.stats();
     assert!(s.records > 100 && s.bad_status == 0, "{s:?}");
     d.stop().unwrap();
@@ -541,7 +440,7 @@ fn netft_against_cof_tester_records_a_transcript() {
     let mut d = NetFt::connect(link, NetFtOptions::netft(scale)).unwrap();
     let want = scale.wrench(&COF_COUNTS);
     for _ in 0..20 {
-        assert_near(&d.read().unwrap(), &want, scale.resolution());
+        assert_wrench_near(&d.read().unwrap(), &want, scale.resolution());
     }
     let st = d.stats();
     assert_eq!(
@@ -571,7 +470,7 @@ fn netft_against_cof_tester_records_a_transcript() {
 // ---- Bota ----------------------------------------------------------------------------
 
 fn bota_sim(config: BotaSimConfig) -> PtyServer<BotaSim> {
-    PtyServer::spawn(BotaSim::new(config, SharedWrench::new(LOAD)), None).expect("pty")
+    PtyServer::spawn(BotaSim::new(config, SharedWrench::new(FT_LOAD)), None).expect("pty")
 }
 
 fn bota_port(s: &PtyServer<BotaSim>) -> Box<dyn serialport::SerialPort> {
@@ -599,9 +498,9 @@ fn bota_readings_are_exact_with_corrupt_dropped_and_garbage_bytes_injected() {
     // The simulator streams from power-up: the driver meets a stream left running.
     std::thread::sleep(Duration::from_millis(50));
     let mut d = Bota::connect(bota_port(&server), BotaOptions::default()).unwrap();
-    let q = f32_quantum(&LOAD);
+    let q = f32_quantum(&FT_LOAD);
     for _ in 0..30 {
-        assert_near(&d.read().unwrap(), &LOAD, q);
+        assert_wrench_near(&d.read().unwrap(), &FT_LOAD, q);
     }
     let s = d.stats();
     assert!(s.bad_crc > 0 && s.skipped > 0, "{s:?}");
@@ -610,7 +509,7 @@ fn bota_readings_are_exact_with_corrupt_dropped_and_garbage_bytes_injected() {
     let f = d.last_frame().unwrap();
     assert!(f.timestamp > 0 && f.temperature_c == 24.5);
     d.tare().unwrap();
-    assert_near(&d.read().unwrap(), &Wrench::default(), q);
+    assert_wrench_near(&d.read().unwrap(), &Wrench::default(), q);
 }
 
 #[test]
@@ -646,7 +545,7 @@ fn bota_crc_failing_stream_that_never_recovers_is_a_clear_error() {
 fn bota_cli_info_read_tare_against_the_simulator_left_streaming() {
     let tmp = tempfile::tempdir().unwrap();
     let link = tmp.path().join("bota");
-    let (_s, line) = serve(
+    let (_s, line) = util::serve_ft(
         "bota",
         &[
             "--link",
@@ -675,7 +574,7 @@ fn bota_cli_info_read_tare_against_the_simulator_left_streaming() {
     );
     let v: serde_json::Value =
         serde_json::from_str(run(&["read", "--samples", "3", "--json"]).trim()).unwrap();
-    assert_near(&json_wrench(&v["mean"]), &LOAD, f32_quantum(&LOAD));
+    assert_wrench_near(&json_wrench(&v["mean"]), &FT_LOAD, f32_quantum(&FT_LOAD));
     let tare = run(&["tare"]);
     assert!(tare.contains("software offset"), "{tare}");
 }
@@ -709,7 +608,7 @@ fn bota_vendor_layout_frames_replay_through_the_driver() {
         force_n: [mean[0], mean[1], mean[2]],
         torque_nm: [mean[3], mean[4], mean[5]],
     };
-    assert_near(&d.read().unwrap(), &want, [1e-9; 6]);
+    assert_wrench_near(&d.read().unwrap(), &want, [1e-9; 6]);
     let s = d.stats();
     assert_eq!((s.frames, s.good, s.bad, s.late), (5, 3, 2, 1), "{s:?}");
     assert!(s.bad_crc >= 1, "{s:?}");
@@ -807,7 +706,7 @@ fn bota_vendor_example_reads_the_simulator() {
         force_n: [last("Fx"), last("Fy"), last("Fz")],
         torque_nm: [last("Mx"), last("My"), last("Mz")],
     };
-    assert_near(&got, &LOAD, f32_quantum(&LOAD));
+    assert_wrench_near(&got, &FT_LOAD, f32_quantum(&FT_LOAD));
     assert_eq!(last("Temperature"), 24.5);
     assert_eq!(last("Status"), 0.0);
     assert!(last("Timestamp") > 0.0);
@@ -943,7 +842,7 @@ fn dry_run_and_ports_know_the_network_sensors() {
 fn sim_bench_serves_a_netft_that_the_ft_command_reads() {
     let tmp = tempfile::tempdir().unwrap();
     let links = tmp.path().join("bench");
-    let mut child = tactbench()
+    let mut child = util::command()
         .args(["sim", "bench", "--scene"])
         .arg(util::root("experiments/scenes/fig7_hemisphere_ramp.toml"))
         .args(["--ft", "netft", "--links"])
@@ -965,22 +864,11 @@ fn sim_bench_serves_a_netft_that_the_ft_command_reads() {
     }
     let (rdt, cal) = netft_ports(&ft_line);
     assert!(ft_line.contains("127.0.0.1"), "{ft_line}");
-    let o = ft(&[
-        "--protocol",
-        "netft",
-        "--port",
-        "127.0.0.1",
-        "--rdt-port",
-        &rdt,
-        "--cal-port",
-        &cal,
-        "read",
-        "--json",
-    ]);
+    let o = ft_on_loopback("netft", &rdt, Some(&cal), &["read", "--json"]);
     assert!(o.status.success(), "{}", util::stderr(&o));
     // The stage starts above the surface: no load.
     let v: serde_json::Value = serde_json::from_str(util::stdout(&o).trim()).unwrap();
-    assert_near(
+    assert_wrench_near(
         &json_wrench(&v["mean"]),
         &Wrench::default(),
         netft_scale().resolution(),

@@ -127,17 +127,8 @@ fn spawn_collecting(args: &[&str], url_prefix: &'static str) -> Served {
 fn spawn_run(out: &Path, limit: usize, extra: &[&str]) -> Served {
     let out = out.to_str().unwrap();
     let limit = limit.to_string();
-    let mut args = vec![
-        "run",
-        "experiments/fig7_magnitude.toml",
-        "--sim",
-        "experiments/scenes/fig7_hemisphere_ramp.toml",
-        "--limit",
-        &limit,
-        "--no-progress",
-        "--out",
-        out,
-    ];
+    let mut args = util::FIG7_SIM_RUN.to_vec();
+    args.extend(["--limit", &limit, "--no-progress", "--out", out]);
     args.extend_from_slice(extra);
     spawn_collecting(&args, "live view: ")
 }
@@ -148,6 +139,16 @@ fn spawn_serve(dirs: &[&Path], extra: &[&str]) -> Served {
     args.extend(extra.iter().map(|s| s.to_string()));
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     spawn_collecting(&args, "run(s): ")
+}
+
+/// The page's Stop button: `POST /api/stop` with the confirmation header.
+fn confirmed_stop(addr: &str) -> Resp {
+    request(
+        addr,
+        "POST",
+        "/api/stop",
+        &[("X-Tactbench-Stop", "confirm")],
+    )
 }
 
 fn state(addr: &str) -> Value {
@@ -324,11 +325,7 @@ fn run_serve_follows_a_simulated_run_and_serves_its_state_journal_frame_and_even
 /// A small finished run, shared by the tests that only read one.
 fn finished_run(tmp: &Path, n: usize) -> PathBuf {
     let out = tmp.join("done");
-    let o = util::run(&[
-        "run",
-        "experiments/fig7_magnitude.toml",
-        "--sim",
-        "experiments/scenes/fig7_hemisphere_ramp.toml",
+    let o = util::run_fig7_sim(&[
         "--limit",
         &n.to_string(),
         "--no-progress",
@@ -390,12 +387,7 @@ fn serve_reads_only_inside_the_run_directories_and_never_writes_to_them() {
         assert!(!r.text().contains("root:"), "{bad}");
     }
     // A stop on a finished run is refused; nothing was written.
-    let r = request(
-        &s.addr,
-        "POST",
-        "/api/stop",
-        &[("X-Tactbench-Stop", "confirm")],
-    );
+    let r = confirmed_stop(&s.addr);
     assert_eq!(r.status, 409, "{}", r.text());
     let _ = s.child.kill();
     let _ = s.child.wait();
@@ -444,16 +436,7 @@ fn a_non_loopback_address_needs_the_token_printed_in_the_url() {
         request(&addr, "GET", "/api/state", &[("Authorization", &bearer)]).status,
         200
     );
-    assert_eq!(
-        request(
-            &addr,
-            "POST",
-            "/api/stop",
-            &[("X-Tactbench-Stop", "confirm")]
-        )
-        .status,
-        401
-    );
+    assert_eq!(confirmed_stop(&addr).status, 401);
     let _ = s.child.kill();
     let _ = s.child.wait();
 }
@@ -522,16 +505,7 @@ fn bad_addresses_and_directories_are_clear_errors() {
     }
     // `run --serve` on a busy port fails before creating or moving anything.
     let out = tmp.path().join("never");
-    let o = util::run(&[
-        "run",
-        "experiments/fig7_magnitude.toml",
-        "--sim",
-        "experiments/scenes/fig7_hemisphere_ramp.toml",
-        "--out",
-        out.to_str().unwrap(),
-        "--serve",
-        &busy_addr,
-    ]);
+    let o = util::run_fig7_sim(&["--out", out.to_str().unwrap(), "--serve", &busy_addr]);
     assert_eq!(o.status.code(), Some(2), "{}", util::stderr(&o));
     assert!(util::stderr(&o).contains("in use"), "{}", util::stderr(&o));
     assert!(!out.exists(), "nothing created");
@@ -576,16 +550,8 @@ fn serve_follows_a_run_of_another_process_and_its_stop_button_interrupts_it_like
     let out = tmp.path().join("run");
     let n = 12;
     let mut child = Command::new(util::bin())
-        .args([
-            "run",
-            "experiments/fig7_magnitude.toml",
-            "--sim",
-            "experiments/scenes/fig7_hemisphere_ramp.toml",
-            "--limit",
-            &n.to_string(),
-            "--no-progress",
-            "--out",
-        ])
+        .args(util::FIG7_SIM_RUN)
+        .args(["--limit", &n.to_string(), "--no-progress", "--out"])
         .arg(&out)
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .stdout(Stdio::null())
@@ -604,12 +570,7 @@ fn serve_follows_a_run_of_another_process_and_its_stop_button_interrupts_it_like
     // Without the confirmation header nothing happens.
     assert_eq!(request(&s.addr, "POST", "/api/stop", &[]).status, 400);
     assert!(child.try_wait().unwrap().is_none());
-    let r = request(
-        &s.addr,
-        "POST",
-        "/api/stop",
-        &[("X-Tactbench-Stop", "confirm")],
-    );
+    let r = confirmed_stop(&s.addr);
     assert_eq!(r.status, 202, "{}", r.text());
     // What Ctrl-C does: exit 4, interrupted, stage retracted, resumable.
     assert_eq!(wait_exit(&mut child, 120), 4);
@@ -641,12 +602,7 @@ fn the_stop_button_of_run_serve_interrupts_the_run_it_serves() {
     wait_for(120, "a measured setpoint", || {
         state(&s.addr)["setpoints_done"].as_u64().unwrap_or(0) >= 1
     });
-    let r = request(
-        &s.addr,
-        "POST",
-        "/api/stop",
-        &[("X-Tactbench-Stop", "confirm")],
-    );
+    let r = confirmed_stop(&s.addr);
     assert_eq!(r.status, 202, "{}", r.text());
     assert_eq!(wait_exit(&mut s.child, 120), 4);
     let m: Value =
@@ -975,17 +931,8 @@ fn live_view_overhead_per_setpoint_with_twenty_viewers() {
         for serve in [false, true] {
             let out = tmp.path().join(format!("run{p}_{serve}"));
             let limit = n.to_string();
-            let mut args = vec![
-                "run",
-                "experiments/fig7_magnitude.toml",
-                "--sim",
-                "experiments/scenes/fig7_hemisphere_ramp.toml",
-                "--limit",
-                &limit,
-                "--no-progress",
-                "--timings",
-                "--out",
-            ];
+            let mut args = util::FIG7_SIM_RUN.to_vec();
+            args.extend(["--limit", &limit, "--no-progress", "--timings", "--out"]);
             let out_s = out.display().to_string();
             args.push(&out_s);
             let (lines, code) = if serve {

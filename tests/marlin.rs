@@ -292,54 +292,41 @@ fn marlin_emergency_stop_halts_the_firmware_and_errors_say_how_to_recover() {
     assert!(sim.killed());
 }
 
+/// The error of connecting (with [`fast`] timeouts) to a simulator with `cfg`.
+fn connect_error(cfg: MarlinSimConfig) -> tactbench::device::DeviceError {
+    let server = PtyServer::spawn(MarlinSim::new(cfg), None).expect("pty");
+    let port = open_serial(&server.path().to_string_lossy(), 115_200).expect("open pty");
+    Marlin::connect(port, fast()).unwrap_err()
+}
+
 #[test]
 fn marlin_bad_ports_are_clear_errors() {
     // Nothing answers.
-    let server = PtyServer::spawn(
-        MarlinSim::new(MarlinSimConfig {
-            boot: Boot::Silent,
-            ..MarlinSimConfig::default()
-        }),
-        None,
-    )
-    .unwrap();
-    let port = open_serial(&server.path().to_string_lossy(), 115_200).unwrap();
-    let e = Marlin::connect(port, fast()).unwrap_err();
+    let e = connect_error(MarlinSimConfig {
+        boot: Boot::Silent,
+        ..MarlinSimConfig::default()
+    });
     assert_eq!(e.kind(), ErrorKind::Timeout);
     assert!(
         e.message.contains("nothing answered: no boot banner"),
         "{e}"
     );
-    drop(server);
     // A board that never prints its banner (noise, as at a wrong baud rate).
-    let server = PtyServer::spawn(
-        MarlinSim::new(MarlinSimConfig {
-            boot: Boot::Noise,
-            ..MarlinSimConfig::default()
-        }),
-        None,
-    )
-    .unwrap();
-    let port = open_serial(&server.path().to_string_lossy(), 115_200).unwrap();
-    let e = Marlin::connect(port, fast()).unwrap_err();
+    let e = connect_error(MarlinSimConfig {
+        boot: Boot::Noise,
+        ..MarlinSimConfig::default()
+    });
     assert_eq!(e.kind(), ErrorKind::Protocol);
     assert!(
         e.message.contains("never its boot banner")
             && e.hint.as_deref().unwrap_or("").contains("baud"),
         "{e}"
     );
-    drop(server);
     // Firmware without the emergency parser cannot stop a move: refused.
-    let server = PtyServer::spawn(
-        MarlinSim::new(MarlinSimConfig {
-            emergency_parser: false,
-            ..MarlinSimConfig::default()
-        }),
-        None,
-    )
-    .unwrap();
-    let port = open_serial(&server.path().to_string_lossy(), 115_200).unwrap();
-    let e = Marlin::connect(port, fast()).unwrap_err();
+    let e = connect_error(MarlinSimConfig {
+        emergency_parser: false,
+        ..MarlinSimConfig::default()
+    });
     assert!(e.message.contains("EMERGENCY_PARSER"), "{e}");
 }
 
@@ -392,78 +379,14 @@ mod replay {
 // ---- the CLI end to end ----
 
 mod cli {
-    use std::io::BufRead;
-    use std::path::PathBuf;
-    use std::process::{Child, Command, Output, Stdio};
-    use std::time::{Duration, Instant};
+    use crate::util::{stderr, stdout, ServedStage};
 
-    const BIN: &str = env!("CARGO_BIN_EXE_tactbench");
-
-    /// A `tactbench sim-serve-stage --protocol marlin` child; stops when dropped.
-    struct Served {
-        child: Child,
-        link: PathBuf,
-        _dir: tempfile::TempDir,
-    }
-
-    impl Served {
-        fn start(extra: &[&str]) -> Served {
-            let dir = tempfile::tempdir().expect("tempdir");
-            let link = dir.path().join("stage");
-            let mut child = Command::new(BIN)
-                .args(["sim-serve-stage", "--protocol", "marlin", "--link"])
-                .arg(&link)
-                .args(extra)
-                .stdin(Stdio::piped())
-                .stdout(Stdio::piped())
-                .spawn()
-                .expect("spawn sim-serve-stage");
-            let mut line = String::new();
-            let out = child.stdout.take().expect("stdout");
-            std::io::BufReader::new(out)
-                .read_line(&mut line)
-                .expect("read");
-            assert!(line.starts_with("serving on /dev/pts/"), "{line}");
-            let deadline = Instant::now() + Duration::from_secs(5);
-            while !link.exists() && Instant::now() < deadline {
-                std::thread::sleep(Duration::from_millis(10));
-            }
-            Served {
-                child,
-                link,
-                _dir: dir,
-            }
-        }
-
-        fn stage(&self, args: &[&str]) -> Output {
-            Command::new(BIN)
-                .args(["stage", "--port"])
-                .arg(&self.link)
-                .args(["--protocol", "marlin", "--marlin-banner-timeout", "0.3"])
-                .args(args)
-                .output()
-                .expect("run tactbench stage")
-        }
-    }
-
-    impl Drop for Served {
-        fn drop(&mut self) {
-            drop(self.child.stdin.take());
-            let _ = self.child.wait();
-        }
-    }
-
-    fn stdout(o: &Output) -> String {
-        String::from_utf8_lossy(&o.stdout).into_owned()
-    }
-
-    fn stderr(o: &Output) -> String {
-        String::from_utf8_lossy(&o.stderr).into_owned()
-    }
+    /// A short banner wait for `tactbench stage` against the simulator.
+    const BANNER_TIMEOUT: &[&str] = &["--marlin-banner-timeout", "0.3"];
 
     #[test]
     fn cli_marlin_status_home_move_jog_position_stop_and_refusals() {
-        let s = Served::start(&["--homing"]);
+        let s = ServedStage::start("marlin", &["--homing"], BANNER_TIMEOUT);
         let o = s.stage(&["status"]);
         assert!(o.status.success(), "{}", stderr(&o));
         let out = stdout(&o);
@@ -515,7 +438,7 @@ mod cli {
 
     #[test]
     fn cli_marlin_port_where_nothing_answers_is_a_clear_error() {
-        let s = Served::start(&["--marlin-boot", "silent"]);
+        let s = ServedStage::start("marlin", &["--marlin-boot", "silent"], BANNER_TIMEOUT);
         let o = s.stage(&["status"]);
         assert_eq!(o.status.code(), Some(2));
         assert!(

@@ -4,16 +4,13 @@
 //! Test names carry the case number.
 
 use std::path::{Path, PathBuf};
+use std::process::Output;
 use std::time::{Duration, Instant};
 
 use tactbench::bench::journal::{Manifest, RunStatus};
 use tactbench::sensor::paper_sensor;
 
 use crate::util;
-
-fn s(p: &Path) -> String {
-    p.to_str().unwrap().to_string()
-}
 
 /// The paper sensor file with the elastomer and depths changed (text substitution on
 /// experiments/paper_sensor.toml), written into `dir`.
@@ -52,6 +49,19 @@ fn displacement_csv(
     p
 }
 
+/// `tactbench reconstruct` of the displacement CSV `d` on the paper sensor into `out`.
+fn reconstruct(d: &Path, out: &Path) -> Output {
+    util::run(&[
+        "reconstruct",
+        "--sensor",
+        "experiments/paper_sensor.toml",
+        "--displacements",
+        util::arg(d),
+        "--out",
+        util::arg(out),
+    ])
+}
+
 // ---- case 1: a thin bonded layer -----------------------------------------------------
 
 #[test]
@@ -70,7 +80,7 @@ fn case1_thin_bonded_layer_in_a_sensor_file_typed_in_metres_is_refused_in_second
         ],
     );
     let t = Instant::now();
-    let o = util::run(&["model", "inspect", "--sensor", &s(&sensor)]);
+    let o = util::run(&["model", "inspect", "--sensor", util::arg(&sensor)]);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
@@ -102,7 +112,7 @@ fn case1_thin_layers_in_the_model_error_study_are_refused_before_any_work() {
             "--reps",
             "1",
             "--out",
-            &s(&out),
+            util::arg(&out),
         ]);
         let e = util::stderr(&o);
         assert_eq!(o.status.code(), Some(2), "{h}: {e}");
@@ -132,15 +142,7 @@ fn case2_reconstruct_refuses_a_dense_system_past_the_memory_cap_before_building_
     std::fs::write(&d, text).unwrap();
     let out = dir.path().join("f.csv");
     let t = Instant::now();
-    let o = util::run(&[
-        "reconstruct",
-        "--sensor",
-        "experiments/paper_sensor.toml",
-        "--displacements",
-        &s(&d),
-        "--out",
-        &s(&out),
-    ]);
+    let o = reconstruct(&d, &out);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
@@ -158,55 +160,30 @@ fn case2_reconstruct_refuses_a_dense_system_past_the_memory_cap_before_building_
 
 // ---- case 3: run --resume --limit ----------------------------------------------------
 
-/// A 6-setpoint version of the Fig. 7 plan (0 ... 250 gf, one trial) in `dir`.
-fn short_plan(dir: &Path) -> PathBuf {
-    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
-        .unwrap()
-        .replace(
-            "sensor = \"paper_sensor.toml\"",
-            &format!(
-                "sensor = {:?}",
-                s(&util::root("experiments/paper_sensor.toml"))
-            ),
-        )
-        .replace("to = 750.0", "to = 250.0")
-        .replace("trials = 10", "trials = 1");
-    let p = dir.join("short.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
-fn journal_rows(dir: &Path) -> usize {
-    std::fs::read_to_string(dir.join("journal.csv"))
-        .unwrap()
-        .lines()
-        .count()
-        - 1
-}
-
 #[test]
 fn case3_resume_with_limit_runs_at_most_n_more_and_a_limited_run_resumes_to_its_plan() {
     let dir = tempfile::tempdir().unwrap();
-    let plan = short_plan(dir.path());
+    // A 6-setpoint version of the Fig. 7 plan (0 ... 250 gf, one trial).
+    let plan = util::fig7_plan_cut(dir.path(), "short.toml", 250.0, 1);
     let out = dir.path().join("run");
     let o = util::run(&[
         "run",
-        &s(&plan),
+        util::arg(&plan),
         "--sim",
         "experiments/scenes/fig7_hemisphere_ramp.toml",
         "--out",
-        &s(&out),
+        util::arg(&out),
         "--limit",
         "2",
         "--no-progress",
     ]);
     assert!(o.status.success(), "{}", util::stderr(&o));
-    assert_eq!(journal_rows(&out), 2);
+    assert_eq!(util::journal_rows(&out), 2);
     let m = Manifest::read(&out).unwrap();
     assert_eq!(m.status, RunStatus::Completed);
     assert_eq!(m.planned(), 6);
     // The report says INCOMPLETE (limited), and why.
-    let r = util::run(&["report", &s(&out)]);
+    let r = util::run(&["report", util::arg(&out)]);
     assert!(
         util::stdout(&r).contains("limited by --limit 2"),
         "{}",
@@ -214,9 +191,16 @@ fn case3_resume_with_limit_runs_at_most_n_more_and_a_limited_run_resumes_to_its_
     );
 
     // A resume with --limit 3 measures 3 more, not the rest of the plan.
-    let o = util::run(&["run", "--resume", &s(&out), "--limit", "3", "--no-progress"]);
+    let o = util::run(&[
+        "run",
+        "--resume",
+        util::arg(&out),
+        "--limit",
+        "3",
+        "--no-progress",
+    ]);
     assert!(o.status.success(), "{}", util::stderr(&o));
-    assert_eq!(journal_rows(&out), 5);
+    assert_eq!(util::journal_rows(&out), 5);
     let m = Manifest::read(&out).unwrap();
     assert_eq!(m.limit, Some(3));
     assert!(m
@@ -226,9 +210,9 @@ fn case3_resume_with_limit_runs_at_most_n_more_and_a_limited_run_resumes_to_its_
         .contains("5 of the plan's 6"));
 
     // Without --limit: the rest of the plan, then the run is complete.
-    let o = util::run(&["run", "--resume", &s(&out), "--no-progress"]);
+    let o = util::run(&["run", "--resume", util::arg(&out), "--no-progress"]);
     assert!(o.status.success(), "{}", util::stderr(&o));
-    assert_eq!(journal_rows(&out), 6);
+    assert_eq!(util::journal_rows(&out), 6);
     let m = Manifest::read(&out).unwrap();
     assert_eq!(m.incomplete_reason, None);
     let sessions: Vec<_> = m
@@ -243,14 +227,21 @@ fn case3_resume_with_limit_runs_at_most_n_more_and_a_limited_run_resumes_to_its_
     );
     assert!(m.sessions.iter().all(|s| !s.started_at.is_empty()));
     // Complete: a further resume is refused without moving anything.
-    let o = util::run(&["run", "--resume", &s(&out), "--limit", "1", "--no-progress"]);
+    let o = util::run(&[
+        "run",
+        "--resume",
+        util::arg(&out),
+        "--limit",
+        "1",
+        "--no-progress",
+    ]);
     assert_eq!(o.status.code(), Some(2));
     assert!(
         util::stderr(&o).contains("already completed"),
         "{}",
         util::stderr(&o)
     );
-    assert_eq!(journal_rows(&out), 6);
+    assert_eq!(util::journal_rows(&out), 6);
     // --help says both.
     let h = util::stdout(&util::run(&["run", "--help"]));
     assert!(h.contains("measures at most N more"), "{h}");
@@ -281,15 +272,7 @@ fn case6_absurd_displacements_and_positions_are_errors_naming_line_and_value() {
         })
     });
     let out = dir.path().join("f.csv");
-    let o = util::run(&[
-        "reconstruct",
-        "--sensor",
-        "experiments/paper_sensor.toml",
-        "--displacements",
-        &s(&d),
-        "--out",
-        &s(&out),
-    ]);
+    let o = reconstruct(&d, &out);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     // Line 7: the header, then markers 0..5 of blue.
@@ -306,15 +289,7 @@ fn case6_absurd_displacements_and_positions_are_errors_naming_line_and_value() {
         .replace("1e300", "0.001");
     text = text.replacen("blue,0,0,0,", "blue,0,1000000000,0,", 1);
     std::fs::write(&d, &text).unwrap();
-    let o = util::run(&[
-        "reconstruct",
-        "--sensor",
-        "experiments/paper_sensor.toml",
-        "--displacements",
-        &s(&d),
-        "--out",
-        &s(&out),
-    ]);
+    let o = reconstruct(&d, &out);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(
@@ -334,9 +309,9 @@ fn case6_absurd_forces_given_to_model_forward_are_errors() {
         "--sensor",
         "experiments/paper_sensor.toml",
         "--forces",
-        &s(&f),
+        util::arg(&f),
         "--out",
-        &s(&dir.path().join("u.csv")),
+        util::arg(&dir.path().join("u.csv")),
     ]);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
@@ -368,18 +343,13 @@ fn case8_a_camera_file_whose_distortion_cannot_be_inverted_fails_at_load_naming_
             .join("\n");
         let cam = dir.path().join(format!("camera_{k1}.toml"));
         std::fs::write(&cam, text).unwrap();
-        let o = util::run(&[
-            "run",
-            "experiments/fig7_magnitude.toml",
-            "--sim",
-            "experiments/scenes/fig7_hemisphere_ramp.toml",
-            "--camera",
-            &s(&cam),
-            "--dry-run",
-        ]);
+        let o = util::run_fig7_sim(&["--camera", util::arg(&cam), "--dry-run"]);
         let e = util::stderr(&o);
         assert_eq!(o.status.code(), Some(2), "{k1}: {e}");
-        assert!(e.contains(&s(&cam)), "{k1}: names the camera file: {e}");
+        assert!(
+            e.contains(util::arg(&cam)),
+            "{k1}: names the camera file: {e}"
+        );
         assert!(e.contains("invertible"), "{k1}: {e}");
     }
 }
@@ -391,22 +361,14 @@ fn case8_a_run_directory_whose_name_is_not_utf8_works() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join(OsStr::from_bytes(b"run-\xff\xfe"));
     let o = std::process::Command::new(util::bin())
-        .args([
-            "run",
-            "experiments/fig7_magnitude.toml",
-            "--sim",
-            "experiments/scenes/fig7_hemisphere_ramp.toml",
-            "--limit",
-            "1",
-            "--no-progress",
-            "--out",
-        ])
+        .args(util::FIG7_SIM_RUN)
+        .args(["--limit", "1", "--no-progress", "--out"])
         .arg(&out)
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", util::stderr(&o));
-    assert_eq!(journal_rows(&out), 1);
+    assert_eq!(util::journal_rows(&out), 1);
 }
 
 // ---- case 9: numeric edge cases ------------------------------------------------------
@@ -451,9 +413,9 @@ fn case9_forces_written_for_tiny_displacements_are_the_scaled_forces() {
                 "--sensor".into(),
                 "experiments/paper_sensor.toml".into(),
                 "--displacements".into(),
-                s(&d),
+                util::arg(&d).to_string(),
                 "--out".into(),
-                s(&out),
+                util::arg(&out).to_string(),
                 "--solver".into(),
                 solver.into(),
             ];
@@ -493,15 +455,7 @@ fn case9_no_usable_marker_anywhere_is_an_error_for_reconstruct_and_model_inspect
     let dir = tempfile::tempdir().unwrap();
     let d = displacement_csv(dir.path(), "lost.csv", |_, _| None);
     let out = dir.path().join("f.csv");
-    let o = util::run(&[
-        "reconstruct",
-        "--sensor",
-        "experiments/paper_sensor.toml",
-        "--displacements",
-        &s(&d),
-        "--out",
-        &s(&out),
-    ]);
+    let o = reconstruct(&d, &out);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(e.contains("no usable marker"), "{e}");
@@ -516,7 +470,7 @@ fn case9_no_usable_marker_anywhere_is_an_error_for_reconstruct_and_model_inspect
         "--sensor",
         "experiments/paper_sensor.toml",
         "--displacements",
-        &s(&d),
+        util::arg(&d),
     ]);
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");

@@ -589,105 +589,43 @@ fn zaber_fault_disconnect_is_reported_as_disconnected() {
 // ---- `tactbench stage` end to end against a simulator on a pty ----
 
 mod cli {
-    use std::io::BufRead;
-    use std::path::{Path, PathBuf};
-    use std::process::{Child, Command, Output, Stdio};
-    use std::time::{Duration, Instant};
+    use std::path::Path;
+    use std::process::Command;
+    use std::time::Duration;
+
+    use crate::util::{stderr, stdout, ServedStage};
 
     const BIN: &str = env!("CARGO_BIN_EXE_tactbench");
 
-    /// A `tactbench sim-serve-stage` child; stops when dropped (stdin closed).
-    struct Served {
-        child: Child,
-        link: PathBuf,
-        _dir: tempfile::TempDir,
-    }
-
-    impl Served {
-        fn start(protocol: &str, extra: &[&str]) -> Served {
-            let dir = tempfile::tempdir().expect("tempdir");
-            let link = dir.path().join("stage");
-            let mut child = Command::new(BIN)
-                .args(["sim-serve-stage", "--protocol", protocol, "--link"])
-                .arg(&link)
-                .args(extra)
-                .stdin(Stdio::piped())
-                .stdout(Stdio::piped())
-                .spawn()
-                .expect("spawn sim-serve-stage");
-            // The helper prints one line once the pty is served.
-            let mut line = String::new();
-            let out = child.stdout.take().expect("stdout");
-            std::io::BufReader::new(out)
-                .read_line(&mut line)
-                .expect("read");
-            assert!(line.starts_with("serving on /dev/pts/"), "{line}");
-            let deadline = Instant::now() + Duration::from_secs(5);
-            while !link.exists() && Instant::now() < deadline {
-                std::thread::sleep(Duration::from_millis(10));
-            }
-            Served {
-                child,
-                link,
-                _dir: dir,
-            }
-        }
-
-        fn stage(&self, protocol: &str, args: &[&str]) -> Output {
-            Command::new(BIN)
-                .args(["stage", "--port"])
-                .arg(&self.link)
-                .args(["--protocol", protocol])
-                .args(args)
-                .output()
-                .expect("run tactbench stage")
-        }
-    }
-
-    impl Drop for Served {
-        fn drop(&mut self) {
-            drop(self.child.stdin.take());
-            let _ = self.child.wait();
-        }
-    }
-
-    fn stdout(o: &Output) -> String {
-        String::from_utf8_lossy(&o.stdout).into_owned()
-    }
-
-    fn stderr(o: &Output) -> String {
-        String::from_utf8_lossy(&o.stderr).into_owned()
-    }
-
     #[test]
     fn cli_grbl_status_home_move_jog_and_exact_position_json() {
-        let s = Served::start("grbl", &["--homing"]);
-        let o = s.stage("grbl", &["status"]);
+        let s = ServedStage::start("grbl", &["--homing"], &[]);
+        let o = s.stage(&["status"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(stdout(&o).starts_with("state: alarm\n"), "{}", stdout(&o));
         // Moves in alarm: clear message, non-zero exit.
-        let o = s.stage("grbl", &["move", "-10", "-5", "-1"]);
+        let o = s.stage(&["move", "-10", "-5", "-1"]);
         assert!(!o.status.success());
         assert!(
             stderr(&o).contains("alarm state") && stderr(&o).contains("unlock"),
             "{}",
             stderr(&o)
         );
-        let o = s.stage("grbl", &["home", "--json"]);
+        let o = s.stage(&["home", "--json"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert_eq!(stdout(&o), "{\"x_mm\":-1.0,\"y_mm\":-1.0,\"z_mm\":-1.0}\n");
-        let o = s.stage("grbl", &["move", "-10", "-5", "-1.25", "--speed", "50"]);
+        let o = s.stage(&["move", "-10", "-5", "-1.25", "--speed", "50"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert_eq!(
             stdout(&o),
             "x = -10.0000 mm  y = -5.0000 mm  z = -1.2500 mm\n"
         );
-        let o = s.stage("grbl", &["jog", "1", "-1", "0.25", "--speed", "20"]);
+        let o = s.stage(&["jog", "1", "-1", "0.25", "--speed", "20"]);
         assert!(o.status.success(), "{}", stderr(&o));
-        let o = s.stage("grbl", &["position", "--json"]);
+        let o = s.stage(&["position", "--json"]);
         assert_eq!(stdout(&o), "{\"x_mm\":-9.0,\"y_mm\":-6.0,\"z_mm\":-1.0}\n");
         // Outside the soft-limit box: refused before sending.
-        let o = s.stage("grbl", &["move", "-1000", "0", "0"]);
+        let o = s.stage(&["move", "-1000", "0", "0"]);
         assert_eq!(o.status.code(), Some(2));
         assert!(
             stderr(&o).contains("requested x = -1000 mm is below travel limit -100 mm"),
@@ -707,8 +645,8 @@ mod cli {
 
     #[test]
     fn cli_grbl_status_in_hold_resume_stop_and_unlock_after_a_critical_alarm() {
-        let s = Served::start("grbl", &["--homing"]);
-        let o = s.stage("grbl", &["unlock"]);
+        let s = ServedStage::start("grbl", &["--homing"], &[]);
+        let o = s.stage(&["unlock"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(
             stdout(&o).starts_with("`$X`: cleared the alarm"),
@@ -718,39 +656,39 @@ mod cli {
         // Another program starts a slow move and presses feed hold.
         send_raw(&s.link, b"G53 G1 X-60 F60\n");
         send_raw(&s.link, b"!");
-        let o = s.stage("grbl", &["status"]);
+        let o = s.stage(&["status"]);
         assert!(o.status.success(), "{}", stderr(&o));
         let out = stdout(&o);
         assert!(out.starts_with("state: held\n"), "{out}");
         assert!(out.contains("; state Hold:0"), "{out}");
         assert!(out.contains("hint: motion is paused"), "{out}");
-        let o = s.stage("grbl", &["move", "-1", "-1", "-1"]);
+        let o = s.stage(&["move", "-1", "-1", "-1"]);
         assert_eq!(o.status.code(), Some(2));
         assert!(
             stderr(&o).contains("failed (held)") && stderr(&o).contains("resume"),
             "{}",
             stderr(&o)
         );
-        let o = s.stage("grbl", &["resume"]);
+        let o = s.stage(&["resume"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert_eq!(stdout(&o), "resumed (`~`); state: Run\n");
-        let o = s.stage("grbl", &["stop"]);
+        let o = s.stage(&["stop"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert_eq!(stdout(&o), "stopped; state: idle\n");
         // A soft-limit violation by another program: ALARM:2, then silence.
         send_raw(&s.link, b"G53 G0 X5\n");
-        let o = s.stage("grbl", &["status"]);
+        let o = s.stage(&["status"]);
         assert_eq!(o.status.code(), Some(2));
         let err = stderr(&o);
         assert!(err.contains("Likely cause: a critical alarm"), "{err}");
         assert!(err.contains("unlock"), "{err}");
-        let o = s.stage("grbl", &["unlock"]);
+        let o = s.stage(&["unlock"]);
         assert!(o.status.success(), "{}", stderr(&o));
         let out = stdout(&o);
         assert!(out.starts_with("soft reset (0x18)"), "{out}");
         assert!(out.contains("`$X`: cleared the alarm"), "{out}");
         assert!(out.ends_with("unlocked; state: idle\n"), "{out}");
-        let o = s.stage("grbl", &["status"]);
+        let o = s.stage(&["status"]);
         assert!(stdout(&o).starts_with("state: idle\n"), "{}", stdout(&o));
         assert!(
             stdout(&o).contains("grbl 1.1h.20190830; state Idle"),
@@ -761,8 +699,8 @@ mod cli {
 
     #[test]
     fn cli_grbl_home_with_homing_disabled_explains() {
-        let s = Served::start("grbl", &[]);
-        let o = s.stage("grbl", &["home"]);
+        let s = ServedStage::start("grbl", &[], &[]);
+        let o = s.stage(&["home"]);
         assert!(!o.status.success());
         assert!(
             stderr(&o).contains("homing is disabled on the controller ($22=0)"),
@@ -773,24 +711,21 @@ mod cli {
 
     #[test]
     fn cli_zaber_home_move_and_position_json() {
-        let s = Served::start("zaber", &[]);
+        let s = ServedStage::start("zaber", &[], &[]);
         let res = ["--zaber-mm-per-step", "0.001"];
-        let o = s.stage("zaber", &[&["status"][..], &res].concat());
+        let o = s.stage(&[&["status"][..], &res].concat());
         assert!(
             stdout(&o).contains("zaber warnings x WR y WR z WR"),
             "{}",
             stdout(&o)
         );
-        let o = s.stage("zaber", &[&["home"][..], &res].concat());
+        let o = s.stage(&[&["home"][..], &res].concat());
         assert!(o.status.success(), "{}", stderr(&o));
-        let o = s.stage("zaber", &[&["move", "1.5", "2", "3"][..], &res].concat());
+        let o = s.stage(&[&["move", "1.5", "2", "3"][..], &res].concat());
         assert!(o.status.success(), "{}", stderr(&o));
-        let o = s.stage("zaber", &[&["position", "--json"][..], &res].concat());
+        let o = s.stage(&[&["position", "--json"][..], &res].concat());
         assert_eq!(stdout(&o), "{\"x_mm\":1.5,\"y_mm\":2.0,\"z_mm\":3.0}\n");
-        let o = s.stage(
-            "zaber",
-            &[&["status", "--zaber-devices", "7,8,9"][..], &res].concat(),
-        );
+        let o = s.stage(&[&["status", "--zaber-devices", "7,8,9"][..], &res].concat());
         assert!(!o.status.success());
         assert!(
             stderr(&o).contains("no answer from device 7 axis 1"),

@@ -1,14 +1,25 @@
-//! Helpers shared by the integration tests: running the `tactbench` binary, temporary
-//! directories, a small seeded random generator.
+//! Helpers shared by the integration tests: running the `tactbench` binary and its
+//! served simulators, the simulated Fig. 7 run, run-directory files, F/T wrenches and
+//! faults, a small seeded random generator.
 
 #![allow(dead_code)]
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use tactbench::device::ft_common::{no_faults, FaultConfig, FaultKind};
+use tactbench::device::Wrench;
 
 /// Path of the built `tactbench` binary.
 pub fn bin() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_tactbench"))
+}
+
+/// A `tactbench` command (arguments and I/O to be set by the caller).
+pub fn command() -> Command {
+    Command::new(bin())
 }
 
 /// Runs `tactbench` with `args` in `dir`, returning its output.
@@ -151,24 +162,230 @@ pub fn svg_top_tick_y(svg: &str) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
-/// The paper's Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints),
-/// its sensor path made absolute, written to `dir/name`: the short simulated run the
-/// run, archive and compare tests measure.
-pub fn eight_setpoint_fig7_plan(dir: &Path, name: &str) -> PathBuf {
+/// The paper's Fig. 7 plan cut to 0 ... `to_gf` gf (its 50 gf steps) with `trials`
+/// trials, its sensor path made absolute, written to `dir/name`.
+pub fn fig7_plan_cut(dir: &Path, name: &str, to_gf: f64, trials: u32) -> PathBuf {
     let sensor = root("experiments/paper_sensor.toml");
+    let (to, trials) = (format!("to = {to_gf:.1}"), format!("trials = {trials}"));
     let text = std::fs::read_to_string(root("experiments/fig7_magnitude.toml"))
         .expect("experiments/fig7_magnitude.toml")
         .replace(
             "sensor = \"paper_sensor.toml\"",
             &format!("sensor = {:?}", sensor.display().to_string()),
         )
-        .replace("to = 750.0", "to = 150.0")
-        .replace("trials = 10", "trials = 2");
+        .replace("to = 750.0", &to)
+        .replace("trials = 10", &trials);
     assert!(
-        text.contains("to = 150.0") && text.contains("trials = 2"),
+        text.contains(&to) && text.contains(&trials),
         "the Fig. 7 plan no longer has the lines this cut replaces"
     );
     let p = dir.join(name);
     std::fs::write(&p, text).unwrap();
     p
+}
+
+/// The Fig. 7 plan cut to 0, 50, 100, 150 gf with two trials (8 setpoints): the
+/// short simulated run the run, archive and compare tests measure.
+pub fn eight_setpoint_fig7_plan(dir: &Path, name: &str) -> PathBuf {
+    fig7_plan_cut(dir, name, 150.0, 2)
+}
+
+/// A path as a `&str` argument (the temporary directories tests use are UTF-8).
+pub fn arg(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// `tactbench run` of the paper's Fig. 7 plan on the simulated Fig. 7 ramp scene, from
+/// the crate root: the start of most simulated-run invocations; the caller adds `--out`,
+/// `--limit` and the rest.
+pub const FIG7_SIM_RUN: [&str; 4] = [
+    "run",
+    "experiments/fig7_magnitude.toml",
+    "--sim",
+    "experiments/scenes/fig7_hemisphere_ramp.toml",
+];
+
+/// Runs [`FIG7_SIM_RUN`] with `extra` arguments.
+pub fn run_fig7_sim(extra: &[&str]) -> Output {
+    let mut args = FIG7_SIM_RUN.to_vec();
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+/// The number of rows (header excluded) of `dir/journal.csv`.
+pub fn journal_rows(dir: &Path) -> usize {
+    std::fs::read_to_string(dir.join("journal.csv"))
+        .expect("journal.csv")
+        .lines()
+        .count()
+        - 1
+}
+
+/// A JSON file, parsed (the panic names the file).
+pub fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap())
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// A `tactbench` child process, killed on drop (so a failing test leaks nothing).
+pub struct Served(pub Child);
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `tactbench sim-serve-stage --protocol PROTOCOL` on a pseudo-terminal linked in a
+/// temporary directory; stops when dropped (its stdin closed).
+pub struct ServedStage {
+    child: Child,
+    /// The pseudo-terminal's link.
+    pub link: PathBuf,
+    protocol: String,
+    stage_args: Vec<String>,
+    _dir: tempfile::TempDir,
+}
+
+impl ServedStage {
+    /// Serves `protocol` with the simulator arguments `extra`; `stage_args` are added to
+    /// every [`ServedStage::stage`] command (driver options).
+    pub fn start(protocol: &str, extra: &[&str], stage_args: &[&str]) -> ServedStage {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let link = dir.path().join("stage");
+        let mut child = Command::new(bin())
+            .args(["sim-serve-stage", "--protocol", protocol, "--link"])
+            .arg(&link)
+            .args(extra)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("spawn sim-serve-stage");
+        // The helper prints one line once the pty is served.
+        let mut line = String::new();
+        let out = child.stdout.take().expect("stdout");
+        BufReader::new(out).read_line(&mut line).expect("read");
+        assert!(line.starts_with("serving on /dev/pts/"), "{line}");
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while !link.exists() && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        ServedStage {
+            child,
+            link,
+            protocol: protocol.to_string(),
+            stage_args: stage_args.iter().map(|s| s.to_string()).collect(),
+            _dir: dir,
+        }
+    }
+
+    /// `tactbench stage --port LINK --protocol PROTOCOL [stage_args] ARGS`.
+    pub fn stage(&self, args: &[&str]) -> Output {
+        Command::new(bin())
+            .args(["stage", "--port"])
+            .arg(&self.link)
+            .args(["--protocol", &self.protocol])
+            .args(&self.stage_args)
+            .args(args)
+            .output()
+            .expect("run tactbench stage")
+    }
+}
+
+impl Drop for ServedStage {
+    fn drop(&mut self) {
+        drop(self.child.stdin.take());
+        let _ = self.child.wait();
+    }
+}
+
+// ---- force/torque sensors (ft.rs, ft_net_bota.rs) ------------------------------------
+
+/// The load the F/T tests apply: distinct values per channel, within every simulated
+/// sensor's range.
+pub const FT_LOAD: Wrench = Wrench {
+    force_n: [1.5, -2.25, 12.34],
+    torque_nm: [0.125, -0.05, 0.3],
+};
+
+/// [`FT_LOAD`] as `sim-serve-ft --wrench` takes it.
+pub const FT_LOAD_ARG: &str = "1.5,-2.25,12.34,0.125,-0.05,0.3";
+
+/// A wrench's six channels: fx, fy, fz (N), mx, my, mz (N·m).
+pub fn wrench_channels(w: &Wrench) -> [f64; 6] {
+    [
+        w.force_n[0],
+        w.force_n[1],
+        w.force_n[2],
+        w.torque_nm[0],
+        w.torque_nm[1],
+        w.torque_nm[2],
+    ]
+}
+
+/// Asserts `got` equals `want` within half a quantum per channel (`quantum`: N for
+/// forces, N·m for torques), plus floating-point slack.
+pub fn assert_wrench_near(got: &Wrench, want: &Wrench, quantum: [f64; 6]) {
+    let (g, w) = (wrench_channels(got), wrench_channels(want));
+    for i in 0..6 {
+        assert!(
+            (g[i] - w[i]).abs() <= 0.5 * quantum[i] + 1e-9,
+            "channel {i}: got {} want {} (quantum {})",
+            g[i],
+            w[i],
+            quantum[i]
+        );
+    }
+}
+
+/// Faults of `kinds` (drawn uniformly) on each reply or record with probability `p`,
+/// seeded, unlimited in number, from the first on, on any target.
+pub fn ft_faults(seed: u64, kinds: &[FaultKind], p: f64) -> FaultConfig {
+    FaultConfig {
+        seed,
+        kinds: kinds.to_vec(),
+        probability: p,
+        skip: 0,
+        max_faults: u32::MAX,
+        ..no_faults()
+    }
+}
+
+/// Starts `tactbench sim-serve-ft --protocol PROTOCOL` serving [`FT_LOAD`] for 60 s
+/// with `extra` arguments, and returns it with its first ("serving") line.
+pub fn serve_ft<S: AsRef<std::ffi::OsStr>>(protocol: &str, extra: &[S]) -> (Served, String) {
+    let mut child = Command::new(bin())
+        .args([
+            "sim-serve-ft",
+            "--protocol",
+            protocol,
+            "--wrench",
+            FT_LOAD_ARG,
+            "--duration-s",
+            "60",
+        ])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("spawn tactbench");
+    let stdout = child.stdout.take().expect("stdout");
+    let served = Served(child);
+    let mut line = String::new();
+    BufReader::new(stdout)
+        .read_line(&mut line)
+        .expect("serving line");
+    (served, line)
+}
+
+/// A wrench from the JSON `tactbench ft … --json` prints (`fx_n` … `mz_nm`).
+pub fn json_wrench(v: &serde_json::Value) -> Wrench {
+    let f = |k: &str| {
+        v[k].as_f64()
+            .unwrap_or_else(|| panic!("missing {k} in {v}"))
+    };
+    Wrench {
+        force_n: [f("fx_n"), f("fy_n"), f("fz_n")],
+        torque_nm: [f("mx_nm"), f("my_nm"), f("mz_nm")],
+    }
 }
