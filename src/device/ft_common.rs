@@ -1,7 +1,8 @@
-//! Pieces shared by the two force/torque devices (`dynpick`, `ft300`): the wrench
-//! source their simulators sample, their use of the shared seeded fault injection
-//! ([`crate::device::fault`]), the
-//! output queue for late replies, and deadline-bounded reads for the drivers. The
+//! Pieces shared by the serial force/torque devices (`dynpick`, `ft300`, `bota`): the
+//! wrench source their simulators sample, their use of the shared seeded fault
+//! injection ([`crate::device::fault`]), the output queue for late replies,
+//! deadline-bounded reads for the drivers, and the frame splitter of the streamed
+//! protocols ([`resync_frames`]). The
 //! simulators are served on pseudo-terminals by [`crate::device::pty`].
 //!
 //! Why a deadline loop instead of one blocking read: drivers are generic over
@@ -24,6 +25,67 @@ use super::{DeviceError, DeviceResult, ErrorKind, Wrench};
 /// Read timeout the serial helpers configure on a port: short, so that driver deadlines
 /// and simulator cadences (100 Hz streams) are honoured to about this granularity.
 pub const PORT_READ_TIMEOUT: Duration = Duration::from_millis(2);
+
+/// What one [`resync_frames`] pass found.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Resync {
+    /// Frames decoded.
+    pub frames: u64,
+    /// Candidate frames (header found, whole frame buffered) that failed to decode.
+    pub rejected: u64,
+    /// Bytes skipped while looking for a header (a rejected frame's first byte not
+    /// included: the search restarts right after it).
+    pub skipped: u64,
+}
+
+/// Splits the fixed-length frames that start with `header` out of a byte stream
+/// (Bota's and the FT 300's streams): bytes before a header are skipped, a whole
+/// candidate frame is `decode`d, and when it is rejected (bad CRC) the search moves on
+/// by one byte only, since the real header may sit inside the rejected bytes (after a
+/// dropped byte). Decoded frames are appended to `out`; the bytes consumed are removed
+/// from `buf`, which keeps an incomplete frame, or the last `header.len() - 1` bytes
+/// when no header was found (they may begin one).
+pub fn resync_frames<F>(
+    buf: &mut Vec<u8>,
+    header: &[u8],
+    frame_len: usize,
+    mut decode: impl FnMut(&[u8]) -> Option<F>,
+    out: &mut Vec<F>,
+) -> Resync {
+    debug_assert!(!header.is_empty() && frame_len >= header.len());
+    let mut r = Resync::default();
+    let mut i = 0;
+    loop {
+        match buf[i..].windows(header.len()).position(|w| w == header) {
+            None => {
+                let keep = (header.len() - 1).min(buf.len() - i);
+                r.skipped += (buf.len() - i - keep) as u64;
+                i = buf.len() - keep;
+                break;
+            }
+            Some(k) => {
+                r.skipped += k as u64;
+                i += k;
+            }
+        }
+        if buf.len() - i < frame_len {
+            break;
+        }
+        match decode(&buf[i..i + frame_len]) {
+            Some(f) => {
+                out.push(f);
+                r.frames += 1;
+                i += frame_len;
+            }
+            None => {
+                r.rejected += 1;
+                i += 1;
+            }
+        }
+    }
+    buf.drain(..i);
+    r
+}
 
 /// Opens a serial port (or pseudo-terminal path) at `baud` 8N1 with
 /// [`PORT_READ_TIMEOUT`]. The error names the path and the baud rate.
@@ -531,6 +593,48 @@ pub struct LinkStats {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// 4-byte frames `AB x y` that decode when `x + 1 == y`.
+    fn toy(f: &[u8]) -> Option<(u8, u8)> {
+        (f[2].wrapping_add(1) == f[3]).then_some((f[2], f[3]))
+    }
+
+    #[test]
+    fn resync_frames_skips_garbage_slides_past_a_rejected_frame_and_keeps_a_possible_header() {
+        let mut out = Vec::new();
+        // Garbage, a frame, a rejected frame whose bytes hide the next header (as after
+        // a dropped byte), that frame, then a lone `A` that may start the next one.
+        let mut buf = b"xyAB12AB5AB67A".to_vec();
+        buf.iter_mut().for_each(|b| {
+            if b.is_ascii_digit() {
+                *b -= b'0';
+            }
+        });
+        let r = resync_frames(&mut buf, b"AB", 4, toy, &mut out);
+        assert_eq!(out, vec![(1, 2), (6, 7)]);
+        assert_eq!(
+            r,
+            Resync {
+                frames: 2,
+                rejected: 1,
+                skipped: 2 + 2
+            },
+            "x y, then the rejected frame's B 5 after its A"
+        );
+        assert_eq!(buf, b"A", "kept: it may begin a header");
+        // The rest arrives: the kept byte completes a frame.
+        buf.extend_from_slice(&[b'B', 3, 4]);
+        let r = resync_frames(&mut buf, b"AB", 4, toy, &mut out);
+        assert_eq!((r.frames, r.skipped), (1, 0));
+        assert_eq!(out.last(), Some(&(3, 4)));
+        assert!(buf.is_empty());
+        // A one-byte header keeps nothing back; an incomplete frame is kept whole.
+        let (mut buf, mut bytes) = (vec![9, 9, 0xAA, 1], Vec::new());
+        let r = resync_frames(&mut buf, &[0xAA], 3, |f| Some(f[1]), &mut bytes);
+        assert!(bytes.is_empty());
+        assert_eq!((r.frames, r.skipped), (0, 2));
+        assert_eq!(buf, [0xAA, 1]);
+    }
 
     #[test]
     fn plan_maps_each_kind_to_its_action_and_counts_it() {

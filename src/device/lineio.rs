@@ -20,6 +20,30 @@ use super::{DeviceError, DeviceResult, ErrorKind};
 /// checked. Data is returned as soon as it arrives, so this adds no latency.
 pub const PORT_READ_TIMEOUT: Duration = Duration::from_millis(10);
 
+/// Opens the serial port of a line-protocol stage controller (8N1, read timeout
+/// [`PORT_READ_TIMEOUT`]); a port that cannot be opened is
+/// [`ErrorKind::Disconnected`], naming `device`, the port and the baud rate, with a
+/// hint to list the ports and the device's own `device_hint` (baud rates, permissions).
+pub fn open_stage_serial(
+    device: &'static str,
+    path: &str,
+    baud: u32,
+    device_hint: &str,
+) -> DeviceResult<Box<dyn serialport::SerialPort>> {
+    serialport::new(path, baud)
+        .timeout(PORT_READ_TIMEOUT)
+        .open()
+        .map_err(|e| {
+            DeviceError::new(
+                ErrorKind::Disconnected,
+                device,
+                format!("open {path}"),
+                format!("cannot open serial port {path} at {baud} baud: {e}"),
+            )
+            .with_hint(format!("list ports with `tactbench ports`; {device_hint}"))
+        })
+}
+
 /// Longest line accepted before the buffer is declared garbage.
 const MAX_LINE: usize = 4096;
 

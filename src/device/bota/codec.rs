@@ -12,6 +12,7 @@
 //! 0xFFFF, final XOR 0xFFFF; check value over ASCII "123456789" 0x906E. See
 //! `protocols/bota.md` for the sources.
 
+use crate::device::ft_common::resync_frames;
 use crate::device::Wrench;
 
 /// Frame header byte.
@@ -259,35 +260,10 @@ impl StreamDecoder {
     /// Feeds `bytes`, appending the frames completed to `out`.
     pub fn push(&mut self, bytes: &[u8], out: &mut Vec<Frame>) {
         self.buf.extend_from_slice(bytes);
-        let mut i = 0;
-        loop {
-            match self.buf[i..].iter().position(|&b| b == HEADER) {
-                None => {
-                    self.stats.skipped += (self.buf.len() - i) as u64;
-                    i = self.buf.len();
-                    break;
-                }
-                Some(k) => {
-                    self.stats.skipped += k as u64;
-                    i += k;
-                }
-            }
-            if self.buf.len() - i < FRAME_LEN {
-                break;
-            }
-            match Frame::decode(&self.buf[i..i + FRAME_LEN]) {
-                Some(f) => {
-                    out.push(f);
-                    self.stats.frames += 1;
-                    i += FRAME_LEN;
-                }
-                None => {
-                    self.stats.bad_crc += 1;
-                    i += 1;
-                }
-            }
-        }
-        self.buf.drain(..i);
+        let r = resync_frames(&mut self.buf, &[HEADER], FRAME_LEN, Frame::decode, out);
+        self.stats.frames += r.frames;
+        self.stats.bad_crc += r.rejected;
+        self.stats.skipped += r.skipped;
     }
 
     /// Bytes held (an incomplete frame).

@@ -11,6 +11,7 @@
 //! raw a signed 16-bit integer. Modbus registers are big-endian on the wire; stream
 //! values are little-endian. See `protocols/ft300.md`.
 
+use crate::device::ft_common::resync_frames;
 use crate::device::Wrench;
 
 /// Default Modbus slave address of the FT 300.
@@ -517,31 +518,18 @@ impl StreamDecoder {
     /// Feeds bytes; decoded frames are appended to `out`.
     pub fn push(&mut self, bytes: &[u8], out: &mut Vec<StreamFrame>) {
         self.buf.extend_from_slice(bytes);
-        let mut i = 0;
-        while self.buf.len() - i >= 2 {
-            if self.buf[i..i + 2] != FRAME_HEADER {
-                i += 1;
-                self.stats.bytes_skipped += 1;
-                continue;
-            }
-            if self.buf.len() - i < FRAME_LEN {
-                break;
-            }
-            match StreamFrame::decode(&self.buf[i..i + FRAME_LEN]) {
-                Some(f) => {
-                    out.push(f);
-                    self.stats.frames += 1;
-                    i += FRAME_LEN;
-                }
-                None => {
-                    self.stats.bad_crc += 1;
-                    self.stats.bytes_skipped += 1;
-                    i += 1;
-                }
-            }
-        }
-        // A lone trailing header byte may start the next frame: keep it.
-        self.buf.drain(..i);
+        // A lone trailing header byte may start the next frame: `resync_frames` keeps it.
+        let r = resync_frames(
+            &mut self.buf,
+            &FRAME_HEADER,
+            FRAME_LEN,
+            StreamFrame::decode,
+            out,
+        );
+        self.stats.frames += r.frames;
+        self.stats.bad_crc += r.rejected;
+        // Counted here: every byte not in a frame, a rejected frame's first one too.
+        self.stats.bytes_skipped += r.skipped + r.rejected;
     }
 
     /// Bytes held waiting for the rest of a frame.

@@ -49,7 +49,7 @@ use self::codec::{
     parse_soft_endstops, reset_line_numbers, Capabilities, ErrorLine, PositionReport, Reply,
     SoftEndstops,
 };
-use super::lineio::{LinePort, PORT_READ_TIMEOUT};
+use super::lineio::{open_stage_serial, LinePort};
 use super::{
     DeviceError, DeviceResult, ErrorKind, Stage, StagePositionMm, StageState, TravelLimits,
 };
@@ -118,18 +118,12 @@ impl Default for MarlinConfig {
 
 /// Opens a serial port for a Marlin board (8N1, short read timeout).
 pub fn open_serial(path: &str, baud: u32) -> DeviceResult<Box<dyn serialport::SerialPort>> {
-    serialport::new(path, baud)
-        .timeout(PORT_READ_TIMEOUT)
-        .open()
-        .map_err(|e| {
-            DeviceError::new(
-                ErrorKind::Disconnected,
-                DEVICE,
-                format!("open {path}"),
-                format!("cannot open serial port {path} at {baud} baud: {e}"),
-            )
-            .with_hint("list ports with `tactbench ports`; Marlin boards use 115200 or 250000 baud")
-        })
+    open_stage_serial(
+        DEVICE,
+        path,
+        baud,
+        "Marlin boards use 115200 or 250000 baud",
+    )
 }
 
 /// A move whose `M400` is outstanding.

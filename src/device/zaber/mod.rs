@@ -29,7 +29,7 @@ use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use self::codec::{decode, Command, Message, Reply, ReplyFlag, Status, Warning};
-use super::lineio::{LinePort, PORT_READ_TIMEOUT};
+use super::lineio::{open_stage_serial, LinePort};
 use super::{
     DeviceError, DeviceResult, ErrorKind, Stage, StagePositionMm, StageState, TravelLimits,
 };
@@ -113,18 +113,7 @@ impl Default for ZaberConfig {
 
 /// Opens a serial port for a Zaber chain (8N1, short read timeout).
 pub fn open_serial(path: &str, baud: u32) -> DeviceResult<Box<dyn serialport::SerialPort>> {
-    serialport::new(path, baud)
-        .timeout(PORT_READ_TIMEOUT)
-        .open()
-        .map_err(|e| {
-            DeviceError::new(
-                ErrorKind::Disconnected,
-                DEVICE,
-                format!("open {path}"),
-                format!("cannot open serial port {path} at {baud} baud: {e}"),
-            )
-            .with_hint("list ports with `tactbench ports`; older Zaber devices use 9600 baud")
-        })
+    open_stage_serial(DEVICE, path, baud, "older Zaber devices use 9600 baud")
 }
 
 const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
