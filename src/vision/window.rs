@@ -222,6 +222,10 @@ pub(crate) struct Window {
     /// The CPU has AVX-512 F and BW: 8-bit frames take [`sums_u8_avx512_bytes`]
     /// (preferred, when the weights fit bytes) or [`sums_u8_avx512`].
     avx512: bool,
+    /// The CPU has AVX-512 VNNI: the byte kernel is [`sums_u8_vnni`] (one
+    /// `vpdpbusd` per block and moment) when its sums fit (see
+    /// [`LinearWeights::vnni`]).
+    vnni: bool,
     /// Whether the AVX-512 byte kernel may be used (tests turn it off to compare).
     byte_kernel: bool,
 }
@@ -281,8 +285,18 @@ struct LinearWeights {
     /// As `blocks`, as bytes, in blocks of [`BYTES512`] samples for the AVX-512 byte
     /// kernel; empty when a weight exceeds [`MAX_BYTE_WEIGHT`] (windows wider than
     /// 2 × 32 px with colour weight 2), which then take the 16-bit kernel.
-    bytes512: Vec<i8>,
+    bytes512: Vec<ByteBlock>,
+    /// [`sums_u8_vnni`] may take these byte weights: the rows are consecutive (`dy`
+    /// one apart, which its running sums for `Σ s·dy` need) and no lane of its i32
+    /// accumulators can overflow (checked in [`Window::linear_weights`]).
+    vnni: bool,
 }
+
+/// 64 byte weights on a cache line of their own: a 512-bit load of a block never
+/// straddles two lines (a split load costs two L1 accesses).
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(64))]
+struct ByteBlock([i8; BYTES512]);
 
 /// Background-corrected moments of one window.
 #[derive(Debug, Clone, Copy)]
@@ -369,6 +383,12 @@ impl Window {
                 && std::is_x86_feature_detected!("avx512bw"),
             #[cfg(not(target_arch = "x86_64"))]
             avx512: false,
+            #[cfg(target_arch = "x86_64")]
+            vnni: std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512bw")
+                && std::is_x86_feature_detected!("avx512vnni"),
+            #[cfg(not(target_arch = "x86_64"))]
+            vnni: false,
             byte_kernel: true,
         };
         for dy in -half..=half {
@@ -458,7 +478,21 @@ impl Window {
             });
         }
         if byte_weights.iter().all(|w| w.abs() <= MAX_BYTE_WEIGHT) {
-            lw.bytes512 = byte_weights.iter().map(|&w| w as i8).collect();
+            // `byte_weights` holds whole blocks (4 × 64 weights each).
+            lw.bytes512 = byte_weights
+                .chunks_exact(BYTES512)
+                .map(|c| ByteBlock(std::array::from_fn(|k| c[k] as i8)))
+                .collect();
+            // Per lane, a block adds at most 4 × 255 × max|w| to a row sum; the running
+            // sum of the rows' prefix sums reaches n(n + 1)/2 row sums.
+            let max_w = byte_weights.iter().map(|w| w.unsigned_abs() as u64).max();
+            let max_blocks = lw.rows.iter().map(|r| r.byte_blocks as u64).max();
+            let n = lw.rows.len() as u64;
+            let consecutive = lw.rows.windows(2).all(|p| p[1].dy == p[0].dy + 1);
+            lw.vnni = consecutive
+                && max_w
+                    .zip(max_blocks)
+                    .is_some_and(|(w, b)| n * (n + 1) / 2 * b * 4 * 255 * w <= i32::MAX as u64);
         }
         lw
     }
@@ -531,6 +565,17 @@ impl Window {
                 ((cy + r.dy) as usize * img.width + (cx + r.lo) as usize) * C + blocks(r) * lanes
             })
         };
+        #[cfg(target_arch = "x86_64")]
+        if self.vnni && self.byte_kernel && lw.vnni {
+            if let Some(bytes) = T::as_bytes(img.data) {
+                if last_read(BYTES512, |r| r.byte_blocks) <= bytes.len() {
+                    // SAFETY: AVX-512 F/BW/VNNI were detected at run time
+                    // (`Window::new`), every block read lies inside `bytes` (checked just
+                    // above), and `lw.vnni` holds (consecutive rows, no overflow).
+                    return unsafe { sums_u8_vnni::<C>(lw, bytes, img.width, cx, cy) };
+                }
+            }
+        }
         #[cfg(target_arch = "x86_64")]
         if self.avx512 && self.byte_kernel && !lw.bytes512.is_empty() {
             if let Some(bytes) = T::as_bytes(img.data) {
@@ -649,6 +694,8 @@ impl Window {
         let mut c = [round_px(start_px[0]), round_px(start_px[1])];
         let mut prev = [i32::MIN, i32::MIN];
         let mut last = Located::NoSignal;
+        // The previous window's result and how far its centroid lay from its centre.
+        let mut prev_found = (Located::NoSignal, f64::INFINITY);
         for _ in 0..max_iterations.max(1) {
             let Some(m) = self.moments::<T, C>(img, c[0], c[1], clamped) else {
                 return Located::OutOfImage;
@@ -665,11 +712,21 @@ impl Window {
                 slope: m.slope,
             };
             let next = [round_px(est[0]), round_px(est[1])];
-            // Converged, or a two-cycle between neighbouring pixels (centroid on a
-            // half-pixel boundary): either window is centred within ~0.5 px.
-            if next == c || next == prev {
+            if next == c {
                 return last;
             }
+            let off2 = m.offset[0] * m.offset[0] + m.offset[1] * m.offset[1];
+            // A two-cycle between neighbouring pixels (centroid on a half-pixel
+            // boundary): either window is centred within ~0.5 px. The one whose
+            // centroid lies nearer its centre is kept (on a tie, the upper-left one),
+            // so the result does not depend on which of the two the search met first
+            // — nor on the start window.
+            if next == prev {
+                let keep_prev = prev_found.1 < off2
+                    || (prev_found.1 == off2 && (prev[1], prev[0]) < (c[1], c[0]));
+                return if keep_prev { prev_found.0 } else { last };
+            }
+            prev_found = (last, off2);
             prev = c;
             c = next;
         }
@@ -1065,7 +1122,7 @@ unsafe fn sums_u8_avx512_bytes<const C: usize>(
     let z = _mm512_setzero_si512();
     let ones = _mm512_set1_epi16(1);
     let (mut a0, mut a1, mut a0y, mut b0, mut b1, mut b0y) = (z, z, z, z, z, z);
-    let w = lw.bytes512.as_ptr();
+    let w = lw.bytes512.as_ptr() as *const i8;
     for r in &lw.rows {
         let start = ((cy + r.dy) as usize * width + (cx + r.lo) as usize) * C;
         let p = data.as_ptr().add(start);
@@ -1089,6 +1146,73 @@ unsafe fn sums_u8_avx512_bytes<const C: usize>(
     }
     let hsum = |v: __m512i| -> i64 { _mm512_reduce_add_epi32(v) as i64 };
     [hsum(a0), hsum(a1), hsum(a0y), hsum(b0), hsum(b1), hsum(b0y)]
+}
+
+/// [`sums_u8_avx512_bytes`] with VNNI: per block and moment one `vpdpbusd` (64 ×
+/// u8·i8, four adjacent products summed into each i32 lane and accumulated, no
+/// intermediate saturation) instead of `vpmaddubsw` + `vpmaddwd` + `vpaddd`; and the
+/// `Σ s·dy` moments from running sums instead of a multiply per row: with row sums
+/// `S_r` (r = 0…n−1, `dy = dy₀ + r`), `A = Σ S_r` and `P = Σ_k Σ_{r≤k} S_r = Σ_r (n −
+/// r) S_r`, `Σ dy·S_r = (dy₀ + n)·A − P`. Integer sums, bit-identical to the other
+/// kernels.
+///
+/// # Safety
+/// The CPU must support AVX-512 F, BW and VNNI, `lw.bytes512` must hold the byte
+/// weights with `lw.vnni` set, and for every row `r` of `lw` the `r.byte_blocks × 64`
+/// bytes from the row's start must lie inside `data`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+unsafe fn sums_u8_vnni<const C: usize>(
+    lw: &LinearWeights,
+    data: &[u8],
+    width: usize,
+    cx: i32,
+    cy: i32,
+) -> [i64; 6] {
+    use std::arch::x86_64::*;
+    let z = _mm512_setzero_si512();
+    let (mut a0, mut a1, mut pa, mut b0, mut b1, mut pb) = (z, z, z, z, z, z);
+    let w = lw.bytes512.as_ptr() as *const i8;
+    for r in &lw.rows {
+        let start = ((cy + r.dy) as usize * width + (cx + r.lo) as usize) * C;
+        let p = data.as_ptr().add(start);
+        // Per-row sums start from zero: no `vpdpbusd` (5-cycle latency) chain runs
+        // from row to row, only one-cycle adds.
+        let (mut ra0, mut ra1, mut rb0, mut rb1) = (z, z, z, z);
+        for b in 0..r.byte_blocks {
+            let v = _mm512_loadu_si512(p.add(b * BYTES512) as *const __m512i);
+            let wb = w.add(r.byte_block_offset + b * 4 * BYTES512) as *const __m512i;
+            ra0 = _mm512_dpbusd_epi32(ra0, v, _mm512_loadu_si512(wb));
+            ra1 = _mm512_dpbusd_epi32(ra1, v, _mm512_loadu_si512(wb.add(1)));
+            rb0 = _mm512_dpbusd_epi32(rb0, v, _mm512_loadu_si512(wb.add(2)));
+            rb1 = _mm512_dpbusd_epi32(rb1, v, _mm512_loadu_si512(wb.add(3)));
+        }
+        a0 = _mm512_add_epi32(a0, ra0);
+        pa = _mm512_add_epi32(pa, a0);
+        a1 = _mm512_add_epi32(a1, ra1);
+        b0 = _mm512_add_epi32(b0, rb0);
+        pb = _mm512_add_epi32(pb, b0);
+        b1 = _mm512_add_epi32(b1, rb1);
+    }
+    // Lane sums widened to i64 before the horizontal add (16 lanes could overflow i32).
+    let hsum = |v: __m512i| -> i64 {
+        let lo = _mm512_cvtepi32_epi64(_mm512_castsi512_si256(v));
+        let hi = _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(v));
+        _mm512_reduce_add_epi64(_mm512_add_epi64(lo, hi))
+    };
+    let (n, dy0) = (
+        lw.rows.len() as i64,
+        lw.rows.first().map_or(0, |r| r.dy) as i64,
+    );
+    let (sa, sb) = (hsum(a0), hsum(b0));
+    [
+        sa,
+        hsum(a1),
+        (dy0 + n) * sa - hsum(pa),
+        sb,
+        hsum(b1),
+        (dy0 + n) * sb - hsum(pb),
+    ]
 }
 
 /// Largest window half-size whose scores and foreign-disc mask
@@ -1266,6 +1390,57 @@ mod tests {
         }
     }
 
+    /// A centroid on a half-pixel boundary can send the search back and forth
+    /// between two windows (each one's centroid rounds to the other's centre); the
+    /// result then must not depend on which of the two the search met first, i.e. on
+    /// the start window. Discs are swept across the boundary x = 30.5 (with a small
+    /// blob in one window's ring, so the two windows' estimates differ); every start within
+    /// ±3 px must give the same centroid, bit for bit, and the sweep must contain
+    /// two-cycles.
+    #[test]
+    fn two_cycle_result_does_not_depend_on_the_start_window() {
+        let (wd, ht) = (60, 60);
+        let w = Window::new(6.0, [-1, -1, 2]);
+        let mut two_cycles = 0;
+        for k in 0..=200 {
+            let c = [30.49 + 0.0001 * k as f64, 29.8];
+            let mut d = disc(wd, ht, c, 5.0, 4000.0, 100.0);
+            // A small blob that only the right-hand window's ring reaches: it lifts
+            // that window's background plane and pulls its centroid to the left.
+            let spike = disc(wd, ht, [39.8, 30.0], 1.2, 1500.0, 0.0);
+            for (v, s) in d.iter_mut().zip(&spike) {
+                *v += s;
+            }
+            let img = Raw::<u16, 3> {
+                data: &d,
+                width: wd,
+                height: ht,
+            };
+            let est = |cx: i32| {
+                let m = w.moments::<u16, 3>(img, cx, 30, false).unwrap();
+                round_px(cx as f64 + m.offset[0])
+            };
+            if est(30) == 31 && est(31) == 30 {
+                two_cycles += 1;
+            }
+            let mut found = Vec::new();
+            for dx in -3..=3 {
+                for dy in -3..=3 {
+                    let start = [c[0] + dx as f64, c[1] + dy as f64];
+                    match w.locate::<u16, 3>(img, start, 8, false) {
+                        Located::Found { centroid_px, .. } => found.push(centroid_px),
+                        other => panic!("not found from {start:?}: {other:?}"),
+                    }
+                }
+            }
+            assert!(
+                found.iter().all(|f| f == &found[0]),
+                "disc at {c:?}: {found:?}"
+            );
+        }
+        assert!(two_cycles > 0, "the sweep met no two-cycle");
+    }
+
     /// A disc (radius `r`) with a neighbour of another colour (radius `r`, `gap` px
     /// away along a diagonal-ish direction) drawn over it: the covered pixels lose
     /// their blue excess (anti-aliased, 16×16 supersampled).
@@ -1369,16 +1544,19 @@ mod tests {
         let d3: Vec<u8> = (0..wd * ht * 3).map(|_| next()).collect();
         let d4: Vec<u8> = (0..wd * ht * 4).map(|_| next()).collect();
         for (radius, weights) in [(6.0, [0, -1, 1]), (8.5, [-1, -1, 2]), (2.0, [1, -1, 0])] {
-            let simd512 = Window::new(radius, weights);
+            let vnni = Window::new(radius, weights);
+            let mut simd512 = vnni.clone();
+            simd512.vnni = false;
             let mut simd512_words = simd512.clone();
             simd512_words.byte_kernel = false;
             let mut simd = simd512.clone();
             simd.avx512 = false;
             let mut scalar = simd.clone();
             scalar.avx2 = false;
-            // Every kernel the CPU has (AVX-512 bytes, AVX-512 16-bit, AVX2) against
-            // the scalar one.
+            // Every kernel the CPU has (VNNI, AVX-512 bytes, AVX-512 16-bit, AVX2)
+            // against the scalar one.
             let kernels = [
+                ("avx-512 vnni", &vnni),
                 ("avx-512", &simd512),
                 ("avx-512 16-bit", &simd512_words),
                 ("avx2", &simd),
@@ -1417,9 +1595,9 @@ mod tests {
         }
     }
 
-    /// The byte kernel at its limit: weights up to ±64 (half-size 32, colour weight 2)
-    /// on saturated and random samples still give the scalar sums (no i16
-    /// saturation); one more pixel of half-size and the byte weights are dropped, the
+    /// The byte kernels at their limit: weights up to ±64 (half-size 32, colour weight
+    /// 2) on saturated and random samples still give the scalar sums (no i16
+    /// saturation, no i32 overflow of the VNNI kernel's running sums); one more pixel of half-size and the byte weights are dropped, the
     /// 16-bit kernel takes over.
     #[test]
     fn byte_kernel_is_exact_at_its_weight_limit_and_refused_beyond() {
@@ -1428,6 +1606,13 @@ mod tests {
         assert!(!w.linear[0].bytes512.is_empty());
         assert!(Window::new(30.0, [-1, -1, 2]).linear[0].bytes512.is_empty());
         assert!(!Window::new(30.0, [1, 1, 1]).linear[0].bytes512.is_empty());
+        // The VNNI kernel's i32 running sums fit up to here; beyond (a 127-row window
+        // of weights up to 63), the plain byte kernel takes the window.
+        assert!(w.linear[0].vnni && Window::new(30.0, [1, 1, 1]).linear[0].vnni);
+        let wide = Window::new(60.0, [1, 1, 1]);
+        assert!(!wide.linear[0].bytes512.is_empty() && !wide.linear[0].vnni);
+        let mut no_vnni = w.clone();
+        no_vnni.vnni = false;
         let mut scalar = w.clone();
         scalar.avx512 = false;
         scalar.avx2 = false;
@@ -1451,11 +1636,14 @@ mod tests {
             };
             for cy in 32..ht as i32 - 32 {
                 for cx in 32..wd as i32 - 32 {
-                    assert_eq!(
-                        w.sums_linear::<u8, 3>(img, cx, cy),
-                        scalar.sums_linear::<u8, 3>(img, cx, cy),
-                        "fill {fill:?} at ({cx}, {cy})"
-                    );
+                    let want = scalar.sums_linear::<u8, 3>(img, cx, cy);
+                    for (name, k) in [("vnni", &w), ("bytes", &no_vnni)] {
+                        assert_eq!(
+                            k.sums_linear::<u8, 3>(img, cx, cy),
+                            want,
+                            "{name}: fill {fill:?} at ({cx}, {cy})"
+                        );
+                    }
                 }
             }
         }
