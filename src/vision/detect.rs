@@ -17,7 +17,7 @@
 use super::camera::PixelMapping;
 use super::contrast;
 use super::image::FrameView;
-use super::window::{score, score_bias, score_weights, Located, Raw, Sample, Window};
+use super::window::{dot_inside, score, score_bias, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Roi, Sensor};
 
@@ -685,7 +685,21 @@ fn detect_layer<T: Sample, const C: usize>(
 
     let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
     for (s, comp) in seeds.iter().zip(&comps) {
-        let located = window.locate::<T, C>(img, *s, 20, false);
+        // Brightness layers (real frames, markers up to the image's edge): a window
+        // cut by the edge is measured on its pixels inside the image when the dot is
+        // inside (`window::dot_inside`), as the tracker measures it.
+        let located = if color.is_brightness() {
+            match window.locate_clipped::<T, C>(img, *s, 20, false) {
+                Located::Found {
+                    centroid_px,
+                    clipped: true,
+                    ..
+                } if !dot_inside(centroid_px, radius_px, w, h) => Located::OutOfImage,
+                other => other,
+            }
+        } else {
+            window.locate::<T, C>(img, *s, 20, false)
+        };
         if color.is_brightness() && matches!(located, Located::OutOfImage) {
             // A marker at the image border, its window cut by the edge: found (it is
             // there, and `sensor init` counts it near the border) at its blob's
@@ -730,6 +744,7 @@ fn detect_layer<T: Sample, const C: usize>(
             m0,
             background,
             slope,
+            ..
         } = located
         {
             if roi.is_some_and(|r| !r.contains(centroid_px)) {

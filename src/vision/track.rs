@@ -72,7 +72,7 @@
 use super::camera::PixelMapping;
 use super::detect::{highlight_radius_px, highlight_within, with_raw, Reference};
 use super::image::FrameView;
-use super::window::{score_bias, search, Foreign, Located, Raw, Sample, Window};
+use super::window::{dot_inside, score_bias, search, Foreign, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::{CameraMapping, MarkerColor};
@@ -507,6 +507,7 @@ impl Tracker {
             self.find_highlights(img);
         });
         self.flag_outside_roi();
+        self.flag_reference_dot_outside();
         self.resolve_claims();
         self.flag_outliers();
         self.flag_appearance();
@@ -621,7 +622,7 @@ impl Tracker {
             let locate = |from: [f64; 2]| {
                 let loc = ls
                     .window
-                    .locate::<T, C>(img, from, cfg.max_iterations, false);
+                    .locate_clipped::<T, C>(img, from, cfg.max_iterations, false);
                 match loc {
                     Located::Found {
                         centroid_px,
@@ -635,15 +636,23 @@ impl Tracker {
                         > max_background_change =>
                     {
                         ls.window
-                            .locate::<T, C>(img, centroid_px, cfg.max_iterations, true)
+                            .locate_clipped::<T, C>(img, centroid_px, cfg.max_iterations, true)
                     }
                     other => other,
                 }
             };
+            // A window cut by the image edge counts only when the dot is inside.
+            let (radius, width, height) = (ls.marker_radius_px, img.width, img.height);
             let accept = |loc: Located| match loc {
                 Located::Found {
-                    centroid_px, m0, ..
-                } if m0 >= min_signal && dist2(centroid_px, start) <= max_jump2 => {
+                    centroid_px,
+                    m0,
+                    clipped,
+                    ..
+                } if m0 >= min_signal
+                    && dist2(centroid_px, start) <= max_jump2
+                    && (!clipped || dot_inside(centroid_px, radius, width, height)) =>
+                {
                     Some((centroid_px, m0))
                 }
                 _ => None,
@@ -802,6 +811,30 @@ impl Tracker {
                 && (self.highlight[i] || self.reference.markers[i].highlight)
             {
                 self.out[i].status = MarkerStatus::Outlier;
+            }
+        }
+    }
+
+    /// A marker whose dot crossed the image edge in the reference is `lost` in every
+    /// frame: its reference position is its blob's centroid, not a window's (see
+    /// `detect`), so a displacement from it would carry the difference of the two.
+    /// (A dot crossing the edge in this frame was not accepted in `measure_layer`;
+    /// a dot inside, its window cut by the edge, is measured on the window's part
+    /// inside the image, as well as a whole window: see `window::clipped`.)
+    fn flag_reference_dot_outside(&mut self) {
+        let (w, h) = (
+            self.reference.width_px as usize,
+            self.reference.height_px as usize,
+        );
+        for i in 0..self.out.len() {
+            let r = &self.reference.markers[i];
+            if self.out[i].status != MarkerStatus::Lost
+                && !dot_inside(r.centroid_px, self.layers[r.layer].marker_radius_px, w, h)
+            {
+                self.out[i] = MarkerTrack {
+                    signal_ratio: self.out[i].signal_ratio,
+                    ..MarkerTrack::LOST
+                };
             }
         }
     }
