@@ -108,8 +108,8 @@ fn tactip_poses() -> Vec<[f64; 2]> {
 /// robot's tilt change (mean dx against Δpose_5, mean dy against Δpose_4, nine pairs).
 /// Baselines from the issue: the old tracker R² 0.03 / 0.08; a 30-line OpenCV script
 /// 0.62 / 0.61 (ours, `tests/opencv_ref/track_ref.py`: 0.65 / 0.79). Measured here:
-/// R² 0.642 / 0.664, median ok share 0.964 (OpenCV baseline 92 %); taps 7→8 and 8→9
-/// keep only 193 and 232 of 335 pins ok (lost, never wrong).
+/// R² 0.643 / 0.664, median ok share 0.964 (OpenCV baseline 92 %); taps 7→8 and 8→9
+/// keep only 193 and 231 of 335 pins ok (lost, never wrong).
 #[test]
 fn tactip_mean_pin_displacement_follows_the_robot_tilt() {
     let s = tactip_sensor();
