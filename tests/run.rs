@@ -1029,6 +1029,66 @@ fn a_scale_mismatched_sensor_file_stops_the_run_before_any_setpoint() {
     assert!((stage[2] - -29.0).abs() < 1e-3, "stage z {} mm", stage[2]);
 }
 
+/// A camera that shows a blank (uniform grey) or saturated (white) image: `run`
+/// refuses with the message `track`, `calibrate` and `sensor init` give for such a
+/// reference and exit code 2, before anything moves, and leaves no run directory.
+#[test]
+fn a_blank_or_saturated_camera_reference_is_refused_before_the_run_moves() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let scene_text =
+        std::fs::read_to_string(util::root("experiments/scenes/fig7_hemisphere_ramp.toml"))
+            .unwrap()
+            .replace(
+                "sensor = \"../paper_sensor.toml\"",
+                &format!("sensor = {:?}", sensor.display().to_string()),
+            );
+    let plan = short_fig7_plan(tmp.path(), sensor.to_str().unwrap(), "");
+    for (name, level, what, value) in [
+        (
+            "blank",
+            0.5,
+            "blank frame: 98 % of the pixels lie within",
+            "within 0.0 % of full scale",
+        ),
+        ("white", 1.0, "saturated frame", "100.0 % of the pixels"),
+    ] {
+        // Every frame from the first on covered by a flat grey or white.
+        let scene = write(
+            tmp.path(),
+            &format!("{name}.toml"),
+            &format!(
+                "{scene_text}\n[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 10000.0, 10000.0]\nlevel = {level}\nframes = [0, 100000]\n"
+            ),
+        );
+        let out = tmp.path().join(name);
+        let o = run_cli(&[
+            "run",
+            plan.path.to_str().unwrap(),
+            "--sim",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-progress",
+        ]);
+        let err = util::stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{name}: {err}");
+        for needle in [
+            "run refused before anything moved",
+            "the camera's reference frame",
+            what,
+            value,
+        ] {
+            assert!(err.contains(needle), "{name}: {needle:?} not in {err}");
+        }
+        assert!(!err.contains("homing"), "{name}: {err}");
+        assert!(
+            !out.exists(),
+            "{name}: a refused start leaves nothing behind"
+        );
+    }
+}
+
 #[test]
 fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
     let tmp = tempfile::tempdir().unwrap();

@@ -247,6 +247,23 @@ fn install_stop_handlers() -> anyhow::Result<(Arc<AtomicBool>, Arc<AtomicI32>)> 
     Ok(flags)
 }
 
+/// Checks one preview frame of the camera (not one of the run's frames) for a blank
+/// or saturated image inside the sensor's ROI.
+fn check_camera_levels(
+    camera: &mut dyn tactbench::device::Camera,
+    sensor: &Sensor,
+) -> anyhow::Result<()> {
+    let frame = camera
+        .preview()
+        .context("cannot grab the camera's frame to check its exposure")?;
+    tactbench::vision::onboard::check_frame_levels(
+        &tactbench::vision::FrameView::rgb8(&frame.image),
+        sensor.camera.roi_px.as_ref(),
+        std::path::Path::new("the camera's reference frame"),
+    )
+    .context("run refused before anything moved")
+}
+
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let limit = a.limit.map(|n| usize::try_from(n).unwrap_or(usize::MAX));
     // One writer per run directory: a resume locks before it reads or writes anything.
@@ -409,6 +426,17 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     };
     for w in &c.warnings {
         eprintln!("warning: {w}");
+    }
+    // A blank or saturated camera (light off, lens cap, exposure) is refused before
+    // anything moves, as `track`, `calibrate` and `sensor init` refuse such a reference.
+    if let Err(e) = check_camera_levels(c.camera.as_mut(), &sensor) {
+        if created {
+            drop(c);
+            let _ = std::fs::remove_dir_all(&sim_options.links);
+            let _ = std::fs::remove_file(run_lock.path());
+            let _ = std::fs::remove_dir(&dir);
+        }
+        return Err(e);
     }
     let options = RunOptions {
         dir: dir.clone(),

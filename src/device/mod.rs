@@ -264,6 +264,15 @@ pub struct CameraFrame {
 pub trait Camera {
     /// Grabs one RGB frame.
     fn grab(&mut self) -> DeviceResult<CameraFrame>;
+
+    /// A frame to check the exposure on before a run moves anything (blank or
+    /// saturated?); it is not one of the run's frames. A live camera grabs one
+    /// (the default); a recorded directory shows its next frame without consuming it;
+    /// the simulated bench serves its unloaded frame, which does not advance its frame
+    /// counter, so the run's frames (and their seeded noise) stay the same.
+    fn preview(&mut self) -> DeviceResult<CameraFrame> {
+        self.grab()
+    }
 }
 
 pub mod fault;

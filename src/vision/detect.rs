@@ -17,7 +17,7 @@
 use super::camera::PixelMapping;
 use super::contrast;
 use super::image::FrameView;
-use super::window::{score, score_bias, score_weights, Located, Raw, Sample, Window};
+use super::window::{dot_inside, score, score_bias, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Roi, Sensor};
 
@@ -86,6 +86,21 @@ pub struct ReferenceMarker {
     /// centroid is pulled away from the highlight, so the tracker never reports it
     /// `ok`. Always `false` for other appearances.
     pub highlight: bool,
+    /// A `bright` marker's saturated pixels in the reference (any channel at ≥ 98 %
+    /// of full scale, centres within its radius of its centroid): how many, and their
+    /// mean offset from the centroid, px (`[0, 0]` when none). A bright marker may
+    /// saturate by itself; the tracker compares each frame's with these (see
+    /// [`saturation_within`]). Zero for other appearances.
+    pub saturation: Saturation,
+}
+
+/// Saturated pixels on a marker (see [`ReferenceMarker::saturation`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Saturation {
+    /// Saturated pixels.
+    pub count: u32,
+    /// Their mean offset from the marker's centroid, px.
+    pub offset_px: [f64; 2],
 }
 
 /// A grid node with no marker found near it.
@@ -236,6 +251,11 @@ pub fn detect_mapped(
         let to_marker = |b: &Blob, id: u64| ReferenceMarker {
             highlight: layer.color == MarkerColor::Dark
                 && with_raw!(view, img => highlight_within(&img, b.centroid_px, inner_px)),
+            saturation: if layer.color == MarkerColor::Bright {
+                with_raw!(view, img => saturation_within(&img, b.centroid_px, found.marker_radius_px))
+            } else {
+                Saturation::default()
+            },
             layer: li,
             id,
             centroid_px: b.centroid_px,
@@ -375,6 +395,57 @@ pub(crate) fn highlight_within<T: Sample, const C: usize>(
         }
     }
     false
+}
+
+/// The saturated pixels (any channel at [`HIGHLIGHT_LEVEL`] of full scale or more)
+/// whose centres lie within `radius_px` of `centre_px`: their count and mean offset
+/// from `centre_px`. A specular highlight on a `bright` marker stays where the light's
+/// reflection is while the marker moves: against the reference its saturated pixels
+/// grow, appear or vanish, or stay put relative to the image instead of moving with
+/// the marker. A marker that saturates by itself keeps its saturated core centred on
+/// it (see `Tracker::flag_highlights`).
+pub(crate) fn saturation_within<T: Sample, const C: usize>(
+    img: &Raw<'_, T, C>,
+    centre_px: [f64; 2],
+    radius_px: f64,
+) -> Saturation {
+    if !(centre_px[0].is_finite() && centre_px[1].is_finite() && radius_px.is_finite()) {
+        return Saturation::default();
+    }
+    let limit = (HIGHLIGHT_LEVEL * T::MAX as f64).ceil() as i32;
+    let (w, h) = (img.width as f64, img.height as f64);
+    let x0 = (centre_px[0] - radius_px).ceil().max(0.0);
+    let x1 = (centre_px[0] + radius_px).floor().min(w - 1.0);
+    let y0 = (centre_px[1] - radius_px).ceil().max(0.0);
+    let y1 = (centre_px[1] + radius_px).floor().min(h - 1.0);
+    if x1 < x0 || y1 < y0 {
+        return Saturation::default();
+    }
+    let r2 = radius_px * radius_px;
+    let (mut n, mut sx, mut sy) = (0u32, 0.0, 0.0);
+    for y in y0 as usize..=y1 as usize {
+        let dy = y as f64 - centre_px[1];
+        for x in x0 as usize..=x1 as usize {
+            let dx = x as f64 - centre_px[0];
+            if dx * dx + dy * dy > r2 {
+                continue;
+            }
+            let px = &img.data[(y * img.width + x) * C..][..3];
+            if px.iter().any(|v| v.value() >= limit) {
+                n += 1;
+                sx += dx;
+                sy += dy;
+            }
+        }
+    }
+    Saturation {
+        count: n,
+        offset_px: if n > 0 {
+            [sx / n as f64, sy / n as f64]
+        } else {
+            [0.0; 2]
+        },
+    }
 }
 
 /// Largest elongation (√ of the ratio of the principal second moments) of a blob of a
@@ -685,7 +756,21 @@ fn detect_layer<T: Sample, const C: usize>(
 
     let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
     for (s, comp) in seeds.iter().zip(&comps) {
-        let located = window.locate::<T, C>(img, *s, 20, false);
+        // Brightness layers (real frames, markers up to the image's edge): a window
+        // cut by the edge is measured on its pixels inside the image when the dot is
+        // inside (`window::dot_inside`), as the tracker measures it.
+        let located = if color.is_brightness() {
+            match window.locate_clipped::<T, C>(img, *s, 20, false) {
+                Located::Found {
+                    centroid_px,
+                    clipped: true,
+                    ..
+                } if !dot_inside(centroid_px, radius_px, w, h) => Located::OutOfImage,
+                other => other,
+            }
+        } else {
+            window.locate::<T, C>(img, *s, 20, false)
+        };
         if color.is_brightness() && matches!(located, Located::OutOfImage) {
             // A marker at the image border, its window cut by the edge: found (it is
             // there, and `sensor init` counts it near the border) at its blob's
@@ -730,6 +815,7 @@ fn detect_layer<T: Sample, const C: usize>(
             m0,
             background,
             slope,
+            ..
         } = located
         {
             if roi.is_some_and(|r| !r.contains(centroid_px)) {

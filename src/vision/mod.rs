@@ -49,7 +49,7 @@ pub use self::calibrate::{calibrate, CalibrateConfig, CalibrationError, Calibrat
 pub use self::camera::{BrownConrady, CameraCalibration, PixelMapping};
 pub use self::detect::{
     detect, detect_mapped, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker,
-    UnmatchedBlob,
+    Saturation, UnmatchedBlob,
 };
 pub use self::health::{LayerHealth, ReferenceHealth, ORIGIN_TOLERANCE, SCALE_TOLERANCE};
 pub use self::image::{load_frame, Frame, FrameView, Pixels};

@@ -16,8 +16,10 @@
 //! the score above 40 % of the marker's reference peak within the search radius)
 //! acquires it and the window centroid refines it. Then, per frame:
 //! * **lost** — nothing found, signal below `min_signal_ratio` of the reference
-//!   signal, window outside the image, or the result farther than search radius +
-//!   aperture from the start;
+//!   signal, the dot (radius + 1 px) crossing the image edge in the frame or the
+//!   reference (a window cut by the edge around a dot inside is measured on its part
+//!   inside the image, `window::clipped`), or the result farther than search radius
+//!   + aperture from the start;
 //! * **overlap** — a marker whose aperture another layer's marker reaches (layers
 //!   at different depths slide over one another) is measured again with that
 //!   marker's disc left out, together with its images under the disc's point, axis
@@ -52,6 +54,10 @@
 //!   within 60 % of its radius of its centroid, in the reference or in this frame: a
 //!   reflection of the light hides part of it and stays where the light is while
 //!   the marker moves, so its centroid may be off by pixels with an unchanged signal.
+//!   A `bright` marker (which may saturate by itself) is flagged when its saturated
+//!   pixels on the dot changed against its reference's (count, or their offset from
+//!   the centroid) while none of its neighbours shows saturation (broad light, which
+//!   moves no centroid, saturates neighbours too).
 //!
 //! **Any layout.** Every scale is per marker, from the reference layout around it:
 //! its local spacing is the distance to its nearest same-layer marker at rest; the
@@ -70,9 +76,11 @@
 //! [`Tracker::track`] allocates nothing: all buffers are sized in [`Tracker::new`].
 
 use super::camera::PixelMapping;
-use super::detect::{highlight_radius_px, highlight_within, with_raw, Reference};
+use super::detect::{
+    highlight_radius_px, highlight_within, saturation_within, with_raw, Reference, Saturation,
+};
 use super::image::FrameView;
-use super::window::{score_bias, search, Foreign, Located, Raw, Sample, Window};
+use super::window::{dot_inside, score_bias, search, Foreign, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::{CameraMapping, MarkerColor};
@@ -258,6 +266,18 @@ const OUTLIER_SPACING_FRACTION: f64 = 0.25;
 /// skins, pins that tilt) are not flagged wholesale.
 const APPEARANCE_SPREAD_FACTOR: f64 = 5.0;
 
+/// A `bright` marker's saturated pixels may change by this share of the larger count
+/// between reference and frame before it counts as a highlight (sub-pixel motion
+/// moves pixels of a saturated core's rim across the threshold).
+const SATURATION_COUNT_CHANGE: f64 = 0.3;
+
+/// ... and by at least this many pixels.
+const SATURATION_MIN_PX: f64 = 4.0;
+
+/// The mean offset of a `bright` marker's saturated pixels from its centroid may move
+/// by this much between reference and frame, px.
+const SATURATION_SHIFT_PX: f64 = 0.5;
+
 /// Per-marker scales taken from the reference layout around that marker, so layouts
 /// that are perspective-distorted, irregular or hexagonal get the right scale
 /// everywhere (a layer-wide median would be too large on one side of the image and
@@ -332,6 +352,8 @@ pub struct Tracker {
     /// Per marker, this frame: a `dark` marker with a saturated pixel on its disc
     /// (a specular highlight, see [`Tracker::find_highlights`]).
     highlight: Vec<bool>,
+    /// Per marker, this frame: a `bright` marker's saturated pixels.
+    saturation: Vec<Saturation>,
     /// Per marker, this frame: the verdict of [`Tracker::resolve_claims`].
     claim: Vec<Claim>,
     /// Scratch, one value per marker (relative signals of the appearance check).
@@ -449,6 +471,7 @@ impl Tracker {
             masked: vec![false; m.len()],
             highlight: vec![false; m.len()],
             claim: vec![Claim::Keep; m.len()],
+            saturation: vec![Saturation::default(); m.len()],
             relative: vec![0.0; m.len()],
             scratch: vec![0.0; m.len()],
             local,
@@ -507,6 +530,7 @@ impl Tracker {
             self.find_highlights(img);
         });
         self.flag_outside_roi();
+        self.flag_reference_dot_outside();
         self.resolve_claims();
         self.flag_outliers();
         self.flag_appearance();
@@ -630,7 +654,7 @@ impl Tracker {
             let locate = |from: [f64; 2]| {
                 let loc = ls
                     .window
-                    .locate::<T, C>(img, from, cfg.max_iterations, false);
+                    .locate_clipped::<T, C>(img, from, cfg.max_iterations, false);
                 match loc {
                     Located::Found {
                         centroid_px,
@@ -644,15 +668,23 @@ impl Tracker {
                         > max_background_change =>
                     {
                         ls.window
-                            .locate::<T, C>(img, centroid_px, cfg.max_iterations, true)
+                            .locate_clipped::<T, C>(img, centroid_px, cfg.max_iterations, true)
                     }
                     other => other,
                 }
             };
+            // A window cut by the image edge counts only when the dot is inside.
+            let (radius, width, height) = (ls.marker_radius_px, img.width, img.height);
             let accept = |loc: Located| match loc {
                 Located::Found {
-                    centroid_px, m0, ..
-                } if m0 >= min_signal && dist2(centroid_px, start) <= max_jump2 => {
+                    centroid_px,
+                    m0,
+                    clipped,
+                    ..
+                } if m0 >= min_signal
+                    && dist2(centroid_px, start) <= max_jump2
+                    && (!clipped || dot_inside(centroid_px, radius, width, height)) =>
+                {
                     Some((centroid_px, m0))
                 }
                 _ => None,
@@ -782,35 +814,93 @@ impl Tracker {
         }
     }
 
-    /// Marks the `dark` markers with a specular highlight on them in this frame: a
-    /// saturated pixel within [`highlight_radius_px`] of the measured centroid
-    /// ([`highlight_within`]). Other appearances are not searched (a bright marker may
-    /// saturate by itself).
+    /// Marks the markers with a specular highlight on them in this frame: for `dark`
+    /// ones, a saturated pixel within [`highlight_radius_px`] of the measured centroid
+    /// ([`highlight_within`]); for `bright` ones, which may saturate by themselves,
+    /// saturated pixels on the dot that changed against the marker's own reference
+    /// ([`saturation_changed`]) while none of its neighbours shows saturation, in the
+    /// frame or the reference: a specular highlight is the small reflection of a light
+    /// on one marker, where broad light (a glare, pins that saturate by themselves)
+    /// saturates neighbours alike and, being smooth over a window, moves no centroid
+    /// (`tests/vision_tracking.rs`, `table_i_bright_*`). Colour layers are not
+    /// searched.
     fn find_highlights<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
         for (li, ls) in self.layers.iter().enumerate() {
-            let dark = self.reference.layers[li].color == MarkerColor::Dark;
+            let color = self.reference.layers[li].color;
             let r = highlight_radius_px(ls.marker_radius_px);
+            if color == MarkerColor::Bright {
+                // Saturated pixels on each dot in this frame (0 when lost).
+                for i in ls.markers.clone() {
+                    let t = &self.out[i];
+                    self.saturation[i] = if t.status == MarkerStatus::Lost {
+                        Saturation::default()
+                    } else {
+                        saturation_within(&img, t.centroid_px, ls.marker_radius_px)
+                    };
+                }
+            }
             for i in ls.markers.clone() {
                 let t = &self.out[i];
-                self.highlight[i] = dark
-                    && t.status != MarkerStatus::Lost
-                    && highlight_within(&img, t.centroid_px, r);
+                self.highlight[i] = t.status != MarkerStatus::Lost
+                    && match color {
+                        MarkerColor::Dark => highlight_within(&img, t.centroid_px, r),
+                        MarkerColor::Bright => {
+                            saturation_changed(
+                                &self.reference.markers[i].saturation,
+                                &self.saturation[i],
+                            ) && !self.neighbours[i][..self.neighbour_count[i] as usize]
+                                .iter()
+                                .any(|&j| {
+                                    let j = j as usize;
+                                    self.saturation[j].count as f64 >= SATURATION_MIN_PX
+                                        || self.reference.markers[j].saturation.count as f64
+                                            >= SATURATION_MIN_PX
+                                })
+                        }
+                        _ => false,
+                    };
             }
         }
     }
 
-    /// An ok `dark` marker with a specular highlight on it, in the reference or in
-    /// this frame, is an `outlier`: the highlight hides part of it and stays with the
-    /// light while the marker moves, so its centroid carries a false displacement (on
-    /// the simulated Table I bench 2.15 px on a 30 px pitch, below the neighbour
-    /// check's tolerance, and its signal barely changes when the highlight is on it in
-    /// both frames).
+    /// An ok marker with a specular highlight on it is an `outlier`: the highlight
+    /// hides part of it (or adds to it) and stays with the light while the marker
+    /// moves, so its centroid carries a false displacement (on the simulated Table I
+    /// bench: a `dark` marker 2.15 px off on a 30 px pitch, below the neighbour
+    /// check's tolerance, with its signal barely changed when the highlight is on it in
+    /// both frames; a `bright` one 0.42 px off). `dark`: a highlight in the reference
+    /// or in this frame; `bright`: saturation on the dot changed against the
+    /// reference's (see [`Tracker::find_highlights`]).
     fn flag_highlights(&mut self) {
         for i in 0..self.out.len() {
             if self.out[i].status == MarkerStatus::Ok
                 && (self.highlight[i] || self.reference.markers[i].highlight)
             {
                 self.out[i].status = MarkerStatus::Outlier;
+            }
+        }
+    }
+
+    /// A marker whose dot crossed the image edge in the reference is `lost` in every
+    /// frame: its reference position is its blob's centroid, not a window's (see
+    /// `detect`), so a displacement from it would carry the difference of the two.
+    /// (A dot crossing the edge in this frame was not accepted in `measure_layer`;
+    /// a dot inside, its window cut by the edge, is measured on the window's part
+    /// inside the image, as well as a whole window: see `window::clipped`.)
+    fn flag_reference_dot_outside(&mut self) {
+        let (w, h) = (
+            self.reference.width_px as usize,
+            self.reference.height_px as usize,
+        );
+        for i in 0..self.out.len() {
+            let r = &self.reference.markers[i];
+            if self.out[i].status != MarkerStatus::Lost
+                && !dot_inside(r.centroid_px, self.layers[r.layer].marker_radius_px, w, h)
+            {
+                self.out[i] = MarkerTrack {
+                    signal_ratio: self.out[i].signal_ratio,
+                    ..MarkerTrack::LOST
+                };
             }
         }
     }
@@ -1027,6 +1117,24 @@ impl Tracker {
             }
         }
     }
+}
+
+/// Saturated pixels of a `bright` marker's dot in a frame (`now`) that differ from its
+/// reference's (`then`) as a specular highlight's do: their count changed by more
+/// than [`SATURATION_COUNT_CHANGE`] (at least [`SATURATION_MIN_PX`] pixels: it
+/// appeared, grew, shrank or vanished), or, with both at least that many, their mean
+/// offset from the marker's centroid moved by more than [`SATURATION_SHIFT_PX`] (the
+/// saturated patch stayed with the light instead of moving with the marker). A
+/// marker that saturates by itself keeps its saturated core, centred on it.
+fn saturation_changed(then: &Saturation, now: &Saturation) -> bool {
+    let (a, b) = (then.count as f64, now.count as f64);
+    if (a - b).abs() > SATURATION_MIN_PX.max(SATURATION_COUNT_CHANGE * a.max(b)) {
+        return true;
+    }
+    a >= SATURATION_MIN_PX
+        && b >= SATURATION_MIN_PX
+        && (now.offset_px[0] - then.offset_px[0]).hypot(now.offset_px[1] - then.offset_px[1])
+            > SATURATION_SHIFT_PX
 }
 
 /// Frame levels per reference level: samples widen from 8 to 16 bits as `v · 257`.

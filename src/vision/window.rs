@@ -74,6 +74,9 @@
 
 use crate::sensor::MarkerColor;
 
+mod clipped;
+pub(crate) use clipped::dot_inside;
+
 /// Samples the kernel can read (8- and 16-bit).
 pub(crate) trait Sample: Copy {
     /// Score offset `K` (see the module docs): 8 levels of an 8-bit image.
@@ -320,6 +323,9 @@ pub(crate) enum Located {
         m0: f64,
         background: f64,
         slope: [f64; 2],
+        /// The last window was cut by the image edge (measured by
+        /// [`Window::locate_clipped`] on its pixels inside the image).
+        clipped: bool,
     },
     /// The window left the image.
     OutOfImage,
@@ -688,6 +694,32 @@ impl Window {
         max_iterations: u32,
         clamped: bool,
     ) -> Located {
+        self.locate_impl::<T, C>(img, start_px, max_iterations, clamped, false)
+    }
+
+    /// As [`Self::locate`], measuring a window cut by the image edge on its pixels
+    /// inside the image ([`Self::moments_clipped`]) instead of giving up: the result
+    /// says whether the last window was cut; whether its dot lies inside the image is
+    /// for the caller to check.
+    pub fn locate_clipped<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        start_px: [f64; 2],
+        max_iterations: u32,
+        clamped: bool,
+    ) -> Located {
+        self.locate_impl::<T, C>(img, start_px, max_iterations, clamped, true)
+    }
+
+    #[inline(always)]
+    fn locate_impl<T: Sample, const C: usize>(
+        &self,
+        img: Raw<'_, T, C>,
+        start_px: [f64; 2],
+        max_iterations: u32,
+        clamped: bool,
+        clip: bool,
+    ) -> Located {
         if !(start_px[0].is_finite() && start_px[1].is_finite()) {
             return Located::OutOfImage;
         }
@@ -697,8 +729,13 @@ impl Window {
         // The previous window's result and how far its centroid lay from its centre.
         let mut prev_found = (Located::NoSignal, f64::INFINITY);
         for _ in 0..max_iterations.max(1) {
-            let Some(m) = self.moments::<T, C>(img, c[0], c[1], clamped) else {
-                return Located::OutOfImage;
+            let (m, cut) = match self.moments::<T, C>(img, c[0], c[1], clamped) {
+                Some(m) => (m, false),
+                None if clip => match self.moments_clipped::<T, C>(img, c[0], c[1], clamped) {
+                    Some(m) => (m, true),
+                    None => return Located::OutOfImage,
+                },
+                None => return Located::OutOfImage,
             };
             // NaN-safe: anything but a positive signal is no signal.
             if m.m0.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
@@ -710,6 +747,7 @@ impl Window {
                 m0: m.m0,
                 background: m.background,
                 slope: m.slope,
+                clipped: cut,
             };
             let next = [round_px(est[0]), round_px(est[1])];
             if next == c {
@@ -979,7 +1017,8 @@ impl Window {
         last
     }
 
-    /// Largest colour score inside the aperture centred on `(cx, cy)`.
+    /// Largest colour score inside the aperture centred on `(cx, cy)` (its part inside
+    /// the image); `None` when the centre pixel is outside the image.
     pub fn peak<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
@@ -987,17 +1026,23 @@ impl Window {
         cy: i32,
     ) -> Option<i32> {
         let h = self.half;
-        if cx < h || cy < h || cx + h >= img.width as i32 || cy + h >= img.height as i32 {
+        let (w, ht) = (img.width as i32, img.height as i32);
+        if cx < 0 || cy < 0 || cx >= w || cy >= ht {
             return None;
         }
         let mut best = 0;
         for (k, row) in self.rows.iter().enumerate() {
-            if row.ap < 0 {
+            let y = cy + k as i32 - h;
+            if row.ap < 0 || y < 0 || y >= ht {
                 continue;
             }
-            let y = (cy + k as i32 - h) as usize;
-            let start = (y * img.width + (cx - row.ap) as usize) * C;
-            let end = (y * img.width + (cx + row.ap) as usize + 1) * C;
+            let y = y as usize;
+            let (x0, x1) = (
+                (cx - row.ap).max(0) as usize,
+                (cx + row.ap).min(w - 1) as usize,
+            );
+            let start = (y * img.width + x0) * C;
+            let end = (y * img.width + x1 + 1) * C;
             for px in img.data[start..end].chunks_exact(C) {
                 best = best.max(score(px, &self.weights));
             }

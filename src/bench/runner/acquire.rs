@@ -3,6 +3,7 @@
 //! of the plan's `[quality]`: the reference frame against the sensor file, and per
 //! setpoint the markers ok (re-acquire the frames, then flag the row or abort).
 
+use std::path::Path;
 use std::time::{Duration, Instant};
 
 use super::{
@@ -503,10 +504,18 @@ impl Runner<'_, '_, '_, '_> {
         match detected {
             Ok(r) if health.found_fraction() >= gate => Ok(r),
             other => {
-                let found = match &other {
+                let mut found = match &other {
                     Ok(_) => health.to_string(),
                     Err(e) => format!("{health} ({e})"),
                 };
+                // A frame that went blank or saturated after the start's check: say so.
+                if let Err(e) = vision::onboard::check_frame_levels(
+                    &view,
+                    self.sensor.camera.roi_px.as_ref(),
+                    Path::new(name),
+                ) {
+                    found = format!("{e}; {found}");
+                }
                 let diagnosis = health.diagnosis();
                 // With `run --camera` the pixels are mapped by that calibration: it is
                 // named, and it is a cause as likely as the sensor file's mapping.

@@ -62,27 +62,27 @@ impl ImageDirCamera {
     pub fn files(&self) -> &[PathBuf] {
         &self.files
     }
-}
 
-impl Camera for ImageDirCamera {
-    fn grab(&mut self) -> DeviceResult<CameraFrame> {
-        if self.next >= self.files.len() {
-            if !self.looping {
-                return Err(DeviceError::new(
-                    ErrorKind::Disconnected,
-                    DEVICE,
-                    format!("grab dir:{}", self.dir.display()),
-                    format!(
-                        "end of recorded frames: all {} frames of {} replayed",
-                        self.files.len(),
-                        self.dir.display()
-                    ),
-                ));
-            }
-            self.next = 0;
+    /// The index of the frame a `grab` returns next.
+    fn next_index(&self) -> DeviceResult<usize> {
+        match (self.next >= self.files.len(), self.looping) {
+            (false, _) => Ok(self.next),
+            (true, true) => Ok(0),
+            (true, false) => Err(DeviceError::new(
+                ErrorKind::Disconnected,
+                DEVICE,
+                format!("grab dir:{}", self.dir.display()),
+                format!(
+                    "end of recorded frames: all {} frames of {} replayed",
+                    self.files.len(),
+                    self.dir.display()
+                ),
+            )),
         }
-        let path = &self.files[self.next];
-        self.next += 1;
+    }
+
+    fn load(&self, index: usize) -> DeviceResult<CameraFrame> {
+        let path = &self.files[index];
         let image = image::open(path)
             .map_err(|e| {
                 DeviceError::new(
@@ -97,6 +97,19 @@ impl Camera for ImageDirCamera {
             image,
             timestamp: SystemTime::now(),
         })
+    }
+}
+
+impl Camera for ImageDirCamera {
+    fn grab(&mut self) -> DeviceResult<CameraFrame> {
+        let index = self.next_index()?;
+        // Consumed even when it does not decode: a retry moves on to the next file.
+        self.next = index + 1;
+        self.load(index)
+    }
+
+    fn preview(&mut self) -> DeviceResult<CameraFrame> {
+        self.load(self.next_index()?)
     }
 }
 
@@ -116,7 +129,12 @@ mod tests {
         std::fs::write(dir.path().join("notes.txt"), "not a frame").unwrap();
         let mut cam = ImageDirCamera::open(dir.path(), false).unwrap();
         assert_eq!(cam.files().len(), 2);
-        assert_eq!(cam.grab().unwrap().image, frame(10));
+        assert_eq!(cam.preview().unwrap().image, frame(10), "preview");
+        assert_eq!(
+            cam.grab().unwrap().image,
+            frame(10),
+            "not consumed by preview"
+        );
         assert_eq!(cam.grab().unwrap().image, frame(20));
         let e = cam.grab().unwrap_err();
         assert_eq!(e.kind(), ErrorKind::Disconnected);

@@ -136,4 +136,8 @@ impl Camera for SocketCamera {
         }
         Ok(f)
     }
+
+    fn preview(&mut self) -> DeviceResult<CameraFrame> {
+        self.grab_reference()
+    }
 }
