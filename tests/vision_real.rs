@@ -244,7 +244,9 @@ fn tactip_pins_inside_the_field_are_all_found_and_the_leds_ignored() {
 /// definition: a thresholded component against a background-corrected window),
 /// printed per frame with the counts (OpenCV also counts the slivers, the scratch, the
 /// speck: see the tests above). On the striped bright frame (dots of 23 px) measured
-/// with OpenCV 5.0: 52 of 64 within 1 px, median 0.46 px, max 4.36 px: our reference
+/// with OpenCV 5.0: 52 of 64 within 1 px, median 0.46 px, max 4.72 px (4.36 px before a
+/// two-cycle between windows was resolved by the better-centred window: the dot at
+/// (578.2, 318.7) px sits on a stripe, where both windows are fixed points): our reference
 /// centroid is refined in a window whose ring plane cannot remove the stripes (and
 /// counts the dots' colour fringes), OpenCV's on a top-hat; asserted as measured
 /// (a known limitation, docs/real-sensors.md).
@@ -310,7 +312,7 @@ fn opencv_reference_agrees_on_real_frames() {
             }
         }
         let (least, worst) = match file {
-            f if f.starts_with("gelsight_bright") => (52, 4.5),
+            f if f.starts_with("gelsight_bright") => (52, 4.8),
             // One pin at (368.1, 392.9) px: 1.59 px (measured).
             f if f.starts_with("tactip") => (ours.len() - 1, 1.7),
             _ => (ours.len(), 1.0),
