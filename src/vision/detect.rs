@@ -368,33 +368,37 @@ pub(crate) fn highlight_within<T: Sample, const C: usize>(
     centre_px: [f64; 2],
     radius_px: f64,
 ) -> bool {
-    if !(centre_px[0].is_finite() && centre_px[1].is_finite() && radius_px.is_finite()) {
-        return false;
-    }
+    saturated_within(img, centre_px, radius_px).next().is_some()
+}
+
+/// The offsets `(dx, dy)` from `centre_px` of the pixels whose centres lie within
+/// `radius_px` of it and that reach [`HIGHLIGHT_LEVEL`] of full scale in any colour
+/// channel, row by row (nothing for a non-finite centre or radius).
+fn saturated_within<'a, T: Sample, const C: usize>(
+    img: &'a Raw<'_, T, C>,
+    centre_px: [f64; 2],
+    radius_px: f64,
+) -> impl Iterator<Item = [f64; 2]> + 'a {
+    let finite = centre_px[0].is_finite() && centre_px[1].is_finite() && radius_px.is_finite();
     let limit = (HIGHLIGHT_LEVEL * T::MAX as f64).ceil() as i32;
     let (w, h) = (img.width as f64, img.height as f64);
     let x0 = (centre_px[0] - radius_px).ceil().max(0.0);
     let x1 = (centre_px[0] + radius_px).floor().min(w - 1.0);
     let y0 = (centre_px[1] - radius_px).ceil().max(0.0);
     let y1 = (centre_px[1] + radius_px).floor().min(h - 1.0);
-    if x1 < x0 || y1 < y0 {
-        return false;
-    }
+    // An empty range when the disc misses the image (or nothing is finite).
+    let (ys, xs) = if finite && x0 <= x1 && y0 <= y1 {
+        (y0 as usize..y1 as usize + 1, x0 as usize..x1 as usize + 1)
+    } else {
+        (0..0, 0..0)
+    };
     let r2 = radius_px * radius_px;
-    for y in y0 as usize..=y1 as usize {
-        let dy = y as f64 - centre_px[1];
-        for x in x0 as usize..=x1 as usize {
-            let dx = x as f64 - centre_px[0];
-            if dx * dx + dy * dy > r2 {
-                continue;
-            }
+    ys.flat_map(move |y| xs.clone().map(move |x| (x, y)))
+        .filter_map(move |(x, y)| {
+            let d = [x as f64 - centre_px[0], y as f64 - centre_px[1]];
             let px = &img.data[(y * img.width + x) * C..][..3];
-            if px.iter().any(|v| v.value() >= limit) {
-                return true;
-            }
-        }
-    }
-    false
+            (d[0] * d[0] + d[1] * d[1] <= r2 && px.iter().any(|v| v.value() >= limit)).then_some(d)
+        })
 }
 
 /// The saturated pixels (any channel at [`HIGHLIGHT_LEVEL`] of full scale or more)
@@ -409,34 +413,11 @@ pub(crate) fn saturation_within<T: Sample, const C: usize>(
     centre_px: [f64; 2],
     radius_px: f64,
 ) -> Saturation {
-    if !(centre_px[0].is_finite() && centre_px[1].is_finite() && radius_px.is_finite()) {
-        return Saturation::default();
-    }
-    let limit = (HIGHLIGHT_LEVEL * T::MAX as f64).ceil() as i32;
-    let (w, h) = (img.width as f64, img.height as f64);
-    let x0 = (centre_px[0] - radius_px).ceil().max(0.0);
-    let x1 = (centre_px[0] + radius_px).floor().min(w - 1.0);
-    let y0 = (centre_px[1] - radius_px).ceil().max(0.0);
-    let y1 = (centre_px[1] + radius_px).floor().min(h - 1.0);
-    if x1 < x0 || y1 < y0 {
-        return Saturation::default();
-    }
-    let r2 = radius_px * radius_px;
     let (mut n, mut sx, mut sy) = (0u32, 0.0, 0.0);
-    for y in y0 as usize..=y1 as usize {
-        let dy = y as f64 - centre_px[1];
-        for x in x0 as usize..=x1 as usize {
-            let dx = x as f64 - centre_px[0];
-            if dx * dx + dy * dy > r2 {
-                continue;
-            }
-            let px = &img.data[(y * img.width + x) * C..][..3];
-            if px.iter().any(|v| v.value() >= limit) {
-                n += 1;
-                sx += dx;
-                sy += dy;
-            }
-        }
+    for [dx, dy] in saturated_within(img, centre_px, radius_px) {
+        n += 1;
+        sx += dx;
+        sy += dy;
     }
     Saturation {
         count: n,

@@ -314,6 +314,26 @@ pub(crate) struct Moments {
     pub slope: [f64; 2],
 }
 
+impl Moments {
+    /// From the background-corrected net signal `m0` and first moments `m1`, the
+    /// ring plane's level `background` and `slope`: the centroid offset is `m1 / m0`
+    /// (0 when there is no positive signal).
+    #[inline(always)]
+    pub(crate) fn new(m0: f64, m1: [f64; 2], background: f64, slope: [f64; 2]) -> Moments {
+        let offset = if m0 > 0.0 {
+            [m1[0] / m0, m1[1] / m0]
+        } else {
+            [0.0, 0.0]
+        };
+        Moments {
+            m0,
+            offset,
+            background,
+            slope,
+        }
+    }
+}
+
 /// Outcome of an iterated measurement.
 #[derive(Debug, Clone, Copy)]
 pub(crate) enum Located {
@@ -541,17 +561,7 @@ impl Window {
         let m0 = s0 as f64 - a * self.n_ap;
         let mx = sx as f64 - gx * self.sxx_ap;
         let my = sy as f64 - gy * self.syy_ap;
-        let offset = if m0 > 0.0 {
-            [mx / m0, my / m0]
-        } else {
-            [0.0, 0.0]
-        };
-        Some(Moments {
-            m0,
-            offset,
-            background: a,
-            slope: [gx, gy],
-        })
+        Some(Moments::new(m0, [mx, my], a, [gx, gy]))
     }
 
     /// Aperture and ring sums `[Σs, Σs·dx, Σs·dy]` ×2 with the linear score

@@ -126,17 +126,7 @@ impl Window {
         let m0 = ap[6] - (a * ap[0] + gx * ap[1] + gy * ap[2]);
         let mx = ap[7] - (a * ap[1] + gx * ap[3] + gy * ap[4]);
         let my = ap[8] - (a * ap[2] + gx * ap[4] + gy * ap[5]);
-        let offset = if m0 > 0.0 {
-            [mx / m0, my / m0]
-        } else {
-            [0.0, 0.0]
-        };
-        Some(Moments {
-            m0,
-            offset,
-            background: a,
-            slope: [gx, gy],
-        })
+        Some(Moments::new(m0, [mx, my], a, [gx, gy]))
     }
 }
 
