@@ -59,6 +59,7 @@ fn main() {
         torque_nm: [0.125, -0.05, 0.3],
     };
     let server;
+    let simulated = external.is_none();
     let (host, port) = match external {
         Some(hp) => hp,
         None => {
@@ -92,7 +93,7 @@ fn main() {
         let mut n = 0u64;
         while Instant::now() < end {
             let w = d.read().expect("read");
-            if external.is_none() {
+            if simulated {
                 assert!((w.force_n[2] - load.force_n[2]).abs() < 1e-5, "{w:?}");
             }
             n += 1;

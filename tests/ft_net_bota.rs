@@ -158,7 +158,11 @@ fn netft_driver_at_100_1000_and_7000_hz_over_loopback_udp_with_loss_duplicates_a
         );
         // 15 % faulted, a third of them lost: most records are averaged.
         assert!(s.good * 10 > (s.good + s.lost) * 8, "{rate} Hz: {s:?}");
-        assert_eq!(s.malformed + s.bad_status + s.restarts, 0, "{rate} Hz: {s:?}");
+        assert_eq!(
+            s.malformed + s.bad_status + s.restarts,
+            0,
+            "{rate} Hz: {s:?}"
+        );
     }
 }
 
@@ -177,7 +181,10 @@ fn ft_within(args: &[&str], limit: Duration) -> Output {
         if t0.elapsed() > limit {
             let _ = child.kill();
             let _ = child.wait();
-            panic!("`tactbench ft {}` hung: killed after {limit:?}", args.join(" "));
+            panic!(
+                "`tactbench ft {}` hung: killed after {limit:?}",
+                args.join(" ")
+            );
         }
         std::thread::sleep(Duration::from_millis(20));
     }
@@ -226,9 +233,17 @@ fn netft_cli_read_returns_at_1000_and_7000_hz() {
         let samples = v["samples"].as_array().unwrap();
         assert_eq!(samples.len(), 200);
         for s in samples {
-            assert_wrench_near(&json_wrench(s), &Wrench::default(), netft_scale().resolution());
+            assert_wrench_near(
+                &json_wrench(s),
+                &Wrench::default(),
+                netft_scale().resolution(),
+            );
         }
-        assert!(util::stderr(&o).contains("lost"), "{rate} Hz: {}", util::stderr(&o));
+        assert!(
+            util::stderr(&o).contains("lost"),
+            "{rate} Hz: {}",
+            util::stderr(&o)
+        );
     }
 }
 

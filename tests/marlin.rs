@@ -340,7 +340,13 @@ fn marlin_port_left_with_another_protocols_bytes_connects_on_the_first_try() {
     use std::io::Write;
     let server = PtyServer::spawn(MarlinSim::new(MarlinSimConfig::default()), None).expect("pty");
     let path = server.path().to_string_lossy().into_owned();
-    for leftover in [&b"?"[..], b"\x18$I\n?", b"R", b"C\nc,0,1,0,4\nR", b"\xaa\x00\x10"] {
+    for leftover in [
+        &b"?"[..],
+        b"\x18$I\n?",
+        b"R",
+        b"C\nc,0,1,0,4\nR",
+        b"\xaa\x00\x10",
+    ] {
         // A Marlin session moves the firmware's line counter on.
         let mut m = Marlin::connect(open_serial(&path, 115_200).unwrap(), fast()).unwrap();
         for _ in 0..5 {
@@ -569,6 +575,41 @@ mod cli {
         assert_eq!(stdout(&o), "stopped; state: idle\n");
     }
 
+    /// Issue 29 item 7: a wrong `--protocol` guess on a Marlin port (GRBL, Bota,
+    /// DynPick) leaves its bytes in the firmware's line buffer; the next, correct
+    /// `--protocol marlin` call connects on the first try.
+    #[test]
+    fn cli_marlin_port_left_with_another_protocols_bytes_connects_on_the_first_try() {
+        let s = ServedStage::start("marlin", &[], BANNER_TIMEOUT);
+        let link = s.link.to_string_lossy().into_owned();
+        let o = s.stage(&["status"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let wrong: [&[&str]; 3] = [
+            &["stage", "--port", &link, "--protocol", "grbl", "status"],
+            &["ft", "--port", &link, "--protocol", "bota", "read"],
+            &["ft", "--port", &link, "--protocol", "dynpick", "read"],
+        ];
+        for args in wrong {
+            let o = crate::util::command().args(args).output().expect("run");
+            assert!(
+                !o.status.success(),
+                "{args:?} on a Marlin port: {}",
+                stdout(&o)
+            );
+            let o = s.stage(&["status"]);
+            assert!(
+                o.status.success(),
+                "the first marlin call after {args:?}: {}",
+                stderr(&o)
+            );
+            assert!(
+                stdout(&o).contains("emergency parser yes"),
+                "{}",
+                stdout(&o)
+            );
+        }
+    }
+
     #[test]
     fn cli_marlin_port_where_nothing_answers_is_a_clear_error() {
         let s = ServedStage::start("marlin", &["--marlin-boot", "silent"], BANNER_TIMEOUT);
@@ -753,7 +794,15 @@ mod outside {
             for seed in 1..=20 {
                 let seed_s = seed.to_string();
                 let e = Emulator::start(
-                    &["--unhomed", flag, "0.05", "--seed", &seed_s, "--boot-delay", "0.05"],
+                    &[
+                        "--unhomed",
+                        flag,
+                        "0.05",
+                        "--seed",
+                        &seed_s,
+                        "--boot-delay",
+                        "0.05",
+                    ],
                     None,
                 );
                 let target = [3.0, 4.0, 95.0];
@@ -783,7 +832,9 @@ mod outside {
                     Err(err) => failures.push(format!("seed {seed}: {err}")),
                 }
             }
-            eprintln!("emulator {flag} 0.05: {ok} of 20 cycles; {resends} resends, {probes} probes");
+            eprintln!(
+                "emulator {flag} 0.05: {ok} of 20 cycles; {resends} resends, {probes} probes"
+            );
             assert_eq!(ok, 20, "{flag}: {failures:#?}");
         }
     }

@@ -335,7 +335,11 @@ impl<P: Read + Write> Marlin<P> {
         self.outstanding.push_back(0);
         self.next_n = 1;
         // Room for a silence probe (the `M110` re-sent): its `ok` may be lost too.
-        let answer = self.collect(0, Instant::now() + self.config.silence_timeout * 3, "M110 N0");
+        let answer = self.collect(
+            0,
+            Instant::now() + self.config.silence_timeout * 3,
+            "M110 N0",
+        );
         match answer {
             Ok(()) => Ok(()),
             Err(e) if e.kind() == ErrorKind::Timeout => {
@@ -543,9 +547,7 @@ impl<P: Read + Write> Marlin<P> {
                     self.serve_resend(last + 1, command, resends)?;
                 }
             }
-            Reply::Error(
-                ErrorLine::Checksum { last } | ErrorLine::NoChecksum { last },
-            ) => {
+            Reply::Error(ErrorLine::Checksum { last } | ErrorLine::NoChecksum { last }) => {
                 self.swallow_ok_until = Some(Instant::now() + RESEND_OK_WINDOW);
                 self.handled_resend = Some(last + 1);
                 if last >= self.next_n {

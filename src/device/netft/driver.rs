@@ -770,12 +770,22 @@ mod tests {
                 reads += 1;
             }
             let s = d.stats();
-            assert!(s.lost > 0 && s.duplicates > 0 && s.stale > 0, "{rate} Hz: {s:?}");
+            assert!(
+                s.lost > 0 && s.duplicates > 0 && s.stale > 0,
+                "{rate} Hz: {s:?}"
+            );
             // Every 7th record lost, every 5th sent twice, every 11th late: each
             // record is accounted for once (received, lost or dropped as a copy).
-            assert_eq!(s.bad_status + s.malformed + s.restarts, 0, "{rate} Hz: {s:?}");
+            assert_eq!(
+                s.bad_status + s.malformed + s.restarts,
+                0,
+                "{rate} Hz: {s:?}"
+            );
             let sent = d.link.k;
-            assert!(s.good + s.lost >= sent.saturating_sub(2 * 11), "{rate} Hz: {s:?}, {sent} sent");
+            assert!(
+                s.good + s.lost >= sent.saturating_sub(2 * 11),
+                "{rate} Hz: {s:?}, {sent} sent"
+            );
         }
     }
 
@@ -793,7 +803,10 @@ mod tests {
         }
         fn recv(&mut self, buf: &mut [u8], _: Instant) -> io::Result<Option<usize>> {
             self.calls += 1;
-            assert!(self.calls < 20_000_000, "a call never stopped taking datagrams");
+            assert!(
+                self.calls < 20_000_000,
+                "a call never stopped taking datagrams"
+            );
             self.seq += 1;
             let r = Record {
                 rdt_seq: self.seq,
