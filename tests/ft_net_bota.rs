@@ -101,6 +101,152 @@ fn netft_readings_are_exact_with_loss_duplicates_reordering_and_truncated_datagr
     assert_wrench_near(&d.read().unwrap(), &Wrench::default(), q);
 }
 
+/// The Net F/T's usual (1 kHz) and maximum (7 kHz) RDT rates and a slow one, each with
+/// 15 % of the records lost, duplicated or delayed 20 ms (reordered), seeded: the
+/// driver over real loopback UDP against the simulator.
+#[test]
+fn netft_driver_at_100_1000_and_7000_hz_over_loopback_udp_with_loss_duplicates_and_reordering() {
+    for rate in [100.0, 1000.0, 7000.0] {
+        let core = NetFtCore::new(
+            NetFtSimConfig {
+                rate_hz: rate,
+                faults: faults(
+                    29,
+                    &[
+                        FaultKind::DroppedByte,
+                        FaultKind::Unsolicited,
+                        FaultKind::LateReply,
+                    ],
+                    0.15,
+                ),
+                ..NetFtSimConfig::default()
+            },
+            SharedWrench::new(FT_LOAD),
+        );
+        let server = NetFtServer::spawn(core, 0, 0).expect("serve netft");
+        let link = UdpTransport::connect("netft", "127.0.0.1", server.rdt_addr().port()).unwrap();
+        let mut d = NetFt::connect(link, NetFtOptions::netft(netft_scale())).unwrap();
+        let q = netft_scale().resolution();
+        let mut reads = 0u32;
+        loop {
+            assert_wrench_near(&d.read().unwrap(), &FT_LOAD, q);
+            reads += 1;
+            let s = d.stats();
+            // Half a second of the stream at least, through 20 readings at least.
+            let span = (rate * 0.5).max(300.0) as u64;
+            if s.good + s.lost >= span
+                && reads >= 20
+                && s.lost > 0
+                && s.duplicates > 0
+                && s.stale > 0
+            {
+                break;
+            }
+        }
+        let s = d.stats();
+        eprintln!(
+            "{rate} Hz: measured {:.0} Hz at connect, {reads} readings, {s:?}",
+            d.measured_rate_hz()
+        );
+        // The simulator really streamed at a high rate (the rate is read from the RDT
+        // sequence, so a loaded machine that wakes the simulator late still counts
+        // every record it caught up on).
+        assert!(
+            d.measured_rate_hz() > rate * 0.5,
+            "{rate} Hz stream measured at {:.0} Hz",
+            d.measured_rate_hz()
+        );
+        // 15 % faulted, a third of them lost: most records are averaged.
+        assert!(s.good * 10 > (s.good + s.lost) * 8, "{rate} Hz: {s:?}");
+        assert_eq!(
+            s.malformed + s.bad_status + s.restarts,
+            0,
+            "{rate} Hz: {s:?}"
+        );
+    }
+}
+
+/// `tactbench ft read` runs until it is killed, failing the test, if it takes longer
+/// than `limit` (a hang, not a speed check: a read takes milliseconds).
+fn ft_within(args: &[&str], limit: Duration) -> Output {
+    let mut child = util::command()
+        .arg("ft")
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run");
+    let t0 = Instant::now();
+    while child.try_wait().expect("wait").is_none() {
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!(
+                "`tactbench ft {}` hung: killed after {limit:?}",
+                args.join(" ")
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.wait_with_output().expect("output")
+}
+
+#[test]
+fn netft_cli_read_returns_at_1000_and_7000_hz() {
+    for rate in ["1000", "7000"] {
+        let (_s, line) = util::serve_ft(
+            "netft",
+            &[
+                "--rate-hz",
+                rate,
+                "--fault",
+                "loss",
+                "--fault",
+                "duplicate",
+                "--fault",
+                "reorder",
+                "--fault-probability",
+                "0.05",
+            ],
+        );
+        let (rdt, cal) = netft_ports(&line);
+        let o = ft_within(
+            &[
+                "--protocol",
+                "netft",
+                "--port",
+                "127.0.0.1",
+                "--rdt-port",
+                &rdt,
+                "--cal-port",
+                &cal,
+                "read",
+                "--samples",
+                "200",
+                "--tare",
+                "--json",
+            ],
+            Duration::from_secs(60),
+        );
+        assert!(o.status.success(), "{rate} Hz: {}", util::stderr(&o));
+        let v: serde_json::Value = serde_json::from_str(util::stdout(&o).trim()).unwrap();
+        let samples = v["samples"].as_array().unwrap();
+        assert_eq!(samples.len(), 200);
+        for s in samples {
+            assert_wrench_near(
+                &json_wrench(s),
+                &Wrench::default(),
+                netft_scale().resolution(),
+            );
+        }
+        assert!(
+            util::stderr(&o).contains("lost"),
+            "{rate} Hz: {}",
+            util::stderr(&o)
+        );
+    }
+}
+
 #[test]
 fn netft_status_word_is_reported_and_never_averaged() {
     let server = netft_server(no_faults(), 0x0002_0000);

@@ -226,6 +226,145 @@ fn marlin_recovers_a_lost_ok_a_garbled_reply_and_a_checksum_error_without_moving
     }
 }
 
+/// Which faults a noisy line injects, 5 % of the time (seeded).
+#[derive(Debug, Clone, Copy)]
+enum Noise {
+    /// An `ok` lost on the way to the host (any reply, at any stage).
+    LostOk,
+    /// The first line of a reply garbled on the way to the host (one byte 0xFF).
+    GarbledReply,
+    /// A host line corrupted on the way to the firmware (checksum mismatch, `Resend:`).
+    CorruptedLine,
+}
+
+/// One cycle as an operator runs it: connect, home, move, read the position. Returns
+/// the driver's (resends, probes, resyncs) and the simulator's faults injected.
+fn noisy_cycle(noise: Noise, seed: u64) -> Result<((u32, u32, u32), u32), String> {
+    let faults = FaultConfig {
+        seed,
+        kinds: vec![match noise {
+            Noise::LostOk => FaultKind::DroppedByte,
+            Noise::GarbledReply | Noise::CorruptedLine => FaultKind::Garbled,
+        }],
+        probability: 0.05,
+        target: FaultTarget::Any,
+        skip: 0,
+        max_faults: u32::MAX,
+        late_by: Duration::from_millis(0),
+    };
+    let (reply_faults, line_faults) = match noise {
+        Noise::CorruptedLine => (None, Some(faults)),
+        _ => (Some(faults), None),
+    };
+    let cfg = MarlinSimConfig {
+        homed: false,
+        start_mm: [12.0, 7.0, 90.0],
+        keepalive: Duration::from_millis(200),
+        faults: reply_faults,
+        checksum_faults: line_faults,
+        ..MarlinSimConfig::default()
+    };
+    let server = PtyServer::spawn(MarlinSim::new(cfg), None).expect("pty");
+    let target = [3.0, 4.0, 95.0];
+    let run = || -> Result<(u32, u32, u32), tactbench::device::DeviceError> {
+        let port = open_serial(&server.path().to_string_lossy(), 115_200)?;
+        let mut m = Marlin::connect(port, fast())?;
+        m.home()?;
+        m.move_to(target, Some(10.0))?;
+        m.wait_idle(Duration::from_secs(20))?;
+        let p = m.position()?;
+        if steps(p) != steps(target) {
+            return Err(tactbench::device::DeviceError::new(
+                ErrorKind::Other,
+                "test",
+                "position",
+                format!("at {p:?}, not {target:?}"),
+            ));
+        }
+        let (r, p) = m.recoveries();
+        Ok((r, p, m.resyncs()))
+    };
+    let result = run();
+    let sim = server.stop().expect("stop");
+    let rec = result.map_err(|e| format!("{e}"))?;
+    if sim.moves_accepted() != 2 {
+        return Err(format!(
+            "{} moves and homings ran, not 2 (one ran twice or not at all)",
+            sim.moves_accepted()
+        ));
+    }
+    if steps(sim.position_mm()) != steps(target) {
+        return Err(format!("the machine stands at {:?}", sim.position_mm()));
+    }
+    Ok((rec, sim.faults_injected()))
+}
+
+/// 20 connect + home + move + position cycles each with 5 % of the `ok`s lost, 5 % of
+/// the reply lines garbled, and 5 % of the host's lines corrupted on the way in, at
+/// every stage (connection, homing, `M400`): all 20 succeed and nothing runs twice.
+#[test]
+fn marlin_20_of_20_cycles_with_5_percent_lost_oks_garbled_replies_or_corrupted_lines() {
+    let mut results = Vec::new();
+    for noise in [Noise::LostOk, Noise::GarbledReply, Noise::CorruptedLine] {
+        let mut ok = 0;
+        let mut failures = Vec::new();
+        let (mut injected, mut resends, mut probes, mut resyncs) = (0, 0, 0, 0);
+        for seed in 1..=20 {
+            match noisy_cycle(noise, seed) {
+                Ok(((r, p, s), n)) => {
+                    ok += 1;
+                    injected += n;
+                    resends += r;
+                    probes += p;
+                    resyncs += s;
+                }
+                Err(e) => failures.push(format!("seed {seed}: {e}")),
+            }
+        }
+        eprintln!(
+            "{noise:?}: {ok} of 20 cycles; {injected} faults injected, {resends} resends, {probes} probes, {resyncs} resyncs"
+        );
+        results.push((noise, ok, injected, failures));
+    }
+    for (noise, ok, injected, failures) in results {
+        assert_eq!(ok, 20, "{noise:?}: {failures:#?}");
+        assert!(injected >= 10, "{noise:?}: only {injected} faults injected");
+    }
+}
+
+/// A board that does not reset when its port opens keeps another protocol's bytes
+/// (a GRBL `?`, a DynPick `R`, a Bota's configuration) as the start of its next line,
+/// and its line counter where the last Marlin session left it.
+#[test]
+fn marlin_port_left_with_another_protocols_bytes_connects_on_the_first_try() {
+    use std::io::Write;
+    let server = PtyServer::spawn(MarlinSim::new(MarlinSimConfig::default()), None).expect("pty");
+    let path = server.path().to_string_lossy().into_owned();
+    for leftover in [
+        &b"?"[..],
+        b"\x18$I\n?",
+        b"R",
+        b"C\nc,0,1,0,4\nR",
+        b"\xaa\x00\x10",
+    ] {
+        // A Marlin session moves the firmware's line counter on.
+        let mut m = Marlin::connect(open_serial(&path, 115_200).unwrap(), fast()).unwrap();
+        for _ in 0..5 {
+            m.position().unwrap();
+        }
+        drop(m);
+        let mut p = open_serial(&path, 115_200).unwrap();
+        p.write_all(leftover).unwrap();
+        drop(p);
+        std::thread::sleep(Duration::from_millis(100));
+        let mut m = Marlin::connect(open_serial(&path, 115_200).unwrap(), fast())
+            .unwrap_or_else(|e| panic!("after {leftover:?}: {e}"));
+        assert!(m.info().emergency_parser, "{leftover:?}");
+        m.position().unwrap();
+    }
+    assert_eq!(server.stop().unwrap().moves_accepted(), 0);
+}
+
 #[test]
 fn marlin_busy_keepalives_extend_the_wait_beyond_the_silence_limit() {
     let cfg = MarlinSimConfig {
@@ -436,6 +575,41 @@ mod cli {
         assert_eq!(stdout(&o), "stopped; state: idle\n");
     }
 
+    /// Issue 29 item 7: a wrong `--protocol` guess on a Marlin port (GRBL, Bota,
+    /// DynPick) leaves its bytes in the firmware's line buffer; the next, correct
+    /// `--protocol marlin` call connects on the first try.
+    #[test]
+    fn cli_marlin_port_left_with_another_protocols_bytes_connects_on_the_first_try() {
+        let s = ServedStage::start("marlin", &[], BANNER_TIMEOUT);
+        let link = s.link.to_string_lossy().into_owned();
+        let o = s.stage(&["status"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let wrong: [&[&str]; 3] = [
+            &["stage", "--port", &link, "--protocol", "grbl", "status"],
+            &["ft", "--port", &link, "--protocol", "bota", "read"],
+            &["ft", "--port", &link, "--protocol", "dynpick", "read"],
+        ];
+        for args in wrong {
+            let o = crate::util::command().args(args).output().expect("run");
+            assert!(
+                !o.status.success(),
+                "{args:?} on a Marlin port: {}",
+                stdout(&o)
+            );
+            let o = s.stage(&["status"]);
+            assert!(
+                o.status.success(),
+                "the first marlin call after {args:?}: {}",
+                stderr(&o)
+            );
+            assert!(
+                stdout(&o).contains("emergency parser yes"),
+                "{}",
+                stdout(&o)
+            );
+        }
+    }
+
     #[test]
     fn cli_marlin_port_where_nothing_answers_is_a_clear_error() {
         let s = ServedStage::start("marlin", &["--marlin-boot", "silent"], BANNER_TIMEOUT);
@@ -605,6 +779,64 @@ mod outside {
         m.move_to([0.0, 0.0, 99.0], Some(5.0)).unwrap();
         m.wait_idle(Duration::from_secs(20)).unwrap();
         assert_step_exact(m.position().unwrap(), steps([0.0, 0.0, 99.0]));
+    }
+
+    /// Issue 29's line-noise cycles against the emulator: 20 connect + home + move +
+    /// position cycles with 5 % of the `ok`s lost, of the reply lines garbled, or of
+    /// the host's lines corrupted (seeded `random.Random` in the emulator).
+    #[test]
+    #[ignore = "needs python3; the outside check of issue 29 item 3"]
+    fn marlin_20_cycles_against_the_emulator_with_5_percent_line_noise() {
+        for flag in ["--drop-ok-p", "--garble-p", "--corrupt-p"] {
+            let mut ok = 0;
+            let mut failures = Vec::new();
+            let (mut resends, mut probes) = (0, 0);
+            for seed in 1..=20 {
+                let seed_s = seed.to_string();
+                let e = Emulator::start(
+                    &[
+                        "--unhomed",
+                        flag,
+                        "0.05",
+                        "--seed",
+                        &seed_s,
+                        "--boot-delay",
+                        "0.05",
+                    ],
+                    None,
+                );
+                let target = [3.0, 4.0, 95.0];
+                let run = || -> Result<(u32, u32), tactbench::device::DeviceError> {
+                    let port = open_serial(&e.link.to_string_lossy(), 115_200)?;
+                    let mut m = Marlin::connect(port, fast())?;
+                    m.home()?;
+                    m.move_to(target, Some(10.0))?;
+                    m.wait_idle(Duration::from_secs(20))?;
+                    let p = m.position()?;
+                    if steps(p) != steps(target) {
+                        return Err(tactbench::device::DeviceError::new(
+                            ErrorKind::Other,
+                            "test",
+                            "position",
+                            format!("at {p:?}, not {target:?}"),
+                        ));
+                    }
+                    Ok(m.recoveries())
+                };
+                match run() {
+                    Ok((r, p)) => {
+                        ok += 1;
+                        resends += r;
+                        probes += p;
+                    }
+                    Err(err) => failures.push(format!("seed {seed}: {err}")),
+                }
+            }
+            eprintln!(
+                "emulator {flag} 0.05: {ok} of 20 cycles; {resends} resends, {probes} probes"
+            );
+            assert_eq!(ok, 20, "{flag}: {failures:#?}");
+        }
     }
 }
 

@@ -39,11 +39,16 @@ reading of the sources:
 Usage (the #[ignore]d tests in tests/marlin.rs start it; manual trials too):
   python3 tests/marlin_emulator/emulator.py --link /tmp/marlin [--record T.txt]
       [--unhomed] [--drop-ok N] [--garble-reply N] [--corrupt-line N]
+      [--drop-ok-p P] [--garble-p P] [--corrupt-p P] [--seed S]
 Runs until stdin closes. Needs only the Python standard library.
 --drop-ok N: the `ok` of the N-th executed command is not sent (lost);
 --garble-reply N: the first reply line of the N-th executed command gets one byte 0xFF;
 --corrupt-line N: the N-th numbered line received is treated as corrupted on the wire
   (checksum mismatch -> Error + Resend + ok).
+--drop-ok-p P, --garble-p P, --corrupt-p P: the same three faults, each executed
+  command's `ok` / first reply line, or each numbered line received, with probability
+  P, drawn from Python's `random.Random(--seed)` (reproducible; issue 29's line-noise
+  cycles);
 --record PATH: writes what the host sent (`> `) and what the emulator answered (`< `)
   in the transcript format of protocols/transcripts/ (device lines joined per burst).
 """
@@ -51,6 +56,7 @@ Runs until stdin closes. Needs only the Python standard library.
 import argparse
 import os
 import pty
+import random
 import select
 import sys
 import time
@@ -95,6 +101,8 @@ class Marlin:
         self.numbered_seen = 0
         self.ep_line = bytearray()
         self.feed = 50.0
+        self.rng = random.Random(args.seed)
+        self.faults = 0
 
     def out(self, text):
         self.write_raw(text.encode("latin-1"))
@@ -231,7 +239,10 @@ class Marlin:
                     given = int(cmd[star + 1 :].strip())
                 except ValueError:
                     given = -1
-                corrupt = self.a.corrupt_line == self.numbered_seen
+                corrupt = self.a.corrupt_line == self.numbered_seen or (
+                    self.a.corrupt_p > 0 and self.rng.random() < self.a.corrupt_p
+                )
+                self.faults += 1 if corrupt else 0
                 if corrupt or given != xor(cmd[:star].encode("latin-1")):
                     self.line_error("checksum mismatch, Last Line: ")
                     return
@@ -260,6 +271,12 @@ class Marlin:
         if self.a.garble_reply and self.executed == self.a.garble_reply and text:
             text = "\xff" + text[1:]
             self.a.garble_reply = 0
+        if self.a.drop_ok_p > 0 and text.endswith("ok\n") and self.rng.random() < self.a.drop_ok_p:
+            text = text[: -len("ok\n")]
+            self.faults += 1
+        if self.a.garble_p > 0 and text and self.rng.random() < self.a.garble_p:
+            text = "\xff" + text[1:]
+            self.faults += 1
         self.out(text)
 
     def param(self, words, letter):
@@ -401,6 +418,10 @@ def main():
     ap.add_argument("--drop-ok", type=int, default=0)
     ap.add_argument("--garble-reply", type=int, default=0)
     ap.add_argument("--corrupt-line", type=int, default=0)
+    ap.add_argument("--drop-ok-p", type=float, default=0.0)
+    ap.add_argument("--garble-p", type=float, default=0.0)
+    ap.add_argument("--corrupt-p", type=float, default=0.0)
+    ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--boot-delay", type=float, default=0.2)
     a = ap.parse_args()
 

@@ -77,8 +77,20 @@ pub const STATUS_INTERVAL: Duration = Duration::from_millis(50);
 /// `Resend:` requests accepted for one command before giving up.
 pub const MAX_RESENDS: u32 = 5;
 
-/// How long to wait for the `ok` Marlin prints right after `Resend:`.
-const RESEND_OK_WINDOW: Duration = Duration::from_millis(100);
+/// How long after a line error (`Error:` / `Resend:`) the next `ok` is taken for the one
+/// Marlin prints right after `Resend:` (it comes in the same burst).
+const RESEND_OK_WINDOW: Duration = Duration::from_millis(250);
+
+/// After the line end that flushes another protocol's leftover bytes, how long the
+/// handshake reads away what the firmware answers at least (with a short banner wait).
+const RESYNC_DRAIN: Duration = Duration::from_millis(200);
+
+/// Line-counter resynchronisations (`M110`) allowed per connection.
+const MAX_RESYNCS: u32 = 8;
+
+/// Times a query whose reply held a garbled line (or, for `M115`, no firmware line) is
+/// asked again before its answer is taken as it is.
+const QUERY_TRIES: u32 = 4;
 
 /// Lines kept for re-sending.
 const HISTORY: usize = 32;
@@ -167,9 +179,16 @@ pub struct Marlin<P> {
     history: VecDeque<(u32, String)>,
     /// Lines sent and not yet acknowledged, oldest first.
     outstanding: VecDeque<u32>,
-    /// The `Resend:` that will follow the refusal of a copy (a probe answer): it asks
-    /// for a line not sent yet when the refusal was read, so it is no request.
-    stale_resend: Option<u32>,
+    /// The `Resend:` that will follow a line error already acted on (the `Error:` line
+    /// names the same line): it is not served a second time.
+    handled_resend: Option<u32>,
+    /// Until when an `ok` acknowledges nothing: Marlin prints one right after each
+    /// line error's `Resend:`.
+    swallow_ok_until: Option<Instant>,
+    /// Unreadable lines since the last line was sent (a query's text may be lost).
+    garbled: u32,
+    /// Line-counter resynchronisations (`M110`) so far.
+    resyncs: u32,
     /// `echo:` and other text lines seen since the last command was sent.
     text: Vec<String>,
     /// A position report seen since the last command was sent.
@@ -195,7 +214,10 @@ impl<P: Read + Write> Marlin<P> {
             next_n: 1,
             history: VecDeque::new(),
             outstanding: VecDeque::new(),
-            stale_resend: None,
+            handled_resend: None,
+            swallow_ok_until: None,
+            garbled: 0,
+            resyncs: 0,
             text: Vec::new(),
             report: None,
             home_first: None,
@@ -213,7 +235,11 @@ impl<P: Read + Write> Marlin<P> {
             probes: 0,
         };
         m.handshake()?;
-        let caps = m.query("M115").map(|lines| parse_capabilities(&lines))?;
+        // Judge the firmware only on a whole `M115` answer: its `FIRMWARE_NAME` line
+        // (leftover bytes of another protocol, or line noise, can cost the answer).
+        let caps = m
+            .query_until("M115", |lines| parse_capabilities(lines).firmware.is_some())
+            .map(|lines| parse_capabilities(&lines))?;
         m.info.firmware = caps.firmware.clone();
         m.info.emergency_parser = caps.has("EMERGENCY_PARSER");
         if m.config.require_emergency_parser && !m.info.emergency_parser {
@@ -230,8 +256,9 @@ impl<P: Read + Write> Marlin<P> {
             .or(m.config.max_feed_mm_min);
         let m211 = m.query("M211")?;
         m.info.soft_endstops = parse_soft_endstops(&m211);
-        m.command("G21", m.config.silence_timeout)?;
-        m.command("G90", m.config.silence_timeout)?;
+        // Room for a silence probe: an `ok` lost here is recovered like any other.
+        m.command("G21", m.config.silence_timeout * 3)?;
+        m.command("G90", m.config.silence_timeout * 3)?;
         Ok(m)
     }
 
@@ -245,6 +272,12 @@ impl<P: Read + Write> Marlin<P> {
         (self.resends, self.probes)
     }
 
+    /// Line-counter resynchronisations (`M110` after the firmware refused a line by a
+    /// number this connection never sent) so far.
+    pub fn resyncs(&self) -> u32 {
+        self.resyncs
+    }
+
     /// Whether the firmware reported a halt (`M112` or a fatal error).
     pub fn halted(&self) -> bool {
         self.halted
@@ -255,10 +288,21 @@ impl<P: Read + Write> Marlin<P> {
         self.port.into_inner()
     }
 
-    /// Waits for the boot banner, then `M110 N0`.
+    /// Ends whatever partial line the firmware holds, waits for the boot banner (and
+    /// reads away what the board prints), then `M110 N0`.
+    ///
+    /// Why the newline first: a board that does not reset when the port opens still
+    /// holds the bytes of whatever spoke to it last (a GRBL `?`, a DynPick `R`, a
+    /// Bota's binary configuration) without a line end; they would prefix our
+    /// `N0 M110 N0` and make it an unknown command, leaving the firmware's line counter
+    /// where the last session left it, so the next numbered line would be refused. The
+    /// newline makes that junk a line of its own, answered (an unknown command and an
+    /// `ok`) and read away here, at least [`RESYNC_DRAIN`] long, before any of our
+    /// lines is sent.
     fn handshake(&mut self) -> DeviceResult<()> {
         let start = Instant::now();
-        let banner_deadline = start + self.config.banner_timeout;
+        self.port.send(b"\n", "connect")?;
+        let banner_deadline = start + self.config.banner_timeout.max(RESYNC_DRAIN);
         let mut received: Vec<String> = Vec::new();
         let mut garbage = 0usize;
         // Read until the banner has been seen and the board has been quiet for a
@@ -290,7 +334,12 @@ impl<P: Read + Write> Marlin<P> {
         self.history.push_back((0, line));
         self.outstanding.push_back(0);
         self.next_n = 1;
-        let answer = self.collect(0, Instant::now() + self.config.silence_timeout, "M110 N0");
+        // Room for a silence probe (the `M110` re-sent): its `ok` may be lost too.
+        let answer = self.collect(
+            0,
+            Instant::now() + self.config.silence_timeout * 3,
+            "M110 N0",
+        );
         match answer {
             Ok(()) => Ok(()),
             Err(e) if e.kind() == ErrorKind::Timeout => {
@@ -303,7 +352,7 @@ impl<P: Read + Write> Marlin<P> {
                         DEVICE,
                         "M110 N0",
                         format!(
-                            "nothing answered: no boot banner (`start`) within {waited:.1} s and no `ok` to `M110 N0` within {silence:.1} s"
+                            "nothing answered: no boot banner (`start`) within {waited:.1} s and no `ok` to `M110 N0` within {silence:.1} s, twice"
                         ),
                     )
                     .with_hint("check the port (`tactbench ports`), the cable and that the board is powered; Marlin uses 115200 or 250000 baud")
@@ -313,7 +362,7 @@ impl<P: Read + Write> Marlin<P> {
                         DEVICE,
                         "M110 N0",
                         format!(
-                            "the board sent {} line(s) and {garbage} unreadable byte(s) but never its boot banner (`start`) within {waited:.1} s nor an `ok` to `M110 N0`{}",
+                            "the board sent {} line(s) and {garbage} unreadable byte(s) but never its boot banner (`start`) within {waited:.1} s nor an `ok` to `M110 N0` (sent twice){}",
                             received.len(),
                             received
                                 .last()
@@ -327,7 +376,7 @@ impl<P: Read + Write> Marlin<P> {
                         ErrorKind::Timeout,
                         DEVICE,
                         "M110 N0",
-                        format!("the board printed its boot banner but did not answer `M110 N0` within {silence:.1} s"),
+                        format!("the board printed its boot banner but did not answer `M110 N0` within {silence:.1} s, twice"),
                     )
                     .with_hint("the board may still be booting or waiting for a display: reset it and try again")
                     },
@@ -348,6 +397,7 @@ impl<P: Read + Write> Marlin<P> {
         self.text.clear();
         self.report = None;
         self.home_first = None;
+        self.garbled = 0;
         self.port.send(format!("{line}\n").as_bytes(), cmd)?;
         self.history.push_back((n, line));
         while self.history.len() > HISTORY {
@@ -442,10 +492,24 @@ impl<P: Read + Write> Marlin<P> {
             // A garbled line may have been an `ok`: the silence probe recovers it. It
             // is not taken for anything now (a garbled `ok` taken for a garbled busy
             // line, or the reverse, would lose track of the queue).
-            Err(_) => return Ok(Some(())),
+            Err(_) => {
+                self.garbled += 1;
+                return Ok(Some(()));
+            }
         };
         match reply {
             Reply::Ok(rest) => {
+                // The `ok` Marlin prints after a line error's `Resend:` acknowledges
+                // nothing (whether the `Error:` or the `Resend:` line, or both, came
+                // through readable).
+                if self
+                    .swallow_ok_until
+                    .take()
+                    .is_some_and(|t| Instant::now() <= t)
+                {
+                    self.handled_resend = None;
+                    return Ok(Some(()));
+                }
                 if self.outstanding.pop_front().is_some() {
                     if let Some(p) = parse_position(&rest) {
                         self.report = Some(p);
@@ -453,53 +517,49 @@ impl<P: Read + Write> Marlin<P> {
                 }
             }
             Reply::Resend(r) => {
-                // Marlin prints `ok` right after `Resend:`; it acknowledges nothing.
-                self.swallow_resend_ok(deadline, command)?;
-                if self.stale_resend.take() == Some(r) {
-                    // The answer to a probe of a line the firmware already had.
+                self.swallow_ok_until = Some(Instant::now() + RESEND_OK_WINDOW);
+                if self.handled_resend.take() == Some(r) || r >= self.next_n {
+                    // Served from its `Error:` line already, or a request for a line
+                    // not sent yet (after the refusal of a probe's copy): nothing to do.
                     return Ok(Some(()));
                 }
-                *resends += 1;
-                self.resends += 1;
-                if *resends > MAX_RESENDS {
-                    return Err(DeviceError::new(
-                        ErrorKind::Protocol,
-                        DEVICE,
-                        command,
-                        format!("the board asked {MAX_RESENDS} times to resend line {r}: the line keeps arriving corrupted"),
-                    )
-                    .with_hint("check the cable and the baud rate"));
-                }
-                let lines: Vec<String> = self
-                    .history
-                    .iter()
-                    .filter(|(k, _)| *k >= r)
-                    .map(|(_, l)| l.clone())
-                    .collect();
-                if lines.is_empty() {
-                    return Err(DeviceError::new(
-                        ErrorKind::Protocol,
-                        DEVICE,
-                        command,
-                        format!("the board asked to resend line {r}, which is no longer kept"),
-                    ));
-                }
-                for l in lines {
-                    self.port.send(format!("{l}\n").as_bytes(), command)?;
-                }
+                self.serve_resend(r, command, resends)?;
             }
             Reply::Error(ErrorLine::LineNumber { last }) => {
+                self.swallow_ok_until = Some(Instant::now() + RESEND_OK_WINDOW);
+                self.handled_resend = Some(last + 1);
+                if last >= self.next_n {
+                    // The firmware counts lines this connection never sent: its
+                    // counter was left elsewhere (a `M110` lost or swallowed by another
+                    // protocol's leftover bytes). Nothing of ours after the last `ok`
+                    // was taken: reset the counter and send those lines again.
+                    self.resync(command)?;
+                    return Ok(Some(()));
+                }
                 // The refusal of a copy (a probe): every line up to `last` was taken.
                 // Lines taken but not finished cannot be refused this way: the
                 // firmware reads the copy only once it is free again. When `last` is
                 // the newest line sent, the `Resend: last+1` that follows asks for
-                // nothing; otherwise (a line lost on the way in) it is a real request.
-                if last >= self.next_n.saturating_sub(1) {
-                    self.stale_resend = Some(last + 1);
-                }
+                // nothing; otherwise (a line lost on the way in) it is a real request,
+                // served now (the `Resend:` line may come garbled).
                 self.outstanding.retain(|k| *k > last);
+                if last + 1 < self.next_n {
+                    self.serve_resend(last + 1, command, resends)?;
+                }
             }
-            Reply::Error(ErrorLine::Checksum { .. } | ErrorLine::NoChecksum { .. }) => {}
+            Reply::Error(ErrorLine::Checksum { last } | ErrorLine::NoChecksum { last }) => {
+                self.swallow_ok_until = Some(Instant::now() + RESEND_OK_WINDOW);
+                self.handled_resend = Some(last + 1);
+                if last >= self.next_n {
+                    self.resync(command)?;
+                } else if self.outstanding.front() == Some(&0) {
+                    // The connection's `M110 N0` (line 0) itself arrived corrupted:
+                    // `Last Line` is the firmware's old counter, not about it.
+                    self.serve_resend(0, command, resends)?;
+                } else if last + 1 < self.next_n {
+                    self.serve_resend(last + 1, command, resends)?;
+                }
+            }
             Reply::Error(ErrorLine::Halted) => {
                 self.halted = true;
                 self.pending = None;
@@ -542,27 +602,75 @@ impl<P: Read + Write> Marlin<P> {
         Ok(Some(()))
     }
 
-    fn swallow_resend_ok(&mut self, deadline: Instant, command: &str) -> DeviceResult<()> {
-        let until = (Instant::now() + RESEND_OK_WINDOW).min(deadline.max(Instant::now()));
-        match self.port.read_line(until, command) {
-            Ok(raw) => match decode(&raw) {
-                Ok(Reply::Ok(_)) => Ok(()),
-                // Not the `ok` (firmware that prints none): handle the line normally.
-                Ok(other) => {
-                    if let Reply::Error(ErrorLine::Halted) = other {
-                        self.halted = true;
-                        return Err(halted_error(command));
-                    }
-                    if let Reply::Busy(_) | Reply::Echo(_) | Reply::Other(_) = other {
-                        return Ok(());
-                    }
-                    Ok(())
-                }
-                Err(_) => Ok(()),
-            },
-            Err(e) if e.kind() == ErrorKind::Timeout => Ok(()),
-            Err(e) => Err(e),
+    /// Re-sends lines `r..` from the history (a `Resend: r` or the line error it
+    /// follows). More than [`MAX_RESENDS`] for one command is an error.
+    fn serve_resend(&mut self, r: u32, command: &str, resends: &mut u32) -> DeviceResult<()> {
+        *resends += 1;
+        self.resends += 1;
+        if *resends > MAX_RESENDS {
+            return Err(DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                command,
+                format!("the board asked {MAX_RESENDS} times to resend line {r}: the line keeps arriving corrupted"),
+            )
+            .with_hint("check the cable and the baud rate"));
         }
+        let lines: Vec<String> = self
+            .history
+            .iter()
+            .filter(|(k, _)| *k >= r)
+            .map(|(_, l)| l.clone())
+            .collect();
+        if lines.is_empty() {
+            return Err(DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                command,
+                format!("the board asked to resend line {r}, which is no longer kept"),
+            ));
+        }
+        for l in lines {
+            self.port.send(format!("{l}\n").as_bytes(), command)?;
+        }
+        Ok(())
+    }
+
+    /// Sets the firmware's line counter to the line before the oldest unacknowledged
+    /// one (`N<k> M110 N<k>`, which Marlin takes whatever its counter says) and sends
+    /// the unacknowledged lines again. The `M110`'s own `ok` is expected first.
+    fn resync(&mut self, command: &str) -> DeviceResult<()> {
+        self.resyncs += 1;
+        if self.resyncs > MAX_RESYNCS {
+            return Err(DeviceError::new(
+                ErrorKind::Protocol,
+                DEVICE,
+                command,
+                format!("the board's line counter disagrees with ours after {MAX_RESYNCS} resets (M110)"),
+            )
+            .with_hint("another program may be writing to the port: close it, reset the board"));
+        }
+        let k = self
+            .outstanding
+            .front()
+            .copied()
+            .unwrap_or(self.next_n)
+            .saturating_sub(1);
+        let m110 = frame(k, &format!("M110 N{k}"));
+        self.port.send(format!("{m110}\n").as_bytes(), command)?;
+        let lines: Vec<String> = self
+            .history
+            .iter()
+            .filter(|(n, _)| self.outstanding.contains(n))
+            .map(|(_, l)| l.clone())
+            .collect();
+        // A probe of `k` (its `ok` lost) re-sends the old line `k`, which the firmware
+        // then refuses by number: acknowledged either way.
+        self.outstanding.push_front(k);
+        for l in lines {
+            self.port.send(format!("{l}\n").as_bytes(), command)?;
+        }
+        Ok(())
     }
 
     /// Sends `cmd` and waits for its `ok`.
@@ -571,10 +679,28 @@ impl<P: Read + Write> Marlin<P> {
         self.collect(n, Instant::now() + overall, cmd)
     }
 
-    /// Sends a query and returns the text lines it printed before its `ok`.
+    /// Sends a query and returns the text lines it printed before its `ok`. A reply
+    /// with a garbled line may lack the line asked for: the query is asked again, up
+    /// to [`QUERY_TRIES`] times (queries change nothing), and the last answer is taken.
     fn query(&mut self, cmd: &str) -> DeviceResult<Vec<String>> {
-        self.command(cmd, self.config.silence_timeout * 2)?;
-        Ok(std::mem::take(&mut self.text))
+        self.query_until(cmd, |_| true)
+    }
+
+    /// [`Marlin::query`], also asked again while `complete` says the answer is not.
+    fn query_until(
+        &mut self,
+        cmd: &str,
+        complete: impl Fn(&[String]) -> bool,
+    ) -> DeviceResult<Vec<String>> {
+        let mut tries = 0;
+        loop {
+            tries += 1;
+            self.command(cmd, self.config.silence_timeout * 2)?;
+            let text = std::mem::take(&mut self.text);
+            if tries >= QUERY_TRIES || (self.garbled == 0 && complete(&text)) {
+                return Ok(text);
+            }
+        }
     }
 
     /// `M114`: the position in mm, from the step counts when they agree with the

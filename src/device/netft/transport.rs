@@ -1,6 +1,12 @@
 //! The datagram transport the Net F/T driver is generic over ([`Datagram`]), and its
 //! UDP implementation ([`UdpTransport`]) with a deadline on every receive.
 //!
+//! The socket is non-blocking and waits with `poll(2)`: a receive whose deadline has
+//! passed is a true poll (it never sleeps), and a wait ends when a datagram arrives.
+//! (A socket read timeout would not do: the kernel rounds it up to a scheduler tick,
+//! longer than the 143 µs between records at 7 kHz, so a "poll" would sleep and keep
+//! finding the next record waiting.)
+//!
 //! Why a trait: UDP loses, duplicates and reorders datagrams, and the driver's answer
 //! to each (drop duplicates and stale records, count losses, resend the start request)
 //! is tested with a transport that does exactly that on purpose, without sockets
@@ -24,9 +30,27 @@ pub trait Datagram: Send {
     fn peer(&self) -> String;
 }
 
-/// Shortest receive timeout: a past deadline becomes a poll this short (a zero
-/// timeout means "block forever" to the socket API).
-const MIN_WAIT: Duration = Duration::from_micros(50);
+/// Waits until `fd` is readable (or has an error to report) or `wait` has passed,
+/// whichever is first; an interrupted wait returns early (the caller loops). The wait
+/// is rounded up to whole milliseconds (poll's unit): a wait ends late by < 1 ms when
+/// nothing arrives, never early, and at once when something does.
+pub fn wait_readable(fd: std::os::fd::RawFd, wait: Duration) -> io::Result<()> {
+    let ms = wait.as_nanos().div_ceil(1_000_000).min(i32::MAX as u128) as i32;
+    let mut p = libc::pollfd {
+        fd,
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    // SAFETY: one valid pollfd for the duration of the call.
+    let r = unsafe { libc::poll(&mut p, 1, ms) };
+    if r < 0 {
+        let e = io::Error::last_os_error();
+        if e.kind() != io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+    Ok(())
+}
 
 /// A UDP socket connected to the device: only its datagrams are received, and an ICMP
 /// "port unreachable" (nothing listens there) surfaces as `ConnectionRefused`.
@@ -89,6 +113,9 @@ impl UdpTransport {
         };
         let socket = UdpSocket::bind(SocketAddr::new(local, 0)).map_err(|e| fail(e, "bind"))?;
         socket.connect(peer).map_err(|e| fail(e, "connect"))?;
+        socket
+            .set_nonblocking(true)
+            .map_err(|e| fail(e, "configure"))?;
         Ok(UdpTransport {
             socket,
             peer,
@@ -108,27 +135,22 @@ impl Datagram for UdpTransport {
     }
 
     fn recv(&mut self, buf: &mut [u8], deadline: Instant) -> io::Result<Option<usize>> {
+        use std::os::fd::AsRawFd;
         loop {
-            let wait = deadline
-                .saturating_duration_since(Instant::now())
-                .max(MIN_WAIT);
-            self.socket.set_read_timeout(Some(wait))?;
             match self.socket.recv(buf) {
                 Ok(n) => return Ok(Some(n)),
                 Err(e)
                     if matches!(
                         e.kind(),
-                        io::ErrorKind::WouldBlock
-                            | io::ErrorKind::TimedOut
-                            | io::ErrorKind::Interrupted
-                    ) =>
-                {
-                    if Instant::now() >= deadline {
-                        return Ok(None);
-                    }
-                }
+                        io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
+                    ) => {}
                 Err(e) => return Err(e),
             }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            wait_readable(self.socket.as_raw_fd(), deadline - now)?;
         }
     }
 
