@@ -344,3 +344,25 @@ fn stage_move_with_a_bench_without_a_force_limit_is_refused() {
         stderr(&o)
     );
 }
+
+#[test]
+fn sigint_during_grbl_homing_resets_names_the_alarm_and_the_next_home_works() {
+    let s = ServedStage::start("grbl", &["--homing"], &[]);
+    let mut child = spawn_stage(&s, "grbl", &[], &["home"]);
+    let mut err = BufReader::new(child.stderr.take().expect("stderr"));
+    let seen = wait_under_way(&mut err);
+    std::thread::sleep(Duration::from_millis(200));
+    let (code, _, rest) = signal_and_wait(child, err, libc::SIGINT);
+    let msg = format!("{seen}{rest}");
+    eprintln!("grbl home: {}", rest.trim());
+    assert_eq!(code, Some(4), "{msg}");
+    assert!(
+        msg.contains("homing stopped by SIGINT (Ctrl-C): sent GRBL soft reset 0x18")
+            && msg.contains("ALARM:6")
+            && msg.contains("run `home` again"),
+        "{msg}"
+    );
+    let o = s.stage(&["home", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(stdout(&o), "{\"x_mm\":-1.0,\"y_mm\":-1.0,\"z_mm\":-1.0}\n");
+}

@@ -26,9 +26,12 @@ use crate::device::{
 /// noticing a signal.
 pub const FLAG_POLL: Duration = Duration::from_millis(1);
 
-/// Longest wait for the stage to report no motion after the stop command, as the
-/// runner's watchdog waits (`Runner::trip`).
-pub const STANDSTILL_WAIT: Duration = Duration::from_secs(2);
+/// Longest wait for the stage to report no motion after the stop command. Longer
+/// than the runner's 2 s (`Runner::trip`, which retracts afterwards): the command must
+/// not exit and report a position while the stage still decelerates (GRBL's jog cancel
+/// and feed hold ramp down at `$120..$122`; the real firmware on grbl-sim under load
+/// runs several times slower than real time and took over 2 s).
+pub const STANDSTILL_WAIT: Duration = Duration::from_secs(10);
 
 /// `CLOCK_MONOTONIC` in nanoseconds: what a signal handler may read
 /// (`clock_gettime` is async-signal-safe), comparable across threads.
@@ -95,8 +98,8 @@ pub enum Watched {
     /// The stage reported no motion on its own: the move is over (the caller checks
     /// the target with [`Stage::wait_idle`]).
     Ended,
-    /// It was stopped.
-    Stopped(Stopped),
+    /// It was stopped (boxed: the report is large, the common outcome is `Ended`).
+    Stopped(Box<Stopped>),
 }
 
 /// Watches a move that has been started on `stage` until it ends or must be stopped
@@ -126,12 +129,12 @@ pub fn watch_move(stage: &mut dyn Stage, w: MotionWatch<'_>) -> DeviceResult<Wat
             } else {
                 Duration::from_nanos(monotonic_ns().saturating_sub(asked))
             };
-            return Ok(Watched::Stopped(halt(
+            return Ok(Watched::Stopped(Box::new(halt(
                 stage,
                 StopCause::Requested,
                 Instant::now(),
                 already,
-            )));
+            ))));
         }
         let now = Instant::now();
         if let Some((ft, limits)) = force.as_mut() {
@@ -141,12 +144,22 @@ pub fn watch_move(stage: &mut dyn Stage, w: MotionWatch<'_>) -> DeviceResult<Wat
                     Ok(reading) => {
                         if let Some(trip) = check_force_limits(&reading, limits) {
                             let cause = StopCause::ForceLimit(trip);
-                            return Ok(Watched::Stopped(halt(stage, cause, now, Duration::ZERO)));
+                            return Ok(Watched::Stopped(Box::new(halt(
+                                stage,
+                                cause,
+                                now,
+                                Duration::ZERO,
+                            ))));
                         }
                     }
                     Err(e) => {
                         let cause = StopCause::ForceUnread(e.to_string());
-                        return Ok(Watched::Stopped(halt(stage, cause, now, Duration::ZERO)));
+                        return Ok(Watched::Stopped(Box::new(halt(
+                            stage,
+                            cause,
+                            now,
+                            Duration::ZERO,
+                        ))));
                     }
                 }
             }
@@ -170,7 +183,12 @@ pub fn watch_move(stage: &mut dyn Stage, w: MotionWatch<'_>) -> DeviceResult<Wat
         }
         if now > deadline {
             let cause = StopCause::Timeout(timeout);
-            return Ok(Watched::Stopped(halt(stage, cause, now, Duration::ZERO)));
+            return Ok(Watched::Stopped(Box::new(halt(
+                stage,
+                cause,
+                now,
+                Duration::ZERO,
+            ))));
         }
         let mut wake = next_status.min(now + FLAG_POLL);
         if force.is_some() {

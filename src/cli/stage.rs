@@ -709,7 +709,7 @@ fn watched(
             print_position(stage, a.json)?;
             Ok(ExitCode::SUCCESS)
         }
-        Watched::Stopped(s) => report_stop(stage, a, guard, &what, s),
+        Watched::Stopped(s) => report_stop(stage, a, guard, &what, *s),
     }
 }
 
@@ -859,7 +859,7 @@ fn report_home_stop(
         .map_or("nothing (no second handle on the port)", |i| i.how);
     let ended = match &home_error {
         Some(e) => format!("the cycle ended with: {e}"),
-        None => "the cycle had finished".to_string(),
+        None => "the controller went idle (the homing wait returned)".to_string(),
     };
     let state = stage
         .state()
