@@ -25,6 +25,7 @@ mod sim;
 mod solver_cli;
 mod solvers;
 mod stage;
+mod stage_stop;
 mod study;
 mod sweeps;
 mod vision;

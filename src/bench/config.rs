@@ -40,6 +40,11 @@
 //! clearance_mm = 1.0                # retract height above the surface for lateral moves
 //! home = false                      # run the homing cycle at start and on resume
 //! tare = true                       # tare the F/T sensor unloaded at start / resume
+//!
+//! [safety]                          # optional
+//! max_force_n = [3.0, 3.0, 10.0]    # |fx|, |fy|, |fz| limits in N that `tactbench
+//!                                   # stage --bench` watches while moving (a run
+//!                                   # uses its plan's safety.max_force)
 //! ```
 //!
 //! The simulated bench (the same drivers, talking to simulators on pseudo-terminals):
@@ -246,6 +251,10 @@ pub struct BenchConfig {
     pub home: bool,
     /// Tare the force sensor unloaded at start and on resume.
     pub tare: bool,
+    /// `[safety] max_force_n`: per-component force limits |fx|, |fy|, |fz| in N that
+    /// `tactbench stage --bench` watches while it moves (a run uses its plan's
+    /// `safety.max_force`); `None` when the file has no `[safety]`.
+    pub max_force_n: Option<[f64; 3]>,
 }
 
 impl BenchConfig {
@@ -276,6 +285,7 @@ impl BenchConfig {
             geometry: None,
             home: false,
             tare: true,
+            max_force_n: None,
         }
     }
 }
@@ -290,6 +300,14 @@ struct RawBench {
     camera: Option<RawCamera>,
     sim: Option<RawSim>,
     geometry: Option<RawGeometry>,
+    safety: Option<RawSafety>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSafety {
+    #[serde(deserialize_with = "crate::config::exact")]
+    max_force_n: [f64; 3],
 }
 
 #[derive(Deserialize)]
@@ -425,6 +443,16 @@ impl RawBench {
             }
         };
         let tare = self.geometry.as_ref().is_none_or(|g| g.tare);
+        let max_force_n = match &self.safety {
+            None => None,
+            Some(sf) => {
+                let mut v = [0.0; 3];
+                for (i, f) in sf.max_force_n.iter().enumerate() {
+                    v[i] = c.positive(&format!("safety.max_force_n[{i}]"), *f, "N")?;
+                }
+                Some(v)
+            }
+        };
         let home_given = self.geometry.as_ref().and_then(|g| g.home);
 
         if let Some(s) = self.sim {
@@ -472,6 +500,7 @@ impl RawBench {
                 geometry,
                 home: home_given.unwrap_or(false),
                 tare,
+                max_force_n,
             });
         }
 
@@ -608,6 +637,7 @@ impl RawBench {
             // machine (which resets when the port opens): home by default.
             home: home_given.unwrap_or(matches!(protocol, StageKind::Zaber | StageKind::Marlin)),
             tare,
+            max_force_n,
         })
     }
 }

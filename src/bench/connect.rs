@@ -378,50 +378,7 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
             })
         }
         BenchDevices::Sim(cfg) => {
-            let scene = Scene::from_path(&cfg.scene)?;
-            let protocol = match cfg.stage {
-                StageKind::Grbl => StageProtocol::Grbl,
-                StageKind::Zaber => StageProtocol::Zaber,
-                StageKind::Marlin => StageProtocol::Marlin,
-            };
-            let (mut world, _) = protocol.default_geometry();
-            let geometry = match bench.geometry {
-                Some(g) => {
-                    world.sensor_origin_in_stage_mm = g.sensor_origin_in_stage_mm;
-                    world.surface_z_mm = g.surface_z_mm;
-                    world.press_direction = g.press_direction;
-                    g
-                }
-                None => BenchGeometry {
-                    sensor_origin_in_stage_mm: world.sensor_origin_in_stage_mm,
-                    surface_z_mm: world.surface_z_mm,
-                    press_direction: world.press_direction,
-                    clearance_mm: 1.0,
-                },
-            };
-            world.friction = cfg.friction.unwrap_or(scene.load.friction);
-            let start_mm = sim
-                .start_over_mm
-                .map(|xy| geometry.stage_point(xy, -2.0 * geometry.clearance_mm));
-            let vb = VirtualBench::start_with(
-                &scene,
-                protocol,
-                match cfg.force_sensor {
-                    FtKind::DynPick => FtProtocol::DynPick,
-                    FtKind::Ft300 => FtProtocol::Ft300,
-                    // The HEX speaks the Net F/T's records: simulated by the same device
-                    // (config.rs refuses it for [sim] benches).
-                    FtKind::NetFt | FtKind::OnRobotHex => FtProtocol::NetFt,
-                    FtKind::Bota => FtProtocol::Bota,
-                },
-                &sim.links,
-                BenchOptions {
-                    geometry: Some(world),
-                    start_mm,
-                    stage_faults: sim.stage_faults.clone(),
-                    ft_faults: sim.ft_faults.clone(),
-                },
-            )?;
+            let (vb, geometry, world) = start_virtual(bench, cfg, sim)?;
             // Serial ports are opened by name (a `&str`): a link inside a run
             // directory whose path is not UTF-8 would be mangled by a lossy
             // conversion, so the pseudo-terminal's own name is used then.
@@ -435,32 +392,8 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                 None,
                 None,
             )?;
-            let baud = match cfg.force_sensor {
-                FtKind::DynPick => dynpick::BAUD,
-                FtKind::Ft300 => ft300::BAUD,
-                _ => bota::BAUD,
-            };
             let mut warnings = Vec::new();
-            let (f, fid) = match vb.ft_endpoint() {
-                FtEndpoint::Serial(p) => {
-                    let port = port_name(p, vb.ft_device().unwrap_or(p))?;
-                    open_ft(
-                        cfg.force_sensor,
-                        FtTarget::Serial { port: &port, baud },
-                        true,
-                        &mut warnings,
-                    )?
-                }
-                FtEndpoint::Network { rdt, cal } => {
-                    let n = NetFtConfig {
-                        host: rdt.ip().to_string(),
-                        rdt_port: rdt.port(),
-                        cal_port: cal.map_or(0, |c| c.port()),
-                        counts_override: None,
-                    };
-                    open_ft(cfg.force_sensor, FtTarget::Network(&n), true, &mut warnings)?
-                }
-            };
+            let (f, fid) = open_sim_ft(&vb, cfg.force_sensor, &mut warnings)?;
             let c = SocketCamera::connect(vb.camera_socket()).map_err(dev("camera"))?;
             Ok(Connected {
                 stage: s,
@@ -482,6 +415,150 @@ pub fn connect(bench: &BenchConfig, sim: &SimOptions) -> Result<Connected, Conne
                     "file": bench.path.display().to_string(),
                     "cwd": working_dir(),
                 }),
+                warnings,
+                sim: Some(vb),
+            })
+        }
+    }
+}
+
+/// Starts the virtual bench of a `[sim]` bench file: its world geometry from the
+/// stage kind's defaults, overridden by the file's `[geometry]`.
+fn start_virtual(
+    bench: &BenchConfig,
+    cfg: &super::config::SimConfig,
+    sim: &SimOptions,
+) -> Result<(VirtualBench, BenchGeometry, WorldGeometry), ConnectError> {
+    let scene = Scene::from_path(&cfg.scene)?;
+    let protocol = match cfg.stage {
+        StageKind::Grbl => StageProtocol::Grbl,
+        StageKind::Zaber => StageProtocol::Zaber,
+        StageKind::Marlin => StageProtocol::Marlin,
+    };
+    let (mut world, _) = protocol.default_geometry();
+    let geometry = match bench.geometry {
+        Some(g) => {
+            world.sensor_origin_in_stage_mm = g.sensor_origin_in_stage_mm;
+            world.surface_z_mm = g.surface_z_mm;
+            world.press_direction = g.press_direction;
+            g
+        }
+        None => BenchGeometry {
+            sensor_origin_in_stage_mm: world.sensor_origin_in_stage_mm,
+            surface_z_mm: world.surface_z_mm,
+            press_direction: world.press_direction,
+            clearance_mm: 1.0,
+        },
+    };
+    world.friction = cfg.friction.unwrap_or(scene.load.friction);
+    let start_mm = sim
+        .start_over_mm
+        .map(|xy| geometry.stage_point(xy, -2.0 * geometry.clearance_mm));
+    let vb = VirtualBench::start_with(
+        &scene,
+        protocol,
+        match cfg.force_sensor {
+            FtKind::DynPick => FtProtocol::DynPick,
+            FtKind::Ft300 => FtProtocol::Ft300,
+            // The HEX speaks the Net F/T's records: simulated by the same device
+            // (config.rs refuses it for [sim] benches).
+            FtKind::NetFt | FtKind::OnRobotHex => FtProtocol::NetFt,
+            FtKind::Bota => FtProtocol::Bota,
+        },
+        &sim.links,
+        BenchOptions {
+            geometry: Some(world),
+            start_mm,
+            stage_faults: sim.stage_faults.clone(),
+            ft_faults: sim.ft_faults.clone(),
+        },
+    )?;
+    Ok((vb, geometry, world))
+}
+
+/// Connects the force-sensor driver to a virtual bench's simulator.
+fn open_sim_ft(
+    vb: &VirtualBench,
+    kind: FtKind,
+    warnings: &mut Vec<String>,
+) -> Result<(Box<dyn ForceSensor>, serde_json::Value), ConnectError> {
+    let baud = match kind {
+        FtKind::DynPick => dynpick::BAUD,
+        FtKind::Ft300 => ft300::BAUD,
+        _ => bota::BAUD,
+    };
+    match vb.ft_endpoint() {
+        FtEndpoint::Serial(p) => {
+            let port = port_name(p, vb.ft_device().unwrap_or(p))?;
+            open_ft(kind, FtTarget::Serial { port: &port, baud }, true, warnings)
+        }
+        FtEndpoint::Network { rdt, cal } => {
+            let n = NetFtConfig {
+                host: rdt.ip().to_string(),
+                rdt_port: rdt.port(),
+                cal_port: cal.map_or(0, |c| c.port()),
+                counts_override: None,
+            };
+            open_ft(kind, FtTarget::Network(&n), true, warnings)
+        }
+    }
+}
+
+/// What `tactbench stage --bench` drives: the stage's port and protocol settings
+/// (the CLI opens the stage itself, with the same drivers) and the force sensor,
+/// opened; no camera.
+pub struct StageBench {
+    /// The stage: protocol, port (a simulated bench's pseudo-terminal), baud, ...
+    pub stage: super::config::StageConfig,
+    /// The force sensor the stage commands watch.
+    pub ft: Box<dyn ForceSensor>,
+    /// Things to tell the user about how the force sensor was opened.
+    pub warnings: Vec<String>,
+    /// The simulated bench, when simulated (it stops when dropped).
+    pub sim: Option<VirtualBench>,
+}
+
+/// Opens what `tactbench stage --bench` needs: the force sensor, and for a `[sim]`
+/// bench the virtual bench (links under `sim.links`) whose stage port it returns.
+pub fn open_for_stage(bench: &BenchConfig, sim: &SimOptions) -> Result<StageBench, ConnectError> {
+    match &bench.devices {
+        BenchDevices::Hardware {
+            stage,
+            force_sensor,
+            ..
+        } => {
+            let mut warnings = Vec::new();
+            let target = match &force_sensor.network {
+                Some(n) => FtTarget::Network(n),
+                None => FtTarget::Serial {
+                    port: &force_sensor.port,
+                    baud: force_sensor.baud,
+                },
+            };
+            let (ft, _) = open_ft(force_sensor.protocol, target, false, &mut warnings)?;
+            Ok(StageBench {
+                stage: stage.clone(),
+                ft,
+                warnings,
+                sim: None,
+            })
+        }
+        BenchDevices::Sim(cfg) => {
+            let (vb, _, _) = start_virtual(bench, cfg, sim)?;
+            let port = port_name(vb.stage_port(), vb.stage_device())?;
+            let mut warnings = Vec::new();
+            let (ft, _) = open_sim_ft(&vb, cfg.force_sensor, &mut warnings)?;
+            Ok(StageBench {
+                stage: super::config::StageConfig {
+                    protocol: cfg.stage,
+                    port,
+                    baud: 115_200,
+                    zaber_devices: [1, 2, 3],
+                    zaber_mm_per_step: DEFAULT_MM_PER_STEP,
+                    marlin_max_feed_mm_min: None,
+                    travel: None,
+                },
+                ft,
                 warnings,
                 sim: Some(vb),
             })

@@ -9,6 +9,10 @@
 //! file stays in the run directory after the run (its content then names the last
 //! writer); whether a run is live is decided by the lock, never by the file's presence.
 //!
+//! The same lock guards a serial port ([`PortClaim`]): each `tactbench stage` command
+//! (and `run` on a real bench) claims its port in [`port_claim_dir`], so a `stage
+//! stop` elsewhere learns from [`port_holder`] which process to signal.
+//!
 //! [`probe`] lets readers (`report`) ask whether a writer is live without blocking it:
 //! it opens the file read-only (never creating it) and takes a shared lock for an
 //! instant. A writer that starts during that instant retries for
@@ -159,42 +163,13 @@ impl RunLock {
     /// the live holder.
     pub fn acquire(dir: &Path, command: &str) -> Result<RunLock, LockError> {
         let path = dir.join(LOCK_FILE);
-        let io = |source| LockError::Io {
-            path: path.clone(),
-            source,
-        };
-        // Never truncate on open: the file names the holder until we hold the lock.
-        let mut file = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(io)?;
-        let t0 = Instant::now();
-        loop {
-            match file.try_lock() {
-                Ok(()) => break,
-                Err(TryLockError::WouldBlock) if t0.elapsed() < ACQUIRE_GRACE => {
-                    std::thread::sleep(Duration::from_millis(20));
-                }
-                Err(TryLockError::WouldBlock) => {
-                    let mut text = String::new();
-                    let _ = file.read_to_string(&mut text);
-                    return Err(LockError::Held {
-                        dir: dir.to_path_buf(),
-                        holder: Holder::parse(&text),
-                    });
-                }
-                Err(TryLockError::Error(e)) => return Err(io(e)),
-            }
+        match take(&path, command)? {
+            Taken::Mine(file) => Ok(RunLock { file, path }),
+            Taken::Held(holder) => Err(LockError::Held {
+                dir: dir.to_path_buf(),
+                holder,
+            }),
         }
-        let me = Holder::me(command);
-        file.set_len(0).map_err(io)?;
-        file.seek(SeekFrom::Start(0)).map_err(io)?;
-        file.write_all(me.to_text().as_bytes()).map_err(io)?;
-        file.sync_all().map_err(io)?;
-        Ok(RunLock { file, path })
     }
 
     /// The lock file.
@@ -206,6 +181,53 @@ impl RunLock {
     pub fn release(self) {
         let _ = self.file.unlock();
     }
+}
+
+/// What [`take`] got.
+enum Taken {
+    /// The lock, with this process recorded in the file.
+    Mine(File),
+    /// A live process holds it.
+    Held(Holder),
+}
+
+/// Takes the exclusive lock of the file at `path` (created if missing, never
+/// truncated before it is held) for `command`, retrying for [`ACQUIRE_GRACE`], and
+/// records this process in it; or names the live holder.
+fn take(path: &Path, command: &str) -> Result<Taken, LockError> {
+    let io = |source| LockError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    // Never truncate on open: the file names the holder until we hold the lock.
+    let mut file = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)
+        .map_err(io)?;
+    let t0 = Instant::now();
+    loop {
+        match file.try_lock() {
+            Ok(()) => break,
+            Err(TryLockError::WouldBlock) if t0.elapsed() < ACQUIRE_GRACE => {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            Err(TryLockError::WouldBlock) => {
+                let mut text = String::new();
+                let _ = file.read_to_string(&mut text);
+                return Ok(Taken::Held(Holder::parse(&text)));
+            }
+            Err(TryLockError::Error(e)) => return Err(io(e)),
+        }
+    }
+    let me = Holder::me(command);
+    file.set_len(0).map_err(io)?;
+    file.seek(SeekFrom::Start(0)).map_err(io)?;
+    file.write_all(me.to_text().as_bytes()).map_err(io)?;
+    file.sync_all().map_err(io)?;
+    Ok(Taken::Mine(file))
 }
 
 /// What [`probe`] found about a run directory's writer.
@@ -221,11 +243,21 @@ pub enum LockState {
 
 /// Whether a live process writes `dir`, without creating or changing anything.
 pub fn probe(dir: &Path) -> Result<LockState, LockError> {
-    let path = dir.join(LOCK_FILE);
-    let mut file = match File::open(&path) {
+    probe_file(&dir.join(LOCK_FILE))
+}
+
+/// Whether a live process holds the lock file at `path`, without creating or
+/// changing anything.
+fn probe_file(path: &Path) -> Result<LockState, LockError> {
+    let mut file = match File::open(path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(LockState::NoLockFile),
-        Err(source) => return Err(LockError::Io { path, source }),
+        Err(source) => {
+            return Err(LockError::Io {
+                path: path.to_path_buf(),
+                source,
+            })
+        }
     };
     match file.try_lock_shared() {
         Ok(()) => {
@@ -237,8 +269,98 @@ pub fn probe(dir: &Path) -> Result<LockState, LockError> {
             let _ = file.read_to_string(&mut text);
             Ok(LockState::Held(Holder::parse(&text)))
         }
-        Err(TryLockError::Error(source)) => Err(LockError::Io { path, source }),
+        Err(TryLockError::Error(source)) => Err(LockError::Io {
+            path: path.to_path_buf(),
+            source,
+        }),
     }
+}
+
+/// The directory of the serial ports' claim files: `$XDG_RUNTIME_DIR/tactbench`, or
+/// `tactbench-UID` in the temporary directory (per user: a process can only signal
+/// its own user's processes anyway).
+pub fn port_claim_dir() -> PathBuf {
+    match std::env::var_os("XDG_RUNTIME_DIR").map(PathBuf::from) {
+        Some(d) if d.is_dir() => d.join("tactbench"),
+        _ => {
+            // SAFETY: getuid has no preconditions and cannot fail.
+            let uid = unsafe { libc::getuid() };
+            std::env::temp_dir().join(format!("tactbench-{uid}"))
+        }
+    }
+}
+
+/// The claim file of a serial port: named after the device the path resolves to
+/// (`/dev/pts/5` -> `port_dev_pts_5.lock`), so a symlink and its target share one.
+pub fn port_claim_path(port: &str) -> PathBuf {
+    let device = std::fs::canonicalize(port).unwrap_or_else(|_| PathBuf::from(port));
+    let name: String = device
+        .to_string_lossy()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    port_claim_dir().join(format!("port{name}.lock"))
+}
+
+/// One tactbench process per serial port: a `stage` command holds the claim of its
+/// port while it has the port open, so a second one (`stage stop` in another
+/// terminal) learns which process to signal instead of failing to open the port.
+/// Released when dropped or when the process dies.
+#[derive(Debug)]
+pub struct PortClaim {
+    _file: File,
+}
+
+/// An error claiming a serial port.
+#[derive(Debug, Error)]
+pub enum ClaimError {
+    /// Another live tactbench process drives this port.
+    #[error(
+        "serial port {port} is in use by another tactbench process ({holder}): wait for it to end, \
+         or stop its motion with Ctrl-C in its terminal or `tactbench stage --port {port} --protocol ... stop` here"
+    )]
+    Held {
+        /// The port as given.
+        port: String,
+        /// Who holds it.
+        holder: Holder,
+    },
+    /// The claim file cannot be created, locked or written.
+    #[error(transparent)]
+    Lock(#[from] LockError),
+}
+
+impl PortClaim {
+    /// Claims `port` for `command` (recorded for a `stage stop` elsewhere), or names
+    /// the live holder.
+    pub fn acquire(port: &str, command: &str) -> Result<PortClaim, ClaimError> {
+        let dir = port_claim_dir();
+        std::fs::create_dir_all(&dir).map_err(|source| LockError::Io {
+            path: dir.clone(),
+            source,
+        })?;
+        match take(&port_claim_path(port), command)? {
+            Taken::Mine(file) => Ok(PortClaim { _file: file }),
+            Taken::Held(holder) => Err(ClaimError::Held {
+                port: port.to_string(),
+                holder,
+            }),
+        }
+    }
+}
+
+/// Which live tactbench process holds `port`'s claim, if one does.
+pub fn port_holder(port: &str) -> Result<Option<Holder>, LockError> {
+    Ok(match probe_file(&port_claim_path(port))? {
+        LockState::Held(h) => Some(h),
+        LockState::Free | LockState::NoLockFile => None,
+    })
 }
 
 #[cfg(test)]
@@ -268,6 +390,30 @@ mod tests {
         let again = RunLock::acquire(dir.path(), "run --resume").unwrap();
         let text = std::fs::read_to_string(again.path()).unwrap();
         assert!(text.contains("command=run --resume"), "{text}");
+    }
+
+    #[test]
+    fn a_port_claim_names_its_holder_through_a_symlink_and_frees_on_drop() {
+        let dir = tempfile::tempdir().unwrap();
+        let device = dir.path().join("ttyFAKE0");
+        std::fs::write(&device, b"").unwrap();
+        let link = dir.path().join("stage");
+        std::os::unix::fs::symlink(&device, &link).unwrap();
+        let (d, l) = (device.to_str().unwrap(), link.to_str().unwrap());
+        assert_eq!(port_claim_path(d), port_claim_path(l));
+        assert_eq!(port_holder(d).unwrap(), None);
+        let claim = PortClaim::acquire(l, "stage move").unwrap();
+        let h = port_holder(d).unwrap().expect("held");
+        assert_eq!(h.pid, Some(std::process::id()));
+        assert_eq!(h.command.as_deref(), Some("stage move"));
+        let e = PortClaim::acquire(d, "stage jog").unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("serial port {d} is in use"))
+                && e.contains("'tactbench stage move'"),
+            "{e}"
+        );
+        drop(claim);
+        assert_eq!(port_holder(l).unwrap(), None);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! The bench runner and its inputs and record: experiment plans ([`plan`]), the bench
 //! file ([`config`]), the runner's pure decision logic ([`control`]: settle detection,
-//! force limits, force control), the runner itself ([`runner`]: setpoints, safety
+//! force limits, force control), a stage move outside a run watched for a stop
+//! signal and the force limits ([`guard`]), the runner itself ([`runner`]: setpoints, safety
 //! watchdog, resume), the crash-safe run directory ([`journal`]) and its one-writer
 //! lock ([`lock`]); `live.json`, the runner's current activity for watchers
 //! ([`live`]). Nothing here prints or draws: the runner emits
@@ -9,6 +10,7 @@
 pub mod config;
 pub mod connect;
 pub mod control;
+pub mod guard;
 pub mod journal;
 pub mod live;
 pub mod lock;

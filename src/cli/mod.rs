@@ -19,6 +19,7 @@ mod reproduce;
 mod run;
 mod sensor;
 mod serve;
+mod signals;
 mod sim;
 mod solver_args;
 mod stage;

@@ -5,13 +5,12 @@
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
-use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
+use super::signals::{install_stop_handlers, stop_flags};
 use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
 use tactbench::bench::journal::{Direction, Manifest, RunStatus};
@@ -200,53 +199,6 @@ fn bench_from_manifest(m: &Manifest) -> anyhow::Result<BenchConfig> {
     bail!("the manifest does not say which bench ran; give --bench or --sim")
 }
 
-/// The flags the signal handler sets: (stop requested, which signal).
-static STOP: OnceLock<(Arc<AtomicBool>, Arc<AtomicI32>)> = OnceLock::new();
-
-/// SIGINT / SIGTERM / SIGHUP handler: records the first signal and asks the runner to
-/// stop. Async-signal-safe: atomic loads and stores only.
-extern "C" fn on_stop_signal(signal: libc::c_int) {
-    if let Some((stop, which)) = STOP.get() {
-        let _ = which.compare_exchange(0, signal, Ordering::SeqCst, Ordering::SeqCst);
-        stop.store(true, Ordering::SeqCst);
-    }
-}
-
-/// The flags [`on_stop_signal`] sets (and the live view's Stop button).
-fn stop_flags() -> (Arc<AtomicBool>, Arc<AtomicI32>) {
-    STOP.get_or_init(|| {
-        (
-            Arc::new(AtomicBool::new(false)),
-            Arc::new(AtomicI32::new(0)),
-        )
-    })
-    .clone()
-}
-
-/// Installs [`on_stop_signal`] for SIGINT, SIGTERM and SIGHUP; returns the flags.
-fn install_stop_handlers() -> anyhow::Result<(Arc<AtomicBool>, Arc<AtomicI32>)> {
-    let flags = stop_flags();
-    for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
-        // SAFETY: `action` is fully initialised (zeroed, then handler, empty mask,
-        // SA_RESTART) before sigaction reads it; the handler only touches atomics.
-        let rc = unsafe {
-            let mut action: libc::sigaction = std::mem::zeroed();
-            action.sa_sigaction = on_stop_signal as extern "C" fn(libc::c_int) as usize;
-            action.sa_flags = libc::SA_RESTART;
-            libc::sigemptyset(&mut action.sa_mask);
-            libc::sigaction(signal, &action, std::ptr::null_mut())
-        };
-        if rc != 0 {
-            bail!(
-                "cannot install the {} handler: {}",
-                tactbench::bench::journal::signal_name(signal),
-                std::io::Error::last_os_error()
-            );
-        }
-    }
-    Ok(flags)
-}
-
 /// Checks one preview frame of the camera (not one of the run's frames) for a blank
 /// or saturated image inside the sensor's ROI.
 fn check_camera_levels(
@@ -407,6 +359,15 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let run_lock = run_lock.context("cannot resume: no such run directory")?;
 
     let (stop, stop_signal) = install_stop_handlers()?;
+    // A real stage's port is claimed as `tactbench stage` claims it, so `stage stop`
+    // in another terminal reaches this run (SIGINT: stop, retract, interrupted). Best
+    // effort: a held claim means the port is busy, which connecting reports.
+    let _port_claim = match &bench.devices {
+        tactbench::bench::config::BenchDevices::Hardware { stage, .. } => {
+            tactbench::bench::lock::PortClaim::acquire(&stage.port, "run").ok()
+        }
+        tactbench::bench::config::BenchDevices::Sim(_) => None,
+    };
 
     let sim_options = SimOptions {
         links: connect::default_links(&dir),

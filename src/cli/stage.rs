@@ -2,15 +2,22 @@
 //! and the hidden `tactbench sim-serve-stage` helper that serves a stage
 //! simulator on a pseudo-terminal (used by the CLI tests and for manual trials).
 
-use std::io::Read;
+use std::io::{Read, Write};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::time::Duration;
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::{Args as ClapArgs, Subcommand, ValueEnum};
 use serde::Serialize;
 
+use super::signals::{install_stop_handlers, stop_signal_time};
+use tactbench::bench::config::{BenchConfig, StageConfig, StageKind};
+use tactbench::bench::connect::{self, SimOptions};
+use tactbench::bench::guard::{watch_move, MotionWatch, StopCause, Stopped, Watched};
+use tactbench::bench::lock::{self, ClaimError, Holder, PortClaim};
 use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
 use tactbench::device::grbl::sim::{GrblSim, GrblSimConfig};
 use tactbench::device::grbl::{self, Grbl, GrblConfig};
@@ -19,7 +26,7 @@ use tactbench::device::marlin::{self, Marlin, MarlinConfig};
 use tactbench::device::pty::PtyServer;
 use tactbench::device::zaber::sim::{ZaberSim, ZaberSimConfig};
 use tactbench::device::zaber::{self, Zaber, ZaberAxis, ZaberConfig};
-use tactbench::device::{Stage, StageState};
+use tactbench::device::{ForceSensor, Stage, StageState};
 
 /// Wire protocol of the stage controller.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -33,6 +40,12 @@ pub enum Protocol {
 }
 
 /// Drive an xyz stage: status, unlock, home, position, move, jog.
+///
+/// Ctrl-C (SIGINT), SIGTERM or SIGHUP during `move`, `jog` or `home` stops the
+/// stage (GRBL: jog cancel, or feed hold then reset; Marlin: M410 then M114; Zaber:
+/// stop), prints where it stopped and exits 4. `stop` in another terminal signals the
+/// process that holds the port. With `--bench bench.toml`, `move` and `jog` watch the
+/// bench's force sensor and stop at its `[safety] max_force_n` (exit 3).
 ///
 /// Positions are in mm in the controller's own frame: GRBL machine coordinates
 /// (MPos; after homing GRBL's travel is negative, e.g. x in [-200, 0] mm), Zaber
@@ -52,6 +65,11 @@ pub struct Args {
     /// Serial port of the controller (see `tactbench ports`).
     #[arg(long, global = true, value_name = "PATH")]
     port: Option<String>,
+    /// Bench file: the stage (`[stage]`, or the simulated bench of `[sim]`) instead of
+    /// --port/--protocol, and the force sensor that `move` and `jog` watch against
+    /// `[safety] max_force_n`.
+    #[arg(long, global = true, value_name = "BENCH_TOML")]
+    bench: Option<PathBuf>,
     /// Controller protocol.
     #[arg(long, global = true, value_enum)]
     protocol: Option<Protocol>,
@@ -176,19 +194,36 @@ struct Conn {
     port: String,
     protocol: Protocol,
     baud: u32,
+    /// The bench file's `[stage]` (or its simulated stage), with `--bench`.
+    bench_stage: Option<StageConfig>,
 }
 
-fn validate(a: &Args) -> anyhow::Result<Conn> {
-    let port = a
-        .port
-        .clone()
-        .context("missing --port PATH (list ports with `tactbench ports`)")?;
-    let protocol = a.protocol.context("missing --protocol grbl|zaber|marlin")?;
-    let baud = a.baud.unwrap_or(match protocol {
-        Protocol::Grbl => grbl::DEFAULT_BAUD,
-        Protocol::Zaber => zaber::DEFAULT_BAUD,
-        Protocol::Marlin => marlin::DEFAULT_BAUD,
-    });
+fn validate(a: &Args, bench_stage: Option<&StageConfig>) -> anyhow::Result<Conn> {
+    let (port, protocol, baud) = match bench_stage {
+        Some(st) => {
+            if a.port.is_some() || a.protocol.is_some() || a.baud.is_some() {
+                bail!("give --bench or --port/--protocol/--baud, not both: the bench file names the stage");
+            }
+            let protocol = match st.protocol {
+                StageKind::Grbl => Protocol::Grbl,
+                StageKind::Zaber => Protocol::Zaber,
+                StageKind::Marlin => Protocol::Marlin,
+            };
+            (st.port.clone(), protocol, st.baud)
+        }
+        None => {
+            let port = a.port.clone().context(
+                "missing --port PATH (list ports with `tactbench ports`) or --bench bench.toml",
+            )?;
+            let protocol = a.protocol.context("missing --protocol grbl|zaber|marlin")?;
+            let baud = a.baud.unwrap_or(match protocol {
+                Protocol::Grbl => grbl::DEFAULT_BAUD,
+                Protocol::Zaber => zaber::DEFAULT_BAUD,
+                Protocol::Marlin => marlin::DEFAULT_BAUD,
+            });
+            (port, protocol, baud)
+        }
+    };
     if !(a.timeout.is_finite() && a.timeout > 0.0) {
         bail!(
             "--timeout {} s must be a positive number of seconds",
@@ -204,10 +239,16 @@ fn validate(a: &Args) -> anyhow::Result<Conn> {
         port,
         protocol,
         baud,
+        bench_stage: bench_stage.cloned(),
     })
 }
 
-fn zaber_config(a: &Args) -> anyhow::Result<ZaberConfig> {
+fn zaber_config(a: &Args, bench: Option<&StageConfig>) -> anyhow::Result<ZaberConfig> {
+    if let Some(st) = bench {
+        let mut c = ZaberConfig::single_axis_devices(st.zaber_devices, st.zaber_mm_per_step);
+        c.checksums = !a.zaber_no_checksum;
+        return Ok(c);
+    }
     let res: [f64; 3] = match a.zaber_mm_per_step.as_slice() {
         [] => [zaber::DEFAULT_MM_PER_STEP; 3],
         [r] => [*r; 3],
@@ -245,7 +286,7 @@ fn zaber_config(a: &Args) -> anyhow::Result<ZaberConfig> {
     Ok(c)
 }
 
-fn marlin_config(a: &Args) -> anyhow::Result<MarlinConfig> {
+fn marlin_config(a: &Args, bench: Option<&StageConfig>) -> anyhow::Result<MarlinConfig> {
     if !(a.marlin_banner_timeout.is_finite() && a.marlin_banner_timeout >= 0.0) {
         bail!(
             "--marlin-banner-timeout {} s must be a number of seconds >= 0",
@@ -253,7 +294,7 @@ fn marlin_config(a: &Args) -> anyhow::Result<MarlinConfig> {
         );
     }
     let max_feed_mm_min = match a.marlin_max_feed.as_slice() {
-        [] => None,
+        [] => bench.and_then(|st| st.marlin_max_feed_mm_min),
         [x, y, z] => {
             if let Some(bad) = [x, y, z].iter().find(|v| !(v.is_finite() && ***v > 0.0)) {
                 bail!("--marlin-max-feed {bad} mm/min must be a positive feed rate");
@@ -307,12 +348,251 @@ fn marlin_detail<P: std::io::Read + std::io::Write>(m: &Marlin<P>) -> String {
     d
 }
 
+/// The stop handling of a command that moves: the signal flags, and with
+/// `--bench` the force sensor and its limits.
+struct Guard {
+    stop: Arc<AtomicBool>,
+    signal: Arc<AtomicI32>,
+    force: Option<(Box<dyn ForceSensor>, [f64; 3])>,
+    /// The bench file, for messages.
+    bench: Option<PathBuf>,
+    /// `home`: a second handle on the port to stop the homing cycle with, which the
+    /// drivers run as one blocking command.
+    interrupt: Option<HomeInterrupt>,
+}
+
+/// How a homing cycle is stopped: bytes written on a second handle of the port while
+/// the driver waits for the cycle's end.
+struct HomeInterrupt {
+    port: Box<dyn serialport::SerialPort>,
+    bytes: &'static [u8],
+    /// What the bytes are, for the message.
+    how: &'static str,
+}
+
+impl HomeInterrupt {
+    /// The protocol's stop for a homing cycle: GRBL answers nothing but real-time
+    /// bytes while homing, so its soft reset 0x18; Zaber `stop` to every device
+    /// (`/0 0 stop`); Marlin `M112` (its firmware kills itself after an `M410`
+    /// anyway, when the interrupted homing move found no endstop).
+    fn new(port: &dyn serialport::SerialPort, protocol: Protocol) -> Option<HomeInterrupt> {
+        let (bytes, how): (&'static [u8], &'static str) = match protocol {
+            Protocol::Grbl => (&[0x18], "GRBL soft reset 0x18"),
+            Protocol::Zaber => (b"/0 0 stop\n", "Zaber `/0 0 stop` to every device"),
+            Protocol::Marlin => (b"M112\n", "Marlin M112 emergency stop"),
+        };
+        port.try_clone()
+            .ok()
+            .map(|port| HomeInterrupt { port, bytes, how })
+    }
+}
+
+impl Guard {
+    /// Fails (exit 4) when a stop signal arrived before the motion started.
+    fn check_before_moving(&self) -> anyhow::Result<()> {
+        if self.stop.load(Ordering::SeqCst) {
+            bail!(Interrupted(format!(
+                "{}: nothing was moved",
+                tactbench::bench::journal::stop_cause(self.signal.load(Ordering::SeqCst))
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A stop by a signal: exit 4 after the message (see [`run`]'s exit codes).
+#[derive(Debug)]
+struct Interrupted(String);
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "stopped by {}", self.0)
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// Exit code of a move stopped by a signal (as `run`'s).
+const EXIT_INTERRUPTED: u8 = 4;
+/// Exit code of a move stopped by the force limit or a failed force reading (as
+/// `run`'s abort).
+const EXIT_FORCE_STOP: u8 = 3;
+
 /// Runs `tactbench stage`.
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {
-    let conn = validate(&a)?;
+    match run_inner(a) {
+        Err(e) if e.downcast_ref::<Interrupted>().is_some() => {
+            eprintln!("error: {e}");
+            Ok(ExitCode::from(EXIT_INTERRUPTED))
+        }
+        r => r,
+    }
+}
+
+fn run_inner(a: Args) -> anyhow::Result<ExitCode> {
+    let moves = matches!(
+        a.action,
+        Action::Move { .. } | Action::Jog { .. } | Action::Home
+    );
+    // Before anything opens: a signal from here on stops the motion instead of
+    // killing the process with the controller executing its buffer.
+    let (stop, signal) = if moves {
+        install_stop_handlers()?
+    } else {
+        (
+            Arc::new(AtomicBool::new(false)),
+            Arc::new(AtomicI32::new(0)),
+        )
+    };
+    let bench = a.bench.as_ref().map(BenchConfig::from_path).transpose()?;
+    let links = std::env::temp_dir().join(format!("tactbench-stage-{}", std::process::id()));
+    let opened = match &bench {
+        Some(b) => Some(
+            connect::open_for_stage(
+                b,
+                &SimOptions {
+                    links: links.clone(),
+                    ..SimOptions::default()
+                },
+            )
+            .with_context(|| format!("opening the bench of {}", b.path.display()))?,
+        ),
+        None => None,
+    };
+    let conn = validate(&a, opened.as_ref().map(|o| &o.stage))?;
+    let mut guard = Guard {
+        stop,
+        signal,
+        force: None,
+        bench: a.bench.clone(),
+        interrupt: None,
+    };
+    let mut sim = None;
+    if let (Some(b), Some(o)) = (&bench, opened) {
+        for w in &o.warnings {
+            eprintln!("warning: {w}");
+        }
+        if matches!(a.action, Action::Move { .. } | Action::Jog { .. }) {
+            let limits = b.max_force_n.with_context(|| {
+                format!(
+                    "{} has no [safety] max_force_n: `stage --bench` watches the force sensor against it while moving (|fx|, |fy|, |fz| in N)",
+                    b.path.display()
+                )
+            })?;
+            guard.force = Some((o.ft, limits));
+        }
+        sim = o.sim;
+    }
+    let claim = match PortClaim::acquire(&conn.port, &command_name(&a.action)) {
+        Ok(c) => Some(c),
+        Err(ClaimError::Held { holder, .. }) if matches!(a.action, Action::Stop) => {
+            stop_holder(&conn.port, &holder)?;
+            None
+        }
+        Err(e @ ClaimError::Held { .. }) => return Err(e.into()),
+        Err(ClaimError::Lock(e)) => {
+            // Without the claim, a `stage stop` elsewhere cannot find this process:
+            // say so, but drive the stage.
+            eprintln!("warning: cannot claim {} for this process ({e}): `tactbench stage stop` in another terminal will not reach it; Ctrl-C here stops the motion", conn.port);
+            None
+        }
+    };
+    let claim = match claim {
+        Some(c) => Some(c),
+        // The holder released the port: claim it now to stop the stage ourselves.
+        None if matches!(a.action, Action::Stop) => {
+            PortClaim::acquire(&conn.port, "stage stop").ok()
+        }
+        None => None,
+    };
+    let r = drive(&a, &conn, &mut guard);
+    drop(claim);
+    drop(sim);
+    if a.bench.is_some() {
+        let _ = std::fs::remove_dir_all(&links);
+    }
+    r
+}
+
+/// `stage move`, `stage jog`, ...: what a holder is recorded as doing.
+fn command_name(action: &Action) -> String {
+    let name = match action {
+        Action::Status => "status",
+        Action::Unlock => "unlock",
+        Action::Resume => "resume",
+        Action::Stop => "stop",
+        Action::Home => "home",
+        Action::Position => "position",
+        Action::Move { .. } => "move",
+        Action::Jog { .. } => "jog",
+    };
+    format!("stage {name}")
+}
+
+/// How long `stage stop` waits for the process it signalled to release the port.
+const HOLDER_STOP_WAIT: Duration = Duration::from_secs(15);
+
+/// `stage stop` while another tactbench process holds the port: SIGINT to it (its
+/// Ctrl-C: it stops the motion and exits), then wait until it has let the port go.
+fn stop_holder(port: &str, holder: &Holder) -> anyhow::Result<()> {
+    let pid = holder.pid.with_context(|| {
+        format!("{port} is held by another tactbench process ({holder}) that has not recorded its PID yet: press Ctrl-C in its terminal, that is the stop")
+    })?;
+    let here = lock::hostname();
+    if holder.host.as_deref().is_some_and(|h| h != here) {
+        bail!("{port} is held by {holder}, not on this host ({here}): press Ctrl-C in its terminal, that is the stop");
+    }
+    let target = libc::pid_t::try_from(pid)
+        .with_context(|| format!("{port}: holder PID {pid} is out of range"))?;
+    // SAFETY: kill has no memory preconditions; a stale PID is ruled out by the
+    // claim's lock, which only a live process holds.
+    if unsafe { libc::kill(target, libc::SIGINT) } != 0 {
+        bail!(
+            "cannot signal {holder}, which holds {port}: {}; press Ctrl-C in its terminal, that is the stop",
+            std::io::Error::last_os_error()
+        );
+    }
+    eprintln!(
+        "{port} is held by {holder}: sent it SIGINT (its Ctrl-C: it stops the stage and exits)"
+    );
+    let deadline = Instant::now() + HOLDER_STOP_WAIT;
+    while lock::port_holder(port)?.is_some() {
+        if Instant::now() > deadline {
+            bail!(
+                "{holder} still holds {port} {} s after SIGINT: press Ctrl-C in its terminal, or stop the controller by hand",
+                HOLDER_STOP_WAIT.as_secs()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Ok(())
+}
+
+/// Opens the controller and does the action.
+fn drive(a: &Args, conn: &Conn, guard: &mut Guard) -> anyhow::Result<ExitCode> {
+    drive_open(a, conn, guard).map_err(|e| {
+        let busy = e
+            .chain()
+            .any(|c| c.to_string().contains("cannot open serial port"));
+        if busy && matches!(a.action, Action::Stop) {
+            e.context(format!(
+                "no tactbench process has claimed {}: if another program holds the port, Ctrl-C in that program's terminal is the stop",
+                conn.port
+            ))
+        } else {
+            e
+        }
+    })
+}
+
+fn drive_open(a: &Args, conn: &Conn, guard: &mut Guard) -> anyhow::Result<ExitCode> {
+    let travel = conn.bench_stage.as_ref().and_then(|s| s.travel);
     match conn.protocol {
         Protocol::Grbl => {
             let port = grbl::open_serial(&conn.port, conn.baud)?;
+            if matches!(a.action, Action::Home) {
+                guard.interrupt = HomeInterrupt::new(port.as_ref(), conn.protocol);
+            }
             // Only `unlock` may reset a controller that answers nothing (a critical
             // alarm); `status` and the rest leave it as it is.
             let connect = if matches!(a.action, Action::Unlock) {
@@ -320,14 +600,17 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             } else {
                 Grbl::connect
             };
-            let mut g = connect(port, GrblConfig::default())
+            let cfg = GrblConfig {
+                limits: travel,
+                ..GrblConfig::default()
+            };
+            let mut g = connect(port, cfg)
                 .with_context(|| format!("connecting to GRBL on {}", conn.port))?;
             match a.action {
                 Action::Jog { dx, dy, dz } => {
+                    guard.check_before_moving()?;
                     g.jog([dx, dy, dz], a.speed.unwrap_or(DEFAULT_JOG_SPEED_MM_S))?;
-                    g.wait_idle(Duration::from_secs_f64(a.timeout))?;
-                    print_position(&mut g, a.json)?;
-                    return Ok(ExitCode::SUCCESS);
+                    return watched(&mut g, a, guard, format!("jog by {dx}, {dy}, {dz} mm"));
                 }
                 Action::Unlock => {
                     let r = g.unlock_report()?;
@@ -351,28 +634,34 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 _ => {}
             }
             let d = grbl_detail(&mut g)?;
-            act(&mut g, &a, d)
+            act(&mut g, a, d, guard)
         }
         Protocol::Zaber => {
-            let cfg = zaber_config(&a)?;
+            let cfg = zaber_config(a, conn.bench_stage.as_ref())?;
             let port = zaber::open_serial(&conn.port, conn.baud)?;
+            if matches!(a.action, Action::Home) {
+                guard.interrupt = HomeInterrupt::new(port.as_ref(), conn.protocol);
+            }
             let mut z = Zaber::connect(port, cfg)
                 .with_context(|| format!("connecting to Zaber devices on {}", conn.port))?;
             let w = z.warnings();
             let d = format!("zaber warnings x {} y {} z {}", w[0], w[1], w[2]);
-            act(&mut z, &a, d)
+            act(&mut z, a, d, guard)
         }
         Protocol::Marlin => {
-            let cfg = marlin_config(&a)?;
+            let mut cfg = marlin_config(a, conn.bench_stage.as_ref())?;
+            cfg.limits = travel;
             let port = marlin::open_serial(&conn.port, conn.baud)?;
+            if matches!(a.action, Action::Home) {
+                guard.interrupt = HomeInterrupt::new(port.as_ref(), conn.protocol);
+            }
             let mut m = Marlin::connect(port, cfg)
                 .with_context(|| format!("connecting to Marlin on {}", conn.port))?;
             match a.action {
                 Action::Jog { dx, dy, dz } => {
+                    guard.check_before_moving()?;
                     m.jog([dx, dy, dz], a.speed.unwrap_or(DEFAULT_JOG_SPEED_MM_S))?;
-                    m.wait_idle(Duration::from_secs_f64(a.timeout))?;
-                    print_position(&mut m, a.json)?;
-                    return Ok(ExitCode::SUCCESS);
+                    return watched(&mut m, a, guard, format!("jog by {dx}, {dy}, {dz} mm"));
                 }
                 Action::Resume => {
                     m.resume()?;
@@ -384,9 +673,115 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 _ => {}
             }
             let d = marlin_detail(&m);
-            act(&mut m, &a, d)
+            act(&mut m, a, d, guard)
         }
     }
+}
+
+/// Waits for a started move under the guard: the stop signals and, with `--bench`,
+/// the force limits. Ended: the target is checked ([`Stage::wait_idle`]) and the
+/// position printed. Stopped: [`report_stop`].
+fn watched(
+    stage: &mut dyn Stage,
+    a: &Args,
+    guard: &mut Guard,
+    what: String,
+) -> anyhow::Result<ExitCode> {
+    let timeout = Duration::from_secs_f64(a.timeout);
+    // Also the line a script (or a test) waits for before it may signal.
+    eprintln!("{what}: under way; Ctrl-C stops the stage");
+    let outcome = watch_move(
+        stage,
+        MotionWatch {
+            stop: &guard.stop,
+            stop_asked_ns: stop_signal_time(),
+            force: guard
+                .force
+                .as_mut()
+                .map(|(f, l)| (f.as_mut() as &mut dyn ForceSensor, *l)),
+            timeout,
+        },
+    )
+    .with_context(|| format!("watching the {what}"))?;
+    match outcome {
+        Watched::Ended => {
+            stage.wait_idle(timeout)?;
+            print_position(stage, a.json)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Watched::Stopped(s) => report_stop(stage, a, guard, &what, *s),
+    }
+}
+
+/// Says why and where a watched move stopped, leaves the controller usable (a stop
+/// that left it in alarm is unlocked, or the alarm named), prints the position as a
+/// finished move does, and returns the exit code: 4 for a signal, 3 for the force.
+fn report_stop(
+    stage: &mut dyn Stage,
+    a: &Args,
+    guard: &Guard,
+    what: &str,
+    s: Stopped,
+) -> anyhow::Result<ExitCode> {
+    let at = match &s.position {
+        Ok(p) => format!(
+            "at x = {:.4} mm  y = {:.4} mm  z = {:.4} mm",
+            p[0], p[1], p[2]
+        ),
+        Err(e) => format!("at an unknown position ({e})"),
+    };
+    let mut notes = Vec::new();
+    if let Some(e) = &s.stop_error {
+        notes.push(format!("the stop command failed: {e}"));
+    }
+    match &s.state {
+        Ok(StageState::Alarm) => match stage.unlock() {
+            Ok(()) => notes.push(format!(
+                "the stop left the controller in alarm: unlocked; state: {}",
+                stage
+                    .state()
+                    .map_or_else(|e| e.to_string(), |v| state_name(v).to_string())
+            )),
+            Err(e) => notes.push(format!("the controller is in alarm after the stop: {e}")),
+        },
+        Ok(v) => notes.push(format!("state: {}", state_name(*v))),
+        Err(e) => notes.push(format!("state unknown: {e}")),
+    }
+    let ms = s.latency.as_secs_f64() * 1e3;
+    let (message, code) = match &s.cause {
+        StopCause::Requested => (
+            format!(
+                "stopped by {}: the {what} was abandoned; the stage stood still {ms:.1} ms after the signal, {at}",
+                tactbench::bench::journal::stop_cause(guard.signal.load(Ordering::SeqCst))
+            ),
+            EXIT_INTERRUPTED,
+        ),
+        StopCause::ForceLimit(trip) => (
+            format!(
+                "stopped at the force limit of {}: {trip} ([safety] max_force_n); the stage stood still {ms:.1} ms after the reading, {at}",
+                guard.bench.as_ref().map_or_else(|| "the bench".into(), |p| p.display().to_string())
+            ),
+            EXIT_FORCE_STOP,
+        ),
+        StopCause::ForceUnread(e) => (
+            format!(
+                "stopped: the force sensor gave no reading while moving ({e}); the stage stood still {ms:.1} ms later, {at}"
+            ),
+            EXIT_FORCE_STOP,
+        ),
+        StopCause::Timeout(t) => (
+            format!(
+                "stopped: the {what} did not end within --timeout {:.1} s; {at}",
+                t.as_secs_f64()
+            ),
+            2,
+        ),
+    };
+    eprintln!("error: {message}; {}", notes.join("; "));
+    if let Ok(p) = s.position {
+        print_xyz(p, a.json)?;
+    }
+    Ok(ExitCode::from(code))
 }
 
 /// The GRBL part of `status`: raw state, firmware version, alarm, work offset and
@@ -421,8 +816,75 @@ fn grbl_detail<P: std::io::Read + std::io::Write>(g: &mut Grbl<P>) -> anyhow::Re
     Ok(d)
 }
 
+/// Runs the homing cycle; a stop signal meanwhile writes the protocol's interrupt
+/// ([`HomeInterrupt`]) on the port's second handle, which ends the driver's wait.
+fn home_interruptible(
+    stage: &mut dyn Stage,
+    guard: &mut Guard,
+) -> tactbench::device::DeviceResult<()> {
+    eprintln!("homing: under way; Ctrl-C stops the stage");
+    let Some(interrupt) = guard.interrupt.as_mut() else {
+        return stage.home();
+    };
+    let done = AtomicBool::new(false);
+    let stop = &guard.stop;
+    std::thread::scope(|scope| {
+        scope.spawn(|| {
+            while !done.load(Ordering::SeqCst) {
+                if stop.load(Ordering::SeqCst) {
+                    let _ = interrupt.port.write_all(interrupt.bytes);
+                    let _ = interrupt.port.flush();
+                    return;
+                }
+                std::thread::sleep(tactbench::bench::guard::FLAG_POLL);
+            }
+        });
+        let r = stage.home();
+        done.store(true, Ordering::SeqCst);
+        r
+    })
+}
+
+/// A homing cycle a signal stopped: what was sent, how the cycle ended, the state
+/// and position the controller now reports (the reference is lost: home again).
+fn report_home_stop(
+    stage: &mut dyn Stage,
+    a: &Args,
+    guard: &Guard,
+    home_error: Option<tactbench::device::DeviceError>,
+) -> anyhow::Result<ExitCode> {
+    let sent = guard
+        .interrupt
+        .as_ref()
+        .map_or("nothing (no second handle on the port)", |i| i.how);
+    let ended = match &home_error {
+        Some(e) => format!("the cycle ended with: {e}"),
+        None => "the controller went idle (the homing wait returned)".to_string(),
+    };
+    let state = stage
+        .state()
+        .map_or_else(|e| format!("unknown ({e})"), |s| state_name(s).to_string());
+    let position = stage.position();
+    let at = match &position {
+        Ok(p) => format!("x = {:.4} mm  y = {:.4} mm  z = {:.4} mm", p[0], p[1], p[2]),
+        Err(e) => format!("unknown ({e})"),
+    };
+    eprintln!(
+        "error: homing stopped by {}: sent {sent}; {ended}; state: {state}; position: {at}; the reference position is not established: run `home` again",
+        tactbench::bench::journal::stop_cause(guard.signal.load(Ordering::SeqCst))
+    );
+    if let Ok(p) = position {
+        print_xyz(p, a.json)?;
+    }
+    Ok(ExitCode::from(EXIT_INTERRUPTED))
+}
+
 fn print_position(stage: &mut dyn Stage, json: bool) -> anyhow::Result<()> {
     let p = stage.position()?;
+    print_xyz(p, json)
+}
+
+fn print_xyz(p: [f64; 3], json: bool) -> anyhow::Result<()> {
     if json {
         let j = PositionJson {
             x_mm: p[0],
@@ -436,8 +898,12 @@ fn print_position(stage: &mut dyn Stage, json: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn act(stage: &mut dyn Stage, a: &Args, detail: String) -> anyhow::Result<ExitCode> {
-    let timeout = Duration::from_secs_f64(a.timeout);
+fn act(
+    stage: &mut dyn Stage,
+    a: &Args,
+    detail: String,
+    guard: &mut Guard,
+) -> anyhow::Result<ExitCode> {
     match a.action {
         Action::Status => {
             let s = stage.state()?;
@@ -474,7 +940,12 @@ fn act(stage: &mut dyn Stage, a: &Args, detail: String) -> anyhow::Result<ExitCo
             }
         }
         Action::Home => {
-            stage.home()?;
+            guard.check_before_moving()?;
+            let r = home_interruptible(stage, guard);
+            if guard.stop.load(Ordering::SeqCst) {
+                return report_home_stop(stage, a, guard, r.err());
+            }
+            r?;
             print_position(stage, a.json)?;
         }
         Action::Position => print_position(stage, a.json)?,
@@ -488,14 +959,14 @@ fn act(stage: &mut dyn Stage, a: &Args, detail: String) -> anyhow::Result<ExitCo
             }
         }
         Action::Move { x, y, z } => {
+            guard.check_before_moving()?;
             stage.move_to([x, y, z], a.speed)?;
-            stage.wait_idle(timeout)?;
-            print_position(stage, a.json)?;
+            return watched(stage, a, guard, format!("move to {x}, {y}, {z} mm"));
         }
         Action::Jog { dx, dy, dz } => {
+            guard.check_before_moving()?;
             stage.move_by([dx, dy, dz], a.speed)?;
-            stage.wait_idle(timeout)?;
-            print_position(stage, a.json)?;
+            return watched(stage, a, guard, format!("jog by {dx}, {dy}, {dz} mm"));
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -129,6 +129,7 @@ pub use dry_run::{
     InputError, StageTargets,
 };
 use motion::Timed;
+pub use motion::{ft_sample_period, STATUS_MISSES};
 pub use record::WriteFault;
 use record::WriteGate;
 
