@@ -1481,9 +1481,14 @@ fn case6_headless_chromium_a_page_of_another_origin_or_a_rebound_name_cannot_sto
             );
         }
     });
+    // No automatic https:// attempt first for the made-up name (plain http, as a real
+    // rebinding page would be served).
     let mut b = Browser::launch_with(
         &path,
-        &["--host-resolver-rules=MAP attacker.example 127.0.0.1"],
+        &[
+            "--host-resolver-rules=MAP attacker.example 127.0.0.1",
+            "--disable-features=HttpsUpgrades",
+        ],
     );
     b.open(&format!("http://{evil_addr}/"));
     wait_for(60, "the other site's attempts", || {
