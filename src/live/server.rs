@@ -416,13 +416,12 @@ fn loopback_hosts(local: SocketAddr) -> Vec<String> {
         SocketAddr::V4(a) => a.ip().to_string(),
         SocketAddr::V6(a) => format!("[{}]", a.ip()),
     };
-    let mut names = vec![
-        bound,
-        "localhost".into(),
-        "127.0.0.1".into(),
-        "[::1]".into(),
-    ];
-    names.dedup();
+    let mut names: Vec<String> = vec![bound];
+    for n in ["localhost", "127.0.0.1", "[::1]"] {
+        if !names.iter().any(|m| m == n) {
+            names.push(n.to_string());
+        }
+    }
     let port = local.port();
     let mut hosts: Vec<String> = names.iter().map(|n| format!("{n}:{port}")).collect();
     if port == 80 {
@@ -1169,6 +1168,14 @@ mod tests {
         assert!(parse_addr("localhost:7878").is_ok());
         let e = parse_addr("plan.toml").unwrap_err().to_string();
         assert!(e.contains("plan.toml") && e.contains("HOST:PORT"), "{e}");
+    }
+
+    #[test]
+    fn a_loopback_view_answers_each_loopback_name_once_with_its_port() {
+        let h = loopback_hosts("127.0.0.1:7878".parse().unwrap());
+        assert_eq!(h, ["127.0.0.1:7878", "localhost:7878", "[::1]:7878"]);
+        let h = loopback_hosts("127.0.0.2:80".parse().unwrap());
+        assert!(h.contains(&"127.0.0.2:80".to_string()) && h.contains(&"localhost".to_string()));
     }
 
     #[test]
