@@ -141,14 +141,60 @@ fn spawn_serve(dirs: &[&Path], extra: &[&str]) -> Served {
     spawn_collecting(&args, "run(s): ")
 }
 
-/// The page's Stop button: `POST /api/stop` with the confirmation header.
+/// The view's token as its page carries it (`None` when the page is refused).
+fn page_token(addr: &str) -> Option<String> {
+    let page = get(addr, "/");
+    if page.status != 200 {
+        return None;
+    }
+    let text = page.text();
+    let key = r#"<meta name="tactbench-token" content=""#;
+    let at = text.find(key)? + key.len();
+    Some(text[at..].split('"').next()?.to_string())
+}
+
+/// The page's Stop button: `POST /api/stop` with the confirmation header and the
+/// token the page carries.
 fn confirmed_stop(addr: &str) -> Resp {
+    let token = page_token(addr).unwrap_or_default();
     request(
         addr,
         "POST",
         "/api/stop",
-        &[("X-Tactbench-Stop", "confirm")],
+        &[
+            ("X-Tactbench-Stop", "confirm"),
+            ("X-Tactbench-Token", &token),
+        ],
     )
+}
+
+/// One request with the `Host` line given (and any other headers).
+fn request_as(addr: &str, host: &str, method: &str, path: &str, headers: &[(&str, &str)]) -> Resp {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    let mut req = format!("{method} {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        req += &format!("{k}: {v}\r\n");
+    }
+    req += "Content-Length: 0\r\n\r\n";
+    s.write_all(req.as_bytes()).unwrap();
+    let mut all = Vec::new();
+    s.read_to_end(&mut all).unwrap();
+    let split = all
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a response head");
+    let head = String::from_utf8_lossy(&all[..split]).into_owned();
+    let status = head
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    Resp {
+        status,
+        head,
+        body: all[split + 4..].to_vec(),
+    }
 }
 
 fn state(addr: &str) -> Value {
@@ -625,7 +671,7 @@ fn twenty_viewers_and_a_hung_one_leave_the_run_and_its_journal_intact() {
     let mut s = spawn_run(&out, n, &["--serve", "127.0.0.1:0"]);
     // A hung browser: connects to the event stream and never reads.
     let mut hung = TcpStream::connect(&s.addr).unwrap();
-    write!(hung, "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+    write!(hung, "GET /api/events HTTP/1.1\r\nHost: {}\r\n\r\n", s.addr).unwrap();
     let viewers: Vec<_> = (0..20)
         .map(|_| {
             let addr = s.addr.clone();
@@ -671,6 +717,11 @@ struct Browser {
 
 impl Browser {
     fn launch(path: &Path) -> Browser {
+        Browser::launch_with(path, &[])
+    }
+
+    /// [`Browser::launch`] with more command-line switches.
+    fn launch_with(path: &Path, extra: &[&str]) -> Browser {
         use std::os::fd::FromRawFd;
         use std::os::unix::process::CommandExt;
         let pipe = || {
@@ -695,6 +746,7 @@ impl Browser {
             "--hide-scrollbars",
             "--remote-debugging-pipe",
         ])
+        .args(extra)
         .arg(format!("--user-data-dir={}", profile.path().display()))
         .arg("about:blank")
         .stdin(Stdio::null())
@@ -787,6 +839,15 @@ impl Browser {
             }),
         );
         r["result"]["value"].as_str().map(str::to_string)
+    }
+
+    /// The value of a script in the page (a promise is awaited).
+    fn eval(&mut self, expr: &str) -> Value {
+        let r = self.call(
+            "Runtime.evaluate",
+            serde_json::json!({ "expression": expr, "returnByValue": true, "awaitPromise": true }),
+        );
+        r["result"]["value"].clone()
     }
 
     fn exists(&mut self, id: &str) -> bool {
@@ -993,7 +1054,7 @@ fn viewer(addr: &str) -> Seen {
         return seen;
     };
     let _ = s.set_read_timeout(Some(Duration::from_secs(120)));
-    let _ = write!(s, "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n");
+    let _ = write!(s, "GET /api/events HTTP/1.1\r\nHost: {addr}\r\n\r\n");
     let mut buf = Vec::new();
     let mut chunk = [0u8; 65536];
     let mut last_index = None;
@@ -1092,4 +1153,398 @@ fn provisional_verdict_matches_what_report_judges() {
         }
     }
     assert!(live["overall"].is_string(), "{live}");
+}
+
+/// Issue 33, case 6: the loopback view answered any `Host` and `Origin`, so a page of
+/// another site whose name was rebound to 127.0.0.1 (DNS rebinding) could read the
+/// run and press Stop (the issue's curl got 202). Now: a foreign `Host` gets 421, a
+/// foreign `Origin` 403, a Stop without the page's token 403, no answer carries CORS
+/// headers, and the page's own Stop still stops the run.
+#[test]
+fn case6_a_foreign_host_or_origin_cannot_read_or_stop_a_loopback_view_and_the_stop_needs_its_token()
+{
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let mut s = spawn_run(&out, 40, &["--serve", "127.0.0.1:0"]);
+    wait_for(120, "a measured setpoint", || {
+        state(&s.addr)["setpoints_done"].as_u64().unwrap_or(0) >= 1
+    });
+    let port = s.addr.rsplit(':').next().unwrap().to_string();
+    let evil_host = format!("attacker.example:{port}");
+    // The issue's curl.
+    let r = request_as(
+        &s.addr,
+        &evil_host,
+        "POST",
+        "/api/stop",
+        &[
+            ("Origin", "http://attacker.example"),
+            ("X-Tactbench-Stop", "confirm"),
+        ],
+    );
+    assert_eq!(r.status, 421, "{}", r.text());
+    assert!(
+        r.text().contains("attacker.example") && r.text().contains("localhost"),
+        "the refusal says what was asked and what is answered: {}",
+        r.text()
+    );
+    // Nothing is readable under the rebound name (or another port).
+    for host in [evil_host.as_str(), "127.0.0.1:1", "localhost"] {
+        for path in [
+            "/",
+            "/api/state",
+            "/api/runs",
+            "/api/journal",
+            "/api/events",
+            "/api/frame.png",
+            "/runs/0/frames/00000_0.png",
+        ] {
+            let r = request_as(&s.addr, host, "GET", path, &[]);
+            assert_eq!(r.status, 421, "{host} {path}: {}", r.text());
+            assert!(
+                !r.text().contains("setpoints") && !r.text().contains("tactbench-token"),
+                "{host} {path}"
+            );
+        }
+    }
+    // Another origin may neither read nor stop, even with the token.
+    let token = page_token(&s.addr).expect("the page carries the view's token");
+    assert_eq!(token.len(), 32);
+    assert!(token.bytes().all(|b| b.is_ascii_hexdigit()));
+    let other_port = format!("http://127.0.0.1:{}", port.parse::<u32>().unwrap() + 1);
+    for origin in ["http://attacker.example", other_port.as_str(), "null"] {
+        let r = request_as(
+            &s.addr,
+            &s.addr,
+            "POST",
+            "/api/stop",
+            &[
+                ("Origin", origin),
+                ("X-Tactbench-Stop", "confirm"),
+                ("X-Tactbench-Token", &token),
+            ],
+        );
+        assert_eq!(r.status, 403, "{origin}: {}", r.text());
+        let r = request_as(&s.addr, &s.addr, "GET", "/api/state", &[("Origin", origin)]);
+        assert_eq!(r.status, 403, "{origin}: {}", r.text());
+    }
+    // The Stop needs the token, right.
+    let wrong = "0".repeat(32);
+    for extra in [vec![], vec![("X-Tactbench-Token", wrong.as_str())]] {
+        let mut h = vec![("X-Tactbench-Stop", "confirm")];
+        h.extend(extra);
+        let r = request_as(&s.addr, &s.addr, "POST", "/api/stop", &h);
+        assert_eq!(r.status, 403, "{h:?}: {}", r.text());
+        assert!(r.text().contains("token"), "{}", r.text());
+    }
+    // No CORS: a preflight is refused and no answer allows another origin.
+    let pre = request_as(
+        &s.addr,
+        &s.addr,
+        "OPTIONS",
+        "/api/stop",
+        &[
+            ("Access-Control-Request-Method", "POST"),
+            ("Access-Control-Request-Headers", "x-tactbench-stop"),
+        ],
+    );
+    assert!(pre.status >= 400, "{}", pre.status);
+    for r in [pre, get(&s.addr, "/api/state"), get(&s.addr, "/")] {
+        let head = r.head.to_ascii_lowercase();
+        assert!(!head.contains("access-control-allow"), "{head}");
+        assert!(
+            head.contains("cross-origin-resource-policy: same-origin"),
+            "{head}"
+        );
+    }
+    // The loopback names are answered.
+    for host in [
+        format!("localhost:{port}"),
+        format!("LocalHost:{port}"),
+        format!("[::1]:{port}"),
+        format!("127.0.0.1:{port}"),
+    ] {
+        assert_eq!(
+            request_as(&s.addr, &host, "GET", "/api/state", &[]).status,
+            200,
+            "{host}"
+        );
+    }
+    // None of it stopped the run; the page's own Stop (its origin, its token) does.
+    assert!(s.child.try_wait().unwrap().is_none(), "the run was stopped");
+    assert_eq!(state(&s.addr)["state"], "running");
+    let own = format!("http://127.0.0.1:{port}");
+    let r = request_as(
+        &s.addr,
+        &s.addr,
+        "POST",
+        "/api/stop",
+        &[
+            ("Origin", own.as_str()),
+            ("X-Tactbench-Stop", "confirm"),
+            ("X-Tactbench-Token", &token),
+        ],
+    );
+    assert_eq!(r.status, 202, "{}", r.text());
+    assert_eq!(wait_exit(&mut s.child, 120), 4);
+}
+
+/// Sets SO_LINGER 0: dropping the stream then resets the connection (RST).
+fn reset_on_drop(s: &TcpStream) {
+    use std::os::fd::AsRawFd;
+    let l = libc::linger {
+        l_onoff: 1,
+        l_linger: 0,
+    };
+    // SAFETY: a valid socket and a `linger` of the size given.
+    let rc = unsafe {
+        libc::setsockopt(
+            s.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_LINGER,
+            (&l as *const libc::linger).cast(),
+            std::mem::size_of::<libc::linger>() as libc::socklen_t,
+        )
+    };
+    assert_eq!(rc, 0);
+}
+
+/// Issue 33, case 10: a client that reset its connection left a web-server thread's
+/// panic and backtrace in the operator's terminal (`tiny_http` unwrapping the peer's
+/// address of a connection already reset). Now it is a quiet close.
+#[test]
+fn case10_a_client_that_resets_its_connection_leaves_no_panic_in_the_log() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = finished_run(tmp.path(), 1);
+    let s = spawn_serve(&[&run], &["--addr", "127.0.0.1:0"]);
+    let Served {
+        mut child,
+        addr,
+        lines,
+        ..
+    } = s;
+    // Reset at once, after a moment, and after the first bytes of the answer.
+    for mode in 0..3 {
+        for path in [
+            "/api/events",
+            "/",
+            "/api/state",
+            "/api/frame.png",
+            "/api/journal",
+        ] {
+            for _ in 0..10 {
+                let mut c = TcpStream::connect(&addr).unwrap();
+                reset_on_drop(&c);
+                let _ = write!(c, "GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n");
+                match mode {
+                    1 => std::thread::sleep(Duration::from_millis(20)),
+                    2 => {
+                        let _ = c.set_read_timeout(Some(Duration::from_secs(5)));
+                        let _ = c.read(&mut [0u8; 16]);
+                    }
+                    _ => {}
+                }
+                drop(c);
+            }
+        }
+    }
+    // Still serving.
+    assert_eq!(get(&addr, "/api/state").status, 200);
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = child.kill();
+    let _ = child.wait();
+    let log: Vec<String> = lines.iter().collect();
+    assert!(
+        !log.iter()
+            .any(|l| l.contains("panicked") || l.contains("backtrace")),
+        "{log:#?}"
+    );
+}
+
+/// Issue 33, case 10: a journal row without finite force sums (a failed
+/// reconstruction: NaN before issue 33, empty columns after) was plotted at 0 (its
+/// NaN became `null`). Now it is left out of the plotted series, and counted.
+#[test]
+fn case10_the_live_plot_leaves_out_a_row_without_finite_force_sums() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = finished_run(tmp.path(), 3);
+    let path = run.join("journal.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    let header: Vec<String> = lines[0].split(',').map(str::to_string).collect();
+    let cols: Vec<usize> = ["fsum_x_n", "fsum_y_n", "fsum_z_n"]
+        .iter()
+        .map(|c| header.iter().position(|h| h == c).unwrap())
+        .collect();
+    for (line, value) in [(2, "NaN"), (3, "")] {
+        let mut f: Vec<String> = lines[line].split(',').map(str::to_string).collect();
+        assert_eq!(f.len(), header.len(), "a plain row: {}", lines[line]);
+        for &c in &cols {
+            f[c] = value.to_string();
+        }
+        lines[line] = f.join(",");
+    }
+    std::fs::write(&path, lines.join("\n") + "\n").unwrap();
+    let mut v = tactbench::live::view::RunView::open(&run, None).unwrap();
+    v.refresh();
+    let series = v.series_json(0);
+    let points = series["points"].as_array().unwrap();
+    assert!(
+        points.iter().all(|p| p
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|x| x.as_f64().is_some_and(f64::is_finite))),
+        "every plotted value a finite number: {series}"
+    );
+    let indices: Vec<u64> = points
+        .iter()
+        .map(|p| p[0].as_f64().unwrap() as u64)
+        .collect();
+    assert_eq!(indices, vec![0], "{series}");
+    // The NaN row is read and counted as not plotted (the empty one too, once the
+    // journal reads empty force columns).
+    let unplotted = series["unplotted"].as_u64().unwrap();
+    assert!(unplotted >= 1, "{series}");
+    assert_eq!(series["rows"].as_u64().unwrap(), 1 + unplotted, "{series}");
+}
+
+/// A page of another site for the browser test: tries to stop the run and read it.
+const ATTACK_PAGE: &str = r#"<!doctype html><html><body><p>another site</p><script>
+const T = "TARGET", out = {};
+const attempt = async (name, f) => { try { out[name] = await f(); } catch (e) { out[name] = "blocked"; } };
+(async () => {
+  await attempt("stop_with_header", async () => (await fetch(T + "/api/stop", { method: "POST", headers: { "X-Tactbench-Stop": "confirm" } })).status);
+  await attempt("stop_simple", async () => (await fetch(T + "/api/stop", { method: "POST", mode: "no-cors" })).type);
+  await attempt("state", async () => await (await fetch(T + "/api/state")).text());
+  await attempt("journal", async () => await (await fetch(T + "/api/journal")).text());
+  await attempt("page", async () => await (await fetch(T + "/")).text());
+  window.RESULT = JSON.stringify(out);
+})();
+</script></body></html>"#;
+
+/// What a script of a rebound name (its origin `http://attacker.example:PORT`, the
+/// name resolving to 127.0.0.1) tries: read the page for its token, read the state,
+/// press Stop.
+const REBOUND_SCRIPT: &str = r#"(async () => {
+  const out = { origin: location.origin };
+  const page = await fetch("/").then(r => r.text()).catch(() => "");
+  const m = page.match(/name="tactbench-token" content="([0-9a-f]+)"/);
+  out.token = m ? m[1] : null;
+  out.state = await fetch("/api/state").then(r => r.status + " " + r.headers.get("content-type")).catch(e => "blocked");
+  const h = { "X-Tactbench-Stop": "confirm" };
+  if (out.token) h["X-Tactbench-Token"] = out.token;
+  out.stop = await fetch("/api/stop", { method: "POST", headers: h }).then(r => r.status).catch(e => "blocked");
+  return JSON.stringify(out);
+})()"#;
+
+/// Issue 33, case 6 in a browser: a page served from another origin (another port of
+/// 127.0.0.1) and a page under a rebound name (`attacker.example`, resolved to
+/// 127.0.0.1 by Chromium's `--host-resolver-rules`: what DNS rebinding achieves) can
+/// neither stop the run nor read it; the view's own page still stops it.
+#[test]
+fn case6_headless_chromium_a_page_of_another_origin_or_a_rebound_name_cannot_stop_or_read_the_run()
+{
+    let Some(path) = chromium() else {
+        eprintln!("SKIPPED: no /usr/bin/chromium (apt-get install chromium; .ci/run installs it)");
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let shots = screenshot_dir(tmp.path());
+    std::fs::create_dir_all(&shots).unwrap();
+    let out = tmp.path().join("run");
+    let mut s = spawn_run(&out, 40, &["--serve", "127.0.0.1:0"]);
+    wait_for(120, "a measured setpoint", || {
+        state(&s.addr)["setpoints_done"].as_u64().unwrap_or(0) >= 1
+    });
+    let port = s.addr.rsplit(':').next().unwrap().to_string();
+    // The other site: another port of 127.0.0.1, so another origin.
+    let evil = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let evil_addr = evil.local_addr().unwrap();
+    let html = ATTACK_PAGE.replace("TARGET", &format!("http://127.0.0.1:{port}"));
+    std::thread::spawn(move || {
+        for c in evil.incoming() {
+            let Ok(mut c) = c else { break };
+            let _ = c.set_read_timeout(Some(Duration::from_secs(5)));
+            let mut head = Vec::new();
+            let mut b = [0u8; 1024];
+            while !head.windows(4).any(|w| w == b"\r\n\r\n") {
+                match c.read(&mut b) {
+                    Ok(0) | Err(_) => break,
+                    Ok(k) => head.extend_from_slice(&b[..k]),
+                }
+            }
+            let _ = write!(
+                c,
+                "HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{html}",
+                html.len()
+            );
+        }
+    });
+    // No automatic https:// attempt first for the made-up name (plain http, as a real
+    // rebinding page would be served).
+    let mut b = Browser::launch_with(
+        &path,
+        &[
+            "--host-resolver-rules=MAP attacker.example 127.0.0.1",
+            "--disable-features=HttpsUpgrades",
+        ],
+    );
+    b.open(&format!("http://{evil_addr}/"));
+    wait_for(60, "the other site's attempts", || {
+        b.eval("window.RESULT || null").is_string()
+    });
+    let tried: Value = serde_json::from_str(b.eval("window.RESULT").as_str().unwrap()).unwrap();
+    for k in ["stop_with_header", "state", "journal", "page"] {
+        assert_eq!(tried[k], "blocked", "{k}: {tried}");
+    }
+    assert!(
+        s.child.try_wait().unwrap().is_none(),
+        "stopped by another site: {tried}"
+    );
+    assert_eq!(state(&s.addr)["state"], "running", "{tried}");
+
+    // A rebound name: a page whose origin is attacker.example:PORT reaches the view.
+    b.open(&format!("http://attacker.example:{port}/"));
+    wait_for(30, "the rebound page", || {
+        b.eval("document.readyState") == "complete"
+    });
+    let shown = b.eval("document.body ? document.body.innerText : ''");
+    assert!(
+        !shown.as_str().unwrap_or("").contains("tactbench live view"),
+        "the live view's page was served under a rebound name"
+    );
+    let tried: Value = serde_json::from_str(b.eval(REBOUND_SCRIPT).as_str().unwrap()).unwrap();
+    assert_eq!(
+        tried["origin"],
+        format!("http://attacker.example:{port}"),
+        "{tried}"
+    );
+    assert_eq!(tried["token"], Value::Null, "{tried}");
+    assert!(
+        tried["state"].as_str().unwrap().starts_with("421"),
+        "{tried}"
+    );
+    assert_eq!(tried["stop"], 421, "{tried}");
+    assert!(
+        s.child.try_wait().unwrap().is_none(),
+        "stopped under a rebound name: {tried}"
+    );
+    assert_eq!(state(&s.addr)["state"], "running", "{tried}");
+
+    // The view's own page: its Stop button stops the run.
+    b.open(&s.url);
+    wait_for(60, "the page's Stop enabled", || {
+        b.eval("(e => !!e && !e.disabled)(document.getElementById('r0-stop'))") == true
+    });
+    b.screenshot(&shots.join("live_before_stop.png"));
+    b.eval("window.confirm = () => true; document.getElementById('r0-stop').click(); true");
+    wait_for(30, "the button to say Stopping", || {
+        b.text("r0-stop").as_deref() == Some("Stopping…")
+    });
+    b.screenshot(&shots.join("live_stopping.png"));
+    assert_eq!(wait_exit(&mut s.child, 120), 4);
+    let m: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(m["status"], "interrupted");
 }

@@ -12,9 +12,11 @@
 //! newest state when it drains, intermediate ones are skipped); at most
 //! [`MAX_STREAMS`] pushed streams and [`MAX_CONNECTIONS`] connections exist at once.
 //!
-//! **Access** ([`server`]): loopback by default; any other address turns on a random
-//! token (in the printed URL; requests without it get 401). Everything is read-only
-//! except `POST /api/stop`, which does what Ctrl-C does.
+//! **Access** ([`server`]): loopback by default, answered only under a loopback `Host`
+//! (421 otherwise: no DNS rebinding); any other address needs the view's random token
+//! on every request (in the printed URL; 401 without). A foreign `Origin` gets 403, no
+//! answer carries CORS headers. Everything is read-only except `POST /api/stop`, which
+//! does what Ctrl-C does and needs the token (the page carries it).
 //!
 //! **Pages and API**: [`server`] documents the routes; the page is [`page::PAGE`],
 //! self-contained (no external script, font or stylesheet).

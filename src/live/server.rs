@@ -15,9 +15,18 @@
 //! | `GET /runs/I/FILE` | `report.html`, `summary.csv`, `verdict.json`, `frames/*.png`, `plots/*.png|svg` of the run |
 //! | `POST /api/stop`, `/api/runs/I/stop` | stop the run as Ctrl-C does (header `X-Tactbench-Stop: confirm`) |
 //!
-//! Access: on a loopback address anyone on this machine may read; on any other
-//! address every request needs the token printed in the URL (`?token=…`, or the
-//! header `Authorization: Bearer …`), else 401. Files are served only from inside the
+//! Access ([`check_access`]): every view draws a token (128 bits from the kernel's
+//! random source) when it starts. On a loopback address anyone on this machine may
+//! read, but only under a loopback name: a `Host` other than the bound address,
+//! `localhost`, `127.0.0.1` or `[::1]` with the bound port gets 421 (a page of another
+//! site whose name was rebound to 127.0.0.1, "DNS rebinding", can neither read nor
+//! drive the view). On any other address every request needs the token printed in the
+//! URL (`?token=…`, or the header `Authorization: Bearer …`), else 401. Any request
+//! whose `Origin` is not the page's own (`http://` + its `Host`) gets 403, and the
+//! Stop needs the token too (the page embeds it; its button sends it as
+//! `X-Tactbench-Token`), else 403. No answer carries CORS headers (a page of another
+//! origin cannot read one) and every answer says `Cross-Origin-Resource-Policy:
+//! same-origin`; the page may not be framed. Files are served only from inside the
 //! run directories, only of the kinds above: the decoded path must be relative,
 //! without `..`, hidden or empty components, and its canonical path (symlinks
 //! resolved) must lie inside the run directory's canonical path; else 404. Nothing
@@ -117,7 +126,12 @@ struct Published {
 struct Shared {
     published: Mutex<Published>,
     cv: Condvar,
-    token: Option<String>,
+    /// Drawn at start: needed by every request on a non-loopback address
+    /// (`token_required`), by the Stop on every address.
+    token: String,
+    token_required: bool,
+    /// On loopback, the `Host` values accepted (lowercase).
+    hosts: Option<Vec<String>>,
     stop: Option<StopHandle>,
     dirs: Vec<PathBuf>,
     streams: AtomicUsize,
@@ -154,6 +168,7 @@ impl LiveServer {
         options: &ServeOptions,
         in_process: Option<StopHandle>,
     ) -> Result<LiveServer, LiveError> {
+        quiet_reset_connections();
         let addr = parse_addr(&options.addr)?;
         let criteria = match &options.criteria {
             Some(p) => Some(Criteria::from_path(p)?),
@@ -177,7 +192,12 @@ impl LiveServer {
                     source: std::io::Error::other(e.to_string()),
                 })?,
             );
-        let token = (!local.ip().is_loopback()).then(random_token);
+        let token = random_token().map_err(|source| LiveError::Io {
+            path: PathBuf::from("(the kernel's random source: getrandom, /dev/urandom)"),
+            source,
+        })?;
+        let token_required = !local.ip().is_loopback();
+        let hosts = local.ip().is_loopback().then(|| loopback_hosts(local));
         let host = if local.ip().is_unspecified() {
             lock::hostname()
         } else {
@@ -189,10 +209,11 @@ impl LiveServer {
         let url = format!(
             "http://{host}:{}/{}",
             local.port(),
-            token
-                .as_ref()
-                .map(|t| format!("?token={t}"))
-                .unwrap_or_default()
+            if token_required {
+                format!("?token={token}")
+            } else {
+                String::new()
+            }
         );
         let dropped = Arc::new(AtomicU64::new(0));
         let shared = Arc::new(Shared {
@@ -203,6 +224,8 @@ impl LiveServer {
             }),
             cv: Condvar::new(),
             token,
+            token_required,
+            hosts,
             stop: in_process.clone(),
             dirs: dirs.to_vec(),
             streams: AtomicUsize::new(0),
@@ -358,26 +381,82 @@ fn bind_error(addr: SocketAddr, e: std::io::Error) -> LiveError {
     }
 }
 
-/// 128 random bits from the kernel, as hex.
-fn random_token() -> String {
+/// 128 random bits from the kernel (`getrandom`, else `/dev/urandom`), as hex. No
+/// weaker fallback: without either the view does not start.
+fn random_token() -> std::io::Result<String> {
     let mut b = [0u8; 16];
-    let ok = std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut b));
-    if ok.is_err() {
-        // No /dev/urandom (not Linux): the clock and the pid, hashed; still never
-        // guessable from outside in practice, and the bind was explicit.
-        let t = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .unwrap_or_default()
-            .as_nanos();
-        let mut x = t ^ ((std::process::id() as u128) << 64);
-        for v in b.iter_mut() {
-            x = x
-                .wrapping_mul(0x2545_F491_4F6C_DD1D)
-                .wrapping_add(0x9E37_79B9);
-            *v = (x >> 64) as u8;
+    let mut filled = 0;
+    while filled < b.len() {
+        // SAFETY: writes at most `len - filled` bytes into the rest of `b`.
+        let n = unsafe {
+            libc::getrandom(
+                b[filled..].as_mut_ptr().cast::<libc::c_void>(),
+                b.len() - filled,
+                0,
+            )
+        };
+        match usize::try_from(n) {
+            Ok(n) => filled += n,
+            Err(_) if std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted => {
+            }
+            Err(_) => {
+                std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut b))?;
+                break;
+            }
         }
     }
-    b.iter().map(|v| format!("{v:02x}")).collect()
+    Ok(b.iter().map(|v| format!("{v:02x}")).collect())
+}
+
+/// The `Host` values a loopback view answers to: its bound address, `localhost`,
+/// `127.0.0.1` and `[::1]`, each with the bound port (and without it on port 80,
+/// where browsers leave it out).
+fn loopback_hosts(local: SocketAddr) -> Vec<String> {
+    let bound = match local {
+        SocketAddr::V4(a) => a.ip().to_string(),
+        SocketAddr::V6(a) => format!("[{}]", a.ip()),
+    };
+    let mut names: Vec<String> = vec![bound];
+    for n in ["localhost", "127.0.0.1", "[::1]"] {
+        if !names.iter().any(|m| m == n) {
+            names.push(n.to_string());
+        }
+    }
+    let port = local.port();
+    let mut hosts: Vec<String> = names.iter().map(|n| format!("{n}:{port}")).collect();
+    if port == 80 {
+        hosts.extend(names);
+    }
+    hosts
+}
+
+/// A client that resets its connection before `tiny_http` has asked for its peer's
+/// address makes `tiny_http` 0.12 panic in its own connection thread
+/// (`client.rs`: `remote_addr.unwrap()` on `NotConnected`; upstream
+/// tiny-http/tiny-http#180, unfixed), which printed a panic and a backtrace into the
+/// operator's terminal although nothing was wrong: the connection was already gone
+/// and only that thread ends. This hook keeps exactly that panic quiet (a closed
+/// connection, nothing to report) and hands every other panic to the hook installed
+/// before it.
+fn quiet_reset_connections() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            let in_tiny_http = info
+                .location()
+                .is_some_and(|l| l.file().contains("tiny_http") && l.file().ends_with("client.rs"));
+            let payload = info
+                .payload()
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| info.payload().downcast_ref::<&str>().copied())
+                .unwrap_or("");
+            if !(in_tiny_http && payload.contains("NotConnected")) {
+                previous(info);
+            }
+        }));
+    });
 }
 
 /// The live view's threads run at the lowest priority (nice 19): on a loaded
@@ -559,6 +638,8 @@ fn text(code: u16, body: &str) -> Response<std::io::Cursor<Vec<u8>>> {
         .with_status_code(code)
         .with_header(header("Content-Type", "text/plain; charset=utf-8"))
         .with_header(header("Cache-Control", "no-store"))
+        .with_header(header("X-Content-Type-Options", "nosniff"))
+        .with_header(header("Cross-Origin-Resource-Policy", "same-origin"))
 }
 
 fn json_response(code: u16, body: &str) -> Response<std::io::Cursor<Vec<u8>>> {
@@ -566,6 +647,8 @@ fn json_response(code: u16, body: &str) -> Response<std::io::Cursor<Vec<u8>>> {
         .with_status_code(code)
         .with_header(header("Content-Type", "application/json"))
         .with_header(header("Cache-Control", "no-store"))
+        .with_header(header("X-Content-Type-Options", "nosniff"))
+        .with_header(header("Cross-Origin-Resource-Policy", "same-origin"))
 }
 
 /// Percent-decoding of a URL path or query value; `None` for a malformed escape,
@@ -614,17 +697,70 @@ fn same(a: &str, b: &str) -> bool {
             == 0
 }
 
+/// The token given with a request: `?token=…`, `Authorization: Bearer …` or
+/// `X-Tactbench-Token: …`.
 fn authorised(req: &Request, query: &str, token: &str) -> bool {
     if query_value(query, "token").is_some_and(|t| same(&t, token)) {
         return true;
     }
     req.headers().iter().any(|h| {
-        h.field.equiv("Authorization")
-            && h.value
-                .as_str()
-                .strip_prefix("Bearer ")
-                .is_some_and(|t| same(t.trim(), token))
+        let given = if h.field.equiv("Authorization") {
+            h.value.as_str().strip_prefix("Bearer ")
+        } else if h.field.equiv("X-Tactbench-Token") {
+            Some(h.value.as_str())
+        } else {
+            None
+        };
+        given.is_some_and(|t| same(t.trim(), token))
     })
+}
+
+fn header_value<'r>(req: &'r Request, name: &'static str) -> Option<&'r str> {
+    req.headers()
+        .iter()
+        .find(|h| h.field.equiv(name))
+        .map(|h| h.value.as_str().trim())
+}
+
+/// Who may ask, before anything is read: on loopback only under a loopback `Host`
+/// (421: a rebound name is refused), on other addresses only with the token (401),
+/// and from no other origin than the page's own (403). `Err` is (status, body).
+fn check_access(req: &Request, query: &str, shared: &Shared) -> Result<(), (u16, String)> {
+    let host = header_value(req, "Host").map(str::to_ascii_lowercase);
+    if let Some(allowed) = &shared.hosts {
+        if !host.as_ref().is_some_and(|h| allowed.contains(h)) {
+            let given = host
+                .as_deref()
+                .map_or("none".to_string(), |h| format!("{h:?}"));
+            return Err((
+                421,
+                format!(
+                    "421 misdirected request: this live view answers only to Host {} (got {given}); a page under another name cannot read or stop it",
+                    allowed.join(", ")
+                ),
+            ));
+        }
+    }
+    if shared.token_required && !authorised(req, query, &shared.token) {
+        return Err((
+            401,
+            "401 unauthorised: this live view needs the token printed in its URL (?token=...)"
+                .into(),
+        ));
+    }
+    if let Some(origin) = header_value(req, "Origin") {
+        let own = host.map(|h| format!("http://{h}"));
+        if own.as_deref() != Some(origin.to_ascii_lowercase().as_str()) {
+            return Err((
+                403,
+                format!(
+                    "403 forbidden: a request from {origin:?} (another site's page) may not read or stop this live view; open {} itself",
+                    own.as_deref().unwrap_or("the live view's URL")
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A run file a request may read: `rel` (decoded) must be one of the served kinds
@@ -674,6 +810,7 @@ fn send_file(req: Request, path: &Path) {
                     header("Content-Type", content_type(path)),
                     header("Cache-Control", "no-store"),
                     header("X-Content-Type-Options", "nosniff"),
+                    header("Cross-Origin-Resource-Policy", "same-origin"),
                 ],
                 f,
                 len,
@@ -690,14 +827,9 @@ fn send_file(req: Request, path: &Path) {
 fn handle(req: Request, shared: &Shared) {
     let url = req.url().to_string();
     let (raw_path, query) = url.split_once('?').unwrap_or((&url, ""));
-    if let Some(t) = &shared.token {
-        if !authorised(&req, query, t) {
-            let _ = req.respond(text(
-                401,
-                "401 unauthorised: this live view needs the token printed in its URL (?token=...)",
-            ));
-            return;
-        }
+    if let Err((code, why)) = check_access(&req, query, shared) {
+        let _ = req.respond(text(code, &why));
+        return;
     }
     let Some(path) = percent_decode(raw_path) else {
         let _ = req.respond(text(400, "malformed path"));
@@ -725,12 +857,15 @@ fn handle(req: Request, shared: &Shared) {
     let method = req.method().clone();
     match (method, rest.as_str()) {
         (Method::Get | Method::Head, "/" | "/index.html") => {
-            let resp = Response::from_data(super::page::PAGE.as_bytes().to_vec())
+            let resp = Response::from_data(super::page::page(&shared.token).into_bytes())
                 .with_header(header("Content-Type", "text/html; charset=utf-8"))
                 .with_header(header("Cache-Control", "no-store"))
+                .with_header(header("Cross-Origin-Resource-Policy", "same-origin"))
+                .with_header(header("X-Frame-Options", "DENY"))
+                .with_header(header("Referrer-Policy", "no-referrer"))
                 .with_header(header(
                     "Content-Security-Policy",
-                    "default-src 'self'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src 'self' data:",
+                    "default-src 'self'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src 'self' data:; frame-ancestors 'none'",
                 ));
             let _ = req.respond(resp);
         }
@@ -783,6 +918,13 @@ fn handle(req: Request, shared: &Shared) {
                 let _ = req.respond(text(
                     400,
                     "a stop needs the header X-Tactbench-Stop: confirm (the page's Stop button sends it after its confirmation)",
+                ));
+                return;
+            }
+            if !authorised(&req, query, &shared.token) {
+                let _ = req.respond(text(
+                    403,
+                    "403 forbidden: a stop needs this live view's token (header X-Tactbench-Token; the page's Stop button sends it)",
                 ));
                 return;
             }
@@ -908,7 +1050,7 @@ fn stop(shared: &Shared, run: usize, peer: &str) -> (u16, Value) {
 /// it changes (a slow viewer skips intermediate states).
 fn stream(req: Request, shared: &Shared) {
     let mut w = req.into_writer();
-    let head = "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\nConnection: close\r\nX-Accel-Buffering: no\r\n\r\nretry: 2000\n\n";
+    let head = "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\nCross-Origin-Resource-Policy: same-origin\r\nConnection: close\r\nX-Accel-Buffering: no\r\n\r\nretry: 2000\n\n";
     if w.write_all(head.as_bytes())
         .and_then(|_| w.flush())
         .is_err()
@@ -1029,8 +1171,16 @@ mod tests {
     }
 
     #[test]
+    fn a_loopback_view_answers_each_loopback_name_once_with_its_port() {
+        let h = loopback_hosts("127.0.0.1:7878".parse().unwrap());
+        assert_eq!(h, ["127.0.0.1:7878", "localhost:7878", "[::1]:7878"]);
+        let h = loopback_hosts("127.0.0.2:80".parse().unwrap());
+        assert!(h.contains(&"127.0.0.2:80".to_string()) && h.contains(&"localhost".to_string()));
+    }
+
+    #[test]
     fn tokens_are_random_hex_and_compared_whole() {
-        let (a, b) = (random_token(), random_token());
+        let (a, b) = (random_token().unwrap(), random_token().unwrap());
         assert_eq!(a.len(), 32);
         assert_ne!(a, b);
         assert!(same(&a, &a.clone()));

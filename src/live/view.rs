@@ -124,6 +124,8 @@ pub struct RunView {
     journal_offset: u64,
     journal_header: Option<String>,
     rows: usize,
+    /// Rows not plotted: no finite applied or measured force.
+    unplotted: usize,
     last_row: Option<JournalRow>,
     points: Decimated<PlotPoint>,
     health: Decimated<HealthPoint>,
@@ -193,6 +195,7 @@ impl RunView {
             journal_offset: 0,
             journal_header: None,
             rows: 0,
+            unplotted: 0,
             last_row: None,
             points: Decimated::new(MAX_PLOT_POINTS),
             health: Decimated::new(MAX_PLOT_POINTS),
@@ -396,6 +399,7 @@ impl RunView {
         self.journal_offset = 0;
         self.journal_header = None;
         self.rows = 0;
+        self.unplotted = 0;
         self.last_row = None;
         self.points = Decimated::new(MAX_PLOT_POINTS);
         self.health = Decimated::new(MAX_PLOT_POINTS);
@@ -403,22 +407,23 @@ impl RunView {
     }
 
     fn take_row(&mut self, row: JournalRow) {
-        let u = |v: f64| self.unit.from_newtons(v);
-        self.points.push([
-            row.index as f64,
-            u(row.fz_n),
-            u(row.fsum_z_n),
-            u(row.fx_n.hypot(row.fy_n)),
-            u(row.fsum_x_n.hypot(row.fsum_y_n)),
-        ]);
-        let c = |v: Option<usize>| v.map_or(f64::NAN, |v| v as f64);
-        self.health.push([
-            row.index as f64,
+        // A row without a finite value in the plotted series (a failed reconstruction
+        // leaves its force sums empty; older journals wrote NaN) is counted, not
+        // plotted: serialised, a NaN becomes `null`, which the page drew at 0.
+        match plot_point(&row, self.unit) {
+            Some(p) => self.points.push(p),
+            None => self.unplotted += 1,
+        }
+        let c = |v: Option<usize>| v.map(|v| v as f64);
+        if let (Some(ok), Some(lost), Some(merged), Some(outlier)) = (
             c(row.markers_ok),
             c(row.markers_lost),
             c(row.markers_merged),
             c(row.markers_outlier),
-        ]);
+        ) {
+            self.health
+                .push([row.index as f64, ok, lost, merged, outlier]);
+        }
         self.rows += 1;
         self.series_version += 1;
         self.last_row = Some(row);
@@ -597,16 +602,19 @@ impl RunView {
         self.evidence_version
     }
 
-    /// The decimated plot series: `{"run", "points", "points_stride", "health",
-    /// "health_stride"}` (points: `[index, applied, measured, applied tangential,
-    /// measured tangential]`; health: `[index, ok, lost, merged, outlier]`).
+    /// The decimated plot series: `{"run", "rows", "unplotted", "points",
+    /// "points_stride", "health", "health_stride"}` (points: `[index, applied,
+    /// measured, applied tangential, measured tangential]`, every value finite;
+    /// `unplotted`: rows without finite forces, left out; health: `[index, ok, lost,
+    /// merged, outlier]` of rows with marker counts).
     pub fn series_json(&self, run: usize) -> Value {
         json!({
             "run": run,
             "unit": self.unit.symbol(),
             "points": self.points.items(),
             "points_stride": self.points.stride(),
-            "rows": self.points.seen(),
+            "rows": self.rows,
+            "unplotted": self.unplotted,
             "health": self.health.items(),
             "health_stride": self.health.stride(),
         })
@@ -729,15 +737,49 @@ fn sweep_kind(p: &Plan) -> &'static str {
     }
 }
 
+/// A journal force column as an `Option` (empty or not finite: `None`), whether the
+/// journal row holds it as `f64` (NaN when missing) or as `Option<f64>`.
+trait Column {
+    fn get(self) -> Option<f64>;
+}
+
+impl Column for f64 {
+    fn get(self) -> Option<f64> {
+        finite(self)
+    }
+}
+
+impl Column for Option<f64> {
+    fn get(self) -> Option<f64> {
+        self.and_then(finite)
+    }
+}
+
+/// One row's point of the applied-against-measured plot (plan's unit), or `None`
+/// when a value of it is missing or not finite.
+fn plot_point(r: &JournalRow, unit: ForceUnit) -> Option<PlotPoint> {
+    let u = |v: f64| finite(unit.from_newtons(v));
+    let (fx, fy, fz) = (r.fx_n.get()?, r.fy_n.get()?, r.fz_n.get()?);
+    let (sx, sy, sz) = (r.fsum_x_n.get()?, r.fsum_y_n.get()?, r.fsum_z_n.get()?);
+    Some([
+        r.index as f64,
+        u(fz)?,
+        u(sz)?,
+        u(fx.hypot(fy))?,
+        u(sx.hypot(sy))?,
+    ])
+}
+
 /// A journal row for the page (forces in the plan's unit).
 pub fn row_json(r: &JournalRow, unit: ForceUnit) -> Value {
     let u = |v: f64| finite(unit.from_newtons(v));
+    let c = |v: Option<f64>| v.and_then(u);
     json!({
         "index": r.index,
         "trial": r.trial,
         "target": [u(r.target_tx_n), u(r.target_ty_n), u(r.target_normal_n)],
-        "ft": [u(r.fx_n), u(r.fy_n), u(r.fz_n)],
-        "fsum": [u(r.fsum_x_n), u(r.fsum_y_n), u(r.fsum_z_n)],
+        "ft": [c(r.fx_n.get()), c(r.fy_n.get()), c(r.fz_n.get())],
+        "fsum": [c(r.fsum_x_n.get()), c(r.fsum_y_n.get()), c(r.fsum_z_n.get())],
         "stage_mm": [finite(r.stage_x_mm), finite(r.stage_y_mm), finite(r.stage_z_mm)],
         "settled": r.settled,
         "markers": [r.markers_ok, r.markers_lost, r.markers_merged, r.markers_outlier],
