@@ -139,6 +139,8 @@ pub(crate) fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mu
         camera_toml: None,
         simulated: None,
         write_failure: None,
+        device_provenance: vec![],
+        record: None,
     }
     .write(dir)
     .unwrap();

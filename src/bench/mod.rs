@@ -9,8 +9,10 @@
 pub mod config;
 pub mod connect;
 pub mod control;
+pub mod integrity;
 pub mod journal;
 pub mod live;
 pub mod lock;
 pub mod plan;
+pub mod provenance;
 pub mod runner;

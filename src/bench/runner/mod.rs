@@ -450,6 +450,14 @@ struct Runner<'p, 'd, 'a, 'e> {
     last_reading: Option<Instant>,
     /// Every write into the run directory goes through it (first failure, faults).
     fs: WriteGate,
+    /// Consecutive setpoints whose every acquisition was a dead frame (blank,
+    /// saturated, no marker): `[quality] dead_camera_setpoints` of them stop the run.
+    dead_run: Vec<usize>,
+    /// Consecutive rows that failed the force plausibility check.
+    implausible_run: Vec<usize>,
+    /// Why the run stops once the current row is journalled (a dead camera, persistent
+    /// implausible forces).
+    pending_abort: Option<String>,
     /// Per-setpoint accounting.
     track_s: f64,
     solve_s: f64,
@@ -509,7 +517,21 @@ pub fn run(
                 manifest.measured_setpoints
             )));
         }
+        // The record must be as the run wrote it: a resume would otherwise record
+        // digests of an edited journal as the run's own.
+        let check = super::integrity::verify(&dir, &manifest);
+        if check.modified() {
+            return Err(RunError::Setup(format!(
+                "{}: the record was modified after the run ({}); not resuming it",
+                dir.display(),
+                check.lines().join("; ")
+            )));
+        }
         let r = Journal::open_resume(&dir)?;
+        let mut manifest = manifest;
+        // A session killed before it could record its end (kill -9) measured rows
+        // the manifest does not count: the journal is the authority.
+        manifest.reconcile_sessions(r.rows.len());
         let resume_no = manifest.resumed_at.len() + 1;
         (r.journal, manifest, r.truncated_bytes, resume_no)
     } else {
@@ -550,6 +572,8 @@ pub fn run(
             camera_toml: options.camera.as_ref().map(|(_, t)| t.clone()),
             simulated: Some(options.simulated),
             write_failure: None,
+            device_provenance: Vec::new(),
+            record: None,
         };
         manifest.write(&dir)?;
         (Journal::create(&dir)?, manifest, 0, 0)
@@ -592,6 +616,43 @@ pub fn run(
         setpoints_before: before,
         setpoints_after: before,
     });
+    // Every device's provenance (a run is real only when every device is); a run is
+    // simulated when any of its sessions was not all real.
+    let provenance = super::provenance::judge(&options.devices, options.simulated);
+    let not_real = provenance
+        .iter()
+        .any(|d| d.provenance != super::journal::Provenance::Real);
+    if options.simulated || not_real || !options.resume {
+        manifest.simulated = Some(not_real || manifest.simulated == Some(true));
+    }
+    if options.devices != serde_json::Value::Null || manifest.device_provenance.is_empty() {
+        // The least real provenance of each device over the sessions is kept.
+        let mut merged = provenance;
+        for d in &mut merged {
+            if let Some(old) = manifest
+                .device_provenance
+                .iter()
+                .find(|o| o.device == d.device && o.provenance > d.provenance)
+            {
+                *d = old.clone();
+            }
+        }
+        manifest.device_provenance = merged;
+    }
+    // The journal's digest as this session starts (after a resume cut a torn line or
+    // upgraded an old header): rows appended from here on are covered at the end.
+    let evidence = manifest
+        .record
+        .as_ref()
+        .map(|r| r.evidence.clone())
+        .unwrap_or_default();
+    manifest.record = Some(
+        super::integrity::RecordDigests::journal_now(&dir, evidence.clone(), before, rfc3339_now())
+            .map_err(|source| RunError::Io {
+                path: journal.path().to_path_buf(),
+                source,
+            })?,
+    );
     manifest.write(&dir)?;
     let total = before + setpoints.len();
     let mut done = before;
@@ -634,7 +695,10 @@ pub fn run(
         hold_restarted: false,
         phase: None,
         last_reading: None,
-        fs: WriteGate::new(options.write_fault),
+        fs: WriteGate::new(options.write_fault, &dir, evidence),
+        dead_run: Vec::new(),
+        implausible_run: Vec::new(),
+        pending_abort: None,
         track_s: 0.0,
         solve_s: 0.0,
         precompute_s: 0.0,
@@ -701,6 +765,9 @@ pub fn run(
                 overhead_s,
             });
             prev = Some(*sp);
+            if let Some(reason) = r.pending_abort.take() {
+                return Err(Halt::Abort(reason));
+            }
         }
         r.index = None;
         r.set_phase(Phase::Retract);
@@ -741,6 +808,16 @@ pub fn run(
         (status == RunStatus::Interrupted && signal != 0).then_some(signal),
         rfc3339_now(),
     );
+    // The record's digests as this session leaves it (the journal as a whole, every
+    // evidence file written so far).
+    if let Ok(rec) = super::integrity::RecordDigests::journal_now(
+        &dir,
+        r.fs.evidence().clone(),
+        journal.completed().len(),
+        rfc3339_now(),
+    ) {
+        manifest.record = Some(rec);
+    }
     let write_failure = r.fs.first_failure().cloned();
     if manifest.write_failure.is_none() {
         // The run's first failed write (an earlier session's stays: it was first).
