@@ -30,7 +30,21 @@
 //!    mean displacement over the frames (`forces/NNNNN.csv`) with the plan's solver,
 //!    precomputed once per set of tracked markers.
 //! 7. **Journal**: the row (with its marker counts) is appended and synced before the
-//!    next move.
+//!    next move. A setpoint whose tracking or reconstruction failed, or whose frames
+//!    were blank, saturated or markerless in every acquisition, is a *failed row*
+//!    (empty force sums, `failure` says why) and the run goes on; `[quality]
+//!    dead_camera_setpoints` consecutive dead setpoints stop it (a dead camera).
+//! 8. **Force plausibility**: |F^sum| against the F/T's |F| (`[quality]
+//!    force_ratio_min .. force_ratio_max` above `force_noise_floor_n`): outside, the
+//!    row is `quality = implausible`; `max_implausible_rows` consecutive ones stop the
+//!    run naming the likely cause (the sensor file's units, an unfitted modulus).
+//!
+//! **Record digests.** At the start and end of every session the manifest's `record`
+//! gets the journal's SHA-256 (of its length then) and every evidence file's as
+//! written ([`super::integrity`]); a resume refuses a record modified since, and
+//! reconciles `sessions` with the journal after a session killed before its end.
+//! Each device's provenance (real, simulated, replayed) is recorded at the start
+//! ([`super::provenance`]).
 //!
 //! **Reference gate.** The reference frame (taken at the clearance height above the
 //! approach position, after homing and taring) must show `[quality]
@@ -275,7 +289,8 @@ pub enum RunEvent {
         /// Why.
         reason: String,
     },
-    /// A non-fatal problem (e.g. a reconstruction that failed; the row keeps NaN).
+    /// A non-fatal problem (e.g. a reconstruction that failed: a failed row without
+    /// force; an implausible force sum).
     Warning {
         /// Setpoint index.
         index: usize,

@@ -345,7 +345,11 @@ pub fn better(metric: &str) -> Option<Better> {
     if metric.starts_with("timing.")
         || matches!(
             metric,
-            "run.unsettled" | "tracking.flagged_rows" | "tracking.reacquired_rows"
+            "run.unsettled"
+                | "run.failed_rows"
+                | "run.implausible_rows"
+                | "tracking.flagged_rows"
+                | "tracking.reacquired_rows"
         )
     {
         return Some(Better::Lower);
