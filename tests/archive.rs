@@ -558,3 +558,116 @@ fn the_committed_reproduction_runs_report_and_compare() {
         "{e}"
     );
 }
+
+// ---- issue 33: the record protects itself; compare names the instruments ----------
+
+/// Sets column `name` of journal line `line` (1-based, header = 1) to `value`.
+fn set_journal_field(dir: &Path, line: usize, name: &str, value: &str) {
+    let path = dir.join("journal.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let col = lines[0].split(',').position(|c| c == name).unwrap();
+    let mut fields: Vec<String> = lines[line - 1].split(',').map(String::from).collect();
+    fields[col] = value.to_string();
+    lines[line - 1] = fields.join(",");
+    std::fs::write(&path, lines.join("\n") + "\n").unwrap();
+}
+
+/// Issue 33, item 9: the run's manifest and `archive.json` carry SHA-256 digests of
+/// the journal and the evidence as written; `report`, `archive` and `compare` say
+/// "modified after the run" when a file differs (a plausible edit used to pass
+/// without a word).
+#[test]
+fn record_digests_are_verified_and_an_edit_is_modified_after_the_run() {
+    let f = fixture();
+    let tmp = tempfile::tempdir().unwrap();
+    let m = json(&f.full().join("manifest.json"));
+    let rec = &m["record"];
+    assert_eq!(rec["journal_sha256"].as_str().unwrap().len(), 64, "{m}");
+    assert_eq!(rec["journal_rows"], 8);
+    assert!(rec["evidence"]["forces/00003.csv"].is_string(), "{rec}");
+    assert!(rec["evidence"]["frames/reference.png"].is_string(), "{rec}");
+    // Intact: report says nothing; archive records its own digests.
+    let o = report(&f.full(), &tmp.path().join("r0"), &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("modified"), "{}", stderr(&o));
+    let arch = tmp.path().join("arch");
+    let o = archive(&f.full(), &arch, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let a = json(&arch.join("archive.json"));
+    assert!(
+        a["sha256"]["journal.csv"].is_string() && a["sha256"]["manifest.json"].is_string(),
+        "{a}"
+    );
+    assert!(a["source_record"].as_array().unwrap().is_empty());
+    // The archived journal edited (a plausible value): report and compare say so.
+    set_journal_field(&arch, 6, "fsum_z_n", "1.0");
+    let o = report(&arch, &tmp.path().join("r1"), &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("journal.csv modified after the run"),
+        "{}",
+        stderr(&o)
+    );
+    let o = compare(&[&f.full(), &arch], &tmp.path().join("cmp"), &[]);
+    assert!(
+        stderr(&o).contains("modified after the run"),
+        "{}",
+        stderr(&o)
+    );
+    // An evidence file of the run edited: archive warns, naming it.
+    let src = tmp.path().join("src");
+    copy_dir(&f.full(), &src);
+    let forces = src.join("forces/00003.csv");
+    let text = std::fs::read_to_string(&forces).unwrap();
+    std::fs::write(&forces, text.replacen(",0,", ",0.0,", 1) + "\n").unwrap();
+    let o = archive(&src, &tmp.path().join("arch2"), &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("evidence file(s) modified after the run: forces/00003.csv"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+/// Issue 33, item 9: `compare` did not say that two runs used different F/T sensors
+/// or stages. It lists each run's instruments and warns when they differ.
+#[test]
+fn compare_lists_each_runs_instruments_and_warns_when_they_differ() {
+    let f = fixture();
+    let tmp = tempfile::tempdir().unwrap();
+    let other = tmp.path().join("other");
+    copy_dir(&f.full(), &other);
+    edit_manifest(&other, |m| {
+        m.insert("build_id".into(), "build-other".into());
+        m["devices"]["force_sensor"]["firmware"] = "DynPick 2.0 serial 4711".into();
+    });
+    let o = compare(&[&f.full(), &other], &tmp.path().join("cmp"), &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let so = stdout(&o);
+    assert!(
+        so.contains("instruments of build-full: stage: protocol grbl, version 1.1h")
+            && so.contains("force_sensor: firmware DynPick simulator 1.0 (tactbench)")
+            && so.contains("camera: sim"),
+        "{so}"
+    );
+    let err = stderr(&o);
+    assert!(
+        err.contains("different instruments: build-other used a different F/T sensor (firmware DynPick 2.0 serial 4711, protocol dynpick)"),
+        "{err}"
+    );
+    let html = std::fs::read_to_string(tmp.path().join("cmp/compare.html")).unwrap();
+    assert!(html.contains("DIFFERENT INSTRUMENTS"));
+    // Same instruments: no warning.
+    let same = tmp.path().join("same");
+    copy_dir(&f.full(), &same);
+    edit_manifest(&same, |m| {
+        m.insert("build_id".into(), "build-same".into());
+    });
+    let o = compare(&[&f.full(), &same], &tmp.path().join("cmp2"), &[]);
+    assert!(
+        !stderr(&o).contains("different instruments"),
+        "{}",
+        stderr(&o)
+    );
+}

@@ -139,6 +139,8 @@ pub(crate) fn write_run(dir: &Path, sweep: &str, mut fill: impl FnMut(&Path, &mu
         camera_toml: None,
         simulated: None,
         write_failure: None,
+        device_provenance: vec![],
+        record: None,
     }
     .write(dir)
     .unwrap();
@@ -1281,4 +1283,219 @@ fn camera_evidence_shows_reference_and_loaded_frames_with_statuses() {
     }
     // Scale and statuses are stated.
     assert!(html.contains("drawn ×") && html.contains("green ok"));
+}
+
+// ---- issue 33: failed rows, edited journals, digests, provenance -----------------
+
+/// Sets column `name` of journal line `line` (1-based, header = 1) to `value`.
+fn set_journal_field(dir: &Path, line: usize, name: &str, value: &str) {
+    let path = dir.join("journal.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let col = lines[0].split(',').position(|c| c == name).unwrap();
+    let mut fields: Vec<String> = lines[line - 1].split(',').map(String::from).collect();
+    fields[col] = value.to_string();
+    lines[line - 1] = fields.join(",");
+    std::fs::write(&path, lines.join("\n") + "\n").unwrap();
+}
+
+/// Swaps the values of two columns in every row (the header left as it is).
+fn swap_journal_columns(dir: &Path, a: &str, b: &str) {
+    let path = dir.join("journal.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+    let (ia, ib) = (
+        header.iter().position(|c| *c == a).unwrap(),
+        header.iter().position(|c| *c == b).unwrap(),
+    );
+    let mut out = String::new();
+    for (i, l) in text.lines().enumerate() {
+        let mut f: Vec<&str> = l.split(',').collect();
+        if i > 0 {
+            f.swap(ia, ib);
+        }
+        out.push_str(&f.join(","));
+        out.push('\n');
+    }
+    std::fs::write(&path, out).unwrap();
+}
+
+/// Issue 33, item 1: older versions journalled a failed reconstruction as `NaN`, and
+/// `report` then refused the whole journal ("value NaN is not a finite number"). The
+/// reader now treats such a row as a failed row: skipped, counted, named; the run is
+/// at most MARGINAL.
+#[test]
+fn an_old_journal_with_nan_force_sums_reports_with_the_row_skipped() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    for c in ["fsum_x_n", "fsum_y_n", "fsum_z_n"] {
+        set_journal_field(dir, 3, c, "NaN");
+    }
+    let criteria = dir.join("criteria.toml");
+    std::fs::write(
+        &criteria,
+        "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.5\n",
+    )
+    .unwrap();
+    let o = report(dir, &["--acceptance", criteria.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("1 failed row(s)") && err.contains("setpoint 1 (journal line 3)"),
+        "{err}"
+    );
+    assert!(err.contains("`fsum_x_n` is NaN"), "{err}");
+    let v = util::json(&dir.join("verdict.json"));
+    assert_eq!(v["outcome"], "MARGINAL", "{v}");
+    assert_eq!(v["run"]["measured_setpoints"], 12);
+    assert_eq!(metric(dir, "run.rows"), 11.0);
+    assert_eq!(metric(dir, "run.failed_rows"), 1.0);
+    // The fit is that of the other eleven rows (one trial error no longer cancels).
+    assert!((metric(dir, "magnitude.slope") - 0.95).abs() < 0.01);
+    // Without criteria: NOT JUDGED, still saying so.
+    let o = report(dir, &[]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("1 failed row(s) skipped"),
+        "{}",
+        stdout(&o)
+    );
+}
+
+/// Issue 33, item 9: a journal with two columns' values swapped, or its header
+/// reordered, was analysed without a word (fz of −31 N on a 0–2.9 N plan). Values
+/// that cannot have been measured under the plan, and a header that is not the one
+/// the runner writes, are refused naming line, column and value.
+#[test]
+fn a_journal_with_swapped_columns_or_a_reordered_header_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    // fz beyond the plan's safety limit (no journalled mean can exceed it).
+    let dir = tmp.path().join("fz");
+    std::fs::create_dir_all(&dir).unwrap();
+    magnitude_run(&dir);
+    set_journal_field(&dir, 5, "fz_n", "-31.0");
+    let o = report(&dir, &[]);
+    assert_eq!(o.status.code(), Some(2), "{}", stdout(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("line 5, column `fz_n`")
+            && err.contains("-31")
+            && err.contains("safety limit"),
+        "{err}"
+    );
+    // Two columns' values swapped: the swept value is no longer the plan's.
+    let dir = tmp.path().join("swap");
+    std::fs::create_dir_all(&dir).unwrap();
+    magnitude_run(&dir);
+    swap_journal_columns(&dir, "swept_value", "fz_n");
+    let err = stderr(&report(&dir, &[]));
+    assert!(
+        err.contains("column `swept_value`") && err.contains("edited after the run"),
+        "{err}"
+    );
+    // The header reordered (values left): refused by the header check.
+    let dir = tmp.path().join("header");
+    std::fs::create_dir_all(&dir).unwrap();
+    magnitude_run(&dir);
+    let path = dir.join("journal.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    std::fs::write(&path, text.replacen("fz_n,mx_nm", "mx_nm,fz_n", 1)).unwrap();
+    let o = report(&dir, &[]);
+    assert_eq!(o.status.code(), Some(2));
+    let err = stderr(&o);
+    assert!(
+        err.contains("line 1")
+            && err.contains("column 9 is `mx_nm` where a tactbench journal has `fz_n`"),
+        "{err}"
+    );
+}
+
+/// Issue 33, item 9: the manifest's digests (taken by the runner) make an edit that
+/// stays plausible visible: "modified after the run", and a judged run FAILs.
+#[test]
+fn a_journal_modified_after_the_run_is_named_by_its_digest() {
+    use tactbench::bench::integrity::RecordDigests;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    magnitude_run(dir);
+    let mut m = Manifest::read(dir).unwrap();
+    m.record = Some(
+        RecordDigests::journal_now(dir, Default::default(), 12, "2026-11-22T01:10:00Z".into())
+            .unwrap(),
+    );
+    m.write(dir).unwrap();
+    let criteria = dir.join("criteria.toml");
+    std::fs::write(
+        &criteria,
+        "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.5\n",
+    )
+    .unwrap();
+    let o = report(dir, &["--acceptance", criteria.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("modified"), "{}", stderr(&o));
+    // A plausible edit: one force sum changed.
+    set_journal_field(dir, 4, "fsum_z_n", "0.5");
+    let o = report(dir, &["--acceptance", criteria.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", stdout(&o));
+    assert!(
+        stderr(&o).contains("journal.csv modified after the run"),
+        "{}",
+        stderr(&o)
+    );
+    let v = util::json(&dir.join("verdict.json"));
+    assert_eq!(v["outcome"], "FAIL");
+    assert!(v["summary"]
+        .as_str()
+        .unwrap()
+        .contains("RECORD MODIFIED AFTER THE RUN"));
+    assert_eq!(v["run"]["record"]["recorded"], true);
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(html.contains("modified after the run"));
+}
+
+/// Issue 33, item 5: a bench whose camera reads recorded PNGs (`dir:`) and whose stage
+/// reports the tactbench simulator's firmware was judged "real bench" by
+/// `require_real_bench`. Every device must be real; the report names the device.
+#[test]
+fn a_replayed_camera_or_a_simulator_firmware_is_not_a_real_bench() {
+    let tmp = tempfile::tempdir().unwrap();
+    let criteria = tmp.path().join("real.toml");
+    std::fs::write(&criteria, "require_real_bench = true\n").unwrap();
+    for (name, devices, word, needle) in [
+        (
+            "dir",
+            serde_json::json!({"stage": {"protocol": "grbl", "version": "1.1h"},
+                "force_sensor": {"protocol": "dynpick", "firmware": "DynPick 2.0"},
+                "camera": "Dir(\"recorded\")"}),
+            "REPLAYED",
+            "camera: the camera reads recorded frames",
+        ),
+        (
+            "fw",
+            serde_json::json!({"stage": {"protocol": "marlin", "firmware": "Marlin 2.1.2.1 (tactbench simulator)"},
+                "force_sensor": {"protocol": "dynpick", "firmware": "DynPick 2.0"},
+                "camera": "V4l(0)"}),
+            "SIMULATED",
+            "stage: the stage reports a simulator's firmware",
+        ),
+    ] {
+        let dir = tmp.path().join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        magnitude_run(&dir);
+        let mut m = Manifest::read(&dir).unwrap();
+        m.simulated = Some(false);
+        m.devices = devices;
+        m.write(&dir).unwrap();
+        let o = report(&dir, &["--acceptance", criteria.to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(1), "{name}: {}", stdout(&o));
+        let so = stdout(&o);
+        assert!(
+            so.contains(&format!("bench: {word} ({needle}")),
+            "{name}: {so}"
+        );
+        assert!(so.contains("FAIL provenance: real_bench"), "{name}: {so}");
+        let v = util::json(&dir.join("verdict.json"));
+        assert_ne!(v["provenance"]["bench_kind"], "real bench", "{name}");
+    }
 }

@@ -1471,3 +1471,292 @@ fn a_disk_that_stays_full_exits_3_and_reports_the_unrecorded_end_on_stderr() {
     assert_eq!(m.status, RunStatus::Running);
     assert_eq!(rows(&out).len(), 1);
 }
+
+// ---- issue 33: failed rows, a dead camera, implausible forces, sessions ----------
+
+/// The Fig. 7 scene with the paper sensor given by absolute path and `extra` appended
+/// (effects), written into `dir` as `name`.
+fn fig7_scene_with(dir: &Path, name: &str, extra: &str) -> PathBuf {
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let text = std::fs::read_to_string(util::root("experiments/scenes/fig7_hemisphere_ramp.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"../paper_sensor.toml\"",
+            &format!("sensor = {:?}", sensor.display().to_string()),
+        );
+    write(dir, name, &format!("{text}\n{extra}"))
+}
+
+/// Grey over the whole frame for the camera's grabs `from..=to` (1 = the reference).
+fn whole_frame_occlusion(from: usize, to: usize) -> String {
+    format!(
+        "[[effects]]\nkind = \"occlusion\"\nrect_px = [0.0, 0.0, 10000.0, 10000.0]\nframes = [{from}, {to}]\n"
+    )
+}
+
+/// Issue 33, item 1: a fully occluded setpoint (grabs 3–5: setpoint 1 and both its
+/// re-acquisitions) used to be journalled with NaN force sums, and from then on
+/// `report` (even `--allow-partial`) and `archive` refused the whole journal. Now the
+/// row is journalled with empty force columns and its reason, and every reader skips
+/// it, counts it and says so: at most MARGINAL.
+#[test]
+fn a_fully_occluded_setpoint_is_a_failed_row_and_the_run_still_reports() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let scene = fig7_scene_with(tmp.path(), "occluded.toml", &whole_frame_occlusion(3, 5));
+    let plan = short_fig7_plan(tmp.path(), sensor.to_str().unwrap(), "");
+    let out = tmp.path().join("run");
+    let (summary, events, _, _) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Completed, "{:?}", summary.reason);
+    let rows = rows(&out);
+    assert_eq!(rows.len(), 4);
+    let failed = &rows[1];
+    let why = failed.failure.clone().expect("setpoint 1 is a failed row");
+    assert!(
+        why.contains("camera: ")
+            && why.contains("blank frame")
+            && why.contains("frames/00001_0.png"),
+        "{why}"
+    );
+    assert!(failed.fsum_z_n.is_nan() && failed.failed().is_some());
+    assert!(rows
+        .iter()
+        .enumerate()
+        .all(|(i, r)| i == 1 || r.failure.is_none()));
+    // Empty force columns on disk, not NaN.
+    let text = std::fs::read_to_string(out.join("journal.csv")).unwrap();
+    let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+    assert_eq!(header.last(), Some(&"plausibility"));
+    let line: Vec<&str> = text.lines().nth(2).unwrap().split(',').collect();
+    let col = header.iter().position(|c| *c == "fsum_z_n").unwrap();
+    assert_eq!(line[col], "", "{}", text.lines().nth(2).unwrap());
+    assert!(!text.contains("NaN"), "{text}");
+    // The warning names the blank frame, not "0 of 260 markers ok".
+    assert!(events.iter().any(|e| matches!(
+        e,
+        RunEvent::Warning { index: 1, message } if message.contains("blank frame") && message.contains("failed row")
+    )), "{events:?}");
+
+    // report: readable, the row skipped and counted; with criteria at most MARGINAL.
+    let criteria = write(
+        tmp.path(),
+        "criteria.toml",
+        "[[criterion]]\nmetric = \"run.rows\"\nmin = 1\n",
+    );
+    let o = run_cli(&[
+        "report",
+        out.to_str().unwrap(),
+        "--acceptance",
+        criteria.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
+    let err = util::stderr(&o);
+    assert!(
+        err.contains("1 failed row(s)") && err.contains("setpoint 1 (journal line 3)"),
+        "{err}"
+    );
+    let v = util::json(&out.join("verdict.json"));
+    assert_eq!(v["outcome"], "MARGINAL", "{v}");
+    assert_eq!(v["run"]["measured_setpoints"], 4);
+    assert_eq!(v["run"]["failed_rows"].as_array().unwrap().len(), 1);
+    assert!(v["summary"]
+        .as_str()
+        .unwrap()
+        .contains("1 failed row(s) skipped"));
+    let summary_csv = std::fs::read_to_string(out.join("summary.csv")).unwrap();
+    let metric = |name: &str| {
+        summary_csv
+            .lines()
+            .find_map(|l| l.strip_prefix(&format!("{name},")))
+            .and_then(|v| v.split(',').next())
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or_else(|| panic!("{name} not in {summary_csv}"))
+    };
+    assert_eq!(metric("run.failed_rows"), 1.0);
+    assert_eq!(metric("run.rows"), 3.0);
+    // archive: as readable.
+    let arch = tmp.path().join("arch");
+    let o = run_cli(&[
+        "archive",
+        out.to_str().unwrap(),
+        "--out",
+        arch.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
+}
+
+/// Issue 33, item 7: a camera that goes blank mid-run used to be retried and flagged
+/// at every setpoint while the run went on all night. After `[quality]
+/// dead_camera_setpoints` consecutive dead setpoints the run stops the stage, retracts
+/// and ends aborted (INCOMPLETE), naming the blank frame.
+#[test]
+fn a_dead_camera_stops_the_run_incomplete_naming_the_blank_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = util::root("experiments/paper_sensor.toml");
+    let scene = fig7_scene_with(tmp.path(), "dead.toml", &whole_frame_occlusion(3, 100_000));
+    let plan = short_fig7_plan(
+        tmp.path(),
+        sensor.to_str().unwrap(),
+        "dead_camera_setpoints = 2",
+    );
+    let out = tmp.path().join("run");
+    let (summary, events, _, fz) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Aborted, "{:?}", summary.reason);
+    let reason = summary.reason.unwrap();
+    for needle in [
+        "the camera is dead",
+        "2 consecutive setpoints (1, 2)",
+        "dead_camera_setpoints = 2",
+        "frames/00002_0.png",
+        "blank frame",
+        "retracted",
+    ] {
+        assert!(reason.contains(needle), "{needle:?} not in {reason}");
+    }
+    assert_eq!(
+        rows(&out).iter().map(|r| r.index).collect::<Vec<_>>(),
+        vec![0, 1, 2],
+        "setpoint 3 was never measured"
+    );
+    assert!(rows(&out)[1..].iter().all(|r| r.failure.is_some()));
+    assert_eq!(fz, 0.0, "retracted");
+    let retry = events
+        .iter()
+        .find_map(|e| match e {
+            RunEvent::Retry {
+                index: Some(1),
+                reason,
+                ..
+            } => Some(reason.clone()),
+            _ => None,
+        })
+        .unwrap();
+    assert!(
+        retry.contains("blank frame") && !retry.contains("0 of 260"),
+        "{retry}"
+    );
+    let m = Manifest::read(&out).unwrap();
+    assert!(m.end_reason.unwrap().contains("the camera is dead"));
+    let o = run_cli(&["report", out.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(5), "INCOMPLETE: {}", util::stdout(&o));
+}
+
+/// Issue 33, items 2 and 4 on the run side: a sensor file whose modulus is not the
+/// elastomer's (here 25× too low, an unfitted value within any sensible bound)
+/// journalled force sums 25× below the F/T reading with quality `ok`. The force sum
+/// is now checked against the F/T at every setpoint: such rows are `implausible`, and
+/// persistent ones stop the run naming the likely cause.
+#[test]
+fn implausible_force_sums_are_flagged_and_persistent_ones_stop_the_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
+        .unwrap()
+        .replace(
+            "young_modulus_kpa = 1000.0",
+            "young_modulus_kpa = 1000000.0",
+        );
+    let sensor_path = write(tmp.path(), "sensor_pa.toml", &sensor);
+    let plan = short_fig7_plan(
+        tmp.path(),
+        sensor_path.to_str().unwrap(),
+        "max_implausible_rows = 2",
+    );
+    let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
+    let out = tmp.path().join("run");
+    let (summary, _, _, fz) = run_in_process(&plan, &scene, &out, false, None, None, None);
+    assert_eq!(summary.status, RunStatus::Aborted, "{:?}", summary.reason);
+    let reason = summary.reason.unwrap();
+    assert!(
+        reason.contains("2 consecutive rows (1, 2) failed the force plausibility check")
+            && reason.contains("Likely cause: the reconstructed force is far too")
+            && reason.contains("young_modulus_kpa"),
+        "{reason}"
+    );
+    let rows = rows(&out);
+    assert_eq!(rows.len(), 3);
+    assert_eq!(
+        rows[0].quality,
+        Some(RowQuality::Ok),
+        "unloaded: nothing to compare"
+    );
+    for r in &rows[1..] {
+        assert_eq!(r.quality, Some(RowQuality::Implausible), "{r:?}");
+        let p = r.plausibility.clone().unwrap();
+        assert!(
+            p.contains("0.1 × the F/T sensor's |F|") || p.contains("10 × the F/T sensor's |F|"),
+            "{p}"
+        );
+    }
+    assert_eq!(fz, 0.0, "retracted");
+    let o = run_cli(&["report", out.to_str().unwrap(), "--allow-partial"]);
+    assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
+    assert!(util::stderr(&o).contains("2 row(s) journalled quality = implausible"));
+}
+
+/// Issue 33, item 9: after `kill -9` the manifest's `sessions` said the killed session
+/// measured nothing. `report` now reconciles them with the journal (and says which
+/// rows no digest covers), and a resume writes them right.
+#[test]
+fn after_kill_9_the_sessions_say_what_the_killed_session_measured() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("run");
+    let mut child = spawn_fig7_run(&out, 8, Stdio::null());
+    let t = Instant::now();
+    while rows_or_zero(&out) < 2 {
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "run made no progress"
+        );
+        assert!(child.try_wait().unwrap().is_none(), "run ended early");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let before = rows(&out).len();
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(
+        m.sessions[0].setpoints_after, 0,
+        "what the killed session left"
+    );
+    let rep = tmp.path().join("rep");
+    let o = run_cli(&[
+        "report",
+        out.to_str().unwrap(),
+        "--out",
+        rep.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
+    let v = util::json(&rep.join("verdict.json"));
+    assert_eq!(v["run"]["sessions"][0]["setpoints_after"], before, "{v}");
+    assert!(
+        util::stderr(&o).contains("not covered by a digest"),
+        "{}",
+        util::stderr(&o)
+    );
+    let o = util::run(&[
+        "run",
+        "--resume",
+        out.to_str().unwrap(),
+        "--limit",
+        "1",
+        "--no-progress",
+    ]);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    let m = Manifest::read(&out).unwrap();
+    assert_eq!(m.sessions.len(), 2);
+    assert_eq!(m.sessions[0].setpoints_after, before);
+    assert_eq!(m.sessions[1].setpoints_before, before);
+    assert_eq!(m.sessions[1].setpoints_after, before + 1);
+    // The closing digest covers the whole journal: nothing to say.
+    let o = run_cli(&[
+        "report",
+        out.to_str().unwrap(),
+        "--out",
+        rep.to_str().unwrap(),
+    ]);
+    assert!(!util::stderr(&o).contains("digest"), "{}", util::stderr(&o));
+    assert_eq!(
+        util::json(&rep.join("verdict.json"))["run"]["record"]["recorded"],
+        true
+    );
+}

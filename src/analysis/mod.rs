@@ -140,10 +140,35 @@ pub struct RunData {
     pub sensor: Sensor,
     /// Every setpoint of the plan (the journal's `index` refers to these).
     pub setpoints: Vec<Setpoint>,
-    /// The journal rows, in file order (complete lines only).
+    /// The journal rows with a measurement, in file order (complete lines only);
+    /// failed rows are in `failed`.
     pub rows: Vec<JournalRow>,
+    /// Failed rows (no force: tracking or reconstruction failed, a dead camera, or a
+    /// NaN an older version wrote): skipped by every analysis, counted and named.
+    pub failed: Vec<FailedRow>,
     /// A torn last journal line that was skipped (the file is left as it is).
     pub torn: Option<TornLine>,
+}
+
+/// A journal row without a usable force ([`JournalRow::failed`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FailedRow {
+    /// Setpoint index.
+    pub index: usize,
+    /// Journal line.
+    pub line: u64,
+    /// Why it has no force.
+    pub reason: String,
+}
+
+impl FailedRow {
+    /// `setpoint 3 (journal line 5): why`.
+    pub fn describe(&self) -> String {
+        format!(
+            "setpoint {} (journal line {}): {}",
+            self.index, self.line, self.reason
+        )
+    }
 }
 
 /// `displacements/NNNNN.csv` of setpoint `index`.
@@ -201,10 +226,31 @@ impl RunData {
             if !seen.insert(r.index) {
                 return Err(bad("index", format!("setpoint {} appears twice", r.index)));
             }
+            let failure = r.failed();
             for (column, v) in numeric_columns(r) {
+                // A failed row's force sums are empty (NaN): it is skipped, not refused.
+                if failure.is_some() && column.starts_with("fsum_") {
+                    continue;
+                }
                 if !v.is_finite() {
                     return Err(bad(column, format!("value {v} is not a finite number")));
                 }
+            }
+            plausible_row(r, &setpoints[r.index], &plan).map_err(|(c, m)| bad(c, m))?;
+        }
+        // After a session that could not record its end (kill -9) the journal is the
+        // authority on what each session measured (read-only: the file is unchanged).
+        let mut manifest = manifest;
+        manifest.reconcile_sessions(rows.len());
+        let (mut good, mut failed) = (Vec::with_capacity(rows.len()), Vec::new());
+        for (i, r) in rows.into_iter().enumerate() {
+            match r.failed() {
+                Some(reason) => failed.push(FailedRow {
+                    index: r.index,
+                    line: i as u64 + 2,
+                    reason,
+                }),
+                None => good.push(r),
             }
         }
         Ok(RunData {
@@ -213,17 +259,34 @@ impl RunData {
             plan,
             sensor,
             setpoints,
-            rows,
+            rows: good,
+            failed,
             torn,
         })
     }
 
+    /// Setpoints in the journal: measured rows and failed rows.
+    pub fn journalled(&self) -> usize {
+        self.rows.len() + self.failed.len()
+    }
+
     /// Journal line of the row for setpoint `index` (0 when absent).
     pub fn line_of(&self, index: usize) -> u64 {
-        self.rows
+        let mut lines: Vec<(usize, u64)> = self.failed.iter().map(|f| (f.index, f.line)).collect();
+        // Measured rows fill the lines the failed ones leave, in file order.
+        let taken: BTreeSet<u64> = lines.iter().map(|l| l.1).collect();
+        let mut line = 2;
+        for r in &self.rows {
+            while taken.contains(&line) {
+                line += 1;
+            }
+            lines.push((r.index, line));
+            line += 1;
+        }
+        lines
             .iter()
-            .position(|r| r.index == index)
-            .map_or(0, |i| i as u64 + 2)
+            .find(|(i, _)| *i == index)
+            .map_or(0, |(_, l)| *l)
     }
 
     /// Reads setpoint `index`'s forces file.
@@ -265,6 +328,79 @@ impl RunData {
             Sweep::Hold { .. } => "hold",
         }
     }
+}
+
+/// How far a journalled mean force may exceed the plan's safety limit (relative): the
+/// watchdog checks every reading that goes into the mean, so a mean beyond it cannot
+/// have been measured; the slack only absorbs the journal's number formatting.
+const LIMIT_SLACK: f64 = 1e-6;
+
+/// Whether a row's values fit its plan (the journal was not edited, its columns not
+/// swapped): the targets and swept value are the plan's for that setpoint, the F/T
+/// means within the plan's safety limits (the watchdog stops a run before a reading
+/// beyond them), the times not negative. `Err((column, message))` names the value and
+/// the range it is outside.
+fn plausible_row(r: &JournalRow, sp: &Setpoint, plan: &Plan) -> Result<(), (&'static str, String)> {
+    let same = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(b.abs()).max(1e-3);
+    let edited = "the journal was edited after the run or its columns swapped";
+    for (column, v, want) in [
+        ("target_normal_n", r.target_normal_n, sp.normal_n),
+        ("swept_value", r.swept_value, sp.swept_value),
+    ] {
+        if !same(v, want) {
+            return Err((
+                column,
+                format!(
+                    "{v} is not the plan's {want} for setpoint {} ({edited})",
+                    r.index
+                ),
+            ));
+        }
+    }
+    if r.trial != sp.trial {
+        return Err((
+            "trial",
+            format!(
+                "{} is not the plan's trial {} for setpoint {} ({edited})",
+                r.trial, sp.trial, r.index
+            ),
+        ));
+    }
+    let limits = plan.safety.max_force_n;
+    for (k, (column, v)) in [("fx_n", r.fx_n), ("fy_n", r.fy_n), ("fz_n", r.fz_n)]
+        .into_iter()
+        .enumerate()
+    {
+        if v.abs() > limits[k] * (1.0 + LIMIT_SLACK) {
+            return Err((
+                column,
+                format!(
+                    "{v} N is outside the plan's safety limit ±{} N, which no journalled mean can exceed (the watchdog stops the run first): {edited}",
+                    limits[k]
+                ),
+            ));
+        }
+    }
+    for (column, v) in [
+        ("fx_sd_n", r.fx_sd_n),
+        ("fy_sd_n", r.fy_sd_n),
+        ("fz_sd_n", r.fz_sd_n),
+        ("t_move_s", r.t_move_s),
+        ("t_settle_s", r.t_settle_s),
+        ("t_acquire_s", r.t_acquire_s),
+        ("t_track_s", r.t_track_s),
+        ("t_solve_s", r.t_solve_s),
+    ] {
+        if v < 0.0 {
+            return Err((
+                column,
+                format!(
+                    "{v} is negative, which a standard deviation or a duration cannot be: {edited}"
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The journal columns the analyses use, with their values.
@@ -404,6 +540,16 @@ pub const METRICS: &[(&str, &str, &str)] = &[
         "run.unsettled",
         "count",
         "rows whose settle criterion timed out",
+    ),
+    (
+        "run.failed_rows",
+        "count",
+        "failed rows (no force: tracking or reconstruction failed, a dead camera), skipped by the analyses; present only when there are some",
+    ),
+    (
+        "run.implausible_rows",
+        "count",
+        "rows journalled quality = implausible (|F^sum| / |F_ft| outside the plan's force_ratio range); present only when there are some",
     ),
     (
         "magnitude.slope",
@@ -896,6 +1042,24 @@ impl RunAnalysis {
         );
         let unsettled = self.run.rows.iter().filter(|r| !r.settled).count();
         push(&mut v, "run.unsettled".into(), unsettled as f64, "count");
+        // Only when there are some: runs without them keep their metric list.
+        if !self.run.failed.is_empty() {
+            push(
+                &mut v,
+                "run.failed_rows".into(),
+                self.run.failed.len() as f64,
+                "count",
+            );
+        }
+        let implausible = self.run.rows.iter().filter(|r| r.implausible()).count();
+        if implausible > 0 {
+            push(
+                &mut v,
+                "run.implausible_rows".into(),
+                implausible as f64,
+                "count",
+            );
+        }
         let t = |ci: Option<(f64, f64)>, k: f64| {
             ci.map(|(lo, hi)| Ci95 {
                 low: (lo * k).min(hi * k),

@@ -16,6 +16,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+pub use super::integrity::RecordDigests;
+
 /// File name of the journal inside a run directory.
 pub const JOURNAL_FILE: &str = "journal.csv";
 /// File name of the manifest inside a run directory.
@@ -96,11 +98,15 @@ pub struct JournalRow {
     pub settled: bool,
     /// Frame files, relative to the run directory, `;`-separated.
     pub frames: String,
-    /// Reconstructed force sums Σfx (paper F^sum), N.
+    /// Reconstructed force sums Σfx (paper F^sum), N. Empty (NaN in memory) in a
+    /// failed row (see `failure`); older versions wrote `NaN`, which reads the same.
+    #[serde(with = "empty_nan")]
     pub fsum_x_n: f64,
     /// Σfy, N.
+    #[serde(with = "empty_nan")]
     pub fsum_y_n: f64,
     /// Σfz, N.
+    #[serde(with = "empty_nan")]
     pub fsum_z_n: f64,
     /// Time moving and force-controlling, s.
     pub t_move_s: f64,
@@ -131,7 +137,9 @@ pub struct JournalRow {
     #[serde(default)]
     pub reacquired: Option<usize>,
     /// Tracking quality against the plan's `[quality] min_ok_fraction`: `ok`, or
-    /// `flagged` when still below it after `max_reacquire` re-acquisitions.
+    /// `flagged` when still below it after `max_reacquire` re-acquisitions, or
+    /// `implausible` when the reconstructed force sum does not fit the F/T reading
+    /// (see `plausibility`).
     #[serde(default)]
     pub quality: Option<RowQuality>,
     /// Standard deviation of F^sum x (N) from the displacement noise propagated through
@@ -163,6 +171,42 @@ pub struct JournalRow {
     /// (and in rows written before this column).
     #[serde(default)]
     pub ft_status: Option<String>,
+    /// Why the setpoint has no force (tracking or reconstruction failed, the frames
+    /// were blank or saturated): the row is a *failed row*, its `fsum_*` columns are
+    /// empty, and analyses skip it, count it and say so. Empty in every measured row
+    /// (and in rows written before this column).
+    #[serde(default)]
+    pub failure: Option<String>,
+    /// Run-side plausibility: the reconstructed |F^sum| against the F/T sensor's
+    /// |F| (`[quality] force_ratio_min` .. `force_ratio_max`), in words, when the row
+    /// failed it (`quality` is then `implausible`); empty when it passed or was not
+    /// checked (and in rows written before this column).
+    #[serde(default)]
+    pub plausibility: Option<String>,
+}
+
+/// `fsum_*` columns: NaN is written as an empty field (a failed row has no force), and
+/// an empty field or the `NaN` older versions wrote reads as NaN.
+mod empty_nan {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_nan() {
+            s.serialize_str("")
+        } else {
+            s.serialize_f64(*v)
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        let text = String::deserialize(d)?;
+        let t = text.trim();
+        if t.is_empty() {
+            return Ok(f64::NAN);
+        }
+        t.parse::<f64>()
+            .map_err(|_| serde::de::Error::custom(format!("{t:?} is not a number")))
+    }
 }
 
 /// Which way a magnitude sweep was going when a row was measured.
@@ -183,6 +227,10 @@ pub enum RowQuality {
     Ok,
     /// Below it after every re-acquisition: kept, but not to be trusted.
     Flagged,
+    /// The reconstructed |F^sum| is outside `[quality] force_ratio_min ..
+    /// force_ratio_max` times the F/T sensor's |F| (units of the sensor file, an
+    /// unfitted modulus): kept, but not to be trusted.
+    Implausible,
 }
 
 impl JournalRow {
@@ -204,6 +252,28 @@ impl JournalRow {
     /// True when the row is flagged for tracking quality.
     pub fn flagged(&self) -> bool {
         self.quality == Some(RowQuality::Flagged)
+    }
+
+    /// True when the row failed the run-side force plausibility check.
+    pub fn implausible(&self) -> bool {
+        self.quality == Some(RowQuality::Implausible)
+    }
+
+    /// Why the row has no usable force, when it is a failed row: its `failure`
+    /// reason, or (a row an older version wrote with NaN) the first measured column
+    /// that is not a finite number.
+    pub fn failed(&self) -> Option<String> {
+        if let Some(f) = &self.failure {
+            return Some(f.clone());
+        }
+        let columns = [
+            ("fsum_x_n", self.fsum_x_n),
+            ("fsum_y_n", self.fsum_y_n),
+            ("fsum_z_n", self.fsum_z_n),
+        ];
+        columns.iter().find(|(_, v)| !v.is_finite()).map(|(c, v)| {
+            format!("`{c}` is {v} (a failed reconstruction, journalled by an older version)")
+        })
     }
 }
 
@@ -302,6 +372,52 @@ pub struct Manifest {
     /// ended `aborted` because of it); `None` when every write succeeded.
     #[serde(default)]
     pub write_failure: Option<WriteFailure>,
+    /// Where each device's data came from (`real`, `simulated`, `replayed`) and why
+    /// ([`crate::bench::provenance`]); a run is a real-bench run only when every
+    /// device is real. Empty in manifests written before it was recorded.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub device_provenance: Vec<DeviceProvenance>,
+    /// SHA-256 digests of the journal and the evidence files as the runner wrote them
+    /// ([`crate::bench::integrity`]); `None` in manifests written before they were.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub record: Option<RecordDigests>,
+}
+
+/// One device's provenance (`manifest.json` `device_provenance`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DeviceProvenance {
+    /// `stage`, `force_sensor` or `camera`.
+    pub device: String,
+    /// What the device reported (or how it was opened), as recorded in `devices`.
+    pub identity: String,
+    /// `real`, `simulated` or `replayed`.
+    pub provenance: Provenance,
+    /// Why it is not real (`None` for a real device).
+    #[serde(default)]
+    pub why: Option<String>,
+}
+
+/// Where a device's data came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Provenance {
+    /// A physical device.
+    Real,
+    /// Recorded data played back (a `dir:` camera, a replayed transcript).
+    Replayed,
+    /// A simulator (the built-in bench, a simulator's firmware, a loopback simulator).
+    Simulated,
+}
+
+impl Provenance {
+    /// `real`, `replayed`, `simulated`.
+    pub fn word(self) -> &'static str {
+        match self {
+            Provenance::Real => "real",
+            Provenance::Replayed => "replayed",
+            Provenance::Simulated => "simulated",
+        }
+    }
 }
 
 /// The first failed write of a run (`manifest.json` `write_failure`).
@@ -388,6 +504,36 @@ impl Manifest {
             })
         };
         self.end_reason = end_reason;
+    }
+
+    /// Makes `sessions` agree with the journal after a session that could not record
+    /// its end (`kill -9`, power loss): a session's `setpoints_after` is at least the
+    /// next session's `setpoints_before`, and the last one's at least `journal_rows`
+    /// when the manifest still says `running`. Returns whether anything changed.
+    pub fn reconcile_sessions(&mut self, journal_rows: usize) -> bool {
+        let mut changed = false;
+        let n = self.sessions.len();
+        for i in 0..n {
+            let next = if i + 1 < n {
+                Some(self.sessions[i + 1].setpoints_before)
+            } else if self.status == RunStatus::Running {
+                Some(journal_rows)
+            } else {
+                None
+            };
+            if let Some(next) = next {
+                let s = &mut self.sessions[i];
+                if next > s.setpoints_after {
+                    s.setpoints_after = next;
+                    changed = true;
+                }
+            }
+        }
+        if self.status == RunStatus::Running && journal_rows > self.measured_setpoints {
+            self.measured_setpoints = journal_rows;
+            changed = true;
+        }
+        changed
     }
 
     /// Writes `manifest.json` atomically (temp file + rename) and syncs it.
@@ -526,19 +672,7 @@ impl Journal {
             .map_err(|e| corrupt(&path, 1, e.to_string()))?
             .clone();
         let found: Vec<&str> = headers.iter().collect();
-        let current = header();
-        // The header only ever grows at its end: an older journal's header is a prefix.
-        let legacy = PRIOR_WIDTHS
-            .iter()
-            .copied()
-            .find(|&w| w < current.len() && found == current[..w]);
-        if found != current && legacy.is_none() {
-            return Err(corrupt(
-                &path,
-                1,
-                "not a tactbench journal (unexpected header)".into(),
-            ));
-        }
+        let legacy = check_header(&path, &found)?;
         let mut rows = Vec::new();
         let mut done = BTreeSet::new();
         for rec in rdr.deserialize::<JournalRow>() {
@@ -621,7 +755,7 @@ pub const LEGACY_COLUMNS: usize = 29;
 /// (new columns go at its end, and their row fields are `Option`s read as absent), so
 /// a journal with one of these widths whose header is the current header's prefix is
 /// resumed by upgrading it. A change that appends columns adds the old width here.
-pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35, 41];
+pub const PRIOR_WIDTHS: &[usize] = &[LEGACY_COLUMNS, 35, 41, 42];
 
 /// Rewrites a legacy journal (`text`: header and complete lines, `width` columns) with
 /// the current header, appending empty new columns to every old row; returns it open
@@ -717,6 +851,11 @@ pub fn read_journal(dir: &Path) -> Result<JournalContents, JournalError> {
     let mut rows = Vec::new();
     if keep > 0 {
         let mut rdr = csv::Reader::from_reader(&bytes[..keep]);
+        let headers = rdr
+            .headers()
+            .map_err(|e| corrupt(&path, 1, e.to_string()))?
+            .clone();
+        check_header(&path, &headers.iter().collect::<Vec<_>>())?;
         for rec in rdr.deserialize::<JournalRow>() {
             rows.push(rec.map_err(|e| {
                 let line = e.position().map(|p| p.line()).unwrap_or(0);
@@ -725,6 +864,52 @@ pub fn read_journal(dir: &Path) -> Result<JournalContents, JournalError> {
         }
     }
     Ok(JournalContents { rows, torn })
+}
+
+/// Checks a journal's header against the one this version writes: the current header,
+/// or (the header only ever grows at its end) one of [`PRIOR_WIDTHS`]' prefixes of it,
+/// whose width is returned. Anything else (a reordered, renamed or foreign header) is
+/// refused with the first column that differs: the columns would be read by name, so a
+/// header reordered after the run would silently put values under other columns.
+fn check_header(path: &Path, found: &[&str]) -> Result<Option<usize>, JournalError> {
+    let current = header();
+    if found == current.as_slice() {
+        return Ok(None);
+    }
+    if let Some(w) = PRIOR_WIDTHS
+        .iter()
+        .copied()
+        .find(|&w| w < current.len() && found == &current[..w])
+    {
+        return Ok(Some(w));
+    }
+    let differs = found
+        .iter()
+        .zip(&current)
+        .position(|(a, b)| a != b)
+        .map(|i| {
+            format!(
+                "column {} is `{}` where a tactbench journal has `{}`",
+                i + 1,
+                found[i],
+                current[i]
+            )
+        })
+        .unwrap_or_else(|| {
+            format!(
+                "{} columns, where a tactbench journal has {} (or one of the earlier widths {:?})",
+                found.len(),
+                current.len(),
+                PRIOR_WIDTHS
+            )
+        });
+    Err(corrupt(
+        path,
+        1,
+        format!(
+            "not the journal header this version writes ({differs}): reordered or edited after the run, or not a tactbench journal"
+        ),
+    ))
 }
 
 /// The journal's column names, in order (the serde field order of [`JournalRow`]).
@@ -772,6 +957,8 @@ pub fn header() -> Vec<&'static str> {
         "position",
         "hold_t_s",
         "ft_status",
+        "failure",
+        "plausibility",
     ]
 }
 
@@ -788,6 +975,45 @@ fn corrupt(path: &Path, line: u64, message: String) -> JournalError {
 fn sync_dir(dir: &Path) {
     if let Ok(d) = File::open(dir) {
         let _ = d.sync_all();
+    }
+}
+
+/// A minimal manifest for unit tests elsewhere in the crate.
+#[cfg(test)]
+pub(crate) mod tests_support {
+    use super::*;
+
+    pub(crate) fn manifest() -> Manifest {
+        Manifest {
+            plan_path: "p.toml".into(),
+            plan_name: "p".into(),
+            plan_toml: String::new(),
+            sensor_path: "s.toml".into(),
+            sensor_toml: String::new(),
+            bench: serde_json::Value::Null,
+            devices: serde_json::Value::Null,
+            build_id: None,
+            software_version: "0".into(),
+            started_at: "t0".into(),
+            resumed_at: vec![],
+            sessions: vec![],
+            setpoints: 1,
+            planned_setpoints: Some(1),
+            limit: None,
+            measured_setpoints: 0,
+            status: RunStatus::Running,
+            end_reason: None,
+            stop_signal: None,
+            incomplete_reason: None,
+            ended_at: None,
+            software_commit: None,
+            camera_path: None,
+            camera_toml: None,
+            simulated: None,
+            write_failure: None,
+            device_provenance: Vec::new(),
+            record: None,
+        }
     }
 }
 
@@ -903,7 +1129,11 @@ mod tests {
         assert_eq!(lines[0], header().join(","));
         let added = header().len() - LEGACY_COLUMNS;
         assert!(lines[1].ends_with(&",".repeat(added)), "{}", lines[1]);
-        assert!(lines[3].ends_with(",250,6,3,1,1,ok,,,,,,,"), "{}", lines[3]);
+        assert!(
+            lines[3].ends_with(",250,6,3,1,1,ok,,,,,,,,,"),
+            "{}",
+            lines[3]
+        );
         assert_eq!(
             old.lines().nth(1).unwrap(),
             &lines[1][..lines[1].len() - added],
@@ -948,7 +1178,7 @@ mod tests {
             let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
             let lines: Vec<&str> = text.lines().collect();
             assert_eq!(lines[0], header().join(","), "width {width}");
-            assert!(lines[2].ends_with(",0.25,down,2,1.5,"), "{}", lines[2]);
+            assert!(lines[2].ends_with(",0.25,down,2,1.5,,,"), "{}", lines[2]);
             assert_eq!(read_rows(dir.path()).unwrap(), vec![row(0), new]);
         }
     }
@@ -1008,6 +1238,8 @@ mod tests {
             camera_toml: None,
             simulated: None,
             write_failure: None,
+            device_provenance: Vec::new(),
+            record: None,
         };
         m.finish(RunStatus::Completed, None, 8, None, "t1".into());
         assert_eq!(
@@ -1086,6 +1318,22 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("header"));
+        // A reordered header is refused by readers too, naming the first column.
+        let mut j = Journal::create(&dir.path().join("r")).ok();
+        if j.is_none() {
+            std::fs::create_dir_all(dir.path().join("r")).unwrap();
+            j = Journal::create(&dir.path().join("r")).ok();
+        }
+        j.unwrap().append(&row(0)).unwrap();
+        let path = dir.path().join("r").join(JOURNAL_FILE);
+        let text = std::fs::read_to_string(&path).unwrap();
+        std::fs::write(&path, text.replacen("fx_n,fy_n,fz_n", "fx_n,fz_n,fy_n", 1)).unwrap();
+        let e = read_rows(&dir.path().join("r")).unwrap_err().to_string();
+        assert!(
+            e.contains("line 1")
+                && e.contains("column 8 is `fz_n` where a tactbench journal has `fy_n`"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -1118,6 +1366,8 @@ mod tests {
             camera_toml: None,
             simulated: None,
             write_failure: None,
+            device_provenance: Vec::new(),
+            record: None,
         };
         m.write(dir.path()).unwrap();
         assert_eq!(Manifest::read(dir.path()).unwrap(), m);

@@ -81,6 +81,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for m in &o.missing {
         println!("not in the archive: {m}");
     }
+    for l in &r.source_record {
+        eprintln!("warning: {}: {l}", args.run_dir.display());
+    }
+    println!(
+        "digests: SHA-256 of {} record and evidence file(s) in {}",
+        r.sha256.len(),
+        args.out
+            .join(tactbench::report::archive::ARCHIVE_FILE)
+            .display()
+    );
     let saved = r.bytes_source.saturating_sub(r.bytes_archive);
     println!(
         "bytes: run {} ({}), archive {} ({}), saved {} ({:.1} %)",

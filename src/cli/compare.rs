@@ -110,6 +110,28 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for d in &c.differences {
         eprintln!("warning: not like for like (--allow-different-plans): {d}");
     }
+    for (r, ins) in c.runs.iter().zip(&c.instruments) {
+        let list: Vec<String> = ins
+            .devices
+            .iter()
+            .map(|(d, id)| format!("{d}: {id}"))
+            .collect();
+        println!("instruments of {}: {}", r.label, list.join("; "));
+    }
+    for d in &c.instrument_differences {
+        eprintln!("warning: different instruments: {d}");
+    }
+    for w in &c.record_warnings {
+        eprintln!("warning: {w}");
+    }
+    for r in &c.runs {
+        for f in &r.verdict.run.failed_rows {
+            eprintln!(
+                "note: {}: failed row skipped (no force): {f}",
+                r.dir.display()
+            );
+        }
+    }
     let written = compare::write_comparison(&c, &args.out)?;
     for r in &c.runs {
         let s = &r.verdict.run;

@@ -130,6 +130,24 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(w) = &v.run.write_failure {
         eprintln!("note: the run was aborted by a failed write: {w}");
     }
+    if !v.run.failed_rows.is_empty() {
+        eprintln!(
+            "note: {} failed row(s) without force, skipped by every analysis (the run is at most MARGINAL):",
+            v.run.failed_rows.len()
+        );
+        for f in &v.run.failed_rows {
+            eprintln!("  {f}");
+        }
+    }
+    if v.run.implausible_rows > 0 {
+        eprintln!(
+            "note: {} row(s) journalled quality = implausible (force sum does not fit the F/T reading)",
+            v.run.implausible_rows
+        );
+    }
+    for line in v.run.record.lines() {
+        eprintln!("warning: {line}");
+    }
     for (name, why) in &analysis.absent {
         eprintln!("note: no {name} analysis: {why}");
     }
@@ -158,7 +176,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         v.run.status,
         v.run.measured_setpoints,
         v.run.planned_setpoints,
-        report::html::bench_text(v.simulated)
+        report::html::bench_line(v)
     );
     if criteria.is_some() {
         println!("acceptance: {}", acceptance_line(v, &outcome.verdicts));

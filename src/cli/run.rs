@@ -664,11 +664,16 @@ fn setpoint_line(
             unit.from_newtons(f[2])
         )
     };
+    // A failed row has no force sum (the warning before said why).
+    let fsum = if fsum_n[2].is_finite() {
+        format!("F_sum z {:.3} {sym}", unit.from_newtons(fsum_n[2]))
+    } else {
+        "no F_sum (failed row)".to_string()
+    };
     format!(
-        "setpoint {index} ({done}/{total}): target fx/fy/fz {} {sym}, measured {} {sym}, F_sum z {:.3} {sym}, {}, {elapsed_s:.2} s",
+        "setpoint {index} ({done}/{total}): target fx/fy/fz {} {sym}, measured {} {sym}, {fsum}, {}, {elapsed_s:.2} s",
         v(target_n),
         v(force_n),
-        unit.from_newtons(fsum_n[2]),
         if settled { "settled" } else { "not settled" }
     )
 }

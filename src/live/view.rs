@@ -889,10 +889,16 @@ fn provisional_verdict(dir: &Path, criteria: &Criteria) -> Value {
     let metrics = analysis.metrics();
     match criteria.evaluate(&metrics, analysis.run.sweep_kind(), &analysis.absent) {
         Ok(vs) => {
-            let worst = vs.iter().map(|v| v.outcome).max();
+            let mut worst = vs.iter().map(|v| v.outcome).max();
+            // Failed rows (no force) are skipped and counted: at most MARGINAL.
+            let failed: Vec<String> = analysis.run.failed.iter().map(|f| f.describe()).collect();
+            if !failed.is_empty() {
+                worst = worst.map(|o| o.max(crate::report::acceptance::Outcome::Marginal));
+            }
             json!({
                 "criteria": criteria.path.display().to_string(),
                 "overall": worst.map(|o| o.word()),
+                "failed_rows": failed,
                 "rows": vs.iter().map(|v| {
                     let (lo, hi) = v.criterion.limits(v.baseline);
                     json!({

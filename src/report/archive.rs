@@ -16,6 +16,7 @@
 //! was kept. The source is only read; an existing non-empty `--out` is refused, and so
 //! is a source a live process is still writing.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
@@ -25,6 +26,7 @@ use super::{write_report_to, ReportError, ReportOptions, REPORT_FILE, SUMMARY_FI
 use crate::analysis::{
     displacements_path, forces_path, AnalysisError, AnalysisOptions, Metric, RunAnalysis,
 };
+use crate::bench::integrity::{self, file_sha256, is_evidence};
 use crate::bench::journal::{JOURNAL_FILE, MANIFEST_FILE};
 use crate::bench::lock::{self, LockError, LockState};
 use crate::bench::plan::Sweep;
@@ -176,6 +178,14 @@ pub struct ArchiveRecord {
     /// The archive reports the same metrics as the source (always true in a written
     /// archive: a mismatch is an error).
     pub metrics_match: bool,
+    /// SHA-256 of each record and evidence file kept (`manifest.json`,
+    /// `journal.csv`, `frames/`, `displacements/`, `forces/`) as archived: `report`,
+    /// `compare` and `archive` of the archive say "modified after the run" when one
+    /// differs (the report files are left out: `report` rewrites them).
+    pub sha256: BTreeMap<String, String>,
+    /// The source's record checked against its manifest's digests when it was
+    /// archived: one line per finding (empty: intact, or not recorded).
+    pub source_record: Vec<String>,
 }
 
 /// What [`archive`] did.
@@ -415,6 +425,8 @@ pub fn archive(source: &Path, out: &Path, keep: Keep) -> Result<ArchiveOutcome, 
     };
     let src =
         RunAnalysis::load(source, &AnalysisOptions::default()).map_err(analysis_err(source))?;
+    // The source's record as the run wrote it (said, and kept in archive.json).
+    let source_check = integrity::verify(source, &src.run.manifest);
     let files = selection(&src, keep)?;
     let bytes_source: u64 = walk(source)?.iter().map(|(_, n)| n).sum();
 
@@ -455,7 +467,15 @@ pub fn archive(source: &Path, out: &Path, keep: Keep) -> Result<ArchiveOutcome, 
             .into_iter()
             .filter(|(p, _)| p != Path::new(ARCHIVE_FILE))
             .collect();
+        let sha256 = kept
+            .iter()
+            .map(|(p, _)| p.to_string_lossy().replace('\\', "/"))
+            .filter(|p| p == MANIFEST_FILE || p == JOURNAL_FILE || is_evidence(p))
+            .filter_map(|p| file_sha256(&out.join(&p)).map(|d| (p, d)))
+            .collect();
         let record = ArchiveRecord {
+            sha256,
+            source_record: source_check.lines(),
             schema: SCHEMA.into(),
             created_at: crate::bench::runner::rfc3339_now(),
             source: source.display().to_string(),

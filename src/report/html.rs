@@ -85,7 +85,7 @@ fn banner(o: &mut String, v: &VerdictDoc) {
                 .as_deref()
                 .map_or("&mdash; (none recorded)".to_string(), escape),
         ),
-        ("bench", bench_text(v.simulated).to_string()),
+        ("bench", escape(&bench_line(v))),
     ];
     for (k, val) in items {
         let _ = writeln!(
@@ -107,6 +107,28 @@ fn banner(o: &mut String, v: &VerdictDoc) {
             escape(&w.to_string())
         );
     }
+    if !r.failed_rows.is_empty() {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">failed rows</th><td class=\"l\">{} row(s) without force, skipped by every analysis: {}</td></tr>",
+            r.failed_rows.len(),
+            escape(&r.failed_rows.join("; "))
+        );
+    }
+    if r.implausible_rows > 0 {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">implausible rows</th><td class=\"l\">{} row(s) whose force sum does not fit the F/T reading (quality = implausible)</td></tr>",
+            r.implausible_rows
+        );
+    }
+    if r.record.recorded {
+        let _ = writeln!(
+            o,
+            "<tr><th class=\"l\">record</th><td class=\"l\">{}</td></tr>",
+            escape(&r.record.to_string())
+        );
+    }
     if let Some(t) = &r.torn_journal_line {
         let _ = writeln!(
             o,
@@ -116,6 +138,26 @@ fn banner(o: &mut String, v: &VerdictDoc) {
         );
     }
     o.push_str("</table>\n</section>\n");
+}
+
+/// The bench line of a report: [`bench_text`] for the built-in simulated bench, a
+/// real bench and old manifests; a bench that is simulated or replayed by one of its
+/// devices names the device and why.
+pub fn bench_line(v: &VerdictDoc) -> String {
+    let p = &v.provenance;
+    let why: Vec<String> = p
+        .device_provenance
+        .iter()
+        .filter(|d| d.provenance != crate::bench::journal::Provenance::Real)
+        .map(|d| format!("{}: {}", d.device, d.why.clone().unwrap_or_default()))
+        .collect();
+    match p.bench_kind.as_str() {
+        "replayed bench" => format!("REPLAYED ({})", why.join("; ")),
+        "simulated bench" if p.bench.get("sim").is_none() && !why.is_empty() => {
+            format!("SIMULATED ({})", why.join("; "))
+        }
+        _ => bench_text(v.simulated).to_string(),
+    }
 }
 
 /// The bench line of a banner: simulated, real, or not recorded (old manifests).

@@ -21,8 +21,10 @@ use serde::Serialize;
 use super::acceptance::{Criteria, Outcome, Verdict};
 use super::sha256::sha256_hex;
 use crate::analysis::{Ci95, Metric, RunAnalysis};
-use crate::bench::journal::{RunStatus, WriteFailure, GIT_COMMIT};
+use crate::bench::integrity::{self, RecordCheck};
+use crate::bench::journal::{Provenance, RunStatus, Session, WriteFailure, GIT_COMMIT};
 use crate::bench::lock::{Holder, LockState};
+use crate::bench::provenance;
 
 /// File name of the verdict inside the report's output directory.
 pub const VERDICT_FILE: &str = "verdict.json";
@@ -80,6 +82,17 @@ pub struct RunState {
     pub torn_journal_line: Option<TornLineJson>,
     /// The first write into the run directory that failed (`null`: none recorded).
     pub write_failure: Option<WriteFailure>,
+    /// Failed rows (no force), skipped by the analyses: `setpoint N (journal line L):
+    /// why` each. `measured_setpoints` counts them.
+    pub failed_rows: Vec<String>,
+    /// Rows journalled `quality = implausible` (the run-side force plausibility check).
+    pub implausible_rows: usize,
+    /// The record's digests verified against the files (`recorded: false`: a run from
+    /// before they were recorded).
+    pub record: RecordCheck,
+    /// The sessions that measured the run (reconciled with the journal after a
+    /// session that could not record its end).
+    pub sessions: Vec<Session>,
 }
 
 /// A torn journal line in `verdict.json`.
@@ -106,7 +119,7 @@ impl RunState {
         let run = &analysis.run;
         let m = &run.manifest;
         let planned = m.planned();
-        let measured = run.rows.len();
+        let measured = run.journalled();
         let holder: Option<&Holder> = match lock {
             LockState::Held(h) => Some(h),
             _ => None,
@@ -162,6 +175,10 @@ impl RunState {
                 bytes: t.bytes,
             }),
             write_failure: m.write_failure.clone(),
+            failed_rows: run.failed.iter().map(|f| f.describe()).collect(),
+            implausible_rows: run.rows.iter().filter(|r| r.implausible()).count(),
+            record: integrity::verify(&run.dir, m),
+            sessions: m.sessions.clone(),
         }
     }
 }
@@ -259,6 +276,11 @@ pub struct ProvenanceJson {
     pub git_commit: Option<String>,
     /// Identities the devices reported.
     pub devices: serde_json::Value,
+    /// `real bench`, `simulated bench`, `replayed bench` (or `not recorded …`).
+    pub bench_kind: String,
+    /// Each device's provenance (`device`, `identity`, `provenance`, `why`) as the
+    /// manifest records it (judged from `devices` for runs recorded before it was).
+    pub device_provenance: Vec<crate::bench::journal::DeviceProvenance>,
     /// The bench description.
     pub bench: serde_json::Value,
     /// Start, RFC 3339 UTC.
@@ -336,20 +358,54 @@ impl VerdictDoc {
                 value,
             });
         }
+        let (bench_kind, not_real) = bench_provenance(m);
         if criteria.is_some_and(|c| c.require_real_bench) {
-            let (value, outcome) = match m.simulated {
-                Some(false) => ("real bench", Outcome::Pass),
-                Some(true) => ("simulated bench", Outcome::Fail),
-                None => (
-                    "not recorded (manifest from before the simulated flag)",
-                    Outcome::Fail,
-                ),
+            let outcome = if bench_kind == "real bench" {
+                Outcome::Pass
+            } else {
+                Outcome::Fail
             };
             requirements.push(RequirementJson {
                 requirement: "real_bench".into(),
-                value: Some(value.into()),
+                value: Some(if not_real.is_empty() {
+                    bench_kind.clone()
+                } else {
+                    format!("{bench_kind}: {}", not_real.join("; "))
+                }),
                 outcome,
             });
+        }
+        // A run judged against criteria is at most MARGINAL with rows it could not
+        // use, and FAILs when its record no longer matches what the run wrote.
+        if criteria.is_some() {
+            if !run.failed_rows.is_empty() {
+                requirements.push(RequirementJson {
+                    requirement: "no_failed_rows".into(),
+                    value: Some(format!(
+                        "{} failed row(s) skipped: {}",
+                        run.failed_rows.len(),
+                        run.failed_rows.join("; ")
+                    )),
+                    outcome: Outcome::Marginal,
+                });
+            }
+            if run.implausible_rows > 0 {
+                requirements.push(RequirementJson {
+                    requirement: "no_implausible_rows".into(),
+                    value: Some(format!(
+                        "{} row(s) with quality = implausible",
+                        run.implausible_rows
+                    )),
+                    outcome: Outcome::Marginal,
+                });
+            }
+            if run.record.modified() {
+                requirements.push(RequirementJson {
+                    requirement: "record_intact".into(),
+                    value: Some(run.record.lines().join("; ")),
+                    outcome: Outcome::Fail,
+                });
+            }
         }
         // Nothing required, nothing checked: NOT JUDGED, never PASS.
         let graded = verdicts
@@ -379,7 +435,11 @@ impl VerdictDoc {
         let marginal = verdicts
             .iter()
             .filter(|v| v.outcome == Outcome::Marginal)
-            .count();
+            .count()
+            + requirements
+                .iter()
+                .filter(|r| r.outcome == Outcome::Marginal)
+                .count();
         let judged = verdicts.len() + requirements.len();
         let detail = match outcome {
             Outcome::Incomplete => format!(
@@ -391,10 +451,32 @@ impl VerdictDoc {
             Outcome::Marginal => format!("{marginal} of {judged} criteria marginal"),
             Outcome::Pass => format!("{judged} criteria"),
         };
-        let detail = match m.simulated {
-            Some(true) => format!("{detail}; SIMULATED bench"),
+        // The built-in simulated bench says so as before; any other bench that is not
+        // real names the device that made it so.
+        let builtin = m.bench.get("sim").is_some();
+        let mut detail = match bench_kind.as_str() {
+            "replayed bench" => format!("{detail}; REPLAYED bench ({})", not_real.join("; ")),
+            "simulated bench" if builtin || not_real.is_empty() => {
+                format!("{detail}; SIMULATED bench")
+            }
+            "simulated bench" => format!("{detail}; SIMULATED bench ({})", not_real.join("; ")),
             _ => detail,
         };
+        if !run.failed_rows.is_empty() {
+            detail.push_str(&format!(
+                "; {} failed row(s) skipped (no force)",
+                run.failed_rows.len()
+            ));
+        }
+        if run.implausible_rows > 0 {
+            detail.push_str(&format!(
+                "; {} row(s) with implausible forces",
+                run.implausible_rows
+            ));
+        }
+        if run.record.modified() {
+            detail.push_str("; RECORD MODIFIED AFTER THE RUN");
+        }
         let mut summary = format!("{outcome}: {detail}");
         if partial && allow_partial {
             summary.push_str(&format!(
@@ -441,6 +523,12 @@ impl VerdictDoc {
                 software_version: m.software_version.clone(),
                 git_commit: m.software_commit.clone(),
                 devices: m.devices.clone(),
+                bench_kind: bench_kind.clone(),
+                device_provenance: if m.device_provenance.is_empty() && m.devices.is_object() {
+                    provenance::judge(&m.devices, m.simulated == Some(true))
+                } else {
+                    m.device_provenance.clone()
+                },
                 bench: m.bench.clone(),
                 started_at: m.started_at.clone(),
                 resumed_at: m.resumed_at.clone(),
@@ -453,6 +541,36 @@ impl VerdictDoc {
             },
         }
     }
+}
+
+/// The bench's provenance in words (`real bench`, `simulated bench`, `replayed bench`,
+/// `not recorded …`) and the devices that made it not real (`camera: why` each).
+/// Judged from the manifest's `device_provenance` when recorded, else its
+/// `simulated` flag; a manifest naming a `dir:` camera or a simulator's firmware in
+/// `devices` is judged from those even without `device_provenance` (runs recorded
+/// before it was).
+pub fn bench_provenance(m: &crate::bench::journal::Manifest) -> (String, Vec<String>) {
+    let devices = if m.device_provenance.is_empty() && m.devices.is_object() {
+        provenance::judge(&m.devices, m.simulated == Some(true))
+    } else {
+        m.device_provenance.clone()
+    };
+    let (worst, why) = provenance::overall(&devices);
+    let word = if worst == Provenance::Replayed {
+        "replayed bench"
+    } else if worst == Provenance::Simulated || m.simulated == Some(true) {
+        "simulated bench"
+    } else if m.simulated == Some(false) {
+        "real bench"
+    } else {
+        "not recorded (manifest from before the simulated flag)"
+    };
+    let why = if why.is_empty() && m.simulated == Some(true) {
+        vec!["the built-in simulated bench".to_string()]
+    } else {
+        why
+    };
+    (word.to_string(), why)
 }
 
 impl VerdictDoc {

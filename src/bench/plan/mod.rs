@@ -287,6 +287,24 @@ pub struct Quality {
     pub max_reacquire: usize,
     /// What happens then (default flag).
     pub on_fail: OnFail,
+    /// A dead camera stops the run: after this many consecutive setpoints whose frames
+    /// were blank, saturated or showed no marker in every acquisition (the first and
+    /// each re-acquisition), the run stops the stage, retracts and ends aborted
+    /// (INCOMPLETE) naming the frame (default 3).
+    pub dead_camera_setpoints: usize,
+    /// Run-side force plausibility: a row whose |F^sum| is below `force_ratio_min`
+    /// times the F/T sensor's |F| (when that is above `force_noise_floor_n`) is
+    /// journalled `quality = implausible` (default 0.1).
+    pub force_ratio_min: f64,
+    /// ... or above `force_ratio_max` times max(|F_ft|, `force_noise_floor_n`)
+    /// (default 10).
+    pub force_ratio_max: f64,
+    /// The F/T magnitude below which the ratio's lower bound is not checked, N (also
+    /// three times the row's F/T SD, whichever is larger; default 0.05 N).
+    pub force_noise_floor_n: f64,
+    /// After this many consecutive implausible rows the run stops, naming the rows and
+    /// the likely cause (units of the sensor file, an unfitted modulus; default 3).
+    pub max_implausible_rows: usize,
 }
 
 /// Default of `quality.reference_min_found_fraction`.
@@ -297,6 +315,18 @@ pub const DEFAULT_MIN_OK_FRACTION: f64 = 0.9;
 pub const DEFAULT_MAX_REACQUIRE: usize = 2;
 /// Largest `quality.max_reacquire`.
 pub const MAX_REACQUIRE: i64 = 10;
+/// Default of `quality.dead_camera_setpoints`.
+pub const DEFAULT_DEAD_CAMERA_SETPOINTS: usize = 3;
+/// Default of `quality.force_ratio_min`.
+pub const DEFAULT_FORCE_RATIO_MIN: f64 = 0.1;
+/// Default of `quality.force_ratio_max`.
+pub const DEFAULT_FORCE_RATIO_MAX: f64 = 10.0;
+/// Default of `quality.force_noise_floor_n`, N.
+pub const DEFAULT_FORCE_NOISE_FLOOR_N: f64 = 0.05;
+/// Default of `quality.max_implausible_rows`.
+pub const DEFAULT_MAX_IMPLAUSIBLE_ROWS: usize = 3;
+/// Largest `quality.dead_camera_setpoints` and `quality.max_implausible_rows`.
+pub const MAX_CONSECUTIVE: i64 = 1000;
 
 impl Default for Quality {
     fn default() -> Self {
@@ -305,6 +335,11 @@ impl Default for Quality {
             min_ok_fraction: DEFAULT_MIN_OK_FRACTION,
             max_reacquire: DEFAULT_MAX_REACQUIRE,
             on_fail: OnFail::Flag,
+            dead_camera_setpoints: DEFAULT_DEAD_CAMERA_SETPOINTS,
+            force_ratio_min: DEFAULT_FORCE_RATIO_MIN,
+            force_ratio_max: DEFAULT_FORCE_RATIO_MAX,
+            force_noise_floor_n: DEFAULT_FORCE_NOISE_FLOOR_N,
+            max_implausible_rows: DEFAULT_MAX_IMPLAUSIBLE_ROWS,
         }
     }
 }

@@ -33,6 +33,11 @@ pub(super) struct RawQuality {
     pub(super) min_ok_fraction: Option<f64>,
     pub(super) max_reacquire: Option<i64>,
     pub(super) on_fail: Option<String>,
+    pub(super) dead_camera_setpoints: Option<i64>,
+    pub(super) force_ratio_min: Option<f64>,
+    pub(super) force_ratio_max: Option<f64>,
+    pub(super) force_noise_floor_n: Option<f64>,
+    pub(super) max_implausible_rows: Option<i64>,
 }
 
 #[derive(Deserialize, Default)]

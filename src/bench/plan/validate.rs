@@ -49,7 +49,53 @@ impl RawQuality {
                 ))
             }
         };
+        let count = |key: &str, v: Option<i64>, default: usize| match v {
+            None => Ok(default),
+            Some(v) if (1..=MAX_CONSECUTIVE).contains(&v) => Ok(v as usize),
+            Some(v) => Err(c.invalid(
+                key,
+                v,
+                format!("must be an integer in [1, {MAX_CONSECUTIVE}] (consecutive setpoints)"),
+            )),
+        };
+        let ratio_min = self.force_ratio_min.unwrap_or(d.force_ratio_min);
+        if !(ratio_min.is_finite() && ratio_min > 0.0 && ratio_min < 1.0) {
+            return Err(c.invalid(
+                "quality.force_ratio_min",
+                ratio_min,
+                "must be in (0, 1) (|F_sum| / |F_ft|)",
+            ));
+        }
+        let ratio_max = self.force_ratio_max.unwrap_or(d.force_ratio_max);
+        if !(ratio_max.is_finite() && ratio_max > 1.0 && ratio_max <= 1e6) {
+            return Err(c.invalid(
+                "quality.force_ratio_max",
+                ratio_max,
+                "must be in (1, 1e6] (|F_sum| / |F_ft|)",
+            ));
+        }
+        let floor = self.force_noise_floor_n.unwrap_or(d.force_noise_floor_n);
+        if !(floor.is_finite() && floor > 0.0 && floor <= 1e4) {
+            return Err(c.invalid(
+                "quality.force_noise_floor_n",
+                format!("{floor} N"),
+                "must be in (0, 1e4] N",
+            ));
+        }
         Ok(Quality {
+            dead_camera_setpoints: count(
+                "quality.dead_camera_setpoints",
+                self.dead_camera_setpoints,
+                d.dead_camera_setpoints,
+            )?,
+            max_implausible_rows: count(
+                "quality.max_implausible_rows",
+                self.max_implausible_rows,
+                d.max_implausible_rows,
+            )?,
+            force_ratio_min: ratio_min,
+            force_ratio_max: ratio_max,
+            force_noise_floor_n: floor,
             reference_min_found_fraction: fraction(
                 "quality.reference_min_found_fraction",
                 self.reference_min_found_fraction,
@@ -866,6 +912,11 @@ mod tests {
                 min_ok_fraction: 0.9,
                 max_reacquire: 2,
                 on_fail: OnFail::Flag,
+                dead_camera_setpoints: 3,
+                force_ratio_min: 0.1,
+                force_ratio_max: 10.0,
+                force_noise_floor_n: 0.05,
+                max_implausible_rows: 3,
             }
         );
         let q = parse(&format!(
@@ -880,6 +931,7 @@ mod tests {
                 min_ok_fraction: 0.75,
                 max_reacquire: 0,
                 on_fail: OnFail::Abort,
+                ..Quality::default()
             }
         );
         for (line, key, value) in [
@@ -891,6 +943,23 @@ mod tests {
             ),
             ("max_reacquire = 11", "quality.max_reacquire", "11"),
             ("on_fail = \"retry\"", "quality.on_fail", "\"retry\""),
+            (
+                "dead_camera_setpoints = 0",
+                "quality.dead_camera_setpoints",
+                "0",
+            ),
+            ("force_ratio_min = 1.5", "quality.force_ratio_min", "1.5"),
+            ("force_ratio_max = 0.5", "quality.force_ratio_max", "0.5"),
+            (
+                "force_noise_floor_n = -1.0",
+                "quality.force_noise_floor_n",
+                "-1 N",
+            ),
+            (
+                "max_implausible_rows = 0",
+                "quality.max_implausible_rows",
+                "0",
+            ),
         ] {
             let e = parse(&format!("{FIG7}[quality]\n{line}\n"))
                 .unwrap_err()

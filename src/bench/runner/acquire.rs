@@ -326,6 +326,10 @@ impl Runner<'_, '_, '_, '_> {
         // again (at most max_reacquire times), then the row is flagged or the run stops.
         let q = self.plan.quality;
         let mut reacquired = 0;
+        // `dead`: every acquisition so far had a blank, saturated or markerless frame
+        // (the last one's, in words); a dead camera is counted over setpoints.
+        let mut dead: Option<String> = None;
+        let mut track_error: Option<String>;
         let (tracked, t_track, counts) = loop {
             let t_f = Instant::now();
             let mut frames = Vec::with_capacity(self.plan.frames);
@@ -333,31 +337,63 @@ impl Runner<'_, '_, '_, '_> {
                 frames.push(self.grab_retry()?);
             }
             t_acquire += t_f.elapsed().as_secs_f64();
-            let (tracked, t_track) = self.track_frames(sp.index, &frames)?;
-            let counts = self.setpoint_counts(&tracked);
-            if ok_fraction(&counts) >= q.min_ok_fraction || reacquired >= q.max_reacquire {
+            let this_dead = self.dead_frame(sp.index, &frames);
+            let (tracked, t_track, counts) = match self.track_frames(sp.index, &frames)? {
+                Ok((tracked, t_track)) => {
+                    let counts = self.setpoint_counts(&tracked);
+                    track_error = None;
+                    (Some(tracked), t_track, counts)
+                }
+                Err(e) => {
+                    track_error = Some(e);
+                    (None, 0.0, self.all_lost())
+                }
+            };
+            let this_dead = this_dead.or_else(|| {
+                (tracked.is_some() && counts.ok + counts.merged + counts.outlier == 0).then(|| {
+                    format!(
+                        "frames/{:05}_K.png: no marker found in any frame ({})",
+                        sp.index,
+                        describe(&counts)
+                    )
+                })
+            });
+            dead = match (reacquired, this_dead) {
+                (0, d) => d,
+                (_, Some(d)) if dead.is_some() => Some(d),
+                _ => None,
+            };
+            if tracked.is_some() && ok_fraction(&counts) >= q.min_ok_fraction
+                || reacquired >= q.max_reacquire
+            {
                 break (tracked, t_track, counts);
             }
             reacquired += 1;
+            let what = match &dead {
+                Some(d) => d.clone(),
+                None => format!("tracking: {}", describe(&counts)),
+            };
             (self.events)(&RunEvent::Retry {
                 index: Some(sp.index),
                 attempt: reacquired,
                 reason: format!(
-                    "tracking: {}; below [quality] min_ok_fraction {}: re-acquiring the frames ({reacquired} of at most {})",
-                    describe(&counts),
+                    "{what}; below [quality] min_ok_fraction {}: re-acquiring the frames ({reacquired} of at most {})",
                     q.min_ok_fraction,
                     q.max_reacquire
                 ),
             });
         };
-        let quality = if ok_fraction(&counts) >= q.min_ok_fraction {
+        let quality = if tracked.is_some() && ok_fraction(&counts) >= q.min_ok_fraction {
             RowQuality::Ok
         } else {
-            let what = format!(
-                "tracking {} after {reacquired} re-acquisition(s), below [quality] min_ok_fraction {}",
-                describe(&counts),
-                q.min_ok_fraction
-            );
+            let what = match &dead {
+                Some(d) => format!("{d} after {reacquired} re-acquisition(s)"),
+                None => format!(
+                    "tracking {} after {reacquired} re-acquisition(s), below [quality] min_ok_fraction {}",
+                    describe(&counts),
+                    q.min_ok_fraction
+                ),
+            };
             match q.on_fail {
                 OnFail::Flag => {
                     (self.events)(&RunEvent::Warning {
@@ -375,9 +411,49 @@ impl Runner<'_, '_, '_, '_> {
                 }
             }
         };
-        let rel: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
-        self.set_phase(Phase::Solve);
-        let (fsum, fsum_sd, t_solve) = self.reconstruct(sp.index, &tracked)?;
+        let (rel, fsum, fsum_sd, t_solve, solve_error) = match &tracked {
+            Some(tracked) => {
+                let rel: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
+                self.set_phase(Phase::Solve);
+                let (fsum, fsum_sd, t_solve, error) = self.reconstruct(sp.index, tracked)?;
+                (rel, fsum, fsum_sd, t_solve, error)
+            }
+            None => (
+                (0..self.plan.frames)
+                    .map(|k| format!("frames/{:05}_{k}.png", sp.index))
+                    .collect(),
+                [f64::NAN; 3],
+                None,
+                0.0,
+                None,
+            ),
+        };
+        // A failed row: no force, and why (the frames first: a dead camera is the
+        // cause of whatever tracking and the solver then did).
+        let failure = match (&dead, &track_error, &solve_error) {
+            (Some(d), _, _) => Some(format!("camera: {d}")),
+            (None, Some(t), _) => Some(format!("tracking failed: {t}")),
+            (None, None, Some(e)) => Some(format!("reconstruction failed: {e}")),
+            (None, None, None) => None,
+        };
+        let (fsum, fsum_sd) = if failure.is_some() {
+            ([f64::NAN; 3], None)
+        } else {
+            (fsum, fsum_sd)
+        };
+        if let Some(f) = &failure {
+            (self.events)(&RunEvent::Warning {
+                index: sp.index,
+                message: format!("{f}: row journalled without force (failed row)"),
+            });
+        }
+        self.count_dead(sp.index, dead.as_deref());
+        let (quality, plausibility) = if failure.is_none() {
+            self.plausibility(sp, &mean.force_n, &sd, &fsum, quality)
+        } else {
+            self.implausible_run.clear();
+            (quality, None)
+        };
         Ok(JournalRow {
             index: sp.index,
             trial: sp.trial,
@@ -421,7 +497,135 @@ impl Runner<'_, '_, '_, '_> {
             position: sp.position,
             hold_t_s,
             ft_status,
+            failure,
+            plausibility,
         })
+    }
+
+    /// The markers of the sensor file, all lost (a setpoint whose tracking failed).
+    fn all_lost(&self) -> StatusCounts {
+        let lost = self.tracker.as_ref().map_or(0, |t| {
+            t.reference().markers.len() + t.reference().missing.len()
+        });
+        StatusCounts {
+            lost,
+            ..StatusCounts::default()
+        }
+    }
+
+    /// The first blank or saturated frame of an acquisition, in words (the check `run`
+    /// applies to its reference frame before anything moves).
+    fn dead_frame(&self, index: usize, frames: &[CameraFrame]) -> Option<String> {
+        frames.iter().enumerate().find_map(|(k, f)| {
+            let name = format!("frames/{index:05}_{k}.png");
+            vision::onboard::check_frame_levels(
+                &FrameView::rgb8(&f.image),
+                self.sensor.camera.roi_px.as_ref(),
+                Path::new(&name),
+            )
+            .err()
+            .map(|e| e.to_string())
+        })
+    }
+
+    /// Counts consecutive setpoints whose every acquisition was dead; at `[quality]
+    /// dead_camera_setpoints` of them the run is to stop after this row is journalled.
+    fn count_dead(&mut self, index: usize, dead: Option<&str>) {
+        let Some(d) = dead else {
+            self.dead_run.clear();
+            return;
+        };
+        self.dead_run.push(index);
+        let n = self.plan.quality.dead_camera_setpoints;
+        if self.dead_run.len() >= n {
+            let list: Vec<String> = self.dead_run.iter().map(|i| i.to_string()).collect();
+            self.pending_abort = Some(format!(
+                "the camera is dead: {n} consecutive setpoints ({}) gave blank, saturated or markerless frames in every acquisition ([quality] dead_camera_setpoints = {n}); the last: {d}. Likely cause: the camera is covered, unlit, overexposed or disconnected; stage stopped and retracted",
+                list.join(", ")
+            ));
+        }
+    }
+
+    /// Run-side force plausibility (module docs of `runner`): the reconstructed
+    /// |F^sum| against the F/T sensor's |F|. Returns the row's quality (`implausible`
+    /// when the ratio is outside `[quality] force_ratio_min .. force_ratio_max`) and the
+    /// finding in words; at `max_implausible_rows` consecutive implausible rows the run
+    /// is to stop after this row.
+    fn plausibility(
+        &mut self,
+        sp: &Setpoint,
+        ft: &[f64; 3],
+        ft_sd: &[f64; 3],
+        fsum: &[f64; 3],
+        quality: RowQuality,
+    ) -> (RowQuality, Option<String>) {
+        // A displacement sweep shifts the sensor under a constant load: its force sums
+        // are not a measurement of the F/T's load.
+        if matches!(
+            self.plan.sweep,
+            crate::bench::plan::Sweep::Displacement { .. }
+        ) {
+            return (quality, None);
+        }
+        let q = self.plan.quality;
+        let norm = |v: &[f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        let (f_ft, f_sum) = (norm(ft), norm(fsum));
+        let floor = q.force_noise_floor_n.max(3.0 * norm(ft_sd));
+        let finding = if !f_sum.is_finite() {
+            Some(format!("|F_sum| is {f_sum}"))
+        } else if f_sum > q.force_ratio_max * f_ft.max(floor) {
+            Some(format!(
+                "|F_sum| = {f_sum:.4e} N is more than {} × {} ({:.4} N)",
+                q.force_ratio_max,
+                if f_ft > floor {
+                    "the F/T sensor's |F|"
+                } else {
+                    "the noise floor"
+                },
+                f_ft.max(floor)
+            ))
+        } else if f_ft > floor && f_sum < q.force_ratio_min * f_ft {
+            Some(format!(
+                "|F_sum| = {f_sum:.4e} N is less than {} × the F/T sensor's |F| ({f_ft:.4} N)",
+                q.force_ratio_min
+            ))
+        } else {
+            None
+        };
+        let Some(finding) = finding else {
+            self.implausible_run.clear();
+            return (quality, None);
+        };
+        let ratio = if f_ft > 0.0 {
+            f_sum / f_ft
+        } else {
+            f64::INFINITY
+        };
+        let text = format!(
+            "{finding} (ratio {ratio:.3e}, [quality] force_ratio_min {} .. force_ratio_max {})",
+            q.force_ratio_min, q.force_ratio_max
+        );
+        (self.events)(&RunEvent::Warning {
+            index: sp.index,
+            message: format!(
+                "implausible force: {text}: row journalled with quality = implausible"
+            ),
+        });
+        self.implausible_run.push(sp.index);
+        let n = q.max_implausible_rows;
+        if self.implausible_run.len() >= n {
+            let list: Vec<String> = self.implausible_run.iter().map(|i| i.to_string()).collect();
+            let cause = if ratio < 1.0 {
+                "the reconstructed force is far too small: the sensor file's lengths in the wrong unit (metres for millimetres: thickness_mm, depth_mm, pitch_mm, mm_per_px), or young_modulus_kpa far too low (not fitted)"
+            } else {
+                "the reconstructed force is far too large: young_modulus_kpa in the wrong unit (Pa for kPa) or not fitted, the sensor file's lengths or mm_per_px off, or a regularisation too weak for the noise (lambda)"
+            };
+            self.pending_abort = Some(format!(
+                "{n} consecutive rows ({}) failed the force plausibility check ([quality] max_implausible_rows = {n}); the last: {text}. Likely cause: {cause}; stage stopped and retracted",
+                list.join(", ")
+            ));
+        }
+        (RowQuality::Implausible, Some(text))
     }
 
     /// A `down` row of an up-down sweep reached from a fresh contact (a resumed run, or
@@ -545,7 +749,12 @@ impl Runner<'_, '_, '_, '_> {
 
     /// Saves and tracks a setpoint's frames (`frames/NNNNN_K.png`, overwriting an
     /// earlier acquisition's). Returns the tracks and the tracking time.
-    fn track_frames(&mut self, index: usize, frames: &[CameraFrame]) -> Step<(Tracked, f64)> {
+    #[allow(clippy::type_complexity)]
+    fn track_frames(
+        &mut self,
+        index: usize,
+        frames: &[CameraFrame],
+    ) -> Step<Result<(Tracked, f64), String>> {
         let mut tracked: Tracked = Vec::with_capacity(frames.len());
         let mut t_track = 0.0;
         for (k, f) in frames.iter().enumerate() {
@@ -559,15 +768,17 @@ impl Runner<'_, '_, '_, '_> {
                 .tracker
                 .as_mut()
                 .ok_or_else(|| Halt::Abort("no reference frame".into()))?;
-            let tracks = tracker
-                .track(&FrameView::rgb8(&f.image))
-                .map_err(|e| Halt::Abort(format!("tracking {name}: {e}")))?
-                .to_vec();
+            // A frame the tracker cannot take (a different size, ...) fails this
+            // setpoint (a failed row), not the run.
+            let tracks = match tracker.track(&FrameView::rgb8(&f.image)) {
+                Ok(t) => t.to_vec(),
+                Err(e) => return Ok(Err(format!("{name}: {e}"))),
+            };
             t_track += t0.elapsed().as_secs_f64();
             tracked.push((name, tracks));
         }
         self.track_s += t_track;
-        Ok((tracked, t_track))
+        Ok(Ok((tracked, t_track)))
     }
 
     /// Writes a setpoint's displacement file and reconstructs its forces from the mean
@@ -579,7 +790,7 @@ impl Runner<'_, '_, '_, '_> {
         &mut self,
         index: usize,
         tracked: &Tracked,
-    ) -> Step<([f64; 3], Option<[f64; 3]>, f64)> {
+    ) -> Step<([f64; 3], Option<[f64; 3]>, f64, Option<String>)> {
         let sensor = self.sensor;
         let tracker = self
             .tracker
@@ -662,13 +873,10 @@ impl Runner<'_, '_, '_, '_> {
             }
             Ok(())
         })();
-        if let Err(e) = solved {
+        let error = solved.err();
+        if error.is_some() {
             fsum_sd = None;
             f.iter_mut().for_each(|v| *v = f64::NAN);
-            (self.events)(&RunEvent::Warning {
-                index,
-                message: format!("reconstruction failed ({e}); force sums recorded as NaN"),
-            });
         }
         let t_solve = (t0.elapsed().as_secs_f64() - precompute_s).max(0.0);
         self.precompute_s += precompute_s;
@@ -684,7 +892,7 @@ impl Runner<'_, '_, '_, '_> {
         })?;
         self.io_s += t_io.elapsed().as_secs_f64();
         self.solve_s += t_solve;
-        Ok((fsum, fsum_sd, t_solve))
+        Ok((fsum, fsum_sd, t_solve, error))
     }
 }
 

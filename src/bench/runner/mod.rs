@@ -30,7 +30,21 @@
 //!    mean displacement over the frames (`forces/NNNNN.csv`) with the plan's solver,
 //!    precomputed once per set of tracked markers.
 //! 7. **Journal**: the row (with its marker counts) is appended and synced before the
-//!    next move.
+//!    next move. A setpoint whose tracking or reconstruction failed, or whose frames
+//!    were blank, saturated or markerless in every acquisition, is a *failed row*
+//!    (empty force sums, `failure` says why) and the run goes on; `[quality]
+//!    dead_camera_setpoints` consecutive dead setpoints stop it (a dead camera).
+//! 8. **Force plausibility**: |F^sum| against the F/T's |F| (`[quality]
+//!    force_ratio_min .. force_ratio_max` above `force_noise_floor_n`): outside, the
+//!    row is `quality = implausible`; `max_implausible_rows` consecutive ones stop the
+//!    run naming the likely cause (the sensor file's units, an unfitted modulus).
+//!
+//! **Record digests.** At the start and end of every session the manifest's `record`
+//! gets the journal's SHA-256 (of its length then) and every evidence file's as
+//! written ([`super::integrity`]); a resume refuses a record modified since, and
+//! reconciles `sessions` with the journal after a session killed before its end.
+//! Each device's provenance (real, simulated, replayed) is recorded at the start
+//! ([`super::provenance`]).
 //!
 //! **Reference gate.** The reference frame (taken at the clearance height above the
 //! approach position, after homing and taring) must show `[quality]
@@ -276,7 +290,8 @@ pub enum RunEvent {
         /// Why.
         reason: String,
     },
-    /// A non-fatal problem (e.g. a reconstruction that failed; the row keeps NaN).
+    /// A non-fatal problem (e.g. a reconstruction that failed: a failed row without
+    /// force; an implausible force sum).
     Warning {
         /// Setpoint index.
         index: usize,
@@ -451,6 +466,14 @@ struct Runner<'p, 'd, 'a, 'e> {
     last_reading: Option<Instant>,
     /// Every write into the run directory goes through it (first failure, faults).
     fs: WriteGate,
+    /// Consecutive setpoints whose every acquisition was a dead frame (blank,
+    /// saturated, no marker): `[quality] dead_camera_setpoints` of them stop the run.
+    dead_run: Vec<usize>,
+    /// Consecutive rows that failed the force plausibility check.
+    implausible_run: Vec<usize>,
+    /// Why the run stops once the current row is journalled (a dead camera, persistent
+    /// implausible forces).
+    pending_abort: Option<String>,
     /// Per-setpoint accounting.
     track_s: f64,
     solve_s: f64,
@@ -510,7 +533,21 @@ pub fn run(
                 manifest.measured_setpoints
             )));
         }
+        // The record must be as the run wrote it: a resume would otherwise record
+        // digests of an edited journal as the run's own.
+        let check = super::integrity::verify(&dir, &manifest);
+        if check.modified() {
+            return Err(RunError::Setup(format!(
+                "{}: the record was modified after the run ({}); not resuming it",
+                dir.display(),
+                check.lines().join("; ")
+            )));
+        }
         let r = Journal::open_resume(&dir)?;
+        let mut manifest = manifest;
+        // A session killed before it could record its end (kill -9) measured rows
+        // the manifest does not count: the journal is the authority.
+        manifest.reconcile_sessions(r.rows.len());
         let resume_no = manifest.resumed_at.len() + 1;
         (r.journal, manifest, r.truncated_bytes, resume_no)
     } else {
@@ -551,6 +588,8 @@ pub fn run(
             camera_toml: options.camera.as_ref().map(|(_, t)| t.clone()),
             simulated: Some(options.simulated),
             write_failure: None,
+            device_provenance: Vec::new(),
+            record: None,
         };
         manifest.write(&dir)?;
         (Journal::create(&dir)?, manifest, 0, 0)
@@ -593,6 +632,43 @@ pub fn run(
         setpoints_before: before,
         setpoints_after: before,
     });
+    // Every device's provenance (a run is real only when every device is); a run is
+    // simulated when any of its sessions was not all real.
+    let provenance = super::provenance::judge(&options.devices, options.simulated);
+    let not_real = provenance
+        .iter()
+        .any(|d| d.provenance != super::journal::Provenance::Real);
+    if options.simulated || not_real || !options.resume {
+        manifest.simulated = Some(not_real || manifest.simulated == Some(true));
+    }
+    if options.devices != serde_json::Value::Null || manifest.device_provenance.is_empty() {
+        // The least real provenance of each device over the sessions is kept.
+        let mut merged = provenance;
+        for d in &mut merged {
+            if let Some(old) = manifest
+                .device_provenance
+                .iter()
+                .find(|o| o.device == d.device && o.provenance > d.provenance)
+            {
+                *d = old.clone();
+            }
+        }
+        manifest.device_provenance = merged;
+    }
+    // The journal's digest as this session starts (after a resume cut a torn line or
+    // upgraded an old header): rows appended from here on are covered at the end.
+    let evidence = manifest
+        .record
+        .as_ref()
+        .map(|r| r.evidence.clone())
+        .unwrap_or_default();
+    manifest.record = Some(
+        super::integrity::RecordDigests::journal_now(&dir, evidence.clone(), before, rfc3339_now())
+            .map_err(|source| RunError::Io {
+                path: journal.path().to_path_buf(),
+                source,
+            })?,
+    );
     manifest.write(&dir)?;
     let total = before + setpoints.len();
     let mut done = before;
@@ -635,7 +711,10 @@ pub fn run(
         hold_restarted: false,
         phase: None,
         last_reading: None,
-        fs: WriteGate::new(options.write_fault),
+        fs: WriteGate::new(options.write_fault, &dir, evidence),
+        dead_run: Vec::new(),
+        implausible_run: Vec::new(),
+        pending_abort: None,
         track_s: 0.0,
         solve_s: 0.0,
         precompute_s: 0.0,
@@ -702,6 +781,9 @@ pub fn run(
                 overhead_s,
             });
             prev = Some(*sp);
+            if let Some(reason) = r.pending_abort.take() {
+                return Err(Halt::Abort(reason));
+            }
         }
         r.index = None;
         r.set_phase(Phase::Retract);
@@ -742,6 +824,16 @@ pub fn run(
         (status == RunStatus::Interrupted && signal != 0).then_some(signal),
         rfc3339_now(),
     );
+    // The record's digests as this session leaves it (the journal as a whole, every
+    // evidence file written so far).
+    if let Ok(rec) = super::integrity::RecordDigests::journal_now(
+        &dir,
+        r.fs.evidence().clone(),
+        journal.completed().len(),
+        rfc3339_now(),
+    ) {
+        manifest.record = Some(rec);
+    }
     let write_failure = r.fs.first_failure().cloned();
     if manifest.write_failure.is_none() {
         // The run's first failed write (an earlier session's stays: it was first).

@@ -10,10 +10,13 @@
 //!   N writes, for K writes or for good), the way `device::fault` injects device
 //!   faults. Without a fault configured the gate only counts.
 
+use std::collections::BTreeMap;
 use std::error::Error;
 use std::io;
+use std::path::{Path, PathBuf};
 
 use super::{rfc3339_now, Halt};
+use crate::bench::integrity::{file_sha256, is_evidence};
 use crate::bench::journal::WriteFailure;
 
 /// Injected write failures (tests): the first `after_writes` writes of a session
@@ -40,21 +43,37 @@ impl WriteFault {
     }
 }
 
-/// Counts writes, injects [`WriteFault`]s, keeps the first failure.
+/// Counts writes, injects [`WriteFault`]s, keeps the first failure, and the SHA-256 of
+/// every evidence file as written (`manifest.json` `record.evidence`).
 #[derive(Debug, Default)]
 pub(super) struct WriteGate {
     fault: Option<WriteFault>,
     writes: usize,
     injected: usize,
     first: Option<WriteFailure>,
+    dir: PathBuf,
+    evidence: BTreeMap<String, String>,
 }
 
 impl WriteGate {
-    pub(super) fn new(fault: Option<WriteFault>) -> WriteGate {
+    /// A gate for the run directory `dir`, continuing the `evidence` digests of the
+    /// run's earlier sessions.
+    pub(super) fn new(
+        fault: Option<WriteFault>,
+        dir: &Path,
+        evidence: BTreeMap<String, String>,
+    ) -> WriteGate {
         WriteGate {
             fault,
+            dir: dir.to_path_buf(),
+            evidence,
             ..WriteGate::default()
         }
+    }
+
+    /// Evidence file -> SHA-256 as written (earlier sessions' and this one's).
+    pub(super) fn evidence(&self) -> &BTreeMap<String, String> {
+        &self.evidence
     }
 
     /// The first write that failed this session, if one did.
@@ -108,7 +127,14 @@ impl WriteGate {
         w: impl FnOnce() -> Result<(), E>,
     ) -> Result<(), Halt> {
         self.write(rel, w)
-            .map_err(|error| Halt::Abort(format!("cannot write {rel}: {error}")))
+            .map_err(|error| Halt::Abort(format!("cannot write {rel}: {error}")))?;
+        if is_evidence(rel) {
+            // Read back as it is on disk: the digest is of what a reader will find.
+            if let Some(d) = file_sha256(&self.dir.join(rel)) {
+                self.evidence.insert(rel.to_string(), d);
+            }
+        }
+        Ok(())
     }
 }
 
@@ -132,11 +158,15 @@ mod tests {
 
     #[test]
     fn the_first_failure_is_kept_and_injection_stops_after_its_count() {
-        let mut g = WriteGate::new(Some(WriteFault {
-            after_writes: 1,
-            failures: Some(2),
-            errno: 28,
-        }));
+        let mut g = WriteGate::new(
+            Some(WriteFault {
+                after_writes: 1,
+                failures: Some(2),
+                errno: 28,
+            }),
+            Path::new("."),
+            BTreeMap::new(),
+        );
         let ok = || Ok::<(), io::Error>(());
         assert!(g.write("a", ok).is_ok());
         let e = g.write("frames/00001_0.png", ok).unwrap_err();
@@ -153,7 +183,7 @@ mod tests {
 
     #[test]
     fn a_real_writer_error_is_recorded_with_its_os_text() {
-        let mut g = WriteGate::new(None);
+        let mut g = WriteGate::new(None, Path::new("."), BTreeMap::new());
         let e = g
             .write("forces/00000.csv", || {
                 Err(crate::formats::FormatError::Io {

@@ -345,7 +345,11 @@ pub fn better(metric: &str) -> Option<Better> {
     if metric.starts_with("timing.")
         || matches!(
             metric,
-            "run.unsettled" | "tracking.flagged_rows" | "tracking.reacquired_rows"
+            "run.unsettled"
+                | "run.failed_rows"
+                | "run.implausible_rows"
+                | "tracking.flagged_rows"
+                | "tracking.reacquired_rows"
         )
     {
         return Some(Better::Lower);
@@ -550,6 +554,89 @@ pub struct Comparison {
     /// How the runs differ from the baseline in sweep kind, plan or sensor (empty:
     /// like for like; non-empty only with `--allow-different-plans`).
     pub differences: Vec<String>,
+    /// Each run's instruments as its manifest records them, in `runs` order.
+    pub instruments: Vec<Instruments>,
+    /// How the runs' instruments differ from the baseline's (F/T sensor, stage,
+    /// camera), in words: warnings, the comparison is still made.
+    pub instrument_differences: Vec<String>,
+    /// Records that no longer match their digests ("modified after the run"), one
+    /// line per finding, naming the run.
+    pub record_warnings: Vec<String>,
+}
+
+/// A run's instruments: `(device, identity)` for the stage, the F/T sensor and the
+/// camera, from the manifest's `devices` without what changes from session to
+/// session on the same instrument (port, temperature, measured rate).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Instruments {
+    /// `(stage|force_sensor|camera, identity)`.
+    pub devices: Vec<(String, String)>,
+}
+
+/// The identity of one instrument from its recorded `devices` entry.
+pub fn instrument_identity(v: &serde_json::Value) -> String {
+    const VOLATILE: [&str; 5] = ["port", "temperature_c", "measured_rate_hz", "cwd", "file"];
+    match v {
+        serde_json::Value::Null => "not recorded".into(),
+        serde_json::Value::String(s) => s.clone(),
+        serde_json::Value::Object(m) => {
+            let parts: Vec<String> = m
+                .iter()
+                .filter(|(k, _)| !VOLATILE.contains(&k.as_str()))
+                .map(|(k, v)| match v {
+                    serde_json::Value::String(s) => format!("{k} {s}"),
+                    other => format!("{k} {other}"),
+                })
+                .collect();
+            parts.join(", ")
+        }
+        other => other.to_string(),
+    }
+}
+
+impl Instruments {
+    /// The instruments a manifest records.
+    pub fn of(m: &crate::bench::journal::Manifest) -> Instruments {
+        Instruments {
+            devices: crate::bench::provenance::DEVICES
+                .iter()
+                .map(|d| {
+                    (
+                        d.to_string(),
+                        instrument_identity(m.devices.get(*d).unwrap_or(&serde_json::Value::Null)),
+                    )
+                })
+                .collect(),
+        }
+    }
+}
+
+/// How each run's instruments differ from the baseline's, in words.
+fn instrument_differences(
+    runs: &[ComparedRun],
+    instruments: &[Instruments],
+    baseline: usize,
+) -> Vec<String> {
+    let mut out = Vec::new();
+    let b = &instruments[baseline];
+    for (i, ins) in instruments.iter().enumerate() {
+        if i == baseline {
+            continue;
+        }
+        for ((device, id), (_, bid)) in ins.devices.iter().zip(&b.devices) {
+            if id != bid {
+                out.push(format!(
+                    "{} used a different {} ({id}) from the baseline {} ({bid})",
+                    runs[i].label,
+                    device
+                        .replace('_', " ")
+                        .replace("force sensor", "F/T sensor"),
+                    runs[baseline].label
+                ));
+            }
+        }
+    }
+    out
 }
 
 /// Unique short labels: the build id, else the directory's name; repeated labels get
@@ -678,7 +765,26 @@ impl Comparison {
         }
         let metrics = compare_metrics(&runs, baseline);
         let (outcome, summary) = overall(&runs, baseline, criteria.is_some());
+        let instruments: Vec<Instruments> = runs
+            .iter()
+            .map(|r| Instruments::of(&r.analysis.run.manifest))
+            .collect();
+        let instrument_differences = instrument_differences(&runs, &instruments, baseline);
+        let record_warnings = runs
+            .iter()
+            .flat_map(|r| {
+                r.verdict
+                    .run
+                    .record
+                    .lines()
+                    .into_iter()
+                    .map(move |l| format!("{}: {l}", r.dir.display()))
+            })
+            .collect();
         Ok(Comparison {
+            instruments,
+            instrument_differences,
+            record_warnings,
             exit_code: exit_code(outcome),
             runs,
             baseline,

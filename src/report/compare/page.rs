@@ -73,6 +73,53 @@ fn banner_flags(c: &Comparison) -> String {
             escape(&c.differences.join("; "))
         );
     }
+    if !c.instrument_differences.is_empty() {
+        let _ = writeln!(
+            o,
+            "<p class=\"fail\">DIFFERENT INSTRUMENTS: {}</p>",
+            escape(&c.instrument_differences.join("; "))
+        );
+    }
+    if !c.record_warnings.is_empty() {
+        let _ = writeln!(
+            o,
+            "<p class=\"fail\">RECORD MODIFIED AFTER THE RUN: {}</p>",
+            escape(&c.record_warnings.join("; "))
+        );
+    }
+    let failed: Vec<String> = c
+        .runs
+        .iter()
+        .filter(|r| !r.verdict.run.failed_rows.is_empty())
+        .map(|r| {
+            format!(
+                "{}: {} failed row(s) skipped",
+                r.label,
+                r.verdict.run.failed_rows.len()
+            )
+        })
+        .collect();
+    if !failed.is_empty() {
+        let _ = writeln!(o, "<p>{}</p>", escape(&failed.join("; ")));
+    }
+    let instruments: Vec<String> = c
+        .runs
+        .iter()
+        .zip(&c.instruments)
+        .map(|(r, ins)| {
+            let list: Vec<String> = ins
+                .devices
+                .iter()
+                .map(|(d, id)| format!("{d}: {id}"))
+                .collect();
+            format!("{}: {}", r.label, list.join("; "))
+        })
+        .collect();
+    let _ = writeln!(
+        o,
+        "<p class=\"instruments\">Instruments: {}</p>",
+        escape(&instruments.join(" | "))
+    );
     let base = c.baseline_run();
     if base.verdict.outcome == Outcome::Fail {
         let _ = writeln!(
