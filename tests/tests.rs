@@ -29,6 +29,8 @@ mod stage_stop;
 mod study;
 mod sweeps;
 mod vision;
+mod vision_faint;
+mod vision_gray;
 mod vision_real;
 mod vision_tracking;
 mod vision_tracking_real;
