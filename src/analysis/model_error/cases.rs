@@ -152,7 +152,7 @@ impl CameraEffects {
 
 /// Where the pipeline's probe is centred: the centre of the Fig. 6 patch (nodes
 /// `ix ∈ 3..=6, iy ∈ 2..=5`), mm.
-fn patch_centre_mm(sensor: &Sensor) -> [f64; 2] {
+pub(super) fn patch_centre_mm(sensor: &Sensor) -> [f64; 2] {
     let g = &sensor.force_grid;
     [
         g.origin_mm[0] + 4.5 * g.pitch_mm,

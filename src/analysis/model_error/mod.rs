@@ -107,6 +107,8 @@ use crate::units;
 use crate::vision::{detect, DetectConfig, Frame, MarkerStatus, TrackConfig, TrackMode, Tracker};
 
 use cases::{make_data, Data};
+#[cfg(test)]
+use cases::patch_centre_mm;
 pub use cases::{sensor_at_thickness, CameraEffects};
 pub use output::MODEL_ERROR_COLUMNS;
 use solving::{build_operators, solve_row, time_group};
