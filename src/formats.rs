@@ -287,12 +287,12 @@ impl Plausible {
             Err(format!(
                 "position {} mm is outside the sensor: it must lie within {} ... {} mm (the \
                  sensor's extent {} ... {} mm, widened by its size {} mm)",
-                crate::solve::fmt_num(v_mm),
-                crate::solve::fmt_num(lo),
-                crate::solve::fmt_num(hi),
-                crate::solve::fmt_num(self.extent_mm[axis]),
-                crate::solve::fmt_num(self.extent_mm[axis + 2]),
-                crate::solve::fmt_num(self.size_mm)
+                crate::units::fmt_num(v_mm),
+                crate::units::fmt_num(lo),
+                crate::units::fmt_num(hi),
+                crate::units::fmt_num(self.extent_mm[axis]),
+                crate::units::fmt_num(self.extent_mm[axis + 2]),
+                crate::units::fmt_num(self.size_mm)
             ))
         }
     }
@@ -305,7 +305,7 @@ impl Plausible {
             Err(format!(
                 "displacement {v_mm:.3e} mm is larger than the sensor itself ({} mm across): \
                  no marker can move that far (is the unit mm?)",
-                crate::solve::fmt_num(self.size_mm)
+                crate::units::fmt_num(self.size_mm)
             ))
         }
     }
@@ -318,8 +318,8 @@ pub fn plausible_force(v_n: f64) -> Result<(), String> {
     } else {
         Err(format!(
             "force {} N is beyond {} N: no elastomer sensor carries that (is the unit N?)",
-            crate::solve::fmt_num(v_n),
-            crate::solve::fmt_num(MAX_FORCE_N)
+            crate::units::fmt_num(v_n),
+            crate::units::fmt_num(MAX_FORCE_N)
         ))
     }
 }

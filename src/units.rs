@@ -83,6 +83,61 @@ impl FromStr for ForceUnit {
     }
 }
 
+/// A byte count for a message: `1.5 GB`, `300 MB`, `12 kB` (decimal units, 3
+/// significant digits; scientific beyond petabytes).
+pub fn fmt_bytes(b: f64) -> String {
+    const UNITS: [(f64, &str); 5] = [
+        (1e15, "PB"),
+        (1e12, "TB"),
+        (1e9, "GB"),
+        (1e6, "MB"),
+        (1e3, "kB"),
+    ];
+    if !b.is_finite() || b >= 1e18 {
+        return format!("{b:.3e} bytes");
+    }
+    for (scale, unit) in UNITS {
+        if b >= scale {
+            let v = b / scale;
+            return if v >= 100.0 {
+                format!("{v:.0} {unit}")
+            } else if v >= 10.0 {
+                format!("{v:.1} {unit}")
+            } else {
+                format!("{v:.2} {unit}")
+            };
+        }
+    }
+    format!("{b:.0} bytes")
+}
+
+/// A number for a message: up to 6 significant digits, plain notation between 1e-4
+/// and 1e6, scientific otherwise (never hundreds of digits, never
+/// `0.005000000000000001`).
+pub fn fmt_num(x: f64) -> String {
+    if !x.is_finite() {
+        return format!("{x}");
+    }
+    if x == 0.0 {
+        return "0".into();
+    }
+    let a = x.abs();
+    if (1e-4..1e6).contains(&a) {
+        let rounded: f64 = format!("{x:.5e}").parse().unwrap_or(x);
+        format!("{rounded}")
+    } else {
+        let s = format!("{x:.5e}");
+        // Trim trailing zeros of the mantissa: 5.00000e-7 -> 5e-7.
+        match s.split_once('e') {
+            Some((m, e)) if m.contains('.') => {
+                let m = m.trim_end_matches('0').trim_end_matches('.');
+                format!("{m}e{e}")
+            }
+            _ => s,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -96,14 +96,14 @@ pub enum ModelError {
          and {} bytes, past the limit of {:e} evaluations and {:e} bytes; this layer allows \
          distances up to {} mm. Thicknesses and depths are in mm: \
          check `thickness_mm` and `depth_mm` (metres typed in?), or use `model = \"half-space\"`",
-        crate::solve::fmt_num(*thickness_mm),
-        crate::solve::fmt_num(*depth_mm),
-        crate::solve::fmt_num(*reach_mm),
-        crate::solve::fmt_num(*evaluations),
-        crate::solve::fmt_num(*bytes),
+        crate::units::fmt_num(*thickness_mm),
+        crate::units::fmt_num(*depth_mm),
+        crate::units::fmt_num(*reach_mm),
+        crate::units::fmt_num(*evaluations),
+        crate::units::fmt_num(*bytes),
         layer::MAX_TABLE_EVALUATIONS,
         layer::MAX_TABLE_BYTES,
-        crate::solve::fmt_num(*max_reach_mm)
+        crate::units::fmt_num(*max_reach_mm)
     )]
     LayerTooThin {
         /// The layer thickness, mm.

@@ -459,6 +459,334 @@ fn check_frame<'f>(
     Ok(u)
 }
 
+/// Checks the system's size and the options for a dense method; returns `rcond`
+/// (the configured one, or `max(m, n)·ε`).
+fn check_config(
+    m: usize,
+    n: usize,
+    config: &SolverConfig,
+    frame: Option<&[f64]>,
+) -> Result<f64, SolveError> {
+    if m == 0 || n == 0 {
+        return Err(SolveError::Empty(format!("the system is {m}×{n}")));
+    }
+    check_dense_size(m, n)?;
+    if config.method == Method::Fourier {
+        return Err(SolveError::InvalidOption(
+            "the dense solver does not run method fourier".into(),
+        ));
+    }
+    if let Some(u) = frame {
+        check_input(u, m)?;
+    }
+    let rcond = match config.rcond {
+        None => m.max(n) as f64 * f64::EPSILON,
+        Some(r) if r.is_finite() && (0.0..1.0).contains(&r) => r,
+        Some(r) => {
+            return Err(SolveError::InvalidOption(format!(
+                "rcond = {} must be a number in [0, 1)",
+                fmt_num(r)
+            )))
+        }
+    };
+    if let Lambda::Fixed(l) = config.lambda {
+        if config.method == Method::Tikhonov && !(l.is_finite() && l >= 0.0) {
+            return Err(SolveError::InvalidOption(format!(
+                "lambda = {} mm/N must be a finite number >= 0",
+                fmt_num(l)
+            )));
+        }
+    }
+    Ok(rcond)
+}
+
+/// The condition number of `H` itself (σ_max/σ_min over all `min(m, n)` singular
+/// values, whatever cut-off or regularisation the method applies; ∞ only if σ_min is
+/// exactly 0) and the notes on the system's shape and numerical rank.
+fn structure_notes(
+    m: usize,
+    n: usize,
+    sigma: &[f64],
+    rank: usize,
+    rcond: f64,
+) -> (f64, Vec<String>) {
+    let p = sigma.len();
+    let s_max = sigma[0];
+    let tol = rcond * s_max;
+    let mut notes = Vec::new();
+    if m < n {
+        notes.push(format!(
+            "underdetermined: {m} displacement values for {n} force unknowns; the solution is the minimum-norm one (force patterns invisible to the markers are set to zero)"
+        ));
+    }
+    let condition_number = if sigma[p - 1] > 0.0 {
+        s_max / sigma[p - 1]
+    } else {
+        f64::INFINITY
+    };
+    if rank == 0 {
+        notes.push("the transfer matrix is zero: every force maps to zero".into());
+    } else if rank < p {
+        notes.push(format!(
+            "rank {rank} of {p} after the cut-off: {} singular value(s) ≤ rcond·σ_max = {} mm/N (rcond = {}) are treated as zero; σ_max/σ_r over the kept ones = {} (the condition number of H itself is σ_max/σ_min over all of them)",
+            p - rank,
+            fmt_g(tol),
+            fmt_g(rcond),
+            fmt_g(s_max / sigma[rank - 1])
+        ));
+    }
+    (condition_number, notes)
+}
+
+/// A method's filter factors `φ_i` (zero beyond the numerical rank) and the parameter
+/// it used.
+struct Filter {
+    phi: Vec<f64>,
+    lambda: Option<f64>,
+    rank: Option<usize>,
+}
+
+/// The filter factors of the configured method (module docs' table), choosing the
+/// TSVD rank or the Tikhonov λ on `frame` when they are automatic.
+fn filter_factors(
+    config: &SolverConfig,
+    svd: &Svd,
+    rank: usize,
+    rcond: f64,
+    frame: Option<&[f64]>,
+    m: usize,
+    notes: &mut Vec<String>,
+) -> Result<Filter, SolveError> {
+    let p = svd.sigma.len();
+    let mut phi = vec![0.0; p];
+    match config.method {
+        Method::Pinv => {
+            phi[..rank].fill(1.0);
+            notes.push(format!(
+                "pinv: {rank} of {p} singular values kept (cut-off rcond·σ_max = {} mm/N, rcond = {})",
+                fmt_g(rcond * svd.sigma[0]),
+                fmt_g(rcond)
+            ));
+            Ok(Filter {
+                phi,
+                lambda: None,
+                rank: Some(rank),
+            })
+        }
+        Method::Tsvd => {
+            let k = tsvd_rank(config.rank, svd, rank, frame, m, notes)?;
+            phi[..k].fill(1.0);
+            Ok(Filter {
+                phi,
+                lambda: None,
+                rank: Some(k),
+            })
+        }
+        Method::Tikhonov => {
+            let lambda = tikhonov_lambda(config.lambda, svd, rank, frame, m, notes)?;
+            for (f, s) in phi.iter_mut().zip(&svd.sigma).take(rank) {
+                let s2 = s * s;
+                *f = s2 / (s2 + lambda * lambda);
+            }
+            Ok(Filter {
+                phi,
+                lambda: Some(lambda),
+                rank: None,
+            })
+        }
+        Method::Fourier => Err(SolveError::InvalidOption(
+            "the dense solver does not run method fourier".into(),
+        )),
+    }
+}
+
+/// The TSVD rank: the fixed one (within the numerical rank) or GCV's over
+/// `1 … min(rank, m − 1)`, with a warning when it lands on the range's boundary.
+fn tsvd_rank(
+    choice: Rank,
+    svd: &Svd,
+    rank: usize,
+    frame: Option<&[f64]>,
+    m: usize,
+    notes: &mut Vec<String>,
+) -> Result<usize, SolveError> {
+    let sigma = &svd.sigma;
+    let n = svd.v_t.ncols();
+    if let Rank::Fixed(k) = choice {
+        if k == 0 || k > rank {
+            return Err(SolveError::InvalidOption(format!(
+                "tsvd rank k = {k} is out of range: this {m}×{n} system has numerical rank {rank}, so k must be in 1..={rank}"
+            )));
+        }
+        notes.push(format!("tsvd: fixed rank k = {k} of numerical rank {rank}"));
+        return Ok(k);
+    }
+    let u = check_frame(frame, m, "rank")?;
+    let spec = Spectrum::new(svd, rank, u);
+    let k_max = rank.min(m - 1);
+    if k_max == 0 {
+        notes.push(format!(
+            "tsvd: gcv needs fewer kept values than rows ({m}); using the full rank {rank}"
+        ));
+        return Ok(rank);
+    }
+    let (mut best_k, mut best) = (1, f64::INFINITY);
+    for k in 1..=k_max {
+        let g = spec.gcv_tsvd(k);
+        if g < best {
+            best = g;
+            best_k = k;
+        }
+    }
+    notes.push(format!(
+        "tsvd: rank k = {best_k} chosen by gcv over 1..={k_max} (gcv = {} for the frame scaled to max |u| = 1, σ_k = {} mm/N, next σ = {} mm/N)",
+        fmt_g(best),
+        fmt_g(sigma[best_k - 1]),
+        sigma.get(best_k).map_or("none".into(), |s| fmt_g(*s))
+    ));
+    if k_max > 1 && (best_k == k_max || best_k == 1) {
+        notes.push(format!(
+            "{WARNING_PREFIX}tsvd: the gcv search for the rank ended on the {} boundary of its range 1..={k_max} (k = {best_k}): the best rank may lie outside it{}; give --rank <k> to choose another",
+            if best_k == 1 { "lower" } else { "upper" },
+            if best_k == 1 { "" } else { " (the largest allowed is min(numerical rank, rows - 1))" }
+        ));
+    }
+    Ok(best_k)
+}
+
+/// The Tikhonov λ: the fixed one, or GCV's / the L-curve's on `frame` over
+/// `[σ_r/10, σ_1]`, with a warning when it lands on the range's boundary.
+fn tikhonov_lambda(
+    choice: Lambda,
+    svd: &Svd,
+    rank: usize,
+    frame: Option<&[f64]>,
+    m: usize,
+    notes: &mut Vec<String>,
+) -> Result<f64, SolveError> {
+    let sigma = &svd.sigma;
+    let sel = match choice {
+        Lambda::Fixed(l) => {
+            notes.push(format!("tikhonov: fixed λ = {} mm/N", fmt_g(l)));
+            if l == 0.0 {
+                notes.push(
+                    "tikhonov: λ = 0 is the plain pseudo-inverse (with the rcond cut-off)".into(),
+                );
+            }
+            return Ok(l);
+        }
+        sel @ (Lambda::Gcv | Lambda::LCurve) if rank > 0 => sel,
+        _ => {
+            check_frame(frame, m, "lambda")?;
+            notes.push("tikhonov: zero matrix, λ is irrelevant".into());
+            return Ok(0.0);
+        }
+    };
+    let u = check_frame(frame, m, "lambda")?;
+    let spec = Spectrum::new(svd, rank, u);
+    let lo = 0.1 * sigma[rank - 1];
+    let hi = sigma[0];
+    let (l, value, k) = if sel == Lambda::Gcv {
+        minimise_log(lo, hi, |l| spec.gcv_tikhonov(l))
+    } else {
+        let (l, v, k) = minimise_log(lo, hi, |l| -spec.lcurve_curvature(l));
+        (l, -v, k)
+    };
+    let name = if sel == Lambda::Gcv { "gcv" } else { "l-curve" };
+    let what = if sel == Lambda::Gcv {
+        format!("gcv = {} for the frame scaled to max |u| = 1", fmt_g(value))
+    } else {
+        format!("curvature = {}", fmt_g(value))
+    };
+    notes.push(format!(
+        "tikhonov: λ = {} mm/N chosen by {name} ({what}) over [{}, {}] mm/N ({LAMBDA_GRID_POINTS} log-spaced points, golden-section refined)",
+        fmt_g(l),
+        fmt_g(lo),
+        fmt_g(hi)
+    ));
+    if k == 0 || k == LAMBDA_GRID_POINTS - 1 {
+        notes.push(format!(
+            "{WARNING_PREFIX}tikhonov: the {name} search for λ ended on the {} boundary of its range [{}, {}] mm/N (λ = {} mm/N): the optimum may lie outside it; give --lambda <mm/N> to choose another",
+            if k == 0 { "lower" } else { "upper" },
+            fmt_g(lo),
+            fmt_g(hi),
+            fmt_g(l)
+        ));
+    }
+    Ok(l)
+}
+
+/// `Pᵀ = U diag(g) Vᵀ` (`m × n`, column-major, so its storage is row-major `P`) with
+/// `g_i = φ_i/σ_i`, and `g`; refuses non-finite entries.
+fn filtered_inverse(
+    svd: &Svd,
+    phi: &[f64],
+    m: usize,
+    n: usize,
+) -> Result<(DMatrix<f64>, Vec<f64>), SolveError> {
+    let g: Vec<f64> = phi
+        .iter()
+        .zip(&svd.sigma)
+        .map(|(&f, &s)| if f > 0.0 { f / s } else { 0.0 })
+        .collect();
+    let k = g.iter().rposition(|&v| v > 0.0).map_or(0, |i| i + 1);
+    let pt = if k == 0 {
+        DMatrix::<f64>::zeros(m, n)
+    } else {
+        let mut us = svd.u.columns(0, k).into_owned();
+        for (i, mut col) in us.column_iter_mut().enumerate() {
+            col *= g[i];
+        }
+        us * svd.v_t.rows(0, k)
+    };
+    if pt.iter().any(|v| !v.is_finite()) {
+        return Err(SolveError::Decomposition(
+            "the filtered pseudo-inverse has non-finite entries".into(),
+        ));
+    }
+    Ok((pt, g))
+}
+
+/// Noise propagation through `P`: with `u = u₀ + e`, `e ~ (0, σ² I)`, `Cov(f) = σ² P Pᵀ`,
+/// so `SD(f_j) = σ·‖P_j‖` and `SD(Σ_a f) = σ·‖Σ_{j on axis a} P_j‖`; and the input
+/// bound that keeps `f` finite.
+struct NoiseNorms {
+    row_norm: Vec<f64>,
+    sum_norm: [f64; 3],
+    limit_mm: f64,
+}
+
+impl NoiseNorms {
+    /// From `Pᵀ` (`m × n`): column `j` of `Pᵀ` is row `j` of `P`.
+    fn of(pt: &DMatrix<f64>) -> NoiseNorms {
+        let (m, n) = pt.shape();
+        let row_norm: Vec<f64> = pt.column_iter().map(|c| c.norm()).collect();
+        let mut sum_norm = [0.0; 3];
+        for (a, sn) in sum_norm.iter_mut().enumerate() {
+            let mut acc = nalgebra::DVector::<f64>::zeros(m);
+            for j in (a..n).step_by(3) {
+                acc += pt.column(j);
+            }
+            *sn = acc.norm();
+        }
+        // ‖P‖_∞ (max row sum of |P|) bounds |f_i| ≤ ‖P‖_∞ · max|u_j|.
+        let row_sum_max = pt
+            .column_iter()
+            .map(|c| c.iter().map(|v| v.abs()).sum::<f64>())
+            .fold(0.0, f64::max);
+        let limit_mm = if row_sum_max > 0.0 {
+            0.5 * f64::MAX / row_sum_max
+        } else {
+            f64::MAX
+        };
+        NoiseNorms {
+            row_norm,
+            sum_norm,
+            limit_mm,
+        }
+    }
+}
+
 impl DenseSolver {
     /// Builds `H` for the problem (paper Eq. 5) and precomputes the configured dense
     /// method (`pinv`, `tikhonov` or `tsvd`). `frame` (mm) is needed for automatic λ or
@@ -484,245 +812,30 @@ impl DenseSolver {
     }
 
     /// Precomputes the configured dense method for a given transfer matrix `H`
-    /// (`m × n`, mm/N; rows and columns in the order of [`crate::model`]).
+    /// (`m × n`, mm/N; rows and columns in the order of [`crate::model`]): the SVD, the
+    /// filter factors of the method, the filtered pseudo-inverse `P = V diag(φ/σ) Uᵀ`
+    /// and its noise norms.
     pub fn from_matrix(
         h: DMatrix<f64>,
         config: &SolverConfig,
         frame: Option<&[f64]>,
     ) -> Result<DenseSolver, SolveError> {
         let (m, n) = h.shape();
-        if m == 0 || n == 0 {
-            return Err(SolveError::Empty(format!("the system is {m}×{n}")));
-        }
-        check_dense_size(m, n)?;
-        if config.method == Method::Fourier {
-            return Err(SolveError::InvalidOption(
-                "the dense solver does not run method fourier".into(),
-            ));
-        }
-        if let Some(u) = frame {
-            check_input(u, m)?;
-        }
-        let rcond = match config.rcond {
-            None => m.max(n) as f64 * f64::EPSILON,
-            Some(r) if r.is_finite() && (0.0..1.0).contains(&r) => r,
-            Some(r) => {
-                return Err(SolveError::InvalidOption(format!(
-                    "rcond = {} must be a number in [0, 1)",
-                    fmt_num(r)
-                )))
-            }
-        };
-        if let Lambda::Fixed(l) = config.lambda {
-            if config.method == Method::Tikhonov && !(l.is_finite() && l >= 0.0) {
-                return Err(SolveError::InvalidOption(format!(
-                    "lambda = {} mm/N must be a finite number >= 0",
-                    fmt_num(l)
-                )));
-            }
-        }
-
+        let rcond = check_config(m, n, config, frame)?;
         let svd = svd(h)?;
-        let sigma = &svd.sigma;
-        let p = sigma.len();
-        let s_max = sigma[0];
+        let s_max = svd.sigma[0];
         let tol = rcond * s_max;
-        let rank = sigma.iter().take_while(|&&s| s > tol && s > 0.0).count();
-
-        let mut notes = Vec::new();
-        if m < n {
-            notes.push(format!(
-                "underdetermined: {m} displacement values for {n} force unknowns; the solution is the minimum-norm one (force patterns invisible to the markers are set to zero)"
-            ));
-        }
-        // κ describes H itself, whatever cut-off or regularisation the method applies:
-        // σ_max/σ_min over all min(m, n) singular values, ∞ only if σ_min is exactly 0.
-        let condition_number = if sigma[p - 1] > 0.0 {
-            s_max / sigma[p - 1]
-        } else {
-            f64::INFINITY
-        };
-        if rank == 0 {
-            notes.push("the transfer matrix is zero: every force maps to zero".into());
-        } else if rank < p {
-            notes.push(format!(
-                "rank {rank} of {p} after the cut-off: {} singular value(s) ≤ rcond·σ_max = {} mm/N (rcond = {}) are treated as zero; σ_max/σ_r over the kept ones = {} (the condition number of H itself is σ_max/σ_min over all of them)",
-                p - rank,
-                fmt_g(tol),
-                fmt_g(rcond),
-                fmt_g(s_max / sigma[rank - 1])
-            ));
-        }
-
-        // Filter factors φ_i for i < rank (zero beyond).
-        let mut phi = vec![0.0; p];
-        let mut lambda_used = None;
-        let mut rank_used = None;
-        match config.method {
-            Method::Pinv => {
-                phi[..rank].fill(1.0);
-                rank_used = Some(rank);
-                notes.push(format!(
-                    "pinv: {rank} of {p} singular values kept (cut-off rcond·σ_max = {} mm/N, rcond = {})",
-                    fmt_g(tol),
-                    fmt_g(rcond)
-                ));
-            }
-            Method::Tsvd => {
-                let k = match config.rank {
-                    Rank::Fixed(k) => {
-                        if k == 0 || k > rank {
-                            return Err(SolveError::InvalidOption(format!(
-                                "tsvd rank k = {k} is out of range: this {m}×{n} system has numerical rank {rank}, so k must be in 1..={rank}"
-                            )));
-                        }
-                        notes.push(format!("tsvd: fixed rank k = {k} of numerical rank {rank}"));
-                        k
-                    }
-                    Rank::Auto => {
-                        let u = check_frame(frame, m, "rank")?;
-                        let spec = Spectrum::new(&svd, rank, u);
-                        let k_max = rank.min(m - 1);
-                        if k_max == 0 {
-                            notes.push(format!(
-                                "tsvd: gcv needs fewer kept values than rows ({m}); using the full rank {rank}"
-                            ));
-                            rank
-                        } else {
-                            let (mut best_k, mut best) = (1, f64::INFINITY);
-                            for k in 1..=k_max {
-                                let g = spec.gcv_tsvd(k);
-                                if g < best {
-                                    best = g;
-                                    best_k = k;
-                                }
-                            }
-                            notes.push(format!(
-                                "tsvd: rank k = {best_k} chosen by gcv over 1..={k_max} (gcv = {} for the frame scaled to max |u| = 1, σ_k = {} mm/N, next σ = {} mm/N)",
-                                fmt_g(best),
-                                fmt_g(sigma[best_k - 1]),
-                                sigma.get(best_k).map_or("none".into(), |s| fmt_g(*s))
-                            ));
-                            if k_max > 1 && (best_k == k_max || best_k == 1) {
-                                notes.push(format!(
-                                    "{WARNING_PREFIX}tsvd: the gcv search for the rank ended on the {} boundary of its range 1..={k_max} (k = {best_k}): the best rank may lie outside it{}; give --rank <k> to choose another",
-                                    if best_k == 1 { "lower" } else { "upper" },
-                                    if best_k == 1 { "" } else { " (the largest allowed is min(numerical rank, rows - 1))" }
-                                ));
-                            }
-                            best_k
-                        }
-                    }
-                };
-                phi[..k].fill(1.0);
-                rank_used = Some(k);
-            }
-            Method::Tikhonov => {
-                let lambda = match config.lambda {
-                    Lambda::Fixed(l) => {
-                        notes.push(format!("tikhonov: fixed λ = {} mm/N", fmt_g(l)));
-                        if l == 0.0 {
-                            notes.push("tikhonov: λ = 0 is the plain pseudo-inverse (with the rcond cut-off)".into());
-                        }
-                        l
-                    }
-                    sel @ (Lambda::Gcv | Lambda::LCurve) if rank > 0 => {
-                        let u = check_frame(frame, m, "lambda")?;
-                        let spec = Spectrum::new(&svd, rank, u);
-                        let lo = 0.1 * sigma[rank - 1];
-                        let hi = s_max;
-                        let (l, value, k) = if sel == Lambda::Gcv {
-                            minimise_log(lo, hi, |l| spec.gcv_tikhonov(l))
-                        } else {
-                            let (l, v, k) = minimise_log(lo, hi, |l| -spec.lcurve_curvature(l));
-                            (l, -v, k)
-                        };
-                        let name = if sel == Lambda::Gcv { "gcv" } else { "l-curve" };
-                        let what = if sel == Lambda::Gcv {
-                            format!("gcv = {} for the frame scaled to max |u| = 1", fmt_g(value))
-                        } else {
-                            format!("curvature = {}", fmt_g(value))
-                        };
-                        notes.push(format!(
-                            "tikhonov: λ = {} mm/N chosen by {name} ({what}) over [{}, {}] mm/N ({LAMBDA_GRID_POINTS} log-spaced points, golden-section refined)",
-                            fmt_g(l),
-                            fmt_g(lo),
-                            fmt_g(hi)
-                        ));
-                        if k == 0 || k == LAMBDA_GRID_POINTS - 1 {
-                            notes.push(format!(
-                                "{WARNING_PREFIX}tikhonov: the {name} search for λ ended on the {} boundary of its range [{}, {}] mm/N (λ = {} mm/N): the optimum may lie outside it; give --lambda <mm/N> to choose another",
-                                if k == 0 { "lower" } else { "upper" },
-                                fmt_g(lo),
-                                fmt_g(hi),
-                                fmt_g(l)
-                            ));
-                        }
-                        l
-                    }
-                    _ => {
-                        check_frame(frame, m, "lambda")?;
-                        notes.push("tikhonov: zero matrix, λ is irrelevant".into());
-                        0.0
-                    }
-                };
-                for i in 0..rank {
-                    let s2 = sigma[i] * sigma[i];
-                    phi[i] = s2 / (s2 + lambda * lambda);
-                }
-                lambda_used = Some(lambda);
-            }
-            Method::Fourier => {
-                return Err(SolveError::InvalidOption(
-                    "the dense solver does not run method fourier".into(),
-                ))
-            }
-        }
-
-        // g_i = φ_i/σ_i; P = V diag(g) Uᵀ. Stored row-major n×m = column-major Pᵀ (m×n)
-        // = U diag(g) Vᵀ, so nalgebra's column-major product is already our layout.
-        let g: Vec<f64> = (0..p)
-            .map(|i| if phi[i] > 0.0 { phi[i] / sigma[i] } else { 0.0 })
-            .collect();
-        let k = g.iter().rposition(|&v| v > 0.0).map_or(0, |i| i + 1);
+        let rank = svd
+            .sigma
+            .iter()
+            .take_while(|&&s| s > tol && s > 0.0)
+            .count();
+        let (condition_number, mut notes) = structure_notes(m, n, &svd.sigma, rank, rcond);
+        let filter = filter_factors(config, &svd, rank, rcond, frame, m, &mut notes)?;
+        let (pt, g) = filtered_inverse(&svd, &filter.phi, m, n)?;
         let noise_gain = g.iter().copied().fold(0.0, f64::max);
-        let effective_rank: f64 = phi.iter().sum();
-        let pt = if k == 0 {
-            DMatrix::<f64>::zeros(m, n)
-        } else {
-            let mut us = svd.u.columns(0, k).into_owned();
-            for (i, mut col) in us.column_iter_mut().enumerate() {
-                col *= g[i];
-            }
-            us * svd.v_t.rows(0, k)
-        };
-        if pt.iter().any(|v| !v.is_finite()) {
-            return Err(SolveError::Decomposition(
-                "the filtered pseudo-inverse has non-finite entries".into(),
-            ));
-        }
-        // Uncertainty propagation: with u = u₀ + e, e ~ (0, σ² I), Cov(f) = σ² P Pᵀ, so
-        // SD(f_j) = σ·‖P_j‖ and SD(Σ_a f) = σ·‖Σ_{j on axis a} P_j‖. Column j of Pᵀ is row j.
-        let row_norm: Vec<f64> = pt.column_iter().map(|c| c.norm()).collect();
-        let mut sum_norm = [0.0; 3];
-        for (a, sn) in sum_norm.iter_mut().enumerate() {
-            let mut acc = nalgebra::DVector::<f64>::zeros(m);
-            for j in (a..n).step_by(3) {
-                acc += pt.column(j);
-            }
-            *sn = acc.norm();
-        }
-        // ‖P‖_∞ (max row sum of |P|) bounds |f_i| ≤ ‖P‖_∞ · max|u_j|.
-        let row_sum_max = pt
-            .column_iter()
-            .map(|c| c.iter().map(|v| v.abs()).sum::<f64>())
-            .fold(0.0, f64::max);
-        let limit_mm = if row_sum_max > 0.0 {
-            0.5 * f64::MAX / row_sum_max
-        } else {
-            f64::MAX
-        };
-
+        let effective_rank: f64 = filter.phi.iter().sum();
+        let norms = NoiseNorms::of(&pt);
         if condition_number > ILL_CONDITIONED && rank > 0 {
             notes.push(format!(
                 "ill-conditioned (σ_max/σ_min = {}): displacement noise is amplified by up to ‖P‖₂ = {} N/mm; tikhonov or tsvd with automatic parameters suit noisy data better",
@@ -744,9 +857,9 @@ impl DenseSolver {
             op,
             stride,
             isa,
-            limit_mm,
-            row_norm,
-            sum_norm,
+            limit_mm: norms.limit_mm,
+            row_norm: norms.row_norm,
+            sum_norm: norms.sum_norm,
             diag: Diagnostics {
                 method: config.method,
                 shape: (m, n),
@@ -754,8 +867,8 @@ impl DenseSolver {
                 condition_number,
                 effective_rank,
                 noise_gain,
-                lambda: lambda_used,
-                rank: rank_used,
+                lambda: filter.lambda,
+                rank: filter.rank,
                 notes,
             },
         })

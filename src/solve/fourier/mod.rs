@@ -148,6 +148,7 @@
 //! no regular grid, or when `p_f/p_m` is not a ratio of small integers (the paper's
 //! 2.2 mm / 1.5 mm = 22/15 is refused; markers every 1.1 mm or 2.2 mm would work).
 
+mod build;
 mod coarse;
 mod grid;
 mod kernel;
@@ -158,22 +159,14 @@ mod uncertainty;
 
 use std::sync::OnceLock;
 
-use nalgebra::DMatrix;
 use rustfft::FftPlanner;
 
 use super::{
-    check_input, check_output, Diagnostics, FrameSolver, Lambda, Method, Problem, SolveError,
-    SolverConfig,
+    check_input, check_output, Diagnostics, FrameSolver, Problem, SolveError, SolverConfig,
 };
-use crate::model::ForwardModel;
 
-use grid::{commensurate, smooth_at_least, RATIO_TOLERANCE};
 pub use grid::{MAX_LCM, OFF_GRID_TOLERANCE};
-use lambda::choose_lambda;
-use transform::{
-    bridge_weights, gather_marker_block, markers_to_forces, markers_to_spectra, LayerPlan, Plan,
-    Work, C64,
-};
+use transform::{markers_to_forces, Plan, Work, C64};
 
 /// Largest accepted `fourier_padding`: beyond it the FFTs grow without improving the
 /// periodic model noticeably.
@@ -284,675 +277,63 @@ impl FourierSolver {
         config: &SolverConfig,
         frame: Option<&[f64]>,
     ) -> Result<FourierSolver, SolveError> {
-        let sensor = problem.sensor;
-        let sites = problem.sites;
-        if sites.is_empty() {
-            return Err(SolveError::Empty("no markers carry data".into()));
-        }
-        let n_in = 2 * sites.len();
-        let n_out = 3 * sensor.force_grid.len();
-        if n_out == 0 {
-            return Err(SolveError::Empty("the force grid has no nodes".into()));
-        }
-        if let Some(u) = frame {
-            check_input(u, n_in)?;
-        }
-        if config.fourier_refine_iterations > MAX_REFINE_ITERATIONS {
-            return Err(SolveError::InvalidOption(format!(
-                "fourier refinement of {} iterations exceeds the maximum of {MAX_REFINE_ITERATIONS}",
-                config.fourier_refine_iterations
-            )));
-        }
-        let tol = config.fourier_refine_tolerance;
-        if !(tol.is_finite() && (0.0..1.0).contains(&tol)) {
-            return Err(SolveError::InvalidOption(format!(
-                "fourier refinement tolerance {tol} must be a number in [0, 1)"
-            )));
-        }
-        let pad = config.fourier_padding;
-        if !(pad.is_finite() && (0.0..=MAX_PADDING).contains(&pad)) {
-            return Err(SolveError::InvalidOption(format!(
-                "fourier_padding = {pad} must be in [0, {MAX_PADDING}] (fraction of the grid extent)"
-            )));
-        }
-        if let Lambda::Fixed(l) = config.lambda {
-            if !(l.is_finite() && l >= 0.0) {
-                return Err(SolveError::InvalidOption(format!(
-                    "lambda = {l} mm/N must be a finite number >= 0"
-                )));
-            }
-        } else if frame.is_none() {
-            return Err(SolveError::NeedsFrame("λ"));
-        }
-        if let Some(r) = config.rcond {
-            if !(r.is_finite() && r >= 0.0) {
-                return Err(SolveError::InvalidOption(format!(
-                    "rcond = {r} must be a finite number >= 0"
-                )));
-            }
-        }
-
-        // ---- map sites to (layer, ix, iy) ----
-        let fg = sensor.force_grid;
-        let mut slot_of_layer = vec![usize::MAX; sensor.layers.len()];
-        let mut layer_of_slot: Vec<usize> = Vec::new();
-        let mut marker_pitch: Option<(f64, usize)> = None;
-        for (k, s) in sites.iter().enumerate() {
-            let Some(layer) = sensor.layers.get(s.layer) else {
-                return Err(SolveError::Incompatible(format!(
-                    "marker {k} refers to layer {} but the sensor has {} layers",
-                    s.layer,
-                    sensor.layers.len()
-                )));
-            };
-            let Some(mg) = layer.markers else {
-                return Err(SolveError::Incompatible(format!(
-                    "layer {} (marker {k}) has no regular marker grid in sensor.toml; \
-                     use a dense solver (pinv, tikhonov, tsvd)",
-                    layer.name
-                )));
-            };
-            if (s.depth_mm - layer.depth_mm).abs() > 1e-9 * layer.depth_mm.abs().max(1.0) {
-                return Err(SolveError::Incompatible(format!(
-                    "marker {k} of layer {} has depth {} mm but the layer is at {} mm: the \
-                     fourier solver needs one depth per layer",
-                    layer.name, s.depth_mm, layer.depth_mm
-                )));
-            }
-            match marker_pitch {
-                None => marker_pitch = Some((mg.grid.pitch_mm, s.layer)),
-                Some((p, l0)) => {
-                    if (p - mg.grid.pitch_mm).abs() > RATIO_TOLERANCE * p {
-                        return Err(SolveError::Incompatible(format!(
-                            "layer {} has marker pitch {} mm but layer {} has {} mm: the \
-                             fourier solver needs one marker pitch for all layers",
-                            layer.name, mg.grid.pitch_mm, sensor.layers[l0].name, p
-                        )));
-                    }
-                }
-            }
-            if slot_of_layer[s.layer] == usize::MAX {
-                slot_of_layer[s.layer] = layer_of_slot.len();
-                layer_of_slot.push(s.layer);
-            }
-        }
-        // Slots in layer order, so the block layout does not depend on site order.
-        layer_of_slot.sort_unstable();
-        for (slot, &l) in layer_of_slot.iter().enumerate() {
-            slot_of_layer[l] = slot;
-        }
-        let (marker_pitch_mm, _) =
-            marker_pitch.ok_or_else(|| SolveError::Empty("no markers".into()))?;
-        let (a, b) = commensurate(fg.pitch_mm, marker_pitch_mm)?;
-        let l = a * b;
-        let h = fg.pitch_mm / a as f64;
-
-        let layers: Vec<LayerPlan> = layer_of_slot
-            .iter()
-            .map(|&li| {
-                let g = sensor.layers[li].markers.map(|m| m.grid).unwrap_or(fg);
-                LayerPlan { nm: [g.nx, g.ny] }
-            })
-            .collect();
-        let nf = [fg.nx, fg.ny];
-
-        // Fine period per axis: every (marker, force) offset plus padding, a multiple of L
-        // with smooth block count.
-        let mut period = [0usize; 2];
-        let mut m = [0usize; 2];
-        for ax in 0..2 {
-            let mut span = 0usize;
-            let mut ext = a * (nf[ax] - 1);
-            for lp in &layers {
-                span = span.max(a * (nf[ax] - 1) + b * (lp.nm[ax] - 1) + 1);
-                ext = ext.max(b * (lp.nm[ax] - 1));
-            }
-            let want = span + (pad * ext as f64).ceil() as usize;
-            m[ax] = smooth_at_least(want.div_ceil(l));
-            period[ax] = m[ax] * l;
-        }
-        let mm = [a * m[0], a * m[1]];
-        let mf = [b * m[0], b * m[1]];
-
-        let mut site_map = Vec::with_capacity(sites.len());
-        let mut seen: Vec<Vec<bool>> = layers
-            .iter()
-            .map(|lp| vec![false; lp.nm[0] * lp.nm[1]])
-            .collect();
-        for (k, s) in sites.iter().enumerate() {
-            let layer = &sensor.layers[s.layer];
-            let slot = slot_of_layer[s.layer];
-            let grid = layer.markers.map(|m| m.grid).unwrap_or(fg);
-            let tol = OFF_GRID_TOLERANCE * grid.pitch_mm;
-            let ((ix, iy), d) = match grid.nearest_node(s.position_mm) {
-                Some(v) => v,
-                None => {
-                    return Err(SolveError::Incompatible(format!(
-                        "marker {k} of layer {} at ({:.4}, {:.4}) mm lies outside the layer's \
-                         {}×{} grid (origin ({}, {}) mm, pitch {} mm); use a dense solver",
-                        layer.name,
-                        s.position_mm[0],
-                        s.position_mm[1],
-                        grid.nx,
-                        grid.ny,
-                        grid.origin_mm[0],
-                        grid.origin_mm[1],
-                        grid.pitch_mm
-                    )))
-                }
-            };
-            if d > tol {
-                return Err(SolveError::Incompatible(format!(
-                    "marker {k} of layer {} at ({:.4}, {:.4}) mm is {d:.4} mm from its nearest \
-                     grid node ({ix}, {iy}) (tolerance {tol:.4} mm = {OFF_GRID_TOLERANCE} pitch): \
-                     the fourier solver needs markers on the layer's regular grid (a rotated or \
-                     distorted grid is not); use a dense solver (pinv, tikhonov, tsvd)",
-                    layer.name, s.position_mm[0], s.position_mm[1]
-                )));
-            }
-            let node = iy * grid.nx + ix;
-            if seen[slot][node] {
-                return Err(SolveError::Incompatible(format!(
-                    "marker {k} of layer {} is a second marker on grid node ({ix}, {iy})",
-                    layer.name
-                )));
-            }
-            seen[slot][node] = true;
-            site_map.push((slot, iy * mm[0] + ix));
-        }
-        for (slot, s) in seen.iter().enumerate() {
-            let missing = s.iter().filter(|&&x| !x).count();
-            if let Some(first) = s.iter().position(|&x| !x) {
-                let lp = layers[slot];
-                return Err(SolveError::Incompatible(format!(
-                    "layer {}: {missing} of {} grid markers carry no data (first missing node \
-                     ({}, {})); the fourier solver needs complete marker grids, lost markers \
-                     are handled by the dense solvers (pinv, tikhonov, tsvd)",
-                    sensor.layers[layer_of_slot[slot]].name,
-                    lp.nm[0] * lp.nm[1],
-                    first % lp.nm[0],
-                    first / lp.nm[0]
-                )));
-            }
-        }
-
-        // ---- kernel spectra on the fine grid (kernel.rs) ----
-        // `exact`: the model's real-space responses on the kernel window (the exact
-        // operator of the refinement); `periodic`: what the direct solve inverts, the
-        // layer's Fourier kernel used directly (the half-space has no finite k = 0 term
-        // and uses the window-sampled kernel for both).
-        let model = problem.forward_model();
+        let sizes = build::check_options(problem, config, frame)?;
+        let (sensor, sites) = (problem.sensor, problem.sites);
+        // Sites to (layer slot, lattice node) on the commensurate fine grid.
+        let slots = build::layer_slots(sensor, sites)?;
+        let fine = build::fine_grid(sensor, &slots, config.fourier_padding)?;
+        let site_map = build::site_map(sensor, sites, &slots, &fine)?;
+        // Kernel spectra, then every frequency block and its SVD.
         let mut planner = FftPlanner::<f64>::new();
-        let mut exact: Vec<Vec<Vec<C64>>> = Vec::with_capacity(layers.len());
-        let mut periodic: Vec<Vec<Vec<C64>>> = Vec::new();
-        for (slot, lp) in layers.iter().enumerate() {
-            let layer = &sensor.layers[layer_of_slot[slot]];
-            let grid = layer.markers.map(|m| m.grid).unwrap_or(fg);
-            let mut lo = [0i64; 2];
-            for ax in 0..2 {
-                let span = a * (nf[ax] - 1) + b * (lp.nm[ax] - 1) + 1;
-                lo[ax] = -((a * (nf[ax] - 1)) as i64) - ((period[ax] - span) / 2) as i64;
-            }
-            let sampling = kernel::LayerSampling {
-                offset_mm: [
-                    grid.origin_mm[0] - fg.origin_mm[0],
-                    grid.origin_mm[1] - fg.origin_mm[1],
-                ],
-                depth_mm: layer.depth_mm,
-                lo,
-            };
-            exact.push(kernel::sampled_spectra(
-                &model,
-                &sampling,
-                period,
-                h,
-                &mut planner,
-            )?);
-            if let ForwardModel::BondedLayer(bl) = &model {
-                periodic.push(kernel::layer_spectra(bl, &sampling, period, h));
-            }
-        }
-
-        // ---- blocks ----
-        let rows = 2 * layers.len() * a * a;
-        let cols = 3 * b * b;
-        let kmin = rows.min(cols);
-        let mut blocks = Vec::new();
-        for cx in 0..=m[0] / 2 {
-            for cy in 0..m[1] {
-                blocks.push([cx, cy]);
-            }
-        }
-        let weight = |c: [usize; 2]| {
-            if c[0] == 0 || 2 * c[0] == m[0] {
-                1.0
-            } else {
-                2.0
-            }
-        };
-        let inv_ab = 1.0 / (a * b) as f64;
-        let nb = blocks.len();
-        let mut amat = vec![C64::default(); nb * rows * cols];
-        let mut sig = vec![0.0f64; nb * kmin];
-        let mut uvec = vec![C64::default(); nb * rows * kmin];
-        let mut vvec = vec![C64::default(); nb * cols * kmin];
-        // Block `c` (row-major `rows × cols`, unitary scaling) from one set of spectra.
-        let assemble = |khat: &[Vec<Vec<C64>>], c: [usize; 2], ab: &mut [C64]| {
-            for ty in 0..l {
-                let qy = c[1] + ty * m[1];
-                let (sry, sfy) = (ty % a, ty % b);
-                for tx in 0..l {
-                    let qx = c[0] + tx * m[0];
-                    let (srx, sfx) = (tx % a, tx % b);
-                    let q = qx * period[1] + qy;
-                    for (slot, kh) in khat.iter().enumerate() {
-                        let row0 = ((slot * a + sry) * a + srx) * 2;
-                        let col0 = (sfy * b + sfx) * 3;
-                        for i in 0..2 {
-                            for j in 0..3 {
-                                ab[(row0 + i) * cols + col0 + j] += kh[3 * i + j][q] * inv_ab;
-                            }
-                        }
-                    }
-                }
-            }
-        };
-        let mut periodic_block = vec![C64::default(); rows * cols];
-        for (bi, &c) in blocks.iter().enumerate() {
-            let ab = &mut amat[bi * rows * cols..(bi + 1) * rows * cols];
-            assemble(&exact, c, ab);
-            let dm = if periodic.is_empty() {
-                DMatrix::from_row_slice(rows, cols, ab)
-            } else {
-                periodic_block.fill(C64::default());
-                assemble(&periodic, c, &mut periodic_block);
-                DMatrix::from_row_slice(rows, cols, &periodic_block)
-            };
-            let svd = dm
-                .try_svd_unordered(true, true, f64::EPSILON, 10_000)
-                .ok_or_else(|| {
-                    SolveError::Decomposition(format!(
-                        "svd of frequency block ({}, {}) did not converge",
-                        c[0], c[1]
-                    ))
-                })?;
-            let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-                return Err(SolveError::Decomposition(
-                    "svd returned no singular vectors".into(),
-                ));
-            };
-            for i in 0..kmin {
-                let s = svd.singular_values[i];
-                if !s.is_finite() {
-                    return Err(SolveError::Decomposition(format!(
-                        "frequency block ({}, {}) has a non-finite singular value",
-                        c[0], c[1]
-                    )));
-                }
-                sig[bi * kmin + i] = s;
-                for r in 0..rows {
-                    uvec[(bi * kmin + i) * rows + r] = u[(r, i)];
-                }
-                for j in 0..cols {
-                    vvec[(bi * kmin + i) * cols + j] = vt[(i, j)].conj();
-                }
-            }
-        }
-        let sigma_max = sig.iter().cloned().fold(0.0f64, f64::max);
-        if sigma_max <= 0.0 {
-            return Err(SolveError::Decomposition(
-                "the periodic operator is zero".into(),
-            ));
-        }
-        let n_total_rows: f64 = blocks.iter().map(|&c| weight(c) * rows as f64).sum();
-        let n_total_cols: f64 = blocks.iter().map(|&c| weight(c) * cols as f64).sum();
-        let rcond = config
-            .rcond
-            .unwrap_or(n_total_rows.max(n_total_cols) * f64::EPSILON);
-        let cutoff = rcond * sigma_max;
-
-        // ---- plan and work buffers ----
-        let plan = Plan {
-            a,
-            b,
-            m,
-            mm,
-            mf,
-            nf,
-            rows,
-            cols,
-            blocks,
-            site_map,
-            bridge_x: layers
-                .iter()
-                .map(|lp| bridge_weights(mm[0] - lp.nm[0]))
-                .collect(),
-            bridge_y: layers
-                .iter()
-                .map(|lp| bridge_weights(mm[1] - lp.nm[1]))
-                .collect(),
-            scale: 1.0 / ((mm[0] * mm[1]) as f64 * (mf[0] * mf[1]) as f64).sqrt(),
-            fwd_mx: planner.plan_fft_forward(mm[0]),
-            fwd_my: planner.plan_fft_forward(mm[1]),
-            inv_mx: planner.plan_fft_inverse(mm[0]),
-            inv_my: planner.plan_fft_inverse(mm[1]),
-            fwd_fx: planner.plan_fft_forward(mf[0]),
-            fwd_fy: planner.plan_fft_forward(mf[1]),
-            inv_fx: planner.plan_fft_inverse(mf[0]),
-            inv_fy: planner.plan_fft_inverse(mf[1]),
-            layers,
-        };
-        let scratch_len = [
-            &plan.fwd_mx,
-            &plan.fwd_my,
-            &plan.inv_mx,
-            &plan.inv_my,
-            &plan.fwd_fx,
-            &plan.fwd_fy,
-            &plan.inv_fx,
-            &plan.inv_fy,
-        ]
-        .iter()
-        .map(|f| f.get_inplace_scratch_len())
-        .max()
-        .unwrap_or(0);
-        let mut work = Work {
-            scratch: vec![C64::default(); scratch_len],
-            z: plan
-                .layers
-                .iter()
-                .map(|_| vec![C64::default(); mm[1] * mm[0]])
-                .collect(),
-            spec: plan
-                .layers
-                .iter()
-                .map(|_| vec![C64::default(); mm[0] * mm[1]])
-                .collect(),
-            gxy: vec![C64::default(); mf[0] * mf[1]],
-            gz: vec![C64::default(); mf[0] * mf[1]],
-            hxy: vec![C64::default(); nf[1] * mf[0]],
-            hz: vec![C64::default(); nf[1] * mf[0]],
-            gtmp_xy: vec![C64::default(); mf[0] * mf[1]],
-            gtmp_z: vec![C64::default(); mf[0] * mf[1]],
-            vin: vec![C64::default(); rows.max(cols)],
-            vout: vec![C64::default(); rows.max(cols)],
-            r: vec![0.0; n_in],
-            q: vec![0.0; n_in],
-            s: vec![0.0; n_out],
-            p: vec![0.0; n_out],
-            zf: vec![0.0; n_out],
-        };
-
-        // ---- λ ----
+        let (exact, periodic) = build::kernel_spectra(
+            &problem.forward_model(),
+            sensor,
+            &slots,
+            &fine,
+            &mut planner,
+        )?;
+        let blocks = build::frequency_blocks(fine.m);
+        let svds = build::block_svds(&fine, &blocks, &exact, &periodic)?;
+        drop((exact, periodic));
+        let (h, period, m) = (fine.h, fine.period, fine.m);
+        let plan = build::make_plan(fine, &svds, blocks, site_map, &mut planner);
+        let mut work = build::make_work(&plan, sizes.0, sizes.1);
+        // λ, then the solution operators and the refinement preconditioner.
         let mut notes = Vec::new();
-        let lambda = match (config.lambda, frame) {
-            (Lambda::Fixed(l), _) => {
-                notes.push(format!("fixed λ = {l:e} mm/N"));
-                l
-            }
-            (choice, Some(u)) => {
-                // Project the frame's (unitary) spectrum on each block's left singular vectors.
-                // The frame is brought to unit peak first, as for the dense solvers.
-                let in_scale = super::unit_peak_factor(u);
-                markers_to_spectra(&plan, &mut work, u, in_scale, false);
-                let unit = 1.0 / ((mm[0] * mm[1]) as f64).sqrt();
-                let mut beta2 = vec![0.0f64; nb * kmin];
-                let mut rest = 0.0f64;
-                let mut total = 0.0f64;
-                for (bi, &c) in plan.blocks.iter().enumerate() {
-                    gather_marker_block(&plan, &work.spec, c, &mut work.vin);
-                    let w = weight(c);
-                    let norm2: f64 = work.vin[..rows].iter().map(|v| (v * unit).norm_sqr()).sum();
-                    let mut proj = 0.0;
-                    for i in 0..kmin {
-                        let ui = &uvec[(bi * kmin + i) * rows..(bi * kmin + i + 1) * rows];
-                        let beta: C64 = ui
-                            .iter()
-                            .zip(&work.vin[..rows])
-                            .map(|(uu, v)| uu.conj() * v * unit)
-                            .sum();
-                        beta2[bi * kmin + i] = beta.norm_sqr();
-                        proj += beta.norm_sqr();
-                    }
-                    rest += w * (norm2 - proj).max(0.0);
-                    total += w * norm2;
-                }
-                if total <= 0.0 {
-                    return Err(SolveError::InvalidOption(
-                        "automatic λ selection needs a frame with nonzero displacements; the given frame is all zero".into(),
-                    ));
-                }
-                let weights: Vec<f64> = plan
-                    .blocks
-                    .iter()
-                    .flat_map(|&c| std::iter::repeat_n(weight(c), kmin))
-                    .collect();
-                let (l, note) = choose_lambda(
-                    choice,
-                    &sig,
-                    &beta2,
-                    &weights,
-                    rest,
-                    n_total_rows,
-                    sigma_max,
-                );
-                notes.push(note);
-                l
-            }
-            (_, None) => return Err(SolveError::NeedsFrame("λ")),
+        let lambda = build::select_lambda(config, frame, &plan, &mut work, &svds, &mut notes)?;
+        let filter = build::Filter {
+            lambda,
+            cutoff: build::cutoff(&plan, &svds, config),
         };
-
-        // ---- solution operators P = V diag(φ) Uᴴ ----
-        let filter = |s: f64| -> f64 {
-            if lambda > 0.0 {
-                s / (s * s + lambda * lambda)
-            } else if s > cutoff {
-                1.0 / s
-            } else {
-                0.0
-            }
-        };
-        let mut pmat = vec![C64::default(); nb * cols * rows];
-        for bi in 0..nb {
-            let pb = &mut pmat[bi * cols * rows..(bi + 1) * cols * rows];
-            for i in 0..kmin {
-                let phi = filter(sig[bi * kmin + i]);
-                if phi == 0.0 {
-                    continue;
-                }
-                let ui = &uvec[(bi * kmin + i) * rows..(bi * kmin + i + 1) * rows];
-                let vi = &vvec[(bi * kmin + i) * cols..(bi * kmin + i + 1) * cols];
-                for (j, vj) in vi.iter().enumerate() {
-                    let vphi = vj * phi;
-                    for (r, ur) in ui.iter().enumerate() {
-                        pb[j * rows + r] += vphi * ur.conj();
-                    }
-                }
-            }
-        }
-
-        // ---- refinement preconditioner Q = (AᴴA + λ²I)⁻¹ = I/λ² + V diag(1/(σ²+λ²) − 1/λ²) Vᴴ ----
-        let mut qmat = vec![C64::default(); nb * cols * cols];
-        if lambda > 0.0 {
-            let l2 = lambda * lambda;
-            let full = kmin == cols;
-            for bi in 0..nb {
-                let qb = &mut qmat[bi * cols * cols..(bi + 1) * cols * cols];
-                if !full {
-                    for j in 0..cols {
-                        qb[j * cols + j] = C64::new(1.0 / l2, 0.0);
-                    }
-                }
-                for i in 0..kmin {
-                    let s2 = sig[bi * kmin + i].powi(2);
-                    let psi = if full {
-                        1.0 / (s2 + l2)
-                    } else {
-                        1.0 / (s2 + l2) - 1.0 / l2
-                    };
-                    let vi = &vvec[(bi * kmin + i) * cols..(bi * kmin + i + 1) * cols];
-                    for (j, vj) in vi.iter().enumerate() {
-                        for (k, vk) in vi.iter().enumerate() {
-                            qb[j * cols + k] += vj * vk.conj() * psi;
-                        }
-                    }
-                }
-            }
-        }
-
-        // ---- diagnostics ----
-        let mut all_sv = Vec::with_capacity(2 * sig.len());
-        let mut eff = 0.0;
-        let mut gain = 0.0f64;
-        for (bi, &c) in plan.blocks.iter().enumerate() {
-            let w = weight(c);
-            for &s in &sig[bi * kmin..(bi + 1) * kmin] {
-                all_sv.push(s);
-                if w > 1.0 {
-                    all_sv.push(s);
-                }
-                eff += w * if lambda > 0.0 {
-                    s * s / (s * s + lambda * lambda)
-                } else if s > cutoff {
-                    1.0
-                } else {
-                    0.0
-                };
-                gain = gain.max(filter(s));
-            }
-        }
-        all_sv.sort_by(|x, y| y.total_cmp(x));
-        let smin = all_sv.last().copied().unwrap_or(0.0);
-        let condition_number = if smin > cutoff {
-            sigma_max / smin
-        } else {
-            f64::INFINITY
-        };
+        let nb = plan.blocks.len();
+        let pmat = build::solution_operators(&svds, nb, filter);
+        let qmat = build::preconditioner(&svds, nb, lambda);
+        let mut diag = build::diagnostics(&plan, &svds, filter, h, period, sizes, notes);
         let geometry = FourierGeometry {
-            force_factor: a,
-            marker_factor: b,
+            force_factor: plan.a,
+            marker_factor: plan.b,
             fine_pitch_mm: h,
             period,
             blocks: m,
-            block_shape: (rows, cols),
+            block_shape: (plan.rows, plan.cols),
         };
-        notes.insert(
-            0,
-            format!(
-                "fine pitch {h} mm (force pitch = {a}·h, marker pitch = {b}·h), period {}×{} fine \
-                 nodes, {}×{} frequency blocks of {rows}×{cols}; singular values are those of the \
-                 periodic operator (padding markers count as measured zeros)",
-                period[0], period[1], m[0], m[1]
-            ),
-        );
-        let mut diag = Diagnostics {
-            method: Method::Fourier,
-            shape: (n_in, n_out),
-            singular_values: all_sv,
-            condition_number,
-            effective_rank: eff,
-            noise_gain: gain,
-            lambda: Some(lambda),
-            rank: None,
-            notes,
-        };
-        // ---- noise propagation (per unit σ) ----
-        let noise_direct = uncertainty::direct_map(&plan, &mut work, &pmat, &mut planner);
-        // The two-level correction (coarse.rs): the coarse space and its Galerkin solve
-        // first, which also precondition the force-sum solves, then the exact sums.
-        let warn_direct = |why: String| {
-            format!(
-                "{}fourier: {why}: the direct periodic solve alone carries the periodic \
-                 model's boundary error (force sums off by tens of % on bounded grids); add \
-                 --refine-iterations, give another λ or use a dense solver",
-                super::WARNING_PREFIX
-            )
-        };
-        // The transposed direct solve gives the direct map's exact force sums, used by
-        // the two-level build and by `sum_sd` of the bridged direct solve.
-        let ph = coarse::blocks_adjoint(&plan, &pmat);
-        let direct_sums = coarse::direct_sum_functionals(&plan, &mut work, &ph, n_in, n_out);
-        let galerkin = if !config.fourier_coarse {
-            diag.notes
-                .push("two-level correction not requested: the direct periodic solve alone".into());
-            None
-        } else if lambda <= 0.0 {
-            diag.notes
-                .push(warn_direct("λ = 0 has no two-level correction".into()));
-            None
-        } else {
-            match coarse::Coarse::galerkin(
-                &plan,
-                &mut work,
-                &amat,
-                &ph,
-                lambda,
-                n_in,
-                n_out,
-                coarse::COARSE_BUDGET,
-            ) {
-                Ok(g) => Some(g),
-                Err(e) => {
-                    diag.notes
-                        .push(warn_direct(format!("two-level correction off ({e})")));
-                    None
-                }
-            }
-        };
-        let converged = uncertainty::converged_sums(
+        let amat = svds.amat;
+        let noise = build::noise_and_coarse(
             &plan,
             &mut work,
-            &amat,
-            &qmat,
-            galerkin.as_ref().map(|g| g.space()),
+            (&pmat, &amat, &qmat),
             lambda,
-            n_in,
-            n_out,
+            config.fourier_coarse,
+            sizes,
+            &mut planner,
+            &mut diag,
         );
-        let coarse = match (galerkin, &converged) {
-            (Some(g), Some((_, funcs, residual))) => {
-                let exact = *residual <= uncertainty::SUM_ACCEPT;
-                if !exact {
-                    diag.notes.push(format!(
-                        "{}fourier: the force-sum solves stopped at a relative residual of \
-                         {residual:.1e} (iteration cap): the two-level solve keeps its \
-                         Galerkin sums instead of dense Tikhonov's, and the force-sum SDs \
-                         are approximate; a larger λ converges faster",
-                        super::WARNING_PREFIX
-                    ));
-                }
-                let sums = exact.then_some(funcs);
-                match coarse::Coarse::finish(g, sums, &direct_sums, n_out) {
-                    Ok(c) => {
-                        let (s, nc) = c.shape();
-                        diag.notes.push(format!(
-                            "two-level solve: direct periodic solve + Galerkin correction on {} \
-                             coarse functions (hats every {s} force nodes, {}×{} coarse nodes)",
-                            c.len(),
-                            nc[0],
-                            nc[1]
-                        ));
-                        Some(c)
-                    }
-                    Err(e) => {
-                        diag.notes
-                            .push(warn_direct(format!("two-level correction off ({e})")));
-                        None
-                    }
-                }
-            }
-            _ => None,
-        };
-        let noise_refined_sum = converged.map(|(s, _, _)| s);
-        // Force sums of the bridged direct map, exactly: ΣF_a = (P_perᵀ 1_a)ᵀ u.
-        let noise_bridged_sum = direct_sums.map(|t| t.iter().map(|v| v * v).sum::<f64>().sqrt());
-
         Ok(FourierSolver {
-            coarse,
+            coarse: noise.coarse,
             noise_twolevel_force: OnceLock::new(),
-            noise_bridged_sum,
-            noise_direct,
-            noise_refined_sum,
+            noise_bridged_sum: noise.noise_bridged_sum,
+            noise_direct: noise.noise_direct,
+            noise_refined_sum: noise.noise_refined_sum,
             noise_refined_force: OnceLock::new(),
             noise_bridged_force: OnceLock::new(),
             plan,
@@ -963,8 +344,8 @@ impl FourierSolver {
             lambda,
             geometry,
             diag,
-            n_in,
-            n_out,
+            n_in: sizes.0,
+            n_out: sizes.1,
             refine_iterations: config.fourier_refine_iterations,
             refine_tolerance: config.fourier_refine_tolerance,
             last_refine_iterations: 0,
@@ -1174,6 +555,7 @@ mod tests {
     use super::*;
     use crate::model::MarkerSite;
     use crate::sensor::grid_sensor;
+    use crate::solve::{Lambda, Method};
     use nalgebra::{DMatrix, DVector};
 
     /// Deterministic values in [-0.5, 0.5) (an LCG), shared by the Fourier tests.
