@@ -76,6 +76,7 @@ def main():
     p.add_argument("--frames", type=int, default=5000)
     p.add_argument("--mode", default="per-window", choices=["per-window", "frame-to-frame"])
     p.add_argument("--repeats", type=int, default=3, help="thread runs (best kept)")
+    p.add_argument("--no-rust", action="store_true", help="skip the Rust yardstick (no cargo build)")
     a = p.parse_args()
 
     sensor = tactbench.Sensor(a.sensor)
@@ -83,11 +84,13 @@ def main():
     frame = cv2.imread(str(a.frame), cv2.IMREAD_COLOR)
     make = lambda: tactbench.Tracker(sensor, reference, mode=a.mode, channels="bgr")
     print(f"load: {os.getloadavg()[0]:.1f} (1 min average) on {os.cpu_count()} cores")
-    r_min, r_med = rust_times(a.sensor, a.reference, a.frame, a.frames, a.mode)
     p_min, p_med = python_times(make(), frame, a.frames)
-    # Python's bgr frame and Rust's rgb PNG decode track identically (tests/python).
-    print(f"per frame ({a.mode}, {a.frames} frames): Rust min {r_min:.1f} µs median {r_med:.1f} µs | "
-          f"Python min {p_min:.1f} µs median {p_med:.1f} µs | ratio min {p_min / r_min:.3f} median {p_med / r_med:.3f}")
+    print(f"per frame ({a.mode}, {a.frames} frames): Python min {p_min:.1f} µs median {p_med:.1f} µs")
+    if not a.no_rust:
+        r_min, r_med = rust_times(a.sensor, a.reference, a.frame, a.frames, a.mode)
+        # Python's bgr frame and Rust's rgb PNG decode track identically (tests/python).
+        print(f"per frame ({a.mode}, {a.frames} frames): Rust min {r_min:.1f} µs median {r_med:.1f} µs | "
+              f"ratio Python/Rust min {p_min / r_min:.3f} median {p_med / r_med:.3f}")
     one = max(throughput([make()], frame, a.frames) for _ in range(a.repeats))
     two = max(throughput([make(), make()], frame, a.frames // 2) for _ in range(a.repeats))
     print(f"throughput: 1 thread {one:.0f} frames/s, 2 threads {two:.0f} frames/s: {two / one:.2f}×")

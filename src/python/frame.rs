@@ -108,7 +108,8 @@ impl<'py> FrameInput<'py> {
             let r = a
                 .try_readonly()
                 .map_err(|e| value_error(format!("{what}: {e}")))?;
-            if r.as_slice().is_ok() {
+            // `as_slice` also accepts Fortran order: only C order is read in place.
+            if a.is_c_contiguous() {
                 Samples::U8(r)
             } else {
                 Samples::OwnedU8(r.as_array().iter().copied().collect())
@@ -117,7 +118,7 @@ impl<'py> FrameInput<'py> {
             let r = a
                 .try_readonly()
                 .map_err(|e| value_error(format!("{what}: {e}")))?;
-            if r.as_slice().is_ok() {
+            if a.is_c_contiguous() {
                 Samples::U16(r)
             } else {
                 Samples::OwnedU16(r.as_array().iter().copied().collect())

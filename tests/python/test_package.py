@@ -15,7 +15,7 @@ def test_sensor_layers_markers_and_force_grid():
     assert m.shape[1] == 2 and m.dtype == np.float64
     assert tuple(m[0]) == (0.0, 0.0)
     assert s.force_grid.shape[1] == 2
-    with pytest.raises(ValueError, match="no layer named 'green'"):
+    with pytest.raises(ValueError, match='no layer named "green"'):
         s.markers("green")
 
 
