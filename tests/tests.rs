@@ -28,6 +28,8 @@ mod stage;
 mod study;
 mod sweeps;
 mod vision;
+mod vision_faint;
+mod vision_gray;
 mod vision_real;
 mod vision_tracking;
 mod vision_tracking_real;

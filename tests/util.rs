@@ -51,6 +51,14 @@ pub fn root(rel: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
 }
 
+/// `../shared/real_frames` beside the clone (the real camera frames, never copied
+/// into the repository); `TACTBENCH_REAL_FRAMES` overrides it (a worktree elsewhere),
+/// as for the benches (`benches/common/real_frames.rs`).
+pub fn real_frames_dir() -> PathBuf {
+    std::env::var_os("TACTBENCH_REAL_FRAMES")
+        .map_or_else(|| root("../shared/real_frames"), PathBuf::from)
+}
+
 /// A small deterministic generator (SplitMix64) so tests need no extra dependency.
 pub struct Rng(u64);
 

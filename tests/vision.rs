@@ -798,11 +798,14 @@ fn loads_8_and_16_bit_colour_images_and_rejects_bad_ones_naming_the_file() {
         assert_eq!(r.markers.len(), 260, "{}", p.display());
     }
 
+    // A greyscale frame loads (issue 29); the paper sensor's coloured layers refuse
+    // it, naming the first (`tests/vision_gray.rs` has the cases).
     let gray = dir.path().join("gray.png");
     image::GrayImage::new(430, 340).save(&gray).unwrap();
-    let e = load_frame(&gray, &s.camera).unwrap_err();
-    assert!(matches!(e, VisionError::Grayscale { .. }));
-    assert!(e.to_string().contains("gray.png") && e.to_string().contains("grayscale"));
+    let f = load_frame(&gray, &s.camera).unwrap();
+    let e = detect(&f.view(), &s, &DetectConfig::default()).unwrap_err();
+    assert!(matches!(e, VisionError::GrayscaleColourLayer { .. }), "{e}");
+    assert!(e.to_string().contains("layer blue"), "{e}");
 
     let small = dir.path().join("small.png");
     RgbImage::new(320, 240).save(&small).unwrap();
@@ -907,7 +910,7 @@ fn track_command_writes_displacement_csv_readable_by_reconstruct() {
 }
 
 #[test]
-fn track_command_rejects_a_grayscale_frame_naming_it() {
+fn track_command_rejects_a_grayscale_frame_naming_it_and_the_coloured_layer() {
     let s = paper_sensor();
     let dir = tempfile::tempdir().unwrap();
     let sensor_path = dir.path().join("sensor.toml");
@@ -930,9 +933,11 @@ fn track_command_rejects_a_grayscale_frame_naming_it() {
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&run.stderr);
-    assert!(!run.status.success());
+    assert_eq!(run.status.code(), Some(2), "{stderr}");
     assert!(
-        stderr.contains("gray-frame.png") && stderr.contains("grayscale"),
+        stderr.contains("gray-frame.png")
+            && stderr.contains("greyscale")
+            && stderr.contains("layer blue"),
         "{stderr}"
     );
 }

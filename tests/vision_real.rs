@@ -23,7 +23,7 @@ use crate::util;
 
 /// `../shared/real_frames`, or `None` (with a message) when it is absent.
 fn real_frames() -> Option<PathBuf> {
-    let dir = util::root("../shared/real_frames");
+    let dir = util::real_frames_dir();
     if dir.is_dir() {
         Some(dir)
     } else {

@@ -12,7 +12,7 @@ use tactbench::vision::{
 };
 
 fn real(rel: &str) -> PathBuf {
-    let p = crate::util::root("../shared/real_frames").join(rel);
+    let p = crate::util::real_frames_dir().join(rel);
     assert!(
         p.exists(),
         "{}: the real frames are expected in ../shared/real_frames beside the clone",

@@ -7,7 +7,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use tactbench::sensor::Sensor;
 use tactbench::vision::onboard::check_frame_levels;
-use tactbench::vision::{calibrate, load_frame, CalibrateConfig};
+use tactbench::vision::{calibrate, check_layers, load_frame, CalibrateConfig};
 
 /// Calibrate the camera from an unloaded reference frame: writes camera.toml.
 ///
@@ -69,6 +69,11 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
     let image = load_frame(&args.reference, &sensor.camera)?;
+    check_layers(
+        &image.view(),
+        sensor.layers.iter().map(|l| (l.name.as_str(), l.color)),
+    )
+    .with_context(|| format!("reference image {}", args.reference.display()))?;
     let config = CalibrateConfig {
         radial_terms: args.radial_terms as usize,
         tangential: args.tangential,

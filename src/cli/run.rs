@@ -248,7 +248,8 @@ fn install_stop_handlers() -> anyhow::Result<(Arc<AtomicBool>, Arc<AtomicI32>)> 
 }
 
 /// Checks one preview frame of the camera (not one of the run's frames) for a blank
-/// or saturated image inside the sensor's ROI.
+/// or saturated image inside the sensor's ROI, and for a greyscale image when a layer
+/// needs colour.
 fn check_camera_levels(
     camera: &mut dyn tactbench::device::Camera,
     sensor: &Sensor,
@@ -256,12 +257,24 @@ fn check_camera_levels(
     let frame = camera
         .preview()
         .context("cannot grab the camera's frame to check its exposure")?;
+    let view = tactbench::vision::FrameView::rgb8(&frame.image);
     tactbench::vision::onboard::check_frame_levels(
-        &tactbench::vision::FrameView::rgb8(&frame.image),
+        &view,
         sensor.camera.roi_px.as_ref(),
         std::path::Path::new("the camera's reference frame"),
     )
-    .context("run refused before anything moved")
+    .context("run refused before anything moved")?;
+    // A greyscale camera or recording (widened to RGB by the camera driver) serves
+    // dark and bright layers only.
+    if view.is_achromatic() {
+        let layers = sensor.layers.iter().map(|l| (l.name.as_str(), l.color));
+        if let Some(e) = tactbench::vision::colour_layer(layers) {
+            return Err(anyhow::Error::new(e)
+                .context("the camera's reference frame is greyscale (R = G = B in every pixel)")
+                .context("run refused before anything moved"));
+        }
+    }
+    Ok(())
 }
 
 pub fn run(a: Args) -> anyhow::Result<ExitCode> {

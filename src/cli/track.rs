@@ -8,8 +8,8 @@ use anyhow::Context;
 use tactbench::sensor::Sensor;
 use tactbench::vision::onboard::check_frame_levels;
 use tactbench::vision::{
-    detect_mapped, load_frame, write_tracks_mapped, CameraCalibration, DetectConfig, PixelMapping,
-    ReferenceHealth, StatusCounts, TrackConfig, TrackMode, Tracker,
+    check_layers, detect_mapped, load_frame, write_tracks_mapped, CameraCalibration, DetectConfig,
+    PixelMapping, ReferenceHealth, StatusCounts, TrackConfig, TrackMode, Tracker,
 };
 
 /// Track markers: images -> marker displacements (CSV).
@@ -21,8 +21,9 @@ use tactbench::vision::{
 /// Images: PNG (RGB, RGBA or palette), JPEG or BMP, 8-bit or 16-bit, of the size given
 /// in the sensor's [camera] section; the reference and the frames may differ in bit
 /// depth (8-bit samples count as 257 × their value on a 16-bit scale, so a mixed pair
-/// tracks like a matched one). Grayscale images are rejected (coloured layers are told
-/// apart by colour: blue, red, green). Layers of color dark (dark markers on a lit gel)
+/// tracks like a matched one). 8- and 16-bit greyscale images serve dark and bright
+/// layers; a coloured layer (blue, red, green) on a greyscale image is an error naming
+/// the layer. Layers of color dark (dark markers on a lit gel)
 /// or bright (light pins or dots on a dark skin) are found by their contrast against
 /// the local illumination, so gradients, vignetting and stripes do not hide them. With
 /// [camera] roi_px markers are sought only inside the ROI, and a marker whose window
@@ -106,6 +107,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Some(path) => PixelMapping::Calibrated(CameraCalibration::from_path(path, &sensor)?),
     };
     let reference_image = load_frame(&args.reference, &sensor.camera)?;
+    let layers = || sensor.layers.iter().map(|l| (l.name.as_str(), l.color));
+    check_layers(&reference_image.view(), layers())
+        .with_context(|| format!("reference image {}", args.reference.display()))?;
     let detected = detect_mapped(
         &reference_image.view(),
         &sensor,
@@ -177,6 +181,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for path in &args.frames {
         let image = load_frame(path, &sensor.camera)?;
         let view = image.view();
+        check_layers(&view, layers()).with_context(|| format!("frame {}", path.display()))?;
         if view.bit_depth() != reference_bits && !mixed_noted {
             mixed_noted = true;
             eprintln!(

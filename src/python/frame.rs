@@ -1,4 +1,5 @@
-//! NumPy arrays as frames: `uint8` / `uint16`, H×W×3 or H×W×4 (RGB(A), or BGR(A) read
+//! NumPy arrays as frames: `uint8` / `uint16`, H×W (greyscale: `dark` / `bright`
+//! layers only, the library refuses coloured ones), H×W×3 or H×W×4 (RGB(A), or BGR(A) read
 //! through [`crate::vision::bgr_sensor`]), C-contiguous borrowed as is, any other
 //! layout copied once. Everything else is a `ValueError` saying what was found and
 //! what is accepted: other dtypes (floats, so NaN and infinite pixels, included),
@@ -62,7 +63,7 @@ impl<'py> FrameInput<'py> {
     pub(crate) fn extract(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<Self> {
         let untyped = obj.cast::<PyUntypedArray>().map_err(|_| {
             value_error(format!(
-                "{what}: expected a NumPy array (uint8 or uint16, H×W×3 or H×W×4), got {}",
+                "{what}: expected a NumPy array (uint8 or uint16, H×W, H×W×3 or H×W×4), got {}",
                 obj.get_type()
                     .name()
                     .map(|n| n.to_string())
@@ -85,15 +86,11 @@ impl<'py> FrameInput<'py> {
             )));
         }
         let channels = match shape.as_slice() {
-            [_, _] => {
-                return Err(value_error(format!(
-                    "{what}: greyscale H×W frames ({shape_text}) are not supported by this build: the tracker reads H×W×3 or H×W×4 colour frames (greyscale support, Pixels::Gray8/Gray16, is not merged yet); stack the image to H×W×3, e.g. numpy.dstack([img] * 3)"
-                )));
-            }
+            [_, _] => 1,
             [_, _, c @ (3 | 4)] => *c,
             _ => {
                 return Err(value_error(format!(
-                    "{what}: shape {shape_text}: expected H×W×3 or H×W×4 (RGB(A) or BGR(A))"
+                    "{what}: shape {shape_text}: expected H×W (greyscale), H×W×3 or H×W×4 (RGB(A) or BGR(A))"
                 )));
             }
         };
@@ -141,13 +138,25 @@ impl<'py> FrameInput<'py> {
         [self.width_px, self.height_px]
     }
 
+    /// Samples per pixel (1, 3 or 4).
+    pub(crate) fn channels(&self) -> usize {
+        self.channels
+    }
+
     /// The library's view of the samples.
     pub(crate) fn view(&self) -> PyResult<FrameView<'_>> {
         fn u8s(d: &[u8], channels: usize) -> Pixels<'_> {
-            if channels == 3 {
-                Pixels::Rgb8(d)
-            } else {
-                Pixels::Rgba8(d)
+            match channels {
+                1 => Pixels::Gray8(d),
+                3 => Pixels::Rgb8(d),
+                _ => Pixels::Rgba8(d),
+            }
+        }
+        fn u16s(d: &[u16], channels: usize) -> Pixels<'_> {
+            match channels {
+                1 => Pixels::Gray16(d),
+                3 => Pixels::Rgb16(d),
+                _ => Pixels::Rgba16(d),
             }
         }
         let pixels = match &self.samples {
@@ -156,21 +165,11 @@ impl<'py> FrameInput<'py> {
                 self.channels,
             ),
             Samples::OwnedU8(v) => u8s(v, self.channels),
-            Samples::U16(a) => {
-                let d = a.as_slice().map_err(|e| value_error(e.to_string()))?;
-                if self.channels == 3 {
-                    Pixels::Rgb16(d)
-                } else {
-                    Pixels::Rgba16(d)
-                }
-            }
-            Samples::OwnedU16(v) => {
-                if self.channels == 3 {
-                    Pixels::Rgb16(v)
-                } else {
-                    Pixels::Rgba16(v)
-                }
-            }
+            Samples::U16(a) => u16s(
+                a.as_slice().map_err(|e| value_error(e.to_string()))?,
+                self.channels,
+            ),
+            Samples::OwnedU16(v) => u16s(v, self.channels),
         };
         FrameView::new(pixels, self.width_px, self.height_px).map_err(|e| super::to_py_err(&e))
     }

@@ -50,9 +50,9 @@ fn parse_mode(mode: Option<&str>) -> PyResult<TrackMode> {
 }
 
 /// A 3/4-channel frame of a sensor with coloured layers needs its channel order.
-fn check_order(sensor: &Sensor, order: Option<Order>, what: &str) -> PyResult<()> {
+fn check_order(sensor: &Sensor, order: Option<Order>, what: &str, channels: usize) -> PyResult<()> {
     let coloured = coloured_layers(sensor);
-    if order.is_none() && !coloured.is_empty() {
+    if channels > 1 && order.is_none() && !coloured.is_empty() {
         return Err(value_error(format!(
             "{what}: {} told apart by colour: give channels=\"rgb\" or channels=\"bgr\" (OpenCV's cv2.imread order) for 3- or 4-channel frames",
             coloured.join(", ")
@@ -76,7 +76,7 @@ impl PyTracker {
         let mode = parse_mode(mode)?;
         let s = &sensor.sensor;
         let input = FrameInput::extract(reference, "reference")?;
-        check_order(s, order, "reference")?;
+        check_order(s, order, "reference", input.channels())?;
         let expected = [s.camera.width_px, s.camera.height_px];
         if input.size() != expected {
             return Err(to_py_err(&VisionError::WrongSize {
@@ -172,7 +172,7 @@ impl PyTracker {
         frame: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let input = FrameInput::extract(frame, "frame")?;
-        check_order(&self.sensor, self.order, "frame")?;
+        check_order(&self.sensor, self.order, "frame", input.channels())?;
         let view = input.view()?;
         let tracker = &mut self.tracker;
         let tracks = py

@@ -16,7 +16,7 @@
 
 use super::camera::PixelMapping;
 use super::contrast;
-use super::image::FrameView;
+use super::image::{check_layers, FrameView};
 use super::window::{dot_inside, score, score_bias, score_weights, Located, Raw, Sample, Window};
 use super::{Pixels, VisionError};
 use crate::sensor::{MarkerColor, Roi, Sensor};
@@ -186,6 +186,22 @@ macro_rules! with_raw {
                 };
                 $body
             }
+            Pixels::Gray8(data) => {
+                let $img = Raw::<u8, 1> {
+                    data,
+                    width,
+                    height,
+                };
+                $body
+            }
+            Pixels::Gray16(data) => {
+                let $img = Raw::<u16, 1> {
+                    data,
+                    width,
+                    height,
+                };
+                $body
+            }
         }
     }};
 }
@@ -228,6 +244,10 @@ pub fn detect_mapped(
     config: &DetectConfig,
     mapping: &PixelMapping,
 ) -> Result<Reference, VisionError> {
+    check_layers(
+        view,
+        sensor.layers.iter().map(|l| (l.name.as_str(), l.color)),
+    )?;
     let mut layers = Vec::with_capacity(sensor.layers.len());
     let mut markers = Vec::new();
     let mut missing = Vec::new();
@@ -396,7 +416,7 @@ fn saturated_within<'a, T: Sample, const C: usize>(
     ys.flat_map(move |y| xs.clone().map(move |x| (x, y)))
         .filter_map(move |(x, y)| {
             let d = [x as f64 - centre_px[0], y as f64 - centre_px[1]];
-            let px = &img.data[(y * img.width + x) * C..][..3];
+            let px = &img.data[(y * img.width + x) * C..][..C.min(3)];
             (d[0] * d[0] + d[1] * d[1] <= r2 && px.iter().any(|v| v.value() >= limit)).then_some(d)
         })
 }
@@ -458,7 +478,7 @@ fn detect_layer<T: Sample, const C: usize>(
     let score: Vec<i32> = img
         .data
         .chunks_exact(C)
-        .map(|px| score(px, &weights))
+        .map(|px| score::<T, C>(px, &weights))
         .collect();
     if score.is_empty() {
         return LayerBlobs {

@@ -376,7 +376,9 @@ fn levels(view: &FrameView<'_>) -> (f64, f64) {
     fn scan<T: Copy + Into<f64>>(data: &[T], channels: usize, full: f64) -> (f64, f64) {
         let (mut sum, mut saturated, mut n) = (0.0, 0usize, 0usize);
         for px in data.chunks_exact(channels) {
-            let rgb = [px[0].into(), px[1].into(), px[2].into()];
+            // A grey sample reads as (g, g, g).
+            let at = |k: usize| -> f64 { px[if channels == 1 { 0 } else { k }].into() };
+            let rgb = [at(0), at(1), at(2)];
             sum += rgb[0] + rgb[1] + rgb[2];
             if rgb.iter().fold(0.0f64, |m, v| m.max(*v)) >= SATURATION_LEVEL * full {
                 saturated += 1;
@@ -393,5 +395,7 @@ fn levels(view: &FrameView<'_>) -> (f64, f64) {
         Pixels::Rgba8(d) => scan(d, 4, 255.0),
         Pixels::Rgb16(d) => scan(d, 3, 65535.0),
         Pixels::Rgba16(d) => scan(d, 4, 65535.0),
+        Pixels::Gray8(d) => scan(d, 1, 255.0),
+        Pixels::Gray16(d) => scan(d, 1, 65535.0),
     }
 }

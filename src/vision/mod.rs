@@ -2,9 +2,10 @@
 //! per-window / frame-to-frame tracking with per-marker status (paper Section II-A).
 //!
 //! Pipeline:
-//! 1. [`load_frame`] reads a PNG/JPEG/BMP colour image (8- or 16-bit RGB/RGBA) and
-//!    checks its size against `[camera]`; [`FrameView`] borrows any RGB buffer (e.g. a
-//!    [`crate::device::CameraFrame`]) without copying.
+//! 1. [`load_frame`] reads a PNG/JPEG/BMP image (8- or 16-bit RGB/RGBA or greyscale)
+//!    and checks its size against `[camera]`; [`FrameView`] borrows any such buffer
+//!    (e.g. a [`crate::device::CameraFrame`]) without copying. A greyscale frame serves
+//!    `dark` and `bright` layers; a coloured layer on it is refused by name.
 //! 2. [`detect`] finds every layer's markers in an unloaded frame (anywhere, no grid
 //!    assumed), refines them to sub-pixel centroids and, when the layer has a grid in
 //!    sensor.toml, matches them to its nodes (marker id = row-major grid index).
@@ -54,7 +55,7 @@ pub use self::detect::{
     Saturation, UnmatchedBlob,
 };
 pub use self::health::{LayerHealth, ReferenceHealth, ORIGIN_TOLERANCE, SCALE_TOLERANCE};
-pub use self::image::{load_frame, Frame, FrameView, Pixels};
+pub use self::image::{check_layers, colour_layer, load_frame, Frame, FrameView, Pixels};
 pub use self::output::{
     write_tracks, write_tracks_mapped, write_tracks_mapped_to, write_tracks_to, TRACK_EXTRA_COLUMNS,
 };
@@ -81,11 +82,15 @@ pub enum VisionError {
         /// The decoder's message.
         message: String,
     },
-    /// The image is grayscale: layers are told apart by colour.
-    #[error("{path}: grayscale image: the tracker needs an RGB or RGBA colour image to tell the marker layers apart")]
-    Grayscale {
-        /// The file.
-        path: PathBuf,
+    /// A coloured layer on a greyscale frame: its markers are told apart by colour.
+    #[error("layer {layer} (layers[{index}].color = \"{color}\") needs a colour image, but the frame is greyscale: a greyscale frame serves only dark and bright layers")]
+    GrayscaleColourLayer {
+        /// The layer's name.
+        layer: String,
+        /// Its index in the sensor file.
+        index: usize,
+        /// Its colour (blue, red or green).
+        color: crate::sensor::MarkerColor,
     },
     /// A pixel format the tracker does not read.
     #[error("{path}: unsupported pixel format ({kind}): expected 8- or 16-bit RGB or RGBA")]

@@ -79,6 +79,14 @@ pub enum DraftError {
         /// `, --roi …` when one was given.
         roi: String,
     },
+    /// A coloured appearance asked of a greyscale frame.
+    #[error("{path}: --color {color} needs a colour image, but the frame is greyscale: a greyscale frame serves --color dark or bright")]
+    GrayscaleColour {
+        /// The frame.
+        path: PathBuf,
+        /// The appearance asked for (blue, red or green).
+        color: MarkerColor,
+    },
     /// The ROI does not fit the frame.
     #[error("{path}: --roi {roi} is invalid: {allowed}")]
     Roi {
@@ -169,6 +177,12 @@ pub fn sensor_draft(
     path: &Path,
 ) -> Result<SensorDraft, DraftError> {
     let (w, h) = (view.width_px(), view.height_px());
+    if view.pixels().is_gray() && !options.color.is_brightness() {
+        return Err(DraftError::GrayscaleColour {
+            path: path.to_path_buf(),
+            color: options.color,
+        });
+    }
     if let Some(roi) = &options.roi_px {
         roi.check_in_image(w, h)
             .map_err(|allowed| DraftError::Roi {
@@ -365,7 +379,9 @@ pub fn check_frame_levels(
                 .enumerate()
                 .filter(|(i, _)| roi.is_none_or(|r| r.contains([(i % w) as f64, (i / w) as f64])))
                 .map(|(_, px)| {
-                    let (r, g, b) = (px[0].into(), px[1].into(), px[2].into());
+                    // A grey sample reads as (g, g, g).
+                    let at = |k: usize| -> u32 { px[if c == 1 { 0 } else { k }].into() };
+                    let (r, g, b) = (at(0), at(1), at(2));
                     (r + g + b, r.max(g).max(b))
                 })
                 .collect()
@@ -375,6 +391,8 @@ pub fn check_frame_levels(
             Pixels::Rgba8(d) => (255.0, collect(d, 4, w, roi)),
             Pixels::Rgb16(d) => (65535.0, collect(d, 3, w, roi)),
             Pixels::Rgba16(d) => (65535.0, collect(d, 4, w, roi)),
+            Pixels::Gray8(d) => (255.0, collect(d, 1, w, roi)),
+            Pixels::Gray16(d) => (65535.0, collect(d, 1, w, roi)),
         }
     };
     if values.is_empty() {

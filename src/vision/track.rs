@@ -79,7 +79,7 @@ use super::camera::PixelMapping;
 use super::detect::{
     highlight_radius_px, highlight_within, saturation_within, with_raw, Reference, Saturation,
 };
-use super::image::FrameView;
+use super::image::{check_layers, FrameView};
 use super::window::{dot_inside, score_bias, search, Foreign, Located, Raw, Sample, Window};
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
@@ -513,8 +513,16 @@ impl Tracker {
     /// 8- and 16-bit frames are both accepted whatever the reference's depth: the
     /// reference's signals and background scores are compared in the frame's levels
     /// (× 257 from 8 to 16 bits, ÷ 257 the other way, exact for PNG-widened samples),
-    /// so a mixed pair tracks like a matched one.
+    /// so a mixed pair tracks like a matched one. A greyscale frame is read as
+    /// `(g, g, g)`; it fails when a layer is coloured ([`check_layers`]).
     pub fn track(&mut self, frame: &FrameView<'_>) -> Result<&[MarkerTrack], VisionError> {
+        check_layers(
+            frame,
+            self.reference
+                .layers
+                .iter()
+                .map(|l| (l.name.as_str(), l.color)),
+        )?;
         if frame.width_px() != self.reference.width_px
             || frame.height_px() != self.reference.height_px
         {

@@ -166,11 +166,23 @@ pub(crate) fn score_bias<T: Sample>(w: &[i32; 3]) -> i32 {
     2 * T::OFFSET + if sum < 0 { -sum * T::MAX } else { 0 }
 }
 
-/// The clamped colour score of one pixel: `max(0, w · (R, G, B) + bias)`, the bias of
-/// [`score_bias`] (`2K` for colour layers).
+/// The linear colour score `w · (R, G, B)` of one pixel of `C` samples. A greyscale
+/// pixel (`C = 1`) reads as `(g, g, g)`: `(w₀ + w₁ + w₂)·g`, exactly the score of the
+/// grey image widened to RGB (`∓3g` for dark and bright, 0 for colour weights).
 #[inline(always)]
-pub(crate) fn score<T: Sample>(px: &[T], w: &[i32; 3]) -> i32 {
-    (w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value() + score_bias::<T>(w)).max(0)
+pub(crate) fn linear_score<T: Sample, const C: usize>(px: &[T], w: &[i32; 3]) -> i32 {
+    if C == 1 {
+        (w[0] + w[1] + w[2]) * px[0].value()
+    } else {
+        w[0] * px[0].value() + w[1] * px[1].value() + w[2] * px[2].value()
+    }
+}
+
+/// The clamped colour score of one pixel of `C` samples: `max(0, w · (R, G, B) +
+/// bias)`, the bias of [`score_bias`] (`2K` for colour layers).
+#[inline(always)]
+pub(crate) fn score<T: Sample, const C: usize>(px: &[T], w: &[i32; 3]) -> i32 {
+    (linear_score::<T, C>(px, w) + score_bias::<T>(w)).max(0)
 }
 
 /// `(Σ s, Σ s·i)` over consecutive pixels, `i` counted from 0.
@@ -179,7 +191,7 @@ fn span_sums<T: Sample, const C: usize>(samples: &[T], w: &[i32; 3]) -> (i32, i3
     let mut rs = 0i32;
     let mut rx = 0i32;
     for (i, px) in samples.chunks_exact(C).enumerate() {
-        let s = score(px, w);
+        let s = score::<T, C>(px, w);
         rs += s;
         rx += s * i as i32;
     }
@@ -218,8 +230,8 @@ pub(crate) struct Window {
     radius_px: f64,
     /// Colour weights of the score.
     weights: [i32; 3],
-    /// Linear-kernel weights, `[RGB, RGBA]`.
-    linear: [LinearWeights; 2],
+    /// Linear-kernel weights, `[RGB, RGBA, grey]` (see [`layout`]).
+    linear: [LinearWeights; 3],
     /// The CPU has AVX2: 8-bit frames take the SIMD kernel [`sums_u8_avx2`].
     avx2: bool,
     /// The CPU has AVX-512 F and BW: 8-bit frames take [`sums_u8_avx512_bytes`]
@@ -253,6 +265,16 @@ struct LinearRow {
     byte_block_offset: usize,
     /// Blocks of [`BYTES512`] samples covering `len` (the last one zero-padded).
     byte_blocks: usize,
+}
+
+/// The index in [`Window::linear`] of the weights for `channels` samples per pixel.
+#[inline(always)]
+const fn layout(channels: usize) -> usize {
+    match channels {
+        1 => 2,
+        4 => 1,
+        _ => 0,
+    }
 }
 
 /// Samples per block of the SIMD kernel (one 256-bit register of 16-bit lanes).
@@ -439,8 +461,8 @@ impl Window {
             }
             w.rows.push(row);
         }
-        for (k, channels) in [3usize, 4].into_iter().enumerate() {
-            w.linear[k] = w.linear_weights(channels);
+        for channels in [3usize, 4, 1] {
+            w.linear[layout(channels)] = w.linear_weights(channels);
         }
         w
     }
@@ -461,7 +483,12 @@ impl Window {
                 let in_ap = adx <= row.ap;
                 let in_ring = adx > row.inner && adx <= row.outer;
                 for c in 0..channels {
-                    let cw = if c < 3 { self.weights[c] as i16 } else { 0 };
+                    // A grey sample stands for (g, g, g): the weights' sum.
+                    let cw = match (channels, c) {
+                        (1, _) => self.weights.iter().sum::<i32>() as i16,
+                        (_, 0..=2) => self.weights[c] as i16,
+                        _ => 0,
+                    };
                     let (a, r) = (cw * in_ap as i16, cw * in_ring as i16);
                     lw.ap.push(a);
                     lw.ap_dx.push(a * dx as i16);
@@ -573,7 +600,7 @@ impl Window {
         cx: i32,
         cy: i32,
     ) -> [i64; 6] {
-        let lw = &self.linear[(C == 4) as usize];
+        let lw = &self.linear[layout(C)];
         // The last block of the window's last row may read past the row's end
         // (weights 0 there) but must stay inside the buffer.
         let last_read = |lanes: usize, blocks: fn(&LinearRow) -> usize| {
@@ -785,8 +812,7 @@ impl Window {
     #[inline(always)]
     fn linear_score<T: Sample, const C: usize>(&self, img: Raw<'_, T, C>, x: i32, y: i32) -> i32 {
         let i = (y as usize * img.width + x as usize) * C;
-        let w = &self.weights;
-        w[0] * img.data[i].value() + w[1] * img.data[i + 1].value() + w[2] * img.data[i + 2].value()
+        linear_score::<T, C>(&img.data[i..i + C], &self.weights)
     }
 
     /// Offset, net signal and visible fraction of the window centred on `(cx, cy)`
@@ -1054,7 +1080,7 @@ impl Window {
             let start = (y * img.width + x0) * C;
             let end = (y * img.width + x1 + 1) * C;
             for px in img.data[start..end].chunks_exact(C) {
-                best = best.max(score(px, &self.weights));
+                best = best.max(score::<T, C>(px, &self.weights));
             }
         }
         Some(best)
@@ -1331,7 +1357,7 @@ pub(crate) fn search<T: Sample, const C: usize>(
         let mut rs = 0i64;
         let mut rx = 0i64;
         for (i, px) in img.data[start..end].chunks_exact(C).enumerate() {
-            let s = (score(px, weights) - threshold).max(0) as i64;
+            let s = (score::<T, C>(px, weights) - threshold).max(0) as i64;
             rs += s;
             rx += s * i as i64;
         }

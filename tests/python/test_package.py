@@ -58,7 +58,7 @@ def test_coloured_sensor_without_channel_order_is_refused_naming_the_layers(sens
         (np.zeros((340, 430, 3), np.int32), "dtype int32"),
         (np.zeros((340, 430, 3), np.int8), "dtype int8"),
         (np.zeros((0, 430, 3), np.uint8), "empty array of shape \\(0, 430, 3\\)"),
-        (np.zeros((340, 430, 2), np.uint8), "shape \\(340, 430, 2\\): expected H×W×3 or H×W×4"),
+        (np.zeros((340, 430, 2), np.uint8), "shape \\(340, 430, 2\\): expected H×W \\(greyscale\\), H×W×3 or H×W×4"),
         (np.zeros((340,), np.uint8), "shape \\(340\\)"),
         (np.zeros((200, 300, 3), np.uint8), "reference array: image is 300×200 px but \\[camera\\] says 430×340 px"),
         ([[1, 2, 3]], "expected a NumPy array"),
@@ -74,14 +74,12 @@ def test_blank_reference_is_refused_as_blank(sensor):
         tactbench.Tracker(sensor, np.zeros((340, 430, 3), np.uint8), channels="rgb")
 
 
-def test_greyscale_frames_are_refused_until_supported(sensor):
-    grey = np.zeros((340, 430), np.uint8)
-    try:
-        tactbench.Tracker(sensor, grey, channels="rgb")
-    except ValueError as e:
-        assert "greyscale" in str(e) or "grayscale" in str(e) or "colour" in str(e)
-    else:
-        pytest.fail("a blank greyscale reference of a coloured sensor must be refused")
+def test_greyscale_frames_of_a_coloured_sensor_are_refused_naming_the_layer(sensor, reference):
+    grey = np.ascontiguousarray(reference[:, :, 1])
+    with pytest.raises(ValueError, match='blue'):
+        tactbench.Tracker(sensor, grey)
+    with pytest.raises(ValueError, match='blue'):
+        tactbench.Tracker(sensor, reference, channels="bgr").track(grey)
 
 
 @pytest.fixture()

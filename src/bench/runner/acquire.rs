@@ -486,6 +486,20 @@ impl Runner<'_, '_, '_, '_> {
     /// the likely cause.
     pub(super) fn reference_layout(&mut self, name: &str, frame: &CameraFrame) -> Step<Reference> {
         let view = FrameView::rgb8(&frame.image);
+        // A greyscale camera or recording (widened to RGB by its driver, `dir:`
+        // included) serves dark and bright layers only: name the coloured one.
+        if view.is_achromatic() {
+            let layers = self
+                .sensor
+                .layers
+                .iter()
+                .map(|l| (l.name.as_str(), l.color));
+            if let Some(e) = vision::colour_layer(layers) {
+                return Err(Halt::Abort(format!(
+                    "reference frame {name} is greyscale (R = G = B in every pixel): {e}; stopped before any setpoint motion (nothing was pressed)"
+                )));
+            }
+        }
         let detected = vision::detect_mapped(
             &view,
             self.sensor,

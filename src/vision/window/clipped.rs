@@ -17,7 +17,7 @@
 //! inside, which the tracker checks ([`super::super::track`]). Scalar code: only the
 //! few windows at the edge take it.
 
-use super::{score, Moments, Raw, Sample, Window};
+use super::{linear_score, score, Moments, Raw, Sample, Window};
 
 /// Below this fraction of its pixels inside the image, the ring's plane fit is not
 /// trusted (a corner cuts away more than a half of the ring on two sides).
@@ -92,11 +92,11 @@ impl Window {
                     continue;
                 };
                 let i = ((y * w + cx + dx) as usize) * C;
-                let px = &img.data[i..i + 3];
+                let px = &img.data[i..i + C];
                 let s = if clamped {
-                    score(px, wt)
+                    score::<T, C>(px, wt)
                 } else {
-                    wt[0] * px[0].value() + wt[1] * px[1].value() + wt[2] * px[2].value()
+                    linear_score::<T, C>(px, wt)
                 } as f64;
                 let (x, yy) = (dx as f64, dy as f64);
                 let a = &mut acc[region];
