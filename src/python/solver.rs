@@ -21,6 +21,15 @@ use crate::solve::{
 
 type MarkerKey = Vec<(usize, u64, bool)>;
 
+/// A frame's columns: layer indexes, marker ids, positions (x, y mm) if given, ux, uy.
+type Columns = (
+    Vec<usize>,
+    Vec<u64>,
+    Option<[Vec<f64>; 2]>,
+    Vec<f64>,
+    Vec<f64>,
+);
+
 struct State {
     cache: HashMap<MarkerKey, Box<dyn FrameSolver>>,
     last: Option<Diagnostics>,
@@ -289,81 +298,80 @@ impl PySolver {
     /// The frame as the library's displacement rows.
     fn records(&self, tracks: &Bound<'_, PyAny>) -> PyResult<DisplacementFrame> {
         let s = &self.sensor;
-        let (layers, ids, positions, ux, uy): (Vec<usize>, Vec<u64>, Option<[Vec<f64>; 2]>, _, _) =
-            if let Ok(d) = tracks.cast::<PyDict>() {
-                let get = |k: &str| -> PyResult<Bound<'_, PyAny>> {
-                    d.get_item(k)?.ok_or_else(|| {
+        let (layers, ids, positions, ux, uy): Columns = if let Ok(d) = tracks.cast::<PyDict>() {
+            let get = |k: &str| -> PyResult<Bound<'_, PyAny>> {
+                d.get_item(k)?.ok_or_else(|| {
                         value_error(format!(
                             "tracks: no {k:?} key (expected Tracker.track's dict: layer, marker, ux_mm, uy_mm)"
                         ))
                     })
-                };
-                let ux = floats(&get("ux_mm")?, "ux_mm")?;
-                let uy = floats(&get("uy_mm")?, "uy_mm")?;
-                let names: Vec<String> = get("layer")?
-                    .call_method0("__iter__")?
-                    .try_iter()?
-                    .map(|v| v.and_then(|v| v.str().map(|s| s.to_string())))
-                    .collect::<PyResult<_>>()?;
-                let layers = names
-                    .iter()
-                    .map(|n| {
-                        s.layer_index(n).ok_or_else(|| {
-                            value_error(format!(
-                                "tracks: layer {n:?} is not a layer of the sensor ({})",
-                                s.layers
-                                    .iter()
-                                    .map(|l| l.name.as_str())
-                                    .collect::<Vec<_>>()
-                                    .join(", ")
-                            ))
-                        })
+            };
+            let ux = floats(&get("ux_mm")?, "ux_mm")?;
+            let uy = floats(&get("uy_mm")?, "uy_mm")?;
+            let names: Vec<String> = get("layer")?
+                .call_method0("__iter__")?
+                .try_iter()?
+                .map(|v| v.and_then(|v| v.str().map(|s| s.to_string())))
+                .collect::<PyResult<_>>()?;
+            let layers = names
+                .iter()
+                .map(|n| {
+                    s.layer_index(n).ok_or_else(|| {
+                        value_error(format!(
+                            "tracks: layer {n:?} is not a layer of the sensor ({})",
+                            s.layers
+                                .iter()
+                                .map(|l| l.name.as_str())
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ))
                     })
-                    .collect::<PyResult<Vec<_>>>()?;
-                let ids: Vec<u64> = floats(&get("marker")?, "marker")?
-                    .iter()
-                    .map(|&v| {
-                        if v >= 0.0 && v.fract() == 0.0 && v < 9e15 {
-                            Ok(v as u64)
-                        } else {
-                            Err(value_error(format!(
-                                "tracks: marker id {v} is not an integer >= 0"
-                            )))
-                        }
-                    })
-                    .collect::<PyResult<_>>()?;
-                let positions = match (d.get_item("x_mm")?, d.get_item("y_mm")?) {
-                    (Some(x), Some(y)) => Some([floats(&x, "x_mm")?, floats(&y, "y_mm")?]),
-                    _ => None,
-                };
-                (layers, ids, positions, ux, uy)
-            } else if let Ok(t) = tracks
-                .cast::<PyTuple>()
-                .map(|t| t.as_any().clone())
-                .or_else(|_| tracks.cast::<PyList>().map(|l| l.as_any().clone()))
-            {
-                let pair: Vec<Bound<'_, PyAny>> = t.try_iter()?.collect::<PyResult<_>>()?;
-                if pair.len() != 2 {
-                    return Err(value_error(
-                        "tracks: expected Tracker.track's dict or a pair (ux_mm, uy_mm)",
-                    ));
-                }
-                let ux = floats(&pair[0], "ux_mm")?;
-                let uy = floats(&pair[1], "uy_mm")?;
-                let mut layers = Vec::new();
-                let mut ids = Vec::new();
-                for (li, l) in s.layers.iter().enumerate() {
-                    if let Some(m) = &l.markers {
-                        layers.extend(std::iter::repeat_n(li, m.grid.len()));
-                        ids.extend(0..m.grid.len() as u64);
+                })
+                .collect::<PyResult<Vec<_>>>()?;
+            let ids: Vec<u64> = floats(&get("marker")?, "marker")?
+                .iter()
+                .map(|&v| {
+                    if v >= 0.0 && v.fract() == 0.0 && v < 9e15 {
+                        Ok(v as u64)
+                    } else {
+                        Err(value_error(format!(
+                            "tracks: marker id {v} is not an integer >= 0"
+                        )))
                     }
-                }
-                (layers, ids, None, ux, uy)
-            } else {
+                })
+                .collect::<PyResult<_>>()?;
+            let positions = match (d.get_item("x_mm")?, d.get_item("y_mm")?) {
+                (Some(x), Some(y)) => Some([floats(&x, "x_mm")?, floats(&y, "y_mm")?]),
+                _ => None,
+            };
+            (layers, ids, positions, ux, uy)
+        } else if let Ok(t) = tracks
+            .cast::<PyTuple>()
+            .map(|t| t.as_any().clone())
+            .or_else(|_| tracks.cast::<PyList>().map(|l| l.as_any().clone()))
+        {
+            let pair: Vec<Bound<'_, PyAny>> = t.try_iter()?.collect::<PyResult<_>>()?;
+            if pair.len() != 2 {
                 return Err(value_error(
                     "tracks: expected Tracker.track's dict or a pair (ux_mm, uy_mm)",
                 ));
-            };
+            }
+            let ux = floats(&pair[0], "ux_mm")?;
+            let uy = floats(&pair[1], "uy_mm")?;
+            let mut layers = Vec::new();
+            let mut ids = Vec::new();
+            for (li, l) in s.layers.iter().enumerate() {
+                if let Some(m) = &l.markers {
+                    layers.extend(std::iter::repeat_n(li, m.grid.len()));
+                    ids.extend(0..m.grid.len() as u64);
+                }
+            }
+            (layers, ids, None, ux, uy)
+        } else {
+            return Err(value_error(
+                "tracks: expected Tracker.track's dict or a pair (ux_mm, uy_mm)",
+            ));
+        };
         let n = layers.len();
         let lengths = [ids.len(), ux.len(), uy.len()];
         let pos_lengths = positions
