@@ -21,3 +21,7 @@ pub mod sim;
 pub mod solve;
 pub mod units;
 pub mod vision;
+
+// The Python package `tactbench` (PyO3; built by maturin from pyproject.toml).
+#[cfg(feature = "python")]
+mod python;

@@ -37,6 +37,7 @@ use thiserror::Error;
 
 pub mod calibrate;
 pub mod camera;
+mod channels;
 mod contrast;
 mod detect;
 mod health;
@@ -48,6 +49,7 @@ mod window;
 
 pub use self::calibrate::{calibrate, CalibrateConfig, CalibrationError, CalibrationFit};
 pub use self::camera::{BrownConrady, CameraCalibration, PixelMapping};
+pub use self::channels::bgr_sensor;
 pub use self::detect::{
     detect, detect_mapped, DetectConfig, LayerReference, MissingMarker, Reference, ReferenceMarker,
     Saturation, UnmatchedBlob,
