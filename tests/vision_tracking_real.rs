@@ -144,6 +144,162 @@ fn tactip_mean_pin_displacement_follows_the_robot_tilt() {
     assert!(median_share >= 0.93, "median ok share {median_share}");
 }
 
+/// What tracking the TacTip taps `image_2..10.png` in order against `image_1.png`
+/// as the one reference (independent contacts, issue 29 item 5) gives with `config`.
+struct IndependentTaps {
+    /// Pins in the reference.
+    pins: usize,
+    /// Per frame: ok pins.
+    ok: Vec<usize>,
+    /// Per frame: the ok pins' displacements (reference order; `None` when not ok).
+    u: Vec<Vec<Option<[f64; 2]>>>,
+    /// Largest distance of an ok pin's displacement from the median of its ok
+    /// neighbours' (those within 1.6 of its nearest-pin distance at rest), in units
+    /// of that distance (its local pitch).
+    worst_swap: f64,
+    /// Per frame: that largest distance.
+    swap_per_frame: Vec<f64>,
+    /// Largest ok displacement, px.
+    largest_px: f64,
+    /// R² of the mean ok dx against pose_5 − pose_5(image_1), of the mean dy against
+    /// pose_4 − pose_4(image_1).
+    r2: [f64; 2],
+}
+
+fn tactip_independent_taps(config: TrackConfig) -> IndependentTaps {
+    let s = tactip_sensor();
+    let poses = tactip_poses();
+    let frames: Vec<Frame> = (1..=10)
+        .map(|k| frame(&s, &format!("tactip/image_{k}.png")))
+        .collect();
+    let r = reference(&s, &frames[0]);
+    let at: Vec<[f64; 2]> = r.markers.iter().map(|m| m.centroid_px).collect();
+    let dist = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
+    // Local pitch and neighbours at rest, computed here (not the tracker's lists).
+    let pitch: Vec<f64> = (0..at.len())
+        .map(|i| {
+            (0..at.len())
+                .filter(|&j| j != i)
+                .map(|j| dist(at[i], at[j]))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    let near: Vec<Vec<usize>> = (0..at.len())
+        .map(|i| {
+            (0..at.len())
+                .filter(|&j| j != i && dist(at[i], at[j]) <= 1.6 * pitch[i])
+                .collect()
+        })
+        .collect();
+    let mut t = Tracker::new(r, config);
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        0.5 * (v[(n - 1) / 2] + v[n / 2])
+    };
+    let (mut ok, mut u, mut mx, mut my, mut d4, mut d5) =
+        (vec![], vec![], vec![], vec![], vec![], vec![]);
+    let (mut worst_swap, mut largest_px) = (0.0f64, 0.0f64);
+    let mut swap_per_frame = Vec::new();
+    for (k, f) in frames.iter().enumerate().skip(1) {
+        let mut frame_swap = 0.0f64;
+        let tracks = t.track(&f.view()).unwrap();
+        let uk: Vec<Option<[f64; 2]>> = tracks
+            .iter()
+            .map(|t| (t.status == MarkerStatus::Ok).then_some(t.displacement_px))
+            .collect();
+        for (i, ui) in uk.iter().enumerate() {
+            let Some(ui) = ui else { continue };
+            largest_px = largest_px.max(ui[0].hypot(ui[1]));
+            let nb: Vec<[f64; 2]> = near[i].iter().filter_map(|&j| uk[j]).collect();
+            if nb.is_empty() {
+                continue;
+            }
+            let m = [
+                median(nb.iter().map(|v| v[0]).collect()),
+                median(nb.iter().map(|v| v[1]).collect()),
+            ];
+            frame_swap = frame_swap.max(dist(*ui, m) / pitch[i]);
+        }
+        worst_swap = worst_swap.max(frame_swap);
+        swap_per_frame.push(frame_swap);
+        let good: Vec<[f64; 2]> = uk.iter().flatten().copied().collect();
+        let n = good.len() as f64;
+        mx.push(good.iter().map(|v| v[0]).sum::<f64>() / n);
+        my.push(good.iter().map(|v| v[1]).sum::<f64>() / n);
+        d4.push(poses[k][0] - poses[0][0]);
+        d5.push(poses[k][1] - poses[0][1]);
+        ok.push(good.len());
+        u.push(uk);
+    }
+    IndependentTaps {
+        pins: at.len(),
+        ok,
+        u,
+        worst_swap,
+        swap_per_frame,
+        largest_px,
+        r2: [r2(&d5, &mx), r2(&d4, &my)],
+    }
+}
+
+/// Issue 29 item 5: the TacTip taps are independent contacts (a robot tap at another
+/// pose each), tracked in order against `image_1.png` as the one reference. The
+/// default mode (frame to frame) followed each pin from its position in the previous,
+/// unrelated tap plus that tap's "velocity": 4–37 pins ok per frame, moved 29–119 px
+/// where the pitch is 16 px (on neighbours' blobs). It now re-acquires from the
+/// reference what the last positions do not explain. Measured (per window / default):
+/// ok 298/298, 298/304, 294/298, 285/304, 314/325, 302/322, 216/227, 330/331,
+/// 305/321 of 335 pins for image_2..10; no ok pin farther than 0.499 pitch from its
+/// ok neighbours' median displacement (per window 0.498); largest ok displacement
+/// 17.6 px (13.0). Against `image_1` (itself a tap at 8.8°, 12.7° tilt) the mean
+/// displacement carries no pose signal with either mode on these nine taps (R² of
+/// mean dx against Δpose_5, dy against Δpose_4: per window 0.011 / 0.082, default
+/// 0.220 / 0.000): tilt changes of up to 27° move pins beyond half a pitch, where
+/// no reference-based window reaches; printed, not asserted.
+#[test]
+fn tactip_independent_taps_against_image_1_tracked_by_default_as_per_window() {
+    let pw = tactip_independent_taps(per_window());
+    let def = tactip_independent_taps(TrackConfig::default());
+    eprintln!(
+        "per window: {} pins, ok {:?}, worst swap {:.3} pitch, largest {:.1} px, R² {:.3} / {:.3}",
+        pw.pins, pw.ok, pw.worst_swap, pw.largest_px, pw.r2[0], pw.r2[1]
+    );
+    eprintln!(
+        "default:    {} pins, ok {:?}, worst swap {:.3} pitch, largest {:.1} px, R² {:.3} / {:.3}",
+        def.pins, def.ok, def.worst_swap, def.largest_px, def.r2[0], def.r2[1]
+    );
+    // Where both report a pin ok they agree (the same blob, the same window).
+    let mut worst_diff = 0.0f64;
+    for (k, (a, b)) in def.u.iter().zip(&pw.u).enumerate() {
+        let mut differ = 0;
+        for (a, b) in a.iter().zip(b) {
+            if let (Some(a), Some(b)) = (a, b) {
+                let d = (a[0] - b[0]).hypot(a[1] - b[1]);
+                worst_diff = worst_diff.max(d);
+                differ += usize::from(d > 0.01);
+            }
+        }
+        eprintln!(
+            "image_{}: ok {} / {} (default / per window), {differ} ok in both differ, worst swap {:.3} / {:.3} pitch",
+            k + 2,
+            def.ok[k],
+            pw.ok[k],
+            def.swap_per_frame[k],
+            pw.swap_per_frame[k]
+        );
+    }
+    eprintln!("largest |default − per window| over pins ok in both: {worst_diff:.4} px");
+    for (k, (&a, &b)) in def.ok.iter().zip(&pw.ok).enumerate() {
+        assert!(a >= b, "image_{}: {a} ok by default, {b} per window", k + 2);
+    }
+    assert!(
+        def.worst_swap <= 0.5,
+        "an ok pin {} pitches off its neighbours",
+        def.worst_swap
+    );
+}
+
 /// `(Mx + dx, My + dy)` and `(dx, dy)` per row of a FOTS CSV (whole pixels; the same
 /// markers in the same order in `0.csv` and `1.csv`).
 fn fots_rows(rel: &str) -> Vec<([f64; 2], [f64; 2])> {

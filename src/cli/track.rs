@@ -63,8 +63,11 @@ pub struct Args {
     #[arg(long, value_name = "D.csv")]
     out: PathBuf,
     /// Window placement: `frame-to-frame` follows each marker from its last position
-    /// (large motion across a sequence); `per-window` measures every frame on its own
-    /// around the reference positions (the paper's method, small motion).
+    /// (large motion across a sequence) and re-acquires from its reference position
+    /// what that does not find near it, keeping per marker the result consistent with
+    /// its neighbours (independent frames, such as taps at unrelated poses, track as
+    /// per window); `per-window` measures every frame on its own around the reference
+    /// positions (the paper's method, small motion).
     #[arg(long, value_enum, default_value_t = Mode::FrameToFrame)]
     mode: Mode,
     /// Largest fraction of the sensor's markers a frame may lose (status lost or

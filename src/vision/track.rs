@@ -3,9 +3,18 @@
 //! * [`TrackMode::PerWindow`] — the paper's method: every frame is measured on its
 //!   own, each marker in a window starting at its reference position. Valid while a
 //!   marker stays within about its search radius (half the marker spacing) of rest.
-//! * [`TrackMode::FrameToFrame`] — the paper's "tracking" for larger motion: each
-//!   window starts at the marker's last position plus its last velocity, so markers
-//!   can travel 40 px and more over a sequence of frames.
+//! * [`TrackMode::FrameToFrame`] (default) — the paper's "tracking" for larger
+//!   motion: each window starts at the marker's last position plus its last
+//!   velocity, so markers can travel 40 px and more over a sequence of frames. When
+//!   that pass leaves a marker unfound or farther than a quarter of its local spacing
+//!   from its reference position, the frame is measured again per window from the
+//!   reference and the two passes are combined per marker (`Tracker::combine`:
+//!   markers both passes put on one blob seed it; the others take, in rounds from
+//!   the seeds, the candidate nearer their decided neighbours' median displacement,
+//!   within half a local spacing, else `outlier`; what no seed reaches takes the
+//!   pass with more ok markers). So independent frames (contacts at unrelated
+//!   poses, issue 29) never depend on the unrelated frame before them, and a
+//!   sequence keeps its last positions.
 //!
 //! Per marker: iterated window centroid (`window.rs`) from the start — the predicted
 //! position (reference, or last position plus velocity) moved by the nearest
@@ -41,6 +50,9 @@
 //!   neighbours' displacements from that median (needs ≥ 3 neighbours) and `tol` is
 //!   `outlier_px`, at most a quarter of the local spacing (a marker matched to its
 //!   neighbour's blob is off by a whole spacing, whatever the spacing);
+//! * **outlier** (swap bound) — an ok marker whose displacement is farther than half
+//!   its local spacing from the median of its ok neighbours' (one or more), whatever
+//!   their spread: it sits on a neighbour's blob, or they do;
 //! * **outlier** (appearance changed, issue 24) — an ok marker whose signal relative
 //!   to the median of its ok neighbours' signals (relative to their reference
 //!   signals) differs from 1 by more than `appearance_tolerance` (6 %), or by more
@@ -84,6 +96,52 @@ use super::window::{dot_inside, score_bias, search, Foreign, Located, Raw, Sampl
 use super::{MarkerStatus, Pixels, VisionError};
 use crate::formats::DisplacementRecord;
 use crate::sensor::{CameraMapping, MarkerColor};
+
+/// Where [`Tracker::measure_layer`] starts each marker's window in one pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Start {
+    /// At the reference position (per window).
+    Reference,
+    /// At the last position plus the last velocity (the sequence's pass).
+    Last,
+    /// At the reference position, copying the sequence pass's measurement where it
+    /// lies near the reference position (the re-acquisition pass).
+    Reacquire,
+}
+
+/// Which pass [`Tracker::combine`] gives a marker to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Pick {
+    Undecided,
+    /// The sequence's pass (from the last positions).
+    A,
+    /// The reference's pass.
+    B,
+    /// The sequence pass's result, flagged `outlier` (inconsistent with the decided
+    /// neighbours).
+    RejectedA,
+    /// The reference pass's result, flagged `outlier`.
+    RejectedB,
+}
+
+impl Pick {
+    fn rejected(self) -> Pick {
+        match self {
+            Pick::A => Pick::RejectedA,
+            Pick::B => Pick::RejectedB,
+            other => other,
+        }
+    }
+
+    fn is_rejected(self) -> bool {
+        matches!(self, Pick::RejectedA | Pick::RejectedB)
+    }
+
+    /// Taken from the reference's pass.
+    fn is_b(self) -> bool {
+        matches!(self, Pick::B | Pick::RejectedB)
+    }
+}
 
 /// How windows are placed in each frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -278,6 +336,16 @@ const SATURATION_MIN_PX: f64 = 4.0;
 /// by this much between reference and frame, px.
 const SATURATION_SHIFT_PX: f64 = 0.5;
 
+/// A marker the sequence's pass found within this many local spacings of its
+/// reference position is where a window from the reference would find it too: the
+/// re-acquisition pass copies it (and is skipped when every marker is so).
+const COPY_FRACTION: f64 = 0.25;
+
+/// Swap bound: an ok marker whose displacement is farther than this many local
+/// spacings from the median of its neighbours' displacements sits on a neighbour's
+/// blob (or its neighbours on others'): `outlier`, whatever their spread.
+const SWAP_FRACTION: f64 = 0.5;
+
 /// Per-marker scales taken from the reference layout around that marker, so layouts
 /// that are perspective-distorted, irregular or hexagonal get the right scale
 /// everywhere (a layer-wide median would be too large on one side of the image and
@@ -360,6 +428,16 @@ pub struct Tracker {
     relative: Vec<f64>,
     /// Scratch, one value per marker (medians and spreads).
     scratch: Vec<f64>,
+    /// Frame to frame: the sequence pass's measurements before any rule (what the
+    /// re-acquisition pass copies).
+    raw: Vec<MarkerTrack>,
+    /// Frame to frame: the sequence pass's results while the re-acquisition pass
+    /// runs ([`Tracker::combine`]).
+    out_last: Vec<MarkerTrack>,
+    /// Per marker, this frame: the pass [`Tracker::combine`] took it from, and the
+    /// next round's.
+    pick: Vec<Pick>,
+    next_pick: Vec<Pick>,
     /// The current frame's sample levels per reference level: 1, or 257 / (1/257)
     /// when the frame's bit depth differs from the reference image's.
     level_scale: f64,
@@ -474,6 +552,10 @@ impl Tracker {
             saturation: vec![Saturation::default(); m.len()],
             relative: vec![0.0; m.len()],
             scratch: vec![0.0; m.len()],
+            raw: vec![MarkerTrack::LOST; m.len()],
+            out_last: vec![MarkerTrack::LOST; m.len()],
+            pick: vec![Pick::Undecided; m.len()],
+            next_pick: vec![Pick::Undecided; m.len()],
             local,
             reference,
             config,
@@ -532,8 +614,48 @@ impl Tracker {
             });
         }
         self.level_scale = level_scale(self.reference.bit_depth, frame.bit_depth());
+        if self.config.mode == TrackMode::PerWindow {
+            self.pass(frame, Start::Reference);
+            return Ok(&self.out);
+        }
+        self.pass(frame, Start::Last);
+        let reacquire = self.reacquire_needed();
+        if reacquire {
+            // The sequence's pass is kept aside; the reference's pass measures what
+            // it did not find near the reference (the rest is copied from `raw`).
+            std::mem::swap(&mut self.out, &mut self.out_last);
+            self.pass(frame, Start::Reacquire);
+            self.combine();
+        }
+        for i in 0..self.out.len() {
+            let t = &self.out[i];
+            match t.status {
+                // A marker re-acquired from its reference jumped: no velocity.
+                MarkerStatus::Ok | MarkerStatus::Outlier if reacquire && self.pick[i].is_b() => {
+                    self.velocity_px[i] = [0.0; 2];
+                    self.last_px[i] = t.centroid_px;
+                }
+                MarkerStatus::Ok | MarkerStatus::Outlier => {
+                    let l = self.last_px[i];
+                    self.velocity_px[i] = [t.centroid_px[0] - l[0], t.centroid_px[1] - l[1]];
+                    self.last_px[i] = t.centroid_px;
+                }
+                MarkerStatus::Lost | MarkerStatus::Merged => self.velocity_px[i] = [0.0; 2],
+            }
+        }
+        Ok(&self.out)
+    }
+
+    /// One full pass over a frame into `out`: every marker measured from `start`
+    /// (with the sequence's start, the measurements are also kept in `raw` for a
+    /// reference pass to reuse), then the overlap, claim, outlier, appearance and
+    /// highlight rules.
+    fn pass(&mut self, frame: &FrameView<'_>, start: Start) {
         with_raw!(frame, img => {
-            self.measure_all(img);
+            self.measure_all(img, start);
+            if start == Start::Last {
+                self.raw.copy_from_slice(&self.out);
+            }
             self.resolve_overlaps(img);
             self.find_highlights(img);
         });
@@ -541,22 +663,162 @@ impl Tracker {
         self.flag_reference_dot_outside();
         self.resolve_claims();
         self.flag_outliers();
+        self.flag_swaps();
         self.flag_appearance();
         self.flag_highlights();
-        if self.config.mode == TrackMode::FrameToFrame {
-            for i in 0..self.out.len() {
-                let t = &self.out[i];
-                match t.status {
-                    MarkerStatus::Ok | MarkerStatus::Outlier => {
-                        let l = self.last_px[i];
-                        self.velocity_px[i] = [t.centroid_px[0] - l[0], t.centroid_px[1] - l[1]];
-                        self.last_px[i] = t.centroid_px;
+    }
+
+    /// Whether the sequence's pass left a marker that a window from its reference
+    /// position might find elsewhere: one not found, or found farther than
+    /// [`COPY_FRACTION`] local spacings from its reference position. When none is,
+    /// a pass from the reference would find the same blobs: it is skipped.
+    fn reacquire_needed(&self) -> bool {
+        (0..self.raw.len()).any(|i| !self.copyable(i))
+    }
+
+    /// Whether the sequence pass's raw measurement of marker `i` is what a window
+    /// from its reference position finds too (found within [`COPY_FRACTION`] local
+    /// spacings of it: no other blob is nearer to that start).
+    fn copyable(&self, i: usize) -> bool {
+        let t = &self.raw[i];
+        t.status == MarkerStatus::Ok
+            && dist2(t.centroid_px, self.reference.markers[i].centroid_px)
+                <= (COPY_FRACTION * self.local[i].spacing_px).powi(2)
+    }
+
+    /// Keeps, per marker, the result of the sequence's pass (`out_last`, A) or of
+    /// the reference's pass (`out`, B) that agrees with its neighbours, so that a
+    /// frame unrelated to the one before it (an independent contact) is tracked as
+    /// from the reference, and a sequence as from the last positions:
+    ///
+    /// 1. both ok on one blob (closer than the merge distance): A (seeds);
+    /// 2. the rest with a candidate (A or B ok), in rounds from the seeds: the
+    ///    candidate whose displacement is nearer the median of the already decided
+    ///    ok neighbours' displacements, when within [`SWAP_FRACTION`] local spacings
+    ///    of it; a nearest candidate beyond that is `outlier` (on a neighbour's blob);
+    /// 3. markers no decided neighbour reaches: the pass with more ok markers in this
+    ///    frame (ties: A), then the other when that one is not ok there;
+    /// 4. markers with no candidate: that pass's status.
+    ///
+    /// Then two ok markers of a layer on one blob are both `merged`, and the
+    /// neighbour-consistency check runs on the combined field.
+    fn combine(&mut self) {
+        let n = self.out.len();
+        let ok = |t: &MarkerTrack| t.status == MarkerStatus::Ok;
+        let ok_a = self.out_last.iter().filter(|t| ok(t)).count();
+        let ok_b = self.out.iter().filter(|t| ok(t)).count();
+        let prefer_b = ok_b > ok_a;
+        for i in 0..n {
+            let (a, b) = (&self.out_last[i], &self.out[i]);
+            let md = self.layers[self.reference.markers[i].layer].merge_distance_px;
+            self.pick[i] = match (ok(a), ok(b)) {
+                (true, true) if dist2(a.centroid_px, b.centroid_px) < md * md => Pick::A,
+                (false, false) if prefer_b => Pick::B,
+                (false, false) => Pick::A,
+                _ => Pick::Undecided,
+            };
+        }
+        loop {
+            let mut progress = false;
+            for i in 0..n {
+                self.next_pick[i] = self.pick[i];
+                if self.pick[i] != Pick::Undecided {
+                    continue;
+                }
+                let (mut ux, mut uy) = ([0.0f64; MAX_NEIGHBOURS], [0.0f64; MAX_NEIGHBOURS]);
+                let mut k = 0;
+                for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
+                    if let Some(t) = self.picked(j as usize).filter(|t| ok(t)) {
+                        ux[k] = t.displacement_px[0];
+                        uy[k] = t.displacement_px[1];
+                        k += 1;
                     }
-                    MarkerStatus::Lost | MarkerStatus::Merged => self.velocity_px[i] = [0.0; 2],
+                }
+                if k == 0 {
+                    continue;
+                }
+                let m = [median(&mut ux[..k]), median(&mut uy[..k])];
+                let da = ok(&self.out_last[i]).then(|| dist2(self.out_last[i].displacement_px, m));
+                let db = ok(&self.out[i]).then(|| dist2(self.out[i].displacement_px, m));
+                let (pick, d2) = match (da, db) {
+                    (Some(da), Some(db)) if db < da => (Pick::B, db),
+                    (Some(da), _) => (Pick::A, da),
+                    (None, Some(db)) => (Pick::B, db),
+                    // Undecided markers have a candidate (see above).
+                    (None, None) => continue,
+                };
+                let bound = SWAP_FRACTION * self.local[i].spacing_px;
+                self.next_pick[i] = if d2 <= bound * bound {
+                    pick
+                } else {
+                    pick.rejected()
+                };
+                progress = true;
+            }
+            std::mem::swap(&mut self.pick, &mut self.next_pick);
+            if !progress {
+                break;
+            }
+        }
+        for i in 0..n {
+            if self.pick[i] == Pick::Undecided {
+                let b_first = if prefer_b {
+                    ok(&self.out[i])
+                } else {
+                    !ok(&self.out_last[i])
+                };
+                self.pick[i] = if b_first { Pick::B } else { Pick::A };
+            }
+        }
+        for i in 0..n {
+            let t = match self.pick[i] {
+                Pick::A | Pick::RejectedA => self.out_last[i],
+                Pick::B | Pick::RejectedB | Pick::Undecided => self.out[i],
+            };
+            self.out[i] = if self.pick[i].is_rejected() {
+                MarkerTrack {
+                    status: MarkerStatus::Outlier,
+                    ..t
+                }
+            } else {
+                t
+            };
+        }
+        self.merge_shared_blobs();
+        self.flag_outliers();
+        self.flag_swaps();
+    }
+
+    /// The track marker `j` was given in [`Tracker::combine`] so far (`None` while
+    /// undecided).
+    fn picked(&self, j: usize) -> Option<&MarkerTrack> {
+        match self.pick[j] {
+            Pick::Undecided => None,
+            Pick::A => Some(&self.out_last[j]),
+            Pick::B => Some(&self.out[j]),
+            // Flagged: not ok, so never used as a neighbour.
+            Pick::RejectedA | Pick::RejectedB => None,
+        }
+    }
+
+    /// Two ok same-layer neighbours closer than the merge distance (one blob, after
+    /// [`Tracker::combine`] took them from different passes) are both `merged`.
+    fn merge_shared_blobs(&mut self) {
+        for i in 0..self.out.len() {
+            if self.out[i].status != MarkerStatus::Ok {
+                continue;
+            }
+            let md = self.layers[self.reference.markers[i].layer].merge_distance_px;
+            for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
+                let j = j as usize;
+                if matches!(self.out[j].status, MarkerStatus::Ok | MarkerStatus::Merged)
+                    && dist2(self.out[i].centroid_px, self.out[j].centroid_px) < md * md
+                {
+                    self.out[i].status = MarkerStatus::Merged;
+                    self.out[j].status = MarkerStatus::Merged;
                 }
             }
         }
-        Ok(&self.out)
     }
 
     /// Displacement rows for the solver (`formats` types), reference-missing markers
@@ -601,14 +863,19 @@ impl Tracker {
         rows
     }
 
-    fn measure_all<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>) {
+    fn measure_all<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>, start: Start) {
         for layer in 0..self.layers.len() {
-            self.measure_layer::<T, C>(img, layer);
+            self.measure_layer::<T, C>(img, layer, start);
         }
     }
 
     /// Measures the markers of one layer (a contiguous range: markers are sorted by layer).
-    fn measure_layer<T: Sample, const C: usize>(&mut self, img: Raw<'_, T, C>, layer: usize) {
+    fn measure_layer<T: Sample, const C: usize>(
+        &mut self,
+        img: Raw<'_, T, C>,
+        layer: usize,
+        from: Start,
+    ) {
         let cfg = self.config;
         let k = self.level_scale;
         let ls = &self.layers[layer];
@@ -618,9 +885,9 @@ impl Tracker {
             let local = self.local[i];
             let search_half2 = (local.search_half * local.search_half) as f64;
             self.masked[i] = false;
-            let start = match cfg.mode {
-                TrackMode::PerWindow => r.centroid_px,
-                TrackMode::FrameToFrame => [
+            let start = match from {
+                Start::Reference | Start::Reacquire => r.centroid_px,
+                Start::Last => [
                     self.last_px[i][0] + self.velocity_px[i][0],
                     self.last_px[i][1] + self.velocity_px[i][1],
                 ],
@@ -1073,6 +1340,44 @@ impl Tracker {
         }
     }
 
+    /// The swap bound: an ok marker whose displacement lies farther than
+    /// [`SWAP_FRACTION`] local spacings from the median of its ok neighbours' (one or
+    /// more) is `outlier`, whatever their spread (the neighbour-consistency check
+    /// allows `3·spread`, which a messy neighbourhood makes large). Judged against
+    /// the statuses before this check, so the order of markers does not matter.
+    fn flag_swaps(&mut self) {
+        for i in 0..self.out.len() {
+            self.scratch[i] = 0.0;
+            if self.out[i].status != MarkerStatus::Ok {
+                continue;
+            }
+            let mut ux = [0.0f64; MAX_NEIGHBOURS];
+            let mut uy = [0.0f64; MAX_NEIGHBOURS];
+            let mut n = 0;
+            let u = self.out[i].displacement_px;
+            // The farthest neighbour bounds the distance to the median (which lies in
+            // their box): the usual case needs no sort.
+            let mut far2 = 0.0f64;
+            for &j in &self.neighbours[i][..self.neighbour_count[i] as usize] {
+                let t = &self.out[j as usize];
+                if t.status == MarkerStatus::Ok {
+                    [ux[n], uy[n]] = t.displacement_px;
+                    far2 = far2.max(dist2(u, t.displacement_px));
+                    n += 1;
+                }
+            }
+            let bound = SWAP_FRACTION * self.local[i].spacing_px;
+            if far2 > bound * bound && swapped(u, &ux[..n], &uy[..n], bound) {
+                self.scratch[i] = 1.0;
+            }
+        }
+        for i in 0..self.out.len() {
+            if self.scratch[i] != 0.0 {
+                self.out[i].status = MarkerStatus::Outlier;
+            }
+        }
+    }
+
     fn flag_outliers(&mut self) {
         for i in 0..self.out.len() {
             if self.out[i].status != MarkerStatus::Ok {
@@ -1204,6 +1509,17 @@ fn displacement_outlier(u: [f64; 2], ux: &[f64], uy: &[f64], tol: f64) -> bool {
     }
     let spread = median(&mut dev[..n]);
     dist2(u, m).sqrt() > tol + 3.0 * spread
+}
+
+/// Whether displacement `u` is farther than `bound` from the component-wise median
+/// of its neighbours' displacements `(ux[k], uy[k])` (at least one): the swap bound,
+/// which holds whatever the neighbours' spread.
+fn swapped(u: [f64; 2], ux: &[f64], uy: &[f64], bound: f64) -> bool {
+    let n = ux.len().min(uy.len()).min(MAX_NEIGHBOURS);
+    let (mut x, mut y) = ([0.0f64; MAX_NEIGHBOURS], [0.0f64; MAX_NEIGHBOURS]);
+    x[..n].copy_from_slice(&ux[..n]);
+    y[..n].copy_from_slice(&uy[..n]);
+    n > 0 && dist2(u, [median(&mut x[..n]), median(&mut y[..n])]) > bound * bound
 }
 
 /// Median of a small slice (reorders it). Insertion sort with a plain `>`: the slices
