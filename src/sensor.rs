@@ -555,9 +555,8 @@ impl Sensor {
     /// `camera.mm_per_px`, …), with its unit; `None` for a key the file does not have.
     pub fn value_text(&self, key: &str) -> Option<String> {
         let num = |v: f64, unit: &str| format!("{} {unit}", fmt_value(v));
-        let pair = |v: [f64; 2], unit: &str| {
-            format!("[{}, {}] {unit}", fmt_value(v[0]), fmt_value(v[1]))
-        };
+        let pair =
+            |v: [f64; 2], unit: &str| format!("[{}, {}] {unit}", fmt_value(v[0]), fmt_value(v[1]));
         let grid = |g: &Grid, field: &str| match field {
             "nx" => Some(g.nx.to_string()),
             "ny" => Some(g.ny.to_string()),
@@ -614,7 +613,13 @@ impl Sensor {
     pub fn plausibility_lines(&self) -> Vec<String> {
         let e = &self.elastomer;
         let r = |v: f64, k: &KeyRange| {
-            format!("{} {} (range {} … {})", fmt_value(v), k.unit, fmt_value(k.lo), fmt_value(k.hi))
+            format!(
+                "{} {} (range {} … {})",
+                fmt_value(v),
+                k.unit,
+                fmt_value(k.lo),
+                fmt_value(k.hi)
+            )
         };
         let depths: Vec<String> = self
             .layers
@@ -934,9 +939,19 @@ pub struct ForceCover {
 
 impl ForceCover {
     fn compute(layers: &[Layer], force: &Grid, camera: &CameraMapping) -> Self {
-        let mut a = [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
+        let mut a = [
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ];
         let mut grow = |p: [f64; 2]| {
-            a = [a[0].min(p[0]), a[1].min(p[1]), a[2].max(p[0]), a[3].max(p[1])];
+            a = [
+                a[0].min(p[0]),
+                a[1].min(p[1]),
+                a[2].max(p[0]),
+                a[3].max(p[1]),
+            ];
         };
         let mut margin: f64 = 0.0;
         for l in layers {
@@ -950,10 +965,12 @@ impl ForceCover {
                 None => {
                     // Pixel (i, j) covers [i − ½, i + ½]: the whole field.
                     grow(camera.px_to_mm([-0.5, -0.5]));
-                    grow(camera.px_to_mm([
-                        camera.width_px as f64 - 0.5,
-                        camera.height_px as f64 - 0.5,
-                    ]));
+                    grow(
+                        camera.px_to_mm([
+                            camera.width_px as f64 - 0.5,
+                            camera.height_px as f64 - 0.5,
+                        ]),
+                    );
                 }
             }
         }
@@ -1011,7 +1028,8 @@ fn check_force_cover(
     }
     let last = force.node_mm(force.nx - 1, force.ny - 1);
     let span_grid = (last[0] - force.origin_mm[0]).max(last[1] - force.origin_mm[1]);
-    let span_markers = (cover.area_mm[2] - cover.area_mm[0]).max(cover.area_mm[3] - cover.area_mm[1]);
+    let span_markers =
+        (cover.area_mm[2] - cover.area_mm[0]).max(cover.area_mm[3] - cover.area_mm[1]);
     let cause = if span_grid > 5.0 * span_markers.max(camera.mm_per_px) {
         format!(
             "the force grid spans {}× the marker area: its pitch_mm and origin_mm look like pixels or another unit (every `_mm` key is in millimetres; a `sensor init` draft without a scale writes its force grid in pixels: multiply both by mm_per_px)",
@@ -1089,14 +1107,21 @@ pub fn mark_measured(text: &str, path: &Path, keys: &[&str]) -> Result<String, S
     let sensor = Sensor::from_toml_str(text, path)?;
     let c = Checker { path };
     let Some(draft) = &sensor.draft else {
-        return Err(c.invalid("draft", "(absent)", "not a draft: it has no placeholders to clear"));
+        return Err(c.invalid(
+            "draft",
+            "(absent)",
+            "not a draft: it has no placeholders to clear",
+        ));
     };
     for k in keys {
         if !draft.placeholders.iter().any(|p| p == k) {
             return Err(c.invalid(
                 "placeholders",
                 format!("{k:?}"),
-                format!("not a placeholder of this draft (placeholders: {:?})", draft.placeholders),
+                format!(
+                    "not a placeholder of this draft (placeholders: {:?})",
+                    draft.placeholders
+                ),
             ));
         }
     }

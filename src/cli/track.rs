@@ -113,7 +113,10 @@ enum Mode {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
     if !sensor.placeholders().is_empty() {
-        let scale = sensor.placeholders().iter().any(|k| k == "camera.mm_per_px");
+        let scale = sensor
+            .placeholders()
+            .iter()
+            .any(|k| k == "camera.mm_per_px");
         eprintln!(
             "note: {} is a draft: its placeholders ({}) are not used for tracking{}",
             args.sensor.display(),

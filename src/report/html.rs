@@ -201,7 +201,10 @@ pub fn render(
     );
     banner(&mut o, verdict);
     // A run measured with a draft sensor file (`report --allow-draft`): said first.
-    if let Some(w) = run.sensor.draft_warning(std::path::Path::new(&m.sensor_path)) {
+    if let Some(w) = run
+        .sensor
+        .draft_warning(std::path::Path::new(&m.sensor_path))
+    {
         let _ = writeln!(
             o,
             "<p class=\"draft\" style=\"border:3px solid #b60;padding:.5em\"><b>DRAFT SENSOR FILE</b>: {}; the forces are not measurements.</p>",

@@ -23,8 +23,8 @@ use super::detect::{detect, DetectConfig};
 use super::image::FrameView;
 use super::{Pixels, VisionError};
 use crate::sensor::{
-    CameraMapping, Elastomer, Grid, KeyRange, Layer, MarkerColor, ModelKind, Roi, Sensor,
-    fmt_value, MARKER_PITCH_MM, MM_PER_PX,
+    fmt_value, CameraMapping, Elastomer, Grid, KeyRange, Layer, MarkerColor, ModelKind, Roi,
+    Sensor, MARKER_PITCH_MM, MM_PER_PX,
 };
 
 /// What sets the draft's `mm_per_px`.
@@ -202,7 +202,12 @@ pub fn sensor_draft(
     let plausible = |v: f64, range: &KeyRange| v.is_finite() && v > 0.0 && range.check(v).is_ok();
     match options.scale {
         Scale::PitchMm(v) if !plausible(v, &MARKER_PITCH_MM) => {
-            return Err(scale_error("--pitch-mm", v, &MARKER_PITCH_MM, String::new()))
+            return Err(scale_error(
+                "--pitch-mm",
+                v,
+                &MARKER_PITCH_MM,
+                String::new(),
+            ))
         }
         Scale::MmPerPx(v) if !plausible(v, &MM_PER_PX) => {
             return Err(scale_error("--mm-per-px", v, &MM_PER_PX, String::new()))
@@ -627,7 +632,11 @@ impl SensorDraft {
             "layers[0].depth_mm",
         ];
         if self.mm_per_px.is_none() {
-            keys.extend(["camera.mm_per_px", "force_grid.pitch_mm", "force_grid.origin_mm"]);
+            keys.extend([
+                "camera.mm_per_px",
+                "force_grid.pitch_mm",
+                "force_grid.origin_mm",
+            ]);
         }
         keys
     }
@@ -638,7 +647,11 @@ impl SensorDraft {
     pub fn to_toml(&self, reference: &str) -> String {
         let mut s = String::new();
         let todo = "# TODO: measure";
-        let keys: Vec<String> = self.placeholders().iter().map(|k| format!("{k:?}")).collect();
+        let keys: Vec<String> = self
+            .placeholders()
+            .iter()
+            .map(|k| format!("{k:?}"))
+            .collect();
         let _ = writeln!(
             s,
             "# Sensor file draft written by `tactbench sensor init` from {reference}\n\
