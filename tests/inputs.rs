@@ -297,7 +297,7 @@ fn case3_draft_keys_are_checked_and_cleared_by_mark_measured() {
 #[test]
 fn case4_forces_past_the_elastomer_bound_are_flagged_not_written() {
     let dir = tempfile::tempdir().unwrap();
-    // Fig. 6 displacements x 100: F_sum ~ 100 x 7 N, past E x area = 387.2 N.
+    // Fig. 6 displacements x 1000: F_sum z ~ 1000 x 0.98 N, past E x area = 387.2 N.
     let text = std::fs::read_to_string(fig6()).unwrap();
     let mut lines = text.lines();
     let head = lines.next().unwrap();
@@ -311,7 +311,7 @@ fn case4_forces_past_the_elastomer_bound_are_flagged_not_written() {
         let mut f: Vec<String> = l.split(',').map(str::to_string).collect();
         for i in [ux, uy] {
             if let Ok(v) = f[i].parse::<f64>() {
-                f[i] = format!("{:e}", 100.0 * v);
+                f[i] = format!("{:e}", 1000.0 * v);
             }
         }
         scaled.push_str(&f.join(","));
@@ -440,6 +440,12 @@ fn png_header_only(path: &Path, w: u32, h: u32) {
     png.extend_from_slice(&13u32.to_be_bytes());
     png.extend_from_slice(&ihdr);
     png.extend_from_slice(&crc32(&ihdr).to_be_bytes());
+    // An empty IDAT (the decoder reads the header up to the first IDAT), then IEND.
+    for tag in [b"IDAT", b"IEND"] {
+        png.extend_from_slice(&0u32.to_be_bytes());
+        png.extend_from_slice(tag);
+        png.extend_from_slice(&crc32(tag).to_be_bytes());
+    }
     std::fs::write(path, png).unwrap();
 }
 
