@@ -13,6 +13,7 @@ pub mod clock;
 pub mod config;
 pub mod device;
 pub mod formats;
+pub mod frame_size;
 pub mod live;
 pub mod model;
 pub mod report;

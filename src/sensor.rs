@@ -5,6 +5,9 @@
 //! trusts it. The schema is a public contract (see DESIGN.md and the README):
 //!
 //! ```toml
+//! draft = true                 # optional: a draft (`sensor init`); needs `placeholders`
+//! placeholders = ["elastomer.young_modulus_kpa"]  # keys whose values are not measured
+//!
 //! [elastomer]
 //! young_modulus_kpa = 1000.0   # > 0
 //! poisson_ratio = 0.5          # in [0, 0.5]
@@ -38,6 +41,20 @@
 //!                              # inside; or { min = [x0, y0], max = [x1, y1] } (px)
 //! ```
 //!
+//! **Plausible ranges.** Beyond the schema's ranges every length, the modulus and the
+//! camera's scale must lie in the range a real tactile sensor has ([`KeyRange`], the
+//! constants [`YOUNG_MODULUS_KPA`] … [`MM_PER_PX`]; the reasoning is in
+//! docs/limits.md), so that a file typed in metres, Pa or MPa is refused with the
+//! likely slip named instead of giving newtons off by 10³–10⁹; and the force grid must
+//! lie over the markers ([`MIN_FORCE_NODES_OVER_MARKERS`]).
+//!
+//! **Drafts.** `draft = true` marks a file `sensor init` wrote; `placeholders` lists
+//! the keys whose values are placeholders, not measurements. A draft loads (so `track`
+//! can use its geometry); commands that turn displacements into newtons refuse it
+//! while it has placeholders ([`Sensor::refuse_draft`]) unless asked to go on.
+//! [`mark_measured`] removes keys from the list in the file's text (comments kept) and
+//! the draft keys with the last one.
+//!
 //! Grids are row-major: node `(ix, iy)` has index `iy * nx + ix` and sits at
 //! `origin + pitch * (ix, iy)`. The camera maps pixels to the sensor frame by
 //! `x_mm = (x_px - origin_px.x) * mm_per_px` (likewise for y): image columns grow
@@ -45,9 +62,10 @@
 
 use std::collections::HashSet;
 use std::fmt;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
+use thiserror::Error;
 
 use crate::config::{self, Checker, ConfigError};
 use crate::units;
@@ -414,6 +432,40 @@ pub struct Sensor {
     pub force_grid: Grid,
     /// Camera mapping.
     pub camera: CameraMapping,
+    /// `Some` for a draft (`draft = true`): the keys that still hold placeholders.
+    pub draft: Option<Draft>,
+}
+
+/// A draft's state (`draft = true`, `placeholders = [...]`, written by `sensor init`).
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Draft {
+    /// Keys whose values are placeholders (as written: `elastomer.young_modulus_kpa`,
+    /// `layers[0].depth_mm`, `camera.mm_per_px`, …), in the file's order.
+    pub placeholders: Vec<String>,
+}
+
+/// A draft with placeholders given to a command that computes forces
+/// ([`Sensor::refuse_draft`]).
+#[derive(Debug, Error)]
+#[error(
+    "{path} is a draft sensor file (draft = true) whose placeholder values were never measured: {list}; \
+     forces computed with them are not measurements. Measure each value and remove its key from \
+     `placeholders` (remove `draft` and `placeholders` when none is left), or pass --allow-draft \
+     to compute with the placeholders anyway",
+    list = placeholder_list(.placeholders)
+)]
+pub struct UnmeasuredDraft {
+    /// The sensor file.
+    pub path: PathBuf,
+    /// `(key, value with unit)` of every placeholder.
+    pub placeholders: Vec<(String, String)>,
+}
+
+fn placeholder_list(p: &[(String, String)]) -> String {
+    p.iter()
+        .map(|(k, v)| format!("{k} = {v}"))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 impl Sensor {
@@ -431,6 +483,190 @@ impl Sensor {
         raw.validate(path)
     }
 
+    /// The keys that hold placeholders (empty unless the file is a draft with
+    /// placeholders left).
+    pub fn placeholders(&self) -> &[String] {
+        self.draft.as_ref().map_or(&[], |d| &d.placeholders)
+    }
+
+    /// `(key, value with unit)` of every placeholder.
+    pub fn placeholder_values(&self) -> Vec<(String, String)> {
+        self.placeholders()
+            .iter()
+            .map(|k| {
+                let v = self.value_text(k).unwrap_or_else(|| "?".to_string());
+                (k.clone(), v)
+            })
+            .collect()
+    }
+
+    /// One line naming the placeholders, for the outputs of a command run on a draft
+    /// with `--allow-draft` (`None` when there are none).
+    pub fn draft_warning(&self, path: &Path) -> Option<String> {
+        let p = self.placeholder_values();
+        (!p.is_empty()).then(|| {
+            format!(
+                "DRAFT sensor file {}: computed with placeholder values that were never measured: {}",
+                path.display(),
+                placeholder_list(&p)
+            )
+        })
+    }
+
+    /// Refuses a draft that still has placeholders: commands that turn displacements
+    /// into newtons (`reconstruct`, `run`, `report`) call this unless `--allow-draft`.
+    pub fn refuse_draft(&self, path: &Path) -> Result<(), UnmeasuredDraft> {
+        let placeholders = self.placeholder_values();
+        if placeholders.is_empty() {
+            Ok(())
+        } else {
+            Err(UnmeasuredDraft {
+                path: path.to_path_buf(),
+                placeholders,
+            })
+        }
+    }
+
+    /// Removes `keys` from the draft's placeholders in memory; the draft state goes
+    /// when the last one does. Keys that are not placeholders are left alone and
+    /// returned. (For the file's text, keeping its comments: [`mark_measured`].)
+    pub fn mark_measured(&mut self, keys: &[&str]) -> Vec<String> {
+        let mut unknown = Vec::new();
+        if let Some(d) = &mut self.draft {
+            for k in keys {
+                match d.placeholders.iter().position(|p| p == k) {
+                    Some(i) => {
+                        d.placeholders.remove(i);
+                    }
+                    None => unknown.push(k.to_string()),
+                }
+            }
+            if d.placeholders.is_empty() {
+                self.draft = None;
+            }
+        } else {
+            unknown.extend(keys.iter().map(|k| k.to_string()));
+        }
+        unknown
+    }
+
+    /// The value of a numeric key as written in the file (`elastomer.young_modulus_kpa`,
+    /// `layers[0].depth_mm`, `layers[0].markers.pitch_mm`, `force_grid.origin_mm`,
+    /// `camera.mm_per_px`, …), with its unit; `None` for a key the file does not have.
+    pub fn value_text(&self, key: &str) -> Option<String> {
+        let num = |v: f64, unit: &str| format!("{} {unit}", fmt_value(v));
+        let pair =
+            |v: [f64; 2], unit: &str| format!("[{}, {}] {unit}", fmt_value(v[0]), fmt_value(v[1]));
+        let grid = |g: &Grid, field: &str| match field {
+            "nx" => Some(g.nx.to_string()),
+            "ny" => Some(g.ny.to_string()),
+            "pitch_mm" => Some(num(g.pitch_mm, "mm")),
+            "origin_mm" => Some(pair(g.origin_mm, "mm")),
+            _ => None,
+        };
+        let e = &self.elastomer;
+        let c = &self.camera;
+        match key {
+            "elastomer.young_modulus_kpa" => return Some(num(e.young_modulus_kpa, "kPa")),
+            "elastomer.poisson_ratio" => return Some(fmt_value(e.poisson_ratio)),
+            "elastomer.thickness_mm" => return Some(num(e.thickness_mm, "mm")),
+            "camera.mm_per_px" => return Some(num(c.mm_per_px, "mm/px")),
+            "camera.origin_px" => return Some(pair(c.origin_px, "px")),
+            "camera.width_px" => return Some(format!("{} px", c.width_px)),
+            "camera.height_px" => return Some(format!("{} px", c.height_px)),
+            _ => {}
+        }
+        if let Some(field) = key.strip_prefix("force_grid.") {
+            return grid(&self.force_grid, field);
+        }
+        let rest = key.strip_prefix("layers[")?;
+        let (index, field) = rest.split_once("].")?;
+        let layer = self.layers.get(index.parse::<usize>().ok()?)?;
+        match field {
+            "depth_mm" => Some(num(layer.depth_mm, "mm")),
+            _ => {
+                let m = layer.markers.as_ref()?;
+                match field.strip_prefix("markers.")? {
+                    "diameter_mm" => Some(num(m.diameter_mm, "mm")),
+                    f => grid(&m.grid, f),
+                }
+            }
+        }
+    }
+
+    /// An upper bound of the load the elastomer can carry on the force grid, N: the
+    /// modulus times the grid's area (`nx · ny · pitch²`, each node's cell). A field
+    /// whose total `Σ |f|` exceeds it needs a mean stress beyond `E` over the whole
+    /// grid, a strain near 100 %: no elastomer sensor carries that (docs/limits.md).
+    pub fn max_load_n(&self) -> f64 {
+        self.elastomer.young_modulus_n_per_mm2() * self.force_grid_area_mm2()
+    }
+
+    /// Area of the force grid's cells, `nx · ny · pitch²`, mm².
+    pub fn force_grid_area_mm2(&self) -> f64 {
+        let g = &self.force_grid;
+        g.len() as f64 * g.pitch_mm * g.pitch_mm
+    }
+
+    /// What the loader checked beyond the schema, one line per check, with the values
+    /// and the ranges (the `[ok]` lines of `run --dry-run`).
+    pub fn plausibility_lines(&self) -> Vec<String> {
+        let e = &self.elastomer;
+        let r = |v: f64, k: &KeyRange| {
+            format!(
+                "{} {} (range {} … {})",
+                fmt_value(v),
+                k.unit,
+                fmt_value(k.lo),
+                fmt_value(k.hi)
+            )
+        };
+        let depths: Vec<String> = self
+            .layers
+            .iter()
+            .map(|l| format!("{} {}", l.name, fmt_value(l.depth_mm)))
+            .collect();
+        let mut lines = vec![
+            format!(
+                "sensor units plausible (docs/limits.md): young_modulus_kpa {}, thickness_mm {}, mm_per_px {}",
+                r(e.young_modulus_kpa, &YOUNG_MODULUS_KPA),
+                r(e.thickness_mm, &THICKNESS_MM),
+                r(self.camera.mm_per_px, &MM_PER_PX)
+            ),
+            format!(
+                "sensor lengths plausible: layer depths {} mm (range {} … {} mm, < thickness), force pitch {}",
+                depths.join(", "),
+                fmt_value(DEPTH_MM.lo),
+                fmt_value(DEPTH_MM.hi),
+                r(self.force_grid.pitch_mm, &FORCE_PITCH_MM)
+            ),
+        ];
+        for (i, l) in self.layers.iter().enumerate() {
+            if let Some(m) = &l.markers {
+                lines.push(format!(
+                    "layers[{i}] ({}) markers plausible: pitch {}, diameter {}",
+                    l.name,
+                    r(m.grid.pitch_mm, &MARKER_PITCH_MM),
+                    r(m.diameter_mm, &MARKER_DIAMETER_MM)
+                ));
+            }
+        }
+        let cover = ForceCover::of(self);
+        lines.push(format!(
+            "force grid over the markers: {} of {} nodes within {} mm of the marker area {} (at least {:.0} % needed)",
+            cover.near,
+            cover.total,
+            fmt_value(cover.margin_mm),
+            cover.area_text(),
+            100.0 * MIN_FORCE_NODES_OVER_MARKERS
+        ));
+        lines.push(format!(
+            "elastomer load bound: |F| <= E x force-grid area = {} N (a force field past it is flagged)",
+            fmt_value(self.max_load_n())
+        ));
+        lines
+    }
+
     /// Index of the layer with this name.
     pub fn layer_index(&self, name: &str) -> Option<usize> {
         self.layers.iter().position(|l| l.name == name)
@@ -445,6 +681,10 @@ impl Sensor {
     pub fn to_toml_string(&self) -> String {
         use std::fmt::Write;
         let mut s = String::new();
+        if let Some(d) = &self.draft {
+            let keys: Vec<String> = d.placeholders.iter().map(|k| format!("{k:?}")).collect();
+            let _ = writeln!(s, "draft = true\nplaceholders = [{}]\n", keys.join(", "));
+        }
         let e = &self.elastomer;
         let _ = writeln!(
             s,
@@ -490,11 +730,516 @@ impl Sensor {
     }
 }
 
+// ---- plausible ranges -----------------------------------------------------------------
+
+/// What a key measures, for the likely slip an error names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Quantity {
+    /// A length in mm (metres or micrometres are the slips).
+    Length,
+    /// A modulus in kPa (Pa, MPa or GPa are the slips).
+    Modulus,
+    /// The camera's scale in mm/px (m/px, µm/px or px/mm are the slips).
+    Scale,
+}
+
+/// The plausible range of one sensor-file key: what every real vision-based tactile
+/// sensor we have figures for lies in, with a margin (docs/limits.md gives the figures
+/// and the reasoning), and what a unit slip does not.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeyRange {
+    /// Smallest plausible value.
+    pub lo: f64,
+    /// Largest plausible value.
+    pub hi: f64,
+    /// The key's unit.
+    pub unit: &'static str,
+    /// What the key is, for messages.
+    pub what: &'static str,
+    /// What kind of slip to suspect.
+    pub quantity: Quantity,
+}
+
+/// `[elastomer] young_modulus_kpa`: 2 kPa … 20 MPa. Tactile gels span ~10 kPa (soft
+/// silicone gels) to a few MPa (Sylgard 184, 3D-printed rubber-like skins); Pa typed
+/// for kPa multiplies any modulus from 20 kPa up by 1000 past the top, MPa typed for
+/// kPa divides any modulus under 2 MPa (the paper's 1 MPa as `1.0`) below the bottom.
+pub const YOUNG_MODULUS_KPA: KeyRange = KeyRange {
+    lo: 2.0,
+    hi: 20_000.0,
+    unit: "kPa",
+    what: "an elastomer's Young's modulus",
+    quantity: Quantity::Modulus,
+};
+
+/// `[elastomer] thickness_mm`: 0.2 … 1000 mm (gels are 1–40 mm thick; metres typed
+/// for mm put any gel under 200 mm below 0.2).
+pub const THICKNESS_MM: KeyRange = KeyRange {
+    lo: 0.2,
+    hi: 1000.0,
+    unit: "mm",
+    what: "an elastomer's thickness",
+    quantity: Quantity::Length,
+};
+
+/// `[[layers]] depth_mm`: 0.05 mm … (and below the thickness): markers lie under at
+/// least a coating; metres typed for mm put any depth under 50 mm below 0.05.
+pub const DEPTH_MM: KeyRange = KeyRange {
+    lo: 0.05,
+    hi: 1000.0,
+    unit: "mm",
+    what: "a marker layer's depth",
+    quantity: Quantity::Length,
+};
+
+/// `[layers.markers] pitch_mm`: 0.1 … 50 mm (real marker pitches 0.5–5 mm).
+pub const MARKER_PITCH_MM: KeyRange = KeyRange {
+    lo: 0.1,
+    hi: 50.0,
+    unit: "mm",
+    what: "a marker pitch",
+    quantity: Quantity::Length,
+};
+
+/// `[layers.markers] diameter_mm`: 0.01 … 20 mm (real markers 0.1–2 mm).
+pub const MARKER_DIAMETER_MM: KeyRange = KeyRange {
+    lo: 0.01,
+    hi: 20.0,
+    unit: "mm",
+    what: "a marker diameter",
+    quantity: Quantity::Length,
+};
+
+/// `[force_grid] pitch_mm`: 0.05 … 1000 mm. The top is loose on purpose: a
+/// `sensor init` draft without a scale writes its force grid in pixels at the
+/// placeholder `mm_per_px = 1`; a grid in the wrong unit is caught by the markers
+/// check ([`MIN_FORCE_NODES_OVER_MARKERS`]), not by its pitch.
+pub const FORCE_PITCH_MM: KeyRange = KeyRange {
+    lo: 0.05,
+    hi: 1000.0,
+    unit: "mm",
+    what: "a force-grid pitch",
+    quantity: Quantity::Length,
+};
+
+/// `[camera] mm_per_px`: 0.001 … 1 mm/px (real sensors 0.01–0.2 mm/px; 1 is the
+/// placeholder of a `sensor init` draft without a scale).
+pub const MM_PER_PX: KeyRange = KeyRange {
+    lo: 0.001,
+    hi: 1.0,
+    unit: "mm/px",
+    what: "a camera's scale",
+    quantity: Quantity::Scale,
+};
+
+/// Largest `[camera] width_px × height_px`: the decoded-frame cap
+/// ([`crate::frame_size::MAX_FRAME_PIXELS`]).
+pub const MAX_CAMERA_PIXELS: u64 = crate::frame_size::MAX_FRAME_PIXELS;
+
+/// Share of the force-grid nodes that must lie over the markers (within the margin
+/// of [`ForceCover`]): forces are reconstructed where markers see them.
+pub const MIN_FORCE_NODES_OVER_MARKERS: f64 = 0.5;
+
+impl KeyRange {
+    /// `Err(why)`: outside the range (with the likely slip when one explains the value).
+    /// `v` must be finite and > 0 (checked before).
+    pub fn check(&self, v: f64) -> Result<(), String> {
+        if (self.lo..=self.hi).contains(&v) {
+            return Ok(());
+        }
+        let inside = |x: f64| (self.lo..=self.hi).contains(&x);
+        let hint = match (self.quantity, v < self.lo) {
+            (Quantity::Length, true) if inside(v * 1e3) => format!(
+                "; looks like metres: {} m = {} mm (every `_mm` key is in millimetres)",
+                fmt_value(v),
+                fmt_value(v * 1e3)
+            ),
+            (Quantity::Length, false) if inside(v * 1e-3) => format!(
+                "; looks like micrometres: {} µm = {} mm (every `_mm` key is in millimetres)",
+                fmt_value(v),
+                fmt_value(v * 1e-3)
+            ),
+            (Quantity::Modulus, false) if inside(v * 1e-3) => format!(
+                "; looks like Pa: {} Pa = {} kPa (the key is in kPa)",
+                fmt_value(v),
+                fmt_value(v * 1e-3)
+            ),
+            (Quantity::Modulus, true) if inside(v * 1e3) => format!(
+                "; looks like MPa: {} MPa = {} kPa (the key is in kPa)",
+                fmt_value(v),
+                fmt_value(v * 1e3)
+            ),
+            (Quantity::Modulus, true) if inside(v * 1e6) => format!(
+                "; looks like GPa: {} GPa = {} kPa (the key is in kPa)",
+                fmt_value(v),
+                fmt_value(v * 1e6)
+            ),
+            (Quantity::Scale, true) if inside(v * 1e3) => format!(
+                "; looks like metres per pixel: {} m/px = {} mm/px",
+                fmt_value(v),
+                fmt_value(v * 1e3)
+            ),
+            (Quantity::Scale, false) if inside(1.0 / v) => format!(
+                "; looks like pixels per mm (the inverse): {} px/mm = {} mm/px",
+                fmt_value(v),
+                fmt_value(1.0 / v)
+            ),
+            (Quantity::Scale, false) if inside(v * 1e-3) => format!(
+                "; looks like micrometres per pixel: {} µm/px = {} mm/px",
+                fmt_value(v),
+                fmt_value(v * 1e-3)
+            ),
+            _ => format!("; is the unit {}?", self.unit),
+        };
+        Err(format!(
+            "outside the plausible range {} … {} {} of {} (docs/limits.md){hint}",
+            fmt_value(self.lo),
+            fmt_value(self.hi),
+            self.unit,
+            self.what
+        ))
+    }
+}
+
+/// A number as people read it: plain from 1e-4 to 1e6, scientific outside (so
+/// `1e308` is not 309 digits).
+pub fn fmt_value(v: f64) -> String {
+    let a = v.abs();
+    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&a) {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// `v` finite, > 0 and within `r`; the error names the file, key, value, unit, the
+/// range and the likely slip.
+fn plausible(c: &Checker<'_>, key: &str, v: f64, r: &KeyRange) -> Result<f64, SensorError> {
+    let v = c.positive(key, v, r.unit)?;
+    r.check(v)
+        .map(|()| v)
+        .map_err(|why| c.invalid(key, format!("{} {}", fmt_value(v), r.unit), why))
+}
+
+/// How much of the force grid lies over the markers: the marker area is the
+/// bounding box of every layer's grid (the camera's whole field for a layer without
+/// one), grown by a margin of the deepest layer's depth and the largest marker pitch
+/// (markers feel forces that far beyond them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ForceCover {
+    /// Marker area `[x_min, y_min, x_max, y_max]`, mm (before the margin).
+    pub area_mm: [f64; 4],
+    /// The margin, mm.
+    pub margin_mm: f64,
+    /// Force nodes within the grown area.
+    pub near: usize,
+    /// Force nodes.
+    pub total: usize,
+}
+
+impl ForceCover {
+    fn compute(layers: &[Layer], force: &Grid, camera: &CameraMapping) -> Self {
+        let mut a = [
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        let mut grow = |p: [f64; 2]| {
+            a = [
+                a[0].min(p[0]),
+                a[1].min(p[1]),
+                a[2].max(p[0]),
+                a[3].max(p[1]),
+            ];
+        };
+        let mut margin: f64 = 0.0;
+        for l in layers {
+            margin = margin.max(l.depth_mm);
+            match &l.markers {
+                Some(m) => {
+                    margin = margin.max(m.grid.pitch_mm);
+                    grow(m.grid.node_mm(0, 0));
+                    grow(m.grid.node_mm(m.grid.nx - 1, m.grid.ny - 1));
+                }
+                None => {
+                    // Pixel (i, j) covers [i − ½, i + ½]: the whole field.
+                    grow(camera.px_to_mm([-0.5, -0.5]));
+                    grow(
+                        camera.px_to_mm([
+                            camera.width_px as f64 - 0.5,
+                            camera.height_px as f64 - 0.5,
+                        ]),
+                    );
+                }
+            }
+        }
+        let near = force
+            .nodes_mm()
+            .iter()
+            .filter(|p| {
+                p[0] >= a[0] - margin
+                    && p[0] <= a[2] + margin
+                    && p[1] >= a[1] - margin
+                    && p[1] <= a[3] + margin
+            })
+            .count();
+        ForceCover {
+            area_mm: a,
+            margin_mm: margin,
+            near,
+            total: force.len(),
+        }
+    }
+
+    /// The cover of a validated sensor.
+    pub fn of(sensor: &Sensor) -> Self {
+        Self::compute(&sensor.layers, &sensor.force_grid, &sensor.camera)
+    }
+
+    /// `x a … b mm, y c … d mm`.
+    pub fn area_text(&self) -> String {
+        let a = self.area_mm;
+        format!(
+            "(x {} … {} mm, y {} … {} mm)",
+            fmt_value(a[0]),
+            fmt_value(a[2]),
+            fmt_value(a[1]),
+            fmt_value(a[3])
+        )
+    }
+
+    /// Whether enough nodes lie over the markers.
+    pub fn ok(&self) -> bool {
+        self.near as f64 >= MIN_FORCE_NODES_OVER_MARKERS * self.total as f64
+    }
+}
+
+/// The force grid must lie over the markers ([`ForceCover`]).
+fn check_force_cover(
+    c: &Checker<'_>,
+    layers: &[Layer],
+    force: &Grid,
+    camera: &CameraMapping,
+) -> Result<(), SensorError> {
+    let cover = ForceCover::compute(layers, force, camera);
+    if cover.ok() {
+        return Ok(());
+    }
+    let last = force.node_mm(force.nx - 1, force.ny - 1);
+    let span_grid = (last[0] - force.origin_mm[0]).max(last[1] - force.origin_mm[1]);
+    let span_markers =
+        (cover.area_mm[2] - cover.area_mm[0]).max(cover.area_mm[3] - cover.area_mm[1]);
+    let cause = if span_grid > 5.0 * span_markers.max(camera.mm_per_px) {
+        format!(
+            "the force grid spans {}× the marker area: its pitch_mm and origin_mm look like pixels or another unit (every `_mm` key is in millimetres; a `sensor init` draft without a scale writes its force grid in pixels: multiply both by mm_per_px)",
+            fmt_value((span_grid / span_markers.max(f64::MIN_POSITIVE)).round())
+        )
+    } else {
+        "move force_grid.origin_mm over the markers (or check the layers' origin_mm and [camera] origin_px)".to_string()
+    };
+    Err(c.invalid(
+        "force_grid",
+        format!(
+            "{} × {} nodes every {} mm from [{}, {}] mm (to [{}, {}] mm)",
+            force.nx,
+            force.ny,
+            fmt_value(force.pitch_mm),
+            fmt_value(force.origin_mm[0]),
+            fmt_value(force.origin_mm[1]),
+            fmt_value(last[0]),
+            fmt_value(last[1])
+        ),
+        format!(
+            "the force grid must lie over the markers: only {} of its {} nodes lie within {} mm of the marker area {} (the layers' grids, or the camera's field for a layer without one), at least {:.0} % must; {cause}",
+            cover.near,
+            cover.total,
+            fmt_value(cover.margin_mm),
+            cover.area_text(),
+            100.0 * MIN_FORCE_NODES_OVER_MARKERS
+        ),
+    ))
+}
+
+/// Every key `placeholders` may name (`layers[i]` for any layer index).
+fn check_placeholders(
+    c: &Checker<'_>,
+    draft: Option<bool>,
+    placeholders: Option<Vec<String>>,
+    sensor: &Sensor,
+) -> Result<Option<Draft>, SensorError> {
+    match (draft, placeholders) {
+        (None | Some(false), None) => Ok(None),
+        (None | Some(false), Some(p)) => Err(c.invalid(
+            "placeholders",
+            format!("{p:?}"),
+            "only a draft has placeholders: add `draft = true`, or remove `placeholders` once every value is measured",
+        )),
+        (Some(true), None) => Err(c.invalid(
+            "draft",
+            "true",
+            "a draft must list the keys whose values are placeholders: `placeholders = [\"elastomer.young_modulus_kpa\", …]` (`[]` when none is left)",
+        )),
+        (Some(true), Some(p)) => {
+            let mut keys: Vec<String> = Vec::with_capacity(p.len());
+            for (i, k) in p.into_iter().enumerate() {
+                if sensor.value_text(&k).is_none() {
+                    return Err(c.invalid(
+                        &format!("placeholders[{i}]"),
+                        format!("{k:?}"),
+                        "not a key of this sensor file: name a numeric key as `elastomer.young_modulus_kpa`, `layers[0].depth_mm`, `layers[0].markers.pitch_mm`, `force_grid.origin_mm` or `camera.mm_per_px`",
+                    ));
+                }
+                if !keys.contains(&k) {
+                    keys.push(k);
+                }
+            }
+            Ok(Some(Draft { placeholders: keys }))
+        }
+    }
+}
+
+/// Removes `keys` from the `placeholders` of a draft's text, keeping everything else
+/// (comments, layout); when none is left, removes the `draft` and `placeholders` lines.
+/// For the `fit` command that turns a draft into a measured file. Errors: the text is
+/// not a valid sensor file, not a draft, or a key is not one of its placeholders.
+pub fn mark_measured(text: &str, path: &Path, keys: &[&str]) -> Result<String, SensorError> {
+    let sensor = Sensor::from_toml_str(text, path)?;
+    let c = Checker { path };
+    let Some(draft) = &sensor.draft else {
+        return Err(c.invalid(
+            "draft",
+            "(absent)",
+            "not a draft: it has no placeholders to clear",
+        ));
+    };
+    for k in keys {
+        if !draft.placeholders.iter().any(|p| p == k) {
+            return Err(c.invalid(
+                "placeholders",
+                format!("{k:?}"),
+                format!(
+                    "not a placeholder of this draft (placeholders: {:?})",
+                    draft.placeholders
+                ),
+            ));
+        }
+    }
+    let left: Vec<&String> = draft
+        .placeholders
+        .iter()
+        .filter(|p| !keys.contains(&p.as_str()))
+        .collect();
+    let spans = top_level_spans(text);
+    let (Some(draft_span), Some(list_span)) = (spans.draft, spans.placeholders) else {
+        return Err(c.invalid(
+            "placeholders",
+            "(not found)",
+            "the `draft` and `placeholders` keys must be at the top of the file, before the first table",
+        ));
+    };
+    let mut out = String::with_capacity(text.len());
+    if left.is_empty() {
+        // Remove both entries (the later one first keeps the earlier span valid).
+        let (first, second) = if draft_span.start < list_span.start {
+            (draft_span, list_span)
+        } else {
+            (list_span, draft_span)
+        };
+        out.push_str(&text[..first.start]);
+        out.push_str(&text[first.end..second.start]);
+        out.push_str(&text[second.end..]);
+    } else {
+        let list: Vec<String> = left.iter().map(|k| format!("{k:?}")).collect();
+        out.push_str(&text[..list_span.start]);
+        out.push_str(&format!("placeholders = [{}]\n", list.join(", ")));
+        out.push_str(&text[list_span.end..]);
+    }
+    // The result must load and say what was asked.
+    let again = Sensor::from_toml_str(&out, path)?;
+    debug_assert_eq!(again.placeholders().len(), left.len());
+    Ok(out)
+}
+
+/// Byte spans (whole lines, newline included) of the top-level `draft` and
+/// `placeholders` entries.
+#[derive(Default)]
+struct TopLevelSpans {
+    draft: Option<std::ops::Range<usize>>,
+    placeholders: Option<std::ops::Range<usize>>,
+}
+
+fn top_level_spans(text: &str) -> TopLevelSpans {
+    let mut spans = TopLevelSpans::default();
+    let mut pos = 0;
+    while pos < text.len() {
+        let line_end = text[pos..].find('\n').map_or(text.len(), |i| pos + i + 1);
+        let line = text[pos..line_end].trim_start();
+        if line.starts_with('[') {
+            break; // the first table: no top-level keys after it
+        }
+        let key_is = |k: &str| {
+            line.strip_prefix(k)
+                .is_some_and(|rest| rest.trim_start().starts_with('='))
+        };
+        if key_is("draft") {
+            spans.draft = Some(pos..line_end);
+        } else if key_is("placeholders") {
+            // The array may span lines: find its closing bracket outside strings.
+            let end = array_end(text, pos).unwrap_or(line_end);
+            let end = text[end..].find('\n').map_or(text.len(), |i| end + i + 1);
+            spans.placeholders = Some(pos..end);
+            pos = end;
+            continue;
+        }
+        pos = line_end;
+    }
+    spans
+}
+
+/// Byte offset just past the `]` closing the first array that starts after `from`.
+fn array_end(text: &str, from: usize) -> Option<usize> {
+    let mut depth = 0usize;
+    let mut in_str = false;
+    let mut escaped = false;
+    let mut comment = false;
+    for (i, ch) in text[from..].char_indices() {
+        if comment {
+            comment = ch != '\n';
+            continue;
+        }
+        if in_str {
+            match (escaped, ch) {
+                (true, _) => escaped = false,
+                (false, '\\') => escaped = true,
+                (false, '"') => in_str = false,
+                _ => {}
+            }
+            continue;
+        }
+        match ch {
+            '"' => in_str = true,
+            '#' => comment = true,
+            '[' => depth += 1,
+            ']' => {
+                depth = depth.checked_sub(1)?;
+                if depth == 0 {
+                    return Some(from + i + 1);
+                }
+            }
+            _ => {}
+        }
+    }
+    None
+}
+
 // ---- raw (unvalidated) schema -------------------------------------------------------
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawSensor {
+    draft: Option<bool>,
+    placeholders: Option<Vec<String>>,
     elastomer: RawElastomer,
     layers: Vec<RawLayer>,
     force_grid: RawGrid,
@@ -629,7 +1374,7 @@ impl RawRoi {
     }
 }
 
-/// A regular grid's keys, checked.
+/// A regular grid's keys, checked; its pitch within `pitch_range`.
 fn check_grid(
     c: &Checker<'_>,
     key: &str,
@@ -637,12 +1382,13 @@ fn check_grid(
     ny: i64,
     pitch: f64,
     origin: [f64; 2],
+    pitch_range: &KeyRange,
 ) -> Result<Grid, SensorError> {
     const MAX_NODES: i64 = 4096;
     Ok(Grid {
         nx: c.count(&format!("{key}.nx"), nx, MAX_NODES)?,
         ny: c.count(&format!("{key}.ny"), ny, MAX_NODES)?,
-        pitch_mm: c.positive(&format!("{key}.pitch_mm"), pitch, "mm")?,
+        pitch_mm: plausible(c, &format!("{key}.pitch_mm"), pitch, pitch_range)?,
         origin_mm: [
             c.finite(&format!("{key}.origin_mm[0]"), origin[0], "mm")?,
             c.finite(&format!("{key}.origin_mm[1]"), origin[1], "mm")?,
@@ -654,7 +1400,12 @@ impl RawSensor {
     fn validate(self, path: &Path) -> Result<Sensor, SensorError> {
         let c = Checker { path };
         let e = &self.elastomer;
-        let young = c.positive("elastomer.young_modulus_kpa", e.young_modulus_kpa, "kPa")?;
+        let young = plausible(
+            &c,
+            "elastomer.young_modulus_kpa",
+            e.young_modulus_kpa,
+            &YOUNG_MODULUS_KPA,
+        )?;
         let nu = e.poisson_ratio;
         if !(nu.is_finite() && (0.0..=0.5).contains(&nu)) {
             return Err(c.invalid(
@@ -663,7 +1414,7 @@ impl RawSensor {
                 "must be in [0, 0.5] (0.5 = incompressible)",
             ));
         }
-        let thickness = c.positive("elastomer.thickness_mm", e.thickness_mm, "mm")?;
+        let thickness = plausible(&c, "elastomer.thickness_mm", e.thickness_mm, &THICKNESS_MM)?;
         let model = match &e.model {
             None => ModelKind::HalfSpace,
             Some(name) => ModelKind::from_name(name).ok_or_else(|| {
@@ -709,7 +1460,7 @@ impl RawSensor {
                     "unknown colour: expected one of blue, red, green, dark, bright",
                 )
             })?;
-            let depth = c.positive(&format!("{key}.depth_mm"), l.depth_mm, "mm")?;
+            let depth = plausible(&c, &format!("{key}.depth_mm"), l.depth_mm, &DEPTH_MM)?;
             if depth >= thickness {
                 return Err(c.invalid(
                     &format!("{key}.depth_mm"),
@@ -721,8 +1472,21 @@ impl RawSensor {
                 None => None,
                 Some(m) => {
                     let mkey = format!("{key}.markers");
-                    let grid = check_grid(&c, &mkey, m.nx, m.ny, m.pitch_mm, m.origin_mm)?;
-                    let d = c.positive(&format!("{mkey}.diameter_mm"), m.diameter_mm, "mm")?;
+                    let grid = check_grid(
+                        &c,
+                        &mkey,
+                        m.nx,
+                        m.ny,
+                        m.pitch_mm,
+                        m.origin_mm,
+                        &MARKER_PITCH_MM,
+                    )?;
+                    let d = plausible(
+                        &c,
+                        &format!("{mkey}.diameter_mm"),
+                        m.diameter_mm,
+                        &MARKER_DIAMETER_MM,
+                    )?;
                     Some(MarkerGrid {
                         grid,
                         diameter_mm: d,
@@ -738,13 +1502,32 @@ impl RawSensor {
         }
 
         let g = &self.force_grid;
-        let force_grid = check_grid(&c, "force_grid", g.nx, g.ny, g.pitch_mm, g.origin_mm)?;
+        let force_grid = check_grid(
+            &c,
+            "force_grid",
+            g.nx,
+            g.ny,
+            g.pitch_mm,
+            g.origin_mm,
+            &FORCE_PITCH_MM,
+        )?;
 
         let cam = &self.camera;
         let width_px = c.count("camera.width_px", cam.width_px, 65_535)? as u32;
         let height_px = c.count("camera.height_px", cam.height_px, 65_535)? as u32;
+        let pixels = width_px as u64 * height_px as u64;
+        if pixels > MAX_CAMERA_PIXELS {
+            return Err(c.invalid(
+                "camera.width_px × camera.height_px",
+                format!("{width_px} × {height_px} px = {pixels} px"),
+                format!(
+                    "at most {MAX_CAMERA_PIXELS} px ({} megapixels): the decoded-frame cap (docs/limits.md)",
+                    MAX_CAMERA_PIXELS / 1_000_000
+                ),
+            ));
+        }
         let camera = CameraMapping {
-            mm_per_px: c.positive("camera.mm_per_px", cam.mm_per_px, "mm/px")?,
+            mm_per_px: plausible(&c, "camera.mm_per_px", cam.mm_per_px, &MM_PER_PX)?,
             origin_px: [
                 c.finite("camera.origin_px[0]", cam.origin_px[0], "px")?,
                 c.finite("camera.origin_px[1]", cam.origin_px[1], "px")?,
@@ -757,12 +1540,16 @@ impl RawSensor {
             },
         };
 
-        Ok(Sensor {
+        check_force_cover(&c, &layers, &force_grid, &camera)?;
+        let mut sensor = Sensor {
             elastomer,
             layers,
             force_grid,
             camera,
-        })
+            draft: None,
+        };
+        sensor.draft = check_placeholders(&c, self.draft, self.placeholders, &sensor)?;
+        Ok(sensor)
     }
 }
 
@@ -835,6 +1622,7 @@ pub fn grid_sensor(
             height_px: ((span[1] + marker_pitch_mm + 2.0) / mm_per_px).ceil() as u32,
             roi_px: None,
         },
+        draft: None,
     }
 }
 

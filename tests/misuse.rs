@@ -84,11 +84,12 @@ fn case1_thin_bonded_layer_in_a_sensor_file_typed_in_metres_is_refused_in_second
     let e = util::stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
+    // Since issue 33 the sensor file's plausible ranges refuse it at load, before the
+    // model's table cap is reached (the study test below still reaches that cap).
     for want in [
-        "thickness 0.04 mm",
-        "depth 0.003 mm",
-        "allows distances up to",
-        "metres",
+        "metres.toml",
+        "elastomer.thickness_mm = 0.04 mm",
+        "looks like metres",
     ] {
         assert!(e.contains(want), "{want}: {e}");
     }

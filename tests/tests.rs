@@ -11,6 +11,7 @@ mod compare;
 mod fourier;
 mod ft;
 mod ft_net_bota;
+mod inputs;
 mod layer;
 mod live;
 mod marlin;

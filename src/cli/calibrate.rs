@@ -47,6 +47,7 @@ use tactbench::vision::{calibrate, check_layers, load_frame, CalibrateConfig};
 /// than 6 markers matched to its grid, partial coverage, a frame that is not clean and
 /// unloaded, a fit that does not converge).
 #[derive(clap::Args)]
+#[command(allow_negative_numbers = true)]
 pub struct Args {
     /// Sensor description (sensor.toml: layer grids are the calibration target).
     #[arg(long, value_name = "S.toml")]

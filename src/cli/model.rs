@@ -24,6 +24,7 @@ pub enum ModelCommand {
     ///
     /// The markers are the layer grids of the sensor file, or the markers present in
     /// the first frame of `--displacements` (which automatic lambda / rank also use).
+    #[command(allow_negative_numbers = true)]
     Inspect(InspectArgs),
     /// Compute marker displacements from surface forces with the forward model
     /// (paper Eq. 1, 2, 5, or the bonded layer the sensor file's `[elastomer] model`

@@ -27,8 +27,22 @@ use super::SolverArgs;
 /// forces (a flagged row, warned on stderr); the file goes on either way. A file in
 /// which no frame has a usable marker is an error (exit 2, no output file) naming the
 /// lost markers.
+///
+/// Drafts: a sensor file with `draft = true` and placeholders left (`sensor init`) is
+/// refused (exit 2, the placeholders listed) unless --allow-draft, which names them
+/// on stderr before and after the solve.
+///
+/// Plausibility: no F/T reading here, so each frame's force field is bounded by what
+/// the elastomer can carry, E × the force grid's area (`nx·ny·pitch²`): a frame whose
+/// total load Σ|f| exceeds it (an automatic λ far too small, a unit slip) is written as
+/// NaN rows and named on stderr with the bound and the λ used, and the command exits 1
+/// (the other frames are written as usual).
+///
+/// Exit status: 0 written; 1 written, but a frame's forces were past the elastomer
+/// bound (its rows NaN); 2 on errors (nothing written).
 #[derive(clap::Args)]
 #[command(
+    allow_negative_numbers = true,
     after_long_help = "Examples:\n  tactbench reconstruct --sensor experiments/paper_sensor.toml \\\n      --displacements experiments/examples/fig6_displacements.csv --out forces.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --lambda gcv --out F.csv\n  tactbench reconstruct --sensor S.toml --displacements D.csv --solver tikhonov --uncertainty --noise-px 0.1 --out F.csv"
 )]
 pub struct Args {
@@ -60,6 +74,11 @@ pub struct Args {
     /// converted to mm with the sensor's [camera] mm_per_px. Needs --uncertainty.
     #[arg(long, value_name = "PX", requires = "uncertainty")]
     noise_px: Option<f64>,
+    /// Compute with a draft sensor file's placeholder values (`sensor init`): its
+    /// placeholders are printed on stderr before and after, the forces are not
+    /// measurements.
+    #[arg(long)]
+    allow_draft: bool,
 }
 
 /// `--lambda-per`.
@@ -84,6 +103,16 @@ fn marker_key(frame: &DisplacementFrame) -> MarkerKey {
 
 pub fn run(args: Args) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
+    let draft = match sensor.draft_warning(&args.sensor) {
+        Some(w) if args.allow_draft => {
+            eprintln!("reconstruct: warning: {w}");
+            Some(w)
+        }
+        _ => {
+            sensor.refuse_draft(&args.sensor)?;
+            None
+        }
+    };
     let frames = formats::read_displacements(&args.displacements, &sensor)?;
     // No usable marker in any frame: an error (exit 2, no output file), not a file of
     // NaN rows.
@@ -125,6 +154,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     };
 
     let n_out = 3 * sensor.force_grid.len();
+    // No F/T reading: the elastomer's load bound is the plausibility gate.
+    let max_load = sensor.max_load_n();
+    let mut implausible: Vec<String> = Vec::new();
     let keys: Vec<MarkerKey> = frames.iter().map(marker_key).collect();
     let zero: Vec<bool> = frames
         .iter()
@@ -227,6 +259,28 @@ pub fn run(args: Args) -> Result<ExitCode> {
             fmt_num(sum[1]),
             fmt_num(sum[2])
         );
+        let load = total_load(&f);
+        if !(load <= max_load) {
+            eprintln!(
+                "reconstruct: error{label}: the force field carries sum |f| = {} N (|F_sum| = {} N), past what the elastomer can carry: E x force-grid area = {} N/mm^2 x {} mm^2 = {} N (docs/limits.md); its rows are written as NaN. Likely {}",
+                fmt_num(load),
+                fmt_num((sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]).sqrt()),
+                fmt_num(sensor.elastomer.young_modulus_n_per_mm2()),
+                fmt_num(sensor.force_grid_area_mm2()),
+                fmt_num(max_load),
+                likely_cause(solver.diagnostics(), &config)
+            );
+            implausible.push(if frame.frame.is_empty() {
+                "the frame".to_string()
+            } else {
+                format!("frame {}", frame.frame)
+            });
+            outputs.push((frame.frame.clone(), vec![f64::NAN; n_out]));
+            if sigma_mm.is_some() {
+                sds.push(vec![f64::NAN; n_out]);
+            }
+            continue;
+        }
         if let Some(s) = sigma_mm {
             let mut sd = vec![0.0; solver.n_outputs()];
             solver
@@ -255,7 +309,49 @@ pub fn run(args: Args) -> Result<ExitCode> {
         outputs.len(),
         args.out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    if let Some(w) = &draft {
+        eprintln!("reconstruct: warning: {w}");
+    }
+    if implausible.is_empty() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    eprintln!(
+        "reconstruct: {} of {} frame(s) past the elastomer's load bound of {} N, written as NaN: {}",
+        implausible.len(),
+        outputs.len(),
+        fmt_num(max_load),
+        implausible.join(", ")
+    );
+    Ok(ExitCode::from(1))
+}
+
+/// Σ_nodes |f_node| of an interleaved force vector, N (NaN when any value is).
+fn total_load(f: &[f64]) -> f64 {
+    f.chunks_exact(3)
+        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+        .sum()
+}
+
+/// The likely cause of a force field past the elastomer's bound, from how it was
+/// solved.
+fn likely_cause(d: &solve::Diagnostics, config: &SolverConfig) -> String {
+    let edge = d
+        .warnings()
+        .find(|w| w.contains("boundary") || w.contains("edge"))
+        .map(|w| format!(" ({w})"))
+        .unwrap_or_default();
+    match (d.lambda, config.needs_frame()) {
+        (Some(l), true) => format!(
+            "the automatically chosen lambda = {l:.3e} mm/N is far too small for this frame{edge}: give a larger --lambda <mm/N>; or the sensor file's units (young_modulus_kpa in kPa, every _mm key in mm) or an unfitted E"
+        ),
+        (Some(l), false) => format!(
+            "lambda = {l:.3e} mm/N is too small for this frame's noise: give a larger --lambda; or the sensor file's units (young_modulus_kpa in kPa, every _mm key in mm) or an unfitted E"
+        ),
+        (None, _) => format!(
+            "the {} solver amplifies this frame's noise (noise gain {:.3e} N/mm): try --solver tikhonov; or the sensor file's units (young_modulus_kpa in kPa, every _mm key in mm) or an unfitted E",
+            d.method, d.noise_gain
+        ),
+    }
 }
 
 /// ΣFx, ΣFy, ΣFz of an interleaved force vector.

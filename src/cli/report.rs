@@ -7,11 +7,12 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 
 use tactbench::analysis::{AnalysisOptions, RunAnalysis};
-use tactbench::bench::journal::JOURNAL_FILE;
+use tactbench::bench::journal::{Manifest, JOURNAL_FILE};
 use tactbench::bench::lock;
 use tactbench::report::acceptance::{Criteria, Outcome, Verdict};
 use tactbench::report::verdict::{VerdictDoc, EXIT_FAIL, EXIT_INCOMPLETE, EXIT_PASS};
 use tactbench::report::{self, ReportOptions};
+use tactbench::sensor::Sensor;
 
 /// Analyse a run directory, write its report and judge it.
 ///
@@ -39,13 +40,17 @@ use tactbench::report::{self, ReportOptions};
 /// the banner and `"simulated": true` in verdict.json; `require_real_bench = true`
 /// FAILs it.
 ///
+/// A run measured with a draft sensor file (`run --allow-draft`: placeholders never
+/// measured) is refused (exit 2, the placeholders listed) unless --allow-draft, which
+/// names them on stderr and on the report's banner.
+///
 /// Exit codes: 0 = PASS, MARGINAL or NOT JUDGED (no criteria given, complete run);
 /// 1 = FAIL (a criterion or a provenance requirement failed); 5 = INCOMPLETE (the run
 /// did not measure its whole plan; not graded); 2 = error (unreadable or invalid run
 /// directory or criteria file, a criterion naming a metric the run's sweep kind does
 /// not have); nothing is judged then.
 #[derive(clap::Args)]
-#[command(after_long_help = after_help())]
+#[command(after_long_help = after_help(), allow_negative_numbers = true)]
 pub struct Args {
     /// The run directory written by `tactbench run`.
     #[arg(value_name = "RUN_DIR")]
@@ -65,6 +70,10 @@ pub struct Args {
     /// with the largest reconstructed force sum).
     #[arg(long, value_name = "INDEX")]
     setpoint: Option<usize>,
+    /// Report a run measured with a draft sensor file (placeholder values never
+    /// measured): the placeholders are named on stderr and on the report's banner.
+    #[arg(long)]
+    allow_draft: bool,
 }
 
 /// Examples, the criteria format, the exit codes and the metric names (from the
@@ -105,6 +114,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // is live keeps the run INCOMPLETE either way.
     let lock = lock::probe(&args.run_dir)
         .with_context(|| format!("checking for a live writer of {}", args.run_dir.display()))?;
+    // A draft's forces are not measurements: refused before the (slower) analysis.
+    let manifest = Manifest::read(&args.run_dir)
+        .with_context(|| format!("analysing run directory {}", args.run_dir.display()))?;
+    let sensor = Sensor::from_toml_str(&manifest.sensor_toml, &manifest.sensor_path)
+        .with_context(|| format!("the sensor file recorded in {}", args.run_dir.display()))?;
+    let draft = sensor.draft_warning(std::path::Path::new(&manifest.sensor_path));
+    if !args.allow_draft {
+        sensor
+            .refuse_draft(std::path::Path::new(&manifest.sensor_path))
+            .with_context(|| format!("run {} was measured with a draft", args.run_dir.display()))?;
+    }
+    if let Some(w) = &draft {
+        eprintln!("warning: {w}");
+    }
     let analysis = RunAnalysis::load(&args.run_dir, &options)
         .with_context(|| format!("analysing run directory {}", args.run_dir.display()))?;
     let report_options = ReportOptions {
@@ -182,6 +205,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
         println!("acceptance: {}", acceptance_line(v, &outcome.verdicts));
     }
     println!("verdict: {}", v.summary);
+    if let Some(w) = &draft {
+        eprintln!("warning: {w}");
+    }
     Ok(ExitCode::from(v.exit_code))
 }
 

@@ -74,12 +74,17 @@ Examples:
 /// on SIGKILL); a second writer is refused at once (exit 2) naming the holder's PID,
 /// host and start time.
 ///
+/// A draft sensor file (`sensor init`: `draft = true` with placeholders left) is
+/// refused (exit 2, the placeholders listed), also by --dry-run and --resume, unless
+/// --allow-draft: then its placeholders are printed at the start and the end of the
+/// run (the manifest keeps the sensor file's text, draft keys included).
+///
 /// Exit status: 0 when every setpoint of the run was measured, 3 when the run was
 /// aborted (device error, safety trip), 4 when interrupted (SIGINT, SIGTERM, SIGHUP),
 /// 2 on other errors (including a run directory another process is writing); the
 /// reason goes to stderr and into manifest.json.
 #[derive(clap::Args)]
-#[command(after_long_help = RUN_EXAMPLES)]
+#[command(after_long_help = RUN_EXAMPLES, allow_negative_numbers = true)]
 pub struct Args {
     /// Experiment plan (experiments/*.toml). Optional with --resume (taken from the
     /// run's manifest).
@@ -132,6 +137,11 @@ pub struct Args {
     /// writes, controller overhead per setpoint).
     #[arg(long)]
     timings: bool,
+    /// Run with a draft sensor file (`sensor init`) whose placeholder values were
+    /// never measured: its placeholders are printed at the start and the end; the
+    /// forces are not measurements.
+    #[arg(long)]
+    allow_draft: bool,
     /// No progress bar; one plain line per setpoint on stderr instead (the default
     /// when stderr is not a terminal: nohup, CI, a pipe).
     #[arg(long)]
@@ -271,6 +281,16 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         })?,
     };
     let sensor = Sensor::from_toml_str(&sensor_toml, &plan.sensor_path)?;
+    let draft = match sensor.draft_warning(&plan.sensor_path) {
+        Some(w) if a.allow_draft => {
+            eprintln!("warning: {w}");
+            Some(w)
+        }
+        _ => {
+            sensor.refuse_draft(&plan.sensor_path)?;
+            None
+        }
+    };
     // The camera calibration: from the command line (checked against the sensor now,
     // before anything is written), or on resume the one the run started with.
     let camera = match (&a.camera, &manifest) {
@@ -308,7 +328,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     plan.check_frames_on_disk(&sensor)?;
 
     if a.dry_run {
-        return dry_run(&a, &plan, &sensor, bench.as_ref(), limit);
+        return dry_run(&a, &plan, &sensor, bench.as_ref(), limit, draft.as_deref());
     }
 
     let bench = bench.context("give a bench: --bench bench.toml or --sim SCENE.toml")?;
@@ -612,6 +632,9 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             dir.display()
         );
     }
+    if let Some(w) = &draft {
+        eprintln!("warning: {w}");
+    }
     match summary.status {
         RunStatus::Completed => {
             eprintln!(
@@ -705,6 +728,7 @@ fn dry_run(
     sensor: &Sensor,
     bench: Option<&BenchConfig>,
     limit: Option<usize>,
+    draft: Option<&str>,
 ) -> anyhow::Result<ExitCode> {
     use std::fmt::Write as _;
     use std::io::Write as _;
@@ -875,9 +899,28 @@ fn dry_run(
     outln!("checks:");
     let mut ok = true;
     let area = runner::sensor_area_checks(plan, sensor);
-    for (pass, what) in input_checks.iter().chain(&area).chain(&report.checks) {
+    // The sensor file's plausibility (ranges, force grid over the markers): checked
+    // when it was loaded (a failure is an error, exit 2); shown here with the values.
+    let sensor_checks: Vec<(bool, String)> = sensor
+        .plausibility_lines()
+        .into_iter()
+        .map(|l| (true, format!("sensor {}: {l}", plan.sensor_path.display())))
+        .collect();
+    for (pass, what) in input_checks
+        .iter()
+        .chain(&sensor_checks)
+        .chain(&area)
+        .chain(&report.checks)
+    {
         ok &= pass;
         outln!("  [{}] {what}", if *pass { "ok" } else { "FAIL" });
+    }
+    match draft {
+        Some(w) => outln!("  [DRAFT] {w} (--allow-draft)"),
+        None => outln!(
+            "  [ok] sensor {}: measured (not a draft with placeholders)",
+            plan.sensor_path.display()
+        ),
     }
     outln!(
         "estimated duration: {:.0} s ({:.1} min); nothing moved, no device opened",

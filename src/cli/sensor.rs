@@ -4,15 +4,16 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
+use anyhow::{bail, Context};
 use clap::Subcommand;
-use tactbench::sensor::{MarkerColor, Roi};
+use tactbench::sensor::{MarkerColor, Roi, Sensor};
 use tactbench::vision::onboard::{parse_roi_arg, sensor_draft, DraftOptions, Scale};
 use tactbench::vision::Frame;
 
 /// Sensor files: write a draft for a new sensor.
 #[derive(Subcommand)]
 pub enum SensorCommand {
+    #[command(allow_negative_numbers = true)]
     Init(InitArgs),
 }
 
@@ -26,12 +27,21 @@ pub enum SensorCommand {
 /// [layers.markers] grid when the markers form a square-pitched rectangular grid
 /// aligned with the image (else none: the layout is the reference frame's), and a
 /// force grid over the markers. What a frame cannot tell (elastomer, marker depth,
-/// mm_per_px without a scale) is written as a placeholder marked `# TODO: measure`.
+/// mm_per_px without a scale) is written as a placeholder marked `# TODO: measure`,
+/// and the file starts with `draft = true` and `placeholders = [...]` naming those
+/// keys: `track` uses a draft as it is, `reconstruct`, `run` and `report` refuse it
+/// until the placeholders are measured (or run with --allow-draft).
+///
+/// --pitch-mm and --mm-per-px are checked against the sensor file's plausible ranges
+/// (docs/limits.md), and the draft is loaded back before it is written: what
+/// `sensor init` writes, its own loader reads. An existing --out is not replaced
+/// without --force.
 ///
 /// --roi syntax: circle:X,Y,R or rect:X0,Y0,X1,Y1 (pixels, pixel centres at integers).
 ///
-/// Exit status: 0 written; 2 on errors: unreadable frame, invalid --roi (outside the
-/// image, zero size) or scale, a blank or saturated frame, no marker of that kind.
+/// Exit status: 0 written; 2 on errors: --out exists (without --force), unreadable
+/// frame, invalid --roi (outside the image, zero size) or scale, a blank or saturated
+/// frame, no marker of that kind.
 #[derive(clap::Args)]
 pub struct InitArgs {
     /// The unloaded reference frame.
@@ -50,9 +60,13 @@ pub struct InitArgs {
     /// The camera's scale, mm per pixel.
     #[arg(long, value_name = "S")]
     mm_per_px: Option<f64>,
-    /// Output sensor file (the draft).
+    /// Output sensor file (the draft). An existing file is not replaced (it may be a
+    /// measured sensor file) unless --force.
     #[arg(long, value_name = "sensor.toml")]
     out: PathBuf,
+    /// Replace --out when it exists.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -75,6 +89,13 @@ pub fn run(cmd: SensorCommand) -> anyhow::Result<ExitCode> {
 }
 
 fn init(args: InitArgs) -> anyhow::Result<ExitCode> {
+    // Before any work: a measured sensor file is not replaced by a draft unasked.
+    if args.out.exists() && !args.force {
+        bail!(
+            "{} exists: sensor init does not replace a file (it may be a measured sensor file); give another --out, or --force to replace it",
+            args.out.display()
+        );
+    }
     let color = match args.color {
         ColorArg::Dark => MarkerColor::Dark,
         ColorArg::Bright => MarkerColor::Bright,
@@ -96,7 +117,36 @@ fn init(args: InitArgs) -> anyhow::Result<ExitCode> {
     let draft = sensor_draft(&frame.view(), &options, &args.reference)?;
     eprintln!("{}: {}", args.reference.display(), draft.summary());
     let text = draft.to_toml(&args.reference.display().to_string());
-    std::fs::write(&args.out, text).with_context(|| format!("writing {}", args.out.display()))?;
-    eprintln!("-> {}", args.out.display());
+    // What we write, our loader must read (with the same ranges).
+    Sensor::from_toml_str(&text, &args.out)
+        .context("the draft does not load with the sensor-file checks; nothing written")?;
+    write_out(&args.out, &text, args.force)?;
+    eprintln!(
+        "-> {} (a draft: placeholders {})",
+        args.out.display(),
+        draft.placeholders().join(", ")
+    );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Writes the draft; without `force` only as a new file (never over one created
+/// meanwhile).
+fn write_out(out: &std::path::Path, text: &str, force: bool) -> anyhow::Result<()> {
+    use std::io::Write as _;
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true);
+    if force {
+        options.create(true).truncate(true);
+    } else {
+        options.create_new(true);
+    }
+    let mut f = options.open(out).with_context(|| {
+        if out.exists() && !force {
+            format!("{} exists (give --force to replace it)", out.display())
+        } else {
+            format!("writing {}", out.display())
+        }
+    })?;
+    f.write_all(text.as_bytes())
+        .with_context(|| format!("writing {}", out.display()))
 }

@@ -43,12 +43,23 @@ use tactbench::vision::{
 ///
 /// A summary of lost, merged and outlier markers is printed on stderr.
 ///
+/// A frame that cannot be read (missing, undecodable, another size than the sensor's
+/// [camera], past the frame-size cap) does not lose the batch: every other frame is
+/// tracked and written, the bad one is left out of the CSV and named on stderr with
+/// the reason (both sizes for a size mismatch), and the exit status is 1.
+///
+/// Drafts: a sensor file from `sensor init` (`draft = true`) is used as it is (tracking
+/// needs only its geometry); its placeholders are named on stderr, and when
+/// `camera.mm_per_px` is one of them the mm columns are in its placeholder unit.
+///
 /// Exit status: 0 when every frame tracked; 1 when a frame lost more than
 /// --max-lost-fraction of the sensor's markers (lost or merged, reference-missing ones
 /// included: typically the wrong sensor file, a blank or over-exposed frame, or another
-/// scene) — the CSV is still written and each failing frame is named on stderr; 2 on
-/// errors (unreadable or mismatched files, no marker in the reference).
+/// scene) or could not be read — the CSV is still written with every other frame and
+/// each failing frame is named on stderr; 2 on errors (unreadable or mismatched sensor
+/// file or reference, no marker in the reference, no frame readable: nothing written).
 #[derive(clap::Args)]
+#[command(allow_negative_numbers = true)]
 pub struct Args {
     /// Sensor description (sensor.toml: layers, marker grids, camera mapping).
     #[arg(long, value_name = "S.toml")]
@@ -105,6 +116,22 @@ enum Mode {
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
+    if !sensor.placeholders().is_empty() {
+        let scale = sensor
+            .placeholders()
+            .iter()
+            .any(|k| k == "camera.mm_per_px");
+        eprintln!(
+            "note: {} is a draft: its placeholders ({}) are not used for tracking{}",
+            args.sensor.display(),
+            sensor.placeholders().join(", "),
+            if scale {
+                "; camera.mm_per_px is a placeholder, so the mm columns are in its placeholder unit (px at mm_per_px = 1), not mm"
+            } else {
+                ""
+            }
+        );
+    }
     let mapping = match &args.camera {
         None => PixelMapping::Linear(sensor.camera),
         Some(path) => PixelMapping::Calibrated(CameraCalibration::from_path(path, &sensor)?),
@@ -181,8 +208,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut mixed_noted = false;
     // Frames that lost too many markers: (path, lost or merged).
     let mut failed: Vec<(String, usize)> = Vec::new();
+    // Frames that could not be read or tracked: (path, why); left out of the CSV.
+    let mut unread: Vec<(String, String)> = Vec::new();
     for path in &args.frames {
-        let image = load_frame(path, &sensor.camera)?;
+        let image = match load_frame(path, &sensor.camera) {
+            Ok(i) => i,
+            Err(e) => {
+                eprintln!("error: {e}: frame left out, the others are tracked");
+                unread.push((path.display().to_string(), e.to_string()));
+                continue;
+            }
+        };
         let view = image.view();
         check_layers(&view, layers()).with_context(|| format!("frame {}", path.display()))?;
         if view.bit_depth() != reference_bits && !mixed_noted {
@@ -193,7 +229,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 view.bit_depth()
             );
         }
-        let tracks = tracker.track(&view)?;
+        let tracks = match tracker.track(&view) {
+            Ok(t) => t,
+            Err(e) => {
+                eprintln!(
+                    "error: {}: {e}: frame left out, the others are tracked",
+                    path.display()
+                );
+                unread.push((path.display().to_string(), e.to_string()));
+                continue;
+            }
+        };
         let c = StatusCounts::of(tracks, missing);
         let gone = c.lost + c.merged;
         if expected > 0 && gone as f64 > args.max_lost_fraction * expected as f64 {
@@ -215,6 +261,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         total.outlier += c.outlier;
         frames.push((path.to_string_lossy().into_owned(), tracks.to_vec()));
     }
+    if frames.is_empty() {
+        anyhow::bail!(
+            "none of the {} frame(s) could be read, nothing written: {}",
+            unread.len(),
+            unread
+                .iter()
+                .map(|(_, why)| why.as_str())
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
     write_tracks_mapped(&args.out, &sensor, tracker.reference(), &frames, &mapping)?;
     eprintln!(
         "{} frames: {} ok, {} lost, {} merged, {} outlier marker measurements -> {}",
@@ -225,8 +282,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         total.outlier,
         args.out.display()
     );
+    for (_, why) in &unread {
+        eprintln!("error: not in the CSV: {why}");
+    }
+    if !unread.is_empty() {
+        eprintln!(
+            "{} of {} frames could not be read and are not in {}; the other {} are",
+            unread.len(),
+            args.frames.len(),
+            args.out.display(),
+            frames.len()
+        );
+    }
     if failed.is_empty() {
-        return Ok(ExitCode::SUCCESS);
+        return Ok(if unread.is_empty() {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::from(1)
+        });
     }
     for (path, gone) in &failed {
         eprintln!(

@@ -242,6 +242,17 @@ pub fn render(
         escape(&title)
     );
     banner(&mut o, verdict);
+    // A run measured with a draft sensor file (`report --allow-draft`): said first.
+    if let Some(w) = run
+        .sensor
+        .draft_warning(std::path::Path::new(&m.sensor_path))
+    {
+        let _ = writeln!(
+            o,
+            "<p class=\"draft\" style=\"border:3px solid #b60;padding:.5em\"><b>DRAFT SENSOR FILE</b>: {}; the forces are not measurements.</p>",
+            escape(&w)
+        );
+    }
     let _ = writeln!(o, "<h1>{}</h1>", escape(&title));
     super::headline::headline(&mut o, metrics, verdicts, run.plan.force_unit);
 

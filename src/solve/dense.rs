@@ -704,10 +704,15 @@ fn tikhonov_lambda(
         fmt_g(lo),
         fmt_g(hi)
     ));
-    if k == 0 || k == LAMBDA_GRID_POINTS - 1 {
+    // At the edge: on the first or last grid point, or refined to within one grid
+    // step of the range's end.
+    let step = (hi / lo).ln() / (LAMBDA_GRID_POINTS - 1) as f64;
+    let low_edge = k == 0 || (l / lo).ln() < step;
+    let high_edge = k == LAMBDA_GRID_POINTS - 1 || (hi / l).ln() < step;
+    if low_edge || high_edge {
         notes.push(format!(
             "{WARNING_PREFIX}tikhonov: the {name} search for λ ended on the {} boundary of its range [{}, {}] mm/N (λ = {} mm/N): the optimum may lie outside it; give --lambda <mm/N> to choose another",
-            if k == 0 { "lower" } else { "upper" },
+            if low_edge { "lower" } else { "upper" },
             fmt_g(lo),
             fmt_g(hi),
             fmt_g(l)

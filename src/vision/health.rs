@@ -329,6 +329,14 @@ impl ReferenceHealth {
 
 impl fmt::Display for ReferenceHealth {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.expected() == 0 {
+            // No layer has a grid: nothing to count against (not "0 of 0 (100 %)").
+            let blobs: usize = self.layers.iter().map(|l| l.blobs).sum();
+            return write!(
+                f,
+                "{blobs} marker blob(s) found; no layer has a [layers.markers] grid, so the sensor file gives no count to check them against"
+            );
+        }
         write!(
             f,
             "{} of {} markers found ({:.0} %)",

@@ -256,18 +256,17 @@ pub fn load_frame(path: &Path, camera: &CameraMapping) -> Result<Frame, VisionEr
     Frame::from_dynamic(image, path)
 }
 
-/// Opens and decodes an image file (format guessed from the content).
+/// Opens and decodes an image file (format guessed from the content), its size
+/// checked from the header first ([`crate::frame_size`]).
 fn decode(path: &Path) -> Result<DynamicImage, VisionError> {
-    let reader = image::ImageReader::open(path).map_err(|source| VisionError::Open {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let reader = reader
-        .with_guessed_format()
-        .map_err(|source| VisionError::Open {
+    use crate::frame_size::{open_capped, FrameSizeError};
+    let reader = open_capped(path).map_err(|e| match e {
+        FrameSizeError::Open { path, source } => VisionError::Open { path, source },
+        e => VisionError::Decode {
             path: path.to_path_buf(),
-            source,
-        })?;
+            message: e.to_string(),
+        },
+    })?;
     reader.decode().map_err(|e| VisionError::Decode {
         path: path.to_path_buf(),
         message: e.to_string(),

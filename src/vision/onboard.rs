@@ -10,7 +10,9 @@
 //! [`SensorDraft::to_toml`] text loads with [`Sensor::from_toml_str`]; what a frame
 //! cannot tell (elastomer, layer depth, the force grid, and `mm_per_px` without a
 //! known pitch or scale) is written with a stated placeholder and a `# TODO: measure`
-//! comment naming what to put there.
+//! comment naming what to put there, and the file says so to the program: it starts
+//! with `draft = true` and `placeholders = [...]` naming those keys
+//! ([`SensorDraft::placeholders`]; see `crate::sensor` for what a draft may be used for).
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -20,7 +22,10 @@ use thiserror::Error;
 use super::detect::{detect, DetectConfig};
 use super::image::FrameView;
 use super::{Pixels, VisionError};
-use crate::sensor::{CameraMapping, Elastomer, Grid, Layer, MarkerColor, ModelKind, Roi, Sensor};
+use crate::sensor::{
+    fmt_value, CameraMapping, Elastomer, Grid, KeyRange, Layer, MarkerColor, ModelKind, Roi,
+    Sensor, MARKER_PITCH_MM, MM_PER_PX,
+};
 
 /// What sets the draft's `mm_per_px`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -97,15 +102,15 @@ pub enum DraftError {
         /// What is allowed.
         allowed: String,
     },
-    /// A scale option is not a positive number.
-    #[error("{flag} {value} is invalid: must be a finite number > 0 ({unit})")]
+    /// A scale option is not a positive number in the range the sensor file takes.
+    #[error("{flag} {value} is invalid: {allowed}")]
     Scale {
         /// `--pitch-mm` or `--mm-per-px`.
         flag: &'static str,
-        /// The value.
-        value: f64,
-        /// Its unit.
-        unit: &'static str,
+        /// The value (with its unit).
+        value: String,
+        /// What is allowed: the sensor file's range for the key it sets.
+        allowed: String,
     },
     /// Detection failed otherwise.
     #[error(transparent)]
@@ -191,13 +196,37 @@ pub fn sensor_draft(
                 allowed,
             })?;
     }
-    let (flag, value, unit) = match options.scale {
-        Scale::PitchMm(v) => ("--pitch-mm", v, "mm"),
-        Scale::MmPerPx(v) => ("--mm-per-px", v, "mm/px"),
-        Scale::Unknown => ("", 1.0, ""),
+    // The loader's ranges: the draft must load (`layers.markers.pitch_mm`,
+    // `camera.mm_per_px`).
+    let scale_error = |flag: &'static str, value: f64, range: &KeyRange, extra: String| {
+        let allowed = if value.is_finite() && value > 0.0 {
+            range.check(value).err().unwrap_or_default()
+        } else {
+            format!(
+                "must be a finite number > 0 {}, within {} … {} {}",
+                range.unit, range.lo, range.hi, range.unit
+            )
+        };
+        DraftError::Scale {
+            flag,
+            value: format!("{} {}", fmt_value(value), range.unit),
+            allowed: format!("{allowed}{extra}"),
+        }
     };
-    if !(value.is_finite() && value > 0.0) {
-        return Err(DraftError::Scale { flag, value, unit });
+    let plausible = |v: f64, range: &KeyRange| v.is_finite() && v > 0.0 && range.check(v).is_ok();
+    match options.scale {
+        Scale::PitchMm(v) if !plausible(v, &MARKER_PITCH_MM) => {
+            return Err(scale_error(
+                "--pitch-mm",
+                v,
+                &MARKER_PITCH_MM,
+                String::new(),
+            ))
+        }
+        Scale::MmPerPx(v) if !plausible(v, &MM_PER_PX) => {
+            return Err(scale_error("--mm-per-px", v, &MM_PER_PX, String::new()))
+        }
+        _ => {}
     }
     check_frame_levels(view, options.roi_px.as_ref(), path)?;
 
@@ -254,12 +283,37 @@ pub fn sensor_draft(
     let (mm_per_px, scale_source) = match options.scale {
         Scale::PitchMm(p) => {
             let pitch_px = grid.map_or(spacing_px, |g| g.pitch_px);
+            let k = p / pitch_px;
+            if !plausible(k, &MM_PER_PX) {
+                return Err(DraftError::Scale {
+                    flag: "--pitch-mm",
+                    value: format!("{} mm", fmt_value(p)),
+                    allowed: format!(
+                        "with the measured pitch of {pitch_px:.3} px it gives mm_per_px = {k:e} mm/px, {}",
+                        MM_PER_PX.check(k).err().unwrap_or_default()
+                    ),
+                });
+            }
             (
-                Some(p / pitch_px),
+                Some(k),
                 format!("from --pitch-mm {p}: {p} mm / {pitch_px:.3} px measured pitch"),
             )
         }
-        Scale::MmPerPx(s) => (Some(s), format!("--mm-per-px {s}")),
+        Scale::MmPerPx(s) => {
+            let pitch_px = grid.map_or(spacing_px, |g| g.pitch_px);
+            let pitch = pitch_px * s;
+            if !plausible(pitch, &MARKER_PITCH_MM) {
+                return Err(DraftError::Scale {
+                    flag: "--mm-per-px",
+                    value: format!("{} mm/px", fmt_value(s)),
+                    allowed: format!(
+                        "with the measured pitch of {pitch_px:.3} px it gives a marker pitch of {pitch:e} mm, {}",
+                        MARKER_PITCH_MM.check(pitch).err().unwrap_or_default()
+                    ),
+                });
+            }
+            (Some(s), format!("--mm-per-px {s}"))
+        }
         Scale::Unknown => (None, String::new()),
     };
     Ok(SensorDraft {
@@ -352,6 +406,7 @@ fn probe_sensor(color: MarkerColor, w: u32, h: u32, roi_px: Option<Roi>) -> Sens
             height_px: h,
             roi_px,
         },
+        draft: None,
     }
 }
 
@@ -584,18 +639,51 @@ impl SensorDraft {
         s
     }
 
+    /// The keys the draft fills with placeholders (its `placeholders` list): the
+    /// elastomer and the marker depth always; `mm_per_px` and the force grid (in
+    /// pixels then) without a scale.
+    pub fn placeholders(&self) -> Vec<&'static str> {
+        let mut keys = vec![
+            "elastomer.young_modulus_kpa",
+            "elastomer.poisson_ratio",
+            "elastomer.thickness_mm",
+            "layers[0].depth_mm",
+        ];
+        if self.mm_per_px.is_none() {
+            keys.extend([
+                "camera.mm_per_px",
+                "force_grid.pitch_mm",
+                "force_grid.origin_mm",
+            ]);
+        }
+        keys
+    }
+
     /// The sensor-file draft (see the module docs); `reference` names the frame in
-    /// the header comment.
+    /// the header comment. It starts with `draft = true` and the `placeholders` list
+    /// ([`SensorDraft::placeholders`]).
     pub fn to_toml(&self, reference: &str) -> String {
         let mut s = String::new();
         let todo = "# TODO: measure";
+        let keys: Vec<String> = self
+            .placeholders()
+            .iter()
+            .map(|k| format!("{k:?}"))
+            .collect();
         let _ = writeln!(
             s,
             "# Sensor file draft written by `tactbench sensor init` from {reference}\n\
              # ({} {} markers found; see docs/real-sensors.md). Every value marked\n\
-             # `{todo}` is a placeholder that a frame cannot tell: replace it.\n",
+             # `{todo}` is a placeholder that a frame cannot tell: replace it.\n\
+             # `draft = true` and `placeholders` say so to the program: `track` uses the\n\
+             # draft as it is; `reconstruct`, `run` and `report` refuse it (or run with\n\
+             # --allow-draft) until every key in `placeholders` is measured and removed\n\
+             # from the list; remove `draft` and `placeholders` with the last one.\n\
+             draft = true\n\
+             placeholders = [{}]\n",
             self.markers_px.len(),
-            self.color
+            self.color,
+            keys.join(", ")
         );
         let _ = writeln!(
             s,
@@ -676,7 +764,11 @@ impl SensorDraft {
             s,
             "\n[force_grid]                     # TODO: choose: where forces are reconstructed (here: the markers' extent every two spacings{})\n\
              nx = {nx}\nny = {ny}\npitch_mm = {:.6}\norigin_mm = [{:.6}, {:.6}]\n",
-            if scale.is_none() { ", in px until mm_per_px is known" } else { "" },
+            if scale.is_none() {
+                ", in px until mm_per_px is known: then multiply pitch_mm and origin_mm by it"
+            } else {
+                ""
+            },
             pitch_px * k,
             origin[0],
             origin[1]

@@ -166,6 +166,11 @@ pub const MAX_FRAME_BYTES: u64 = 100_000_000_000;
 /// Most contact positions in `sweep.positions_mm`.
 pub const MAX_POSITIONS: usize = 10_000;
 
+/// Largest `settle.timeout_s`, s: ten minutes per setpoint. A settle that has not
+/// settled by then will not (the row is flagged anyway); a larger value is a typo (ms
+/// for s, an extra digit) that would hold every unsettled setpoint for hours.
+pub const MAX_SETTLE_TIMEOUT_S: f64 = 600.0;
+
 /// Retract height above the surface assumed by the plan's own duration estimate
 /// (the bench file's `geometry.clearance_mm` default), mm.
 pub const DEFAULT_CLEARANCE_MM: f64 = 1.0;

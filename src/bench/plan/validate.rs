@@ -421,11 +421,23 @@ impl RawPlan {
                 ),
                 fu,
             )?),
-            timeout_s: c.positive(
-                "settle.timeout_s",
-                defaults.take(st.timeout_s, DEFAULT_TIMEOUT_S, "settle.timeout_s", secs),
-                "s",
-            )?,
+            timeout_s: {
+                let t = c.positive(
+                    "settle.timeout_s",
+                    defaults.take(st.timeout_s, DEFAULT_TIMEOUT_S, "settle.timeout_s", secs),
+                    "s",
+                )?;
+                if t > MAX_SETTLE_TIMEOUT_S {
+                    return Err(c.invalid(
+                        "settle.timeout_s",
+                        format!("{t} s"),
+                        format!(
+                            "must be at most {MAX_SETTLE_TIMEOUT_S} s (ten minutes: a force that has not settled by then will not; the row is flagged at the timeout)"
+                        ),
+                    ));
+                }
+                t
+            },
             dwell_s: c.non_negative(
                 "settle.dwell_s",
                 defaults.take(st.dwell_s, DEFAULT_DWELL_S, "settle.dwell_s", secs),

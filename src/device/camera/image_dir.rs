@@ -83,7 +83,10 @@ impl ImageDirCamera {
 
     fn load(&self, index: usize) -> DeviceResult<CameraFrame> {
         let path = &self.files[index];
-        let image = image::open(path)
+        // Its size checked from the header before decoding (crate::frame_size).
+        let image = crate::frame_size::open_capped(path)
+            .map_err(|e| e.to_string())
+            .and_then(|r| r.decode().map_err(|e| e.to_string()))
             .map_err(|e| {
                 DeviceError::new(
                     ErrorKind::Protocol,

@@ -70,13 +70,28 @@ pub(super) fn choose_lambda(
                     }
                 }
             }
-            (
-                best.1,
-                format!(
-                    "λ = {:e} mm/N at the L-curve corner (curvature {:.3}) of the periodic problem",
-                    best.1, best.0
-                ),
-            )
+            let note = format!(
+                "λ = {:e} mm/N at the L-curve corner (curvature {:.3}) of the periodic problem",
+                best.1, best.0
+            );
+            // The corner is looked for between the scan's ends (curvature needs both
+            // neighbours): its first or last interior point is the range's edge.
+            let at_edge = best.1 <= grid[1] || best.1 >= grid[LAMBDA_SCAN - 2];
+            if at_edge {
+                (
+                    best.1,
+                    format!(
+                        "{}{note}, on the {} boundary of the scanned range [{:.3e}, {:.3e}] mm/N: \
+                         not a corner inside it; set λ by hand (--lambda) if the forces look wrong",
+                        super::super::WARNING_PREFIX,
+                        if best.1 <= grid[1] { "lower" } else { "upper" },
+                        grid[0],
+                        grid[LAMBDA_SCAN - 1]
+                    ),
+                )
+            } else {
+                (best.1, note)
+            }
         }
         _ => {
             let gcv = |l: f64| {
@@ -108,7 +123,8 @@ pub(super) fn choose_lambda(
             }
             let l = (0.5 * (x0 + x1)).exp();
             let note = format!("λ = {l:e} mm/N by GCV on the given frame, periodic problem");
-            if ib == 0 || ib == LAMBDA_SCAN - 1 {
+            let step = (hi - lo) / (LAMBDA_SCAN - 1) as f64;
+            if ib == 0 || ib == LAMBDA_SCAN - 1 || l.ln() - lo < step || hi - l.ln() < step {
                 // The search ended on its boundary: the choice is not a GCV minimum.
                 (
                     l,
