@@ -111,6 +111,21 @@ def without_added_options(new_cell, old_cell):
     return added if i == len(words) and added else None
 
 
+def with_added_items(new_cell, old_cell):
+    """The items `new_cell` adds to the list `old_cell`, or None: a first cell that lists
+    names (`` `a`, `b`, `c` ``) is kept when the new cell lists every old name in the
+    same order with names added (metrics added since, such as `run.failed_rows`)."""
+    split = lambda c: [x.strip() for x in c.split(",")]
+    old, new = split(old_cell), split(new_cell)
+    if len(old) < 2 or not all(x.startswith("`") and x.endswith("`") for x in old + new):
+        return None
+    it = iter(new)
+    if not all(any(o == n for n in it) for o in old):
+        return None
+    added = [n for n in new if n not in old]
+    return added or None
+
+
 def table_first_cells(lines):
     out = []
     for l in lines:
@@ -150,7 +165,12 @@ def main():
     for c in table_first_cells(old):
         if c in new_cells:
             continue
-        grown = [(n, a) for n in new_cells for a in [without_added_options(n, c)] if a]
+        grown = [
+            (n, a)
+            for n in new_cells
+            for a in [without_added_options(n, c) or with_added_items(n, c)]
+            if a
+        ]
         if grown:
             widened.append((c, grown[0][1]))
         else:
@@ -181,7 +201,7 @@ def main():
     for l in missing:
         print(f"  ~ {l}")
     for c, added in widened:
-        print(f"kept, with options added since: | {c} | + {' '.join(added)}")
+        print(f"kept, with options or items added since: | {c} | + {' '.join(added)}")
     for p in sorted(pending):
         print(f"pending (added by another branch of this release): {p}")
     for fl in failures:

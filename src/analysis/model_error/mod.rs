@@ -106,9 +106,9 @@ use crate::solve::{self, FrameSolver, Method, Problem, SolverConfig};
 use crate::units;
 use crate::vision::{detect, DetectConfig, Frame, MarkerStatus, TrackConfig, TrackMode, Tracker};
 
-use cases::{make_data, Data};
 #[cfg(test)]
 use cases::patch_centre_mm;
+use cases::{make_data, Data};
 pub use cases::{sensor_at_thickness, CameraEffects};
 pub use output::MODEL_ERROR_COLUMNS;
 use solving::{build_operators, solve_row, time_group};
