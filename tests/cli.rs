@@ -183,6 +183,13 @@ fn regularised_solvers_stay_finite_and_accurate_on_noisy_single_layer() {
         &["--solver", "tsvd", "--rank", "auto"],
     ] {
         let out = reconstruct(dir.path(), args);
+        if args[1] == "pinv" {
+            // pinv's amplified noise is past the elastomer's load bound (issue 33):
+            // refused (exit 1, NaN rows) instead of written as forces.
+            pinv_is_refused_past_the_load_bound(&out);
+            errors.push((args[1], f64::INFINITY));
+            continue;
+        }
         assert!(out.status.success(), "{args:?}: {}", util::stderr(&out));
         let f = read_forces(&dir.path().join("f.csv"));
         assert!(f.iter().all(|v| v.is_finite()), "{args:?}");
@@ -225,6 +232,11 @@ fn regularised_solvers_recover_a_smooth_press_on_noisy_single_layer() {
         &["--solver", "tsvd"],
     ] {
         let out = reconstruct(dir.path(), args);
+        if args[1] == "pinv" {
+            pinv_is_refused_past_the_load_bound(&out);
+            report.push(("pinv".into(), f64::INFINITY, f64::NAN, f64::NAN));
+            continue;
+        }
         assert!(out.status.success(), "{args:?}: {}", util::stderr(&out));
         let f = read_forces(&dir.path().join("f.csv"));
         assert!(f.iter().all(|v| v.is_finite()), "{args:?}");
@@ -453,4 +465,15 @@ fn camera_index_without_the_v4l_feature_says_how_to_rebuild() {
         assert!(err.contains("libclang-dev"), "{args:?}: {err}");
     }
     assert!(!dir.path().join("f.png").exists());
+}
+
+/// pinv on a noisy single-layer frame: the amplified noise is past what the elastomer
+/// can carry, so `reconstruct` names the bound and exits 1 (issue 33, item 4).
+fn pinv_is_refused_past_the_load_bound(out: &std::process::Output) {
+    assert_eq!(out.status.code(), Some(1), "{}", util::stderr(out));
+    assert!(
+        util::stderr(out).contains("past what the elastomer can carry"),
+        "{}",
+        util::stderr(out)
+    );
 }

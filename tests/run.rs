@@ -1652,11 +1652,8 @@ fn implausible_force_sums_are_flagged_and_persistent_ones_stop_the_run() {
     let tmp = tempfile::tempdir().unwrap();
     let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
         .unwrap()
-        .replace(
-            "young_modulus_kpa = 1000.0",
-            "young_modulus_kpa = 1000000.0",
-        );
-    let sensor_path = write(tmp.path(), "sensor_pa.toml", &sensor);
+        .replace("young_modulus_kpa = 1000.0", "young_modulus_kpa = 40.0");
+    let sensor_path = write(tmp.path(), "sensor_unfitted.toml", &sensor);
     let plan = short_fig7_plan(
         tmp.path(),
         sensor_path.to_str().unwrap(),

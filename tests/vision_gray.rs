@@ -428,6 +428,7 @@ fn sensor_init_drafts_from_gray8_and_gray16_frames_like_rgb_and_refuses_colour()
                     color,
                     "--pitch-mm",
                     "1.5",
+                    "--force",
                 ]);
                 assert!(
                     o.status.success(),

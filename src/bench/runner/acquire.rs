@@ -605,6 +605,12 @@ impl Runner<'_, '_, '_, '_> {
             "{finding} (ratio {ratio:.3e}, [quality] force_ratio_min {} .. force_ratio_max {})",
             q.force_ratio_min, q.force_ratio_max
         );
+        // A row the tracking gates already flagged keeps that quality: its markers were
+        // occluded or lost, which explains the force; the finding is still journalled,
+        // and it does not count towards stopping the run.
+        if quality == RowQuality::Flagged {
+            return (quality, Some(text));
+        }
         (self.events)(&RunEvent::Warning {
             index: sp.index,
             message: format!(
