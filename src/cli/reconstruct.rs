@@ -260,7 +260,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             fmt_num(sum[2])
         );
         let load = total_load(&f);
-        if !(load <= max_load) {
+        if load.is_nan() || load > max_load {
             eprintln!(
                 "reconstruct: error{label}: the force field carries sum |f| = {} N (|F_sum| = {} N), past what the elastomer can carry: E x force-grid area = {} N/mm^2 x {} mm^2 = {} N (docs/limits.md); its rows are written as NaN. Likely {}",
                 fmt_num(load),

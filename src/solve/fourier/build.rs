@@ -308,11 +308,10 @@ pub(super) fn kernel_spectra(
     for (slot, lp) in fine.layers.iter().enumerate() {
         let layer = &sensor.layers[slots.layer_of_slot[slot]];
         let grid = layer.markers.map(|m| m.grid).unwrap_or(fg);
-        let mut lo = [0i64; 2];
-        for ax in 0..2 {
+        let lo: [i64; 2] = std::array::from_fn(|ax| {
             let span = a * (fine.nf[ax] - 1) + b * (lp.nm[ax] - 1) + 1;
-            lo[ax] = -((a * (fine.nf[ax] - 1)) as i64) - ((fine.period[ax] - span) / 2) as i64;
-        }
+            -((a * (fine.nf[ax] - 1)) as i64) - ((fine.period[ax] - span) / 2) as i64
+        });
         let sampling = kernel::LayerSampling {
             offset_mm: [
                 grid.origin_mm[0] - fg.origin_mm[0],
