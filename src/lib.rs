@@ -12,6 +12,7 @@ pub mod bench;
 pub mod clock;
 pub mod config;
 pub mod device;
+pub mod fit;
 pub mod formats;
 pub mod frame_size;
 pub mod live;
