@@ -8,6 +8,7 @@ mod bench;
 mod camera;
 mod cli;
 mod compare;
+mod docs_figures;
 mod fourier;
 mod ft;
 mod ft_net_bota;
