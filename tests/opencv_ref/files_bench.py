@@ -88,7 +88,7 @@ def main():
                 files.append(d)
         reference = sources[0]
         sensor = tmp / "tactip.toml"
-        subprocess.run([a.bin, "sensor", "init", str(reference), *INIT, "--out", str(sensor)],
+        subprocess.run([a.bin, "sensor", "init", "--reference", str(reference), *INIT, "--out", str(sensor)],
                        check=True, capture_output=True)
         # The draft's placeholders do not matter to tracking; drafts track as they are.
         print(f"{len(files)} files of {sources[0].parent}, load average {os.getloadavg()[0]:.1f} "
