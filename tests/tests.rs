@@ -11,6 +11,7 @@ mod compare;
 mod fourier;
 mod ft;
 mod ft_net_bota;
+mod import;
 mod inputs;
 mod layer;
 mod live;
