@@ -12,6 +12,7 @@ mod docs_figures;
 mod fourier;
 mod ft;
 mod ft_net_bota;
+mod import;
 mod inputs;
 mod layer;
 mod live;
