@@ -3,7 +3,8 @@
 //! [`plot`] is the shared figure output used by reports and studies: one drawing
 //! routine per figure, written to PNG and SVG from the same code. [`figures`] holds the
 //! report's figures, [`html`] the HTML page, [`acceptance`] the criteria file and its
-//! verdicts, [`verdict`] the run's overall outcome and `verdict.json`. [`write_report`]
+//! verdicts, [`verdict`] the run's overall outcome and `verdict.json`, [`fit_page`] the
+//! `fit.html` page of a sensor-model fit. [`write_report`]
 //! puts them together for one analysed run directory:
 //!
 //! ```text
@@ -24,6 +25,7 @@ pub mod compare;
 pub mod evidence;
 pub mod figures;
 pub mod figures_metrology;
+pub mod fit_page;
 pub mod force_map;
 pub mod headline;
 pub mod html;
