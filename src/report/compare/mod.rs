@@ -28,12 +28,19 @@
 //! Each run gets a [`VerdictDoc`] as `report` would give it. The comparison's outcome
 //! is decided by the runs other than the baseline: FAIL if any FAILs; else INCOMPLETE
 //! if any is INCOMPLETE or the baseline itself did not measure its whole plan (the
-//! relative limits come from it; `--allow-partial` grades partial runs); else MARGINAL
-//! if any is MARGINAL; else PASS. Without criteria (or when no compared run has
+//! relative limits come from it; `--allow-partial` grades partial runs); else NOT
+//! JUDGED if any has a criterion nothing could judge (a fitted parameter without a
+//! fit, or not identifiable: never PASS on it); else MARGINAL if any is MARGINAL; else
+//! PASS. Without criteria (or when no compared run has
 //! anything to judge) the outcome is NOT JUDGED (exit 0), never PASS. The baseline's own
 //! criteria are shown, not counted; a baseline that FAILs its own absolute criteria is
 //! flagged on the banner and in `compare.csv` (`baseline_outcome`): relative limits
 //! taken from a failing run are no assurance.
+//!
+//! **Fitted parameters.** A run with a `fit.json` ([`RunFit`]) has its fitted,
+//! identifiable parameters as metrics `fit.<NAME>`: compared, tabled and written to
+//! `compare.csv` like the others (no better direction), trended in
+//! `plots/compare_fit` against the nominal value, and judged by criteria on them.
 //!
 //! **Like for like.** Runs of different sweep kinds, plans (SHA-256 of the plan text in
 //! the manifest) or sensors (SHA-256 of the sensor text) measure different things:
@@ -1116,12 +1123,13 @@ pub fn csv_bytes(c: &Comparison) -> Result<Vec<u8>, csv::Error> {
                 .map(|v| criterion_text(v))
                 .collect::<Vec<_>>()
                 .join("; ");
-            let outcome = verdicts
-                .iter()
-                .map(|v| v.outcome)
-                .max()
-                .map(|o| o.word().to_string())
-                .unwrap_or_default();
+            let outcome = if verdicts.is_empty() {
+                String::new()
+            } else {
+                Outcome::combine(verdicts.iter().map(|v| v.outcome))
+                    .word()
+                    .to_string()
+            };
             let worst = match (m.better, m.worst) {
                 (Some(_), Some(w)) => if w == i { "yes" } else { "no" }.to_string(),
                 _ => String::new(),
