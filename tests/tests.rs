@@ -3,6 +3,7 @@
 
 mod util;
 
+mod acceptance_fit;
 mod archive;
 mod bench;
 mod camera;
