@@ -64,6 +64,20 @@ pub struct MarkerObs {
     tier: u8,
 }
 
+impl MarkerObs {
+    /// A marker observation (reference position and displacement in px from the
+    /// sensor-frame origin at the run's scale).
+    pub fn new(layer: usize, marker: u64, ref_px: [f64; 2], u_px: [f64; 2]) -> Self {
+        MarkerObs {
+            layer,
+            marker,
+            ref_px,
+            u_px,
+            tier: 0,
+        }
+    }
+}
+
 /// One setpoint's data.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SetpointObs {
@@ -377,6 +391,26 @@ impl DisplacementRoute {
             }
         }
         Ok(route)
+    }
+
+    /// A route over observations made elsewhere (an import, a test), with the
+    /// tracking noise per layer (px).
+    pub fn from_observations(
+        indenter: IndenterShape,
+        nominal: &Sensor,
+        setpoints: Vec<SetpointObs>,
+        noise_px: Vec<f64>,
+    ) -> Result<Self, FitError> {
+        if noise_px.len() != nominal.layers.len()
+            || noise_px.iter().any(|v| !(v.is_finite() && *v > 0.0))
+        {
+            return Err(FitError::NotEnoughData(format!(
+                "tracking noise {noise_px:?} px: one finite value > 0 per layer"
+            )));
+        }
+        let mut r = Self::assemble(indenter, nominal, setpoints, noise_px, Vec::new())?;
+        r.noise_method = "given".into();
+        Ok(r)
     }
 
     fn assemble(

@@ -5,6 +5,7 @@
 //! least-squares engine, intervals and identifiability, cross-validation, `fitted.toml`)
 //! lives in the sibling files this module lists as they are built.
 
+pub mod crossval;
 pub mod displacement;
 pub mod doc;
 
