@@ -63,7 +63,7 @@ fn up_down_run(dir: &Path) {
         r.fz_n = r.target_normal_n;
         let loaded = sp.normal_n > 0.0;
         let down = sp.direction == Some(Direction::Down);
-        let e = if sp.trial % 2 == 0 { E } else { -E };
+        let e = if sp.trial.is_multiple_of(2) { E } else { -E };
         r.fsum_z_n = 0.95 * r.fz_n
             + 0.01
             + if loaded { e + P * position as f64 } else { 0.0 }

@@ -724,8 +724,8 @@ pub enum RunFit {
     Found {
         /// The file.
         path: PathBuf,
-        /// Its content.
-        doc: FitDoc,
+        /// Its content (boxed: a document is large next to a message).
+        doc: Box<FitDoc>,
     },
     /// No fit for this run: why, and how to make one.
     Missing(String),
@@ -765,13 +765,16 @@ impl RunFit {
             std::fs::read_to_string(&path).map_err(|e| err(format!("cannot read the fit: {e}")))?;
         let doc = FitDoc::from_json_str(&text).map_err(err)?;
         check_fit_doc(&doc).map_err(err)?;
-        Ok(RunFit::Found { path, doc })
+        Ok(RunFit::Found {
+            path,
+            doc: Box::new(doc),
+        })
     }
 
     /// The document, when there is one.
     pub fn doc(&self) -> Option<&FitDoc> {
         match self {
-            RunFit::Found { doc, .. } => Some(doc),
+            RunFit::Found { doc, .. } => Some(doc.as_ref()),
             RunFit::Missing(_) => None,
         }
     }
@@ -1368,7 +1371,7 @@ mod tests {
     fn fit_doc(params: Vec<(&str, ParamFit)>) -> RunFit {
         RunFit::Found {
             path: PathBuf::from("runs/b1/fit.json"),
-            doc: FitDoc {
+            doc: Box::new(FitDoc {
                 schema: crate::fit::FIT_SCHEMA.into(),
                 run: "runs/b1".into(),
                 sensor: "s.toml".into(),
@@ -1380,7 +1383,7 @@ mod tests {
                 residual_rms_px: Default::default(),
                 cross_validation: serde_json::Value::Null,
                 extra: Default::default(),
-            },
+            }),
         }
     }
 
@@ -1598,7 +1601,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("nope.json: cannot read the fit"), "{e}");
-        let RunFit::Found { doc, .. } = fit_doc(vec![
+        let RunFit::Found { doc: boxed, .. } = fit_doc(vec![
             (
                 "young_modulus_kpa",
                 param(104.0, Some([98.0, 111.0]), 100.0, "kPa"),
@@ -1607,6 +1610,7 @@ mod tests {
         ]) else {
             unreachable!()
         };
+        let doc = *boxed;
         let path = run.join(FIT_FILE);
         let write =
             |doc: &FitDoc| std::fs::write(&path, serde_json::to_string(doc).unwrap()).unwrap();
