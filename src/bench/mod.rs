@@ -10,6 +10,7 @@
 pub mod config;
 pub mod connect;
 pub mod control;
+pub mod events;
 pub mod guard;
 pub mod integrity;
 pub mod journal;
