@@ -819,7 +819,7 @@ pub fn read_force_sd(path: &Path) -> Result<Option<Vec<[f64; 3]>>, FormatError> 
             sd[k] = text
                 .parse::<f64>()
                 .ok()
-                .filter(|v| !v.is_infinite() && !(*v < 0.0))
+                .filter(|v| v.is_nan() || (v.is_finite() && *v >= 0.0))
                 .ok_or_else(|| FormatError::Value {
                     path: path.to_path_buf(),
                     line,
