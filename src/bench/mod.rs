@@ -11,6 +11,7 @@
 pub mod config;
 pub mod connect;
 pub mod control;
+pub mod events;
 pub mod guard;
 pub mod import;
 pub mod integrity;
