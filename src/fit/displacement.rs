@@ -928,7 +928,7 @@ mod tests {
         };
         let r = route(IndenterShape::Point, &s, vec![sp]);
         let u = r.predict_px(&ModelParams::nominal(&s, 0.0)).unwrap();
-        let rr = (x * x + y * y + z * z as f64).sqrt();
+        let rr = (x * x + y * y + z * z).sqrt();
         let c = 3.0 / (4.0 * std::f64::consts::PI * e);
         let ux = c
             * (x * z / rr.powi(3) * f[2]
