@@ -6,6 +6,8 @@
 //! hemisphere, loads 0.5–4 N with shear, "measured" = predicted at nominal values.
 //! Prints the mean time per eval for the half-space and for a 10 mm bonded layer
 //! (the latter also with the thickness changed every eval, which builds new tables).
+//! With a run directory argument (`-- RUN_DIR`), loads that run's displacement route
+//! against the run's own sensor file and prints its summary at the nominal values.
 
 use std::time::Instant;
 
@@ -73,6 +75,18 @@ fn time(label: &str, r: &DisplacementRoute, p: &ModelParams, vary_h: bool) {
 }
 
 fn main() {
+    if let Some(dir) = std::env::args().nth(1) {
+        let dir = std::path::PathBuf::from(dir);
+        let run = tactbench::analysis::RunData::load(&dir).expect("run directory");
+        let t0 = Instant::now();
+        let r = DisplacementRoute::from_run(&dir, &run.sensor).expect("route");
+        let p = ModelParams::nominal(&run.sensor, 0.0);
+        println!("loaded in {:.3} s", t0.elapsed().as_secs_f64());
+        println!("{:#}", r.summary(&p).expect("summary"));
+        let (per_sp, _) = r.residual_rms_px(&p).expect("rms");
+        println!("per setpoint residual RMS (px): {per_sp:?}");
+        return;
+    }
     let s = paper_sensor();
     let r = route(&s);
     time("half-space", &r, &ModelParams::nominal(&s, 0.0), false);
