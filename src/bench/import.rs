@@ -350,8 +350,8 @@ fn choose_reference(
 fn plan_toml(rows: &[WrenchRow], positions: &[[f64; 2]], o: &ImportOptions) -> String {
     let mut max_f = [0.0f64; 3];
     for r in rows {
-        for k in 0..3 {
-            max_f[k] = max_f[k].max(r.force_n[k].abs());
+        for (m, f) in max_f.iter_mut().zip(r.force_n) {
+            *m = m.max(f.abs());
         }
     }
     let limit = max_f.map(|v| (v * 2.0).max(1.0));
