@@ -77,7 +77,13 @@ fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
         // 260 markers per frame plus the header.
         assert_eq!(d.lines().count(), 1 + 260 * plan.frames);
         let f = std::fs::read_to_string(dir.join(format!("forces/{:05}.csv", r.index))).unwrap();
-        assert_eq!(f.lines().next().unwrap(), "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n");
+        // Several frames per setpoint: the run also records each node's σ (issue 32).
+        let header = if plan.frames > 1 {
+            "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n,sfx_n,sfy_n,sfz_n"
+        } else {
+            "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n"
+        };
+        assert_eq!(f.lines().next().unwrap(), header);
         assert_eq!(f.lines().count(), 1 + 80);
         // Per-setpoint marker counts: they add up to the sensor's 260 markers.
         assert_eq!(
