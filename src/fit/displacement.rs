@@ -464,6 +464,11 @@ impl DisplacementRoute {
         })
     }
 
+    /// The index of the layer named `name`.
+    pub fn layer_index(&self, name: &str) -> Option<usize> {
+        self.layer_names.iter().position(|l| l == name)
+    }
+
     /// The setpoints the route uses.
     pub fn setpoints(&self) -> &[SetpointObs] {
         &self.setpoints
@@ -862,6 +867,13 @@ fn median(v: &mut [f64]) -> f64 {
 impl Residuals for DisplacementRoute {
     fn len(&self) -> usize {
         self.len
+    }
+
+    fn groups(&self) -> Vec<usize> {
+        self.setpoints
+            .iter()
+            .flat_map(|sp| std::iter::repeat_n(sp.index, 2 * sp.markers.len()))
+            .collect()
     }
 
     fn eval(&self, p: &ModelParams, out: &mut [f64]) -> Result<(), String> {

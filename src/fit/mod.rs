@@ -8,6 +8,10 @@
 pub mod crossval;
 pub mod displacement;
 pub mod doc;
+pub mod identify;
+pub mod indentation;
+pub mod lm;
+pub mod space;
 
 pub use doc::{is_parameter_name, FitDoc, ParamFit, Route, FIT_SCHEMA, PARAMETER_NAMES};
 pub mod params;

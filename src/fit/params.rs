@@ -86,7 +86,7 @@ impl ModelParams {
 /// One route's residuals as a function of the parameters: what the least-squares
 /// engine minimises (the sum of squares of `eval`'s output, each residual already
 /// divided by its noise so the routes can be stacked).
-pub trait Residuals {
+pub trait Residuals: Sync {
     /// Number of residuals.
     fn len(&self) -> usize;
     /// Whether there are no residuals.
@@ -95,6 +95,11 @@ pub trait Residuals {
     }
     /// Writes the residuals at `p` into `out` (`out.len() == self.len()`).
     fn eval(&self, p: &ModelParams, out: &mut [f64]) -> Result<(), String>;
+    /// The cluster of each residual (the journal's setpoint index: a setpoint's
+    /// residuals may be correlated); `usize::MAX` for a residual in no cluster.
+    fn groups(&self) -> Vec<usize> {
+        vec![usize::MAX; self.len()]
+    }
 }
 
 #[cfg(test)]
