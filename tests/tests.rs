@@ -10,6 +10,7 @@ mod camera;
 mod cli;
 mod compare;
 mod docs_figures;
+mod fit;
 mod fourier;
 mod ft;
 mod ft_net_bota;

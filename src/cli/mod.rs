@@ -10,6 +10,7 @@ mod archive;
 mod calibrate;
 mod camera;
 mod compare;
+mod fit;
 mod ft;
 mod import;
 mod model;
@@ -50,6 +51,7 @@ enum Command {
     Compare(compare::Args),
     Archive(archive::Args),
     Import(import::Args),
+    Fit(fit::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
     Calibrate(calibrate::Args),
@@ -90,6 +92,7 @@ pub fn main() -> ExitCode {
         Command::Compare(args) => compare::run(args),
         Command::Archive(args) => archive::run(args),
         Command::Import(args) => import::run(args),
+        Command::Fit(args) => fit::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Calibrate(args) => calibrate::run(args),

@@ -649,6 +649,34 @@ impl DisplacementRoute {
         Ok(())
     }
 
+    /// `∂r/∂F` for each F/T axis: how the noise-normalised residuals move per newton
+    /// of the F/T reading, by forward differences of 1 mN. Every setpoint's force is
+    /// perturbed at once: a setpoint's prediction depends on its own force only, so
+    /// one evaluation per axis gives every setpoint's column.
+    pub fn force_sensitivity(&self, p: &ModelParams) -> Result<[Vec<f64>; 3], String> {
+        let base = self.predict_px(p)?;
+        let h = 1e-3;
+        let mut out: [Vec<f64>; 3] = Default::default();
+        for (axis, col) in out.iter_mut().enumerate() {
+            let mut moved = self.clone();
+            for sp in &mut moved.setpoints {
+                sp.f_ft_n[axis] += h;
+            }
+            let pred = moved.predict_px(p)?;
+            let mut g = Vec::with_capacity(self.len);
+            for sp in &self.setpoints {
+                for m in &sp.markers {
+                    let k = g.len();
+                    let s = self.noise_px[m.layer] * h;
+                    g.push((pred[k] - base[k]) / s);
+                    g.push((pred[k + 1] - base[k + 1]) / s);
+                }
+            }
+            *col = g;
+        }
+        Ok(out)
+    }
+
     /// Per-layer noise from the far-field markers at `p0` (see the module docs).
     fn far_field_noise(&self, p0: &ModelParams) -> Result<Vec<f64>, FitError> {
         let pred = self.predict_px(p0).map_err(FitError::Numerical)?;

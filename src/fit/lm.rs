@@ -329,6 +329,19 @@ pub struct Uncertainty {
 /// The covariance of a fit (module docs), with the clusters of
 /// [`Residuals::groups`].
 pub fn uncertainty(fit: &LmFit, groups: &[usize], start: &ModelParams) -> Uncertainty {
+    uncertainty_with(fit, groups, start, None)
+}
+
+/// [`uncertainty`] with a known extra source of error on the data: `extra_meat` =
+/// `Σ Jᵀ g gᵀ J σ²` over independent error sources `g` (scaled units), added to the
+/// classical covariance as `(JᵀJ)⁻¹ M (JᵀJ)⁻¹` before the larger of it and the
+/// cluster-robust one is kept.
+pub fn uncertainty_with(
+    fit: &LmFit,
+    groups: &[usize],
+    start: &ModelParams,
+    extra_meat: Option<&DMatrix<f64>>,
+) -> Uncertainty {
     let np = fit.free.len();
     let scales: Vec<f64> = fit.free.iter().map(|f| f.scale(start)).collect();
     let dof_res = fit.n.saturating_sub(np).max(1);
@@ -356,7 +369,10 @@ pub fn uncertainty(fit: &LmFit, groups: &[usize], start: &ModelParams) -> Uncert
     } else {
         None
     };
-    let classic = &ainv * s2;
+    let mut classic = &ainv * s2;
+    if let (Some(m), true) = (extra_meat, finite(&ainv)) {
+        classic += &ainv * m * &ainv;
+    }
     let mut sd = Vec::with_capacity(np);
     for i in 0..np {
         let c = classic[(i, i)];

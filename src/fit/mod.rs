@@ -8,9 +8,11 @@
 pub mod crossval;
 pub mod displacement;
 pub mod doc;
+pub mod fitted_toml;
 pub mod identify;
 pub mod indentation;
 pub mod lm;
+pub mod predict;
 pub mod space;
 
 pub use doc::{is_parameter_name, FitDoc, ParamFit, Route, FIT_SCHEMA, PARAMETER_NAMES};
