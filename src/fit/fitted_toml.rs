@@ -5,8 +5,7 @@
 //! unedited (checked here: the text is parsed back before it is returned).
 //!
 //! Edited keys: `[elastomer] young_modulus_kpa`, `poisson_ratio`, `thickness_mm`;
-//! each `[[layers]] depth_mm`; `[camera] mm_per_px` (the shared scale). A key the
-//! nominal file leaves to its default is inserted under its table's header. What a
+//! each `[[layers]] depth_mm`; `[camera] mm_per_px` (the shared scale). What a
 //! sensor file cannot hold (the F/T mounting, the contact offset and z, per-layer
 //! scales) is listed in the header comment, with its interval.
 
@@ -109,7 +108,6 @@ pub fn fitted_toml(
     let mut table: Option<String> = None;
     let mut layer: isize = -1;
     let mut seen: Vec<(String, isize, String)> = Vec::new();
-    let mut pending_insert: Vec<(usize, String, isize)> = Vec::new();
     for raw in nominal_text.lines() {
         if let Some(h) = header(raw) {
             if h == "layers[]" {
@@ -117,7 +115,6 @@ pub fn fitted_toml(
             }
             table = Some(h.clone());
             out.push(raw.to_string());
-            pending_insert.push((out.len(), h, layer));
             continue;
         }
         let name = match (table.as_deref(), key_of(raw)) {
@@ -143,33 +140,20 @@ pub fn fitted_toml(
         }
         out.push(raw.to_string());
     }
-    // Keys the nominal file left to their defaults, inserted under their header.
-    let mut inserts: Vec<(usize, String)> = Vec::new();
-    for (at, t, l) in &pending_insert {
-        let wanted: Vec<(String, &str)> = match t.as_str() {
-            "elastomer" => ["young_modulus_kpa", "poisson_ratio", "thickness_mm"]
-                .iter()
-                .map(|k| (k.to_string(), *k))
-                .collect(),
-            "camera" => vec![("mm_per_px".to_string(), "mm_per_px")],
-            "layers[]" => sensor
-                .layers
-                .get((*l).max(0) as usize)
-                .map(|x| vec![(format!("depth_mm.{}", x.name), "depth_mm")])
-                .unwrap_or_default(),
-            _ => Vec::new(),
-        };
-        for (name, key) in wanted {
-            let present = seen
-                .iter()
-                .any(|(st, sl, sn)| st == t && sn == &name && (t != "layers[]" || sl == l));
-            if let (false, Some(p)) = (present, fitted(&name)) {
-                inserts.push((*at, line(key, p, run)));
-            }
+    // Every fitted value a sensor file holds must have found its line (a sensor file
+    // always spells them: none of them has a default).
+    for (name, p) in &doc.parameters {
+        let in_file = name == "young_modulus_kpa"
+            || name == "poisson_ratio"
+            || name == "thickness_mm"
+            || name == "mm_per_px"
+            || name.starts_with("depth_mm.");
+        if p.fitted && in_file && !seen.iter().any(|(_, _, n)| n == name) {
+            return Err(FitError::Input {
+                path: doc.sensor.clone().into(),
+                message: format!("{name}: no line for it in the nominal sensor file to write the fitted value into"),
+            });
         }
-    }
-    for (at, text) in inserts.into_iter().rev() {
-        out.insert(at, text);
     }
     let mut text = out.join("\n");
     text.push('\n');
@@ -232,29 +216,5 @@ mod tests {
         assert!(out.contains("#   ft_rotation_deg = 7.1 deg"), "{out}");
         // Untouched lines stay as they were.
         assert!(out.contains("# The sensor of the paper (Section III)"));
-    }
-
-    #[test]
-    fn a_key_left_to_its_default_is_inserted_under_its_table() {
-        let text = "[elastomer]\nyoung_modulus_kpa = 1000.0\n\n[[layers]]\nname = \"blue\"\ncolor = \"blue\"\ndepth_mm = 3.0\n\n[camera]\nmm_per_px = 0.05\norigin_px = [0.0, 0.0]\nwidth_px = 100\nheight_px = 100\n";
-        let s = Sensor::from_toml_str(text, "s.toml").unwrap();
-        let mut parameters = BTreeMap::new();
-        parameters.insert(
-            "poisson_ratio".into(),
-            fitted(0.45, s.elastomer.poisson_ratio, "1"),
-        );
-        let doc = FitDoc {
-            schema: FIT_SCHEMA.into(),
-            run: "r".into(),
-            sensor: "s.toml".into(),
-            parameters,
-            routes: serde_json::Value::Null,
-            residual_rms_px: BTreeMap::new(),
-            cross_validation: serde_json::Value::Null,
-            extra: BTreeMap::new(),
-        };
-        let out = fitted_toml(text, &doc, &s, "d").unwrap();
-        let back = Sensor::from_toml_str(&out, "fitted.toml").unwrap();
-        assert_eq!(back.elastomer.poisson_ratio, 0.45, "{out}");
     }
 }

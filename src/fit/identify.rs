@@ -236,7 +236,8 @@ struct Joint {
 /// The F/T sensor's resolution as the journal shows it: the step of the lattice the
 /// force readings sit on (a DynPick reads in steps of 1/32.8 N), or `None` when the
 /// readings are not on one (averaged noisy samples). At least 90 % of the distinct
-/// readings must be multiples of the smallest difference between them.
+/// readings must be multiples of the step: the smallest difference between them or a
+/// fraction of it down to a tenth.
 pub fn force_resolution_n(forces: &[f64]) -> Option<f64> {
     let mut v: Vec<f64> = forces
         .iter()
@@ -248,19 +249,24 @@ pub fn force_resolution_n(forces: &[f64]) -> Option<f64> {
     if v.len() < 3 {
         return None;
     }
-    let step = v
+    let min_diff = v
         .windows(2)
         .map(|w| w[1] - w[0])
         .filter(|d| *d > 1e-9)
         .fold(f64::INFINITY, f64::min);
-    if !step.is_finite() {
+    if !min_diff.is_finite() {
         return None;
     }
-    let on = v
-        .iter()
-        .filter(|x| ((*x / step) - (*x / step).round()).abs() < 1e-3)
-        .count();
-    (on as f64 >= 0.9 * v.len() as f64).then_some(step)
+    // The lattice step divides every difference: try the smallest difference and its
+    // fractions down to a tenth (readings need not fill neighbouring steps).
+    (1..=10).find_map(|k| {
+        let step = min_diff / k as f64;
+        let on = v
+            .iter()
+            .filter(|x| ((*x / step) - (*x / step).round()).abs() < 1e-3)
+            .count();
+        (on as f64 >= 0.9 * v.len() as f64).then_some(step)
+    })
 }
 
 /// The F/T reading's own error per setpoint and axis, N: the SD of its samples over
