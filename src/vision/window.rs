@@ -572,6 +572,11 @@ impl Window {
     /// with the pixels of `foreign` discs — and their mirror images through the
     /// centre — left out (see [`Self::locate_masked`]). `None` when the window does not
     /// fit, too little ring or signal is left, or the Jacobian is singular.
+    ///
+    /// Steps: the pixels' scores and the foreign mask ([`MaskedPixels`]), the
+    /// background plane over the kept ring ([`Self::masked_plane`]), the aperture's
+    /// moments per symmetry ([`Self::masked_aperture`]), their Gauss–Newton offset
+    /// ([`masked_offset`]).
     fn masked_moments<T: Sample, const C: usize>(
         &self,
         img: Raw<'_, T, C>,
@@ -583,74 +588,35 @@ impl Window {
         if cx <= h || cy <= h || cx + h + 1 >= img.width as i32 || cy + h + 1 >= img.height as i32 {
             return None;
         }
-        let hidden_at = |x: i32, y: i32| {
-            foreign.iter().any(|f| {
-                let (dx, dy) = (x as f64 - f.centre_px[0], y as f64 - f.centre_px[1]);
-                dx * dx + dy * dy <= f.radius2_px
-            })
-        };
-        // The pixels read (window ± 1 px for the gradient stencils) and the hidden ones
-        // are tabulated once per window when it is small enough (every window of the
-        // paper sensor): each pixel is read by up to nine stencils and tested by up to
-        // six symmetries.
-        let tabulated = h <= MAX_TABLE_HALF;
-        let side = (2 * h + 3) as usize;
-        let mut scores =
-            [0i32; (2 * MAX_TABLE_HALF as usize + 3) * (2 * MAX_TABLE_HALF as usize + 3)];
-        let mut hidden_rows = [0u64; 2 * MAX_TABLE_HALF as usize + 1];
-        if tabulated {
-            for (k, v) in scores[..side * side].iter_mut().enumerate() {
-                let (dx, dy) = ((k % side) as i32 - h - 1, (k / side) as i32 - h - 1);
-                *v = self.linear_score::<T, C>(img, cx + dx, cy + dy);
-            }
-            // Per row, each foreign disc hides one run of pixels.
-            for (k, bits) in hidden_rows[..(2 * h + 1) as usize].iter_mut().enumerate() {
-                let y = (cy + k as i32 - h) as f64;
-                for f in foreign {
-                    let d = f.radius2_px - (y - f.centre_px[1]) * (y - f.centre_px[1]);
-                    // NaN-safe: as in `hidden_at`, a NaN centre hides nothing.
-                    if d.is_nan() || d < 0.0 {
-                        continue;
-                    }
-                    let r = d.sqrt();
-                    let lo = ((f.centre_px[0] - r).ceil() - cx as f64).max(-h as f64) as i32;
-                    let hi = ((f.centre_px[0] + r).floor() - cx as f64).min(h as f64) as i32;
-                    if lo > hi {
-                        continue;
-                    }
-                    let n = (hi - lo + 1) as u32;
-                    let run = if n >= 64 { u64::MAX } else { (1u64 << n) - 1 };
-                    *bits |= run << (lo + h) as u32;
-                }
-            }
+        let px = MaskedPixels::new(self, img, [cx, cy], foreign);
+        let plane = self.masked_plane(&px)?;
+        let ap = self.masked_aperture(&px, plane);
+        // NaN-safe: anything but a positive signal is no measurement.
+        if ap.m0.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return None;
         }
-        // Whether pixel (cx + dx, cy + dy), |dx|, |dy| ≤ h, lies in a foreign disc.
-        let hidden = |dx: i32, dy: i32| {
-            if tabulated {
-                (hidden_rows[(dy + h) as usize] >> (dx + h) as u32) & 1 == 1
-            } else {
-                hidden_at(cx + dx, cy + dy)
-            }
-        };
-        let keep = |dx: i32, dy: i32| !hidden(dx, dy) && !hidden(-dx, -dy);
-        let score = |dx: i32, dy: i32| {
-            if tabulated {
-                scores[(dy + h + 1) as usize * side + (dx + h + 1) as usize] as f64
-            } else {
-                self.linear_score::<T, C>(img, cx + dx, cy + dy) as f64
-            }
-        };
-        // Background plane over the kept ring pixels. The kept set is point-symmetric,
-        // so the level decouples from the slopes, but the slopes couple through Σdx·dy.
+        let offset = masked_offset(&ap.t)?;
+        Some((offset, ap.m0, ap.kept / self.n_ap))
+    }
+
+    /// Background plane `[a, gx, gy]` over the kept ring pixels (both a pixel and its
+    /// mirror through the centre clear). The kept set is point-symmetric, so the level
+    /// decouples from the slopes, but the slopes couple through Σdx·dy. `None` when
+    /// fewer than a quarter of the ring's pixels are kept or the slopes are singular.
+    fn masked_plane<T: Sample, const C: usize>(
+        &self,
+        px: &MaskedPixels<'_, '_, T, C>,
+    ) -> Option<[f64; 3]> {
+        let h = self.half;
         let (mut n, mut s0, mut sx, mut sy) = (0.0, 0.0, 0.0, 0.0);
         let (mut xx, mut xy, mut yy) = (0.0, 0.0, 0.0);
         for (k, row) in self.rows.iter().enumerate() {
             let dy = k as i32 - h;
             for dx in -row.outer..=row.outer {
-                if dx.abs() <= row.inner || !keep(dx, dy) {
+                if dx.abs() <= row.inner || !px.keep(dx, dy) {
                     continue;
                 }
-                let (s, fx, fy) = (score(dx, dy), dx as f64, dy as f64);
+                let (s, fx, fy) = (px.score(dx, dy), dx as f64, dy as f64);
                 n += 1.0;
                 s0 += s;
                 sx += s * fx;
@@ -667,16 +633,28 @@ impl Window {
         let a = s0 / n;
         let gx = (sx * yy - sy * xy) / det_bg;
         let gy = (sy * xx - sx * xy) / det_bg;
-        // Aperture: moments N = Σ_S Σ_{K_S} w_S s' of the background-corrected score s'
-        // (w_S = ½(p − S·p), K_S the pixels with p and S·p both clear) and the Jacobian
-        // J = −Σ_S Σ_{K_S} w_S ∇s'ᵀ (central differences) of N with respect to a shift,
-        // with its first-order change when ∇s' is sampled `h` px away:
-        // J(h) = J + hx·Kx + hy·Ky, Kx = −Σ w_S ∂x∇s'ᵀ, Ky = −Σ w_S ∂y∇s'ᵀ.
-        // `kept`/`m0` count the point-symmetric set (visible fraction, signal check).
-        // Every symmetry uses a pixel whose images are all clear, with total weight
-        // Σ_S W_S = 3·I: such sums are taken once (`all`), and per symmetry only the
-        // pixels it drops (`dropped[S]`) are subtracted. Columns: s', ∂x s', ∂y s',
-        // ∂xx s', ∂xy s', ∂yy s'; rows: times dx, times dy.
+        Some([a, gx, gy])
+    }
+
+    /// The aperture's moments `N = Σ_S Σ_{K_S} w_S s'` of the background-corrected
+    /// score `s'` (`w_S = ½(p − S·p)`, `K_S` the pixels with `p` and `S·p` both clear)
+    /// and the Jacobian `J = −Σ_S Σ_{K_S} w_S ∇s'ᵀ` (central differences) of `N` with
+    /// respect to a shift, with its first-order change when `∇s'` is sampled `h` px
+    /// away: `J(h) = J + hx·Kx + hy·Ky`, `Kx = −Σ w_S ∂x∇s'ᵀ`, `Ky = −Σ w_S ∂y∇s'ᵀ`
+    /// (all in [`MaskedSums::t`]). `kept` / `m0` count the point-symmetric set
+    /// (visible fraction, signal check).
+    ///
+    /// Every symmetry uses a pixel whose images are all clear, with total weight
+    /// `Σ_S W_S = 3·I`: such sums are taken once (`all`), and per symmetry only the
+    /// pixels it drops (`dropped[S]`) are subtracted. Columns: `s'`, `∂x s'`, `∂y s'`,
+    /// `∂xx s'`, `∂xy s'`, `∂yy s'`; rows: times `dx`, times `dy`.
+    fn masked_aperture<T: Sample, const C: usize>(
+        &self,
+        px: &MaskedPixels<'_, '_, T, C>,
+        [a, gx, gy]: [f64; 3],
+    ) -> MaskedSums {
+        let h = self.half;
+        let score = |dx: i32, dy: i32| px.score(dx, dy);
         let (mut kept, mut m0) = (0.0, 0.0);
         let mut all = [[0.0f64; 6]; 2];
         let mut dropped = [[[0.0f64; 6]; 2]; 5];
@@ -684,7 +662,7 @@ impl Window {
         for (k, row) in self.rows.iter().enumerate() {
             let dy = k as i32 - h;
             for dx in -row.ap..=row.ap {
-                if hidden(dx, dy) {
+                if px.hidden(dx, dy) {
                     continue;
                 }
                 let (fx, fy) = (dx as f64, dy as f64);
@@ -700,7 +678,7 @@ impl Window {
                         + score(dx - 1, dy - 1)),
                     s_d - 2.0 * s_c + s_u,
                 ];
-                if !hidden(-dx, -dy) {
+                if !px.hidden(-dx, -dy) {
                     kept += 1.0;
                     m0 += q[0];
                 }
@@ -710,7 +688,7 @@ impl Window {
                 }
                 for (si, (sm, _)) in sym.iter().enumerate() {
                     let (ix, iy) = (sm[0][0] * dx + sm[0][1] * dy, sm[1][0] * dx + sm[1][1] * dy);
-                    if hidden(ix, iy) {
+                    if px.hidden(ix, iy) {
                         for c in 0..6 {
                             dropped[si][0][c] += fx * q[c];
                             dropped[si][1][c] += fy * q[c];
@@ -729,32 +707,7 @@ impl Window {
                 }
             }
         }
-        let (mx, my) = (t[0][0], t[1][0]);
-        let j = [[-t[0][1], -t[0][2]], [-t[1][1], -t[1][2]]];
-        let kx = [[-t[0][3], -t[0][4]], [-t[1][3], -t[1][4]]];
-        let ky = [[-t[0][4], -t[0][5]], [-t[1][4], -t[1][5]]];
-        // NaN-safe: anything but a positive signal is no measurement.
-        if m0.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return None;
-        }
-        // N(δ) = ∫₀¹ J(tδ) dt · δ exactly; J is measured at the marker's offset δ, so
-        // J⁻¹N has an O(δ²) error. The midpoint rule (J sampled at offset δ/2, i.e.
-        // ∇s' taken h = δ/2 px away) leaves O(δ³): two refinements from J⁻¹N.
-        let solve = |hx: f64, hy: f64| -> Option<[f64; 2]> {
-            let m = |a: usize, b: usize| j[a][b] + hx * kx[a][b] + hy * ky[a][b];
-            let det = m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0);
-            (det > 0.0).then(|| {
-                [
-                    (m(1, 1) * mx - m(0, 1) * my) / det,
-                    (m(0, 0) * my - m(1, 0) * mx) / det,
-                ]
-            })
-        };
-        let mut offset = solve(0.0, 0.0)?;
-        for _ in 0..2 {
-            offset = solve(0.5 * offset[0], 0.5 * offset[1])?;
-        }
-        Some((offset, m0, kept / self.n_ap))
+        MaskedSums { kept, m0, t }
     }
 
     /// Centroid of a marker partly covered by, or covering, other layers' markers
@@ -859,6 +812,169 @@ fn symmetries() -> [Symmetry; 5] {
         ([[0, 1], [1, 0]], [[0.5, -0.5], [-0.5, 0.5]]),
         ([[0, -1], [-1, 0]], [[0.5, 0.5], [0.5, 0.5]]),
     ]
+}
+
+/// Width of the score table of [`MaskedPixels`]: the largest tabulated window ± 1 px
+/// for the gradient stencils.
+const TABLE_SIDE: usize = 2 * MAX_TABLE_HALF as usize + 3;
+
+/// The pixels a masked window reads, relative to its centre: their colour scores and
+/// whether a foreign disc hides them. Both are tabulated once per window when it is
+/// small enough (every window of the paper sensor, half-size ≤ [`MAX_TABLE_HALF`]):
+/// each pixel is read by up to nine stencils and tested by up to six symmetries.
+/// Larger windows compute them on demand.
+struct MaskedPixels<'a, 'f, T, const C: usize> {
+    window: &'a Window,
+    img: Raw<'a, T, C>,
+    /// The window's centre pixel `(cx, cy)`.
+    centre: [i32; 2],
+    foreign: &'f [Foreign],
+    tabulated: bool,
+    /// Scores of the window ± 1 px, row-major, `2·half + 3` per row (when tabulated).
+    scores: [i32; TABLE_SIDE * TABLE_SIDE],
+    /// Per window row, bit `dx + half` set when a foreign disc hides that pixel.
+    hidden_rows: [u64; 2 * MAX_TABLE_HALF as usize + 1],
+}
+
+impl<'a, 'f, T: Sample, const C: usize> MaskedPixels<'a, 'f, T, C> {
+    /// The window of `window` centred on `centre` in `img` (which must contain it ±
+    /// 1 px), with the pixels of `foreign` discs hidden.
+    fn new(
+        window: &'a Window,
+        img: Raw<'a, T, C>,
+        centre: [i32; 2],
+        foreign: &'f [Foreign],
+    ) -> Self {
+        let mut px = MaskedPixels {
+            window,
+            img,
+            centre,
+            foreign,
+            tabulated: window.half <= MAX_TABLE_HALF,
+            scores: [0i32; TABLE_SIDE * TABLE_SIDE],
+            hidden_rows: [0u64; 2 * MAX_TABLE_HALF as usize + 1],
+        };
+        if px.tabulated {
+            px.tabulate();
+        }
+        px
+    }
+
+    /// Side of the score table: the window ± 1 px.
+    #[inline(always)]
+    fn side(&self) -> usize {
+        (2 * self.window.half + 3) as usize
+    }
+
+    /// Fills the score table and the hidden-pixel rows.
+    fn tabulate(&mut self) {
+        let h = self.window.half;
+        let [cx, cy] = self.centre;
+        let side = self.side();
+        for (k, v) in self.scores[..side * side].iter_mut().enumerate() {
+            let (dx, dy) = ((k % side) as i32 - h - 1, (k / side) as i32 - h - 1);
+            *v = self.window.linear_score::<T, C>(self.img, cx + dx, cy + dy);
+        }
+        // Per row, each foreign disc hides one run of pixels.
+        for (k, bits) in self.hidden_rows[..(2 * h + 1) as usize]
+            .iter_mut()
+            .enumerate()
+        {
+            let y = (cy + k as i32 - h) as f64;
+            for f in self.foreign {
+                let d = f.radius2_px - (y - f.centre_px[1]) * (y - f.centre_px[1]);
+                // NaN-safe: as in `hidden_at`, a NaN centre hides nothing.
+                if d.is_nan() || d < 0.0 {
+                    continue;
+                }
+                let r = d.sqrt();
+                let lo = ((f.centre_px[0] - r).ceil() - cx as f64).max(-h as f64) as i32;
+                let hi = ((f.centre_px[0] + r).floor() - cx as f64).min(h as f64) as i32;
+                if lo > hi {
+                    continue;
+                }
+                let n = (hi - lo + 1) as u32;
+                let run = if n >= 64 { u64::MAX } else { (1u64 << n) - 1 };
+                *bits |= run << (lo + h) as u32;
+            }
+        }
+    }
+
+    /// Whether image pixel `(x, y)` lies in a foreign disc.
+    fn hidden_at(&self, x: i32, y: i32) -> bool {
+        self.foreign.iter().any(|f| {
+            let (dx, dy) = (x as f64 - f.centre_px[0], y as f64 - f.centre_px[1]);
+            dx * dx + dy * dy <= f.radius2_px
+        })
+    }
+
+    /// Whether pixel `(cx + dx, cy + dy)`, `|dx|, |dy| ≤ half`, lies in a foreign disc.
+    #[inline(always)]
+    fn hidden(&self, dx: i32, dy: i32) -> bool {
+        let h = self.window.half;
+        if self.tabulated {
+            (self.hidden_rows[(dy + h) as usize] >> (dx + h) as u32) & 1 == 1
+        } else {
+            self.hidden_at(self.centre[0] + dx, self.centre[1] + dy)
+        }
+    }
+
+    /// Whether both the pixel at `(dx, dy)` and its mirror through the centre are clear.
+    #[inline(always)]
+    fn keep(&self, dx: i32, dy: i32) -> bool {
+        !self.hidden(dx, dy) && !self.hidden(-dx, -dy)
+    }
+
+    /// Colour score of the pixel at `(dx, dy)` from the centre, `|dx|, |dy| ≤ half + 1`.
+    #[inline(always)]
+    fn score(&self, dx: i32, dy: i32) -> f64 {
+        let h = self.window.half;
+        if self.tabulated {
+            self.scores[(dy + h + 1) as usize * self.side() + (dx + h + 1) as usize] as f64
+        } else {
+            let [cx, cy] = self.centre;
+            self.window.linear_score::<T, C>(self.img, cx + dx, cy + dy) as f64
+        }
+    }
+}
+
+/// What [`Window::masked_aperture`] sums over the aperture.
+struct MaskedSums {
+    /// Pixels of the point-symmetric set (both a pixel and its mirror clear).
+    kept: f64,
+    /// Net signal of the point-symmetric set.
+    m0: f64,
+    /// `T = Σ_S W_S·Σ_{K_S} (dx, dy)ᵀ·(s', ∂x s', ∂y s', ∂xx s', ∂xy s', ∂yy s')`:
+    /// column 0 is the moment `N`, columns 1–2 give `−J`, 3–5 its changes `−Kx`, `−Ky`.
+    t: [[f64; 6]; 2],
+}
+
+/// The marker's offset from the window centre: the Gauss–Newton step `δ = J⁻¹·N`
+/// from the aperture sums `t` ([`MaskedSums::t`]), midpoint-corrected. `N(δ) =
+/// ∫₀¹ J(tδ) dt · δ` exactly; `J` is measured at the marker's offset `δ`, so `J⁻¹N`
+/// has an O(δ²) error. The midpoint rule (`J` sampled at offset `δ/2`, i.e. `∇s'`
+/// taken `h = δ/2` px away) leaves O(δ³): two refinements from `J⁻¹N`. `None` when
+/// the Jacobian is singular or not positive.
+fn masked_offset(t: &[[f64; 6]; 2]) -> Option<[f64; 2]> {
+    let (mx, my) = (t[0][0], t[1][0]);
+    let j = [[-t[0][1], -t[0][2]], [-t[1][1], -t[1][2]]];
+    let kx = [[-t[0][3], -t[0][4]], [-t[1][3], -t[1][4]]];
+    let ky = [[-t[0][4], -t[0][5]], [-t[1][4], -t[1][5]]];
+    let solve = |hx: f64, hy: f64| -> Option<[f64; 2]> {
+        let m = |a: usize, b: usize| j[a][b] + hx * kx[a][b] + hy * ky[a][b];
+        let det = m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0);
+        (det > 0.0).then(|| {
+            [
+                (m(1, 1) * mx - m(0, 1) * my) / det,
+                (m(0, 0) * my - m(1, 0) * mx) / det,
+            ]
+        })
+    };
+    let mut offset = solve(0.0, 0.0)?;
+    for _ in 0..2 {
+        offset = solve(0.5 * offset[0], 0.5 * offset[1])?;
+    }
+    Some(offset)
 }
 
 /// `x.round() as i32` (half away from zero; NaN → 0) without a call: baseline x86-64
