@@ -1397,110 +1397,13 @@ fn check_grid(
 }
 
 impl RawSensor {
+    /// The validated sensor: the elastomer, the layers, the force grid, the camera
+    /// mapping, then the checks across them (the force grid covers the markers, the
+    /// draft's placeholders).
     fn validate(self, path: &Path) -> Result<Sensor, SensorError> {
         let c = Checker { path };
-        let e = &self.elastomer;
-        let young = plausible(
-            &c,
-            "elastomer.young_modulus_kpa",
-            e.young_modulus_kpa,
-            &YOUNG_MODULUS_KPA,
-        )?;
-        let nu = e.poisson_ratio;
-        if !(nu.is_finite() && (0.0..=0.5).contains(&nu)) {
-            return Err(c.invalid(
-                "elastomer.poisson_ratio",
-                nu,
-                "must be in [0, 0.5] (0.5 = incompressible)",
-            ));
-        }
-        let thickness = plausible(&c, "elastomer.thickness_mm", e.thickness_mm, &THICKNESS_MM)?;
-        let model = match &e.model {
-            None => ModelKind::HalfSpace,
-            Some(name) => ModelKind::from_name(name).ok_or_else(|| {
-                c.invalid(
-                    "elastomer.model",
-                    format!("{name:?}"),
-                    "must be \"half-space\" or \"bonded-layer\"",
-                )
-            })?,
-        };
-        let elastomer = Elastomer {
-            young_modulus_kpa: young,
-            poisson_ratio: nu,
-            thickness_mm: thickness,
-            model,
-        };
-
-        if self.layers.is_empty() {
-            return Err(c.invalid("layers", "[]", "at least one [[layers]] table is required"));
-        }
-        let mut names = HashSet::new();
-        let mut layers = Vec::with_capacity(self.layers.len());
-        for (i, l) in self.layers.into_iter().enumerate() {
-            let key = format!("layers[{i}]");
-            if l.name.trim().is_empty() || l.name.contains(',') {
-                return Err(c.invalid(
-                    &format!("{key}.name"),
-                    format!("{:?}", l.name),
-                    "must be a non-empty name without commas",
-                ));
-            }
-            if !names.insert(l.name.clone()) {
-                return Err(c.invalid(
-                    &format!("{key}.name"),
-                    format!("{:?}", l.name),
-                    "duplicate layer name: every layer needs a unique name",
-                ));
-            }
-            let color = MarkerColor::parse(&l.color).ok_or_else(|| {
-                c.invalid(
-                    &format!("{key}.color"),
-                    format!("{:?}", l.color),
-                    "unknown colour: expected one of blue, red, green, dark, bright",
-                )
-            })?;
-            let depth = plausible(&c, &format!("{key}.depth_mm"), l.depth_mm, &DEPTH_MM)?;
-            if depth >= thickness {
-                return Err(c.invalid(
-                    &format!("{key}.depth_mm"),
-                    depth,
-                    format!("must be less than elastomer.thickness_mm = {thickness} mm"),
-                ));
-            }
-            let markers = match l.markers {
-                None => None,
-                Some(m) => {
-                    let mkey = format!("{key}.markers");
-                    let grid = check_grid(
-                        &c,
-                        &mkey,
-                        m.nx,
-                        m.ny,
-                        m.pitch_mm,
-                        m.origin_mm,
-                        &MARKER_PITCH_MM,
-                    )?;
-                    let d = plausible(
-                        &c,
-                        &format!("{mkey}.diameter_mm"),
-                        m.diameter_mm,
-                        &MARKER_DIAMETER_MM,
-                    )?;
-                    Some(MarkerGrid {
-                        grid,
-                        diameter_mm: d,
-                    })
-                }
-            };
-            layers.push(Layer {
-                name: l.name,
-                color,
-                depth_mm: depth,
-                markers,
-            });
-        }
-
+        let elastomer = self.elastomer.validate(&c)?;
+        let layers = validate_layers(&c, self.layers, elastomer.thickness_mm)?;
         let g = &self.force_grid;
         let force_grid = check_grid(
             &c,
@@ -1511,10 +1414,154 @@ impl RawSensor {
             g.origin_mm,
             &FORCE_PITCH_MM,
         )?;
+        let camera = self.camera.validate(&c)?;
+        check_force_cover(&c, &layers, &force_grid, &camera)?;
+        let mut sensor = Sensor {
+            elastomer,
+            layers,
+            force_grid,
+            camera,
+            draft: None,
+        };
+        sensor.draft = check_placeholders(&c, self.draft, self.placeholders, &sensor)?;
+        Ok(sensor)
+    }
+}
 
-        let cam = &self.camera;
-        let width_px = c.count("camera.width_px", cam.width_px, 65_535)? as u32;
-        let height_px = c.count("camera.height_px", cam.height_px, 65_535)? as u32;
+impl RawElastomer {
+    /// Young's modulus, Poisson's ratio and thickness in their plausible ranges, and
+    /// the forward model (default: the half-space).
+    fn validate(&self, c: &Checker<'_>) -> Result<Elastomer, SensorError> {
+        let young = plausible(
+            c,
+            "elastomer.young_modulus_kpa",
+            self.young_modulus_kpa,
+            &YOUNG_MODULUS_KPA,
+        )?;
+        let nu = self.poisson_ratio;
+        if !(nu.is_finite() && (0.0..=0.5).contains(&nu)) {
+            return Err(c.invalid(
+                "elastomer.poisson_ratio",
+                nu,
+                "must be in [0, 0.5] (0.5 = incompressible)",
+            ));
+        }
+        let thickness = plausible(
+            c,
+            "elastomer.thickness_mm",
+            self.thickness_mm,
+            &THICKNESS_MM,
+        )?;
+        let model = match &self.model {
+            None => ModelKind::HalfSpace,
+            Some(name) => ModelKind::from_name(name).ok_or_else(|| {
+                c.invalid(
+                    "elastomer.model",
+                    format!("{name:?}"),
+                    "must be \"half-space\" or \"bonded-layer\"",
+                )
+            })?,
+        };
+        Ok(Elastomer {
+            young_modulus_kpa: young,
+            poisson_ratio: nu,
+            thickness_mm: thickness,
+            model,
+        })
+    }
+}
+
+/// At least one layer, each with a unique name ([`RawLayer::validate`]).
+fn validate_layers(
+    c: &Checker<'_>,
+    raw: Vec<RawLayer>,
+    thickness_mm: f64,
+) -> Result<Vec<Layer>, SensorError> {
+    if raw.is_empty() {
+        return Err(c.invalid("layers", "[]", "at least one [[layers]] table is required"));
+    }
+    let mut names = HashSet::new();
+    let mut layers = Vec::with_capacity(raw.len());
+    for (i, l) in raw.into_iter().enumerate() {
+        let key = format!("layers[{i}]");
+        if l.name.trim().is_empty() || l.name.contains(',') {
+            return Err(c.invalid(
+                &format!("{key}.name"),
+                format!("{:?}", l.name),
+                "must be a non-empty name without commas",
+            ));
+        }
+        if !names.insert(l.name.clone()) {
+            return Err(c.invalid(
+                &format!("{key}.name"),
+                format!("{:?}", l.name),
+                "duplicate layer name: every layer needs a unique name",
+            ));
+        }
+        layers.push(l.validate(c, &key, thickness_mm)?);
+    }
+    Ok(layers)
+}
+
+impl RawLayer {
+    /// The layer at `key` (its name already checked): colour, depth inside the
+    /// elastomer (`thickness_mm`), the optional marker grid.
+    fn validate(self, c: &Checker<'_>, key: &str, thickness_mm: f64) -> Result<Layer, SensorError> {
+        let color = MarkerColor::parse(&self.color).ok_or_else(|| {
+            c.invalid(
+                &format!("{key}.color"),
+                format!("{:?}", self.color),
+                "unknown colour: expected one of blue, red, green, dark, bright",
+            )
+        })?;
+        let depth = plausible(c, &format!("{key}.depth_mm"), self.depth_mm, &DEPTH_MM)?;
+        if depth >= thickness_mm {
+            return Err(c.invalid(
+                &format!("{key}.depth_mm"),
+                depth,
+                format!("must be less than elastomer.thickness_mm = {thickness_mm} mm"),
+            ));
+        }
+        let markers = match self.markers {
+            None => None,
+            Some(m) => {
+                let mkey = format!("{key}.markers");
+                let grid = check_grid(
+                    c,
+                    &mkey,
+                    m.nx,
+                    m.ny,
+                    m.pitch_mm,
+                    m.origin_mm,
+                    &MARKER_PITCH_MM,
+                )?;
+                let d = plausible(
+                    c,
+                    &format!("{mkey}.diameter_mm"),
+                    m.diameter_mm,
+                    &MARKER_DIAMETER_MM,
+                )?;
+                Some(MarkerGrid {
+                    grid,
+                    diameter_mm: d,
+                })
+            }
+        };
+        Ok(Layer {
+            name: self.name,
+            color,
+            depth_mm: depth,
+            markers,
+        })
+    }
+}
+
+impl RawCamera {
+    /// The linear camera mapping: image size (within the decoded-frame cap), scale,
+    /// origin and the optional region of interest.
+    fn validate(&self, c: &Checker<'_>) -> Result<CameraMapping, SensorError> {
+        let width_px = c.count("camera.width_px", self.width_px, 65_535)? as u32;
+        let height_px = c.count("camera.height_px", self.height_px, 65_535)? as u32;
         let pixels = width_px as u64 * height_px as u64;
         if pixels > MAX_CAMERA_PIXELS {
             return Err(c.invalid(
@@ -1526,30 +1573,19 @@ impl RawSensor {
                 ),
             ));
         }
-        let camera = CameraMapping {
-            mm_per_px: plausible(&c, "camera.mm_per_px", cam.mm_per_px, &MM_PER_PX)?,
+        Ok(CameraMapping {
+            mm_per_px: plausible(c, "camera.mm_per_px", self.mm_per_px, &MM_PER_PX)?,
             origin_px: [
-                c.finite("camera.origin_px[0]", cam.origin_px[0], "px")?,
-                c.finite("camera.origin_px[1]", cam.origin_px[1], "px")?,
+                c.finite("camera.origin_px[0]", self.origin_px[0], "px")?,
+                c.finite("camera.origin_px[1]", self.origin_px[1], "px")?,
             ],
             width_px,
             height_px,
-            roi_px: match &cam.roi_px {
-                Some(r) => Some(r.validate(&c, width_px, height_px)?),
+            roi_px: match &self.roi_px {
+                Some(r) => Some(r.validate(c, width_px, height_px)?),
                 None => None,
             },
-        };
-
-        check_force_cover(&c, &layers, &force_grid, &camera)?;
-        let mut sensor = Sensor {
-            elastomer,
-            layers,
-            force_grid,
-            camera,
-            draft: None,
-        };
-        sensor.draft = check_placeholders(&c, self.draft, self.placeholders, &sensor)?;
-        Ok(sensor)
+        })
     }
 }
 

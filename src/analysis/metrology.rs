@@ -537,6 +537,12 @@ pub fn analyze(rows: &[JournalRow]) -> Option<MetrologyAnalysis> {
 }
 
 /// As [`analyze`], from readings.
+///
+/// Steps: full scale (the largest applied force) and the statistics of the readings
+/// ([`core`]); the trials per position; the seeded bootstrap over trials within
+/// positions ([`bootstrap`]); each estimate in % of full scale with its interval,
+/// or why it is absent ([`Estimates::new`]); the class they imply
+/// ([`class_checks`], [`ClassResult::judge`]); the unloaded level.
 pub fn analyze_readings(readings: Vec<Reading>) -> Option<MetrologyAnalysis> {
     let fs = readings
         .iter()
@@ -553,150 +559,9 @@ pub fn analyze_readings(readings: Vec<Reading>) -> Option<MetrologyAnalysis> {
     }
     let positions = units.len();
     let trials: usize = units.values().map(BTreeSet::len).sum();
-
-    // Bootstrap over trials within positions.
-    let can_boot = units.values().all(|t| t.len() >= 2);
-    let (mut b_repro, mut b_interp, mut b_rev) = (Vec::new(), Vec::new(), Vec::new());
-    if can_boot {
-        let by_unit: BTreeMap<(Option<usize>, usize), Vec<Reading>> =
-            readings.iter().fold(BTreeMap::new(), |mut m, r| {
-                m.entry(r.unit()).or_insert_with(Vec::new).push(*r);
-                m
-            });
-        let strata: Vec<Vec<&Vec<Reading>>> = units
-            .keys()
-            .map(|p| {
-                by_unit
-                    .iter()
-                    .filter(|(k, _)| k.0 == *p)
-                    .map(|(_, v)| v)
-                    .collect()
-            })
-            .collect();
-        let mut rng = Rng::new(BOOTSTRAP_SEED);
-        let mut sample = Vec::with_capacity(readings.len());
-        for _ in 0..BOOTSTRAP_RESAMPLES {
-            sample.clear();
-            let mut new_trial = 0usize;
-            for stratum in &strata {
-                for _ in 0..stratum.len() {
-                    let k =
-                        ((rng.uniform() * stratum.len() as f64) as usize).min(stratum.len() - 1);
-                    // Each draw is a distinct trial of the resample.
-                    sample.extend(stratum[k].iter().map(|r| Reading {
-                        trial: new_trial,
-                        ..*r
-                    }));
-                    new_trial += 1;
-                }
-            }
-            if let Some(b) = core(&sample) {
-                b_repro.extend(b.reproducibility);
-                b_interp.extend(b.interpolation);
-                b_rev.extend(b.reversibility);
-            }
-        }
-    }
-    let boot = |v: Vec<f64>| {
-        if can_boot {
-            percentile_ci(v, BOOTSTRAP_RESAMPLES, pct)
-        } else {
-            None
-        }
-    };
-
-    let mut absent: Vec<(&'static str, String)> = Vec::new();
-    let repeatability = c.repeatability.map(|(s, dof)| Estimate {
-        pct_fs: s * pct,
-        ci95: stats::sd_ci95(s, dof).map(|(lo, hi)| Ci95 {
-            low: lo * pct,
-            high: hi * pct,
-            method: "chi2",
-        }),
-    });
-    if repeatability.is_none() {
-        absent.push((
-            "metrology.repeatability_pct_fs",
-            "no loaded level was measured twice at the same position and direction".into(),
-        ));
-    }
-    let reproducibility = c.reproducibility.map(|s| Estimate {
-        pct_fs: s * pct,
-        ci95: boot(b_repro),
-    });
-    if reproducibility.is_none() {
-        absent.push((
-            "metrology.reproducibility_pct_fs",
-            format!("needs trials at two or more contact positions (sweep.positions_mm); the run has {positions}"),
-        ));
-    }
-    let interpolation = c.interpolation.map(|v| Estimate {
-        pct_fs: v * pct,
-        ci95: boot(b_interp),
-    });
-    if interpolation.is_none() {
-        absent.push((
-            "metrology.interpolation_pct_fs",
-            "needs three or more force levels (a line through two fits them exactly)".into(),
-        ));
-    }
-    let zero = if c.zero_diffs.is_empty() {
-        absent.push((
-            "metrology.zero_pct_fs",
-            "no trial starts and ends with an unloaded reading (target 0)".into(),
-        ));
-        None
-    } else {
-        let m = stats::mean(&c.zero_diffs).unwrap_or(f64::NAN);
-        Some(Estimate {
-            pct_fs: m * pct,
-            ci95: stats::mean_ci95(&c.zero_diffs).map(|(lo, hi)| Ci95 {
-                low: lo * pct,
-                high: hi * pct,
-                method: "t",
-            }),
-        })
-    };
-    let zero_max_pct_fs = c
-        .zero_diffs
-        .iter()
-        .map(|d| d.abs())
-        .reduce(f64::max)
-        .map(|v| v * pct);
-    let reversibility = c.reversibility.map(|v| Estimate {
-        pct_fs: v * pct,
-        ci95: boot(b_rev),
-    });
-    if reversibility.is_none() {
-        absent.push((
-            "metrology.reversibility_pct_fs",
-            "no loaded level was measured both loading and unloading (sweep.direction = \"up-down\")".into(),
-        ));
-    }
-    let mut checks = Vec::new();
-    if let Some(e) = reproducibility {
-        checks.push((
-            Criterion::Reproducibility,
-            D2_THREE * e.pct_fs,
-            "1.693 × reproducibility SD (expected range of 3 series)",
-        ));
-    }
-    if let Some(e) = repeatability {
-        checks.push((
-            Criterion::Repeatability,
-            D2_TWO * e.pct_fs,
-            "1.128 × repeatability SD (expected range of 2 series)",
-        ));
-    }
-    if let Some(e) = interpolation {
-        checks.push((Criterion::Interpolation, e.pct_fs, "interpolation error"));
-    }
-    if let Some(z) = zero_max_pct_fs {
-        checks.push((Criterion::Zero, z, "worst trial's zero error"));
-    }
-    if let Some(e) = reversibility {
-        checks.push((Criterion::Reversibility, e.pct_fs, "reversibility error"));
-    }
+    let boot = bootstrap(&readings, &units);
+    let e = Estimates::new(&c, pct, boot, positions);
+    let checks = class_checks(&e);
     // Outside `core`: no bootstrap statistic needs it.
     let unloaded_level = readings
         .iter()
@@ -710,16 +575,215 @@ pub fn analyze_readings(readings: Vec<Reading>) -> Option<MetrologyAnalysis> {
         unloaded_level,
         positions,
         trials,
-        repeatability,
+        repeatability: e.repeatability,
         repeatability_dof: c.repeatability.map_or(0, |p| p.1),
-        reproducibility,
-        interpolation,
-        zero,
-        zero_max_pct_fs,
-        reversibility,
+        reproducibility: e.reproducibility,
+        interpolation: e.interpolation,
+        zero: e.zero,
+        zero_max_pct_fs: e.zero_max_pct_fs,
+        reversibility: e.reversibility,
         class: ClassResult::judge(&checks),
-        absent,
+        absent: e.absent,
     })
+}
+
+/// The bootstrap resamples' reproducibility, interpolation and reversibility (N),
+/// one value per resample that gave one.
+#[derive(Default)]
+struct BootSamples {
+    reproducibility: Vec<f64>,
+    interpolation: Vec<f64>,
+    reversibility: Vec<f64>,
+}
+
+/// Bootstrap over trials within positions (`units`: the trials per position):
+/// [`BOOTSTRAP_RESAMPLES`] resamples from [`BOOTSTRAP_SEED`], each drawing as many
+/// trials per position as it has, with replacement, each draw a distinct trial of the
+/// resample. `None` when a position has fewer than two trials.
+fn bootstrap(
+    readings: &[Reading],
+    units: &BTreeMap<Option<usize>, BTreeSet<usize>>,
+) -> Option<BootSamples> {
+    if !units.values().all(|t| t.len() >= 2) {
+        return None;
+    }
+    let mut out = BootSamples::default();
+    let by_unit: BTreeMap<(Option<usize>, usize), Vec<Reading>> =
+        readings.iter().fold(BTreeMap::new(), |mut m, r| {
+            m.entry(r.unit()).or_insert_with(Vec::new).push(*r);
+            m
+        });
+    let strata: Vec<Vec<&Vec<Reading>>> = units
+        .keys()
+        .map(|p| {
+            by_unit
+                .iter()
+                .filter(|(k, _)| k.0 == *p)
+                .map(|(_, v)| v)
+                .collect()
+        })
+        .collect();
+    let mut rng = Rng::new(BOOTSTRAP_SEED);
+    let mut sample = Vec::with_capacity(readings.len());
+    for _ in 0..BOOTSTRAP_RESAMPLES {
+        sample.clear();
+        let mut new_trial = 0usize;
+        for stratum in &strata {
+            for _ in 0..stratum.len() {
+                let k = ((rng.uniform() * stratum.len() as f64) as usize).min(stratum.len() - 1);
+                // Each draw is a distinct trial of the resample.
+                sample.extend(stratum[k].iter().map(|r| Reading {
+                    trial: new_trial,
+                    ..*r
+                }));
+                new_trial += 1;
+            }
+        }
+        if let Some(b) = core(&sample) {
+            out.reproducibility.extend(b.reproducibility);
+            out.interpolation.extend(b.interpolation);
+            out.reversibility.extend(b.reversibility);
+        }
+    }
+    Some(out)
+}
+
+/// The estimates in % of full scale with their 95 % intervals, and the metrics that
+/// could not be computed with why.
+struct Estimates {
+    repeatability: Option<Estimate>,
+    reproducibility: Option<Estimate>,
+    interpolation: Option<Estimate>,
+    zero: Option<Estimate>,
+    zero_max_pct_fs: Option<f64>,
+    reversibility: Option<Estimate>,
+    absent: Vec<(&'static str, String)>,
+}
+
+impl Estimates {
+    /// From the statistics `c` (N), `pct` = 100 / full scale: the repeatability SD
+    /// with its chi-squared interval, reproducibility, interpolation and
+    /// reversibility with bootstrap percentile intervals (none without a
+    /// bootstrap), the mean return to zero with its t interval and the worst trial's.
+    fn new(c: &Core, pct: f64, boot: Option<BootSamples>, positions: usize) -> Estimates {
+        let can_boot = boot.is_some();
+        let b = boot.unwrap_or_default();
+        let boot = |v: Vec<f64>| {
+            if can_boot {
+                percentile_ci(v, BOOTSTRAP_RESAMPLES, pct)
+            } else {
+                None
+            }
+        };
+        let mut absent: Vec<(&'static str, String)> = Vec::new();
+        let repeatability = c.repeatability.map(|(s, dof)| Estimate {
+            pct_fs: s * pct,
+            ci95: stats::sd_ci95(s, dof).map(|(lo, hi)| Ci95 {
+                low: lo * pct,
+                high: hi * pct,
+                method: "chi2",
+            }),
+        });
+        if repeatability.is_none() {
+            absent.push((
+                "metrology.repeatability_pct_fs",
+                "no loaded level was measured twice at the same position and direction".into(),
+            ));
+        }
+        let reproducibility = c.reproducibility.map(|s| Estimate {
+            pct_fs: s * pct,
+            ci95: boot(b.reproducibility),
+        });
+        if reproducibility.is_none() {
+            absent.push((
+                "metrology.reproducibility_pct_fs",
+                format!("needs trials at two or more contact positions (sweep.positions_mm); the run has {positions}"),
+            ));
+        }
+        let interpolation = c.interpolation.map(|v| Estimate {
+            pct_fs: v * pct,
+            ci95: boot(b.interpolation),
+        });
+        if interpolation.is_none() {
+            absent.push((
+                "metrology.interpolation_pct_fs",
+                "needs three or more force levels (a line through two fits them exactly)".into(),
+            ));
+        }
+        let zero = if c.zero_diffs.is_empty() {
+            absent.push((
+                "metrology.zero_pct_fs",
+                "no trial starts and ends with an unloaded reading (target 0)".into(),
+            ));
+            None
+        } else {
+            let m = stats::mean(&c.zero_diffs).unwrap_or(f64::NAN);
+            Some(Estimate {
+                pct_fs: m * pct,
+                ci95: stats::mean_ci95(&c.zero_diffs).map(|(lo, hi)| Ci95 {
+                    low: lo * pct,
+                    high: hi * pct,
+                    method: "t",
+                }),
+            })
+        };
+        let zero_max_pct_fs = c
+            .zero_diffs
+            .iter()
+            .map(|d| d.abs())
+            .reduce(f64::max)
+            .map(|v| v * pct);
+        let reversibility = c.reversibility.map(|v| Estimate {
+            pct_fs: v * pct,
+            ci95: boot(b.reversibility),
+        });
+        if reversibility.is_none() {
+            absent.push((
+                "metrology.reversibility_pct_fs",
+                "no loaded level was measured both loading and unloading (sweep.direction = \"up-down\")".into(),
+            ));
+        }
+        Estimates {
+            repeatability,
+            reproducibility,
+            interpolation,
+            zero,
+            zero_max_pct_fs,
+            reversibility,
+            absent,
+        }
+    }
+}
+
+/// The values the class is judged on (ISO 376 Table 2's criteria as this analysis
+/// measures them): ranges expected of three and two series from the reproducibility
+/// and repeatability SDs, interpolation, the worst trial's zero, reversibility.
+fn class_checks(e: &Estimates) -> Vec<(Criterion, f64, &'static str)> {
+    let mut checks = Vec::new();
+    if let Some(e) = e.reproducibility {
+        checks.push((
+            Criterion::Reproducibility,
+            D2_THREE * e.pct_fs,
+            "1.693 × reproducibility SD (expected range of 3 series)",
+        ));
+    }
+    if let Some(e) = e.repeatability {
+        checks.push((
+            Criterion::Repeatability,
+            D2_TWO * e.pct_fs,
+            "1.128 × repeatability SD (expected range of 2 series)",
+        ));
+    }
+    if let Some(e) = e.interpolation {
+        checks.push((Criterion::Interpolation, e.pct_fs, "interpolation error"));
+    }
+    if let Some(z) = e.zero_max_pct_fs {
+        checks.push((Criterion::Zero, z, "worst trial's zero error"));
+    }
+    if let Some(e) = e.reversibility {
+        checks.push((Criterion::Reversibility, e.pct_fs, "reversibility error"));
+    }
+    checks
 }
 
 #[cfg(test)]

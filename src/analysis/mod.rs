@@ -1028,184 +1028,22 @@ impl RunAnalysis {
         }))
     }
 
-    /// Every scalar result, in the order of [`METRICS`].
+    /// Every scalar result, in the order of [`METRICS`]: the run's counts, then each
+    /// analysis the run has, in a fixed order.
     pub fn metrics(&self) -> Vec<Metric> {
         let mut v = Vec::new();
-        fn push(v: &mut Vec<Metric>, name: String, value: f64, unit: &'static str) {
-            v.push(Metric::new(name, value, unit));
-        }
-        push(
-            &mut v,
-            "run.rows".into(),
-            self.run.rows.len() as f64,
-            "count",
-        );
-        let unsettled = self.run.rows.iter().filter(|r| !r.settled).count();
-        push(&mut v, "run.unsettled".into(), unsettled as f64, "count");
-        // Only when there are some: runs without them keep their metric list.
-        if !self.run.failed.is_empty() {
-            push(
-                &mut v,
-                "run.failed_rows".into(),
-                self.run.failed.len() as f64,
-                "count",
-            );
-        }
-        let implausible = self.run.rows.iter().filter(|r| r.implausible()).count();
-        if implausible > 0 {
-            push(
-                &mut v,
-                "run.implausible_rows".into(),
-                implausible as f64,
-                "count",
-            );
-        }
-        let t = |ci: Option<(f64, f64)>, k: f64| {
-            ci.map(|(lo, hi)| Ci95 {
-                low: (lo * k).min(hi * k),
-                high: (lo * k).max(hi * k),
-                method: "t",
-            })
-        };
-        let chi2 = |ci: Option<(f64, f64)>, k: f64| {
-            ci.map(|(lo, hi)| Ci95 {
-                low: lo * k,
-                high: hi * k,
-                method: "chi2",
-            })
-        };
+        run_metrics(&mut v, &self.run);
         if let Some(m) = &self.magnitude {
-            let c = &m.calibration;
-            let gf = crate::units::n_to_gf(1.0);
-            v.push(
-                Metric::new("magnitude.slope", c.fit.slope, "1")
-                    .with_ci(t(c.fit.slope_ci95(), 1.0)),
-            );
-            v.push(
-                Metric::new("magnitude.offset_n", c.fit.offset, "N")
-                    .with_ci(t(c.fit.offset_ci95(), 1.0)),
-            );
-            v.push(Metric::new("magnitude.r2", c.fit.r2, "1"));
-            v.push(
-                Metric::new("magnitude.residual_sd_n", c.pooled_sd, "N")
-                    .with_ci(chi2(stats::sd_ci95(c.pooled_sd, c.pooled_dof), 1.0)),
-            );
-            let max_sd = c.levels.iter().fold(0.0f64, |a, l| a.max(l.residual_sd));
-            v.push(Metric::new("magnitude.max_level_sd_n", max_sd, "N"));
-            v.push(
-                Metric::new("magnitude.resolution_n", c.resolution, "N")
-                    .with_ci(chi2(c.resolution_ci95(), 1.0)),
-            );
-            v.push(
-                Metric::new("magnitude.resolution_gf", c.resolution * gf, "gf")
-                    .with_ci(chi2(c.resolution_ci95(), gf)),
-            );
-            v.push(Metric::new(
-                "magnitude.resolution_method",
-                c.resolution_method.code(),
-                "1",
-            ));
-            v.push(Metric::new("magnitude.linearity_pct", c.linearity_pct, "%"));
-            if let Some(h) = c.hysteresis_pct {
-                v.push(Metric::new("magnitude.hysteresis_pct", h, "%"));
-            }
+            magnitude_metrics(&mut v, m);
         }
         if let Some(m) = &self.metrology {
-            v.push(Metric::new("metrology.full_scale_n", m.full_scale_n, "N"));
-            let mut est = |name: &str, e: &Option<metrology::Estimate>| {
-                if let Some(e) = e {
-                    v.push(Metric::new(name, e.pct_fs, "%FS").with_ci(e.ci95));
-                }
-            };
-            est("metrology.repeatability_pct_fs", &m.repeatability);
-            est("metrology.reproducibility_pct_fs", &m.reproducibility);
-            est("metrology.interpolation_pct_fs", &m.interpolation);
-            est("metrology.zero_pct_fs", &m.zero);
-            est("metrology.reversibility_pct_fs", &m.reversibility);
-            if let Some(z) = m.zero_max_pct_fs {
-                v.push(Metric::new("metrology.zero_max_pct_fs", z, "%FS"));
-            }
-            if let Some(c) = &m.class {
-                v.push(Metric::new("metrology.class", c.code, "1"));
-            }
+            metrology_metrics(&mut v, m);
         }
         if let Some(a) = &self.angle {
-            let c = &a.calibration;
-            let e: Vec<f64> = a
-                .pairs
-                .iter()
-                .map(|p| p.measured_deg - p.applied_deg)
-                .collect();
-            v.push(
-                Metric::new("angle.bias_deg", a.bias_deg, "deg")
-                    .with_ci(t(stats::mean_ci95(&e), 1.0)),
-            );
-            v.push(Metric::new("angle.sd_deg", a.sd_deg, "deg").with_ci(chi2(
-                stats::sd_ci95(a.sd_deg, e.len().saturating_sub(1)),
-                1.0,
-            )));
-            v.push(Metric::new(
-                "angle.bias_vs_target_deg",
-                a.bias_vs_target_deg,
-                "deg",
-            ));
-            v.push(
-                Metric::new("angle.resolution_deg", c.resolution, "deg")
-                    .with_ci(chi2(c.resolution_ci95(), 1.0)),
-            );
-            v.push(Metric::new(
-                "angle.resolution_method",
-                c.resolution_method.code(),
-                "1",
-            ));
-            v.push(
-                Metric::new("angle.slope", c.fit.slope, "1").with_ci(t(c.fit.slope_ci95(), 1.0)),
-            );
-            v.push(Metric::new("angle.r2", c.fit.r2, "1"));
-            v.push(Metric::new("angle.linearity_pct", c.linearity_pct, "%"));
+            angle_metrics(&mut v, a);
         }
         if let Some(h) = &self.hold {
-            v.push(Metric::new("hold.full_scale_n", h.full_scale_n, "N"));
-            v.push(
-                Metric::new(
-                    "hold.creep_pct_fs_per_min",
-                    h.creep_pct_fs_per_min(),
-                    "%FS/min",
-                )
-                .with_ci(h.creep_ci95()),
-            );
-            if let Some(ft) = &h.ft_drift {
-                let ci = ft.ci95.map(|(lo, hi)| Ci95 {
-                    low: h.pct_fs_per_min(lo),
-                    high: h.pct_fs_per_min(hi),
-                    method: "t",
-                });
-                v.push(
-                    Metric::new(
-                        "hold.ft_drift_pct_fs_per_min",
-                        h.pct_fs_per_min(ft.slope),
-                        "%FS/min",
-                    )
-                    .with_ci(ci),
-                );
-            }
-            if let Some(d) = h.zero_drift_n() {
-                let ci = h.zero_drift_ci95();
-                let k = 100.0 / h.full_scale_n;
-                v.push(Metric::new("hold.zero_drift_n", d, "N").with_ci(ci));
-                v.push(
-                    Metric::new("hold.zero_drift_pct_fs", d * k, "%FS").with_ci(ci.map(|c| Ci95 {
-                        low: c.low * k,
-                        high: c.high * k,
-                        method: c.method,
-                    })),
-                );
-            }
-            if self.metrology.is_none() {
-                if let Some(c) = &h.class {
-                    v.push(Metric::new("metrology.class", c.code, "1"));
-                }
-            }
+            hold_metrics(&mut v, h, self.metrology.is_none());
         }
         if let Some(s) = &self.spatial {
             push(&mut v, "spatial.fwhm_mm".into(), s.fwhm_mm, "mm");
@@ -1223,65 +1061,268 @@ impl RunAnalysis {
             );
         }
         if let Some(d) = &self.displacement {
-            for a in &d.axes {
-                let base = format!("displacement.{}.{}", a.layer, a.axis);
-                push(&mut v, format!("{base}.mean_px"), a.mean_px, "px");
-                push(&mut v, format!("{base}.sd_px"), a.sd_px, "px");
-                push(&mut v, format!("{base}.bias_px"), a.bias_px, "px");
-                push(&mut v, format!("{base}.sd_mm"), a.sd_mm, "mm");
-            }
-            let max_sd = d.axes.iter().fold(0.0f64, |m, a| m.max(a.sd_px));
-            let max_bias = d.axes.iter().fold(0.0f64, |m, a| m.max(a.bias_px.abs()));
-            push(&mut v, "displacement.max_sd_px".into(), max_sd, "px");
-            push(
-                &mut v,
-                "displacement.max_abs_bias_px".into(),
-                max_bias,
-                "px",
-            );
+            displacement_metrics(&mut v, d);
         }
         if let Some(t) = &self.timing {
-            let ms = |s: &str| t.stage(s).map_or(f64::NAN, |s| s.mean_s * 1e3);
-            push(&mut v, "timing.tracking_ms".into(), ms("tracking"), "ms");
-            push(
-                &mut v,
-                "timing.reconstruction_ms".into(),
-                ms("reconstruction"),
-                "ms",
-            );
-            push(&mut v, "timing.forces_ms".into(), ms("forces"), "ms");
-            let max = t.stage("forces").map_or(f64::NAN, |s| s.max_s * 1e3);
-            push(&mut v, "timing.forces_max_ms".into(), max, "ms");
-            push(&mut v, "timing.rest_ms".into(), ms("rest"), "ms");
+            timing_metrics(&mut v, t);
         }
         if let Some(t) = &self.tracking {
-            push(
-                &mut v,
-                "tracking.min_ok_fraction".into(),
-                t.min_ok_fraction(),
-                "1",
-            );
-            push(
-                &mut v,
-                "tracking.mean_ok_fraction".into(),
-                t.mean_ok_fraction(),
-                "1",
-            );
-            push(
-                &mut v,
-                "tracking.flagged_rows".into(),
-                t.flagged().count() as f64,
-                "count",
-            );
-            push(
-                &mut v,
-                "tracking.reacquired_rows".into(),
-                t.reacquired_rows() as f64,
-                "count",
-            );
+            tracking_metrics(&mut v, t);
         }
         v
     }
+}
+
+/// Appends the metric `name` without a CI.
+fn push(v: &mut Vec<Metric>, name: String, value: f64, unit: &'static str) {
+    v.push(Metric::new(name, value, unit));
+}
+
+/// A Student-t interval `(lo, hi)` scaled by `k` (ordered again when `k < 0`).
+fn ci_t(ci: Option<(f64, f64)>, k: f64) -> Option<Ci95> {
+    ci.map(|(lo, hi)| Ci95 {
+        low: (lo * k).min(hi * k),
+        high: (lo * k).max(hi * k),
+        method: "t",
+    })
+}
+
+/// A chi-squared interval `(lo, hi)` of an SD scaled by `k`.
+fn ci_chi2(ci: Option<(f64, f64)>, k: f64) -> Option<Ci95> {
+    ci.map(|(lo, hi)| Ci95 {
+        low: lo * k,
+        high: hi * k,
+        method: "chi2",
+    })
+}
+
+/// The run's rows, unsettled rows, and (only when there are some: runs without them
+/// keep their metric list) failed and implausible rows.
+fn run_metrics(v: &mut Vec<Metric>, run: &RunData) {
+    push(v, "run.rows".into(), run.rows.len() as f64, "count");
+    let unsettled = run.rows.iter().filter(|r| !r.settled).count();
+    push(v, "run.unsettled".into(), unsettled as f64, "count");
+    // Only when there are some: runs without them keep their metric list.
+    if !run.failed.is_empty() {
+        push(
+            v,
+            "run.failed_rows".into(),
+            run.failed.len() as f64,
+            "count",
+        );
+    }
+    let implausible = run.rows.iter().filter(|r| r.implausible()).count();
+    if implausible > 0 {
+        push(
+            v,
+            "run.implausible_rows".into(),
+            implausible as f64,
+            "count",
+        );
+    }
+}
+
+/// Fig. 7: the calibration line with its CIs, residual SD, resolution (N and gf) and
+/// how it was found, linearity and hysteresis.
+fn magnitude_metrics(v: &mut Vec<Metric>, m: &magnitude::MagnitudeAnalysis) {
+    let c = &m.calibration;
+    let gf = crate::units::n_to_gf(1.0);
+    v.push(Metric::new("magnitude.slope", c.fit.slope, "1").with_ci(ci_t(c.fit.slope_ci95(), 1.0)));
+    v.push(
+        Metric::new("magnitude.offset_n", c.fit.offset, "N")
+            .with_ci(ci_t(c.fit.offset_ci95(), 1.0)),
+    );
+    v.push(Metric::new("magnitude.r2", c.fit.r2, "1"));
+    v.push(
+        Metric::new("magnitude.residual_sd_n", c.pooled_sd, "N")
+            .with_ci(ci_chi2(stats::sd_ci95(c.pooled_sd, c.pooled_dof), 1.0)),
+    );
+    let max_sd = c.levels.iter().fold(0.0f64, |a, l| a.max(l.residual_sd));
+    v.push(Metric::new("magnitude.max_level_sd_n", max_sd, "N"));
+    v.push(
+        Metric::new("magnitude.resolution_n", c.resolution, "N")
+            .with_ci(ci_chi2(c.resolution_ci95(), 1.0)),
+    );
+    v.push(
+        Metric::new("magnitude.resolution_gf", c.resolution * gf, "gf")
+            .with_ci(ci_chi2(c.resolution_ci95(), gf)),
+    );
+    v.push(Metric::new(
+        "magnitude.resolution_method",
+        c.resolution_method.code(),
+        "1",
+    ));
+    v.push(Metric::new("magnitude.linearity_pct", c.linearity_pct, "%"));
+    if let Some(h) = c.hysteresis_pct {
+        v.push(Metric::new("magnitude.hysteresis_pct", h, "%"));
+    }
+}
+
+/// ISO 376 style: full scale, the estimates in % of full scale with their CIs, the
+/// largest zero error, the class.
+fn metrology_metrics(v: &mut Vec<Metric>, m: &metrology::MetrologyAnalysis) {
+    v.push(Metric::new("metrology.full_scale_n", m.full_scale_n, "N"));
+    let mut est = |name: &str, e: &Option<metrology::Estimate>| {
+        if let Some(e) = e {
+            v.push(Metric::new(name, e.pct_fs, "%FS").with_ci(e.ci95));
+        }
+    };
+    est("metrology.repeatability_pct_fs", &m.repeatability);
+    est("metrology.reproducibility_pct_fs", &m.reproducibility);
+    est("metrology.interpolation_pct_fs", &m.interpolation);
+    est("metrology.zero_pct_fs", &m.zero);
+    est("metrology.reversibility_pct_fs", &m.reversibility);
+    if let Some(z) = m.zero_max_pct_fs {
+        v.push(Metric::new("metrology.zero_max_pct_fs", z, "%FS"));
+    }
+    if let Some(c) = &m.class {
+        v.push(Metric::new("metrology.class", c.code, "1"));
+    }
+}
+
+/// Fig. 8: bias and SD of the measured angle with their CIs, bias against the
+/// target, resolution and how it was found, the calibration line.
+fn angle_metrics(v: &mut Vec<Metric>, a: &angle::AngleAnalysis) {
+    let c = &a.calibration;
+    let e: Vec<f64> = a
+        .pairs
+        .iter()
+        .map(|p| p.measured_deg - p.applied_deg)
+        .collect();
+    v.push(
+        Metric::new("angle.bias_deg", a.bias_deg, "deg").with_ci(ci_t(stats::mean_ci95(&e), 1.0)),
+    );
+    v.push(
+        Metric::new("angle.sd_deg", a.sd_deg, "deg").with_ci(ci_chi2(
+            stats::sd_ci95(a.sd_deg, e.len().saturating_sub(1)),
+            1.0,
+        )),
+    );
+    v.push(Metric::new(
+        "angle.bias_vs_target_deg",
+        a.bias_vs_target_deg,
+        "deg",
+    ));
+    v.push(
+        Metric::new("angle.resolution_deg", c.resolution, "deg")
+            .with_ci(ci_chi2(c.resolution_ci95(), 1.0)),
+    );
+    v.push(Metric::new(
+        "angle.resolution_method",
+        c.resolution_method.code(),
+        "1",
+    ));
+    v.push(Metric::new("angle.slope", c.fit.slope, "1").with_ci(ci_t(c.fit.slope_ci95(), 1.0)));
+    v.push(Metric::new("angle.r2", c.fit.r2, "1"));
+    v.push(Metric::new("angle.linearity_pct", c.linearity_pct, "%"));
+}
+
+/// Creep: full scale, creep and the F/T's own drift in % of full scale per minute,
+/// zero drift (N and % of full scale), and the class when no metrology analysis
+/// gave one (`class_from_hold`).
+fn hold_metrics(v: &mut Vec<Metric>, h: &hold::HoldAnalysis, class_from_hold: bool) {
+    v.push(Metric::new("hold.full_scale_n", h.full_scale_n, "N"));
+    v.push(
+        Metric::new(
+            "hold.creep_pct_fs_per_min",
+            h.creep_pct_fs_per_min(),
+            "%FS/min",
+        )
+        .with_ci(h.creep_ci95()),
+    );
+    if let Some(ft) = &h.ft_drift {
+        let ci = ft.ci95.map(|(lo, hi)| Ci95 {
+            low: h.pct_fs_per_min(lo),
+            high: h.pct_fs_per_min(hi),
+            method: "t",
+        });
+        v.push(
+            Metric::new(
+                "hold.ft_drift_pct_fs_per_min",
+                h.pct_fs_per_min(ft.slope),
+                "%FS/min",
+            )
+            .with_ci(ci),
+        );
+    }
+    if let Some(d) = h.zero_drift_n() {
+        let ci = h.zero_drift_ci95();
+        let k = 100.0 / h.full_scale_n;
+        v.push(Metric::new("hold.zero_drift_n", d, "N").with_ci(ci));
+        v.push(
+            Metric::new("hold.zero_drift_pct_fs", d * k, "%FS").with_ci(ci.map(|c| Ci95 {
+                low: c.low * k,
+                high: c.high * k,
+                method: c.method,
+            })),
+        );
+    }
+    if class_from_hold {
+        if let Some(c) = &h.class {
+            v.push(Metric::new("metrology.class", c.code, "1"));
+        }
+    }
+}
+
+/// Table I: per layer and axis mean, SD and bias of the displacement; the largest SD
+/// and |bias|.
+fn displacement_metrics(v: &mut Vec<Metric>, d: &displacement::DisplacementAnalysis) {
+    for a in &d.axes {
+        let base = format!("displacement.{}.{}", a.layer, a.axis);
+        push(v, format!("{base}.mean_px"), a.mean_px, "px");
+        push(v, format!("{base}.sd_px"), a.sd_px, "px");
+        push(v, format!("{base}.bias_px"), a.bias_px, "px");
+        push(v, format!("{base}.sd_mm"), a.sd_mm, "mm");
+    }
+    let max_sd = d.axes.iter().fold(0.0f64, |m, a| m.max(a.sd_px));
+    let max_bias = d.axes.iter().fold(0.0f64, |m, a| m.max(a.bias_px.abs()));
+    push(v, "displacement.max_sd_px".into(), max_sd, "px");
+    push(v, "displacement.max_abs_bias_px".into(), max_bias, "px");
+}
+
+/// Table II: mean per-frame times of the stages (NaN where a stage was not timed),
+/// the longest forces time.
+fn timing_metrics(v: &mut Vec<Metric>, t: &timing::TimingAnalysis) {
+    let ms = |s: &str| t.stage(s).map_or(f64::NAN, |s| s.mean_s * 1e3);
+    push(v, "timing.tracking_ms".into(), ms("tracking"), "ms");
+    push(
+        v,
+        "timing.reconstruction_ms".into(),
+        ms("reconstruction"),
+        "ms",
+    );
+    push(v, "timing.forces_ms".into(), ms("forces"), "ms");
+    let max = t.stage("forces").map_or(f64::NAN, |s| s.max_s * 1e3);
+    push(v, "timing.forces_max_ms".into(), max, "ms");
+    push(v, "timing.rest_ms".into(), ms("rest"), "ms");
+}
+
+/// Marker health: the fractions of markers ok, flagged and re-acquired rows.
+fn tracking_metrics(v: &mut Vec<Metric>, t: &tracking::TrackingAnalysis) {
+    push(
+        v,
+        "tracking.min_ok_fraction".into(),
+        t.min_ok_fraction(),
+        "1",
+    );
+    push(
+        v,
+        "tracking.mean_ok_fraction".into(),
+        t.mean_ok_fraction(),
+        "1",
+    );
+    push(
+        v,
+        "tracking.flagged_rows".into(),
+        t.flagged().count() as f64,
+        "count",
+    );
+    push(
+        v,
+        "tracking.reacquired_rows".into(),
+        t.reacquired_rows() as f64,
+        "count",
+    );
 }
 
 #[cfg(test)]

@@ -28,7 +28,7 @@ use crate::bench::journal::{
     self, DeviceProvenance, Journal, JournalError, JournalRow, Manifest, Provenance, RowQuality,
     RunStatus, Session,
 };
-use crate::bench::plan::Plan;
+use crate::bench::plan::{Plan, Setpoint};
 use crate::formats::DisplacementFrame;
 use crate::sensor::Sensor;
 use crate::solve::{self, Problem};
@@ -409,6 +409,12 @@ fn plan_toml(rows: &[WrenchRow], positions: &[[f64; 2]], o: &ImportOptions) -> S
 }
 
 /// Imports a recording into `o.out` (see the module docs).
+///
+/// Steps: the inputs read and checked (sensor file, frames folder, wrench CSV, the
+/// frames it names, the reference, an empty `--out`); the synthesised plan; every
+/// frame decoded before anything is written ([`load_frames`]); then per row the frame
+/// copied, tracked, reconstructed and journalled ([`Importer::row`]); the record's
+/// digests and the manifest last.
 pub fn import(o: &ImportOptions) -> Result<ImportSummary, ImportError> {
     let sensor_toml = std::fs::read_to_string(&o.sensor_path).map_err(|e| ImportError::Io {
         path: o.sensor_path.clone(),
@@ -439,30 +445,8 @@ pub fn import(o: &ImportOptions) -> Result<ImportSummary, ImportError> {
         )
     })?;
     let setpoints = plan.setpoints();
-
-    // Every frame decodes, has the sensor's size and the first frame's bit depth class.
     let ref_path = o.frames_dir.join(&ref_name);
-    let reference =
-        vision::load_frame(&ref_path, &sensor.camera).map_err(|e| bad(&ref_path, e.to_string()))?;
-    let layers = || sensor.layers.iter().map(|l| (l.name.as_str(), l.color));
-    vision::check_layers(&reference.view(), layers()).map_err(|e| bad(&ref_path, e.to_string()))?;
-    let mut frames = Vec::with_capacity(rows.len());
-    for r in &rows {
-        let p = o.frames_dir.join(&r.frame);
-        let f = vision::load_frame(&p, &sensor.camera).map_err(|e| {
-            bad(
-                &p,
-                format!(
-                    "{e} (line {} of {}; the reference {ref_name} is {}×{} px)",
-                    r.line,
-                    o.wrench_csv.display(),
-                    reference.view().width_px(),
-                    reference.view().height_px()
-                ),
-            )
-        })?;
-        frames.push(f);
-    }
+    let (reference, frames) = load_frames(o, &sensor, &rows, &ref_path, &ref_name)?;
     let mapping = PixelMapping::Linear(sensor.camera);
     let detected = vision::detect_mapped(
         &reference.view(),
@@ -471,13 +455,11 @@ pub fn import(o: &ImportOptions) -> Result<ImportSummary, ImportError> {
         &mapping,
     )
     .map_err(|e| bad(&ref_path, format!("reference frame: {e}")))?;
-    let missing = detected.missing.len();
 
     std::fs::create_dir_all(o.out.join("frames")).map_err(|e| io(&o.out, e))?;
     std::fs::create_dir_all(o.out.join("displacements")).map_err(|e| io(&o.out, e))?;
     let mut evidence = BTreeMap::new();
     copy_frame(&ref_path, &o.out, "frames/reference.png", &mut evidence)?;
-    let mut tracker = Tracker::new(detected, TrackConfig::default());
     let reconstruct = sensor.placeholders().is_empty();
     if reconstruct {
         std::fs::create_dir_all(o.out.join("forces")).map_err(|e| io(&o.out, e))?;
@@ -489,110 +471,30 @@ pub fn import(o: &ImportOptions) -> Result<ImportSummary, ImportError> {
             sensor.placeholders().join(", ")
         )
     });
-    let mut solvers: HashMap<Vec<bool>, Box<dyn solve::FrameSolver>> = HashMap::new();
+    let mut importer = Importer {
+        o,
+        sensor: &sensor,
+        plan: &plan,
+        mapping,
+        missing: detected.missing.len(),
+        tracker: Tracker::new(detected, TrackConfig::default()),
+        solvers: HashMap::new(),
+        evidence,
+        not_reconstructed,
+        now: crate::bench::runner::rfc3339_now(),
+    };
     let mut journal = Journal::create(&o.out)?;
-    let now = crate::bench::runner::rfc3339_now();
     let mut flagged = 0;
     for (i, ((r, f), sp)) in rows.iter().zip(&frames).zip(&setpoints).enumerate() {
-        let name = format!("frames/{i:05}_0.png");
-        copy_frame(&o.frames_dir.join(&r.frame), &o.out, &name, &mut evidence)?;
-        let t0 = std::time::Instant::now();
-        let tracks = tracker
-            .track(&f.view())
-            .map_err(|e| bad(&o.frames_dir.join(&r.frame), e.to_string()))?
-            .to_vec();
-        let t_track = t0.elapsed().as_secs_f64();
-        let counts = StatusCounts::of(&tracks, missing);
-        let dpath = format!("displacements/{i:05}.csv");
-        let tracked = vec![(name.clone(), tracks)];
-        vision::write_tracks_mapped(
-            &o.out.join(&dpath),
-            &sensor,
-            tracker.reference(),
-            &tracked,
-            &mapping,
-        )
-        .map_err(|e| bad(&o.out.join(&dpath), e.to_string()))?;
-        digest(&o.out, &dpath, &mut evidence)?;
-        let total = counts.ok + counts.lost + counts.merged + counts.outlier;
-        let ok = total > 0 && counts.ok as f64 >= plan.quality.min_ok_fraction * total as f64;
-        if !ok {
+        let row = importer.row(i, r, f, sp, positions[i])?;
+        if row.quality != Some(RowQuality::Ok) {
             flagged += 1;
         }
-        let t1 = std::time::Instant::now();
-        let (fsum, failure) = if reconstruct {
-            let records = tracker.displacement_records_mapped(&tracked[0].1, &mapping);
-            let frame = DisplacementFrame {
-                frame: String::new(),
-                records,
-            };
-            match solve_frame(&sensor, &plan, &frame, &mut solvers) {
-                Ok(forces) => {
-                    let fpath = format!("forces/{i:05}.csv");
-                    crate::formats::write_forces(
-                        &o.out.join(&fpath),
-                        &sensor.force_grid,
-                        &[(String::new(), forces.clone())],
-                    )
-                    .map_err(|e| bad(&o.out.join(&fpath), e.to_string()))?;
-                    digest(&o.out, &fpath, &mut evidence)?;
-                    let mut s = [0.0; 3];
-                    for (j, v) in forces.iter().enumerate() {
-                        s[j % 3] += v;
-                    }
-                    (s, None)
-                }
-                Err(e) => ([f64::NAN; 3], Some(format!("reconstruction failed: {e}"))),
-            }
-        } else {
-            ([f64::NAN; 3], not_reconstructed.clone())
-        };
-        let row = JournalRow {
-            index: i,
-            trial: sp.trial,
-            swept_value: sp.swept_value,
-            target_normal_n: sp.normal_n,
-            target_tx_n: sp.tangential_n[0],
-            target_ty_n: sp.tangential_n[1],
-            fx_n: r.force_n[0],
-            fy_n: r.force_n[1],
-            fz_n: r.force_n[2],
-            mx_nm: r.torque_nm[0],
-            my_nm: r.torque_nm[1],
-            mz_nm: r.torque_nm[2],
-            stage_x_mm: positions[i][0],
-            stage_y_mm: positions[i][1],
-            stage_z_mm: r.depth_mm.unwrap_or(0.0),
-            settled: true,
-            frames: name,
-            fsum_x_n: fsum[0],
-            fsum_y_n: fsum[1],
-            fsum_z_n: fsum[2],
-            t_track_s: t_track,
-            t_solve_s: if reconstruct {
-                t1.elapsed().as_secs_f64()
-            } else {
-                0.0
-            },
-            completed_at: now.clone(),
-            markers_ok: Some(counts.ok),
-            markers_lost: Some(counts.lost),
-            markers_merged: Some(counts.merged),
-            markers_outlier: Some(counts.outlier),
-            reacquired: Some(0),
-            quality: Some(if ok {
-                RowQuality::Ok
-            } else {
-                RowQuality::Flagged
-            }),
-            ft_status: Some(format!("imported: {} line {}", r.frame, r.line)),
-            failure,
-            ..JournalRow::default()
-        };
         journal.append(&row)?;
     }
     drop(journal);
-    let record = RecordDigests::journal_now(&o.out, evidence, rows.len(), now.clone())
+    let now = importer.now;
+    let record = RecordDigests::journal_now(&o.out, importer.evidence, rows.len(), now.clone())
         .map_err(|e| io(&o.out.join(journal::JOURNAL_FILE), e))?;
     write_manifest(
         o,
@@ -609,9 +511,189 @@ pub fn import(o: &ImportOptions) -> Result<ImportSummary, ImportError> {
         rows: rows.len(),
         reference: format!("{ref_name}: {ref_rule}"),
         flagged,
-        unreconstructed: not_reconstructed,
+        unreconstructed: importer.not_reconstructed,
         unused_frames: unused,
     })
+}
+
+/// The reference and every row's frame, decoded before anything is written: each
+/// must decode and have the sensor's size, and the reference the sensor's layers.
+fn load_frames(
+    o: &ImportOptions,
+    sensor: &Sensor,
+    rows: &[WrenchRow],
+    ref_path: &Path,
+    ref_name: &str,
+) -> Result<(vision::Frame, Vec<vision::Frame>), ImportError> {
+    let reference =
+        vision::load_frame(ref_path, &sensor.camera).map_err(|e| bad(ref_path, e.to_string()))?;
+    let layers = || sensor.layers.iter().map(|l| (l.name.as_str(), l.color));
+    vision::check_layers(&reference.view(), layers()).map_err(|e| bad(ref_path, e.to_string()))?;
+    let mut frames = Vec::with_capacity(rows.len());
+    for r in rows {
+        let p = o.frames_dir.join(&r.frame);
+        let f = vision::load_frame(&p, &sensor.camera).map_err(|e| {
+            bad(
+                &p,
+                format!(
+                    "{e} (line {} of {}; the reference {ref_name} is {}×{} px)",
+                    r.line,
+                    o.wrench_csv.display(),
+                    reference.view().width_px(),
+                    reference.view().height_px()
+                ),
+            )
+        })?;
+        frames.push(f);
+    }
+    Ok((reference, frames))
+}
+
+/// What importing the rows needs and keeps: the tracker against the reference, the
+/// solvers per marker set, the evidence digests written so far.
+struct Importer<'a> {
+    o: &'a ImportOptions,
+    sensor: &'a Sensor,
+    plan: &'a Plan,
+    mapping: PixelMapping,
+    /// Grid nodes the reference has no marker for.
+    missing: usize,
+    tracker: Tracker,
+    solvers: HashMap<Vec<bool>, Box<dyn solve::FrameSolver>>,
+    evidence: BTreeMap<String, String>,
+    /// Why nothing is reconstructed (a draft sensor file), else `None`.
+    not_reconstructed: Option<String>,
+    /// The rows' completion time (one import, one time).
+    now: String,
+}
+
+impl Importer<'_> {
+    /// Row `i` (CSV row `r`, frame `f`, setpoint `sp` at `position`): the frame
+    /// copied, tracked and its displacements written; flagged below the plan's
+    /// `min_ok_fraction`; reconstructed ([`Self::forces`]); the journal row.
+    fn row(
+        &mut self,
+        i: usize,
+        r: &WrenchRow,
+        f: &vision::Frame,
+        sp: &Setpoint,
+        position: [f64; 2],
+    ) -> Result<JournalRow, ImportError> {
+        let o = self.o;
+        let name = format!("frames/{i:05}_0.png");
+        copy_frame(
+            &o.frames_dir.join(&r.frame),
+            &o.out,
+            &name,
+            &mut self.evidence,
+        )?;
+        let t0 = std::time::Instant::now();
+        let tracks = self
+            .tracker
+            .track(&f.view())
+            .map_err(|e| bad(&o.frames_dir.join(&r.frame), e.to_string()))?
+            .to_vec();
+        let t_track = t0.elapsed().as_secs_f64();
+        let counts = StatusCounts::of(&tracks, self.missing);
+        let dpath = format!("displacements/{i:05}.csv");
+        let tracked = vec![(name.clone(), tracks)];
+        vision::write_tracks_mapped(
+            &o.out.join(&dpath),
+            self.sensor,
+            self.tracker.reference(),
+            &tracked,
+            &self.mapping,
+        )
+        .map_err(|e| bad(&o.out.join(&dpath), e.to_string()))?;
+        digest(&o.out, &dpath, &mut self.evidence)?;
+        let total = counts.ok + counts.lost + counts.merged + counts.outlier;
+        let ok = total > 0 && counts.ok as f64 >= self.plan.quality.min_ok_fraction * total as f64;
+        let t1 = std::time::Instant::now();
+        let (fsum, failure) = self.forces(i, &tracked[0].1)?;
+        Ok(JournalRow {
+            index: i,
+            trial: sp.trial,
+            swept_value: sp.swept_value,
+            target_normal_n: sp.normal_n,
+            target_tx_n: sp.tangential_n[0],
+            target_ty_n: sp.tangential_n[1],
+            fx_n: r.force_n[0],
+            fy_n: r.force_n[1],
+            fz_n: r.force_n[2],
+            mx_nm: r.torque_nm[0],
+            my_nm: r.torque_nm[1],
+            mz_nm: r.torque_nm[2],
+            stage_x_mm: position[0],
+            stage_y_mm: position[1],
+            stage_z_mm: r.depth_mm.unwrap_or(0.0),
+            settled: true,
+            frames: name,
+            fsum_x_n: fsum[0],
+            fsum_y_n: fsum[1],
+            fsum_z_n: fsum[2],
+            t_track_s: t_track,
+            t_solve_s: if self.not_reconstructed.is_none() {
+                t1.elapsed().as_secs_f64()
+            } else {
+                0.0
+            },
+            completed_at: self.now.clone(),
+            markers_ok: Some(counts.ok),
+            markers_lost: Some(counts.lost),
+            markers_merged: Some(counts.merged),
+            markers_outlier: Some(counts.outlier),
+            reacquired: Some(0),
+            quality: Some(if ok {
+                RowQuality::Ok
+            } else {
+                RowQuality::Flagged
+            }),
+            ft_status: Some(format!("imported: {} line {}", r.frame, r.line)),
+            failure,
+            ..JournalRow::default()
+        })
+    }
+
+    /// Row `i`'s force sums from its tracks, its forces written to
+    /// `forces/NNNNN.csv`; NaN and why when the reconstruction failed or the sensor
+    /// file is a draft.
+    fn forces(
+        &mut self,
+        i: usize,
+        tracks: &[vision::MarkerTrack],
+    ) -> Result<([f64; 3], Option<String>), ImportError> {
+        if self.not_reconstructed.is_some() {
+            return Ok(([f64::NAN; 3], self.not_reconstructed.clone()));
+        }
+        let records = self
+            .tracker
+            .displacement_records_mapped(tracks, &self.mapping);
+        let frame = DisplacementFrame {
+            frame: String::new(),
+            records,
+        };
+        Ok(
+            match solve_frame(self.sensor, self.plan, &frame, &mut self.solvers) {
+                Ok(forces) => {
+                    let out = &self.o.out;
+                    let fpath = format!("forces/{i:05}.csv");
+                    crate::formats::write_forces(
+                        &out.join(&fpath),
+                        &self.sensor.force_grid,
+                        &[(String::new(), forces.clone())],
+                    )
+                    .map_err(|e| bad(&out.join(&fpath), e.to_string()))?;
+                    digest(out, &fpath, &mut self.evidence)?;
+                    let mut s = [0.0; 3];
+                    for (j, v) in forces.iter().enumerate() {
+                        s[j % 3] += v;
+                    }
+                    (s, None)
+                }
+                Err(e) => ([f64::NAN; 3], Some(format!("reconstruction failed: {e}"))),
+            },
+        )
+    }
 }
 
 /// The middle of the first layer's marker grid, mm (the contact position when the CSV

@@ -231,16 +231,60 @@ fn show(w: &Wrench) -> String {
     )
 }
 
-/// Runs `tactbench ft`.
+/// The sensor a `tactbench ft` command talks to.
+#[derive(Clone, Copy)]
+struct Target<'a> {
+    protocol: Protocol,
+    /// Serial port, or the host of a netft / onrobot-hex.
+    port: &'a str,
+    rdt_port: u16,
+    cal_port: u16,
+}
+
+impl Target<'_> {
+    /// Connects a DynPick on the serial port.
+    fn dynpick(&self) -> anyhow::Result<DynPick<Box<dyn serialport::SerialPort>>> {
+        let port = open_serial(
+            "dynpick",
+            self.port,
+            tactbench::device::dynpick::driver::BAUD,
+        )?;
+        Ok(DynPick::connect(port)?)
+    }
+
+    /// Opens the Net F/T or OnRobot HEX at the host (see [`open_netft`]).
+    fn netft(
+        &self,
+    ) -> anyhow::Result<(
+        NetFt<UdpTransport>,
+        Option<tactbench::device::netft::codec::CalInfo>,
+    )> {
+        open_netft(self.protocol, self.port, self.rdt_port, self.cal_port)
+    }
+
+    /// Connects a Bota on the serial port.
+    fn bota(&self) -> anyhow::Result<Bota<Box<dyn serialport::SerialPort>>> {
+        let port = open_serial(bota::driver::DEVICE, self.port, bota::driver::BAUD)?;
+        Ok(Bota::connect(port, BotaOptions::default())?)
+    }
+}
+
+/// Runs `tactbench ft`: `read`, `tare` or `info` on the sensor `--protocol` and
+/// `--port` name.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let protocol = args
         .protocol
         .context("--protocol is required (dynpick, ft300, bota, netft or onrobot-hex)")?;
-    let port_path = args
+    let port = args
         .port
         .as_deref()
         .context("--port is required (a serial port; for netft / onrobot-hex the sensor's host)")?;
-    let (rdt_port, cal_port) = (args.rdt_port, args.cal_port);
+    let t = Target {
+        protocol,
+        port,
+        rdt_port: args.rdt_port,
+        cal_port: args.cal_port,
+    };
     match args.action {
         Action::Read {
             samples,
@@ -248,223 +292,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             stream,
             json,
         } => {
-            let ws = match protocol {
-                Protocol::Dynpick => {
-                    if stream {
-                        bail!("--stream is only available for the ft300 protocol");
-                    }
-                    let port = open_serial(
-                        "dynpick",
-                        port_path,
-                        tactbench::device::dynpick::driver::BAUD,
-                    )?;
-                    let mut d = DynPick::connect(port)?;
-                    read_n(&mut d, samples, tare)?
-                }
-                Protocol::Ft300 => {
-                    let port =
-                        open_serial("ft300", port_path, tactbench::device::ft300::driver::BAUD)?;
-                    let d = Ft300::connect(port)?;
-                    if stream {
-                        let mut s = d.start_stream()?;
-                        let ws = read_n(&mut s, samples, tare)?;
-                        s.stop()?;
-                        ws
-                    } else {
-                        let mut d = d;
-                        read_n(&mut d, samples, tare)?
-                    }
-                }
-                Protocol::Netft | Protocol::OnrobotHex => {
-                    if stream {
-                        bail!("--stream is only available for the ft300 protocol (netft always streams)");
-                    }
-                    let (mut d, _) = open_netft(protocol, port_path, rdt_port, cal_port)?;
-                    let ws = read_n(&mut d, samples, tare)?;
-                    if let Some(s) = d.take_status() {
-                        eprintln!("{s}");
-                    }
-                    ws
-                }
-                Protocol::Bota => {
-                    if stream {
-                        bail!("--stream is only available for the ft300 protocol (bota always streams)");
-                    }
-                    let port = open_serial(bota::driver::DEVICE, port_path, bota::driver::BAUD)?;
-                    let mut d = Bota::connect(port, BotaOptions::default())?;
-                    let ws = read_n(&mut d, samples, tare)?;
-                    if let Some(s) = d.take_status() {
-                        eprintln!("{s}");
-                    }
-                    ws
-                }
-            };
-            let m = Wrench::mean(&ws);
-            if json {
-                #[derive(Serialize)]
-                struct Out {
-                    protocol: String,
-                    samples: Vec<WrenchJson>,
-                    mean: WrenchJson,
-                }
-                let out = Out {
-                    protocol: protocol.name().to_string(),
-                    samples: ws.iter().map(|w| WrenchJson::from(*w)).collect(),
-                    mean: m.into(),
-                };
-                println!("{}", serde_json::to_string(&out)?);
-            } else {
-                for w in &ws {
-                    println!("{}", show(w));
-                }
-                if ws.len() > 1 {
-                    println!("mean of {}: {}", ws.len(), show(&m));
-                }
-            }
+            let ws = read(t, samples, tare, stream)?;
+            print_readings(protocol, &ws, json)?;
         }
-        Action::Tare => match protocol {
-            Protocol::Dynpick => {
-                let port = open_serial(
-                    "dynpick",
-                    port_path,
-                    tactbench::device::dynpick::driver::BAUD,
-                )?;
-                let mut d = DynPick::connect(port)?;
-                // Verified: read back after each `O`, repeated until it took.
-                let sent = d.tare_verified()?;
-                let w = d.read()?;
-                println!(
-                    "tared ({sent} `O` command{} sent); now {}",
-                    if sent == 1 { "" } else { "s" },
-                    show(&w)
-                );
-            }
-            Protocol::Ft300 => bail!(
-                "the ft300 tare is a software offset held by the driver for one run; \
-                 it cannot persist across commands: use `tactbench ft read --tare`"
-            ),
-            Protocol::Netft | Protocol::OnrobotHex => {
-                let (mut d, _) = open_netft(protocol, port_path, rdt_port, cal_port)?;
-                // The device's software bias (0x0042) persists until the sensor is
-                // power-cycled or biased again; the residual is checked by reading.
-                d.tare()?;
-                let residual = d.offset();
-                let w = d.read()?;
-                println!(
-                    "biased (RDT 0x0042; residual after the bias {}); now {}",
-                    show(&residual),
-                    show(&w)
-                );
-            }
-            Protocol::Bota => {
-                let port = open_serial(bota::driver::DEVICE, port_path, bota::driver::BAUD)?;
-                let mut d = Bota::connect(port, BotaOptions::default())?;
-                d.tare()?;
-                let w = d.read()?;
-                println!(
-                    "software offset {} taken (the Bota serial protocol has no zeroing command: \
-                     the offset holds for this command only; runs tare at start and on resume, \
-                     or use `tactbench ft read --tare`); now {}",
-                    show(&d.offset()),
-                    show(&w)
-                );
-            }
-        },
+        Action::Tare => tare_sensor(t)?,
         Action::Info { json } => {
-            let fields: Vec<(&str, String)> = match protocol {
-                Protocol::Dynpick => {
-                    let port = open_serial(
-                        "dynpick",
-                        port_path,
-                        tactbench::device::dynpick::driver::BAUD,
-                    )?;
-                    let mut d = DynPick::connect(port)?;
-                    let fw = d.firmware_version()?;
-                    let f = d.filter()?;
-                    vec![
-                        ("protocol", "dynpick".into()),
-                        ("firmware", fw),
-                        ("sensitivities", d.sensitivities().to_string()),
-                        ("filter_divider", f.n().to_string()),
-                    ]
-                }
-                Protocol::Ft300 => {
-                    let port =
-                        open_serial("ft300", port_path, tactbench::device::ft300::driver::BAUD)?;
-                    let mut d = Ft300::connect(port)?;
-                    let i = d.info()?;
-                    vec![
-                        ("protocol", "ft300".into()),
-                        ("firmware", i.firmware),
-                        ("serial", i.serial),
-                        ("production_year", i.year.to_string()),
-                    ]
-                }
-                Protocol::Netft | Protocol::OnrobotHex => {
-                    let (mut d, cal) = open_netft(protocol, port_path, rdt_port, cal_port)?;
-                    let w = d.read()?;
-                    let st = d.stats();
-                    let scale = d.scale();
-                    let mut v = vec![
-                        ("protocol", protocol.name().to_string()),
-                        ("host", format!("{port_path} (RDT UDP {rdt_port})")),
-                    ];
-                    if let Some(c) = cal {
-                        v.push((
-                            "calibration",
-                            format!(
-                                "READCALINFO TCP {cal_port}: force unit {}, torque unit {}, {} counts per force unit, {} counts per torque unit",
-                                c.force_unit, c.torque_unit, c.counts_per_force, c.counts_per_torque
-                            ),
-                        ));
-                    } else {
-                        v.push(("calibration", "OnRobot HEX fixed scale".into()));
-                    }
-                    v.push(("counts_per_n", format!("{}", scale.counts_per_n)));
-                    v.push(("counts_per_nm", format!("{}", scale.counts_per_nm)));
-                    v.push(("rate_hz", format!("{:.0}", d.measured_rate_hz())));
-                    v.push((
-                        "stream",
-                        format!(
-                            "{} records, {} lost, {} duplicate, {} stale, {} with a status word, {} malformed, {} start requests",
-                            st.records, st.lost, st.duplicates, st.stale, st.bad_status, st.malformed, st.start_requests
-                        ),
-                    ));
-                    v.push(("reading", show(&w)));
-                    v
-                }
-                Protocol::Bota => {
-                    let port = open_serial(bota::driver::DEVICE, port_path, bota::driver::BAUD)?;
-                    let mut d = Bota::connect(port, BotaOptions::default())?;
-                    let w = d.read()?;
-                    let f = d
-                        .last_frame()
-                        .context("no frame received from the sensor")?;
-                    let st = d.stats();
-                    vec![
-                        ("protocol", "bota".into()),
-                        (
-                            "sample_period",
-                            format!(
-                                "{} ms (sinc {})",
-                                d.sample_period_s() * 1000.0,
-                                bota::driver::DEFAULT_SINC_LEN
-                            ),
-                        ),
-                        ("status", format!("0x{:04x} {}", f.status, bota::codec::status_names(f.status))),
-                        ("timestamp_us", f.timestamp.to_string()),
-                        ("temperature_c", format!("{:.2}", f.temperature_c)),
-                        (
-                            "stream",
-                            format!(
-                                "{} frames, {} left out (overrange/invalid), {} bad CRC, {} bytes skipped",
-                                st.frames, st.bad, st.bad_crc, st.skipped
-                            ),
-                        ),
-                        ("reading", show(&w)),
-                    ]
-                }
-            };
+            let fields = info(t)?;
             if json {
                 let map: serde_json::Map<String, serde_json::Value> = fields
                     .into_iter()
@@ -479,6 +312,232 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `ft read`: `samples` readings (after a tare with `tare`; the FT 300's stream with
+/// `stream`); the streaming sensors' status since connecting on stderr.
+fn read(t: Target<'_>, samples: u32, tare: bool, stream: bool) -> anyhow::Result<Vec<Wrench>> {
+    Ok(match t.protocol {
+        Protocol::Dynpick => {
+            if stream {
+                bail!("--stream is only available for the ft300 protocol");
+            }
+            let mut d = t.dynpick()?;
+            read_n(&mut d, samples, tare)?
+        }
+        Protocol::Ft300 => {
+            let port = open_serial("ft300", t.port, tactbench::device::ft300::driver::BAUD)?;
+            let d = Ft300::connect(port)?;
+            if stream {
+                let mut s = d.start_stream()?;
+                let ws = read_n(&mut s, samples, tare)?;
+                s.stop()?;
+                ws
+            } else {
+                let mut d = d;
+                read_n(&mut d, samples, tare)?
+            }
+        }
+        Protocol::Netft | Protocol::OnrobotHex => {
+            if stream {
+                bail!("--stream is only available for the ft300 protocol (netft always streams)");
+            }
+            let (mut d, _) = t.netft()?;
+            let ws = read_n(&mut d, samples, tare)?;
+            if let Some(s) = d.take_status() {
+                eprintln!("{s}");
+            }
+            ws
+        }
+        Protocol::Bota => {
+            if stream {
+                bail!("--stream is only available for the ft300 protocol (bota always streams)");
+            }
+            let mut d = t.bota()?;
+            let ws = read_n(&mut d, samples, tare)?;
+            if let Some(s) = d.take_status() {
+                eprintln!("{s}");
+            }
+            ws
+        }
+    })
+}
+
+/// The readings and their mean, as text or one JSON object.
+fn print_readings(protocol: Protocol, ws: &[Wrench], json: bool) -> anyhow::Result<()> {
+    let m = Wrench::mean(ws);
+    if json {
+        #[derive(Serialize)]
+        struct Out {
+            protocol: String,
+            samples: Vec<WrenchJson>,
+            mean: WrenchJson,
+        }
+        let out = Out {
+            protocol: protocol.name().to_string(),
+            samples: ws.iter().map(|w| WrenchJson::from(*w)).collect(),
+            mean: m.into(),
+        };
+        println!("{}", serde_json::to_string(&out)?);
+    } else {
+        for w in ws {
+            println!("{}", show(w));
+        }
+        if ws.len() > 1 {
+            println!("mean of {}: {}", ws.len(), show(&m));
+        }
+    }
+    Ok(())
+}
+
+/// `ft tare`: zeroes the sensor where it can hold a zero (DynPick verified, Net F/T
+/// bias), a software offset for this command only on a Bota; refused on an FT 300.
+fn tare_sensor(t: Target<'_>) -> anyhow::Result<()> {
+    match t.protocol {
+        Protocol::Dynpick => {
+            let mut d = t.dynpick()?;
+            // Verified: read back after each `O`, repeated until it took.
+            let sent = d.tare_verified()?;
+            let w = d.read()?;
+            println!(
+                "tared ({sent} `O` command{} sent); now {}",
+                if sent == 1 { "" } else { "s" },
+                show(&w)
+            );
+        }
+        Protocol::Ft300 => bail!(
+            "the ft300 tare is a software offset held by the driver for one run; \
+             it cannot persist across commands: use `tactbench ft read --tare`"
+        ),
+        Protocol::Netft | Protocol::OnrobotHex => {
+            let (mut d, _) = t.netft()?;
+            // The device's software bias (0x0042) persists until the sensor is
+            // power-cycled or biased again; the residual is checked by reading.
+            d.tare()?;
+            let residual = d.offset();
+            let w = d.read()?;
+            println!(
+                "biased (RDT 0x0042; residual after the bias {}); now {}",
+                show(&residual),
+                show(&w)
+            );
+        }
+        Protocol::Bota => {
+            let mut d = t.bota()?;
+            d.tare()?;
+            let w = d.read()?;
+            println!(
+                "software offset {} taken (the Bota serial protocol has no zeroing command: \
+                 the offset holds for this command only; runs tare at start and on resume, \
+                 or use `tactbench ft read --tare`); now {}",
+                show(&d.offset()),
+                show(&w)
+            );
+        }
+    }
+    Ok(())
+}
+
+/// `ft info`: what the sensor says about itself, as (field, value) pairs.
+fn info(t: Target<'_>) -> anyhow::Result<Vec<(&'static str, String)>> {
+    Ok(match t.protocol {
+        Protocol::Dynpick => {
+            let mut d = t.dynpick()?;
+            let fw = d.firmware_version()?;
+            let f = d.filter()?;
+            vec![
+                ("protocol", "dynpick".into()),
+                ("firmware", fw),
+                ("sensitivities", d.sensitivities().to_string()),
+                ("filter_divider", f.n().to_string()),
+            ]
+        }
+        Protocol::Ft300 => {
+            let port = open_serial("ft300", t.port, tactbench::device::ft300::driver::BAUD)?;
+            let mut d = Ft300::connect(port)?;
+            let i = d.info()?;
+            vec![
+                ("protocol", "ft300".into()),
+                ("firmware", i.firmware),
+                ("serial", i.serial),
+                ("production_year", i.year.to_string()),
+            ]
+        }
+        Protocol::Netft | Protocol::OnrobotHex => netft_info(t)?,
+        Protocol::Bota => bota_info(t)?,
+    })
+}
+
+/// `ft info` of a Net F/T or OnRobot HEX: host, calibration, scale, measured rate,
+/// stream counters, a reading.
+fn netft_info(t: Target<'_>) -> anyhow::Result<Vec<(&'static str, String)>> {
+    let (mut d, cal) = t.netft()?;
+    let w = d.read()?;
+    let st = d.stats();
+    let scale = d.scale();
+    let mut v = vec![
+        ("protocol", t.protocol.name().to_string()),
+        ("host", format!("{} (RDT UDP {})", t.port, t.rdt_port)),
+    ];
+    if let Some(c) = cal {
+        v.push((
+            "calibration",
+            format!(
+                "READCALINFO TCP {}: force unit {}, torque unit {}, {} counts per force unit, {} counts per torque unit",
+                t.cal_port, c.force_unit, c.torque_unit, c.counts_per_force, c.counts_per_torque
+            ),
+        ));
+    } else {
+        v.push(("calibration", "OnRobot HEX fixed scale".into()));
+    }
+    v.push(("counts_per_n", format!("{}", scale.counts_per_n)));
+    v.push(("counts_per_nm", format!("{}", scale.counts_per_nm)));
+    v.push(("rate_hz", format!("{:.0}", d.measured_rate_hz())));
+    v.push((
+        "stream",
+        format!(
+            "{} records, {} lost, {} duplicate, {} stale, {} with a status word, {} malformed, {} start requests",
+            st.records, st.lost, st.duplicates, st.stale, st.bad_status, st.malformed, st.start_requests
+        ),
+    ));
+    v.push(("reading", show(&w)));
+    Ok(v)
+}
+
+/// `ft info` of a Bota: sample period, the last frame's status, timestamp and
+/// temperature, stream counters, a reading.
+fn bota_info(t: Target<'_>) -> anyhow::Result<Vec<(&'static str, String)>> {
+    let mut d = t.bota()?;
+    let w = d.read()?;
+    let f = d
+        .last_frame()
+        .context("no frame received from the sensor")?;
+    let st = d.stats();
+    Ok(vec![
+        ("protocol", "bota".into()),
+        (
+            "sample_period",
+            format!(
+                "{} ms (sinc {})",
+                d.sample_period_s() * 1000.0,
+                bota::driver::DEFAULT_SINC_LEN
+            ),
+        ),
+        (
+            "status",
+            format!("0x{:04x} {}", f.status, bota::codec::status_names(f.status)),
+        ),
+        ("timestamp_us", f.timestamp.to_string()),
+        ("temperature_c", format!("{:.2}", f.temperature_c)),
+        (
+            "stream",
+            format!(
+                "{} frames, {} left out (overrange/invalid), {} bad CRC, {} bytes skipped",
+                st.frames, st.bad, st.bad_crc, st.skipped
+            ),
+        ),
+        ("reading", show(&w)),
+    ])
 }
 
 fn read_n(s: &mut dyn ForceSensor, n: u32, tare: bool) -> anyhow::Result<Vec<Wrench>> {

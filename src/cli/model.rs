@@ -126,42 +126,7 @@ fn forward(args: ForwardArgs) -> Result<ExitCode> {
 
 fn inspect(args: InspectArgs) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
-    let (sites, frame) = match &args.displacements {
-        Some(path) => {
-            let frames = formats::read_displacements(path, &sensor)?;
-            formats::require_usable_marker(&frames, &sensor, path)?;
-            // The first frame with a usable marker gives the marker set.
-            let first = frames
-                .iter()
-                .find(|f| f.records.iter().any(|r| r.u_mm.is_some()))
-                .unwrap_or(&frames[0]);
-            // Automatic lambda / rank needs a loaded frame: the first frame whose
-            // displacements are not all zero among those with the first frame's markers
-            // (an unloaded reference often comes first).
-            let present = |f: &formats::DisplacementFrame| {
-                f.records
-                    .iter()
-                    .map(|r| (r.layer, r.marker, r.u_mm.is_some()))
-                    .collect::<Vec<_>>()
-            };
-            let key = present(first);
-            let chooser = frames
-                .iter()
-                .find(|f| present(f) == key && f.u_mm().iter().any(|&v| v != 0.0))
-                .unwrap_or(first);
-            (first.sites(&sensor), Some(chooser.u_mm()))
-        }
-        None => {
-            let sites = MarkerSite::from_sensor_grids(&sensor);
-            if sites.is_empty() {
-                anyhow::bail!(
-                    "{}: no layer has a [layers.markers] grid; pass --displacements to give marker positions",
-                    args.sensor.display()
-                );
-            }
-            (sites, None)
-        }
-    };
+    let (sites, frame) = inspect_markers(&args, &sensor)?;
     let config = args.solver.config().map_err(anyhow::Error::msg)?;
     let problem = Problem::new(&sensor, &sites);
     let solver = solve::precompute(&problem, &config, frame.as_deref()).map_err(|e| {
@@ -185,7 +150,6 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
         };
         solve::precompute(&problem, &fconf, None).map(|_| ())
     };
-
     if args.json {
         let v = serde_json::json!({
             "sensor": args.sensor.display().to_string(),
@@ -209,7 +173,60 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
         println!("{v}");
         return Ok(ExitCode::SUCCESS);
     }
+    print_geometry(&args, &sensor, &sites);
+    print_diagnostics(d, noise_mm, args.all);
+    match fourier {
+        Ok(()) => println!("fourier      compatible with this geometry"),
+        Err(e) => println!("fourier      not available: {e}"),
+    }
+    Ok(ExitCode::SUCCESS)
+}
 
+/// The marker set `inspect` builds `H` for, and the frame automatic λ / rank choose
+/// with: the first frame of `--displacements` with a usable marker, and the first
+/// loaded frame with its markers (an unloaded reference often comes first); else the
+/// sensor's layer grids and no frame.
+fn inspect_markers(
+    args: &InspectArgs,
+    sensor: &Sensor,
+) -> Result<(Vec<MarkerSite>, Option<Vec<f64>>)> {
+    let Some(path) = &args.displacements else {
+        let sites = MarkerSite::from_sensor_grids(sensor);
+        if sites.is_empty() {
+            anyhow::bail!(
+                "{}: no layer has a [layers.markers] grid; pass --displacements to give marker positions",
+                args.sensor.display()
+            );
+        }
+        return Ok((sites, None));
+    };
+    let frames = formats::read_displacements(path, sensor)?;
+    formats::require_usable_marker(&frames, sensor, path)?;
+    // The first frame with a usable marker gives the marker set.
+    let first = frames
+        .iter()
+        .find(|f| f.records.iter().any(|r| r.u_mm.is_some()))
+        .unwrap_or(&frames[0]);
+    // Automatic lambda / rank needs a loaded frame: the first frame whose
+    // displacements are not all zero among those with the first frame's markers
+    // (an unloaded reference often comes first).
+    let present = |f: &formats::DisplacementFrame| {
+        f.records
+            .iter()
+            .map(|r| (r.layer, r.marker, r.u_mm.is_some()))
+            .collect::<Vec<_>>()
+    };
+    let key = present(first);
+    let chooser = frames
+        .iter()
+        .find(|f| present(f) == key && f.u_mm().iter().any(|&v| v != 0.0))
+        .unwrap_or(first);
+    Ok((first.sites(sensor), Some(chooser.u_mm())))
+}
+
+/// The geometry as text: sensor file, elastomer, layers with their marker counts,
+/// force grid.
+fn print_geometry(args: &InspectArgs, sensor: &Sensor, sites: &[MarkerSite]) {
     let e = &sensor.elastomer;
     println!("sensor       {}", args.sensor.display());
     println!(
@@ -240,6 +257,12 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
         "force grid   {}x{} every {} mm from ({}, {}) mm",
         g.nx, g.ny, g.pitch_mm, g.origin_mm[0], g.origin_mm[1]
     );
+}
+
+/// The solver's diagnostics as text: shape of `H`, singular values (all with
+/// `all`), condition, effective rank, noise gain and what `noise_mm` of displacement
+/// noise costs, λ / rank, notes and warnings.
+fn print_diagnostics(d: &solve::Diagnostics, noise_mm: f64, all: bool) {
     println!(
         "system H     {} x {} (2 per marker x 3 per force point)",
         d.shape.0, d.shape.1
@@ -247,7 +270,7 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     println!("solver       {}", d.method);
     let sv = &d.singular_values;
     if !sv.is_empty() {
-        if args.all || sv.len() <= 12 {
+        if all || sv.len() <= 12 {
             println!("singular values (mm/N): {}", fmt_list(sv));
         } else {
             println!(
@@ -290,11 +313,6 @@ fn inspect(args: InspectArgs) -> Result<ExitCode> {
     for w in d.warnings() {
         eprintln!("model inspect: warning: {w}");
     }
-    match fourier {
-        Ok(()) => println!("fourier      compatible with this geometry"),
-        Err(e) => println!("fourier      not available: {e}"),
-    }
-    Ok(ExitCode::SUCCESS)
 }
 
 fn finite_or_null(v: f64) -> serde_json::Value {

@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 
 use tactbench::formats::{self, DisplacementFrame};
+use tactbench::model::MarkerSite;
 use tactbench::sensor::Sensor;
 use tactbench::solve::{self, fmt_num, FrameSolver, Problem, SolverConfig};
 
@@ -101,6 +102,9 @@ fn marker_key(frame: &DisplacementFrame) -> MarkerKey {
         .collect()
 }
 
+/// Runs `tactbench reconstruct`: the inputs checked ([`check_inputs`]), each frame
+/// reconstructed in turn ([`reconstruct_frame`]), the forces written, the frames past
+/// the elastomer's bound named (exit 1).
 pub fn run(args: Args) -> Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
     let draft = match sensor.draft_warning(&args.sensor) {
@@ -117,6 +121,72 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // No usable marker in any frame: an error (exit 2, no output file), not a file of
     // NaN rows.
     formats::require_usable_marker(&frames, &sensor, &args.displacements)?;
+    let (config, per, sigma_mm) = check_inputs(&args, &sensor)?;
+    let ctx = Ctx {
+        sensor: &sensor,
+        config: &config,
+        frames: &frames,
+        per,
+        sigma_mm,
+        keys: frames.iter().map(marker_key).collect(),
+        zero: frames
+            .iter()
+            .map(|f| f.u_mm().iter().all(|&v| v == 0.0))
+            .collect(),
+        what: if config.method == solve::Method::Tsvd {
+            "rank"
+        } else {
+            "lambda"
+        },
+        n_out: 3 * sensor.force_grid.len(),
+        // No F/T reading: the elastomer's load bound is the plausibility gate.
+        max_load: sensor.max_load_n(),
+    };
+    // `file`: one precompute per distinct set of present markers, parameters chosen on
+    // the set's first loaded frame. `frame`: one precompute per frame.
+    let mut cache: HashMap<MarkerKey, Box<dyn FrameSolver>> = HashMap::new();
+    let mut out = Outputs {
+        forces: Vec::with_capacity(frames.len()),
+        sds: Vec::with_capacity(frames.len()),
+        implausible: Vec::new(),
+        reported: false,
+    };
+    for i in 0..frames.len() {
+        reconstruct_frame(&ctx, i, &mut cache, &mut out)?;
+    }
+    let outputs = out.forces;
+    if sigma_mm.is_some() {
+        formats::write_forces_sd(&args.out, &sensor.force_grid, &outputs, &out.sds)?;
+    } else {
+        formats::write_forces(&args.out, &sensor.force_grid, &outputs)?;
+    }
+    eprintln!(
+        "reconstruct: wrote {} force points x {} frame(s) to {}",
+        sensor.force_grid.len(),
+        outputs.len(),
+        args.out.display()
+    );
+    if let Some(w) = &draft {
+        eprintln!("reconstruct: warning: {w}");
+    }
+    let implausible = out.implausible;
+    if implausible.is_empty() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    eprintln!(
+        "reconstruct: {} of {} frame(s) past the elastomer's load bound of {} N, written as NaN: {}",
+        implausible.len(),
+        outputs.len(),
+        fmt_num(ctx.max_load),
+        implausible.join(", ")
+    );
+    Ok(ExitCode::from(1))
+}
+
+/// The solver configuration, how automatic parameters are chosen (`--lambda-per`,
+/// refused where nothing is chosen from the data) and the displacement noise σ in mm
+/// for `--uncertainty` (said on stderr).
+fn check_inputs(args: &Args, sensor: &Sensor) -> Result<(SolverConfig, LambdaPer, Option<f64>)> {
     let config = args.solver.config().map_err(anyhow::Error::msg)?;
     if let Some(per) = args.lambda_per {
         if !config.needs_frame() {
@@ -141,7 +211,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     fmt_num(px)
                 );
             }
-            let mm = solve::noise_px_to_mm(&sensor, px);
+            let mm = solve::noise_px_to_mm(sensor, px);
             eprintln!(
                 "reconstruct: displacement noise {} px = {} mm (mm_per_px {}) per ux / uy value",
                 fmt_num(px),
@@ -152,177 +222,224 @@ pub fn run(args: Args) -> Result<ExitCode> {
         }
         _ => None,
     };
+    Ok((config, per, sigma_mm))
+}
 
-    let n_out = 3 * sensor.force_grid.len();
-    // No F/T reading: the elastomer's load bound is the plausibility gate.
-    let max_load = sensor.max_load_n();
-    let mut implausible: Vec<String> = Vec::new();
-    let keys: Vec<MarkerKey> = frames.iter().map(marker_key).collect();
-    let zero: Vec<bool> = frames
-        .iter()
-        .map(|f| f.u_mm().iter().all(|&v| v == 0.0))
-        .collect();
-    let what = if config.method == solve::Method::Tsvd {
-        "rank"
+/// What every frame's reconstruction reads.
+struct Ctx<'a> {
+    sensor: &'a Sensor,
+    config: &'a SolverConfig,
+    frames: &'a [DisplacementFrame],
+    per: LambdaPer,
+    /// Displacement noise, mm, with `--uncertainty`.
+    sigma_mm: Option<f64>,
+    /// Each frame's set of present markers.
+    keys: Vec<MarkerKey>,
+    /// Whether each frame's displacements are all exactly zero.
+    zero: Vec<bool>,
+    /// What automatic parameter is chosen: `rank` or `lambda`.
+    what: &'static str,
+    /// Force values per frame (3 per force point).
+    n_out: usize,
+    /// The elastomer's load bound, N.
+    max_load: f64,
+}
+
+/// What the frames give: forces per frame (labelled), their SDs with
+/// `--uncertainty`, the frames past the load bound, whether the diagnostics were
+/// reported in full yet.
+struct Outputs {
+    forces: Vec<(String, Vec<f64>)>,
+    sds: Vec<Vec<f64>>,
+    implausible: Vec<String>,
+    reported: bool,
+}
+
+/// Reconstructs frame `i` into `out`: NaN when all its markers are lost, zero when
+/// it and every frame that could choose its parameters are unloaded, NaN when its
+/// force field is past the elastomer's bound; its SDs with `--uncertainty`.
+fn reconstruct_frame(
+    ctx: &Ctx<'_>,
+    i: usize,
+    cache: &mut HashMap<MarkerKey, Box<dyn FrameSolver>>,
+    out: &mut Outputs,
+) -> Result<()> {
+    let (frame, n_out) = (&ctx.frames[i], ctx.n_out);
+    let label = if frame.frame.is_empty() {
+        String::new()
     } else {
-        "lambda"
+        format!(" (frame {})", frame.frame)
     };
+    report_lost(frame, ctx.sensor, &label);
+    let sites = frame.sites(ctx.sensor);
+    if sites.is_empty() {
+        eprintln!(
+            "reconstruct: warning: all {} markers lost{label}: no force can be reconstructed, its rows are written as NaN",
+            frame.records.len()
+        );
+        out.forces
+            .push((frame.frame.clone(), vec![f64::NAN; n_out]));
+        out.sds.push(vec![f64::NAN; n_out]);
+        return Ok(());
+    }
+    let Some(c) = chooser(ctx, i) else {
+        eprintln!(
+            "reconstruct: note: all displacements are zero{label}: the forces are zero (no loaded frame{} to choose the {} from{})",
+            if ctx.per == LambdaPer::File { " with these markers" } else { "" },
+            ctx.what,
+            if ctx.sigma_mm.is_some() { ", so no uncertainty: sd columns are NaN" } else { "" }
+        );
+        out.forces.push((frame.frame.clone(), vec![0.0; n_out]));
+        out.sds.push(vec![f64::NAN; n_out]);
+        return Ok(());
+    };
+    let mut fresh = None;
+    let solver = solver_for(
+        ctx,
+        i,
+        c,
+        &sites,
+        &label,
+        cache,
+        &mut fresh,
+        &mut out.reported,
+    )?;
+    let u = frame.u_mm();
+    let mut f = vec![0.0; solver.n_outputs()];
+    solver
+        .apply(&u, &mut f)
+        .with_context(|| format!("reconstruction failed{label}"))?;
+    let sum = axis_sums(&f);
+    eprintln!(
+        "reconstruct: F_sum{label} = ({}, {}, {}) N",
+        fmt_num(sum[0]),
+        fmt_num(sum[1]),
+        fmt_num(sum[2])
+    );
+    if !within_load_bound(ctx, &**solver, &f, &label) {
+        out.implausible.push(if frame.frame.is_empty() {
+            "the frame".to_string()
+        } else {
+            format!("frame {}", frame.frame)
+        });
+        out.forces
+            .push((frame.frame.clone(), vec![f64::NAN; n_out]));
+        if ctx.sigma_mm.is_some() {
+            out.sds.push(vec![f64::NAN; n_out]);
+        }
+        return Ok(());
+    }
+    if let Some(s) = ctx.sigma_mm {
+        out.sds.push(force_sd(&**solver, s, &label)?);
+    }
+    out.forces.push((frame.frame.clone(), f));
+    Ok(())
+}
 
-    // `file`: one precompute per distinct set of present markers, parameters chosen on
-    // the set's first loaded frame. `frame`: one precompute per frame.
-    let mut cache: HashMap<MarkerKey, Box<dyn FrameSolver>> = HashMap::new();
-    let mut outputs = Vec::with_capacity(frames.len());
-    let mut sds = Vec::with_capacity(frames.len());
-    let mut reported = false;
-    for (i, frame) in frames.iter().enumerate() {
-        let label = if frame.frame.is_empty() {
+/// The frame that chooses frame `i`'s automatic parameters (any frame of its marker
+/// set when none are automatic): its own when loaded (`frame`), else the first
+/// loaded frame with its markers (`file`). `None` when there is none.
+fn chooser(ctx: &Ctx<'_>, i: usize) -> Option<usize> {
+    if !ctx.config.needs_frame() {
+        Some(i)
+    } else {
+        match ctx.per {
+            LambdaPer::File => {
+                (0..ctx.frames.len()).find(|&j| ctx.keys[j] == ctx.keys[i] && !ctx.zero[j])
+            }
+            LambdaPer::Frame => (!ctx.zero[i]).then_some(i),
+        }
+    }
+}
+
+/// The solver for frame `i` with parameters chosen on frame `c`: built fresh into
+/// `fresh` per frame (`--lambda-per frame` with automatic parameters), else from the
+/// cache per marker set, built on first use. Its diagnostics reported as it is built.
+#[allow(clippy::too_many_arguments)]
+fn solver_for<'a>(
+    ctx: &Ctx<'_>,
+    i: usize,
+    c: usize,
+    sites: &[MarkerSite],
+    label: &str,
+    cache: &'a mut HashMap<MarkerKey, Box<dyn FrameSolver>>,
+    fresh: &'a mut Option<Box<dyn FrameSolver>>,
+    reported: &mut bool,
+) -> Result<&'a mut Box<dyn FrameSolver>> {
+    let (config, frames) = (ctx.config, ctx.frames);
+    let build = |c: usize| -> Result<Box<dyn FrameSolver>> {
+        let problem = Problem::new(ctx.sensor, sites);
+        let uc = frames[c].u_mm();
+        let chosen_on = if c == i || frames[c].frame.is_empty() {
             String::new()
         } else {
-            format!(" (frame {})", frame.frame)
+            format!(" ({} chosen on frame {})", ctx.what, frames[c].frame)
         };
-        report_lost(frame, &sensor, &label);
-        let sites = frame.sites(&sensor);
-        if sites.is_empty() {
-            eprintln!(
-                "reconstruct: warning: all {} markers lost{label}: no force can be reconstructed, its rows are written as NaN",
-                frame.records.len()
-            );
-            outputs.push((frame.frame.clone(), vec![f64::NAN; n_out]));
-            sds.push(vec![f64::NAN; n_out]);
-            continue;
-        }
-        let u = frame.u_mm();
-        // The frame that chooses automatic parameters (any frame of the set when
-        // none are automatic).
-        let chooser = if !config.needs_frame() {
-            Some(i)
-        } else {
-            match per {
-                LambdaPer::File => (0..frames.len()).find(|&j| keys[j] == keys[i] && !zero[j]),
-                LambdaPer::Frame => (!zero[i]).then_some(i),
-            }
-        };
-        let Some(c) = chooser else {
-            eprintln!(
-                "reconstruct: note: all displacements are zero{label}: the forces are zero (no loaded frame{} to choose the {what} from{})",
-                if per == LambdaPer::File { " with these markers" } else { "" },
-                if sigma_mm.is_some() { ", so no uncertainty: sd columns are NaN" } else { "" }
-            );
-            outputs.push((frame.frame.clone(), vec![0.0; n_out]));
-            sds.push(vec![f64::NAN; n_out]);
-            continue;
-        };
-        let build = |c: usize| -> Result<Box<dyn FrameSolver>> {
-            let problem = Problem::new(&sensor, &sites);
-            let uc = frames[c].u_mm();
-            let chosen_on = if c == i || frames[c].frame.is_empty() {
-                String::new()
-            } else {
-                format!(" ({what} chosen on frame {})", frames[c].frame)
-            };
-            solve::precompute(&problem, &config, Some(&uc)).with_context(|| {
-                format!(
-                    "cannot set up the {} solver{label}{chosen_on}",
-                    config.method
-                )
-            })
-        };
-        let mut fresh: Box<dyn FrameSolver>;
-        let solver: &mut Box<dyn FrameSolver> = if per == LambdaPer::Frame && config.needs_frame() {
-            fresh = build(c)?;
-            report(fresh.diagnostics(), &config, &label, &mut reported);
-            &mut fresh
-        } else {
-            match cache.entry(keys[i].clone()) {
-                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-                std::collections::hash_map::Entry::Vacant(e) => {
-                    let s = build(c)?;
-                    if config.needs_frame() && c != i && !frames[c].frame.is_empty() {
-                        eprintln!(
-                            "reconstruct: {what} for this marker set chosen on frame {} (the first with nonzero displacements)",
-                            frames[c].frame
-                        );
-                    }
-                    report(s.diagnostics(), &config, "", &mut reported);
-                    e.insert(s)
-                }
-            }
-        };
-        let mut f = vec![0.0; solver.n_outputs()];
-        solver
-            .apply(&u, &mut f)
-            .with_context(|| format!("reconstruction failed{label}"))?;
-        let sum = axis_sums(&f);
-        eprintln!(
-            "reconstruct: F_sum{label} = ({}, {}, {}) N",
-            fmt_num(sum[0]),
-            fmt_num(sum[1]),
-            fmt_num(sum[2])
-        );
-        let load = total_load(&f);
-        if load.is_nan() || load > max_load {
-            eprintln!(
-                "reconstruct: error{label}: the force field carries sum |f| = {} N (|F_sum| = {} N), past what the elastomer can carry: E x force-grid area = {} N/mm^2 x {} mm^2 = {} N (docs/limits.md); its rows are written as NaN. Likely {}",
-                fmt_num(load),
-                fmt_num((sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]).sqrt()),
-                fmt_num(sensor.elastomer.young_modulus_n_per_mm2()),
-                fmt_num(sensor.force_grid_area_mm2()),
-                fmt_num(max_load),
-                likely_cause(solver.diagnostics(), &config)
-            );
-            implausible.push(if frame.frame.is_empty() {
-                "the frame".to_string()
-            } else {
-                format!("frame {}", frame.frame)
-            });
-            outputs.push((frame.frame.clone(), vec![f64::NAN; n_out]));
-            if sigma_mm.is_some() {
-                sds.push(vec![f64::NAN; n_out]);
-            }
-            continue;
-        }
-        if let Some(s) = sigma_mm {
-            let mut sd = vec![0.0; solver.n_outputs()];
-            solver
-                .force_sd(s, &mut sd)
-                .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
-            let ssd = solve::force_sum_sd(&**solver, s)
-                .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
-            eprintln!(
-                "reconstruct: sd of F_sum{label} = ({}, {}, {}) N",
-                fmt_num(ssd[0]),
-                fmt_num(ssd[1]),
-                fmt_num(ssd[2])
-            );
-            sds.push(sd);
-        }
-        outputs.push((frame.frame.clone(), f));
+        solve::precompute(&problem, config, Some(&uc)).with_context(|| {
+            format!(
+                "cannot set up the {} solver{label}{chosen_on}",
+                config.method
+            )
+        })
+    };
+    if ctx.per == LambdaPer::Frame && config.needs_frame() {
+        let s = fresh.insert(build(c)?);
+        report(s.diagnostics(), config, label, reported);
+        return Ok(s);
     }
-    if sigma_mm.is_some() {
-        formats::write_forces_sd(&args.out, &sensor.force_grid, &outputs, &sds)?;
-    } else {
-        formats::write_forces(&args.out, &sensor.force_grid, &outputs)?;
+    Ok(match cache.entry(ctx.keys[i].clone()) {
+        std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+        std::collections::hash_map::Entry::Vacant(e) => {
+            let s = build(c)?;
+            if config.needs_frame() && c != i && !frames[c].frame.is_empty() {
+                eprintln!(
+                    "reconstruct: {} for this marker set chosen on frame {} (the first with nonzero displacements)",
+                    ctx.what, frames[c].frame
+                );
+            }
+            report(s.diagnostics(), config, "", reported);
+            e.insert(s)
+        }
+    })
+}
+
+/// Whether the force field `f` stays within the elastomer's load bound; when not,
+/// says so on stderr with the bound and the likely cause.
+fn within_load_bound(ctx: &Ctx<'_>, solver: &dyn FrameSolver, f: &[f64], label: &str) -> bool {
+    let load = total_load(f);
+    if !(load.is_nan() || load > ctx.max_load) {
+        return true;
     }
+    let sum = axis_sums(f);
+    let sensor = ctx.sensor;
     eprintln!(
-        "reconstruct: wrote {} force points x {} frame(s) to {}",
-        sensor.force_grid.len(),
-        outputs.len(),
-        args.out.display()
+        "reconstruct: error{label}: the force field carries sum |f| = {} N (|F_sum| = {} N), past what the elastomer can carry: E x force-grid area = {} N/mm^2 x {} mm^2 = {} N (docs/limits.md); its rows are written as NaN. Likely {}",
+        fmt_num(load),
+        fmt_num((sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]).sqrt()),
+        fmt_num(sensor.elastomer.young_modulus_n_per_mm2()),
+        fmt_num(sensor.force_grid_area_mm2()),
+        fmt_num(ctx.max_load),
+        likely_cause(solver.diagnostics(), ctx.config)
     );
-    if let Some(w) = &draft {
-        eprintln!("reconstruct: warning: {w}");
-    }
-    if implausible.is_empty() {
-        return Ok(ExitCode::SUCCESS);
-    }
+    false
+}
+
+/// Per-node force SDs for displacement noise `s` (mm), the SD of the force sums said
+/// on stderr.
+fn force_sd(solver: &dyn FrameSolver, s: f64, label: &str) -> Result<Vec<f64>> {
+    let mut sd = vec![0.0; solver.n_outputs()];
+    solver
+        .force_sd(s, &mut sd)
+        .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
+    let ssd = solve::force_sum_sd(solver, s)
+        .with_context(|| format!("cannot compute the force uncertainty{label}"))?;
     eprintln!(
-        "reconstruct: {} of {} frame(s) past the elastomer's load bound of {} N, written as NaN: {}",
-        implausible.len(),
-        outputs.len(),
-        fmt_num(max_load),
-        implausible.join(", ")
+        "reconstruct: sd of F_sum{label} = ({}, {}, {}) N",
+        fmt_num(ssd[0]),
+        fmt_num(ssd[1]),
+        fmt_num(ssd[2])
     );
-    Ok(ExitCode::from(1))
+    Ok(sd)
 }
 
 /// Σ_nodes |f_node| of an interleaved force vector, N (NaN when any value is).

@@ -1,16 +1,16 @@
 //! `tactbench track`: reference image + frames -> displacement CSV (library:
 //! [`tactbench::vision`]).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
-use tactbench::sensor::Sensor;
+use tactbench::sensor::{MarkerColor, Sensor};
 use tactbench::vision::onboard::check_frame_levels;
 use tactbench::vision::{
     check_layers, decode_ahead, decoder_threads, detect_mapped, load_frame, write_tracks_mapped,
-    CameraCalibration, DetectConfig, PixelMapping, ReferenceHealth, StatusCounts, TrackConfig,
-    TrackMode, Tracker,
+    CameraCalibration, DetectConfig, Frame, MarkerTrack, PixelMapping, Reference, ReferenceHealth,
+    StatusCounts, TrackConfig, TrackMode, Tracker, VisionError,
 };
 
 /// Track markers: images -> marker displacements (CSV).
@@ -120,39 +120,125 @@ enum Mode {
     PerWindow,
 }
 
+/// Runs `tactbench track`: the reference found and matched to the sensor file
+/// ([`find_reference`]), each frame tracked as it is decoded ([`Tally::frame`]), the
+/// tracks written, the frames left out or failed named ([`finish`]).
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let sensor = Sensor::from_path(&args.sensor)?;
-    if !sensor.placeholders().is_empty() {
-        let scale = sensor
-            .placeholders()
-            .iter()
-            .any(|k| k == "camera.mm_per_px");
-        eprintln!(
-            "note: {} is a draft: its placeholders ({}) are not used for tracking{}",
-            args.sensor.display(),
-            sensor.placeholders().join(", "),
-            if scale {
-                "; camera.mm_per_px is a placeholder, so the mm columns are in its placeholder unit (px at mm_per_px = 1), not mm"
-            } else {
-                ""
-            }
-        );
-    }
+    note_draft(&args, &sensor);
     let mapping = match &args.camera {
         None => PixelMapping::Linear(sensor.camera),
         Some(path) => PixelMapping::Calibrated(CameraCalibration::from_path(path, &sensor)?),
     };
+    let reference = find_reference(&args, &sensor, &mapping)?;
+    let config = TrackConfig {
+        mode: match args.mode {
+            Mode::FrameToFrame => TrackMode::FrameToFrame,
+            Mode::PerWindow => TrackMode::PerWindow,
+        },
+        ..TrackConfig::default()
+    };
+    let missing = reference.missing.len();
+    let expected = reference.markers.len() + missing;
+    let reference_bits = reference.bit_depth;
+    let mut tracker = Tracker::new(reference, config);
+    let mut tally = Tally {
+        frames: Vec::with_capacity(args.frames.len()),
+        total: StatusCounts::default(),
+        mixed_noted: false,
+        failed: Vec::new(),
+        unread: Vec::new(),
+    };
+    // Frames are decoded ahead on worker threads while this thread tracks, in the
+    // order given (vision::prefetch): the same output as one frame after another.
+    let threads = args
+        .decode_threads
+        .map_or_else(|| decoder_threads(args.frames.len()), usize::from);
+    let mut fatal: Option<anyhow::Error> = None;
+    let gate = LostGate {
+        missing,
+        expected,
+        reference_bits,
+        max_lost_fraction: args.max_lost_fraction,
+    };
+    decode_ahead(
+        &args.frames,
+        threads,
+        2 * threads,
+        |path| load_frame(path, &sensor.camera),
+        |k, loaded| match tally.frame(&args.frames[k], loaded, &sensor, &mut tracker, &gate) {
+            Ok(()) => true,
+            Err(e) => {
+                fatal = Some(e);
+                false
+            }
+        },
+    );
+    if let Some(e) = fatal {
+        return Err(e);
+    }
+    if tally.frames.is_empty() {
+        anyhow::bail!(
+            "none of the {} frame(s) could be read, nothing written: {}",
+            tally.unread.len(),
+            tally
+                .unread
+                .iter()
+                .map(|(_, why)| why.as_str())
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
+    write_tracks_mapped(
+        &args.out,
+        &sensor,
+        tracker.reference(),
+        &tally.frames,
+        &mapping,
+    )?;
+    Ok(finish(&args, &tally, expected))
+}
+
+/// A draft sensor file: its placeholders are not used for tracking, and a placeholder
+/// scale makes the mm columns placeholder units.
+fn note_draft(args: &Args, sensor: &Sensor) {
+    if sensor.placeholders().is_empty() {
+        return;
+    }
+    let scale = sensor
+        .placeholders()
+        .iter()
+        .any(|k| k == "camera.mm_per_px");
+    eprintln!(
+        "note: {} is a draft: its placeholders ({}) are not used for tracking{}",
+        args.sensor.display(),
+        sensor.placeholders().join(", "),
+        if scale {
+            "; camera.mm_per_px is a placeholder, so the mm columns are in its placeholder unit (px at mm_per_px = 1), not mm"
+        } else {
+            ""
+        }
+    );
+}
+
+/// The reference: its layers' colours checked, its markers found and matched to the
+/// sensor file's grids; a reference that does not match is explained (its health,
+/// the likely causes, a blank or saturated frame first); what was found is said.
+fn find_reference(
+    args: &Args,
+    sensor: &Sensor,
+    mapping: &PixelMapping,
+) -> anyhow::Result<Reference> {
     let reference_image = load_frame(&args.reference, &sensor.camera)?;
-    let layers = || sensor.layers.iter().map(|l| (l.name.as_str(), l.color));
-    check_layers(&reference_image.view(), layers())
+    check_layers(&reference_image.view(), layers(sensor))
         .with_context(|| format!("reference image {}", args.reference.display()))?;
     let detected = detect_mapped(
         &reference_image.view(),
-        &sensor,
+        sensor,
         &DetectConfig::default(),
-        &mapping,
+        mapping,
     );
-    let health = ReferenceHealth::of(detected.as_ref().ok(), &sensor, &reference_image.view());
+    let health = ReferenceHealth::of(detected.as_ref().ok(), sensor, &reference_image.view());
     if detected.is_err() || 1.0 - health.found_fraction() > args.max_lost_fraction {
         eprintln!(
             "reference {} does not match the sensor file: {health}; {}",
@@ -198,109 +284,111 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             sensor.layers[u.layer].name, u.centroid_px[0], u.centroid_px[1]
         );
     }
-    let config = TrackConfig {
-        mode: match args.mode {
-            Mode::FrameToFrame => TrackMode::FrameToFrame,
-            Mode::PerWindow => TrackMode::PerWindow,
-        },
-        ..TrackConfig::default()
-    };
-    let missing = reference.missing.len();
-    let expected = reference.markers.len() + missing;
-    let reference_bits = reference.bit_depth;
-    let mut tracker = Tracker::new(reference, config);
-    let mut frames = Vec::with_capacity(args.frames.len());
-    let mut total = StatusCounts::default();
-    let mut mixed_noted = false;
-    // Frames that lost too many markers: (path, lost or merged).
-    let mut failed: Vec<(String, usize)> = Vec::new();
-    // Frames that could not be read or tracked: (path, why); left out of the CSV.
-    let mut unread: Vec<(String, String)> = Vec::new();
-    // Frames are decoded ahead on worker threads while this thread tracks, in the
-    // order given (vision::prefetch): the same output as one frame after another.
-    let threads = args
-        .decode_threads
-        .map_or_else(|| decoder_threads(args.frames.len()), usize::from);
-    let mut fatal: Option<anyhow::Error> = None;
-    decode_ahead(
-        &args.frames,
-        threads,
-        2 * threads,
-        |path| load_frame(path, &sensor.camera),
-        |k, loaded| {
-            let path = &args.frames[k];
-            let image = match loaded {
-                Ok(i) => i,
-                Err(e) => {
-                    eprintln!("error: {e}: frame left out, the others are tracked");
-                    unread.push((path.display().to_string(), e.to_string()));
-                    return true;
-                }
-            };
-            let view = image.view();
-            if let Err(e) =
-                check_layers(&view, layers()).with_context(|| format!("frame {}", path.display()))
-            {
-                fatal = Some(e);
-                return false;
+    Ok(reference)
+}
+
+/// The sensor's layers as `check_layers` takes them.
+fn layers(sensor: &Sensor) -> impl Iterator<Item = (&str, MarkerColor)> + '_ {
+    sensor.layers.iter().map(|l| (l.name.as_str(), l.color))
+}
+
+/// What a frame is judged against: the reference's missing markers and the markers
+/// expected, its bit depth, and `--max-lost-fraction`.
+struct LostGate {
+    missing: usize,
+    expected: usize,
+    reference_bits: u32,
+    max_lost_fraction: f64,
+}
+
+/// What the frames gave so far.
+struct Tally {
+    /// Tracked frames: (path, tracks).
+    frames: Vec<(String, Vec<MarkerTrack>)>,
+    total: StatusCounts,
+    /// Whether a frame of another bit depth than the reference's was noted.
+    mixed_noted: bool,
+    /// Frames that lost too many markers: (path, lost or merged).
+    failed: Vec<(String, usize)>,
+    /// Frames that could not be read or tracked: (path, why); left out of the CSV.
+    unread: Vec<(String, String)>,
+}
+
+impl Tally {
+    /// Tracks one decoded frame: a frame that cannot be read or tracked is left out
+    /// (the others are tracked); one whose layers do not fit the sensor file stops
+    /// the command (`Err`). Counts its statuses, notes a frame that lost more than
+    /// the gate allows.
+    fn frame(
+        &mut self,
+        path: &Path,
+        loaded: Result<Frame, VisionError>,
+        sensor: &Sensor,
+        tracker: &mut Tracker,
+        gate: &LostGate,
+    ) -> anyhow::Result<()> {
+        let image = match loaded {
+            Ok(i) => i,
+            Err(e) => {
+                eprintln!("error: {e}: frame left out, the others are tracked");
+                self.unread
+                    .push((path.display().to_string(), e.to_string()));
+                return Ok(());
             }
-            if view.bit_depth() != reference_bits && !mixed_noted {
-                mixed_noted = true;
+        };
+        let view = image.view();
+        check_layers(&view, layers(sensor)).with_context(|| format!("frame {}", path.display()))?;
+        if view.bit_depth() != gate.reference_bits && !self.mixed_noted {
+            self.mixed_noted = true;
+            eprintln!(
+                "note: the reference is {}-bit and {} is {}-bit: compared on a common scale (8-bit value × 257 = 16-bit value)",
+                gate.reference_bits,
+                path.display(),
+                view.bit_depth()
+            );
+        }
+        let tracks = match tracker.track(&view) {
+            Ok(t) => t,
+            Err(e) => {
                 eprintln!(
-                    "note: the reference is {reference_bits}-bit and {} is {}-bit: compared on a common scale (8-bit value × 257 = 16-bit value)",
-                    path.display(),
-                    view.bit_depth()
+                    "error: {}: {e}: frame left out, the others are tracked",
+                    path.display()
                 );
+                self.unread
+                    .push((path.display().to_string(), e.to_string()));
+                return Ok(());
             }
-            let tracks = match tracker.track(&view) {
-                Ok(t) => t,
-                Err(e) => {
-                    eprintln!(
-                        "error: {}: {e}: frame left out, the others are tracked",
-                        path.display()
-                    );
-                    unread.push((path.display().to_string(), e.to_string()));
-                    return true;
-                }
-            };
-            let c = StatusCounts::of(tracks, missing);
-            let gone = c.lost + c.merged;
-            if expected > 0 && gone as f64 > args.max_lost_fraction * expected as f64 {
-                failed.push((path.display().to_string(), gone));
-            }
-            if c.lost + c.merged + c.outlier > 0 {
-                eprintln!(
-                    "{}: {} ok, {} lost, {} merged, {} outlier",
-                    path.display(),
-                    c.ok,
-                    c.lost,
-                    c.merged,
-                    c.outlier
-                );
-            }
-            total.ok += c.ok;
-            total.lost += c.lost;
-            total.merged += c.merged;
-            total.outlier += c.outlier;
-            frames.push((path.to_string_lossy().into_owned(), tracks.to_vec()));
-            true
-        },
-    );
-    if let Some(e) = fatal {
-        return Err(e);
+        };
+        let c = StatusCounts::of(tracks, gate.missing);
+        let gone = c.lost + c.merged;
+        if gate.expected > 0 && gone as f64 > gate.max_lost_fraction * gate.expected as f64 {
+            self.failed.push((path.display().to_string(), gone));
+        }
+        if c.lost + c.merged + c.outlier > 0 {
+            eprintln!(
+                "{}: {} ok, {} lost, {} merged, {} outlier",
+                path.display(),
+                c.ok,
+                c.lost,
+                c.merged,
+                c.outlier
+            );
+        }
+        self.total.ok += c.ok;
+        self.total.lost += c.lost;
+        self.total.merged += c.merged;
+        self.total.outlier += c.outlier;
+        self.frames
+            .push((path.to_string_lossy().into_owned(), tracks.to_vec()));
+        Ok(())
     }
-    if frames.is_empty() {
-        anyhow::bail!(
-            "none of the {} frame(s) could be read, nothing written: {}",
-            unread.len(),
-            unread
-                .iter()
-                .map(|(_, why)| why.as_str())
-                .collect::<Vec<_>>()
-                .join("; ")
-        );
-    }
-    write_tracks_mapped(&args.out, &sensor, tracker.reference(), &frames, &mapping)?;
+}
+
+/// The totals, the frames not in the CSV, the frames that lost too many markers;
+/// exit 1 when a frame was left out or failed.
+fn finish(args: &Args, tally: &Tally, expected: usize) -> ExitCode {
+    let (frames, total, unread, failed) =
+        (&tally.frames, &tally.total, &tally.unread, &tally.failed);
     eprintln!(
         "{} frames: {} ok, {} lost, {} merged, {} outlier marker measurements -> {}",
         frames.len(),
@@ -310,7 +398,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         total.outlier,
         args.out.display()
     );
-    for (_, why) in &unread {
+    for (_, why) in unread {
         eprintln!("error: not in the CSV: {why}");
     }
     if !unread.is_empty() {
@@ -323,13 +411,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     if failed.is_empty() {
-        return Ok(if unread.is_empty() {
+        return if unread.is_empty() {
             ExitCode::SUCCESS
         } else {
             ExitCode::from(1)
-        });
+        };
     }
-    for (path, gone) in &failed {
+    for (path, gone) in failed {
         eprintln!(
             "error: {path}: {gone} of {expected} markers lost or merged ({:.0} %), more than --max-lost-fraction {} ({:.0} %)",
             100.0 * *gone as f64 / expected as f64,
@@ -342,5 +430,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         failed.len(),
         frames.len()
     );
-    Ok(ExitCode::from(1))
+    ExitCode::from(1)
 }

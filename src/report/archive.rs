@@ -343,7 +343,46 @@ pub fn metric_differences(source: &[Metric], archive: &[Metric]) -> Vec<String> 
 }
 
 /// Writes a compact copy of the run `source` into `out` (see the module docs).
+///
+/// Steps: the source is a finished run and `out` a fresh place outside it
+/// ([`check_places`]); the source analysed, its record verified, the files to keep
+/// chosen ([`selection`]); the copy written, analysed, reported and checked against
+/// the source's metrics ([`write_archive`]); on failure, what this call created is
+/// removed ([`remove_partial`]).
 pub fn archive(source: &Path, out: &Path, keep: Keep) -> Result<ArchiveOutcome, ArchiveError> {
+    let out_existed = check_places(source, out)?;
+    let src =
+        RunAnalysis::load(source, &AnalysisOptions::default()).map_err(analysis_err(source))?;
+    // The source's record as the run wrote it (said, and kept in archive.json).
+    let source_check = integrity::verify(source, &src.run.manifest);
+    let files = selection(&src, keep)?;
+    let bytes_source: u64 = walk(source)?.iter().map(|(_, n)| n).sum();
+    let from = ArchiveSource {
+        dir: source,
+        analysis: &src,
+        record: source_check.lines(),
+        bytes: bytes_source,
+    };
+    // From here on a failure removes what was written.
+    let result = write_archive(&from, out, keep, &files);
+    if result.is_err() {
+        remove_partial(out, out_existed);
+    }
+    result
+}
+
+/// The error of analysing the run (or archive) in `dir`.
+fn analysis_err(dir: &Path) -> impl FnOnce(AnalysisError) -> ArchiveError {
+    let dir = dir.to_path_buf();
+    move |e| ArchiveError::Analysis {
+        dir,
+        source: Box::new(e),
+    }
+}
+
+/// Checks that `source` is a run directory no writer holds and `out` an empty or
+/// new directory outside it; returns whether `out` existed.
+fn check_places(source: &Path, out: &Path) -> Result<bool, ArchiveError> {
     if !source.is_dir() {
         return Err(ArchiveError::NotARun {
             dir: source.to_path_buf(),
@@ -372,158 +411,171 @@ pub fn archive(source: &Path, out: &Path, keep: Keep) -> Result<ArchiveOutcome, 
         }
     }
     let canon_src = std::fs::canonicalize(source).map_err(io(source))?;
-    // The output's nearest existing ancestor, canonical, then the rest as given.
-    let canon_out = {
-        let mut base = out.to_path_buf();
-        let mut tail = Vec::new();
-        while !base.exists() {
-            match (base.file_name(), base.parent()) {
-                (Some(n), Some(p)) => {
-                    tail.push(n.to_os_string());
-                    base = if p.as_os_str().is_empty() {
-                        PathBuf::from(".")
-                    } else {
-                        p.to_path_buf()
-                    };
-                }
-                _ => break,
-            }
-        }
-        let mut c = std::fs::canonicalize(&base).unwrap_or(base);
-        for n in tail.into_iter().rev() {
-            c.push(n);
-        }
-        c
-    };
-    if canon_out.starts_with(&canon_src) {
+    if canonical_out(out).starts_with(&canon_src) {
         return Err(ArchiveError::OutInsideSource {
             out: out.to_path_buf(),
             source_dir: source.to_path_buf(),
         });
     }
     match lock::probe(source) {
-        Ok(LockState::Held(h)) => {
-            return Err(ArchiveError::InProgress {
-                dir: source.to_path_buf(),
-                holder: h.to_string(),
-            })
-        }
-        Ok(_) => {}
-        Err(e) => {
-            return Err(ArchiveError::Lock {
-                dir: source.to_path_buf(),
-                source: Box::new(e),
-            })
+        Ok(LockState::Held(h)) => Err(ArchiveError::InProgress {
+            dir: source.to_path_buf(),
+            holder: h.to_string(),
+        }),
+        Ok(_) => Ok(out_existed),
+        Err(e) => Err(ArchiveError::Lock {
+            dir: source.to_path_buf(),
+            source: Box::new(e),
+        }),
+    }
+}
+
+/// The output's nearest existing ancestor, canonical, then the rest as given (the
+/// output need not exist yet).
+fn canonical_out(out: &Path) -> PathBuf {
+    let mut base = out.to_path_buf();
+    let mut tail = Vec::new();
+    while !base.exists() {
+        match (base.file_name(), base.parent()) {
+            (Some(n), Some(p)) => {
+                tail.push(n.to_os_string());
+                base = if p.as_os_str().is_empty() {
+                    PathBuf::from(".")
+                } else {
+                    p.to_path_buf()
+                };
+            }
+            _ => break,
         }
     }
-    let analysis_err = |dir: &Path| {
-        let dir = dir.to_path_buf();
-        move |e| ArchiveError::Analysis {
-            dir,
-            source: Box::new(e),
-        }
-    };
-    let src =
-        RunAnalysis::load(source, &AnalysisOptions::default()).map_err(analysis_err(source))?;
-    // The source's record as the run wrote it (said, and kept in archive.json).
-    let source_check = integrity::verify(source, &src.run.manifest);
-    let files = selection(&src, keep)?;
-    let bytes_source: u64 = walk(source)?.iter().map(|(_, n)| n).sum();
+    let mut c = std::fs::canonicalize(&base).unwrap_or(base);
+    for n in tail.into_iter().rev() {
+        c.push(n);
+    }
+    c
+}
 
-    // From here on a failure removes what was written.
-    let result = (|| {
-        std::fs::create_dir_all(out).map_err(io(out))?;
-        for f in &files {
-            let to = out.join(f);
-            if let Some(parent) = to.parent() {
-                std::fs::create_dir_all(parent).map_err(io(parent))?;
-            }
-            std::fs::copy(source.join(f), &to).map_err(io(&to))?;
+/// The run being archived, as [`write_archive`] needs it.
+struct ArchiveSource<'a> {
+    dir: &'a Path,
+    analysis: &'a RunAnalysis,
+    /// The source's record check in words (kept in `archive.json`).
+    record: Vec<String>,
+    /// Bytes of the whole source directory.
+    bytes: u64,
+}
+
+/// Copies `files` from the source into `out`, analyses the copy, writes its report
+/// when the copy has none, refuses a copy whose metrics differ from the source's,
+/// and writes `archive.json`.
+fn write_archive(
+    from: &ArchiveSource<'_>,
+    out: &Path,
+    keep: Keep,
+    files: &[PathBuf],
+) -> Result<ArchiveOutcome, ArchiveError> {
+    let source = from.dir;
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    for f in files {
+        let to = out.join(f);
+        if let Some(parent) = to.parent() {
+            std::fs::create_dir_all(parent).map_err(io(parent))?;
         }
-        let arch =
-            RunAnalysis::load(out, &AnalysisOptions::default()).map_err(analysis_err(out))?;
-        let report_written = [REPORT_FILE, VERDICT_FILE, SUMMARY_FILE]
-            .iter()
-            .any(|f| !out.join(f).is_file());
-        if report_written {
-            let options = ReportOptions {
-                allow_partial: false,
-                lock: LockState::NoLockFile,
-            };
-            write_report_to(&arch, None, &options, out).map_err(|e| ArchiveError::Report {
-                dir: out.to_path_buf(),
-                source: Box::new(e),
-            })?;
-        }
-        let (sm, am) = (src.metrics(), arch.metrics());
-        let differences = metric_differences(&sm, &am);
-        if !differences.is_empty() {
-            return Err(ArchiveError::MetricsDiffer {
-                dir: source.to_path_buf(),
-                differences,
-            });
-        }
-        let kept: Vec<(PathBuf, u64)> = walk(out)?
-            .into_iter()
-            .filter(|(p, _)| p != Path::new(ARCHIVE_FILE))
-            .collect();
-        let sha256 = kept
+        std::fs::copy(source.join(f), &to).map_err(io(&to))?;
+    }
+    let arch = RunAnalysis::load(out, &AnalysisOptions::default()).map_err(analysis_err(out))?;
+    let report_written = [REPORT_FILE, VERDICT_FILE, SUMMARY_FILE]
+        .iter()
+        .any(|f| !out.join(f).is_file());
+    if report_written {
+        let options = ReportOptions {
+            allow_partial: false,
+            lock: LockState::NoLockFile,
+        };
+        write_report_to(&arch, None, &options, out).map_err(|e| ArchiveError::Report {
+            dir: out.to_path_buf(),
+            source: Box::new(e),
+        })?;
+    }
+    let (sm, am) = (from.analysis.metrics(), arch.metrics());
+    let differences = metric_differences(&sm, &am);
+    if !differences.is_empty() {
+        return Err(ArchiveError::MetricsDiffer {
+            dir: source.to_path_buf(),
+            differences,
+        });
+    }
+    let record = write_record(from, out, keep)?;
+    let missing = arch
+        .missing
+        .iter()
+        .filter(|m| !from.analysis.missing.contains(m))
+        .cloned()
+        .collect();
+    Ok(ArchiveOutcome {
+        record,
+        metrics: sm.len(),
+        report_written,
+        missing,
+    })
+}
+
+/// `archive.json` for the copy in `out`: the files kept with their sizes, the
+/// digests of the manifest, journal and evidence, the source and its record.
+fn write_record(
+    from: &ArchiveSource<'_>,
+    out: &Path,
+    keep: Keep,
+) -> Result<ArchiveRecord, ArchiveError> {
+    let kept: Vec<(PathBuf, u64)> = walk(out)?
+        .into_iter()
+        .filter(|(p, _)| p != Path::new(ARCHIVE_FILE))
+        .collect();
+    let sha256 = kept
+        .iter()
+        .map(|(p, _)| p.to_string_lossy().replace('\\', "/"))
+        .filter(|p| p == MANIFEST_FILE || p == JOURNAL_FILE || is_evidence(p))
+        .filter_map(|p| file_sha256(&out.join(&p)).map(|d| (p, d)))
+        .collect();
+    let record = ArchiveRecord {
+        sha256,
+        source_record: from.record.clone(),
+        schema: SCHEMA.into(),
+        created_at: crate::bench::runner::rfc3339_now(),
+        source: from.dir.display().to_string(),
+        keep,
+        files: kept
             .iter()
             .map(|(p, _)| p.to_string_lossy().replace('\\', "/"))
-            .filter(|p| p == MANIFEST_FILE || p == JOURNAL_FILE || is_evidence(p))
-            .filter_map(|p| file_sha256(&out.join(&p)).map(|d| (p, d)))
-            .collect();
-        let record = ArchiveRecord {
-            sha256,
-            source_record: source_check.lines(),
-            schema: SCHEMA.into(),
-            created_at: crate::bench::runner::rfc3339_now(),
-            source: source.display().to_string(),
-            keep,
-            files: kept
-                .iter()
-                .map(|(p, _)| p.to_string_lossy().replace('\\', "/"))
-                .collect(),
-            bytes_source,
-            bytes_archive: kept.iter().map(|(_, n)| n).sum(),
-            metrics_match: true,
-        };
-        let path = out.join(ARCHIVE_FILE);
-        let json = serde_json::to_string_pretty(&record).map_err(|e| ArchiveError::Io {
-            path: path.clone(),
-            source: std::io::Error::other(e.to_string()),
-        })?;
-        std::fs::write(&path, format!("{json}\n")).map_err(io(&path))?;
-        let missing = arch
-            .missing
-            .iter()
-            .filter(|m| !src.missing.contains(m))
-            .cloned()
-            .collect();
-        Ok(ArchiveOutcome {
-            record,
-            metrics: sm.len(),
-            report_written,
-            missing,
-        })
-    })();
-    if result.is_err() {
-        // Only what this call created: the directory, or its contents if it existed
-        // empty before.
-        if out_existed {
-            if let Ok(entries) = std::fs::read_dir(out) {
-                for e in entries.flatten() {
-                    let p = e.path();
-                    let _ = if p.is_dir() {
-                        std::fs::remove_dir_all(&p)
-                    } else {
-                        std::fs::remove_file(&p)
-                    };
-                }
+            .collect(),
+        bytes_source: from.bytes,
+        bytes_archive: kept.iter().map(|(_, n)| n).sum(),
+        metrics_match: true,
+    };
+    let path = out.join(ARCHIVE_FILE);
+    let json = serde_json::to_string_pretty(&record).map_err(|e| ArchiveError::Io {
+        path: path.clone(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
+    std::fs::write(&path, format!("{json}\n")).map_err(io(&path))?;
+    Ok(record)
+}
+
+/// Removes only what a failed archive created: the directory, or its contents if it
+/// existed empty before.
+fn remove_partial(out: &Path, out_existed: bool) {
+    if out_existed {
+        if let Ok(entries) = std::fs::read_dir(out) {
+            for e in entries.flatten() {
+                let p = e.path();
+                let _ = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else {
+                    std::fs::remove_file(&p)
+                };
             }
-        } else {
-            let _ = std::fs::remove_dir_all(out);
         }
+    } else {
+        let _ = std::fs::remove_dir_all(out);
     }
-    result
 }

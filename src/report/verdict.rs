@@ -25,7 +25,7 @@ use super::acceptance::{Criteria, Outcome, Verdict};
 use super::sha256::sha256_hex;
 use crate::analysis::{Ci95, Metric, RunAnalysis};
 use crate::bench::integrity::{self, RecordCheck};
-use crate::bench::journal::{Provenance, RunStatus, Session, WriteFailure, GIT_COMMIT};
+use crate::bench::journal::{Manifest, Provenance, RunStatus, Session, WriteFailure, GIT_COMMIT};
 use crate::bench::lock::{Holder, LockState};
 use crate::bench::provenance;
 
@@ -349,6 +349,12 @@ pub struct VerdictDoc {
 impl VerdictDoc {
     /// Judges a run: criteria verdicts (already evaluated), provenance requirements,
     /// completeness; `allow_partial` grades a partial run anyway.
+    ///
+    /// Steps: the requirements the criteria file and the run's record impose
+    /// ([`requirements`]); the outcome (INCOMPLETE for a partial run unless graded
+    /// anyway, else the combination of every verdict and requirement: a criterion
+    /// nothing judged makes it NOT JUDGED, never PASS); the summary line
+    /// ([`summary`]); the criteria and provenance as `verdict.json` states them.
     pub fn judge(
         analysis: &RunAnalysis,
         criteria: Option<&Criteria>,
@@ -357,68 +363,8 @@ impl VerdictDoc {
         allow_partial: bool,
     ) -> VerdictDoc {
         let m = &analysis.run.manifest;
-        let mut requirements = Vec::new();
-        if criteria.is_some_and(|c| c.require_build_id) {
-            let value = m.build_id.clone().filter(|b| !b.trim().is_empty());
-            requirements.push(RequirementJson {
-                requirement: "build_id".into(),
-                outcome: if value.is_some() {
-                    Outcome::Pass
-                } else {
-                    Outcome::Fail
-                },
-                value,
-            });
-        }
         let (bench_kind, not_real) = bench_provenance(m);
-        if criteria.is_some_and(|c| c.require_real_bench) {
-            let outcome = if bench_kind == "real bench" {
-                Outcome::Pass
-            } else {
-                Outcome::Fail
-            };
-            requirements.push(RequirementJson {
-                requirement: "real_bench".into(),
-                value: Some(if not_real.is_empty() {
-                    bench_kind.clone()
-                } else {
-                    format!("{bench_kind}: {}", not_real.join("; "))
-                }),
-                outcome,
-            });
-        }
-        // A run judged against criteria is at most MARGINAL with rows it could not
-        // use, and FAILs when its record no longer matches what the run wrote.
-        if criteria.is_some() {
-            if !run.failed_rows.is_empty() {
-                requirements.push(RequirementJson {
-                    requirement: "no_failed_rows".into(),
-                    value: Some(format!(
-                        "{} failed row(s) skipped: {}",
-                        run.failed_rows.len(),
-                        run.failed_rows.join("; ")
-                    )),
-                    outcome: Outcome::Marginal,
-                });
-            }
-            if run.implausible_rows > 0 {
-                requirements.push(RequirementJson {
-                    requirement: "no_implausible_rows".into(),
-                    value: Some(format!(
-                        "{} row(s) with quality = implausible",
-                        run.implausible_rows
-                    )),
-                    outcome: Outcome::Marginal,
-                });
-            }
-            if run.record.modified() {
-                requirements.push(RequirementJson {
-                    requirement: "record_intact".into(),
-                    value: Some(run.record.lines().join("; ")),
-                    outcome: Outcome::Fail,
-                });
-            }
-        }
+        let requirements = requirements(m, criteria, &run, &bench_kind, &not_real);
         // Nothing required, nothing checked, or a criterion nothing judged: NOT
         // JUDGED, never PASS.
         let graded = Outcome::combine(
@@ -433,120 +379,12 @@ impl VerdictDoc {
         } else {
             graded
         };
-        let counts = format!(
-            "{} of {} planned setpoints",
-            run.measured_setpoints, run.planned_setpoints
-        );
-        let failed = verdicts
-            .iter()
-            .filter(|v| v.outcome == Outcome::Fail)
-            .count()
-            + requirements
-                .iter()
-                .filter(|r| r.outcome == Outcome::Fail)
-                .count();
-        let marginal = verdicts
-            .iter()
-            .filter(|v| v.outcome == Outcome::Marginal)
-            .count()
-            + requirements
-                .iter()
-                .filter(|r| r.outcome == Outcome::Marginal)
-                .count();
-        let judged = verdicts.len() + requirements.len();
-        let unjudged: Vec<String> = verdicts
-            .iter()
-            .filter(|v| v.outcome == Outcome::NotJudged)
-            .map(|v| {
-                format!(
-                    "{} ({})",
-                    v.criterion.metric,
-                    v.note.as_deref().unwrap_or("no value")
-                )
-            })
-            .collect();
-        let detail = match outcome {
-            Outcome::Incomplete => format!(
-                "{}; not graded (grade a partial run with --allow-partial)",
-                run.incomplete_reason.clone().unwrap_or_default()
-            ),
-            Outcome::NotJudged if !unjudged.is_empty() => format!(
-                "{} of {judged} criteria not judged: {}",
-                unjudged.len(),
-                unjudged.join("; ")
-            ),
-            Outcome::NotJudged => "no acceptance criteria given; nothing was judged".to_string(),
-            Outcome::Fail if !unjudged.is_empty() => format!(
-                "{failed} of {judged} criteria failed, {} not judged",
-                unjudged.len()
-            ),
-            Outcome::Fail => format!("{failed} of {judged} criteria failed"),
-            Outcome::Marginal => format!("{marginal} of {judged} criteria marginal"),
-            Outcome::Pass => format!("{judged} criteria"),
+        let bench = BenchWords {
+            kind: &bench_kind,
+            not_real: &not_real,
+            builtin: m.bench.get("sim").is_some(),
         };
-        // The built-in simulated bench says so as before; any other bench that is not
-        // real names the device that made it so.
-        let builtin = m.bench.get("sim").is_some();
-        let mut detail = match bench_kind.as_str() {
-            "replayed bench" => format!("{detail}; REPLAYED bench ({})", not_real.join("; ")),
-            "simulated bench" if builtin || not_real.is_empty() => {
-                format!("{detail}; SIMULATED bench")
-            }
-            "simulated bench" => format!("{detail}; SIMULATED bench ({})", not_real.join("; ")),
-            _ => detail,
-        };
-        if !run.failed_rows.is_empty() {
-            detail.push_str(&format!(
-                "; {} failed row(s) skipped (no force)",
-                run.failed_rows.len()
-            ));
-        }
-        if run.implausible_rows > 0 {
-            detail.push_str(&format!(
-                "; {} row(s) with implausible forces",
-                run.implausible_rows
-            ));
-        }
-        if run.record.modified() {
-            detail.push_str("; RECORD MODIFIED AFTER THE RUN");
-        }
-        let mut summary = format!("{outcome}: {detail}");
-        if partial && allow_partial {
-            summary.push_str(&format!(
-                "; PARTIAL RUN graded with --allow-partial ({counts}: {})",
-                run.incomplete_reason.clone().unwrap_or_default()
-            ));
-        }
-        let criteria_json = verdicts
-            .iter()
-            .map(|v| CriterionJson {
-                metric: v.criterion.metric.clone(),
-                value: v.value.is_finite().then_some(v.value),
-                unit: v.unit.to_string(),
-                min: v.criterion.min,
-                max: v.criterion.max,
-                marginal_min: v.criterion.marginal_min,
-                marginal_max: v.criterion.marginal_max,
-                max_relative_to_nominal: v.criterion.max_relative_to_nominal,
-                max_deviation_from_nominal: v.criterion.max_deviation_from_nominal,
-                nominal: v.nominal,
-                limits: if v.outcome == Outcome::NotJudged {
-                    [None, None]
-                } else {
-                    let (lo, hi) = v.limits();
-                    [lo, hi]
-                },
-                outcome: v.outcome,
-                note: v.note.clone().or_else(|| {
-                    (!v.value.is_finite()).then(|| format!("value {} is not finite", v.value))
-                }),
-                ci95: v.ci95.map(|[low, high]| CiJson {
-                    low,
-                    high,
-                    method: "fit".into(),
-                }),
-            })
-            .collect();
+        let summary = summary(outcome, verdicts, &requirements, &run, allow_partial, bench);
         VerdictDoc {
             schema: SCHEMA.into(),
             outcome,
@@ -555,37 +393,270 @@ impl VerdictDoc {
             summary,
             graded_partial: partial && allow_partial,
             criteria_file: criteria.map(|c| c.path.display().to_string()),
-            criteria: criteria_json,
+            criteria: verdicts.iter().map(criterion_json).collect(),
             requirements,
             metrics: Vec::new(),
             run,
-            provenance: ProvenanceJson {
-                plan_name: m.plan_name.clone(),
-                plan_path: m.plan_path.clone(),
-                plan_sha256: sha256_hex(m.plan_toml.as_bytes()),
-                sensor_path: m.sensor_path.clone(),
-                sensor_sha256: sha256_hex(m.sensor_toml.as_bytes()),
-                build_id: m.build_id.clone(),
-                software_version: m.software_version.clone(),
-                git_commit: m.software_commit.clone(),
-                devices: m.devices.clone(),
-                bench_kind: bench_kind.clone(),
-                device_provenance: if m.device_provenance.is_empty() && m.devices.is_object() {
-                    provenance::judge(&m.devices, m.simulated == Some(true))
-                } else {
-                    m.device_provenance.clone()
-                },
-                bench: m.bench.clone(),
-                started_at: m.started_at.clone(),
-                resumed_at: m.resumed_at.clone(),
-                ended_at: m.ended_at.clone(),
-            },
+            provenance: provenance_json(m, bench_kind),
             report: ReportJson {
                 software_version: env!("CARGO_PKG_VERSION").into(),
                 git_commit: GIT_COMMIT.into(),
                 generated_at: crate::bench::runner::rfc3339_now(),
             },
         }
+    }
+}
+
+/// The provenance requirements: `build_id` and `real_bench` when the criteria file
+/// asks for them; and a run judged against criteria is at most MARGINAL with rows it
+/// could not use, and FAILs when its record no longer matches what the run wrote.
+fn requirements(
+    m: &Manifest,
+    criteria: Option<&Criteria>,
+    run: &RunState,
+    bench_kind: &str,
+    not_real: &[String],
+) -> Vec<RequirementJson> {
+    let mut requirements = Vec::new();
+    if criteria.is_some_and(|c| c.require_build_id) {
+        let value = m.build_id.clone().filter(|b| !b.trim().is_empty());
+        requirements.push(RequirementJson {
+            requirement: "build_id".into(),
+            outcome: if value.is_some() {
+                Outcome::Pass
+            } else {
+                Outcome::Fail
+            },
+            value,
+        });
+    }
+    if criteria.is_some_and(|c| c.require_real_bench) {
+        let outcome = if bench_kind == "real bench" {
+            Outcome::Pass
+        } else {
+            Outcome::Fail
+        };
+        requirements.push(RequirementJson {
+            requirement: "real_bench".into(),
+            value: Some(if not_real.is_empty() {
+                bench_kind.to_string()
+            } else {
+                format!("{bench_kind}: {}", not_real.join("; "))
+            }),
+            outcome,
+        });
+    }
+    // A run judged against criteria is at most MARGINAL with rows it could not
+    // use, and FAILs when its record no longer matches what the run wrote.
+    if criteria.is_some() {
+        if !run.failed_rows.is_empty() {
+            requirements.push(RequirementJson {
+                requirement: "no_failed_rows".into(),
+                value: Some(format!(
+                    "{} failed row(s) skipped: {}",
+                    run.failed_rows.len(),
+                    run.failed_rows.join("; ")
+                )),
+                outcome: Outcome::Marginal,
+            });
+        }
+        if run.implausible_rows > 0 {
+            requirements.push(RequirementJson {
+                requirement: "no_implausible_rows".into(),
+                value: Some(format!(
+                    "{} row(s) with quality = implausible",
+                    run.implausible_rows
+                )),
+                outcome: Outcome::Marginal,
+            });
+        }
+        if run.record.modified() {
+            requirements.push(RequirementJson {
+                requirement: "record_intact".into(),
+                value: Some(run.record.lines().join("; ")),
+                outcome: Outcome::Fail,
+            });
+        }
+    }
+    requirements
+}
+
+/// The bench as the summary names it: its kind ([`bench_provenance`]), the devices
+/// that made it not real, and whether it is the built-in simulated bench.
+#[derive(Clone, Copy)]
+struct BenchWords<'a> {
+    kind: &'a str,
+    not_real: &'a [String],
+    builtin: bool,
+}
+
+/// The verdict's one line: the outcome and what decided it ([`outcome_detail`]),
+/// the bench when it is not real, the rows no analysis used, a modified record, and
+/// a partial run graded anyway.
+fn summary(
+    outcome: Outcome,
+    verdicts: &[Verdict],
+    requirements: &[RequirementJson],
+    run: &RunState,
+    allow_partial: bool,
+    bench: BenchWords<'_>,
+) -> String {
+    let detail = outcome_detail(outcome, verdicts, requirements, run);
+    // The built-in simulated bench says so as before; any other bench that is not
+    // real names the device that made it so.
+    let not_real = bench.not_real;
+    let mut detail = match bench.kind {
+        "replayed bench" => format!("{detail}; REPLAYED bench ({})", not_real.join("; ")),
+        "simulated bench" if bench.builtin || not_real.is_empty() => {
+            format!("{detail}; SIMULATED bench")
+        }
+        "simulated bench" => format!("{detail}; SIMULATED bench ({})", not_real.join("; ")),
+        _ => detail,
+    };
+    if !run.failed_rows.is_empty() {
+        detail.push_str(&format!(
+            "; {} failed row(s) skipped (no force)",
+            run.failed_rows.len()
+        ));
+    }
+    if run.implausible_rows > 0 {
+        detail.push_str(&format!(
+            "; {} row(s) with implausible forces",
+            run.implausible_rows
+        ));
+    }
+    if run.record.modified() {
+        detail.push_str("; RECORD MODIFIED AFTER THE RUN");
+    }
+    let mut summary = format!("{outcome}: {detail}");
+    if !run.complete && allow_partial {
+        let counts = format!(
+            "{} of {} planned setpoints",
+            run.measured_setpoints, run.planned_setpoints
+        );
+        summary.push_str(&format!(
+            "; PARTIAL RUN graded with --allow-partial ({counts}: {})",
+            run.incomplete_reason.clone().unwrap_or_default()
+        ));
+    }
+    summary
+}
+
+/// What decided `outcome`: why a run is not graded, which criteria nothing judged,
+/// how many failed or were marginal, or how many passed.
+fn outcome_detail(
+    outcome: Outcome,
+    verdicts: &[Verdict],
+    requirements: &[RequirementJson],
+    run: &RunState,
+) -> String {
+    let failed = verdicts
+        .iter()
+        .filter(|v| v.outcome == Outcome::Fail)
+        .count()
+        + requirements
+            .iter()
+            .filter(|r| r.outcome == Outcome::Fail)
+            .count();
+    let marginal = verdicts
+        .iter()
+        .filter(|v| v.outcome == Outcome::Marginal)
+        .count()
+        + requirements
+            .iter()
+            .filter(|r| r.outcome == Outcome::Marginal)
+            .count();
+    let judged = verdicts.len() + requirements.len();
+    let unjudged: Vec<String> = verdicts
+        .iter()
+        .filter(|v| v.outcome == Outcome::NotJudged)
+        .map(|v| {
+            format!(
+                "{} ({})",
+                v.criterion.metric,
+                v.note.as_deref().unwrap_or("no value")
+            )
+        })
+        .collect();
+    match outcome {
+        Outcome::Incomplete => format!(
+            "{}; not graded (grade a partial run with --allow-partial)",
+            run.incomplete_reason.clone().unwrap_or_default()
+        ),
+        Outcome::NotJudged if !unjudged.is_empty() => format!(
+            "{} of {judged} criteria not judged: {}",
+            unjudged.len(),
+            unjudged.join("; ")
+        ),
+        Outcome::NotJudged => "no acceptance criteria given; nothing was judged".to_string(),
+        Outcome::Fail if !unjudged.is_empty() => format!(
+            "{failed} of {judged} criteria failed, {} not judged",
+            unjudged.len()
+        ),
+        Outcome::Fail => format!("{failed} of {judged} criteria failed"),
+        Outcome::Marginal => format!("{marginal} of {judged} criteria marginal"),
+        Outcome::Pass => format!("{judged} criteria"),
+    }
+}
+
+/// One criterion as `verdict.json` states it: its bounds, value (`null` when not
+/// finite, with a note saying so), limits (none when not judged), outcome and a
+/// fitted parameter's interval.
+fn criterion_json(v: &Verdict) -> CriterionJson {
+    CriterionJson {
+        metric: v.criterion.metric.clone(),
+        value: v.value.is_finite().then_some(v.value),
+        unit: v.unit.to_string(),
+        min: v.criterion.min,
+        max: v.criterion.max,
+        marginal_min: v.criterion.marginal_min,
+        marginal_max: v.criterion.marginal_max,
+        max_relative_to_nominal: v.criterion.max_relative_to_nominal,
+        max_deviation_from_nominal: v.criterion.max_deviation_from_nominal,
+        nominal: v.nominal,
+        limits: if v.outcome == Outcome::NotJudged {
+            [None, None]
+        } else {
+            let (lo, hi) = v.limits();
+            [lo, hi]
+        },
+        outcome: v.outcome,
+        note: v
+            .note
+            .clone()
+            .or_else(|| (!v.value.is_finite()).then(|| format!("value {} is not finite", v.value))),
+        ci95: v.ci95.map(|[low, high]| CiJson {
+            low,
+            high,
+            method: "fit".into(),
+        }),
+    }
+}
+
+/// Where the run came from, from its manifest: plan and sensor with their hashes,
+/// build and software, devices and their provenance (judged from `devices` for
+/// manifests from before `device_provenance`), the bench and the sessions' times.
+fn provenance_json(m: &Manifest, bench_kind: String) -> ProvenanceJson {
+    ProvenanceJson {
+        plan_name: m.plan_name.clone(),
+        plan_path: m.plan_path.clone(),
+        plan_sha256: sha256_hex(m.plan_toml.as_bytes()),
+        sensor_path: m.sensor_path.clone(),
+        sensor_sha256: sha256_hex(m.sensor_toml.as_bytes()),
+        build_id: m.build_id.clone(),
+        software_version: m.software_version.clone(),
+        git_commit: m.software_commit.clone(),
+        devices: m.devices.clone(),
+        bench_kind,
+        device_provenance: if m.device_provenance.is_empty() && m.devices.is_object() {
+            provenance::judge(&m.devices, m.simulated == Some(true))
+        } else {
+            m.device_provenance.clone()
+        },
+        bench: m.bench.clone(),
+        started_at: m.started_at.clone(),
+        resumed_at: m.resumed_at.clone(),
+        ended_at: m.ended_at.clone(),
     }
 }
 

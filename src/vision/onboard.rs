@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 
 use thiserror::Error;
 
-use super::detect::{detect, DetectConfig};
+use super::detect::{detect, DetectConfig, Reference};
 use super::image::FrameView;
 use super::{Pixels, VisionError};
 use crate::sensor::{
@@ -182,54 +182,7 @@ pub fn sensor_draft(
     path: &Path,
 ) -> Result<SensorDraft, DraftError> {
     let (w, h) = (view.width_px(), view.height_px());
-    if view.pixels().is_gray() && !options.color.is_brightness() {
-        return Err(DraftError::GrayscaleColour {
-            path: path.to_path_buf(),
-            color: options.color,
-        });
-    }
-    if let Some(roi) = &options.roi_px {
-        roi.check_in_image(w, h)
-            .map_err(|allowed| DraftError::Roi {
-                path: path.to_path_buf(),
-                roi: *roi,
-                allowed,
-            })?;
-    }
-    // The loader's ranges: the draft must load (`layers.markers.pitch_mm`,
-    // `camera.mm_per_px`).
-    let scale_error = |flag: &'static str, value: f64, range: &KeyRange, extra: String| {
-        let allowed = if value.is_finite() && value > 0.0 {
-            range.check(value).err().unwrap_or_default()
-        } else {
-            format!(
-                "must be a finite number > 0 {}, within {} … {} {}",
-                range.unit, range.lo, range.hi, range.unit
-            )
-        };
-        DraftError::Scale {
-            flag,
-            value: format!("{} {}", fmt_value(value), range.unit),
-            allowed: format!("{allowed}{extra}"),
-        }
-    };
-    let plausible = |v: f64, range: &KeyRange| v.is_finite() && v > 0.0 && range.check(v).is_ok();
-    match options.scale {
-        Scale::PitchMm(v) if !plausible(v, &MARKER_PITCH_MM) => {
-            return Err(scale_error(
-                "--pitch-mm",
-                v,
-                &MARKER_PITCH_MM,
-                String::new(),
-            ))
-        }
-        Scale::MmPerPx(v) if !plausible(v, &MM_PER_PX) => {
-            return Err(scale_error("--mm-per-px", v, &MM_PER_PX, String::new()))
-        }
-        _ => {}
-    }
-    check_frame_levels(view, options.roi_px.as_ref(), path)?;
-
+    check_options(view, options, path)?;
     let sensor = probe_sensor(options.color, w, h, options.roi_px);
     let no_markers = || DraftError::NoMarkers {
         path: path.to_path_buf(),
@@ -249,23 +202,8 @@ pub fn sensor_draft(
     if markers_px.is_empty() {
         return Err(no_markers());
     }
-    let full = 3.0
-        * if view.bit_depth() == 16 {
-            65535.0
-        } else {
-            255.0
-        };
-    let mut peaks: Vec<f64> = reference.markers.iter().map(|m| m.peak).collect();
-    let contrast_percent = 100.0 * median(&mut peaks) / full;
-    let relative_contrast_percent = (options.color == MarkerColor::Dark).then(|| {
-        // The dark score's ring level is −(R + G + B): the illumination.
-        let mut rel: Vec<f64> = reference
-            .markers
-            .iter()
-            .map(|m| 100.0 * m.peak / (-m.background).max(1.0))
-            .collect();
-        median(&mut rel)
-    });
+    let (contrast_percent, relative_contrast_percent) =
+        contrasts(&reference, view.bit_depth(), options.color);
     let reach = layer.aperture_radius_px + 3.0;
     let border = options.roi_px.unwrap_or(Roi::Rect {
         min_px: [0.0, 0.0],
@@ -280,9 +218,108 @@ pub fn sensor_draft(
         Ok(g) => (Some(g), None),
         Err(reason) => (None, Some(reason)),
     };
-    let (mm_per_px, scale_source) = match options.scale {
+    let pitch_px = grid.map_or(spacing_px, |g| g.pitch_px);
+    let (mm_per_px, scale_source) = scale_of(options.scale, pitch_px)?;
+    Ok(SensorDraft {
+        width_px: w,
+        height_px: h,
+        color: options.color,
+        roi_px: options.roi_px,
+        markers_px,
+        spacing_px,
+        diameter_px: 2.0 * layer.marker_radius_px,
+        contrast_percent,
+        relative_contrast_percent,
+        near_border_fraction: near as f64 / reference.markers.len() as f64,
+        grid,
+        no_grid_reason,
+        mm_per_px,
+        scale_source,
+    })
+}
+
+/// The options against the frame before anything is detected: a colour a greyscale
+/// frame can hold, the ROI inside the image, a scale the loader would take, the
+/// frame's levels.
+fn check_options(
+    view: &FrameView<'_>,
+    options: &DraftOptions,
+    path: &Path,
+) -> Result<(), DraftError> {
+    let (w, h) = (view.width_px(), view.height_px());
+    if view.pixels().is_gray() && !options.color.is_brightness() {
+        return Err(DraftError::GrayscaleColour {
+            path: path.to_path_buf(),
+            color: options.color,
+        });
+    }
+    if let Some(roi) = &options.roi_px {
+        roi.check_in_image(w, h)
+            .map_err(|allowed| DraftError::Roi {
+                path: path.to_path_buf(),
+                roi: *roi,
+                allowed,
+            })?;
+    }
+    // The loader's ranges: the draft must load (`layers.markers.pitch_mm`,
+    // `camera.mm_per_px`).
+    match options.scale {
+        Scale::PitchMm(v) if !plausible(v, &MARKER_PITCH_MM) => {
+            return Err(scale_error("--pitch-mm", v, &MARKER_PITCH_MM))
+        }
+        Scale::MmPerPx(v) if !plausible(v, &MM_PER_PX) => {
+            return Err(scale_error("--mm-per-px", v, &MM_PER_PX))
+        }
+        _ => {}
+    }
+    check_frame_levels(view, options.roi_px.as_ref(), path)
+}
+
+/// Whether `v` is a finite positive value the loader takes for a key of `range`.
+fn plausible(v: f64, range: &KeyRange) -> bool {
+    v.is_finite() && v > 0.0 && range.check(v).is_ok()
+}
+
+/// The error for a scale flag's value outside the loader's `range`.
+fn scale_error(flag: &'static str, value: f64, range: &KeyRange) -> DraftError {
+    let allowed = if value.is_finite() && value > 0.0 {
+        range.check(value).err().unwrap_or_default()
+    } else {
+        format!(
+            "must be a finite number > 0 {}, within {} … {} {}",
+            range.unit, range.lo, range.hi, range.unit
+        )
+    };
+    DraftError::Scale {
+        flag,
+        value: format!("{} {}", fmt_value(value), range.unit),
+        allowed,
+    }
+}
+
+/// The markers' median contrast in % of full scale (three channels of `bit_depth`),
+/// and for dark markers their median contrast relative to the illumination.
+fn contrasts(reference: &Reference, bit_depth: u32, color: MarkerColor) -> (f64, Option<f64>) {
+    let full = 3.0 * if bit_depth == 16 { 65535.0 } else { 255.0 };
+    let mut peaks: Vec<f64> = reference.markers.iter().map(|m| m.peak).collect();
+    let contrast_percent = 100.0 * median(&mut peaks) / full;
+    let relative_contrast_percent = (color == MarkerColor::Dark).then(|| {
+        // The dark score's ring level is −(R + G + B): the illumination.
+        let mut rel: Vec<f64> = reference
+            .markers
+            .iter()
+            .map(|m| 100.0 * m.peak / (-m.background).max(1.0))
+            .collect();
+        median(&mut rel)
+    });
+    (contrast_percent, relative_contrast_percent)
+}
+
+/// `mm_per_px` and where it came from, from the scale option and the measured pitch
+/// `pitch_px`: the result must be a scale (and imply a pitch) the loader takes.
+fn scale_of(scale: Scale, pitch_px: f64) -> Result<(Option<f64>, String), DraftError> {
+    Ok(match scale {
         Scale::PitchMm(p) => {
-            let pitch_px = grid.map_or(spacing_px, |g| g.pitch_px);
             let k = p / pitch_px;
             if !plausible(k, &MM_PER_PX) {
                 return Err(DraftError::Scale {
@@ -300,7 +337,6 @@ pub fn sensor_draft(
             )
         }
         Scale::MmPerPx(s) => {
-            let pitch_px = grid.map_or(spacing_px, |g| g.pitch_px);
             let pitch = pitch_px * s;
             if !plausible(pitch, &MARKER_PITCH_MM) {
                 return Err(DraftError::Scale {
@@ -315,22 +351,6 @@ pub fn sensor_draft(
             (Some(s), format!("--mm-per-px {s}"))
         }
         Scale::Unknown => (None, String::new()),
-    };
-    Ok(SensorDraft {
-        width_px: w,
-        height_px: h,
-        color: options.color,
-        roi_px: options.roi_px,
-        markers_px,
-        spacing_px,
-        diameter_px: 2.0 * layer.marker_radius_px,
-        contrast_percent,
-        relative_contrast_percent,
-        near_border_fraction: near as f64 / reference.markers.len() as f64,
-        grid,
-        no_grid_reason,
-        mm_per_px,
-        scale_source,
     })
 }
 

@@ -3,7 +3,7 @@
 //! what the sweep repeats.
 
 use super::sweep::level_count;
-use super::{hold_schedule, total_count, Plan, Setpoint, Sweep, SweepDirection};
+use super::{hold_schedule, total_count, ExplicitPoint, Plan, Setpoint, Sweep, SweepDirection};
 use crate::bench::journal::Direction;
 
 impl Plan {
@@ -49,59 +49,18 @@ impl Plan {
         }
     }
 
-    /// Every setpoint in run order, generated one at a time (no list is built).
+    /// Every setpoint in run order, generated one at a time (no list is built): the
+    /// sweep kind's setpoints ([`Self::magnitude_raw`], [`Self::angle_raw`],
+    /// [`Self::hold_raw`], [`Self::spatial_raw`], [`Self::displacement_raw`],
+    /// [`Self::explicit_raw`]), numbered in turn.
     pub fn setpoints_iter(&self) -> impl Iterator<Item = Setpoint> + '_ {
-        let u = self.force_unit;
-        let pos = self.approach_position_mm;
-        let positions = self.trial_positions();
-        let updown = self.sweep_direction == SweepDirection::UpDown;
-        let raw: Box<dyn Iterator<Item = Raw> + '_> = match &self.sweep {
+        let raw: RawIter<'_> = match &self.sweep {
             Sweep::Magnitude {
                 from,
                 to,
                 step,
                 trials,
-            } => {
-                let (from, step, trials) = (*from, *step, *trials);
-                let n = level_count(from, *to, step) as usize;
-                // (level value, direction) of one trial.
-                let level = move |i: usize, d: Option<Direction>| (from + step * i as f64, d);
-                let one_trial = move || -> Box<dyn Iterator<Item = (f64, Option<Direction>)>> {
-                    if !updown {
-                        return Box::new((0..n).map(move |i| level(i, None)));
-                    }
-                    // Unloaded readings at both ends even when `from` > 0.
-                    let extra = from > 0.0;
-                    let up = Some(Direction::Up);
-                    let down = Some(Direction::Down);
-                    Box::new(
-                        extra
-                            .then_some((0.0, up))
-                            .into_iter()
-                            .chain((0..n).map(move |i| level(i, up)))
-                            .chain((0..n.saturating_sub(1)).rev().map(move |i| level(i, down)))
-                            .chain(extra.then_some((0.0, down))),
-                    )
-                };
-                Box::new(
-                    positions
-                        .into_iter()
-                        .enumerate()
-                        .flat_map(move |(pi, (pidx, p))| {
-                            (0..trials).flat_map(move |t| {
-                                one_trial().map(move |(v, d)| Raw {
-                                    trial: pi * trials + t,
-                                    position_mm: p,
-                                    normal_n: u.to_newtons(v),
-                                    swept_value: v,
-                                    direction: d,
-                                    position: pidx,
-                                    ..Raw::default()
-                                })
-                            })
-                        }),
-                )
-            }
+            } => self.magnitude_raw(*from, *to, *step, *trials),
             Sweep::Angle {
                 force,
                 from_deg,
@@ -109,99 +68,26 @@ impl Plan {
                 step_deg,
                 direction_deg,
                 trials,
-            } => {
-                let f = u.to_newtons(*force);
-                let (from, step, trials) = (*from_deg, *step_deg, *trials);
-                let n = level_count(from, *to_deg, step) as usize;
-                let (dcos, dsin) = cos_sin_deg(*direction_deg);
-                Box::new(
-                    positions
-                        .into_iter()
-                        .enumerate()
-                        .flat_map(move |(pi, (pidx, p))| {
-                            (0..trials).flat_map(move |t| {
-                                (0..n).map(move |i| {
-                                    let a = from + step * i as f64;
-                                    let (c, s) = cos_sin_deg(a);
-                                    let tan = f * s;
-                                    Raw {
-                                        trial: pi * trials + t,
-                                        position_mm: p,
-                                        normal_n: f * c,
-                                        tangential_n: [tan * dcos, tan * dsin],
-                                        swept_value: a,
-                                        position: pidx,
-                                        ..Raw::default()
-                                    }
-                                })
-                            })
-                        }),
-                )
-            }
+            } => self.angle_raw(
+                *force,
+                [*from_deg, *to_deg, *step_deg],
+                *direction_deg,
+                *trials,
+            ),
             Sweep::Hold {
                 force,
                 duration_s,
                 sample_interval_s,
                 trials,
-            } => {
-                let (force, d, dt, trials) = (*force, *duration_s, *sample_interval_s, *trials);
-                let f = u.to_newtons(force);
-                let unloaded = move |trial: usize| Raw {
-                    trial,
-                    position_mm: pos,
-                    ..Raw::default()
-                };
-                Box::new(
-                    std::iter::once(unloaded(0)).chain((0..trials).flat_map(move |k| {
-                        hold_schedule(d, dt)
-                            .map(move |t| Raw {
-                                trial: k,
-                                position_mm: pos,
-                                normal_n: f,
-                                swept_value: force,
-                                hold_t_s: Some(t),
-                                ..Raw::default()
-                            })
-                            .chain(std::iter::once(unloaded(k)))
-                    })),
-                )
-            }
+            } => self.hold_raw(*force, *duration_s, *sample_interval_s, *trials),
             Sweep::Spatial {
                 force,
                 start_mm,
                 end_mm,
                 subdivisions,
-            } => {
-                let f = u.to_newtons(*force);
-                let (a, b, k) = (*start_mm, *end_mm, *subdivisions);
-                let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
-                Box::new((0..=k).map(move |i| {
-                    let s = i as f64 / k as f64;
-                    Raw {
-                        position_mm: [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])],
-                        normal_n: f,
-                        swept_value: s * len,
-                        ..Raw::default()
-                    }
-                }))
-            }
-            Sweep::Displacement { shift_mm, trials } => {
-                let shift = *shift_mm;
-                Box::new((0..*trials).map(move |t| Raw {
-                    trial: t,
-                    position_mm: pos,
-                    shift_mm: shift,
-                    swept_value: shift[0].hypot(shift[1]),
-                    ..Raw::default()
-                }))
-            }
-            Sweep::Setpoints(points) => Box::new(points.iter().map(move |p| Raw {
-                position_mm: p.position_mm,
-                normal_n: u.to_newtons(p.normal),
-                tangential_n: [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
-                swept_value: p.normal,
-                ..Raw::default()
-            })),
+            } => self.spatial_raw(*force, *start_mm, *end_mm, *subdivisions),
+            Sweep::Displacement { shift_mm, trials } => self.displacement_raw(*shift_mm, *trials),
+            Sweep::Setpoints(points) => self.explicit_raw(points),
         };
         raw.enumerate().map(|(index, r)| Setpoint {
             index,
@@ -215,6 +101,136 @@ impl Plan {
             position: r.position,
             hold_t_s: r.hold_t_s,
         })
+    }
+
+    /// Fig. 7: per contact position, `trials` trials of the levels `from + k·step` ≤
+    /// `to` (plan unit), each trial up (and back down, see [`magnitude_trial`]).
+    fn magnitude_raw(&self, from: f64, to: f64, step: f64, trials: usize) -> RawIter<'_> {
+        let u = self.force_unit;
+        let updown = self.sweep_direction == SweepDirection::UpDown;
+        let n = level_count(from, to, step) as usize;
+        Box::new(
+            self.trial_positions()
+                .into_iter()
+                .enumerate()
+                .flat_map(move |(pi, (pidx, p))| {
+                    (0..trials).flat_map(move |t| {
+                        magnitude_trial(from, step, n, updown).map(move |(v, d)| Raw {
+                            trial: pi * trials + t,
+                            position_mm: p,
+                            normal_n: u.to_newtons(v),
+                            swept_value: v,
+                            direction: d,
+                            position: pidx,
+                            ..Raw::default()
+                        })
+                    })
+                }),
+        )
+    }
+
+    /// Fig. 8: per contact position, `trials` trials of the force `force` tilted from
+    /// the normal by `from + k·step` ≤ `to` deg (`[from, to, step]`) towards
+    /// `direction_deg`.
+    fn angle_raw(
+        &self,
+        force: f64,
+        [from, to_deg, step]: [f64; 3],
+        direction_deg: f64,
+        trials: usize,
+    ) -> RawIter<'_> {
+        let f = self.force_unit.to_newtons(force);
+        let n = level_count(from, to_deg, step) as usize;
+        let (dcos, dsin) = cos_sin_deg(direction_deg);
+        Box::new(
+            self.trial_positions()
+                .into_iter()
+                .enumerate()
+                .flat_map(move |(pi, (pidx, p))| {
+                    (0..trials).flat_map(move |t| {
+                        (0..n).map(move |i| {
+                            let a = from + step * i as f64;
+                            let (c, s) = cos_sin_deg(a);
+                            let tan = f * s;
+                            Raw {
+                                trial: pi * trials + t,
+                                position_mm: p,
+                                normal_n: f * c,
+                                tangential_n: [tan * dcos, tan * dsin],
+                                swept_value: a,
+                                position: pidx,
+                                ..Raw::default()
+                            }
+                        })
+                    })
+                }),
+        )
+    }
+
+    /// Creep: an unloaded reading, then per trial the hold's samples
+    /// ([`hold_schedule`]) and an unloaded reading after it.
+    fn hold_raw(&self, force: f64, d: f64, dt: f64, trials: usize) -> RawIter<'_> {
+        let pos = self.approach_position_mm;
+        let f = self.force_unit.to_newtons(force);
+        let unloaded = move |trial: usize| Raw {
+            trial,
+            position_mm: pos,
+            ..Raw::default()
+        };
+        Box::new(
+            std::iter::once(unloaded(0)).chain((0..trials).flat_map(move |k| {
+                hold_schedule(d, dt)
+                    .map(move |t| Raw {
+                        trial: k,
+                        position_mm: pos,
+                        normal_n: f,
+                        swept_value: force,
+                        hold_t_s: Some(t),
+                        ..Raw::default()
+                    })
+                    .chain(std::iter::once(unloaded(k)))
+            })),
+        )
+    }
+
+    /// Fig. 9: the force at `k + 1` evenly spaced points from `a` to `b` (mm), swept
+    /// value the distance along the line.
+    fn spatial_raw(&self, force: f64, a: [f64; 2], b: [f64; 2], k: usize) -> RawIter<'_> {
+        let f = self.force_unit.to_newtons(force);
+        let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+        Box::new((0..=k).map(move |i| {
+            let s = i as f64 / k as f64;
+            Raw {
+                position_mm: [a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1])],
+                normal_n: f,
+                swept_value: s * len,
+                ..Raw::default()
+            }
+        }))
+    }
+
+    /// Table I: `trials` shifts by `shift` (mm) at the approach position.
+    fn displacement_raw(&self, shift: [f64; 2], trials: usize) -> RawIter<'_> {
+        let pos = self.approach_position_mm;
+        Box::new((0..trials).map(move |t| Raw {
+            trial: t,
+            position_mm: pos,
+            shift_mm: shift,
+            swept_value: shift[0].hypot(shift[1]),
+            ..Raw::default()
+        }))
+    }
+
+    /// An explicit list: each point as given, forces converted to N.
+    fn explicit_raw<'a>(&'a self, points: &'a [ExplicitPoint]) -> RawIter<'a> {
+        let u = self.force_unit;
+        Box::new(points.iter().map(move |p| Raw {
+            position_mm: p.position_mm,
+            normal_n: u.to_newtons(p.normal),
+            tangential_n: [u.to_newtons(p.tangential[0]), u.to_newtons(p.tangential[1])],
+            swept_value: p.normal,
+            ..Raw::default()
+        }))
     }
 
     /// What the sweep repeats and how, for `run --dry-run` (empty for a plain sweep):
@@ -305,6 +321,37 @@ struct Raw {
     direction: Option<Direction>,
     position: Option<usize>,
     hold_t_s: Option<f64>,
+}
+
+/// A sweep's setpoints before they are numbered.
+type RawIter<'a> = Box<dyn Iterator<Item = Raw> + 'a>;
+
+/// One trial of a magnitude sweep with `n` levels `from + i·step`: (level value in the
+/// plan's unit, direction). Up only; or, `updown`, up through the top level once and
+/// back down, with unloaded readings at both ends even when `from` > 0.
+fn magnitude_trial(
+    from: f64,
+    step: f64,
+    n: usize,
+    updown: bool,
+) -> Box<dyn Iterator<Item = (f64, Option<Direction>)>> {
+    // (level value, direction) of one trial.
+    let level = move |i: usize, d: Option<Direction>| (from + step * i as f64, d);
+    if !updown {
+        return Box::new((0..n).map(move |i| level(i, None)));
+    }
+    // Unloaded readings at both ends even when `from` > 0.
+    let extra = from > 0.0;
+    let up = Some(Direction::Up);
+    let down = Some(Direction::Down);
+    Box::new(
+        extra
+            .then_some((0.0, up))
+            .into_iter()
+            .chain((0..n).map(move |i| level(i, up)))
+            .chain((0..n.saturating_sub(1)).rev().map(move |i| level(i, down)))
+            .chain(extra.then_some((0.0, down))),
+    )
 }
 
 /// cos and sin of an angle in degrees, exact at multiples of 90° (so a tangential

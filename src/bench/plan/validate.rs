@@ -5,7 +5,10 @@
 
 use std::path::Path;
 
-use super::raw::{RawPlan, RawQuality};
+use super::raw::{
+    RawAcquire, RawApproach, RawControl, RawIndenter, RawPlan, RawQuality, RawReconstruct,
+    RawSafety, RawSettle, RawSweep,
+};
 use super::sweep::level_count;
 use super::*;
 use crate::config::Checker;
@@ -290,31 +293,106 @@ fn need<T>(c: &Checker<'_>, key: &str, v: Option<T>, kind: &str) -> Result<T, Pl
 }
 
 impl RawPlan {
-    pub(super) fn validate(self, path: &Path) -> Result<Plan, PlanError> {
+    /// The validated plan, in named steps taken in the order their errors are
+    /// reported (the first invalid key wins) and their defaults recorded: the force
+    /// unit, the indenter, the approach and the safety limits, force control, settle
+    /// and acquisition, the sweep, its direction and positions, the setpoint and frame
+    /// caps, the solver, the quality gates; then, on the assembled plan, the duration
+    /// cap and every target against the force limits and the travel box.
+    pub(super) fn validate(mut self, path: &Path) -> Result<Plan, PlanError> {
         let c = Checker { path };
         let mut defaults = Defaults::default();
-        let unit_text = defaults.take(
-            self.force_unit.clone(),
-            DEFAULT_FORCE_UNIT.to_string(),
-            "force_unit",
-            |v| format!("{v:?}"),
-        );
-        let unit: ForceUnit = unit_text
-            .parse()
-            .map_err(|e: String| c.invalid("force_unit", format!("{unit_text:?}"), e))?;
+        let unit = force_unit(&c, self.force_unit.clone(), &mut defaults)?;
         let fu = unit.symbol();
-        let n = |v: f64| unit.to_newtons(v);
+        let indenter = self.indenter.validate(&c)?;
+        let (approach_position_mm, approach_speed_mm_s, contact_force_n) =
+            self.approach.validate(&c, unit)?;
+        let safety = self.safety.validate(&c, unit)?;
+        if approach_speed_mm_s > safety.max_speed_mm_s {
+            return Err(c.invalid(
+                "approach.speed_mm_s",
+                format!("{approach_speed_mm_s} mm/s"),
+                format!(
+                    "must not exceed safety.max_speed_mm_s = {} mm/s",
+                    safety.max_speed_mm_s
+                ),
+            ));
+        }
+        let (force_tolerance_n, max_control_steps) =
+            self.control
+                .validate(&c, unit, contact_force_n, &mut defaults)?;
+        let settle = self
+            .settle
+            .validate(&c, unit, force_tolerance_n, &mut defaults)?;
+        let (samples, frames) = self.acquire.validate(&c, &mut defaults)?;
 
-        let indenter = match self.indenter.shape.as_str() {
+        let sweep = self.sweep.validate(&c, unit, &mut defaults)?;
+        let sweep_direction = self.sweep.direction(&c, &sweep, &mut defaults)?;
+        let positions_mm = self.sweep.positions(&c, &sweep, &safety)?;
+        check_caps(
+            &c,
+            &sweep,
+            sweep_direction,
+            positions_mm.len(),
+            frames,
+            fu,
+            unit.from_newtons(safety.max_force_n[2]),
+        )?;
+
+        let solver = self.reconstruct.validate(&c, &mut defaults)?;
+        let quality = self.quality.validate(&c)?;
+        self.quality.record_defaults(&quality, &mut defaults);
+        let plan = Plan {
+            sweep_direction,
+            positions_mm,
+            quality,
+            solver,
+            path: path.to_path_buf(),
+            name: self.name,
+            sensor_path: path.parent().unwrap_or(Path::new(".")).join(&self.sensor),
+            build_id: self.build_id,
+            force_unit: unit,
+            indenter,
+            approach_position_mm,
+            approach_speed_mm_s,
+            contact_force_n,
+            force_tolerance_n,
+            max_control_steps,
+            settle,
+            samples,
+            frames,
+            safety,
+            sweep,
+            defaults: defaults.0,
+        };
+        check_duration(&c, &plan)?;
+        check_targets(&c, &plan)?;
+        Ok(plan)
+    }
+}
+
+/// The plan's force unit (`force_unit`, default newtons).
+fn force_unit(
+    c: &Checker<'_>,
+    v: Option<String>,
+    defaults: &mut Defaults,
+) -> Result<ForceUnit, PlanError> {
+    let unit_text = defaults.take(v, DEFAULT_FORCE_UNIT.to_string(), "force_unit", |v| {
+        format!("{v:?}")
+    });
+    unit_text
+        .parse()
+        .map_err(|e: String| c.invalid("force_unit", format!("{unit_text:?}"), e))
+}
+
+impl RawIndenter {
+    /// The indenter's shape, with the diameter the flat and hemispherical ones need.
+    fn validate(&self, c: &Checker<'_>) -> Result<IndenterShape, PlanError> {
+        Ok(match self.shape.as_str() {
             "flat" | "hemisphere" => {
-                let d = need(
-                    &c,
-                    "indenter.diameter_mm",
-                    self.indenter.diameter_mm,
-                    &self.indenter.shape,
-                )?;
+                let d = need(c, "indenter.diameter_mm", self.diameter_mm, &self.shape)?;
                 let diameter_mm = c.positive("indenter.diameter_mm", d, "mm")?;
-                if self.indenter.shape == "flat" {
+                if self.shape == "flat" {
                     IndenterShape::Flat { diameter_mm }
                 } else {
                     IndenterShape::Hemisphere { diameter_mm }
@@ -328,103 +406,148 @@ impl RawPlan {
                     "unknown shape: expected flat, hemisphere or point",
                 ))
             }
-        };
+        })
+    }
+}
 
-        let a = &self.approach;
-        let approach_position_mm = [
-            c.finite("approach.position_mm[0]", a.position_mm[0], "mm")?,
-            c.finite("approach.position_mm[1]", a.position_mm[1], "mm")?,
+impl RawApproach {
+    /// The approach position (mm), speed (mm/s) and contact force (N).
+    fn validate(
+        &self,
+        c: &Checker<'_>,
+        unit: ForceUnit,
+    ) -> Result<([f64; 2], f64, f64), PlanError> {
+        let position_mm = [
+            c.finite("approach.position_mm[0]", self.position_mm[0], "mm")?,
+            c.finite("approach.position_mm[1]", self.position_mm[1], "mm")?,
         ];
-        let approach_speed_mm_s = c.positive("approach.speed_mm_s", a.speed_mm_s, "mm/s")?;
-        let contact_force_n = n(c.positive("approach.contact_force", a.contact_force, fu)?);
+        let speed_mm_s = c.positive("approach.speed_mm_s", self.speed_mm_s, "mm/s")?;
+        let contact_force_n = unit.to_newtons(c.positive(
+            "approach.contact_force",
+            self.contact_force,
+            unit.symbol(),
+        )?);
+        Ok((position_mm, speed_mm_s, contact_force_n))
+    }
+}
 
-        let s = &self.safety;
+impl RawSafety {
+    /// The force limits (converted to N), the travel box (each axis's minimum below
+    /// its maximum) and the speed limit.
+    fn validate(&self, c: &Checker<'_>, unit: ForceUnit) -> Result<Safety, PlanError> {
         let mut max_force_n = [0.0; 3];
-        for (i, v) in s.max_force.iter().enumerate() {
-            max_force_n[i] = n(c.positive(&format!("safety.max_force[{i}]"), *v, fu)?);
+        for (i, v) in self.max_force.iter().enumerate() {
+            max_force_n[i] = unit.to_newtons(c.positive(
+                &format!("safety.max_force[{i}]"),
+                *v,
+                unit.symbol(),
+            )?);
         }
         for i in 0..3 {
             c.finite(
                 &format!("safety.travel_min_mm[{i}]"),
-                s.travel_min_mm[i],
+                self.travel_min_mm[i],
                 "mm",
             )?;
             c.finite(
                 &format!("safety.travel_max_mm[{i}]"),
-                s.travel_max_mm[i],
+                self.travel_max_mm[i],
                 "mm",
             )?;
-            if s.travel_min_mm[i] >= s.travel_max_mm[i] {
+            if self.travel_min_mm[i] >= self.travel_max_mm[i] {
                 return Err(c.invalid(
                     &format!("safety.travel_max_mm[{i}]"),
-                    format!("{} mm", s.travel_max_mm[i]),
+                    format!("{} mm", self.travel_max_mm[i]),
                     format!(
                         "must exceed safety.travel_min_mm[{i}] = {} mm",
-                        s.travel_min_mm[i]
+                        self.travel_min_mm[i]
                     ),
                 ));
             }
         }
-        let max_speed_mm_s = c.positive("safety.max_speed_mm_s", s.max_speed_mm_s, "mm/s")?;
-        if approach_speed_mm_s > max_speed_mm_s {
-            return Err(c.invalid(
-                "approach.speed_mm_s",
-                format!("{approach_speed_mm_s} mm/s"),
-                format!("must not exceed safety.max_speed_mm_s = {max_speed_mm_s} mm/s"),
-            ));
-        }
-        let safety = Safety {
+        let max_speed_mm_s = c.positive("safety.max_speed_mm_s", self.max_speed_mm_s, "mm/s")?;
+        Ok(Safety {
             max_force_n,
-            travel_min_mm: s.travel_min_mm,
-            travel_max_mm: s.travel_max_mm,
+            travel_min_mm: self.travel_min_mm,
+            travel_max_mm: self.travel_max_mm,
             max_speed_mm_s,
-        };
+        })
+    }
+}
 
-        let with_fu = |v: f64| format!("{} {fu}", round9(v));
+/// `v` in the plan's force unit, rounded for messages.
+fn with_unit(v: f64, fu: &str) -> String {
+    format!("{} {fu}", round9(v))
+}
+
+impl RawControl {
+    /// The force tolerance (N; default: the approach's contact force) and the
+    /// controller's step limit.
+    fn validate(
+        &self,
+        c: &Checker<'_>,
+        unit: ForceUnit,
+        contact_force_n: f64,
+        defaults: &mut Defaults,
+    ) -> Result<(f64, usize), PlanError> {
+        let fu = unit.symbol();
         let tol_default = unit.from_newtons(contact_force_n);
-        let force_tolerance_n = n(c.positive(
+        let force_tolerance_n = unit.to_newtons(c.positive(
             "control.force_tolerance",
             defaults.take(
-                self.control.force_tolerance,
+                self.force_tolerance,
                 tol_default,
                 "control.force_tolerance",
-                |v| format!("{} (approach.contact_force)", with_fu(v)),
+                |v| format!("{} (approach.contact_force)", with_unit(v, fu)),
             ),
             fu,
         )?);
         let max_control_steps = c.count(
             "control.max_steps",
             defaults.take(
-                self.control.max_steps,
+                self.max_steps,
                 DEFAULT_MAX_STEPS,
                 "control.max_steps",
                 |v| v.to_string(),
             ),
             10_000,
         )?;
+        Ok((force_tolerance_n, max_control_steps))
+    }
+}
 
-        let st = &self.settle;
+impl RawSettle {
+    /// The settle criterion (default spread: half the force tolerance), its timeout
+    /// (capped) and the dwell.
+    fn validate(
+        &self,
+        c: &Checker<'_>,
+        unit: ForceUnit,
+        force_tolerance_n: f64,
+        defaults: &mut Defaults,
+    ) -> Result<Settle, PlanError> {
+        let fu = unit.symbol();
         let secs = |v: f64| format!("{v} s");
-        let settle = Settle {
+        Ok(Settle {
             window_s: c.positive(
                 "settle.window_s",
-                defaults.take(st.window_s, DEFAULT_WINDOW_S, "settle.window_s", secs),
+                defaults.take(self.window_s, DEFAULT_WINDOW_S, "settle.window_s", secs),
                 "s",
             )?,
-            max_sd_n: n(c.positive(
+            max_sd_n: unit.to_newtons(c.positive(
                 "settle.max_sd",
                 defaults.take(
-                    st.max_sd,
+                    self.max_sd,
                     unit.from_newtons(force_tolerance_n) / 2.0,
                     "settle.max_sd",
-                    |v| format!("{} (control.force_tolerance / 2)", with_fu(v)),
+                    |v| format!("{} (control.force_tolerance / 2)", with_unit(v, fu)),
                 ),
                 fu,
             )?),
             timeout_s: {
                 let t = c.positive(
                     "settle.timeout_s",
-                    defaults.take(st.timeout_s, DEFAULT_TIMEOUT_S, "settle.timeout_s", secs),
+                    defaults.take(self.timeout_s, DEFAULT_TIMEOUT_S, "settle.timeout_s", secs),
                     "s",
                 )?;
                 if t > MAX_SETTLE_TIMEOUT_S {
@@ -440,210 +563,270 @@ impl RawPlan {
             },
             dwell_s: c.non_negative(
                 "settle.dwell_s",
-                defaults.take(st.dwell_s, DEFAULT_DWELL_S, "settle.dwell_s", secs),
+                defaults.take(self.dwell_s, DEFAULT_DWELL_S, "settle.dwell_s", secs),
                 "s",
             )?,
-        };
+        })
+    }
+}
+
+impl RawAcquire {
+    /// F/T samples and camera frames per setpoint.
+    fn validate(
+        &self,
+        c: &Checker<'_>,
+        defaults: &mut Defaults,
+    ) -> Result<(usize, usize), PlanError> {
         let samples = c.count(
             "acquire.samples",
-            defaults.take(
-                self.acquire.samples,
-                DEFAULT_SAMPLES,
-                "acquire.samples",
-                |v| v.to_string(),
-            ),
+            defaults.take(self.samples, DEFAULT_SAMPLES, "acquire.samples", |v| {
+                v.to_string()
+            }),
             100_000,
         )?;
         let frames = c.count(
             "acquire.frames",
-            defaults.take(self.acquire.frames, DEFAULT_FRAMES, "acquire.frames", |v| {
+            defaults.take(self.frames, DEFAULT_FRAMES, "acquire.frames", |v| {
                 v.to_string()
             }),
             1000,
         )?;
+        Ok((samples, frames))
+    }
+}
 
-        let sw = self.sweep;
-        let kind = sw.kind.clone();
-        let trials = |c: &Checker| {
-            c.count(
-                "sweep.trials",
-                need(c, "sweep.trials", sw.trials, &kind)?,
-                10_000,
-            )
-        };
-        let sweep = match kind.as_str() {
-            "magnitude" => {
-                let from =
-                    c.non_negative("sweep.from", need(&c, "sweep.from", sw.from, &kind)?, fu)?;
-                let to = c.non_negative("sweep.to", need(&c, "sweep.to", sw.to, &kind)?, fu)?;
-                let step = c.positive("sweep.step", need(&c, "sweep.step", sw.step, &kind)?, fu)?;
-                if to < from {
-                    return Err(c.invalid(
-                        "sweep.to",
-                        format!("{to} {fu}"),
-                        format!("must be >= sweep.from = {from} {fu}"),
-                    ));
-                }
-                Sweep::Magnitude {
-                    from,
-                    to,
-                    step,
-                    trials: trials(&c)?,
-                }
-            }
-            "angle" => {
-                let force =
-                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
-                let from_deg = need(&c, "sweep.angle_from_deg", sw.angle_from_deg, &kind)?;
-                let to_deg = need(&c, "sweep.angle_to_deg", sw.angle_to_deg, &kind)?;
-                for (key, v) in [
-                    ("sweep.angle_from_deg", from_deg),
-                    ("sweep.angle_to_deg", to_deg),
-                ] {
-                    if !(v.is_finite() && (0.0..90.0).contains(&v)) {
-                        return Err(c.invalid(
-                            key,
-                            format!("{v} deg"),
-                            "must be in [0, 90) deg from the normal",
-                        ));
-                    }
-                }
-                if to_deg < from_deg {
-                    return Err(c.invalid(
-                        "sweep.angle_to_deg",
-                        format!("{to_deg} deg"),
-                        format!("must be >= sweep.angle_from_deg = {from_deg} deg"),
-                    ));
-                }
-                Sweep::Angle {
-                    force,
-                    from_deg,
-                    to_deg,
-                    step_deg: c.positive(
-                        "sweep.angle_step_deg",
-                        need(&c, "sweep.angle_step_deg", sw.angle_step_deg, &kind)?,
-                        "deg",
-                    )?,
-                    direction_deg: c.finite(
-                        "sweep.direction_deg",
-                        defaults.take(
-                            sw.direction_deg,
-                            DEFAULT_DIRECTION_DEG,
-                            "sweep.direction_deg",
-                            |v| format!("{v} deg (+x)"),
-                        ),
-                        "deg",
-                    )?,
-                    trials: trials(&c)?,
-                }
-            }
-            "spatial" => {
-                let force =
-                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
-                let start_mm = need(&c, "sweep.start_mm", sw.start_mm, &kind)?;
-                let end_mm = need(&c, "sweep.end_mm", sw.end_mm, &kind)?;
-                for (key, p) in [("sweep.start_mm", start_mm), ("sweep.end_mm", end_mm)] {
-                    c.finite(key, p[0], "mm")?;
-                    c.finite(key, p[1], "mm")?;
-                }
-                Sweep::Spatial {
-                    force,
-                    start_mm,
-                    end_mm,
-                    subdivisions: c.count(
-                        "sweep.subdivisions",
-                        need(&c, "sweep.subdivisions", sw.subdivisions, &kind)?,
-                        10_000,
-                    )?,
-                }
-            }
-            "hold" => {
-                let force =
-                    c.positive("sweep.force", need(&c, "sweep.force", sw.force, &kind)?, fu)?;
-                let duration_s = c.positive(
-                    "sweep.duration_s",
-                    need(&c, "sweep.duration_s", sw.duration_s, &kind)?,
-                    "s",
-                )?;
-                let sample_interval_s = c.positive(
-                    "sweep.sample_interval_s",
-                    need(&c, "sweep.sample_interval_s", sw.sample_interval_s, &kind)?,
-                    "s",
-                )?;
-                if sample_interval_s > duration_s {
-                    return Err(c.invalid(
-                        "sweep.sample_interval_s",
-                        format!("{sample_interval_s} s"),
-                        format!("must not exceed sweep.duration_s = {duration_s} s"),
-                    ));
-                }
-                Sweep::Hold {
-                    force,
-                    duration_s,
-                    sample_interval_s,
-                    trials: trials(&c)?,
-                }
-            }
-            "displacement" => {
-                let shift_mm = need(&c, "sweep.shift_mm", sw.shift_mm, &kind)?;
-                c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
-                c.finite("sweep.shift_mm[1]", shift_mm[1], "mm")?;
-                Sweep::Displacement {
-                    shift_mm,
-                    trials: trials(&c)?,
-                }
-            }
-            "setpoints" => {
-                let points = need(&c, "sweep.points", sw.points, &kind)?;
-                if points.is_empty() {
-                    return Err(c.invalid(
-                        "sweep.points",
-                        "[]",
-                        "at least one [[sweep.points]] is required",
-                    ));
-                }
-                if points.len() > MAX_SETPOINTS {
-                    return Err(c.invalid(
-                        "sweep.points",
-                        format!("{} points", points.len()),
-                        format!("a plan may have at most {MAX_SETPOINTS} setpoints (cap)"),
-                    ));
-                }
-                let mut out = Vec::with_capacity(points.len());
-                let mut untangential = false;
-                for (i, p) in points.into_iter().enumerate() {
-                    untangential |= p.tangential.is_none();
-                    let tangential = p.tangential.unwrap_or([0.0; 2]);
-                    let key = format!("sweep.points[{i}]");
-                    c.finite(&format!("{key}.position_mm[0]"), p.position_mm[0], "mm")?;
-                    c.finite(&format!("{key}.position_mm[1]"), p.position_mm[1], "mm")?;
-                    out.push(ExplicitPoint {
-                        position_mm: p.position_mm,
-                        normal: c.non_negative(&format!("{key}.normal"), p.normal, fu)?,
-                        tangential: [
-                            c.finite(&format!("{key}.tangential[0]"), tangential[0], fu)?,
-                            c.finite(&format!("{key}.tangential[1]"), tangential[1], fu)?,
-                        ],
-                    });
-                }
-                if untangential {
-                    defaults.push(
-                        "sweep.points[].tangential",
-                        format!("[0, 0] {fu} (where not given)"),
-                    );
-                }
-                Sweep::Setpoints(out)
-            }
-            other => {
+impl RawSweep {
+    /// The sweep of `sweep.kind` with the keys that kind requires.
+    fn validate(
+        &mut self,
+        c: &Checker<'_>,
+        unit: ForceUnit,
+        defaults: &mut Defaults,
+    ) -> Result<Sweep, PlanError> {
+        match self.kind.as_str() {
+            "magnitude" => self.magnitude(c, unit.symbol()),
+            "angle" => self.angle(c, unit.symbol(), defaults),
+            "spatial" => self.spatial(c, unit.symbol()),
+            "hold" => self.hold(c, unit.symbol()),
+            "displacement" => self.displacement(c),
+            "setpoints" => self.setpoints(c, unit.symbol(), defaults),
+            other => Err(c.invalid(
+                "sweep.kind",
+                format!("{other:?}"),
+                "unknown sweep: expected magnitude, angle, hold, spatial, displacement or setpoints",
+            )),
+        }
+    }
+
+    /// A key this sweep's kind requires.
+    fn need<T>(&self, c: &Checker<'_>, key: &str, v: Option<T>) -> Result<T, PlanError> {
+        need(c, key, v, &self.kind)
+    }
+
+    /// `sweep.trials`, required by every kind that repeats.
+    fn trials(&self, c: &Checker<'_>) -> Result<usize, PlanError> {
+        c.count(
+            "sweep.trials",
+            self.need(c, "sweep.trials", self.trials)?,
+            10_000,
+        )
+    }
+
+    /// `sweep.force`, the load of the angle, spatial and hold sweeps.
+    fn force(&self, c: &Checker<'_>, fu: &str) -> Result<f64, PlanError> {
+        c.positive("sweep.force", self.need(c, "sweep.force", self.force)?, fu)
+    }
+
+    /// Fig. 7: normal force levels `from..=to` by `step`.
+    fn magnitude(&self, c: &Checker<'_>, fu: &str) -> Result<Sweep, PlanError> {
+        let from = c.non_negative("sweep.from", self.need(c, "sweep.from", self.from)?, fu)?;
+        let to = c.non_negative("sweep.to", self.need(c, "sweep.to", self.to)?, fu)?;
+        let step = c.positive("sweep.step", self.need(c, "sweep.step", self.step)?, fu)?;
+        if to < from {
+            return Err(c.invalid(
+                "sweep.to",
+                format!("{to} {fu}"),
+                format!("must be >= sweep.from = {from} {fu}"),
+            ));
+        }
+        Ok(Sweep::Magnitude {
+            from,
+            to,
+            step,
+            trials: self.trials(c)?,
+        })
+    }
+
+    /// Fig. 8: one force tilted from the normal over `[from, to]` deg, in `[0, 90)`.
+    fn angle(
+        &self,
+        c: &Checker<'_>,
+        fu: &str,
+        defaults: &mut Defaults,
+    ) -> Result<Sweep, PlanError> {
+        let force = self.force(c, fu)?;
+        let from_deg = self.need(c, "sweep.angle_from_deg", self.angle_from_deg)?;
+        let to_deg = self.need(c, "sweep.angle_to_deg", self.angle_to_deg)?;
+        for (key, v) in [
+            ("sweep.angle_from_deg", from_deg),
+            ("sweep.angle_to_deg", to_deg),
+        ] {
+            if !(v.is_finite() && (0.0..90.0).contains(&v)) {
                 return Err(c.invalid(
-                    "sweep.kind",
-                    format!("{other:?}"),
-                    "unknown sweep: expected magnitude, angle, hold, spatial, displacement or setpoints",
-                ))
+                    key,
+                    format!("{v} deg"),
+                    "must be in [0, 90) deg from the normal",
+                ));
             }
-        };
+        }
+        if to_deg < from_deg {
+            return Err(c.invalid(
+                "sweep.angle_to_deg",
+                format!("{to_deg} deg"),
+                format!("must be >= sweep.angle_from_deg = {from_deg} deg"),
+            ));
+        }
+        Ok(Sweep::Angle {
+            force,
+            from_deg,
+            to_deg,
+            step_deg: c.positive(
+                "sweep.angle_step_deg",
+                self.need(c, "sweep.angle_step_deg", self.angle_step_deg)?,
+                "deg",
+            )?,
+            direction_deg: c.finite(
+                "sweep.direction_deg",
+                defaults.take(
+                    self.direction_deg,
+                    DEFAULT_DIRECTION_DEG,
+                    "sweep.direction_deg",
+                    |v| format!("{v} deg (+x)"),
+                ),
+                "deg",
+            )?,
+            trials: self.trials(c)?,
+        })
+    }
 
-        let sweep_direction = match (sw.direction.as_deref(), &sweep) {
+    /// Fig. 9: one force at points along a line.
+    fn spatial(&self, c: &Checker<'_>, fu: &str) -> Result<Sweep, PlanError> {
+        let force = self.force(c, fu)?;
+        let start_mm = self.need(c, "sweep.start_mm", self.start_mm)?;
+        let end_mm = self.need(c, "sweep.end_mm", self.end_mm)?;
+        for (key, p) in [("sweep.start_mm", start_mm), ("sweep.end_mm", end_mm)] {
+            c.finite(key, p[0], "mm")?;
+            c.finite(key, p[1], "mm")?;
+        }
+        Ok(Sweep::Spatial {
+            force,
+            start_mm,
+            end_mm,
+            subdivisions: c.count(
+                "sweep.subdivisions",
+                self.need(c, "sweep.subdivisions", self.subdivisions)?,
+                10_000,
+            )?,
+        })
+    }
+
+    /// Creep: one force held for `duration_s`, sampled every `sample_interval_s`.
+    fn hold(&self, c: &Checker<'_>, fu: &str) -> Result<Sweep, PlanError> {
+        let force = self.force(c, fu)?;
+        let duration_s = c.positive(
+            "sweep.duration_s",
+            self.need(c, "sweep.duration_s", self.duration_s)?,
+            "s",
+        )?;
+        let sample_interval_s = c.positive(
+            "sweep.sample_interval_s",
+            self.need(c, "sweep.sample_interval_s", self.sample_interval_s)?,
+            "s",
+        )?;
+        if sample_interval_s > duration_s {
+            return Err(c.invalid(
+                "sweep.sample_interval_s",
+                format!("{sample_interval_s} s"),
+                format!("must not exceed sweep.duration_s = {duration_s} s"),
+            ));
+        }
+        Ok(Sweep::Hold {
+            force,
+            duration_s,
+            sample_interval_s,
+            trials: self.trials(c)?,
+        })
+    }
+
+    /// Table I: the indenter shifted by `shift_mm` after contact.
+    fn displacement(&self, c: &Checker<'_>) -> Result<Sweep, PlanError> {
+        let shift_mm = self.need(c, "sweep.shift_mm", self.shift_mm)?;
+        c.finite("sweep.shift_mm[0]", shift_mm[0], "mm")?;
+        c.finite("sweep.shift_mm[1]", shift_mm[1], "mm")?;
+        Ok(Sweep::Displacement {
+            shift_mm,
+            trials: self.trials(c)?,
+        })
+    }
+
+    /// An explicit list of `[[sweep.points]]` (at most [`MAX_SETPOINTS`]), tangential
+    /// force zero where not given.
+    fn setpoints(
+        &mut self,
+        c: &Checker<'_>,
+        fu: &str,
+        defaults: &mut Defaults,
+    ) -> Result<Sweep, PlanError> {
+        let points = self.points.take();
+        let points = self.need(c, "sweep.points", points)?;
+        if points.is_empty() {
+            return Err(c.invalid(
+                "sweep.points",
+                "[]",
+                "at least one [[sweep.points]] is required",
+            ));
+        }
+        if points.len() > MAX_SETPOINTS {
+            return Err(c.invalid(
+                "sweep.points",
+                format!("{} points", points.len()),
+                format!("a plan may have at most {MAX_SETPOINTS} setpoints (cap)"),
+            ));
+        }
+        let mut out = Vec::with_capacity(points.len());
+        let mut untangential = false;
+        for (i, p) in points.into_iter().enumerate() {
+            untangential |= p.tangential.is_none();
+            let tangential = p.tangential.unwrap_or([0.0; 2]);
+            let key = format!("sweep.points[{i}]");
+            c.finite(&format!("{key}.position_mm[0]"), p.position_mm[0], "mm")?;
+            c.finite(&format!("{key}.position_mm[1]"), p.position_mm[1], "mm")?;
+            out.push(ExplicitPoint {
+                position_mm: p.position_mm,
+                normal: c.non_negative(&format!("{key}.normal"), p.normal, fu)?,
+                tangential: [
+                    c.finite(&format!("{key}.tangential[0]"), tangential[0], fu)?,
+                    c.finite(&format!("{key}.tangential[1]"), tangential[1], fu)?,
+                ],
+            });
+        }
+        if untangential {
+            defaults.push(
+                "sweep.points[].tangential",
+                format!("[0, 0] {fu} (where not given)"),
+            );
+        }
+        Ok(Sweep::Setpoints(out))
+    }
+
+    /// `sweep.direction`: up, or up and down for magnitude sweeps only.
+    fn direction(
+        &self,
+        c: &Checker<'_>,
+        sweep: &Sweep,
+        defaults: &mut Defaults,
+    ) -> Result<SweepDirection, PlanError> {
+        Ok(match (self.direction.as_deref(), sweep) {
             (None, Sweep::Magnitude { .. }) => {
                 defaults.push("sweep.direction", "\"up\"".into());
                 SweepDirection::Up
@@ -664,18 +847,32 @@ impl RawPlan {
                 return Err(c.invalid(
                     "sweep.direction",
                     format!("{d:?}"),
-                    format!("only magnitude sweeps run up and down (sweep kind is \"{kind}\")"),
+                    format!(
+                        "only magnitude sweeps run up and down (sweep kind is \"{}\")",
+                        self.kind
+                    ),
                 ))
             }
-        };
-        let positions_mm = match sw.positions_mm {
+        })
+    }
+
+    /// `sweep.positions_mm`: the contact positions magnitude and angle sweeps repeat
+    /// their trials at (at most [`MAX_POSITIONS`], each inside the travel box).
+    fn positions(
+        &mut self,
+        c: &Checker<'_>,
+        sweep: &Sweep,
+        safety: &Safety,
+    ) -> Result<Vec<[f64; 2]>, PlanError> {
+        Ok(match self.positions_mm.take() {
             None => Vec::new(),
             Some(_) if !matches!(sweep, Sweep::Magnitude { .. } | Sweep::Angle { .. }) => {
                 return Err(c.invalid(
                     "sweep.positions_mm",
                     "(given)",
                     format!(
-                        "only magnitude and angle sweeps repeat their trials at several positions (sweep kind is \"{kind}\")"
+                        "only magnitude and angle sweeps repeat their trials at several positions (sweep kind is \"{}\")",
+                        self.kind
                     ),
                 ))
             }
@@ -712,20 +909,19 @@ impl RawPlan {
                 }
                 list
             }
-        };
+        })
+    }
+}
 
-        check_caps(
-            &c,
-            &sweep,
-            sweep_direction,
-            positions_mm.len(),
-            frames,
-            fu,
-            unit.from_newtons(max_force_n[2]),
-        )?;
-
-        let r = &self.reconstruct;
-        let method: Method = match &r.solver {
+impl RawReconstruct {
+    /// The solver a run reconstructs with: method (default pinv), λ and rank rules,
+    /// the Fourier solver's refinement iterations (refused for other methods).
+    fn validate(
+        &self,
+        c: &Checker<'_>,
+        defaults: &mut Defaults,
+    ) -> Result<SolverConfig, PlanError> {
+        let method: Method = match &self.solver {
             None => {
                 defaults.push("reconstruct.solver", "\"pinv\"".into());
                 Method::Pinv
@@ -738,7 +934,7 @@ impl RawPlan {
             toml::Value::String(s) => s.clone(),
             other => other.to_string(),
         };
-        let lambda: Lambda = match &r.lambda {
+        let lambda: Lambda = match &self.lambda {
             None if method == Method::Fourier => {
                 defaults.push("reconstruct.lambda", "\"lcurve\" (fourier)".into());
                 Lambda::LCurve
@@ -753,7 +949,7 @@ impl RawPlan {
                 .parse()
                 .map_err(|e: String| c.invalid("reconstruct.lambda", v, e))?,
         };
-        let rank: Rank = match &r.rank {
+        let rank: Rank = match &self.rank {
             None => {
                 if matches!(method, Method::Tsvd) {
                     defaults.push("reconstruct.rank", "\"auto\"".into());
@@ -764,8 +960,25 @@ impl RawPlan {
                 .parse()
                 .map_err(|e: String| c.invalid("reconstruct.rank", v, e))?,
         };
+        let fourier_refine_iterations = self.refine_iterations(c, method, defaults)?;
+        Ok(SolverConfig {
+            method,
+            lambda,
+            rank,
+            fourier_refine_iterations,
+            ..SolverConfig::default()
+        })
+    }
+
+    /// `reconstruct.refine_iterations`: the Fourier solver's CGLS iterations.
+    fn refine_iterations(
+        &self,
+        c: &Checker<'_>,
+        method: Method,
+        defaults: &mut Defaults,
+    ) -> Result<usize, PlanError> {
         let max_refine = crate::solve::fourier::MAX_REFINE_ITERATIONS as i64;
-        let fourier_refine_iterations = match self.reconstruct.refine_iterations {
+        Ok(match self.refine_iterations {
             None => {
                 if method == Method::Fourier {
                     defaults.push(
@@ -778,7 +991,7 @@ impl RawPlan {
             Some(_) if method != Method::Fourier => {
                 return Err(c.invalid(
                     "reconstruct.refine_iterations",
-                    self.reconstruct.refine_iterations.unwrap_or(0),
+                    self.refine_iterations.unwrap_or(0),
                     format!("only the fourier solver refines (solver is {method})"),
                 ))
             }
@@ -790,118 +1003,99 @@ impl RawPlan {
                     format!("must be an integer in [0, {max_refine}] (CGLS iterations)"),
                 ))
             }
-        };
-        let solver = SolverConfig {
-            method,
-            lambda,
-            rank,
-            fourier_refine_iterations,
-            ..SolverConfig::default()
-        };
+        })
+    }
+}
 
-        let quality = self.quality.validate(&c)?;
-        // The tracking gates the plan left at their defaults, echoed like the others.
-        let q = &self.quality;
-        if q.reference_min_found_fraction.is_none() {
+impl RawQuality {
+    /// The tracking gates the plan left at their defaults, echoed like the others.
+    fn record_defaults(&self, quality: &Quality, defaults: &mut Defaults) {
+        if self.reference_min_found_fraction.is_none() {
             defaults.push(
                 "quality.reference_min_found_fraction",
                 format!("{}", quality.reference_min_found_fraction),
             );
         }
-        if q.min_ok_fraction.is_none() {
+        if self.min_ok_fraction.is_none() {
             defaults.push(
                 "quality.min_ok_fraction",
                 format!("{}", quality.min_ok_fraction),
             );
         }
-        if q.max_reacquire.is_none() {
+        if self.max_reacquire.is_none() {
             defaults.push(
                 "quality.max_reacquire",
                 format!("{}", quality.max_reacquire),
             );
         }
-        if q.on_fail.is_none() {
+        if self.on_fail.is_none() {
             defaults.push("quality.on_fail", "\"flag\"".into());
         }
-        let plan = Plan {
-            sweep_direction,
-            positions_mm,
-            quality,
-            solver,
-            path: path.to_path_buf(),
-            name: self.name,
-            sensor_path: path.parent().unwrap_or(Path::new(".")).join(&self.sensor),
-            build_id: self.build_id,
-            force_unit: unit,
-            indenter,
-            approach_position_mm,
-            approach_speed_mm_s,
-            contact_force_n,
-            force_tolerance_n,
-            max_control_steps,
-            settle,
-            samples,
-            frames,
-            safety,
-            sweep,
-            defaults: defaults.0,
-        };
-        // The duration, from the (bounded) setpoints one at a time.
-        let est = plan.estimate_duration_s(DEFAULT_CLEARANCE_MM, None);
-        if est > MAX_DURATION_S {
-            let (key, value) = if plan.settle.dwell_s > 0.0
-                && plan.settle.dwell_s * plan.setpoint_count() as f64 > MAX_DURATION_S / 2.0
-            {
-                ("settle.dwell_s", format!("{} s", plan.settle.dwell_s))
-            } else {
-                ("sweep", format!("{} setpoints", plan.setpoint_count()))
-            };
-            return Err(c.invalid(
-                key,
-                value,
-                format!(
-                    "the plan's estimated duration is {:.1} h, above the cap of {:.0} h per plan",
-                    est / 3600.0,
-                    MAX_DURATION_S / 3600.0
-                ),
-            ));
-        }
-        // Every target must stay within the force limits and the travel box before
-        // anything moves.
-        for sp in plan.setpoints_iter() {
-            for i in 0..2 {
-                let v = sp.position_mm[i] + sp.shift_mm[i];
-                let (lo, hi) = (plan.safety.travel_min_mm[i], plan.safety.travel_max_mm[i]);
-                if v < lo || v > hi {
-                    return Err(c.invalid(
-                        "sweep",
-                        format!("setpoint {} at {} = {} mm", sp.index, ["x", "y"][i], round9(v)),
-                        format!(
-                            "outside the travel box safety.travel_min_mm[{i}]..travel_max_mm[{i}] = {lo}..{hi} mm"
-                        ),
-                    ));
-                }
-            }
-            let f = [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n];
-            for (i, axis) in ["x", "y", "z"].iter().enumerate() {
-                if f[i].abs() > plan.safety.max_force_n[i] {
-                    return Err(c.invalid(
-                        "sweep",
-                        format!(
-                            "setpoint {} with f{axis} = {} {fu}",
-                            sp.index,
-                            round9(unit.from_newtons(f[i]))
-                        ),
-                        format!(
-                            "exceeds safety.max_force[{i}] = {} {fu}",
-                            round9(unit.from_newtons(plan.safety.max_force_n[i]))
-                        ),
-                    ));
-                }
-            }
-        }
-        Ok(plan)
     }
+}
+
+/// The duration cap, on the plan's estimated duration from its (bounded) setpoints
+/// one at a time; blames the dwell when it alone takes half the cap.
+fn check_duration(c: &Checker<'_>, plan: &Plan) -> Result<(), PlanError> {
+    let est = plan.estimate_duration_s(DEFAULT_CLEARANCE_MM, None);
+    if est > MAX_DURATION_S {
+        let (key, value) = if plan.settle.dwell_s > 0.0
+            && plan.settle.dwell_s * plan.setpoint_count() as f64 > MAX_DURATION_S / 2.0
+        {
+            ("settle.dwell_s", format!("{} s", plan.settle.dwell_s))
+        } else {
+            ("sweep", format!("{} setpoints", plan.setpoint_count()))
+        };
+        return Err(c.invalid(
+            key,
+            value,
+            format!(
+                "the plan's estimated duration is {:.1} h, above the cap of {:.0} h per plan",
+                est / 3600.0,
+                MAX_DURATION_S / 3600.0
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Every target must stay within the force limits and the travel box before anything
+/// moves.
+fn check_targets(c: &Checker<'_>, plan: &Plan) -> Result<(), PlanError> {
+    let (unit, fu) = (plan.force_unit, plan.force_unit.symbol());
+    for sp in plan.setpoints_iter() {
+        for i in 0..2 {
+            let v = sp.position_mm[i] + sp.shift_mm[i];
+            let (lo, hi) = (plan.safety.travel_min_mm[i], plan.safety.travel_max_mm[i]);
+            if v < lo || v > hi {
+                return Err(c.invalid(
+                    "sweep",
+                    format!("setpoint {} at {} = {} mm", sp.index, ["x", "y"][i], round9(v)),
+                    format!(
+                        "outside the travel box safety.travel_min_mm[{i}]..travel_max_mm[{i}] = {lo}..{hi} mm"
+                    ),
+                ));
+            }
+        }
+        let f = [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n];
+        for (i, axis) in ["x", "y", "z"].iter().enumerate() {
+            if f[i].abs() > plan.safety.max_force_n[i] {
+                return Err(c.invalid(
+                    "sweep",
+                    format!(
+                        "setpoint {} with f{axis} = {} {fu}",
+                        sp.index,
+                        round9(unit.from_newtons(f[i]))
+                    ),
+                    format!(
+                        "exceeds safety.max_force[{i}] = {} {fu}",
+                        round9(unit.from_newtons(plan.safety.max_force_n[i]))
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Rounds away unit-conversion noise for messages (1000 gf, not 999.9999999999999 gf).

@@ -39,6 +39,10 @@ impl GrblSim {
         }
     }
 
+    /// A `$` system command (`sys` without the `$`): help, settings, parser state,
+    /// unlock, offsets, build info, check mode, sleep, homing, jog, or a setting
+    /// `$N=v`. `Ok(None)`: the reply comes later (or was already sent); `Err`: GRBL's
+    /// error code.
     pub(super) fn system_command(
         &mut self,
         sys: &str,
@@ -52,44 +56,8 @@ impl GrblSim {
                 );
                 Ok(Some(ReplyClass::Query))
             }
-            "$" => {
-                if self.moving() {
-                    return Err(8);
-                }
-                let lines: Vec<String> = self
-                    .settings
-                    .iter()
-                    .map(|(k, v)| {
-                        if INTEGER_SETTINGS.contains(k) {
-                            format!("${k}={}", *v as i64)
-                        } else {
-                            format!("${k}={}", fmt_num(*v))
-                        }
-                    })
-                    .collect();
-                for l in lines {
-                    push_line(out, &l);
-                }
-                Ok(Some(ReplyClass::Query))
-            }
-            "G" => {
-                let motion = if self.feed_mm_min.is_some() {
-                    "G1"
-                } else {
-                    "G0"
-                };
-                let dist = if self.relative { "G91" } else { "G90" };
-                let f = self.feed_mm_min.unwrap_or(0.0);
-                push_line(
-                    out,
-                    &format!(
-                        "[GC:{motion} G5{} G17 G21 {dist} G94 M5 M9 T0 F{} S0]",
-                        4 + self.active_system,
-                        f.round() as i64
-                    ),
-                );
-                Ok(Some(ReplyClass::Query))
-            }
+            "$" => self.report_settings(out),
+            "G" => self.report_parser_state(out),
             "X" => {
                 if self.in_alarm() {
                     push_line(out, "[MSG:Caution: Unlocked]");
@@ -97,21 +65,7 @@ impl GrblSim {
                 }
                 Ok(Some(ReplyClass::Command))
             }
-            "#" => {
-                if self.moving() || self.mode == Mode::Check {
-                    return Err(8);
-                }
-                let f = |v: [f64; 3]| v.iter().map(|x| fmt_num(*x)).collect::<Vec<_>>().join(",");
-                for (i, c) in self.systems.iter().enumerate() {
-                    push_line(out, &format!("[G5{}:{}]", 4 + i, f(*c)));
-                }
-                push_line(out, "[G28:0.000,0.000,0.000]");
-                push_line(out, "[G30:0.000,0.000,0.000]");
-                push_line(out, &format!("[G92:{}]", f(self.g92)));
-                push_line(out, "[TLO:0.000]");
-                push_line(out, "[PRB:0.000,0.000,0.000:0]");
-                Ok(Some(ReplyClass::Query))
-            }
+            "#" => self.report_offsets(out),
             "I" => {
                 if self.moving() {
                     return Err(8);
@@ -120,23 +74,7 @@ impl GrblSim {
                 push_line(out, "[OPT:V,15,128]");
                 Ok(Some(ReplyClass::Query))
             }
-            "C" => {
-                match self.mode {
-                    Mode::Check => {
-                        // GRBL resets when leaving check mode.
-                        push_line(out, "[MSG:Disabled]");
-                        self.reply(out, "ok", ReplyClass::Command, self.last_time);
-                        self.soft_reset(out);
-                        return Ok(None);
-                    }
-                    Mode::Idle if !self.moving() => {
-                        self.mode = Mode::Check;
-                        push_line(out, "[MSG:Enabled]");
-                    }
-                    _ => return Err(8),
-                }
-                Ok(Some(ReplyClass::Command))
-            }
+            "C" => self.toggle_check_mode(out),
             "SLP" => {
                 if self.moving() || self.mode == Mode::Check {
                     return Err(8);
@@ -146,51 +84,141 @@ impl GrblSim {
                 self.mode = Mode::Sleep;
                 Ok(None)
             }
-            "H" => {
-                if !self.homing_enabled() {
-                    return Err(5);
-                }
-                if self.moving() {
-                    return Err(8);
-                }
-                self.mode = Mode::Idle;
-                let seek = self.setting(25).max(1.0) / 60.0;
-                self.queue.push_back(Segment {
-                    kind: SegKind::Home,
-                    target: [0.0; 3],
-                    speed_mm_s: seek,
-                });
-                Ok(None)
-            }
-            _ => {
-                if let Some(jog) = sys.strip_prefix("J=") {
-                    if self.mode != Mode::Idle
-                        || (self.moving()
-                            && self.queue.front().is_some_and(|s| s.kind != SegKind::Jog))
-                    {
-                        return Err(8);
-                    }
-                    return self.jog(jog).map(|_| Some(ReplyClass::Command));
-                }
-                let (n, v) = sys.split_once('=').ok_or(3u8)?;
-                let n: u16 = n.parse().map_err(|_| 3u8)?;
-                let v: f64 = v.parse().map_err(|_| 2u8)?;
-                if !self.settings.contains_key(&n) {
-                    return Err(3);
-                }
-                if self.moving() {
-                    return Err(8);
-                }
-                if v < 0.0 {
-                    return Err(4);
-                }
-                if n == 20 && v != 0.0 && !self.homing_enabled() {
-                    return Err(10);
-                }
-                self.settings.insert(n, v);
-                Ok(Some(ReplyClass::Command))
-            }
+            "H" => self.start_homing(),
+            _ => match sys.strip_prefix("J=") {
+                Some(jog) => self.start_jog(jog),
+                None => self.set_setting(sys),
+            },
         }
+    }
+
+    /// `$$`: every setting, integers without a fraction (refused while moving).
+    fn report_settings(&mut self, out: &mut Vec<u8>) -> Result<Option<ReplyClass>, u8> {
+        if self.moving() {
+            return Err(8);
+        }
+        let lines: Vec<String> = self
+            .settings
+            .iter()
+            .map(|(k, v)| {
+                if INTEGER_SETTINGS.contains(k) {
+                    format!("${k}={}", *v as i64)
+                } else {
+                    format!("${k}={}", fmt_num(*v))
+                }
+            })
+            .collect();
+        for l in lines {
+            push_line(out, &l);
+        }
+        Ok(Some(ReplyClass::Query))
+    }
+
+    /// `$G`: the parser state (motion mode, coordinate system, distance mode, feed).
+    fn report_parser_state(&mut self, out: &mut Vec<u8>) -> Result<Option<ReplyClass>, u8> {
+        let motion = if self.feed_mm_min.is_some() {
+            "G1"
+        } else {
+            "G0"
+        };
+        let dist = if self.relative { "G91" } else { "G90" };
+        let f = self.feed_mm_min.unwrap_or(0.0);
+        push_line(
+            out,
+            &format!(
+                "[GC:{motion} G5{} G17 G21 {dist} G94 M5 M9 T0 F{} S0]",
+                4 + self.active_system,
+                f.round() as i64
+            ),
+        );
+        Ok(Some(ReplyClass::Query))
+    }
+
+    /// `$#`: the work coordinate offsets G54–G59, G28, G30, G92, tool length, probe
+    /// (refused while moving or in check mode).
+    fn report_offsets(&mut self, out: &mut Vec<u8>) -> Result<Option<ReplyClass>, u8> {
+        if self.moving() || self.mode == Mode::Check {
+            return Err(8);
+        }
+        let f = |v: [f64; 3]| v.iter().map(|x| fmt_num(*x)).collect::<Vec<_>>().join(",");
+        for (i, c) in self.systems.iter().enumerate() {
+            push_line(out, &format!("[G5{}:{}]", 4 + i, f(*c)));
+        }
+        push_line(out, "[G28:0.000,0.000,0.000]");
+        push_line(out, "[G30:0.000,0.000,0.000]");
+        push_line(out, &format!("[G92:{}]", f(self.g92)));
+        push_line(out, "[TLO:0.000]");
+        push_line(out, "[PRB:0.000,0.000,0.000:0]");
+        Ok(Some(ReplyClass::Query))
+    }
+
+    /// `$C`: enters check mode from idle; leaving it resets, as GRBL does.
+    fn toggle_check_mode(&mut self, out: &mut Vec<u8>) -> Result<Option<ReplyClass>, u8> {
+        match self.mode {
+            Mode::Check => {
+                // GRBL resets when leaving check mode.
+                push_line(out, "[MSG:Disabled]");
+                self.reply(out, "ok", ReplyClass::Command, self.last_time);
+                self.soft_reset(out);
+                return Ok(None);
+            }
+            Mode::Idle if !self.moving() => {
+                self.mode = Mode::Check;
+                push_line(out, "[MSG:Enabled]");
+            }
+            _ => return Err(8),
+        }
+        Ok(Some(ReplyClass::Command))
+    }
+
+    /// `$H`: queues a homing cycle at the seek rate `$25` (answered when it ends).
+    fn start_homing(&mut self) -> Result<Option<ReplyClass>, u8> {
+        if !self.homing_enabled() {
+            return Err(5);
+        }
+        if self.moving() {
+            return Err(8);
+        }
+        self.mode = Mode::Idle;
+        let seek = self.setting(25).max(1.0) / 60.0;
+        self.queue.push_back(Segment {
+            kind: SegKind::Home,
+            target: [0.0; 3],
+            speed_mm_s: seek,
+        });
+        Ok(None)
+    }
+
+    /// `$J=…`: a jog, from idle or behind other jogs only.
+    fn start_jog(&mut self, jog: &str) -> Result<Option<ReplyClass>, u8> {
+        if self.mode != Mode::Idle
+            || (self.moving() && self.queue.front().is_some_and(|s| s.kind != SegKind::Jog))
+        {
+            return Err(8);
+        }
+        self.jog(jog).map(|_| Some(ReplyClass::Command))
+    }
+
+    /// `$N=v`: sets a known setting (not while moving, not negative; homing `$20`
+    /// needs `$22`).
+    fn set_setting(&mut self, sys: &str) -> Result<Option<ReplyClass>, u8> {
+        let (n, v) = sys.split_once('=').ok_or(3u8)?;
+        let n: u16 = n.parse().map_err(|_| 3u8)?;
+        let v: f64 = v.parse().map_err(|_| 2u8)?;
+        if !self.settings.contains_key(&n) {
+            return Err(3);
+        }
+        if self.moving() {
+            return Err(8);
+        }
+        if v < 0.0 {
+            return Err(4);
+        }
+        if n == 20 && v != 0.0 && !self.homing_enabled() {
+            return Err(10);
+        }
+        self.settings.insert(n, v);
+        Ok(Some(ReplyClass::Command))
     }
 
     /// Parses `G21 G91 X1 F100`-style words (spaces already stripped).
