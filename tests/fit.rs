@@ -351,3 +351,38 @@ fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+#[test]
+fn a_fit_written_into_the_run_is_judged_by_report_acceptance() {
+    let tmp = tempfile::tempdir().unwrap();
+    let r = tmp.path().join("run");
+    copy_dir(calibration_run(), &r);
+    let o = run(&[
+        "fit",
+        arg(&r),
+        "--out",
+        arg(&tmp.path().join("fitted.toml")),
+        "--json",
+        arg(&r.join("fit.json")),
+    ]);
+    assert!(o.status.success(), "fit: {}", stderr(&o));
+    let crit = tmp.path().join("build.toml");
+    std::fs::write(
+        &crit,
+        "[[criterion]]\nmetric = \"fit.young_modulus_kpa\"\nmax_relative_to_nominal = 0.10\n\
+         [[criterion]]\nmetric = \"fit.depth_mm.red\"\nmax_deviation_from_nominal = 0.3\n",
+    )
+    .unwrap();
+    let o = run(&["report", arg(&r), "--acceptance", arg(&crit)]);
+    // The simulated gel is the nominal one: both criteria pass, with their intervals.
+    assert_eq!(o.status.code(), Some(0), "{}{}", stdout(&o), stderr(&o));
+    let text = stdout(&o);
+    assert!(text.contains("PASS fit.young_modulus_kpa"), "{text}");
+    assert!(text.contains("PASS fit.depth_mm.red"), "{text}");
+    let v = json(&r.join("verdict.json"));
+    assert_eq!(v["outcome"], "PASS");
+    assert!(v["criteria"][0]["ci95"]["method"]
+        .as_str()
+        .unwrap()
+        .contains("jacobian"));
+}
