@@ -295,3 +295,50 @@ fn import_bad_input_names_file_line_column_and_value() {
     );
     assert!(full.join("keep.txt").is_file());
 }
+
+/// Data not recorded by tactbench: greyscale TacTip taps with a lab's CSV, imported and
+/// fitted. The numbers are a lab's own (the taps and the forces were not made for each
+/// other), so the test asks what a user must get on any data: the fit finishes, every
+/// value is finite, every parameter is fitted with an interval or held with a reason,
+/// the exit status says whether anything was determined, and `fitted.toml` loads.
+#[test]
+fn tactip_grey_recording_imports_and_fits_without_a_made_up_number() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let Some((rec, draft)) = recording(d, 16) else {
+        return;
+    };
+    let sensor = measured(&draft, &d.join("sensor.toml"));
+    let csv = d.join("wrench.csv");
+    std::fs::write(&csv, WRENCH).unwrap();
+    let run = d.join("run");
+    let o = import(&rec, &csv, &sensor, &run);
+    assert!(o.status.success(), "{}", util::stderr(&o));
+    let fitted = d.join("fitted.toml");
+    let j = d.join("fit.json");
+    let o = util::run(&["fit", p(&run), "--out", p(&fitted), "--json", p(&j)]);
+    // Five taps of one pose cannot determine the model: every parameter is held, and
+    // the exit status says nothing was determined (1), never a silent success.
+    let any_fitted = util::json(&j)["parameters"]
+        .as_object()
+        .unwrap()
+        .values()
+        .any(|p| p["fitted"] == true);
+    let want = if any_fitted { 0 } else { 1 };
+    assert_eq!(o.status.code(), Some(want), "fit: {}", util::stderr(&o));
+    eprintln!("{}", util::stdout(&o));
+    let doc = util::json(&j);
+    for (name, par) in doc["parameters"].as_object().unwrap() {
+        assert!(par["value"].as_f64().unwrap().is_finite(), "{name}: {par}");
+        if par["fitted"] == true {
+            let ci = par["ci95"].as_array().unwrap();
+            assert!(ci.iter().all(|v| v.as_f64().unwrap().is_finite()), "{name}: {par}");
+        } else {
+            assert!(par["ci95"].is_null(), "{name}: {par}");
+            assert!(!par["reason"].as_str().unwrap().is_empty(), "{name}: {par}");
+        }
+    }
+    // The indentation route read the CSV's depth column.
+    assert_eq!(doc["routes"]["indentation"]["rows"], 4, "{}", doc["routes"]);
+    tactbench::sensor::Sensor::from_path(&fitted).unwrap();
+}

@@ -50,10 +50,11 @@ const DEFAULT_FT_NOISE_N: f64 = 0.005;
 /// interval each parameter can expect from the plan with the declared noise, and the
 /// plan's bench time.
 ///
-/// Exit status: 0 fitted (or predicted); 2 bad input or a run that cannot determine the
+/// Exit status: 0 fitted (or predicted); 1 the run determines none of the parameters
+/// asked (the outputs are written, every parameter held with its reason) or the fit
+/// failed numerically; 2 bad input or a run that cannot determine the
 /// model (no displacements, no F/T data, one setpoint, unknown parameter, a sensor file
-/// that does not match the run), naming the file, key and value; 1 the fit failed
-/// numerically.
+/// that does not match the run), naming the file, key and value.
 #[derive(clap::Args)]
 #[command(allow_negative_numbers = true)]
 pub struct Args {
@@ -140,6 +141,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .unwrap_or_else(|| out.parent().unwrap_or(Path::new(".")).join("fit.html"));
     write_fit_page(&outcome.doc, &html).with_context(|| format!("writing {}", html.display()))?;
     print_summary(&outcome.doc, outcome.seconds);
+    let determined = outcome.doc.parameters.values().any(|p| p.fitted);
     eprintln!(
         "wrote {} and {}{}",
         out.display(),
@@ -149,6 +151,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .map(|j| format!(" and {}", j.display()))
             .unwrap_or_default()
     );
+    if !determined {
+        eprintln!(
+            "error: this run determines none of the parameters asked (each is held at its nominal value, with what would determine it, in the table above): {} repeats the nominal values",
+            out.display()
+        );
+        return Ok(ExitCode::from(1));
+    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -38,7 +38,7 @@ use super::lm::{
     expected_sd, jacobian, levenberg_marquardt, uncertainty, uncertainty_with, LmFit, LmOptions,
     Stack, Uncertainty,
 };
-use super::space::{default_params, parse_list, ParamId};
+use super::space::{at_bound, bounds, default_params, parse_list, ParamId};
 use super::{FitError, ModelParams, Residuals};
 use crate::analysis::RunData;
 use crate::sensor::{ModelKind, Sensor};
@@ -437,7 +437,7 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
     // 4. Joint fit; hold what the data still do not determine, and refit.
     let mut free = free;
     let mut joint = fit_joint(&stack, &nominal, &free, kind, progress, "joint fit")?;
-    for _ in 0..2 {
+    for _ in 0..4 {
         let before = free.len();
         let hw = joint.unc.half_width.clone();
         let ids = free.clone();
@@ -453,6 +453,25 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
             &mut held,
             "obtained",
         )?;
+        let edge: Vec<ParamId> = free
+            .iter()
+            .copied()
+            .filter(|id| at_bound(*id, &joint.fit.params, &nominal))
+            .collect();
+        for id in edge {
+            free.retain(|x| *x != id);
+            let (lo, hi) = bounds(id, &joint.fit.params);
+            held.push(Held {
+                id,
+                identifiable: false,
+                reason: format!(
+                    "the fit ran to the edge of its plausible range [{lo}, {hi}] {} ({}): the model does not describe these data for it; held at nominal. Check the sensor file, the indenter and the contact positions; it needs {}",
+                    id.unit(),
+                    id.get(&joint.fit.params),
+                    id.needs()
+                ),
+            });
+        }
         if free.len() == before {
             break;
         }

@@ -279,6 +279,10 @@ pub fn levenberg_marquardt(
 /// parameters loading on them are not determined).
 fn spd_inverse(a: &DMatrix<f64>) -> DMatrix<f64> {
     let n = a.nrows();
+    if n == 0 {
+        // No free parameter (all held): nalgebra's eigen decomposition panics on 0×0.
+        return DMatrix::zeros(0, 0);
+    }
     let eig = a.clone().symmetric_eigen();
     let top = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
     let mut inv = DMatrix::zeros(n, n);
@@ -494,6 +498,17 @@ mod tests {
             "slope and intercept anti-correlate: {:?}",
             u.correlation
         );
+    }
+
+    #[test]
+    fn a_fit_with_every_parameter_held_gives_an_empty_uncertainty_without_panicking() {
+        let prob = line(&[0.1, -0.2, 0.3]);
+        let start = ModelParams::nominal(&paper_sensor(), 0.0);
+        let fit = levenberg_marquardt(&prob, &start, &[], ModelKind::HalfSpace, LmOptions::default(), &mut |_, _| {})
+            .unwrap();
+        let u = uncertainty(&fit, &vec![usize::MAX; prob.len()], &start);
+        assert!(u.sd.is_empty() && u.correlation.is_empty());
+        assert!(expected_sd(&DMatrix::zeros(3, 0)).is_empty());
     }
 
     #[test]

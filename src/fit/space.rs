@@ -276,30 +276,55 @@ pub fn parse_list(list: &str, sensor: &Sensor) -> Result<Vec<ParamId>, FitError>
     Ok(out)
 }
 
-/// Whether `p` is a physically valid parameter set for the model: E > 0, 0 ≤ ν ≤ 0.5,
-/// depths and scales > 0, a bonded layer thicker than its deepest layer.
+/// The range a value may take: the sensor file's plausible ranges
+/// ([`crate::sensor::YOUNG_MODULUS_KPA`], [`crate::sensor::DEPTH_MM`] below the
+/// thickness, [`crate::sensor::THICKNESS_MM`] beyond the deepest layer,
+/// [`crate::sensor::MM_PER_PX`]; ν in [0, 0.5]), so a fitted file always loads;
+/// unbounded for the bench's mounting.
+pub fn bounds(id: ParamId, p: &ModelParams) -> (f64, f64) {
+    use crate::sensor::{DEPTH_MM, MM_PER_PX, THICKNESS_MM, YOUNG_MODULUS_KPA};
+    let deepest = p.depth_mm.iter().cloned().fold(0.0, f64::max);
+    match id {
+        ParamId::YoungModulus => (YOUNG_MODULUS_KPA.lo, YOUNG_MODULUS_KPA.hi),
+        ParamId::Poisson => (0.0, 0.5),
+        ParamId::Thickness => (THICKNESS_MM.lo.max(deepest), THICKNESS_MM.hi),
+        ParamId::Depth(_) => (DEPTH_MM.lo, DEPTH_MM.hi.min(p.thickness_mm)),
+        ParamId::MmPerPx | ParamId::MmPerPxLayer(_) => (MM_PER_PX.lo, MM_PER_PX.hi),
+        _ => (f64::NEG_INFINITY, f64::INFINITY),
+    }
+}
+
+/// Whether a fitted value ran to the edge of its range (within 0.5 % of the nominal
+/// value, or of the range where the nominal is 0): the data pushed it there, so the
+/// model does not describe them for this parameter. ν at 0.5 is a legitimate
+/// (incompressible) value and is not flagged.
+pub fn at_bound(id: ParamId, p: &ModelParams, nominal: &ModelParams) -> bool {
+    if id == ParamId::Poisson {
+        return false;
+    }
+    let (lo, hi) = bounds(id, p);
+    let v = id.get(p);
+    let margin = 0.005 * id.get(nominal).abs().max(1e-9);
+    v - lo <= margin || hi - v <= margin
+}
+
+/// Whether `p` is a valid parameter set for the model: finite, every parameter inside
+/// [`bounds`] (a bonded layer, and the half-space's nominal thickness, beyond the
+/// deepest layer).
 pub fn check_valid(p: &ModelParams, kind: ModelKind) -> Result<(), String> {
-    if !(p.young_modulus_kpa.is_finite() && p.young_modulus_kpa > 0.0) {
-        return Err(format!("E = {} kPa is not > 0", p.young_modulus_kpa));
-    }
-    if !(0.0..=0.5).contains(&p.poisson_ratio) {
-        return Err(format!("nu = {} outside [0, 0.5]", p.poisson_ratio));
-    }
-    if p.depth_mm.iter().any(|d| !(d.is_finite() && *d > 0.0)) {
-        return Err(format!("a layer depth is not > 0: {:?} mm", p.depth_mm));
-    }
-    if p.mm_per_px.iter().any(|d| !(d.is_finite() && *d > 0.0)) {
-        return Err(format!(
-            "an image scale is not > 0: {:?} mm/px",
-            p.mm_per_px
-        ));
-    }
-    if kind == ModelKind::BondedLayer {
-        let deepest = p.depth_mm.iter().cloned().fold(0.0, f64::max);
-        if !(p.thickness_mm.is_finite() && p.thickness_mm > deepest) {
+    let _ = kind;
+    let mut ids = vec![ParamId::YoungModulus, ParamId::Poisson, ParamId::Thickness];
+    ids.extend((0..p.depth_mm.len()).map(ParamId::Depth));
+    ids.extend((0..p.mm_per_px.len()).map(ParamId::MmPerPxLayer));
+    ids.extend([ParamId::FtRotation, ParamId::OffsetX, ParamId::OffsetY, ParamId::ContactZ]);
+    for id in ids {
+        let v = id.get(p);
+        let (lo, hi) = bounds(id, p);
+        if !v.is_finite() || v < lo || v > hi {
             return Err(format!(
-                "thickness {} mm is not beyond the deepest layer ({deepest} mm)",
-                p.thickness_mm
+                "{} = {v} {} outside [{lo}, {hi}]",
+                id.name(&[]),
+                id.unit()
             ));
         }
     }
