@@ -8,6 +8,7 @@ mod bench;
 mod camera;
 mod cli;
 mod compare;
+mod fit_sim;
 mod fourier;
 mod ft;
 mod ft_net_bota;

@@ -1,0 +1,233 @@
+//! The ground truth `tactbench fit` is tested on: a scene's sensor that differs from
+//! the plan's (the truth the camera and the force law see against the nominal one the
+//! run reconstructs with) through `run --sim` and `run --bench` with a `[sim]` bench
+//! file, and `sim::synthetic_run` against `run --sim` on the same plan.
+
+use std::path::Path;
+
+use tactbench::bench::journal::{read_rows, JournalRow, Manifest};
+use tactbench::bench::plan::Plan;
+use tactbench::formats::read_displacements;
+use tactbench::sensor::Sensor;
+use tactbench::sim::scene::Scene;
+use tactbench::sim::synthetic::{synthetic_run, SyntheticOptions};
+
+use crate::util::{root, run, stderr};
+
+/// A small plan on the calibration plan's settings: two normal loads at two
+/// positions and one shear, hemisphere, two frames, sensor `sensor` (absolute).
+fn small_plan(dir: &Path, sensor: &Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(root("experiments/calibrate_elastomer.toml")).unwrap();
+    let head = text.split("\n[[sweep.points]]").next().unwrap();
+    let head = head.replace(
+        "sensor = \"paper_sensor.toml\"",
+        &format!("sensor = {:?}", sensor.display().to_string()),
+    );
+    let plan = format!(
+        "{head}\n[[sweep.points]]\nposition_mm = [9.0, 6.75]\nnormal = 1.0\n\n[[sweep.points]]\nposition_mm = [7.0, 6.75]\nnormal = 2.5\n\n[[sweep.points]]\nposition_mm = [9.0, 6.75]\nnormal = 2.0\ntangential = [0.6, 0.0]\n"
+    );
+    let path = dir.join("small_plan.toml");
+    std::fs::write(&path, plan).unwrap();
+    path
+}
+
+fn run_sim(plan: &Path, scene: &Path, out: &Path) {
+    let o = run(&[
+        "run",
+        plan.to_str().unwrap(),
+        "--sim",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "run --sim: {}", stderr(&o));
+}
+
+fn synthetic(plan: &Path, scene: &Path, out: &Path) {
+    let text = std::fs::read_to_string(plan).unwrap();
+    let p = Plan::from_toml_str(&text, plan).unwrap();
+    let s = Scene::from_path(scene).unwrap();
+    synthetic_run(&p, &text, &s, out, &SyntheticOptions::default()).unwrap();
+}
+
+/// Hertz for the 5 mm hemisphere of the scenes on a gel of modulus `e_kpa`, ν = 0.5:
+/// `P = 4/3 E* √R δ^{3/2}`, at the GRBL simulated bench's surface z = −30 mm pressing
+/// towards −z.
+fn hertz_n(e_kpa: f64, stage_z_mm: f64) -> f64 {
+    let e_star = e_kpa * 1e-3 / (1.0 - 0.25);
+    let depth = -(stage_z_mm + 30.0);
+    4.0 / 3.0 * e_star * 2.5f64.sqrt() * depth.max(0.0).powf(1.5)
+}
+
+fn ratio_z(r: &JournalRow) -> f64 {
+    r.fsum_z_n / r.fz_n
+}
+
+#[test]
+fn a_scene_gel_30_percent_soft_follows_its_own_law_and_scales_the_nominal_force_sum() {
+    let tmp = tempfile::tempdir().unwrap();
+    let misbuilt = root("experiments/scenes/misbuilt");
+    let plan = small_plan(tmp.path(), &misbuilt.join("nominal_half_space.toml"));
+    let soft = misbuilt.join("e_minus30.toml");
+    // Through `run --sim` and through a `[sim]` bench file.
+    let via_sim = tmp.path().join("sim");
+    run_sim(&plan, &soft, &via_sim);
+    let bench = tmp.path().join("bench.toml");
+    std::fs::write(
+        &bench,
+        format!(
+            "[sim]\nscene = {:?}\nstage = \"grbl\"\nforce_sensor = \"dynpick\"\n",
+            soft.display().to_string()
+        ),
+    )
+    .unwrap();
+    let via_bench = tmp.path().join("bench");
+    let o = run(&[
+        "run",
+        plan.to_str().unwrap(),
+        "--bench",
+        bench.to_str().unwrap(),
+        "--out",
+        via_bench.to_str().unwrap(),
+        "--limit",
+        "2",
+    ]);
+    assert!(o.status.success(), "run --bench: {}", stderr(&o));
+    // The control: the nominal scene (as built = as declared), synthetic.
+    let control = tmp.path().join("control");
+    synthetic(&plan, &misbuilt.join("nominal.toml"), &control);
+    let control_rows = read_rows(&control).unwrap();
+
+    for dir in [&via_sim, &via_bench] {
+        let m = Manifest::read(dir).unwrap();
+        assert!(
+            m.sensor_toml.contains("young_modulus_kpa = 1000.0"),
+            "the plan's sensor is recorded"
+        );
+        assert_eq!(m.bench["geometry"]["press_direction"], -1.0, "{}", m.bench);
+        let rows = read_rows(dir).unwrap();
+        for r in rows.iter().filter(|r| r.target_tx_n == 0.0) {
+            // The F/T sensor reads the truth's law at the stage z it journalled (its
+            // noise: 5 mN per sample, mean of 20).
+            let want = hertz_n(700.0, r.stage_z_mm);
+            assert!(
+                (r.fz_n - want).abs() < 0.01,
+                "{}: setpoint {} fz {} N, Hertz at E = 700 kPa {want} N (at 1000 kPa {} N)",
+                dir.display(),
+                r.index,
+                r.fz_n,
+                hertz_n(1000.0, r.stage_z_mm)
+            );
+            // The force sum reconstructed with the nominal E is E_nom / E_true = 1/0.7
+            // times the force, against the same solver's ratio on the nominal gel.
+            let c = &control_rows[r.index];
+            let k = ratio_z(r) / ratio_z(c);
+            assert!(
+                (k - 1.0 / 0.7).abs() < 0.05 / 0.7,
+                "{}: setpoint {}: F_sum/F ratio {} against the nominal gel's {}: {k}, predicted {}",
+                dir.display(),
+                r.index,
+                ratio_z(r),
+                ratio_z(c),
+                1.0 / 0.7
+            );
+        }
+    }
+}
+
+#[test]
+fn synthetic_run_agrees_with_run_sim_on_the_same_plan_and_report_accepts_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let misbuilt = root("experiments/scenes/misbuilt");
+    let plan = small_plan(tmp.path(), &misbuilt.join("nominal_half_space.toml"));
+    let scene = misbuilt.join("ft_rotated_7deg.toml");
+    let (a, b) = (tmp.path().join("sim"), tmp.path().join("synthetic"));
+    run_sim(&plan, &scene, &a);
+    synthetic(&plan, &scene, &b);
+    let (ra, rb) = (read_rows(&a).unwrap(), read_rows(&b).unwrap());
+    assert_eq!(ra.len(), rb.len());
+    let sensor = Sensor::from_path(misbuilt.join("nominal_half_space.toml")).unwrap();
+    let tol = 0.03; // the plan's control.force_tolerance, N
+    for (x, y) in ra.iter().zip(&rb) {
+        assert_eq!(
+            (x.index, x.trial, x.position),
+            (y.index, y.trial, y.position)
+        );
+        // The runner stops within the tolerance of the targets; the F/T readings of
+        // both are in the rotated sensor's axes.
+        assert!((x.fz_n - y.fz_n).abs() <= tol + 0.01, "{x:?}\n{y:?}");
+        let (qa, qb) = (x.fx_n, y.fx_n);
+        assert!((qa - qb).abs() <= tol + 0.01, "fx {qa} vs {qb}");
+        // Rotated 7°: a shear along sensor +x reads fy = −sin 7° |Q| in the F/T axes.
+        if x.target_tx_n > 0.0 {
+            let q = y.fx_n / 7f64.to_radians().cos();
+            assert!((y.fy_n + q * 7f64.to_radians().sin()).abs() < 0.01, "{y:?}");
+            assert!((x.fy_n - y.fy_n).abs() < tol, "fy {} vs {}", x.fy_n, y.fy_n);
+        }
+        assert!((x.stage_z_mm - y.stage_z_mm).abs() < 0.02, "{x:?}\n{y:?}");
+        assert_eq!(x.frames, y.frames);
+        // Displacements: the same markers, within tracking noise plus what the force
+        // tolerance changes (both small against the field).
+        let name = format!("displacements/{:05}.csv", x.index);
+        let da = read_displacements(&a.join(&name), &sensor).unwrap();
+        let db = read_displacements(&b.join(&name), &sensor).unwrap();
+        assert_eq!(da.len(), db.len(), "{name}: frames");
+        let (mut ss, mut ss_u, mut n) = (0.0, 0.0, 0);
+        for (fa, fb) in da.iter().zip(&db) {
+            for (p, q) in fa.records.iter().zip(&fb.records) {
+                assert_eq!((p.layer, p.marker), (q.layer, q.marker));
+                if let (Some(u), Some(v)) = (p.u_mm, q.u_mm) {
+                    ss += (u[0] - v[0]).powi(2) + (u[1] - v[1]).powi(2);
+                    ss_u += v[0] * v[0] + v[1] * v[1];
+                    n += 1;
+                }
+            }
+        }
+        assert!(n > 200, "{name}: {n} markers ok in both");
+        let (rms, rms_u) = ((ss / n as f64).sqrt(), (ss_u / n as f64).sqrt());
+        assert!(
+            rms < 0.002 + 0.03 * rms_u,
+            "{name}: rms difference {rms} mm against an rms field of {rms_u} mm"
+        );
+        assert!(y.fsum_z_n.is_finite() && y.failure.is_none(), "{y:?}");
+    }
+    let m = Manifest::read(&b).unwrap();
+    assert_eq!(m.simulated, Some(true));
+    assert_eq!(m.bench["geometry"]["surface_z_mm"], -30.0);
+    let o = run(&["report", b.to_str().unwrap()]);
+    assert!(o.status.success(), "report: {}", stderr(&o));
+    assert!(b.join("report.html").exists());
+    assert!(
+        !crate::util::stdout(&o).contains("modified") && !stderr(&o).contains("modified"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn synthetic_runs_of_another_seed_differ_and_of_the_same_seed_repeat() {
+    let tmp = tempfile::tempdir().unwrap();
+    let misbuilt = root("experiments/scenes/misbuilt");
+    let plan = small_plan(tmp.path(), &misbuilt.join("nominal_half_space.toml"));
+    let text = std::fs::read_to_string(&plan).unwrap();
+    let p = Plan::from_toml_str(&text, &plan).unwrap();
+    let s = Scene::from_path(misbuilt.join("e_plus50.toml")).unwrap();
+    let gen = |name: &str, seed: u64| {
+        let d = tmp.path().join(name);
+        let o = SyntheticOptions {
+            seed: Some(seed),
+            skip_frames: true,
+            ..SyntheticOptions::default()
+        };
+        synthetic_run(&p, &text, &s, &d, &o).unwrap();
+        read_rows(&d).unwrap()
+    };
+    let (a, b, c) = (gen("a", 1), gen("b", 1), gen("c", 2));
+    let key = |r: &[JournalRow]| r.iter().map(|x| (x.fz_n, x.fsum_z_n)).collect::<Vec<_>>();
+    assert_eq!(key(&a), key(&b));
+    assert_ne!(key(&a), key(&c));
+    // An existing run is not overwritten.
+    let o = SyntheticOptions::default();
+    let e = synthetic_run(&p, &text, &s, &tmp.path().join("a"), &o).unwrap_err();
+    assert!(e.to_string().contains("already holds a run"), "{e}");
+}
