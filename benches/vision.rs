@@ -10,9 +10,13 @@
 //! The tracking benches run twice: timed by the wall clock, and by this thread's CPU
 //! time (`vision/cpu_*`; the machine is shared, so wall time includes waiting).
 //!
+//! And files in, displacements out: decode + track per TacTip PNG, one after another
+//! and with the frames decoded ahead on worker threads (`vision/decode_track_*`).
+//!
 //! Run: `cargo bench --bench vision`.
 
 use std::hint::black_box;
+use std::path::PathBuf;
 
 use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -24,7 +28,10 @@ mod real_frames;
 use image::RgbImage;
 use paper_frame::frame;
 use tactbench::sensor::paper_sensor;
-use tactbench::vision::{detect, DetectConfig, FrameView, TrackConfig, TrackMode, Tracker};
+use tactbench::vision::{
+    decode_ahead, decoder_threads, detect, DetectConfig, Frame, FrameView, TrackConfig, TrackMode,
+    Tracker,
+};
 
 /// Criterion measurement of this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), so
 /// figures on the shared, loaded machine are not inflated by time spent waiting for a
@@ -63,6 +70,7 @@ fn vision(c: &mut Criterion) {
     detection(c);
     tracking(c, "");
     real(c, "");
+    decode_and_track(c);
 }
 
 fn vision_cpu(c: &mut Criterion<CpuTime>) {
@@ -100,6 +108,58 @@ fn real<M: Measurement + 'static>(c: &mut Criterion<M>, prefix: &str) {
             |b| b.iter(|| t.track(black_box(&view)).unwrap().len()),
         );
     }
+    let _ = std::fs::remove_dir_all(&scratch);
+}
+
+/// Files in, displacements out (issue 32): decode + track per frame of the real
+/// TacTip frames (10 PNG files, 640×480), one after another on one thread, and through
+/// `vision::decode_ahead` (decoding on worker threads while this one tracks), per
+/// frame. The OpenCV pipeline on the same files: `tests/opencv_ref/files_bench.py`.
+fn decode_and_track(c: &mut Criterion) {
+    let scratch = std::env::temp_dir().join(format!("tactbench_bench_d{}", std::process::id()));
+    let Some(cases) = real_frames::cases(&scratch) else {
+        return;
+    };
+    let Some(case) = cases.iter().find(|c| c.name.starts_with("tactip")) else {
+        return;
+    };
+    let (_reference, _frame, r) = real_frames::load(case);
+    let files: Vec<PathBuf> = (1..=10)
+        .map(|k| real_frames::dir().join(format!("tactip/image_{k}.png")))
+        .collect();
+    let mut t = Tracker::new(
+        r,
+        TrackConfig {
+            mode: TrackMode::FrameToFrame,
+            ..TrackConfig::default()
+        },
+    );
+    let mut g = c.benchmark_group("vision/decode_track_tactip_10_files");
+    g.throughput(criterion::Throughput::Elements(files.len() as u64));
+    g.bench_function("sequential", |b| {
+        b.iter(|| {
+            for f in &files {
+                let frame = Frame::open(f).unwrap();
+                black_box(t.track(&frame.view()).unwrap().len());
+            }
+        })
+    });
+    let threads = decoder_threads(files.len());
+    g.bench_function(format!("decode_ahead_{threads}_threads"), |b| {
+        b.iter(|| {
+            decode_ahead(
+                &files,
+                threads,
+                2 * threads,
+                |f| Frame::open(f).unwrap(),
+                |_, frame| {
+                    black_box(t.track(&frame.view()).unwrap().len());
+                    true
+                },
+            )
+        })
+    });
+    g.finish();
     let _ = std::fs::remove_dir_all(&scratch);
 }
 

@@ -782,6 +782,57 @@ pub fn read_forces_for(path: &Path, sensor: &Sensor) -> Result<Vec<ForceRecord>,
     read_forces_checked(path, Some(&Plausible::of(sensor)))
 }
 
+/// The per-node standard deviations a forces file records in the columns
+/// [`FORCE_SD_COLUMNS`] (`sfx_n, sfy_n, sfz_n`, N; first frame, in row order), or `None`
+/// when the file has no such columns (written without uncertainty, or by a run from
+/// before runs recorded it).
+pub fn read_force_sd(path: &Path) -> Result<Option<Vec<[f64; 3]>>, FormatError> {
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .map_err(|e| csv_error(path, e))?;
+    let headers = rdr.headers().map_err(|e| csv_error(path, e))?.clone();
+    let col: Vec<Option<usize>> = FORCE_SD_COLUMNS
+        .iter()
+        .map(|c| headers.iter().position(|h| h == *c))
+        .collect();
+    let (Some(cx), Some(cy), Some(cz)) = (col[0], col[1], col[2]) else {
+        return Ok(None);
+    };
+    let frame_col = headers.iter().position(|h| h == "frame");
+    let mut first_frame: Option<String> = None;
+    let mut out = Vec::new();
+    for result in rdr.records() {
+        let rec = result.map_err(|e| csv_error(path, e))?;
+        if let Some(fc) = frame_col {
+            let label = rec.get(fc).unwrap_or_default();
+            match &first_frame {
+                None => first_frame = Some(label.to_string()),
+                Some(f) if f != label => break,
+                Some(_) => {}
+            }
+        }
+        let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let mut sd = [0.0; 3];
+        for (k, (c, name)) in [cx, cy, cz].iter().zip(FORCE_SD_COLUMNS).enumerate() {
+            let text = rec.get(*c).unwrap_or_default();
+            sd[k] = text
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_nan() || (v.is_finite() && *v >= 0.0))
+                .ok_or_else(|| FormatError::Value {
+                    path: path.to_path_buf(),
+                    line,
+                    column: name,
+                    value: text.to_string(),
+                    message: "expected a standard deviation in N (a number ≥ 0, or NaN)".into(),
+                })?;
+        }
+        out.push(sd);
+    }
+    Ok(Some(out))
+}
+
 fn read_forces_checked(
     path: &Path,
     plausible: Option<&Plausible>,

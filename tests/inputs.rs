@@ -588,3 +588,62 @@ fn every_committed_sensor_file_loads() {
         Sensor::from_path(f).unwrap_or_else(|e| panic!("{e}"));
     }
 }
+
+/// `track` decodes frames ahead on worker threads (issue 32): the CSV and the order of
+/// the messages are those of one frame after another, whatever the number of decoder
+/// threads, in frame-to-frame mode (where each frame starts from the last) and with an
+/// unreadable frame in the middle of the batch.
+#[test]
+fn track_output_is_the_same_for_any_number_of_decode_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = util::root("reports/paper/runs/fig7_magnitude/frames");
+    let broken = dir.path().join("broken.png");
+    std::fs::write(&broken, b"not a png").unwrap();
+    let mut files: Vec<PathBuf> = Vec::new();
+    for round in 0..4 {
+        for f in ["00008_0.png", "00143_0.png", "00159_0.png"] {
+            files.push(frames.join(f));
+        }
+        if round == 1 {
+            files.push(broken.clone());
+        }
+    }
+    let run = |threads: &str| {
+        // The same path for every run, so the messages can be compared whole.
+        let out = dir.path().join("t.csv");
+        let _ = std::fs::remove_file(&out);
+        let mut args = vec![
+            "track".to_string(),
+            "--sensor".into(),
+            "experiments/paper_sensor.toml".into(),
+            "--reference".into(),
+            util::arg(&frames.join("reference.png")).to_string(),
+            "--out".into(),
+            util::arg(&out).to_string(),
+            "--decode-threads".into(),
+            threads.into(),
+        ];
+        args.extend(files.iter().map(|f| util::arg(f).to_string()));
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        let o = util::run(&refs);
+        assert_eq!(o.status.code(), Some(1), "{}", util::stderr(&o));
+        (std::fs::read(&out).unwrap(), util::stderr(&o))
+    };
+    let (one, e1) = run("1");
+    assert!(e1.contains("broken.png"), "{e1}");
+    assert_eq!(
+        e1.matches("cannot decode image").count(),
+        2,
+        "the file is named once per message: {e1}"
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&one).lines().count() - 1,
+        12 * 260,
+        "twelve frames of 260 markers"
+    );
+    for threads in ["2", "5"] {
+        let (csv, e) = run(threads);
+        assert!(csv == one, "--decode-threads {threads}: the CSV differs");
+        assert_eq!(e, e1, "--decode-threads {threads}: the messages differ");
+    }
+}

@@ -14,10 +14,11 @@ use super::report::{
 };
 use crate::util::stderr;
 
-/// 28 setpoints: 2 positions × 2 trials × one up-down pass of 7 rows.
-const UP_DOWN: &str =
-    "[sweep]\nkind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\ntrials = 7\n";
-const PASS_GF: [f64; 7] = [0.0, 100.0, 200.0, 300.0, 200.0, 100.0, 0.0];
+/// 28 setpoints: 2 positions × 2 trials × one up-down pass of 7 rows (0, 100, 200,
+/// 300 gf up, 200, 100, 0 gf down), trials numbered across positions (0, 1 at the
+/// first position, 2, 3 at the second).
+const UP_DOWN: &str = "[sweep]\nkind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\n\
+     trials = 2\ndirection = \"up-down\"\npositions_mm = [[9.0, 6.75], [7.0, 6.75]]\n";
 /// Trial error (±E by trial, N), position shift (P per position index, N) and the
 /// down branch's offset (W, N) on loaded rows.
 const E: f64 = 0.02;
@@ -47,26 +48,26 @@ fn png_ok(dir: &Path, stem: &str) {
     assert!(svg.starts_with("<svg"), "{stem}.svg");
 }
 
+/// The rows follow the plan's expansion (targets, trials, positions and directions
+/// from `Plan::setpoints`, as `report` checks); F^sum = 0.95 F/T + 0.01 N plus, on
+/// loaded rows, the trial error ±E, the position shift P and the down branch's W.
 fn up_down_run(dir: &Path) {
+    let plan = Plan::from_toml_str(&format!("{PLAN_HEAD}{UP_DOWN}"), "p.toml").unwrap();
+    let sps = plan.setpoints();
+    assert_eq!(sps.len(), 28);
     write_run(dir, UP_DOWN, |dir, r| {
-        let (unit, k) = (r.index / 7, r.index % 7);
-        let (position, trial) = (unit / 2, unit % 2);
+        let sp = &sps[r.index];
+        let position = sp.position.expect("the plan lists positions");
         r.position = Some(position);
-        r.trial = trial;
-        r.swept_value = PASS_GF[k];
-        r.target_normal_n = gf_to_n(PASS_GF[k]);
-        r.direction = Some(if k <= 3 {
-            Direction::Up
-        } else {
-            Direction::Down
-        });
+        r.direction = sp.direction;
         r.fz_n = r.target_normal_n;
-        let loaded = k != 0 && k != 6;
-        let e = if trial == 0 { E } else { -E };
+        let loaded = sp.normal_n > 0.0;
+        let down = sp.direction == Some(Direction::Down);
+        let e = if sp.trial.is_multiple_of(2) { E } else { -E };
         r.fsum_z_n = 0.95 * r.fz_n
             + 0.01
             + if loaded { e + P * position as f64 } else { 0.0 }
-            + if loaded && k > 3 { W } else { 0.0 };
+            + if loaded && down { W } else { 0.0 };
         let a = r.fz_n;
         write_displacements(dir, r.index, |_, p, _| {
             [0.01 * a * (p[0] - 9.0) / 10.0, 0.0]
@@ -78,7 +79,6 @@ fn up_down_run(dir: &Path) {
 }
 
 #[test]
-#[ignore = "its synthetic journal does not follow its plan's expansion, which report now checks (issue 33: targets must be the plan's); the generator is to be rewritten from Plan::setpoints"]
 fn up_down_run_reports_iso376_metrics_with_intervals_headline_and_figures() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
@@ -188,40 +188,33 @@ fn up_down_run_reports_iso376_metrics_with_intervals_headline_and_figures() {
     }
 }
 
-/// One `[[sweep.points]]` per row: 0 unloaded, 1-10 hold 0, 11 unloaded, 12-21 hold 1,
-/// 22 unloaded.
-fn hold_plan() -> String {
-    let mut s = String::from("[sweep]\nkind = \"setpoints\"\n");
-    for _ in 0..23 {
-        s.push_str("[[sweep.points]]\nposition_mm = [9.0, 6.75]\nnormal = 200.0\n");
-    }
-    s
-}
+/// Two holds of 200 gf sampled every 6 s for 54 s: rows 0 unloaded, 1-10 hold 0,
+/// 11 unloaded, 12-21 hold 1, 22 unloaded.
+const HOLD: &str = "[sweep]\nkind = \"hold\"\nforce = 200.0\nduration_s = 54.0\n\
+     sample_interval_s = 6.0\ntrials = 2\n";
 
 #[test]
-#[ignore = "its synthetic journal does not follow its plan's expansion, which report now checks (issue 33: targets must be the plan's); the generator is to be rewritten from Plan::setpoints"]
 fn hold_run_reports_creep_of_known_rate_zero_drift_and_the_creep_figure() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    let plan = hold_plan();
-    if let Err(e) = Plan::from_toml_str(&format!("{PLAN_HEAD}{plan}"), "p.toml") {
-        panic!("{e}");
-    }
-    write_run(dir, &plan, |dir, r| {
-        let i = r.index;
-        if i % 11 == 0 {
-            // Unloaded: the F^sum zero moves 1 mN per row.
-            r.target_normal_n = 0.0;
-            r.fz_n = 0.0;
-            r.fsum_z_n = 0.001 * i as f64;
-            r.fsum_sd_z_n = Some(0.002);
-        } else {
-            let t = 6.0 * ((i % 11) - 1) as f64;
+    let plan = Plan::from_toml_str(&format!("{PLAN_HEAD}{HOLD}"), "p.toml").unwrap();
+    let sps = plan.setpoints();
+    assert_eq!(sps.len(), 23);
+    write_run(dir, HOLD, |dir, r| {
+        let (i, sp) = (r.index, &sps[r.index]);
+        if let Some(t) = sp.hold_t_s {
+            assert_eq!(t, 6.0 * ((i % 11) - 1) as f64);
+            // The F/T relaxes from 2 N (the full scale) at 0.5 mN/s.
             r.hold_t_s = Some(t);
-            r.target_normal_n = 2.0;
             r.fz_n = 2.0 - 0.0005 * t;
             // Creep 0.001 N/s relative to the F/T: 100·60·0.001/2 = 3 %FS/min.
             r.fsum_z_n = r.fz_n + 0.02 + 0.001 * t;
+        } else {
+            // Unloaded (target 0 in the plan): the F^sum zero moves 1 mN per row.
+            assert_eq!(sp.normal_n, 0.0);
+            r.fz_n = 0.0;
+            r.fsum_z_n = 0.001 * i as f64;
+            r.fsum_sd_z_n = Some(0.002);
         }
         let a = r.fz_n;
         write_displacements(dir, i, |_, _, _| [0.001 * a, 0.0]);

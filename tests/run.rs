@@ -77,7 +77,13 @@ fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
         // 260 markers per frame plus the header.
         assert_eq!(d.lines().count(), 1 + 260 * plan.frames);
         let f = std::fs::read_to_string(dir.join(format!("forces/{:05}.csv", r.index))).unwrap();
-        assert_eq!(f.lines().next().unwrap(), "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n");
+        // Several frames per setpoint: the run also records each node's σ (issue 32).
+        let header = if plan.frames > 1 {
+            "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n,sfx_n,sfy_n,sfz_n"
+        } else {
+            "ix,iy,x_mm,y_mm,fx_n,fy_n,fz_n"
+        };
+        assert_eq!(f.lines().next().unwrap(), header);
         assert_eq!(f.lines().count(), 1 + 80);
         // Per-setpoint marker counts: they add up to the sensor's 260 markers.
         assert_eq!(
@@ -1756,5 +1762,124 @@ fn after_kill_9_the_sessions_say_what_the_killed_session_measured() {
     assert_eq!(
         util::json(&rep.join("verdict.json"))["run"]["record"]["recorded"],
         true
+    );
+}
+
+/// Issue 32: the run records per-node σ when it solves (`sfx_n, sfy_n, sfz_n` in
+/// `forces/NNNNN.csv`) and the report draws it from there. The recorded σ is the
+/// solver's `force_sd` for the tracking noise of the frames' mean, so every node's σ is
+/// one common noise times that node's unit gain (checked against the solver rebuilt
+/// here, which the report no longer does), and that noise is the displacement file's
+/// frame scatter / √frames. A run whose forces file lacks the columns (one recorded
+/// before runs did this) gets the one line saying the run did not record σ — the old
+/// report re-solved it and drew a σ panel from the frames' scatter.
+#[test]
+fn a_multi_frame_run_records_node_sigma_and_the_report_reads_it_without_solving() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sensor_path = util::root("experiments/paper_sensor.toml");
+    let text = std::fs::read_to_string(util::root("experiments/fig7_magnitude.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"paper_sensor.toml\"",
+            &format!("sensor = {:?}", sensor_path.display().to_string()),
+        )
+        .replace("frames = 1", "frames = 4")
+        .replace("from = 0.0", "from = 300.0")
+        .replace("to = 750.0", "to = 350.0");
+    let path = write(tmp.path(), "plan.toml", &text);
+    let plan = Plan::from_path(&path).unwrap();
+    let noisy = util::root("experiments/scenes/fig7_hemisphere_camera_noise.toml");
+    let out = tmp.path().join("run");
+    let (summary, events, _, _) = run_in_process(&plan, &noisy, &out, false, Some(2), None, None);
+    assert_ne!(summary.status, RunStatus::Aborted, "{events:?}");
+    let sensor = Sensor::from_path(&sensor_path).unwrap();
+
+    let fpath = out.join("forces/00001.csv");
+    let sd = tactbench::formats::read_force_sd(&fpath)
+        .unwrap()
+        .expect("a solved multi-frame setpoint records σ");
+    assert_eq!(sd.len(), sensor.force_grid.len());
+    // The solver the runner used, rebuilt from the markers tracked in every frame.
+    let frames = tactbench::analysis::RunData::load(&out)
+        .unwrap()
+        .displacements(1)
+        .unwrap();
+    assert_eq!(frames.len(), 4);
+    let all: Vec<bool> = (0..frames[0].records.len())
+        .map(|i| frames.iter().all(|f| f.records[i].u_mm.is_some()))
+        .collect();
+    let mut sites = Vec::new();
+    let (mut ss, mut dof) = (0.0, 0usize);
+    for (i, r) in frames[0]
+        .records
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| all[*i])
+    {
+        sites.push(tactbench::model::MarkerSite {
+            layer: r.layer,
+            position_mm: r.position_mm,
+            depth_mm: sensor.layers[r.layer].depth_mm,
+        });
+        for ax in 0..2 {
+            let v: Vec<f64> = frames
+                .iter()
+                .map(|f| f.records[i].u_mm.unwrap()[ax])
+                .collect();
+            let m = v.iter().sum::<f64>() / 4.0;
+            ss += v.iter().map(|x| (x - m).powi(2)).sum::<f64>();
+            dof += 3;
+        }
+    }
+    let sigma_mean = (ss / dof as f64).sqrt() / 2.0;
+    let problem = tactbench::solve::Problem::new(&sensor, &sites);
+    let u0 = frames[0].u_mm();
+    let solver = tactbench::solve::precompute(&problem, &plan.solver, Some(&u0)).unwrap();
+    let mut unit = vec![0.0; 3 * sensor.force_grid.len()];
+    solver.force_sd(1.0, &mut unit).unwrap();
+    let ratios: Vec<f64> = sd
+        .iter()
+        .flatten()
+        .zip(&unit)
+        .filter(|(_, g)| **g > 0.0)
+        .map(|(s, g)| s / g)
+        .collect();
+    assert!(!ratios.is_empty());
+    let (lo, hi) = ratios
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), r| (a.min(*r), b.max(*r)));
+    assert!(
+        (hi - lo) <= 1e-4 * hi,
+        "σ / gain not one common noise: {lo}..{hi}"
+    );
+    assert!(
+        (hi - sigma_mean).abs() <= 0.02 * sigma_mean,
+        "recorded noise {hi} mm vs frame scatter of the mean {sigma_mean} mm"
+    );
+
+    let report = |dir: &Path| {
+        // Two of the plan's setpoints (`--limit`): INCOMPLETE (exit 5), page written.
+        let _ = std::fs::remove_file(dir.join("report.html"));
+        let o = util::run(&["report", util::arg(dir)]);
+        assert!(o.status.code() == Some(5), "{}", util::stderr(&o));
+        std::fs::read_to_string(dir.join("report.html")).unwrap()
+    };
+    let html = report(&out);
+    assert!(html.contains("Right: σ(fz) per node"), "σ panel missing");
+    // The same run as one recorded before runs kept σ: forces without the columns.
+    for e in std::fs::read_dir(out.join("forces")).unwrap() {
+        let p = e.unwrap().path();
+        let f = tactbench::formats::read_forces(&p).unwrap();
+        let v: Vec<f64> = f.iter().flat_map(|r| r.f_n).collect();
+        tactbench::formats::write_forces(&p, &sensor.force_grid, &[(String::new(), v)]).unwrap();
+    }
+    let html = report(&out);
+    assert!(
+        !html.contains("Right: σ(fz) per node"),
+        "σ drawn from a run without it"
+    );
+    assert!(
+        html.contains("No per-node uncertainty: the run did not record it"),
+        "the σ note is missing"
     );
 }

@@ -1180,3 +1180,71 @@ fn f32_apply_matches_f64_to_the_figures_stated_in_the_readme() {
         assert!(worst < bound, "{:?}: {worst:e}", cfg.method);
     }
 }
+
+// Moved from report/evidence.rs: the report no longer reaches the solver.
+/// Reconstructs (pinv, exact data) a 7 N normal load acting as four point loads
+/// `off` mm from (9, 6.75) along both axes — the centre of four force nodes 2.2 mm
+/// apart — and returns, for those four nodes, (tangential force · inward unit, |t|).
+fn inward_shear(off: f64) -> Vec<(f64, f64)> {
+    let sensor = tactbench::sensor::paper_sensor();
+    let hs = tactbench::model::HalfSpace::from_elastomer(&sensor.elastomer);
+    let c = [9.0, 6.75];
+    let loads: Vec<[f64; 2]> = [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)]
+        .iter()
+        .map(|(sx, sy)| [c[0] + sx * off, c[1] + sy * off])
+        .collect();
+    let mut sites = Vec::new();
+    let mut u = Vec::new();
+    for (li, l) in sensor.layers.iter().enumerate() {
+        for p in l.markers.unwrap().grid.nodes_mm() {
+            sites.push(MarkerSite {
+                layer: li,
+                position_mm: p,
+                depth_mm: l.depth_mm,
+            });
+            let mut d = [0.0; 2];
+            for q in &loads {
+                let v = hs.displacement(p[0] - q[0], p[1] - q[1], l.depth_mm, [0.0, 0.0, 1.75]);
+                d[0] += v[0];
+                d[1] += v[1];
+            }
+            u.extend_from_slice(&d);
+        }
+    }
+    let problem = Problem::new(&sensor, &sites);
+    let mut s = solve::precompute(&problem, &SolverConfig::default(), Some(&u)).unwrap();
+    let mut f = vec![0.0; 3 * sensor.force_grid.len()];
+    s.apply(&u, &mut f).unwrap();
+    sensor
+        .force_grid
+        .nodes_mm()
+        .iter()
+        .enumerate()
+        .filter(|(_, q)| (q[0] - c[0]).abs() < 1.2 && (q[1] - c[1]).abs() < 1.2)
+        .map(|(j, q)| {
+            let inward = [c[0] - q[0], c[1] - q[1]];
+            let n = inward[0].hypot(inward[1]);
+            let t = [f[3 * j], f[3 * j + 1]];
+            ((t[0] * inward[0] + t[1] * inward[1]) / n, t[0].hypot(t[1]))
+        })
+        .collect()
+}
+
+/// The X of inward arrows around the Fig. 7 contact is the reconstruction's, not the
+/// plot's: a purely normal load whose parts sit nearer the contact centre than the
+/// nodes comes back with inward tangential forces at the four nodes around it, while
+/// the same load exactly at the nodes comes back with none.
+#[test]
+fn normal_load_inside_the_nodes_reconstructs_with_inward_shear() {
+    let inside = inward_shear(0.7);
+    assert_eq!(inside.len(), 4);
+    for (inward, t) in &inside {
+        assert!(
+            *inward > 0.05 && (*inward - t).abs() < 0.05 * t,
+            "{inside:?}"
+        );
+    }
+    for (_, t) in inward_shear(1.1) {
+        assert!(t < 1e-6, "load on the nodes: tangential {t} N");
+    }
+}

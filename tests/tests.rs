@@ -3,15 +3,18 @@
 
 mod util;
 
+mod acceptance_fit;
 mod archive;
 mod bench;
 mod camera;
 mod cli;
 mod compare;
+mod docs_figures;
 mod fit_sim;
 mod fourier;
 mod ft;
 mod ft_net_bota;
+mod import;
 mod inputs;
 mod layer;
 mod live;

@@ -26,8 +26,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+pub use super::events::Phase;
+use super::events::{rfc3339, RunEvent};
 use super::journal::RunStatus;
-use super::runner::RunEvent;
 
 /// The file's name in the run directory.
 pub const LIVE_FILE: &str = "live.json";
@@ -39,50 +40,6 @@ pub const LIVE_SCHEMA: &str = "tactbench-live/1";
 pub const MAX_WRITES_PER_S: u32 = 5;
 /// Warnings kept (the newest).
 pub const MAX_WARNINGS: usize = 20;
-
-/// What the runner is doing.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Phase {
-    /// The homing cycle.
-    Home,
-    /// Taring the force sensor.
-    Tare,
-    /// Taking the reference frame.
-    Reference,
-    /// Retract, lateral move and approach to contact.
-    Approach,
-    /// Closed-loop force control at the setpoint.
-    ForceControl,
-    /// Waiting for the force to settle (or a hold's next sample time).
-    Settle,
-    /// F/T samples, frames and tracking.
-    Acquire,
-    /// Reconstruction and the journal row.
-    Solve,
-    /// Leaving the contact (end of run, stop, abort).
-    Retract,
-    /// Nothing (before the first step, after the end).
-    Idle,
-}
-
-impl Phase {
-    /// The name in `live.json` and the API.
-    pub fn name(self) -> &'static str {
-        match self {
-            Phase::Home => "home",
-            Phase::Tare => "tare",
-            Phase::Reference => "reference",
-            Phase::Approach => "approach",
-            Phase::ForceControl => "force_control",
-            Phase::Settle => "settle",
-            Phase::Acquire => "acquire",
-            Phase::Solve => "solve",
-            Phase::Retract => "retract",
-            Phase::Idle => "idle",
-        }
-    }
-}
 
 /// A `live.json` that cannot be read.
 #[derive(Debug, Error)]
@@ -340,7 +297,7 @@ pub fn rfc3339_millis_now() -> String {
     let d = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .unwrap_or_default();
-    let s = super::runner::rfc3339(d.as_secs() as i64);
+    let s = rfc3339(d.as_secs() as i64);
     format!("{}.{:03}Z", s.trim_end_matches('Z'), d.subsec_millis())
 }
 
@@ -365,7 +322,7 @@ pub fn parse_rfc3339(s: &str) -> Option<f64> {
     {
         return None;
     }
-    // Days from civil (H. Hinnant), the inverse of `runner::rfc3339`.
+    // Days from civil (H. Hinnant), the inverse of `events::rfc3339`.
     let y = if m <= 2 { y - 1 } else { y };
     let era = y.div_euclid(400);
     let yoe = y - era * 400;
@@ -379,7 +336,7 @@ pub fn parse_rfc3339(s: &str) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bench::runner::rfc3339;
+    use crate::bench::events::rfc3339;
 
     #[test]
     fn rfc3339_parses_back_what_the_runner_writes() {

@@ -3,14 +3,17 @@
 //! force limits, force control), a stage move outside a run watched for a stop
 //! signal and the force limits ([`guard`]), the runner itself ([`runner`]: setpoints, safety
 //! watchdog, resume), the crash-safe run directory ([`journal`]) and its one-writer
-//! lock ([`lock`]); `live.json`, the runner's current activity for watchers
+//! lock ([`lock`]); a recording made elsewhere turned into a run directory
+//! ([`import`]); `live.json`, the runner's current activity for watchers
 //! ([`live`]). Nothing here prints or draws: the runner emits
 //! [`runner::RunEvent`]s.
 
 pub mod config;
 pub mod connect;
 pub mod control;
+pub mod events;
 pub mod guard;
+pub mod import;
 pub mod integrity;
 pub mod journal;
 pub mod live;

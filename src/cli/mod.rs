@@ -11,6 +11,7 @@ mod calibrate;
 mod camera;
 mod compare;
 mod ft;
+mod import;
 mod model;
 mod ports;
 mod reconstruct;
@@ -48,6 +49,7 @@ enum Command {
     Report(report::Args),
     Compare(compare::Args),
     Archive(archive::Args),
+    Import(import::Args),
     ReproducePaper(reproduce::Args),
     Track(track::Args),
     Calibrate(calibrate::Args),
@@ -87,6 +89,7 @@ pub fn main() -> ExitCode {
         Command::Report(args) => report::run(args),
         Command::Compare(args) => compare::run(args),
         Command::Archive(args) => archive::run(args),
+        Command::Import(args) => import::run(args),
         Command::ReproducePaper(args) => reproduce::run(args),
         Command::Track(args) => track::run(args),
         Command::Calibrate(args) => calibrate::run(args),

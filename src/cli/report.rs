@@ -9,7 +9,7 @@ use anyhow::{Context, Result};
 use tactbench::analysis::{AnalysisOptions, RunAnalysis};
 use tactbench::bench::journal::{Manifest, JOURNAL_FILE};
 use tactbench::bench::lock;
-use tactbench::report::acceptance::{Criteria, Outcome, Verdict};
+use tactbench::report::acceptance::{Criteria, Outcome, RunFit, Verdict};
 use tactbench::report::verdict::{VerdictDoc, EXIT_FAIL, EXIT_INCOMPLETE, EXIT_PASS};
 use tactbench::report::{self, ReportOptions};
 use tactbench::sensor::Sensor;
@@ -74,6 +74,10 @@ pub struct Args {
     /// measured): the placeholders are named on stderr and on the report's banner.
     #[arg(long)]
     allow_draft: bool,
+    /// The run's fit (`tactbench fit --json`) for criteria on fitted parameters
+    /// (`fit.<NAME>`); default RUN_DIR/fit.json when it exists.
+    #[arg(long, value_name = "FIT.json")]
+    fit: Option<PathBuf>,
 }
 
 /// Examples, the criteria format, the exit codes and the metric names (from the
@@ -90,7 +94,13 @@ fn after_help() -> String {
          require_real_bench = true   # optional: simulated (or not recorded) -> FAIL\n\n  \
          [[criterion]]\n  metric = \"magnitude.r2\"\n  min = 0.99\n  \
          marginal_min = 0.995        # optional: r2 <= 0.995 (but >= 0.99) is MARGINAL\n\n  \
-         [[criterion]]\n  metric = \"timing.forces_ms\"\n  max = 2.9\n\n\
+         [[criterion]]\n  metric = \"timing.forces_ms\"\n  max = 2.9\n\n  \
+         [[criterion]]           # a fitted parameter, from RUN_DIR/fit.json or --fit\n  \
+         metric = \"fit.young_modulus_kpa\"\n  \
+         max_relative_to_nominal = 0.10   # within ±10 % of the fit's nominal value\n  \
+         # max_deviation_from_nominal = 0.3  (same unit as the parameter)\n  \
+         # MARGINAL when the 95 % interval straddles a limit; NOT JUDGED (never PASS)\n  \
+         # when there is no fit or the parameter is not identifiable\n\n\
          Exit codes:\n  \
          {EXIT_PASS}  PASS, MARGINAL, or NOT JUDGED (no criteria given, complete run)\n  \
          {EXIT_FAIL}  FAIL: a criterion or a provenance requirement failed\n  \
@@ -135,8 +145,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         lock,
     };
     let out_dir = args.out.as_deref().unwrap_or(&args.run_dir);
-    let outcome = report::write_report_to(&analysis, criteria.as_ref(), &report_options, out_dir)
-        .with_context(|| format!("writing the report of {}", args.run_dir.display()))?;
+    let fit = RunFit::load(&args.run_dir, args.fit.as_deref())
+        .with_context(|| format!("reading the fit of {}", args.run_dir.display()))?;
+    let outcome =
+        report::write_report_with_fit(&analysis, criteria.as_ref(), &report_options, out_dir, &fit)
+            .with_context(|| format!("writing the report of {}", args.run_dir.display()))?;
     let v = &outcome.verdict;
     if let Some(t) = &v.run.torn_journal_line {
         eprintln!(
@@ -228,7 +241,14 @@ fn acceptance_line(v: &VerdictDoc, verdicts: &[Verdict]) -> String {
     } else {
         ""
     };
+    let unjudged = verdicts
+        .iter()
+        .filter(|c| c.outcome == Outcome::NotJudged)
+        .count();
     match v.outcome {
+        Outcome::NotJudged if unjudged > 0 => {
+            format!("NOT JUDGED ({unjudged} of {n} criteria not judged{partial})")
+        }
         Outcome::NotJudged => "NOT JUDGED (no criteria, no requirement)".to_string(),
         Outcome::Pass => format!("PASS ({n} criteria{partial})"),
         Outcome::Marginal => format!("MARGINAL ({marginal} of {n} criteria marginal{partial})"),

@@ -8,8 +8,9 @@ use anyhow::Context;
 use tactbench::sensor::Sensor;
 use tactbench::vision::onboard::check_frame_levels;
 use tactbench::vision::{
-    check_layers, detect_mapped, load_frame, write_tracks_mapped, CameraCalibration, DetectConfig,
-    PixelMapping, ReferenceHealth, StatusCounts, TrackConfig, TrackMode, Tracker,
+    check_layers, decode_ahead, decoder_threads, detect_mapped, load_frame, write_tracks_mapped,
+    CameraCalibration, DetectConfig, PixelMapping, ReferenceHealth, StatusCounts, TrackConfig,
+    TrackMode, Tracker,
 };
 
 /// Track markers: images -> marker displacements (CSV).
@@ -92,6 +93,11 @@ pub struct Args {
     /// linear [camera] mapping is used, as before.
     #[arg(long, value_name = "camera.toml")]
     camera: Option<PathBuf>,
+    /// Threads that read and decode frames ahead while this one tracks (decoding a PNG
+    /// costs about ten times tracking it). Default: one per core; 1 decodes on one
+    /// worker while the main thread tracks. The output is the same for any value.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=64))]
+    decode_threads: Option<u16>,
 }
 
 /// Default of `--max-lost-fraction`: a quarter of the markers.
@@ -210,56 +216,78 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut failed: Vec<(String, usize)> = Vec::new();
     // Frames that could not be read or tracked: (path, why); left out of the CSV.
     let mut unread: Vec<(String, String)> = Vec::new();
-    for path in &args.frames {
-        let image = match load_frame(path, &sensor.camera) {
-            Ok(i) => i,
-            Err(e) => {
-                eprintln!("error: {e}: frame left out, the others are tracked");
-                unread.push((path.display().to_string(), e.to_string()));
-                continue;
+    // Frames are decoded ahead on worker threads while this thread tracks, in the
+    // order given (vision::prefetch): the same output as one frame after another.
+    let threads = args
+        .decode_threads
+        .map_or_else(|| decoder_threads(args.frames.len()), usize::from);
+    let mut fatal: Option<anyhow::Error> = None;
+    decode_ahead(
+        &args.frames,
+        threads,
+        2 * threads,
+        |path| load_frame(path, &sensor.camera),
+        |k, loaded| {
+            let path = &args.frames[k];
+            let image = match loaded {
+                Ok(i) => i,
+                Err(e) => {
+                    eprintln!("error: {e}: frame left out, the others are tracked");
+                    unread.push((path.display().to_string(), e.to_string()));
+                    return true;
+                }
+            };
+            let view = image.view();
+            if let Err(e) =
+                check_layers(&view, layers()).with_context(|| format!("frame {}", path.display()))
+            {
+                fatal = Some(e);
+                return false;
             }
-        };
-        let view = image.view();
-        check_layers(&view, layers()).with_context(|| format!("frame {}", path.display()))?;
-        if view.bit_depth() != reference_bits && !mixed_noted {
-            mixed_noted = true;
-            eprintln!(
-                "note: the reference is {reference_bits}-bit and {} is {}-bit: compared on a common scale (8-bit value × 257 = 16-bit value)",
-                path.display(),
-                view.bit_depth()
-            );
-        }
-        let tracks = match tracker.track(&view) {
-            Ok(t) => t,
-            Err(e) => {
+            if view.bit_depth() != reference_bits && !mixed_noted {
+                mixed_noted = true;
                 eprintln!(
-                    "error: {}: {e}: frame left out, the others are tracked",
-                    path.display()
+                    "note: the reference is {reference_bits}-bit and {} is {}-bit: compared on a common scale (8-bit value × 257 = 16-bit value)",
+                    path.display(),
+                    view.bit_depth()
                 );
-                unread.push((path.display().to_string(), e.to_string()));
-                continue;
             }
-        };
-        let c = StatusCounts::of(tracks, missing);
-        let gone = c.lost + c.merged;
-        if expected > 0 && gone as f64 > args.max_lost_fraction * expected as f64 {
-            failed.push((path.display().to_string(), gone));
-        }
-        if c.lost + c.merged + c.outlier > 0 {
-            eprintln!(
-                "{}: {} ok, {} lost, {} merged, {} outlier",
-                path.display(),
-                c.ok,
-                c.lost,
-                c.merged,
-                c.outlier
-            );
-        }
-        total.ok += c.ok;
-        total.lost += c.lost;
-        total.merged += c.merged;
-        total.outlier += c.outlier;
-        frames.push((path.to_string_lossy().into_owned(), tracks.to_vec()));
+            let tracks = match tracker.track(&view) {
+                Ok(t) => t,
+                Err(e) => {
+                    eprintln!(
+                        "error: {}: {e}: frame left out, the others are tracked",
+                        path.display()
+                    );
+                    unread.push((path.display().to_string(), e.to_string()));
+                    return true;
+                }
+            };
+            let c = StatusCounts::of(tracks, missing);
+            let gone = c.lost + c.merged;
+            if expected > 0 && gone as f64 > args.max_lost_fraction * expected as f64 {
+                failed.push((path.display().to_string(), gone));
+            }
+            if c.lost + c.merged + c.outlier > 0 {
+                eprintln!(
+                    "{}: {} ok, {} lost, {} merged, {} outlier",
+                    path.display(),
+                    c.ok,
+                    c.lost,
+                    c.merged,
+                    c.outlier
+                );
+            }
+            total.ok += c.ok;
+            total.lost += c.lost;
+            total.merged += c.merged;
+            total.outlier += c.outlier;
+            frames.push((path.to_string_lossy().into_owned(), tracks.to_vec()));
+            true
+        },
+    );
+    if let Some(e) = fatal {
+        return Err(e);
     }
     if frames.is_empty() {
         anyhow::bail!(

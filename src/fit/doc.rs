@@ -16,6 +16,25 @@
 //!  ...}
 //! ```
 //!
+//! What `fit.html` ([`crate::report::fit_page`]) and `report` read besides
+//! `parameters` (every entry optional; the page says which it lacks):
+//! - `routes.indentation` / `routes.displacement`: `{"parameters": {NAME: {"value": v,
+//!   "ci95": [lo, hi] | null}}, ...scalar figures of the route (samples, residual RMS,
+//!   ...)}`; `routes.agree` (bool), `routes.disagreements` (messages);
+//! - `cross_validation`: numbers, nested objects allowed (shown with dotted keys), e.g.
+//!   `{"held_out": "...", "nominal": {"force_sum_error_n": e0}, "fitted": {...}}`;
+//! - in `extra` (top-level keys of the document): `ci_method` (string; `jacobian` or
+//!   `bootstrap` in it names the method of the intervals `report` shows),
+//!   `correlations` = `{"names": [NAME...], "matrix": [[r...]...]}`,
+//!   `examples` = `[{"index", "layer", "x_mm", "y_mm", "ux_px", "uy_px", "pred_ux_px",
+//!   "pred_uy_px"}]` (measured and predicted displacement of each marker at a few
+//!   setpoints), `setpoint_residuals` = `[{"index", "rms_px", "layer"?}]`,
+//!   `indentation_curve` = `[{"depth_mm", "force_n", "predicted_n"}]`.
+//!
+//! `report` checks, when it reads a `fit.json` for acceptance criteria: known parameter
+//! names, `unit` the parameter's own (`kPa`, `1`, `mm`, `mm/px`, `deg`), finite `value`
+//! and `nominal`, `ci95` finite with `low <= high`.
+//!
 //! A parameter that was not fitted (not listed in `--params`) or that the run cannot
 //! determine keeps its nominal `value`, has `"fitted": false` and a `reason`; a
 //! not-identifiable one has `"identifiable": false` and `ci95: null`: never a made-up

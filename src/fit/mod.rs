@@ -5,6 +5,8 @@
 //! least-squares engine, intervals and identifiability, cross-validation, `fitted.toml`)
 //! lives in the sibling files this module lists as they are built.
 
+pub mod crossval;
+pub mod displacement;
 pub mod doc;
 
 pub use doc::{is_parameter_name, FitDoc, ParamFit, Route, FIT_SCHEMA, PARAMETER_NAMES};

@@ -21,7 +21,7 @@ use crate::bench::live::{parse_rfc3339, LiveDoc, Phase};
 use crate::bench::lock::{self, LockState};
 use crate::bench::plan::{Plan, Sweep};
 use crate::bench::runner::RunEvent;
-use crate::report::acceptance::Criteria;
+use crate::report::acceptance::{Criteria, Outcome};
 use crate::sensor::{CameraMapping, Sensor};
 use crate::units::ForceUnit;
 
@@ -889,18 +889,20 @@ fn provisional_verdict(dir: &Path, criteria: &Criteria) -> Value {
     let metrics = analysis.metrics();
     match criteria.evaluate(&metrics, analysis.run.sweep_kind(), &analysis.absent) {
         Ok(vs) => {
-            let mut worst = vs.iter().map(|v| v.outcome).max();
+            // A criterion nothing judged (no fit during a run) keeps it NOT JUDGED.
+            let mut worst =
+                (!vs.is_empty()).then(|| Outcome::combine(vs.iter().map(|v| v.outcome)));
             // Failed rows (no force) are skipped and counted: at most MARGINAL.
             let failed: Vec<String> = analysis.run.failed.iter().map(|f| f.describe()).collect();
             if !failed.is_empty() {
-                worst = worst.map(|o| o.max(crate::report::acceptance::Outcome::Marginal));
+                worst = worst.map(|o| Outcome::combine([o, Outcome::Marginal]));
             }
             json!({
                 "criteria": criteria.path.display().to_string(),
                 "overall": worst.map(|o| o.word()),
                 "failed_rows": failed,
                 "rows": vs.iter().map(|v| {
-                    let (lo, hi) = v.criterion.limits(v.baseline);
+                    let (lo, hi) = v.limits();
                     json!({
                         "metric": v.criterion.metric,
                         "value": finite(v.value),

@@ -28,6 +28,7 @@ use thiserror::Error;
 use crate::sensor::{Elastomer, ModelKind, Sensor};
 
 pub mod half_space;
+pub mod indentation;
 pub mod layer;
 
 pub use half_space::HalfSpace;

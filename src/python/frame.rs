@@ -70,27 +70,32 @@ impl<'py> FrameInput<'py> {
                     .unwrap_or_else(|_| "an object".into())
             ))
         })?;
-        let shape = untyped.shape().to_vec();
-        let dtype = untyped.dtype().to_string();
-        let shape_text = format!(
-            "({})",
-            shape
-                .iter()
-                .map(|d| d.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
+        let shape = untyped.shape();
+        // Only error messages need the shape and dtype as text: built on failure only,
+        // so a frame costs no Python call beyond the casts.
+        let shape_text = || {
+            format!(
+                "({})",
+                shape
+                    .iter()
+                    .map(|d| d.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        };
         if shape.contains(&0) {
             return Err(value_error(format!(
-                "{what}: empty array of shape {shape_text}: a frame needs pixels"
+                "{what}: empty array of shape {}: a frame needs pixels",
+                shape_text()
             )));
         }
-        let channels = match shape.as_slice() {
+        let channels = match shape {
             [_, _] => 1,
             [_, _, c @ (3 | 4)] => *c,
             _ => {
                 return Err(value_error(format!(
-                    "{what}: shape {shape_text}: expected H×W (greyscale), H×W×3 or H×W×4 (RGB(A) or BGR(A))"
+                    "{what}: shape {}: expected H×W (greyscale), H×W×3 or H×W×4 (RGB(A) or BGR(A))",
+                    shape_text()
                 )));
             }
         };
@@ -98,7 +103,8 @@ impl<'py> FrameInput<'py> {
         let too_big = |d: usize| u32::try_from(d).is_err();
         if too_big(height) || too_big(width) {
             return Err(value_error(format!(
-                "{what}: shape {shape_text} is too large"
+                "{what}: shape {} is too large",
+                shape_text()
             )));
         }
         let samples = if let Ok(a) = obj.cast::<PyArrayDyn<u8>>() {
@@ -122,7 +128,8 @@ impl<'py> FrameInput<'py> {
             }
         } else {
             return Err(value_error(format!(
-                "{what}: dtype {dtype}: expected uint8 or uint16 pixels (8- or 16-bit, native byte order); convert floats with e.g. numpy.clip(img, 0, 255).astype(numpy.uint8) after checking for NaN"
+                "{what}: dtype {}: expected uint8 or uint16 pixels (8- or 16-bit, native byte order); convert floats with e.g. numpy.clip(img, 0, 255).astype(numpy.uint8) after checking for NaN",
+                untyped.dtype()
             )));
         };
         Ok(FrameInput {

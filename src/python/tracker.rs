@@ -14,8 +14,8 @@ use super::{to_py_err, value_error};
 use crate::sensor::Sensor;
 use crate::vision::onboard::check_frame_levels;
 use crate::vision::{
-    bgr_sensor, detect_mapped, DetectConfig, MarkerStatus, PixelMapping, TrackConfig, TrackMode,
-    Tracker, VisionError,
+    bgr_sensor, detect_mapped, DetectConfig, MarkerStatus, MarkerTrack, PixelMapping, TrackConfig,
+    TrackMode, Tracker, VisionError,
 };
 
 /// One output row: the layer, marker id, reference position (mm), and the index into
@@ -24,6 +24,8 @@ struct Row {
     layer: usize,
     id: u64,
     position_mm: [f64; 2],
+    /// The marker's centroid in the reference frame, px (NaN without a marker).
+    centroid_px: [f64; 2],
     index: Option<usize>,
 }
 
@@ -34,8 +36,29 @@ pub struct PyTracker {
     sensor: Sensor,
     order: Option<Order>,
     rows: Vec<Row>,
-    /// The constant columns (layer names, marker ids, x/y mm and px), copied per call.
-    constant: Py<PyDict>,
+    /// The constant columns, copied into fresh arrays per call (a caller may change the
+    /// arrays it got): layer names as a NumPy string array, the rest as Rust columns
+    /// (a `memcpy` each, no Python call).
+    layer_names: Py<PyAny>,
+    constant: Constant,
+}
+
+/// The columns that do not change from frame to frame.
+struct Constant {
+    marker: Vec<i64>,
+    x_mm: Vec<f64>,
+    y_mm: Vec<f64>,
+    x_px: Vec<f64>,
+    y_px: Vec<f64>,
+}
+
+/// The per-frame columns, computed with the GIL released.
+struct Moving {
+    ux_mm: Vec<f64>,
+    uy_mm: Vec<f64>,
+    ux_px: Vec<f64>,
+    uy_px: Vec<f64>,
+    status: Vec<PyFixedUnicode<7>>,
 }
 
 /// `mode=`: `None` (frame-to-frame, `track`'s default), `"frame-to-frame"`, `"per-window"`.
@@ -118,37 +141,32 @@ impl PyTracker {
                 layer: m.layer,
                 id: m.id,
                 position_mm: m.position_mm,
+                centroid_px: m.centroid_px,
                 index: Some(i),
             })
             .chain(reference.missing.iter().map(|m| Row {
                 layer: m.layer,
                 id: m.id,
                 position_mm: m.node_mm,
+                centroid_px: [f64::NAN; 2],
                 index: None,
             }))
             .collect();
         // `track`'s CSV row order (vision::write_tracks_mapped_to): layer, then id.
         rows.sort_by_key(|r| (r.layer, r.id));
-        let constant = PyDict::new(py);
         let names: Vec<&str> = rows
             .iter()
             .map(|r| s.layers[r.layer].name.as_str())
             .collect();
-        let numpy = py.import("numpy")?;
-        constant.set_item("layer", numpy.call_method1("array", (names,))?)?;
-        let ids: Vec<i64> = rows.iter().map(|r| r.id as i64).collect();
-        constant.set_item("marker", PyArray1::from_vec(py, ids))?;
+        let layer_names = py.import("numpy")?.call_method1("array", (names,))?;
         let col = |f: &dyn Fn(&Row) -> f64| -> Vec<f64> { rows.iter().map(f).collect() };
-        constant.set_item("x_mm", PyArray1::from_vec(py, col(&|r| r.position_mm[0])))?;
-        constant.set_item("y_mm", PyArray1::from_vec(py, col(&|r| r.position_mm[1])))?;
-        let px = |k: usize| {
-            col(&|r: &Row| {
-                r.index
-                    .map_or(f64::NAN, |i| reference.markers[i].centroid_px[k])
-            })
+        let constant = Constant {
+            marker: rows.iter().map(|r| r.id as i64).collect(),
+            x_mm: col(&|r| r.position_mm[0]),
+            y_mm: col(&|r| r.position_mm[1]),
+            x_px: col(&|r| r.centroid_px[0]),
+            y_px: col(&|r| r.centroid_px[1]),
         };
-        constant.set_item("x_px", PyArray1::from_vec(py, px(0)))?;
-        constant.set_item("y_px", PyArray1::from_vec(py, px(1)))?;
         Ok(PyTracker {
             tracker: Tracker::new(
                 reference,
@@ -160,7 +178,8 @@ impl PyTracker {
             sensor: s.clone(),
             order,
             rows,
-            constant: constant.unbind(),
+            layer_names: layer_names.unbind(),
+            constant,
         })
     }
 
@@ -174,46 +193,26 @@ impl PyTracker {
         let input = FrameInput::extract(frame, "frame")?;
         check_order(&self.sensor, self.order, "frame", input.channels())?;
         let view = input.view()?;
-        let tracker = &mut self.tracker;
-        let tracks = py
-            .detach(move || tracker.track(&view).map(|t| t.to_vec()))
+        let (tracker, rows, camera) = (&mut self.tracker, &self.rows, self.sensor.camera);
+        let m = py
+            .detach(move || {
+                let tracks = tracker.track(&view)?;
+                Ok::<_, VisionError>(moving_columns(rows, tracks, camera))
+            })
             .map_err(|e| to_py_err(&e))?;
-        let n = self.rows.len();
-        let (mut ux_mm, mut uy_mm) = (vec![f64::NAN; n], vec![f64::NAN; n]);
-        let (mut ux_px, mut uy_px) = (vec![f64::NAN; n], vec![f64::NAN; n]);
-        let mut status = vec![status_name(MarkerStatus::Lost); n];
-        let mapping = PixelMapping::Linear(self.sensor.camera);
-        let reference = self.tracker.reference();
-        for (k, row) in self.rows.iter().enumerate() {
-            let Some(i) = row.index else { continue };
-            let t = &tracks[i];
-            status[k] = status_name(t.status);
-            if t.status == MarkerStatus::Ok {
-                let r = &reference.markers[i];
-                let u = mapping.displacement_mm(row.layer, r.centroid_px, t.displacement_px);
-                (ux_mm[k], uy_mm[k]) = (u[0], u[1]);
-            }
-            if t.status != MarkerStatus::Lost {
-                (ux_px[k], uy_px[k]) = (t.displacement_px[0], t.displacement_px[1]);
-            }
-        }
+        let c = &self.constant;
         let out = PyDict::new(py);
-        let constant = self.constant.bind(py);
-        for key in ["layer", "marker", "x_mm", "y_mm"] {
-            if let Some(v) = constant.get_item(key)? {
-                out.set_item(key, v.call_method0("copy")?)?;
-            }
-        }
-        out.set_item("ux_mm", PyArray1::from_vec(py, ux_mm))?;
-        out.set_item("uy_mm", PyArray1::from_vec(py, uy_mm))?;
-        for key in ["x_px", "y_px"] {
-            if let Some(v) = constant.get_item(key)? {
-                out.set_item(key, v.call_method0("copy")?)?;
-            }
-        }
-        out.set_item("ux_px", PyArray1::from_vec(py, ux_px))?;
-        out.set_item("uy_px", PyArray1::from_vec(py, uy_px))?;
-        out.set_item("status", PyArray1::from_vec(py, status))?;
+        out.set_item("layer", self.layer_names.bind(py).call_method0("copy")?)?;
+        out.set_item("marker", PyArray1::from_slice(py, &c.marker))?;
+        out.set_item("x_mm", PyArray1::from_slice(py, &c.x_mm))?;
+        out.set_item("y_mm", PyArray1::from_slice(py, &c.y_mm))?;
+        out.set_item("ux_mm", PyArray1::from_vec(py, m.ux_mm))?;
+        out.set_item("uy_mm", PyArray1::from_vec(py, m.uy_mm))?;
+        out.set_item("x_px", PyArray1::from_slice(py, &c.x_px))?;
+        out.set_item("y_px", PyArray1::from_slice(py, &c.y_px))?;
+        out.set_item("ux_px", PyArray1::from_vec(py, m.ux_px))?;
+        out.set_item("uy_px", PyArray1::from_vec(py, m.uy_px))?;
+        out.set_item("status", PyArray1::from_vec(py, m.status))?;
         Ok(out)
     }
 
@@ -226,6 +225,37 @@ impl PyTracker {
     fn __len__(&self) -> usize {
         self.rows.len()
     }
+}
+
+/// The per-frame columns of `rows` from one frame's tracks (`track`'s CSV values: mm
+/// only for `ok`, px for everything not `lost`, NaN elsewhere).
+fn moving_columns(
+    rows: &[Row],
+    tracks: &[MarkerTrack],
+    camera: crate::sensor::CameraMapping,
+) -> Moving {
+    let n = rows.len();
+    let mut m = Moving {
+        ux_mm: vec![f64::NAN; n],
+        uy_mm: vec![f64::NAN; n],
+        ux_px: vec![f64::NAN; n],
+        uy_px: vec![f64::NAN; n],
+        status: vec![status_name(MarkerStatus::Lost); n],
+    };
+    let mapping = PixelMapping::Linear(camera);
+    for (k, row) in rows.iter().enumerate() {
+        let Some(i) = row.index else { continue };
+        let t = &tracks[i];
+        m.status[k] = status_name(t.status);
+        if t.status == MarkerStatus::Ok {
+            let u = mapping.displacement_mm(row.layer, row.centroid_px, t.displacement_px);
+            (m.ux_mm[k], m.uy_mm[k]) = (u[0], u[1]);
+        }
+        if t.status != MarkerStatus::Lost {
+            (m.ux_px[k], m.uy_px[k]) = (t.displacement_px[0], t.displacement_px[1]);
+        }
+    }
+    m
 }
 
 /// A status as `track`'s CSV writes it, as a NumPy `<U7` element.

@@ -7,7 +7,7 @@
 //! | `--keep` | files |
 //! |---|---|
 //! | every level | `manifest.json`, `journal.csv`; the report files of the source (`report.html`, `verdict.json`, `summary.csv`, `plots/`; written fresh into the archive, without criteria, when the source has none); the per-setpoint files a metric is computed from where the journal does not carry it: `forces/` of a `spatial` sweep (Fig. 9), `displacements/` of a `displacement` sweep (Table I) |
-//! | `evidence` | also `frames/reference*.png` and, for the setpoints the camera evidence and the field figures show, their `displacements/`, `forces/` and frame files |
+//! | `evidence` | also `frames/reference*.png` and, for the setpoints the camera evidence and the field figures show, their `displacements/`, `forces/` (with the per-node σ the run recorded in them) and frame files |
 //! | `all` | every file of the run (not `run.lock`, `live.json`, `.sim/`, temporary files) |
 //!
 //! After copying, the archive is analysed like any run and its metrics compared with

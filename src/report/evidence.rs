@@ -10,13 +10,13 @@
 //! The same holds for any setpoint where the F/T sensor measured (almost) nothing:
 //! [`force_field`] returns the reason instead of a figure, and the page prints it.
 //!
-//! **Per-node uncertainty** is `σ(fz_j) = σ_u · ‖P_j‖` from
-//! [`crate::solve::FrameSolver::force_sd`] for the run's solver on the setpoint's
-//! marker set. The displacement noise σ_u (of the mean over the setpoint's frames) is
-//! taken, in this order, from the journal's `fsum_sd_z_n` (the runner's own estimate,
-//! divided by the solver's ΣFz noise gain), from the scatter between the setpoint's
-//! frames, or from the displacements of the run's unloaded setpoints (target 0, which
-//! should not move); without any of them no σ is shown and the caption says so.
+//! **Per-node uncertainty** is the σ(fz) the run recorded when it solved the setpoint:
+//! the `sfx_n, sfy_n, sfz_n` columns of `forces/NNNNN.csv`, `σ(f_j) = σ_u · ‖P_j‖` from
+//! the solver's `force_sd` (the runner's) for the tracking noise σ_u of the mean over the
+//! setpoint's frames (their scatter / √frames, the noise behind the journal's
+//! `fsum_sd_*_n`). The report reads it and builds no solver; a forces file without those
+//! columns (a run from before runs recorded σ, one frame per setpoint) gets one line
+//! saying the run did not record it ([`SD_NOT_RECORDED`]).
 //!
 //! **Camera evidence.** Statuses and pixel positions are the tracker's own, as the
 //! run recorded them in `displacements/NNNNN.csv` (`x_px, y_px, ux_px, uy_px,
@@ -39,7 +39,6 @@ use super::plot::{encode_png, register_fonts, PngBackend, FONT};
 use crate::analysis::{RunAnalysis, RunData, Snapshot};
 use crate::bench::journal::JournalRow;
 use crate::bench::plan::Sweep;
-use crate::solve::{self, Problem};
 
 /// F/T force below which a setpoint counts as unloaded, N (≈ 1 gf).
 pub const UNLOADED_N: f64 = 0.01;
@@ -98,7 +97,7 @@ pub fn force_field(analysis: &RunAnalysis) -> Option<ForceField> {
         )));
     }
     let forces = snap.forces.clone()?;
-    let sd = node_sd(run, snap, row);
+    let sd = node_sd(run, snap);
     Some(ForceField::Map(Box::new(ForceMapFigure {
         title: format!(
             "force field, setpoint {} (F/T |F| = {})",
@@ -157,16 +156,53 @@ pub fn force_map_caption(fig: &ForceMapFigure, why_no_sd: Option<&str>) -> Strin
 /// Why [`node_sd`] gave nothing (for the caption).
 pub fn why_no_sd(analysis: &RunAnalysis) -> Option<String> {
     let snap = analysis.snapshot.as_ref()?;
-    let row = analysis.run.rows.iter().find(|r| r.index == snap.index)?;
-    node_sd(&analysis.run, snap, row).err()
+    node_sd(&analysis.run, snap).err()
 }
 
-/// Per-node σ(fz) of the snapshot (see the module docs), or why there is none.
-pub fn node_sd(run: &RunData, snap: &Snapshot, row: &JournalRow) -> Result<NodeSd, String> {
-    let frames = run.displacements(snap.index).map_err(|e| e.to_string())?;
-    let nf = frames.len().max(1);
-    // Markers present in every frame, and their mean displacement (as the runner).
-    let n = frames[0].records.len();
+/// The one line the σ panel prints for a run whose forces file carries no σ columns.
+pub const SD_NOT_RECORDED: &str = "the run did not record it (its forces file has no \
+     sfx_n, sfy_n, sfz_n columns: a run from before runs recorded σ, a setpoint of one \
+     frame, which gives no tracking-noise estimate, or a solver that could not give σ)";
+
+/// Per-node σ(fz) of the snapshot as the run recorded it (see the module docs), or why
+/// there is none. Reads files only: the report never rebuilds the solver.
+pub fn node_sd(run: &RunData, snap: &Snapshot) -> Result<NodeSd, String> {
+    let path = crate::analysis::forces_path(&run.dir, snap.index);
+    let recorded = crate::formats::read_force_sd(&path).map_err(|e| e.to_string())?;
+    let Some(sd) = recorded else {
+        return Err(SD_NOT_RECORDED.into());
+    };
+    let forces = snap.forces.as_deref().unwrap_or(&[]);
+    if sd.len() != forces.len() {
+        return Err(format!(
+            "{}: {} σ rows for {} force rows",
+            path.display(),
+            sd.len(),
+            forces.len()
+        ));
+    }
+    let fz_sd_n: Vec<f64> = sd.iter().map(|s| s[2]).collect();
+    let (noise_mm, source) = frame_noise_mm(run, snap.index)?;
+    if fz_sd_n.iter().all(|v| *v == 0.0) {
+        return Err(format!(
+            "the run recorded σ(fz) = 0 at every node ({source} is exactly 0: the frames \
+             equal the reference, as with an ideal simulated camera)"
+        ));
+    }
+    Ok(NodeSd {
+        fz_sd_n,
+        noise_px: noise_mm / run.sensor.camera.mm_per_px,
+        source,
+    })
+}
+
+/// The displacement noise σ(fz) was propagated from, for the caption: the runner's
+/// estimate, the pooled scatter between the setpoint's frames of the markers tracked in
+/// all of them, divided by √frames (the noise of their mean), mm, and that phrase.
+fn frame_noise_mm(run: &RunData, index: usize) -> Result<(f64, String), String> {
+    let frames = run.displacements(index).map_err(|e| e.to_string())?;
+    let nf = frames.len();
+    let n = frames.first().map_or(0, |f| f.records.len());
     let mut mean = vec![[0.0f64; 2]; n];
     let mut present = vec![true; n];
     for f in &frames {
@@ -180,115 +216,24 @@ pub fn node_sd(run: &RunData, snap: &Snapshot, row: &JournalRow) -> Result<NodeS
             }
         }
     }
-    let sensor = &run.sensor;
-    let mut sites = Vec::new();
-    let mut u = Vec::new();
-    for (i, r) in frames[0].records.iter().enumerate() {
-        if present[i] {
-            sites.push(crate::model::MarkerSite {
-                layer: r.layer,
-                position_mm: r.position_mm,
-                depth_mm: sensor.layers[r.layer].depth_mm,
-            });
-            u.extend_from_slice(&mean[i]);
-        }
-    }
-    if sites.is_empty() {
-        return Err("no marker was tracked in every frame of the setpoint".into());
-    }
-    let problem = Problem::new(sensor, &sites);
-    let solver = solve::precompute(&problem, &run.plan.solver, Some(&u))
-        .map_err(|e| format!("the solver could not be rebuilt ({e})"))?;
-    let mm_per_px = sensor.camera.mm_per_px;
-    // 1. The runner's own F_sum σ.
-    let mut estimate: Option<(f64, String)> = None;
-    if let Some(sd_z) = row.fsum_sd_z_n.filter(|v| v.is_finite() && *v >= 0.0) {
-        if let Ok(gain) = solver.sum_sd(1.0) {
-            if gain[2] > 0.0 {
-                estimate = Some((
-                    sd_z / gain[2],
-                    "from the journal's fsum_sd_z_n of this setpoint".into(),
-                ));
+    let (mut ss, mut dof) = (0.0, 0usize);
+    for (i, m) in mean.iter().enumerate().filter(|(i, _)| present[*i]) {
+        for f in &frames {
+            if let Some(v) = f.records.get(i).and_then(|r| r.u_mm) {
+                ss += (v[0] - m[0]).powi(2) + (v[1] - m[1]).powi(2);
             }
         }
+        dof += 2 * nf.saturating_sub(1);
     }
-    // 2. Scatter between the setpoint's frames.
-    if estimate.is_none() && nf >= 2 {
-        let (mut ss, mut dof) = (0.0, 0usize);
-        for (i, m) in mean.iter().enumerate() {
-            if !present[i] {
-                continue;
-            }
-            for f in &frames {
-                if let Some(v) = f.records.get(i).and_then(|r| r.u_mm) {
-                    ss += (v[0] - m[0]).powi(2) + (v[1] - m[1]).powi(2);
-                }
-            }
-            dof += 2 * (nf - 1);
-        }
-        if dof > 0 {
-            let sd = (ss / dof as f64).sqrt() / (nf as f64).sqrt();
-            estimate = Some((
-                sd,
-                format!("scatter between the setpoint's {nf} frames, of their mean"),
-            ));
-        }
-    }
-    // 3. Displacements of the unloaded setpoints.
-    if estimate.is_none() {
-        let (mut ss, mut count, mut rows) = (0.0, 0usize, 0usize);
-        for r in run
-            .rows
-            .iter()
-            .filter(|r| r.target_normal_n == 0.0 && r.target_tx_n == 0.0 && r.target_ty_n == 0.0)
-        {
-            let Ok(fr) = run.displacements(r.index) else {
-                continue;
-            };
-            rows += 1;
-            for f in &fr {
-                for v in f.records.iter().filter_map(|x| x.u_mm) {
-                    ss += v[0] * v[0] + v[1] * v[1];
-                    count += 2;
-                }
-            }
-        }
-        if count > 0 {
-            let sd = (ss / count as f64).sqrt() / (nf as f64).sqrt();
-            estimate = Some((
-                sd,
-                format!("RMS displacement of the {rows} unloaded setpoint(s), per frame, of the mean of {nf}"),
-            ));
-        }
-    }
-    let Some((sigma_mm, source)) = estimate else {
-        return Err("no displacement-noise estimate: the journal has no fsum_sd_z_n, the setpoint has one frame and the run has no unloaded setpoint".into());
-    };
-    if sigma_mm == 0.0 {
+    if dof == 0 {
         return Err(format!(
-            "the displacement-noise estimate is exactly 0 ({source}: the frames equal the \
-             reference, as with an ideal simulated camera), so σ(fz) = 0 at every node"
+            "setpoint {index} has σ recorded but {nf} frame(s) tracked in its displacement file"
         ));
     }
-    let mut out = vec![0.0; 3 * sensor.force_grid.len()];
-    solver
-        .force_sd(sigma_mm, &mut out)
-        .map_err(|e| format!("force_sd failed ({e})"))?;
-    let fz_sd_n: Vec<f64> = snap
-        .forces
-        .as_deref()
-        .unwrap_or(&[])
-        .iter()
-        .map(|r| {
-            let j = r.iy * sensor.force_grid.nx + r.ix;
-            out.get(3 * j + 2).copied().unwrap_or(f64::NAN)
-        })
-        .collect();
-    Ok(NodeSd {
-        fz_sd_n,
-        noise_px: sigma_mm / mm_per_px,
-        source,
-    })
+    Ok((
+        (ss / dof as f64).sqrt() / (nf as f64).sqrt(),
+        format!("scatter between the setpoint's {nf} frames, of their mean"),
+    ))
 }
 
 /// One camera panel: an annotated PNG and its caption.
@@ -735,78 +680,4 @@ pub fn write_sections(
         }
     }
     Ok((o, files))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::model::{HalfSpace, MarkerSite};
-    use crate::solve::SolverConfig;
-
-    /// Reconstructs (pinv, exact data) a 7 N normal load acting as four point loads
-    /// `off` mm from (9, 6.75) along both axes — the centre of four force nodes 2.2 mm
-    /// apart — and returns, for those four nodes, (tangential force · inward unit, |t|).
-    fn inward_shear(off: f64) -> Vec<(f64, f64)> {
-        let sensor = crate::sensor::paper_sensor();
-        let hs = HalfSpace::from_elastomer(&sensor.elastomer);
-        let c = [9.0, 6.75];
-        let loads: Vec<[f64; 2]> = [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)]
-            .iter()
-            .map(|(sx, sy)| [c[0] + sx * off, c[1] + sy * off])
-            .collect();
-        let mut sites = Vec::new();
-        let mut u = Vec::new();
-        for (li, l) in sensor.layers.iter().enumerate() {
-            for p in l.markers.unwrap().grid.nodes_mm() {
-                sites.push(MarkerSite {
-                    layer: li,
-                    position_mm: p,
-                    depth_mm: l.depth_mm,
-                });
-                let mut d = [0.0; 2];
-                for q in &loads {
-                    let v = hs.displacement(p[0] - q[0], p[1] - q[1], l.depth_mm, [0.0, 0.0, 1.75]);
-                    d[0] += v[0];
-                    d[1] += v[1];
-                }
-                u.extend_from_slice(&d);
-            }
-        }
-        let problem = Problem::new(&sensor, &sites);
-        let mut s = solve::precompute(&problem, &SolverConfig::default(), Some(&u)).unwrap();
-        let mut f = vec![0.0; 3 * sensor.force_grid.len()];
-        s.apply(&u, &mut f).unwrap();
-        sensor
-            .force_grid
-            .nodes_mm()
-            .iter()
-            .enumerate()
-            .filter(|(_, q)| (q[0] - c[0]).abs() < 1.2 && (q[1] - c[1]).abs() < 1.2)
-            .map(|(j, q)| {
-                let inward = [c[0] - q[0], c[1] - q[1]];
-                let n = inward[0].hypot(inward[1]);
-                let t = [f[3 * j], f[3 * j + 1]];
-                ((t[0] * inward[0] + t[1] * inward[1]) / n, t[0].hypot(t[1]))
-            })
-            .collect()
-    }
-
-    /// The X of inward arrows around the Fig. 7 contact is the reconstruction's, not the
-    /// plot's: a purely normal load whose parts sit nearer the contact centre than the
-    /// nodes comes back with inward tangential forces at the four nodes around it, while
-    /// the same load exactly at the nodes comes back with none.
-    #[test]
-    fn normal_load_inside_the_nodes_reconstructs_with_inward_shear() {
-        let inside = inward_shear(0.7);
-        assert_eq!(inside.len(), 4);
-        for (inward, t) in &inside {
-            assert!(
-                *inward > 0.05 && (*inward - t).abs() < 0.05 * t,
-                "{inside:?}"
-            );
-        }
-        for (_, t) in inward_shear(1.1) {
-            assert!(t < 1e-6, "load on the nodes: tangential {t} N");
-        }
-    }
 }

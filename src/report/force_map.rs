@@ -2,8 +2,8 @@
 //! per node, coloured by the signed normal force fz (diverging scale, red presses into
 //! the sensor, blue pulls out, with a colour bar), the tangential force (fx, fy) as an
 //! arrow from the node on a stated scale (force per mm of arrow, with a key arrow),
-//! and, where a displacement noise is known, a second panel with the per-node standard
-//! deviation σ(fz) from [`crate::solve::FrameSolver::force_sd`].
+//! and, where the run recorded it, a second panel with the per-node standard
+//! deviation σ(fz) (the `sfz_n` column of the setpoint's forces file).
 //!
 //! The forces are held in newtons (as the forces CSV records them) and drawn in the
 //! plan's force unit ([`ForceMapFigure::unit`]): a plan in gf gets a colour bar, key

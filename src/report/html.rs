@@ -257,12 +257,11 @@ pub fn render(
     super::headline::headline(&mut o, metrics, verdicts, run.plan.force_unit);
 
     if let Some(vs) = verdicts {
-        let worst = vs
-            .iter()
-            .map(|v| v.outcome)
-            .chain(verdict.requirements.iter().map(|r| r.outcome))
-            .max()
-            .unwrap_or(Outcome::NotJudged);
+        let worst = Outcome::combine(
+            vs.iter()
+                .map(|v| v.outcome)
+                .chain(verdict.requirements.iter().map(|r| r.outcome)),
+        );
         // On an INCOMPLETE run the criteria are shown but are not the verdict: no
         // coloured PASS next to them.
         let class = if verdict.outcome == Outcome::Incomplete {
@@ -291,10 +290,27 @@ pub fn render(
             // In the page's force unit, as the metrics are shown.
             let k = super::headline::display_factor(v.unit, plan_unit);
             let shown_unit = if k == 1.0 { v.unit } else { plan_unit.symbol() };
-            let value = match &v.note {
-                Some(n) => escape(n),
-                None => fmt_value(v.value * k),
+            let value = match (&v.note, v.ci95) {
+                (Some(n), _) => escape(n),
+                // A fitted parameter: its interval decided MARGINAL.
+                (None, Some([lo, hi])) => format!(
+                    "{} <small>(95 % CI [{}, {}])</small>",
+                    fmt_value(v.value * k),
+                    fmt_value(lo * k),
+                    fmt_value(hi * k)
+                ),
+                (None, None) => fmt_value(v.value * k),
             };
+            let mut threshold = super::headline::scaled_criterion(&v.criterion, k).to_string();
+            if let (Some(n), None, true) = (v.nominal, &v.note, v.criterion.is_nominal_relative()) {
+                let limits = match v.limits() {
+                    (Some(lo), Some(hi)) => format!("[{}, {}]", fmt_value(lo), fmt_value(hi)),
+                    (Some(lo), None) => format!(">= {}", fmt_value(lo)),
+                    (None, Some(hi)) => format!("<= {}", fmt_value(hi)),
+                    (None, None) => String::new(),
+                };
+                threshold.push_str(&format!(" (nominal {}: {limits})", fmt_value(n)));
+            }
             let _ = writeln!(
                 o,
                 "<tr class=\"verdict\"><td class=\"l {}\">{}</td><td class=\"l\">{}</td>\
@@ -303,7 +319,7 @@ pub fn render(
                 v.outcome.word(),
                 escape(&v.criterion.metric),
                 escape(shown_unit),
-                escape(&super::headline::scaled_criterion(&v.criterion, k).to_string())
+                escape(&threshold)
             );
         }
         for r in &verdict.requirements {

@@ -3,7 +3,8 @@
 //! [`plot`] is the shared figure output used by reports and studies: one drawing
 //! routine per figure, written to PNG and SVG from the same code. [`figures`] holds the
 //! report's figures, [`html`] the HTML page, [`acceptance`] the criteria file and its
-//! verdicts, [`verdict`] the run's overall outcome and `verdict.json`. [`write_report`]
+//! verdicts, [`verdict`] the run's overall outcome and `verdict.json`, [`fit_page`] the
+//! `fit.html` page of a sensor-model fit. [`write_report`]
 //! puts them together for one analysed run directory:
 //!
 //! ```text
@@ -24,6 +25,7 @@ pub mod compare;
 pub mod evidence;
 pub mod figures;
 pub mod figures_metrology;
+pub mod fit_page;
 pub mod force_map;
 pub mod headline;
 pub mod html;
@@ -39,7 +41,7 @@ use thiserror::Error;
 
 use crate::analysis::{Metric, RunAnalysis};
 use crate::bench::lock::LockState;
-use acceptance::{AcceptanceError, Criteria, Outcome, Verdict};
+use acceptance::{AcceptanceError, Criteria, Outcome, RunFit, Verdict};
 use figures::{CalibrationFigure, MarkerHealthFigure, ProfileFigure, QuiverFigure};
 use figures_metrology::{CreepFigure, HysteresisFigure, ResidualFigure};
 use force_map::ForceMapFigure;
@@ -307,18 +309,39 @@ pub fn write_report(
     write_report_to(analysis, criteria, options, &analysis.run.dir)
 }
 
-/// As [`write_report`], into `out_dir` (created if missing).
+/// As [`write_report`], into `out_dir` (created if missing). The run's fit is
+/// `RUN_DIR/fit.json` when it exists ([`RunFit::load`]; an invalid one is an error).
 pub fn write_report_to(
     analysis: &RunAnalysis,
     criteria: Option<&Criteria>,
     options: &ReportOptions,
     out_dir: &Path,
 ) -> Result<ReportOutcome, ReportError> {
-    let metrics = analysis.metrics();
+    let fit = RunFit::load(&analysis.run.dir, None)?;
+    write_report_with_fit(analysis, criteria, options, out_dir, &fit)
+}
+
+/// As [`write_report_to`] with the run's fit given (`report --fit FILE`): its fitted
+/// parameters join the metrics as `fit.<NAME>` and criteria on them are judged on it.
+pub fn write_report_with_fit(
+    analysis: &RunAnalysis,
+    criteria: Option<&Criteria>,
+    options: &ReportOptions,
+    out_dir: &Path,
+    fit: &RunFit,
+) -> Result<ReportOutcome, ReportError> {
+    let mut metrics = analysis.metrics();
+    metrics.extend(fit.metrics());
     // Judge first: a criterion the run cannot answer is an error before anything is
     // written.
     let verdicts = match criteria {
-        Some(c) => c.evaluate(&metrics, analysis.run.sweep_kind(), &analysis.absent)?,
+        Some(c) => c.evaluate_with_fit(
+            &metrics,
+            analysis.run.sweep_kind(),
+            &analysis.absent,
+            None,
+            Some(fit),
+        )?,
         None => Vec::new(),
     };
     let state = RunState::of(analysis, &options.lock);

@@ -9,7 +9,10 @@
 //! 2. Otherwise, with no criteria and no provenance requirement, **NOT JUDGED** (exit
 //!    0 like PASS, but never called a pass: nothing was required, nothing was checked).
 //! 3. Otherwise the worst outcome over the criteria and the provenance requirements:
-//!    any FAIL gives **FAIL**, else any MARGINAL gives **MARGINAL**, else **PASS**.
+//!    any FAIL gives **FAIL**, else a criterion nothing could judge (a fitted parameter
+//!    with no fit, held at nominal or not identifiable) gives **NOT JUDGED**, else any
+//!    MARGINAL gives **MARGINAL**, else **PASS** ([`Outcome::combine`]): a build never
+//!    passes on a criterion that was not judged.
 //!
 //! Provenance requirements: `require_build_id` (a build id recorded) and
 //! `require_real_bench` (the manifest records `simulated: false`; a simulated run
@@ -200,7 +203,16 @@ pub struct CriterionJson {
     pub marginal_min: Option<f64>,
     /// Marginal at or above.
     pub marginal_max: Option<f64>,
-    /// PASS, MARGINAL or FAIL.
+    /// Fitted parameters: `|value - nominal| <= r |nominal|`.
+    pub max_relative_to_nominal: Option<f64>,
+    /// Fitted parameters: `|value - nominal| <= d` (the parameter's unit).
+    pub max_deviation_from_nominal: Option<f64>,
+    /// Fitted parameters: the nominal value the fit started from.
+    pub nominal: Option<f64>,
+    /// The limits the value was judged against, every bound applied (`null`: none on
+    /// that side, or nothing judged).
+    pub limits: [Option<f64>; 2],
+    /// PASS, MARGINAL, FAIL, or NOT JUDGED (a fitted parameter nothing determined).
     pub outcome: Outcome,
     /// Why there is no value, if so.
     pub note: Option<String>,
@@ -407,13 +419,14 @@ impl VerdictDoc {
                 });
             }
         }
-        // Nothing required, nothing checked: NOT JUDGED, never PASS.
-        let graded = verdicts
-            .iter()
-            .map(|v| v.outcome)
-            .chain(requirements.iter().map(|r| r.outcome))
-            .max()
-            .unwrap_or(Outcome::NotJudged);
+        // Nothing required, nothing checked, or a criterion nothing judged: NOT
+        // JUDGED, never PASS.
+        let graded = Outcome::combine(
+            verdicts
+                .iter()
+                .map(|v| v.outcome)
+                .chain(requirements.iter().map(|r| r.outcome)),
+        );
         let partial = !run.complete;
         let outcome = if partial && !allow_partial {
             Outcome::Incomplete
@@ -441,12 +454,32 @@ impl VerdictDoc {
                 .filter(|r| r.outcome == Outcome::Marginal)
                 .count();
         let judged = verdicts.len() + requirements.len();
+        let unjudged: Vec<String> = verdicts
+            .iter()
+            .filter(|v| v.outcome == Outcome::NotJudged)
+            .map(|v| {
+                format!(
+                    "{} ({})",
+                    v.criterion.metric,
+                    v.note.as_deref().unwrap_or("no value")
+                )
+            })
+            .collect();
         let detail = match outcome {
             Outcome::Incomplete => format!(
                 "{}; not graded (grade a partial run with --allow-partial)",
                 run.incomplete_reason.clone().unwrap_or_default()
             ),
+            Outcome::NotJudged if !unjudged.is_empty() => format!(
+                "{} of {judged} criteria not judged: {}",
+                unjudged.len(),
+                unjudged.join("; ")
+            ),
             Outcome::NotJudged => "no acceptance criteria given; nothing was judged".to_string(),
+            Outcome::Fail if !unjudged.is_empty() => format!(
+                "{failed} of {judged} criteria failed, {} not judged",
+                unjudged.len()
+            ),
             Outcome::Fail => format!("{failed} of {judged} criteria failed"),
             Outcome::Marginal => format!("{marginal} of {judged} criteria marginal"),
             Outcome::Pass => format!("{judged} criteria"),
@@ -494,11 +527,24 @@ impl VerdictDoc {
                 max: v.criterion.max,
                 marginal_min: v.criterion.marginal_min,
                 marginal_max: v.criterion.marginal_max,
+                max_relative_to_nominal: v.criterion.max_relative_to_nominal,
+                max_deviation_from_nominal: v.criterion.max_deviation_from_nominal,
+                nominal: v.nominal,
+                limits: if v.outcome == Outcome::NotJudged {
+                    [None, None]
+                } else {
+                    let (lo, hi) = v.limits();
+                    [lo, hi]
+                },
                 outcome: v.outcome,
                 note: v.note.clone().or_else(|| {
                     (!v.value.is_finite()).then(|| format!("value {} is not finite", v.value))
                 }),
-                ci95: None,
+                ci95: v.ci95.map(|[low, high]| CiJson {
+                    low,
+                    high,
+                    method: "fit".into(),
+                }),
             })
             .collect();
         VerdictDoc {
@@ -577,10 +623,15 @@ impl VerdictDoc {
     /// Adds the run's metrics (`metrics[]`) and each criterion's confidence interval.
     pub fn with_metrics(mut self, metrics: &[Metric]) -> VerdictDoc {
         for c in &mut self.criteria {
-            c.ci95 = metrics
+            if let Some(ci) = metrics
                 .iter()
                 .find(|m| m.name == c.metric)
-                .and_then(|m| CiJson::of(m.ci95));
+                .and_then(|m| CiJson::of(m.ci95))
+            {
+                c.ci95 = Some(ci);
+            } else if !c.metric.starts_with(super::acceptance::FIT_PREFIX) {
+                c.ci95 = None;
+            }
         }
         self.metrics = metrics
             .iter()

@@ -262,6 +262,8 @@ fn decode(path: &Path) -> Result<DynamicImage, VisionError> {
     use crate::frame_size::{open_capped, FrameSizeError};
     let reader = open_capped(path).map_err(|e| match e {
         FrameSizeError::Open { path, source } => VisionError::Open { path, source },
+        // The header's message is the decoder's; Decode names the file once.
+        FrameSizeError::Header { path, message } => VisionError::Decode { path, message },
         e => VisionError::Decode {
             path: path.to_path_buf(),
             message: e.to_string(),

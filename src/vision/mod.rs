@@ -44,6 +44,7 @@ mod health;
 mod image;
 pub mod onboard;
 mod output;
+mod prefetch;
 mod track;
 mod window;
 
@@ -59,6 +60,7 @@ pub use self::image::{check_layers, colour_layer, load_frame, Frame, FrameView, 
 pub use self::output::{
     write_tracks, write_tracks_mapped, write_tracks_mapped_to, write_tracks_to, TRACK_EXTRA_COLUMNS,
 };
+pub use self::prefetch::{decode_ahead, decoder_threads};
 pub use self::track::{
     MarkerTrack, StatusCounts, TrackConfig, TrackMode, Tracker, DEFAULT_APPEARANCE_TOLERANCE,
 };

@@ -863,6 +863,9 @@ impl Runner<'_, '_, '_, '_> {
         let mut f = vec![f64::NAN; n_out];
         let mut precompute_s = 0.0;
         let mut fsum_sd = None;
+        // Per-node σ of the forces, recorded beside them for the report (which draws it
+        // without rebuilding the solver): the same noise as `fsum_sd`, per component.
+        let mut node_sd: Option<Vec<f64>> = None;
         let solved: Result<(), String> = (|| {
             // An exactly unmoved frame (an ideal unloaded setpoint) is zero force for
             // every linear solver; solving it would let automatic λ / rank be chosen
@@ -872,6 +875,7 @@ impl Runner<'_, '_, '_, '_> {
                 // Frames that agree exactly carry no noise, whatever the solver.
                 if sigma_mean_mm == Some(0.0) {
                     fsum_sd = Some([0.0; 3]);
+                    node_sd = Some(vec![0.0; n_out]);
                 }
                 return Ok(());
             }
@@ -890,12 +894,17 @@ impl Runner<'_, '_, '_, '_> {
             s.apply(&u, &mut f).map_err(|e| e.to_string())?;
             if let Some(sigma) = sigma_mean_mm {
                 fsum_sd = Some(solve::force_sum_sd(&**s, sigma).map_err(|e| e.to_string())?);
+                // A solver that cannot give per-node σ still solved: the file then
+                // carries no σ columns and the report says the run did not record it.
+                let mut sd = vec![0.0; n_out];
+                node_sd = s.force_sd(sigma, &mut sd).ok().map(|()| sd);
             }
             Ok(())
         })();
         let error = solved.err();
         if error.is_some() {
             fsum_sd = None;
+            node_sd = None;
             f.iter_mut().for_each(|v| *v = f64::NAN);
         }
         let t_solve = (t0.elapsed().as_secs_f64() - precompute_s).max(0.0);
@@ -907,8 +916,11 @@ impl Runner<'_, '_, '_, '_> {
         let t_io = Instant::now();
         let fpath = format!("forces/{index:05}.csv");
         let path = self.dir.join(&fpath);
-        self.fs.step(&fpath, || {
-            formats::write_forces(&path, &sensor.force_grid, &[(String::new(), f)])
+        self.fs.step(&fpath, || match node_sd {
+            Some(sd) => {
+                formats::write_forces_sd(&path, &sensor.force_grid, &[(String::new(), f)], &[sd])
+            }
+            None => formats::write_forces(&path, &sensor.force_grid, &[(String::new(), f)]),
         })?;
         self.io_s += t_io.elapsed().as_secs_f64();
         self.solve_s += t_solve;

@@ -3,6 +3,9 @@
 //! - [`TrendFigure`]: one small panel per metric (those with a direction, present in at
 //!   least two runs), value with its 95 % CI against the runs in order of their start
 //!   date, x labelled by build id; the baseline's value dashed;
+//! - the fitted parameters' trend ([`fit_trend_figure`], a [`TrendFigure`] too): one
+//!   panel per `fit.<NAME>` any run has (runs with a `fit.json` whose fit determined
+//!   it), value and 95 % interval per build, the nominal value dashed;
 //! - [`OverlayFigure`]: applied against measured (F^sum_z against the F/T Fz of
 //!   magnitude runs; measured against applied angle of angle runs), one colour per run:
 //!   the samples, the level means ± 1 SD joined by a line, the identity.
@@ -14,6 +17,7 @@ use plotters::prelude::*;
 
 use super::{Better, Comparison};
 use crate::report::acceptance::fmt_value;
+use crate::report::acceptance::FIT_PREFIX;
 use crate::report::headline::{display_factor, other_resolution};
 use crate::report::plot::{
     self, titled_with_legend, Figure, FigureFiles, FigureResult, LegendGlyph, PlotError, FONT,
@@ -77,6 +81,10 @@ pub struct TrendFigure {
     pub colors: Vec<usize>,
     /// The panels.
     pub panels: Vec<TrendPanel>,
+    /// The figure's title.
+    pub title: String,
+    /// What each panel's dashed line is (legend text).
+    pub reference: String,
 }
 
 /// Smallest half-span of a trend panel's y axis, as a fraction of the baseline's value
@@ -161,6 +169,65 @@ pub fn trend_figure(c: &Comparison) -> Option<TrendFigure> {
         labels,
         colors: order,
         panels,
+        title: "metrics over the runs".into(),
+        reference: "the baseline's value".into(),
+    })
+}
+
+/// The fitted parameters over the runs (`None` when no run has a fitted parameter):
+/// one panel per `fit.<NAME>` metric, the runs in date order, the value with its 95 %
+/// interval, and the nominal value (the sensor file's, which like-for-like runs share)
+/// dashed. A run without a `fit.json`, or whose fit did not determine the parameter,
+/// has no point in that panel.
+pub fn fit_trend_figure(c: &Comparison) -> Option<TrendFigure> {
+    let order = c.date_order();
+    let labels: Vec<String> = order.iter().map(|&i| c.runs[i].label.clone()).collect();
+    let mut panels = Vec::new();
+    for m in &c.metrics {
+        let Some(param) = m.name.strip_prefix(FIT_PREFIX) else {
+            continue;
+        };
+        if panels.len() >= MAX_TREND_PANELS {
+            break;
+        }
+        let points: Vec<TrendPoint> = order
+            .iter()
+            .enumerate()
+            .filter_map(|(x, &i)| {
+                let mt = c.runs[i].metric(&m.name)?;
+                mt.value.is_finite().then(|| {
+                    (
+                        x,
+                        mt.value,
+                        mt.ci95
+                            .filter(|ci| ci.low.is_finite() && ci.high.is_finite())
+                            .map(|ci| (ci.low, ci.high)),
+                    )
+                })
+            })
+            .collect();
+        if points.is_empty() {
+            continue;
+        }
+        let nominal = c
+            .runs
+            .iter()
+            .filter_map(|r| r.fit.doc()?.parameters.get(param).map(|p| p.nominal))
+            .find(|v| v.is_finite());
+        panels.push(TrendPanel {
+            metric: m.name.clone(),
+            unit: m.unit.to_string(),
+            better: None,
+            points,
+            baseline: nominal,
+        });
+    }
+    (!panels.is_empty()).then_some(TrendFigure {
+        labels,
+        colors: order,
+        panels,
+        title: "fitted sensor-model parameters over the builds".into(),
+        reference: "the nominal value (sensor file)".into(),
     })
 }
 
@@ -216,7 +283,7 @@ impl TrendFigure {
             .zip(&self.labels)
             .map(|(&c, l)| (LegendGlyph::Dot(run_color(c)), l.clone()))
             .collect();
-        entries.push((LegendGlyph::Dashed(BLACK), "the baseline's value".into()));
+        entries.push((LegendGlyph::Dashed(BLACK), self.reference.clone()));
         entries.push((LegendGlyph::ErrorBar(BLACK), "value and 95 % CI".into()));
         entries
     }
@@ -225,7 +292,7 @@ impl TrendFigure {
 impl Figure for TrendFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> FigureResult<DB> {
         let rows = self.panels.len().div_ceil(TREND_COLUMNS).max(1);
-        let root = titled_with_legend(root, "metrics over the runs", &self.legend())?;
+        let root = titled_with_legend(root, &self.title, &self.legend())?;
         let areas = root.split_evenly((rows, TREND_COLUMNS));
         let n = self.labels.len();
         let labels: Vec<String> = self.labels.iter().map(|l| short(l, 14)).collect();

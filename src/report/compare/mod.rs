@@ -28,12 +28,19 @@
 //! Each run gets a [`VerdictDoc`] as `report` would give it. The comparison's outcome
 //! is decided by the runs other than the baseline: FAIL if any FAILs; else INCOMPLETE
 //! if any is INCOMPLETE or the baseline itself did not measure its whole plan (the
-//! relative limits come from it; `--allow-partial` grades partial runs); else MARGINAL
-//! if any is MARGINAL; else PASS. Without criteria (or when no compared run has
+//! relative limits come from it; `--allow-partial` grades partial runs); else NOT
+//! JUDGED if any has a criterion nothing could judge (a fitted parameter without a
+//! fit, or not identifiable: never PASS on it); else MARGINAL if any is MARGINAL; else
+//! PASS. Without criteria (or when no compared run has
 //! anything to judge) the outcome is NOT JUDGED (exit 0), never PASS. The baseline's own
 //! criteria are shown, not counted; a baseline that FAILs its own absolute criteria is
 //! flagged on the banner and in `compare.csv` (`baseline_outcome`): relative limits
 //! taken from a failing run are no assurance.
+//!
+//! **Fitted parameters.** A run with a `fit.json` ([`RunFit`]) has its fitted,
+//! identifiable parameters as metrics `fit.<NAME>`: compared, tabled and written to
+//! `compare.csv` like the others (no better direction), trended in
+//! `plots/compare_fit` against the nominal value, and judged by criteria on them.
 //!
 //! **Like for like.** Runs of different sweep kinds, plans (SHA-256 of the plan text in
 //! the manifest) or sensors (SHA-256 of the sensor text) measure different things:
@@ -49,9 +56,11 @@ use std::path::{Path, PathBuf};
 
 use thiserror::Error;
 
-pub use figures::{OverlayCurve, OverlayFigure, TrendFigure, TrendPanel, TrendPoint, RUN_COLORS};
+pub use figures::{
+    fit_trend_figure, OverlayCurve, OverlayFigure, TrendFigure, TrendPanel, TrendPoint, RUN_COLORS,
+};
 
-use super::acceptance::{fmt_value, AcceptanceError, Criteria, Outcome, Verdict};
+use super::acceptance::{fmt_value, AcceptanceError, Criteria, Outcome, RunFit, Verdict};
 use super::plot::{FigureFiles, PlotError};
 use super::verdict::{exit_code, RunState, VerdictDoc};
 use crate::analysis::{AnalysisError, AnalysisOptions, Ci95, Metric, RunAnalysis};
@@ -173,6 +182,8 @@ pub struct LoadedRun {
     pub analysis: RunAnalysis,
     /// What [`lock::probe`] found before it was read.
     pub lock: LockState,
+    /// Its `fit.json`, if it has one ([`RunFit::load`]).
+    pub fit: RunFit,
 }
 
 /// Loads one run directory (as `report` does: lock probe first, then the analysis).
@@ -205,10 +216,15 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun, CompareError> {
             source: Box::new(source),
         }
     })?;
+    let fit = RunFit::load(dir, None).map_err(|source| CompareError::Acceptance {
+        dir: dir.to_path_buf(),
+        source: Box::new(source),
+    })?;
     Ok(LoadedRun {
         dir: dir.to_path_buf(),
         analysis,
         lock,
+        fit,
     })
 }
 
@@ -486,8 +502,11 @@ pub struct ComparedRun {
     pub is_baseline: bool,
     /// Its analysis.
     pub analysis: RunAnalysis,
-    /// Its metrics.
+    /// Its metrics, the fitted parameters (`fit.<NAME>`) included when it has a
+    /// `fit.json`.
     pub metrics: Vec<Metric>,
+    /// Its fit.
+    pub fit: RunFit,
     /// Criteria verdicts (absolute bounds only for the baseline).
     pub verdicts: Vec<Verdict>,
     /// What `report` would decide for it (with the relative bounds).
@@ -705,7 +724,12 @@ impl Comparison {
             }
         }
         let labels = labels(&loaded);
-        let base_metrics = loaded[baseline].analysis.metrics();
+        let metrics_of = |l: &LoadedRun| {
+            let mut m = l.analysis.metrics();
+            m.extend(l.fit.metrics());
+            m
+        };
+        let base_metrics = metrics_of(&loaded[baseline]);
         // The baseline is judged on the absolute bounds only.
         let base_criteria = criteria.map(|c| Criteria {
             criteria: c
@@ -717,7 +741,7 @@ impl Comparison {
         });
         let mut runs = Vec::with_capacity(loaded.len());
         for (i, (l, label)) in loaded.into_iter().zip(labels).enumerate() {
-            let metrics = l.analysis.metrics();
+            let metrics = metrics_of(&l);
             let is_baseline = i == baseline;
             let judge_err = |source| CompareError::Acceptance {
                 dir: l.dir.clone(),
@@ -727,11 +751,12 @@ impl Comparison {
                 let c = base_criteria.as_ref();
                 let v = match c {
                     Some(c) => c
-                        .evaluate_against(
+                        .evaluate_with_fit(
                             &metrics,
                             l.analysis.run.sweep_kind(),
                             &l.analysis.absent,
                             None,
+                            Some(&l.fit),
                         )
                         .map_err(judge_err)?,
                     None => Vec::new(),
@@ -740,11 +765,12 @@ impl Comparison {
             } else {
                 let v = match criteria {
                     Some(c) => c
-                        .evaluate_against(
+                        .evaluate_with_fit(
                             &metrics,
                             l.analysis.run.sweep_kind(),
                             &l.analysis.absent,
                             Some(&base_metrics),
+                            Some(&l.fit),
                         )
                         .map_err(judge_err)?,
                     None => Vec::new(),
@@ -759,6 +785,7 @@ impl Comparison {
                 is_baseline,
                 analysis: l.analysis,
                 metrics,
+                fit: l.fit,
                 verdicts,
                 verdict,
             });
@@ -939,6 +966,7 @@ fn overall(runs: &[ComparedRun], baseline: usize, has_criteria: bool) -> (Outcom
     let failed = with(Outcome::Fail);
     let incomplete = with(Outcome::Incomplete);
     let marginal = with(Outcome::Marginal);
+    let unjudged = with(Outcome::NotJudged);
     let n = compared.len();
     if !failed.is_empty() {
         return (
@@ -970,6 +998,18 @@ fn overall(runs: &[ComparedRun], baseline: usize, has_criteria: bool) -> (Outcom
             format!(
                 "INCOMPLETE: {}; not graded (grade partial runs with --allow-partial)",
                 why.join("; ")
+            ),
+        );
+    }
+    // A run whose criteria could not all be judged (a fitted parameter without a fit,
+    // or not identifiable) keeps the comparison NOT JUDGED: never PASS on it.
+    if has_criteria && !unjudged.is_empty() {
+        return (
+            Outcome::NotJudged,
+            format!(
+                "NOT JUDGED: {} of {n} compared run(s) have criteria nothing could judge: {}",
+                unjudged.len(),
+                unjudged.join(", ")
             ),
         );
     }
@@ -1025,8 +1065,15 @@ pub fn criterion_text(v: &Verdict) -> String {
 pub fn criterion_text_scaled(v: &Verdict, k: f64) -> String {
     let c = super::headline::scaled_criterion(&v.criterion, k);
     let mut s = c.to_string();
+    let nominal = v
+        .nominal
+        .filter(|_| c.is_nominal_relative() && v.note.is_none())
+        .map(|n| n * k);
+    if let Some(n) = nominal {
+        s.push_str(&format!(" (nominal {})", fmt_value(n)));
+    }
     if let Some(b) = v.baseline.map(|b| b * k) {
-        let (lo, hi) = c.limits(Some(b));
+        let (lo, hi) = c.limits_with(Some(b), nominal);
         let limits = match (lo, hi) {
             (Some(lo), Some(hi)) => format!("in [{}, {}]", fmt_value(lo), fmt_value(hi)),
             (Some(lo), None) => format!(">= {}", fmt_value(lo)),
@@ -1076,12 +1123,13 @@ pub fn csv_bytes(c: &Comparison) -> Result<Vec<u8>, csv::Error> {
                 .map(|v| criterion_text(v))
                 .collect::<Vec<_>>()
                 .join("; ");
-            let outcome = verdicts
-                .iter()
-                .map(|v| v.outcome)
-                .max()
-                .map(|o| o.word().to_string())
-                .unwrap_or_default();
+            let outcome = if verdicts.is_empty() {
+                String::new()
+            } else {
+                Outcome::combine(verdicts.iter().map(|v| v.outcome))
+                    .word()
+                    .to_string()
+            };
             let worst = match (m.better, m.worst) {
                 (Some(_), Some(w)) => if w == i { "yes" } else { "no" }.to_string(),
                 _ => String::new(),
@@ -1173,6 +1221,19 @@ pub fn write_comparison(c: &Comparison, out_dir: &Path) -> Result<CompareOutcome
                     ),
                 }
             ),
+            &t,
+            size,
+        )?;
+    }
+    if let Some(t) = figures::fit_trend_figure(c) {
+        let size = t.size();
+        save(
+            "compare_fit",
+            "Fitted sensor-model parameters (`tactbench fit`, each run's fit.json) over the \
+             builds, in order of their start date. Points: fitted value; bars: its 95 % \
+             interval; dashed: the nominal value of the sensor file. A run without a fit, or \
+             whose fit could not determine a parameter, has no point for it."
+                .to_string(),
             &t,
             size,
         )?;
