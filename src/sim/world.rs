@@ -11,12 +11,19 @@
 //! `press_direction = +1` when larger z presses deeper, `−1` for a CNC-style stage
 //! (GRBL: +z is up, machine coordinates are ≤ 0).
 //!
-//! Contact laws (Johnson, *Contact Mechanics*, §3.4, §5.2, §7.2; `E* = E/(1−ν²)`,
+//! Contact laws: [`crate::model::indentation::indentation_force`], the law the fit's
+//! indentation route inverts, on the body of the scene's sensor file (the truth the
+//! camera sees): its `[elastomer] model = "bonded-layer"` presses as a layer of its
+//! `thickness_mm` bonded to a rigid plate (Shull 2002), any other model as the
+//! half-space (Johnson, *Contact Mechanics*, §3.4, §5.2, §7.2; `E* = E/(1−ν²)`,
 //! `G = E/(2(1+ν))`):
-//! - flat cylinder of radius `a`: `P = 2 a E* δ` (contact radius `a` at any depth);
-//! - hemisphere of radius `R`: `P = 4/3 E* √R δ^{3/2}`, contact radius `a = √(Rδ)`;
-//! - point: modelled for the force law as a hemisphere of radius
-//!   [`POINT_TIP_RADIUS_MM`], its traction applied as a concentrated load.
+//! - flat cylinder of radius `a`: half-space `P = 2 a E* δ` (contact radius `a` at any
+//!   depth);
+//! - hemisphere of radius `R`: half-space `P = 4/3 E* √R δ^{3/2}`, contact radius
+//!   `a = √(Rδ)`, past the equator the flank presses like a punch;
+//! - point: modelled for the force law as a half-space hemisphere of radius
+//!   [`POINT_TIP_RADIUS_MM`] (whatever the body: its contact is far smaller than any
+//!   layer), its traction applied as a concentrated load.
 //!
 //! Tangential force comes from lateral stage motion while in contact (Mindlin):
 //! `Q = k_t · s`, `k_t = 8 G a / (2 − ν)`, `s` the lateral travel since the contact
@@ -77,7 +84,9 @@ use super::contact::{Indenter, LoadCase, Normal, Tangential};
 use super::rng::Rng;
 use super::simulate::{FrameTruth, SimError, Simulation};
 use crate::device::Wrench;
+use crate::model::indentation::{indentation_force, Body, Shape};
 use crate::model::HalfSpace;
+use crate::sensor::{Elastomer, ModelKind};
 
 // The bench-effect types are scene data; re-exported here under their old paths.
 pub use super::scene::{BenchEffects, ForceRelaxation, FtNoise, Viscoelastic};
@@ -93,6 +102,17 @@ pub const MAX_INVERTED_DEPTH_MM: f64 = 100.0;
 pub fn rotate_into_ft(theta_deg: f64, f: [f64; 3]) -> [f64; 3] {
     let (s, c) = theta_deg.to_radians().sin_cos();
     [c * f[0] + s * f[1], -s * f[0] + c * f[1], f[2]]
+}
+
+/// The body an elastomer section presses as: the bonded layer of its thickness when
+/// its model is `bonded-layer`, else the half-space.
+pub fn body_of(elastomer: &Elastomer) -> Body {
+    match elastomer.model {
+        ModelKind::BondedLayer => Body::BondedLayer {
+            thickness_mm: elastomer.thickness_mm,
+        },
+        ModelKind::HalfSpace => Body::HalfSpace,
+    }
 }
 
 /// Where the sensor sits in stage coordinates, and the contact parameters.
@@ -149,6 +169,8 @@ pub struct World {
     effects: BenchEffects,
     geometry: WorldGeometry,
     model: HalfSpace,
+    /// The body the indenter presses into (the scene sensor's `[elastomer] model`).
+    body: Body,
     indenter: Indenter,
     state: Mutex<State>,
     camera: Mutex<Simulation>,
@@ -216,10 +238,12 @@ impl World {
         effects: BenchEffects,
     ) -> Arc<World> {
         let model = HalfSpace::from_elastomer(&simulation.sensor().elastomer);
+        let body = body_of(&simulation.sensor().elastomer);
         let world = World {
             effects,
             geometry,
             model,
+            body,
             indenter,
             state: Mutex::new(State {
                 stage_mm: start_mm,
@@ -511,33 +535,21 @@ impl World {
             return (0.0, 0.0);
         }
         let e_star = self.reduced_modulus();
-        match self.indenter {
-            Indenter::Flat { diameter_mm } => {
-                let a = diameter_mm / 2.0;
-                (2.0 * a * e_star * d, a)
-            }
-            Indenter::Hemisphere { radius_mm } => {
-                // Beyond the hemisphere's equator Hertz no longer applies; keep the
-                // contact radius at R (the flank then presses like a flat punch).
-                let d_eq = radius_mm;
-                if d <= d_eq {
-                    (
-                        4.0 / 3.0 * e_star * radius_mm.sqrt() * d.powf(1.5),
-                        (radius_mm * d).sqrt(),
-                    )
-                } else {
-                    let p_eq = 4.0 / 3.0 * e_star * radius_mm.sqrt() * d_eq.powf(1.5);
-                    (p_eq + 2.0 * radius_mm * e_star * (d - d_eq), radius_mm)
-                }
-            }
+        let shape = match self.indenter {
+            Indenter::Flat { diameter_mm } => Shape::Flat {
+                radius_mm: diameter_mm / 2.0,
+            },
+            Indenter::Hemisphere { radius_mm } => Shape::Hemisphere { radius_mm },
             Indenter::Point => {
                 let r = POINT_TIP_RADIUS_MM;
-                (
+                return (
                     4.0 / 3.0 * e_star * r.sqrt() * d.powf(1.5),
                     (r * d).sqrt().min(r),
-                )
+                );
             }
-        }
+        };
+        let c = indentation_force(shape, self.body, e_star, d);
+        (c.force_n, c.radius_mm)
     }
 
     fn contact_of(&self, stage: [f64; 3], stick: Option<[f64; 2]>) -> ContactState {
@@ -1082,5 +1094,77 @@ mod mounting_tests {
             (c1[0] - 9.4).abs() < 0.03 && (c1[1] - 6.45).abs() < 0.03,
             "offset {offset:?}: centre {c1:?}"
         );
+    }
+}
+
+#[cfg(test)]
+mod body_tests {
+    use super::*;
+    use crate::model::indentation::reduced_modulus;
+    use crate::sim::scene::Scene;
+
+    /// The world of a scene file under experiments/scenes/misbuilt, its tip over
+    /// sensor point (9, 6.75), the surface at stage z = 5.
+    fn scene_world(name: &str) -> (Arc<World>, Scene) {
+        let path = format!(
+            "{}/experiments/scenes/misbuilt/{name}",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let scene = Scene::from_path(&path).expect("the misbuilt scenes parse");
+        let g = WorldGeometry {
+            sensor_origin_in_stage_mm: [20.0, 30.0],
+            surface_z_mm: 5.0,
+            ..WorldGeometry::default()
+        };
+        let sim = Simulation::from_scene(&scene);
+        let w = World::with_effects(sim, scene.indenter, g, [29.0, 36.75, 0.0], scene.bench);
+        (w, scene)
+    }
+
+    #[test]
+    fn a_bonded_6mm_scene_presses_with_the_layer_law_and_harder_than_the_half_space() {
+        let (w, scene) = scene_world("bonded_6mm.toml");
+        let e = &scene.sensor.elastomer;
+        assert_eq!(e.model, ModelKind::BondedLayer);
+        assert_eq!(e.thickness_mm, 6.0);
+        let e_star = reduced_modulus(e.young_modulus_n_per_mm2(), e.poisson_ratio);
+        let shape = Shape::Hemisphere { radius_mm: 2.5 };
+        let layer = Body::BondedLayer { thickness_mm: 6.0 };
+        for depth in [0.2, 0.5, 1.0] {
+            w.set_stage_mm([29.0, 36.75, 5.0 + depth]);
+            // The depth the world sees, rounded through the stage z.
+            let d = (5.0 + depth) - 5.0;
+            let fz = w.wrench_without_noise().force_n[2];
+            let want = indentation_force(shape, layer, e_star, d).force_n;
+            let half = indentation_force(shape, Body::HalfSpace, e_star, d).force_n;
+            assert_eq!(fz, want, "depth {d} mm");
+            // The rigid plate 6 mm down stiffens the contact well beyond the noise.
+            assert!(
+                fz > 1.1 * half,
+                "depth {d} mm: layer {fz} N, half-space {half} N"
+            );
+        }
+    }
+
+    #[test]
+    fn a_half_space_scene_presses_with_hertz_exactly() {
+        let (w, scene) = scene_world("e_minus30.toml");
+        let e = &scene.sensor.elastomer;
+        assert_eq!(e.model, ModelKind::HalfSpace);
+        let e_star = e.young_modulus_n_per_mm2() / (1.0 - e.poisson_ratio * e.poisson_ratio);
+        for depth in [0.2, 0.5, 1.0, 3.0] {
+            w.set_stage_mm([29.0, 36.75, 5.0 + depth]);
+            let d = (5.0 + depth) - 5.0;
+            let fz = w.wrench_without_noise().force_n[2];
+            // Closed form as written before the layer law existed (past the
+            // equator at 2.5 mm the flank presses like a punch).
+            let want = if d <= 2.5 {
+                4.0 / 3.0 * e_star * 2.5f64.sqrt() * d.powf(1.5)
+            } else {
+                4.0 / 3.0 * e_star * 2.5f64.sqrt() * 2.5f64.powf(1.5)
+                    + 2.0 * 2.5 * e_star * (d - 2.5)
+            };
+            assert_eq!(fz, want, "depth {d} mm");
+        }
     }
 }
