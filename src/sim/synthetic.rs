@@ -9,8 +9,9 @@
 //! record digests), `journal.csv` rows through [`crate::bench::journal::Journal`],
 //! `frames/reference.png` and `frames/NNNNN_K.png`, `displacements/NNNNN.csv` tracked
 //! by [`crate::vision::Tracker`] against the reference (the sensor file's linear
-//! `[camera]` mapping), and `forces/NNNNN.csv` with the force sums reconstructed by the
-//! plan's solver from the nominal sensor, as the runner does.
+//! `[camera]` mapping), and `forces/NNNNN.csv` (with the per-node σ columns when the
+//! setpoint has several frames) with the force sums reconstructed by the plan's solver
+//! from the nominal sensor, as the runner does.
 //!
 //! What differs from the runner, and why it does not matter for what the run records:
 //! - each setpoint is reached directly: the depth that gives the target normal force
@@ -19,13 +20,17 @@
 //!   sensor reads it along the target direction* (the runner's control loop stops on
 //!   the same reading: with a rotated F/T sensor the true tangential force is then
 //!   `target / cos θ`). The runner stops anywhere within `control.force_tolerance`;
-//!   here the F/T mean misses the target only by its noise. Every setpoint starts from
-//!   a fresh contact (the runner keeps the contact along a normal ramp; the elastic
-//!   world has no memory of it);
+//!   here the F/T mean misses the target only by its noise, tare and quantisation.
+//!   Every setpoint starts from a fresh contact (the runner keeps the contact along a
+//!   normal ramp; the elastic world has no memory of it);
 //! - F/T readings are `acquire.samples` draws of [`World::wrench`] (noise, rotation
-//!   and stage offset applied); no settling, so `t_move_s`, `t_settle_s` and
-//!   `t_acquire_s` are 0 and `settled` is true; `t_track_s` and `t_solve_s` are
-//!   measured;
+//!   and stage offset applied) read as `run --sim`'s simulated DynPick reads them:
+//!   less the tare taken unloaded at the approach position (one noisy sample), then
+//!   quantised to its resolution (1/32.8 N, 1/1638.4 N·m, [`DEFAULT_SENSITIVITIES`]:
+//!   a 30 mN step, coarser than the scenes' 5 mN noise, so it shows in the means);
+//!   no settling, so `t_move_s`, `t_settle_s` and `t_acquire_s` are 0 and `settled`
+//!   is true; `t_track_s` and `t_solve_s` are measured (the solver's one-off
+//!   precompute excluded, as the runner does);
 //! - no tracking re-acquisition (the frames of a setpoint are rendered once; a row
 //!   below `[quality] min_ok_fraction` is journalled `flagged`), and the force
 //!   plausibility check marks rows `implausible` without ever stopping the run;
@@ -56,6 +61,8 @@ use crate::bench::journal::{
 };
 use crate::bench::plan::{Plan, Setpoint, Sweep};
 use crate::bench::runner::{rfc3339_now, with_geometry};
+use crate::device::dynpick::codec::Record;
+use crate::device::dynpick::sim::DEFAULT_SENSITIVITIES;
 use crate::device::Wrench;
 use crate::formats::{self, DisplacementFrame};
 use crate::sensor::Sensor;
@@ -192,6 +199,8 @@ struct Gen<'a> {
     sensor: &'a Sensor,
     geom: BenchGeometry,
     world: std::sync::Arc<World>,
+    /// The F/T reading unloaded at the approach position, subtracted as a tare.
+    tare: Wrench,
     dir: &'a Path,
     skip_frames: bool,
     tracker: Tracker,
@@ -280,11 +289,14 @@ pub fn synthetic_run(
         &mapping,
     )
     .map_err(|e| SyntheticError::Input(format!("frames/reference.png: {e}")))?;
+    // The runner tares unloaded at the approach position before the reference.
+    let tare = world.wrench();
     let mut g = Gen {
         plan,
         sensor: &sensor,
         geom,
         world,
+        tare,
         dir: out,
         skip_frames: options.skip_frames,
         tracker: Tracker::new(layout, TrackConfig::default()),
@@ -363,7 +375,9 @@ fn manifest(
             "friction": friction,
             "synthetic": true,
         },
-        "file": "",
+        // As `run --sim` records it: the bench file is the scene (`run --resume`
+        // reopens a `[sim]` bench file only when it differs from the scene).
+        "file": scene.path.display().to_string(),
         "cwd": std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default(),
     });
     let why = "a synthetic run (sim::synthetic_run: the simulated bench's world without devices)";
@@ -489,7 +503,7 @@ impl Gen<'_> {
     ) -> Result<JournalRow, SyntheticError> {
         self.reach(sp)?;
         let samples: Vec<Wrench> = (0..self.plan.samples)
-            .map(|_| self.world.wrench())
+            .map(|_| dynpick_reading(&self.world.wrench(), &self.tare))
             .collect();
         let (mean, sd) = mean_sd(&samples);
         let stage = self.world.stage_mm();
@@ -544,18 +558,25 @@ impl Gen<'_> {
                 RowQuality::Flagged
             };
         let t_solve0 = Instant::now();
-        let (fsum, fsum_sd, failure) = match &track_error {
-            Some(e) => ([f64::NAN; 3], None, Some(format!("tracking failed: {e}"))),
+        let (fsum, fsum_sd, failure, precompute_s) = match &track_error {
+            Some(e) => (
+                [f64::NAN; 3],
+                None,
+                Some(format!("tracking failed: {e}")),
+                0.0,
+            ),
             None => match self.reconstruct(sp.index, &tracked)? {
-                Ok((fsum, sd)) => (fsum, sd, None),
+                Ok((fsum, sd, p)) => (fsum, sd, None, p),
                 Err(e) => (
                     [f64::NAN; 3],
                     None,
                     Some(format!("reconstruction failed: {e}")),
+                    0.0,
                 ),
             },
         };
-        let t_solve = t_solve0.elapsed().as_secs_f64();
+        // As the runner: the one-off solver precompute is not the setpoint's solve.
+        let t_solve = (t_solve0.elapsed().as_secs_f64() - precompute_s).max(0.0);
         let mut plausibility = None;
         if failure.is_none() && quality == RowQuality::Ok {
             if let Some(text) = self.implausible(&mean.force_n, &sd, &fsum) {
@@ -638,7 +659,7 @@ impl Gen<'_> {
         &mut self,
         index: usize,
         tracked: &[(String, Vec<MarkerTrack>)],
-    ) -> Result<Result<([f64; 3], Option<[f64; 3]>), String>, SyntheticError> {
+    ) -> Result<Result<([f64; 3], Option<[f64; 3]>, f64), String>, SyntheticError> {
         let sensor = self.sensor;
         let rel = format!("displacements/{index:05}.csv");
         let path = self.dir.join(&rel);
@@ -687,21 +708,28 @@ impl Gen<'_> {
         let sites = frame.sites(sensor);
         let u = frame.u_mm();
         let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
-        let mut f = vec![0.0; 3 * sensor.force_grid.len()];
+        let n_out = 3 * sensor.force_grid.len();
+        let mut f = vec![0.0; n_out];
         let mut fsum_sd = None;
+        // Per-node σ of the forces, recorded beside them as the runner does (issue 32).
+        let mut node_sd: Option<Vec<f64>> = None;
+        let mut precompute_s = 0.0;
         let solved: Result<(), String> = if !u.is_empty() && u.iter().all(|v| *v == 0.0) {
             // An exactly unmoved frame is zero force (as the runner: no λ chosen on it).
             if sigma_mean_mm == Some(0.0) {
                 fsum_sd = Some([0.0; 3]);
+                node_sd = Some(vec![0.0; n_out]);
             }
             Ok(())
         } else {
             (|| {
                 if !self.solvers.contains_key(&key) {
+                    let tp = Instant::now();
                     let problem = Problem::new(sensor, &sites);
                     let s = solve::precompute(&problem, &self.plan.solver, Some(&u))
                         .map_err(|e| e.to_string())?;
                     self.solvers.insert(key.clone(), s);
+                    precompute_s = tp.elapsed().as_secs_f64();
                 }
                 let s = self
                     .solvers
@@ -710,17 +738,25 @@ impl Gen<'_> {
                 s.apply(&u, &mut f).map_err(|e| e.to_string())?;
                 if let Some(sigma) = sigma_mean_mm {
                     fsum_sd = Some(solve::force_sum_sd(&**s, sigma).map_err(|e| e.to_string())?);
+                    let mut sd = vec![0.0; n_out];
+                    node_sd = s.force_sd(sigma, &mut sd).ok().map(|()| sd);
                 }
                 Ok(())
             })()
         };
         if solved.is_err() {
+            fsum_sd = None;
+            node_sd = None;
             f.iter_mut().for_each(|v| *v = f64::NAN);
         }
         let rel = format!("forces/{index:05}.csv");
         let path = self.dir.join(&rel);
-        formats::write_forces(&path, &sensor.force_grid, &[(String::new(), f.clone())])
-            .map_err(|e| io(&path, e))?;
+        let frames = [(String::new(), f.clone())];
+        match node_sd {
+            Some(sd) => formats::write_forces_sd(&path, &sensor.force_grid, &frames, &[sd]),
+            None => formats::write_forces(&path, &sensor.force_grid, &frames),
+        }
+        .map_err(|e| io(&path, e))?;
         if let Some(d) = file_sha256(&path) {
             self.evidence.insert(rel, d);
         }
@@ -728,8 +764,23 @@ impl Gen<'_> {
         for (j, v) in f.iter().enumerate() {
             fsum[j % 3] += v;
         }
-        Ok(solved.map(|()| (fsum, fsum_sd)))
+        Ok(solved.map(|()| (fsum, fsum_sd, precompute_s)))
     }
+}
+
+/// What the simulated DynPick of `run --sim` reports for the wrench `w` after a tare
+/// that read `tare`: the difference quantised by the codec's rounding rule.
+fn dynpick_reading(w: &Wrench, tare: &Wrench) -> Wrench {
+    let s = DEFAULT_SENSITIVITIES;
+    let d = Wrench {
+        force_n: [0, 1, 2].map(|i| w.force_n[i] - tare.force_n[i]),
+        torque_nm: [0, 1, 2].map(|i| w.torque_nm[i] - tare.torque_nm[i]),
+    };
+    Record {
+        counter: 0,
+        raw: Record::raw_from_wrench(&d, &s),
+    }
+    .to_wrench(&s)
 }
 
 /// Mean wrench and per-component force SD (sample SD; 0 for one sample), as the
@@ -771,4 +822,38 @@ fn frame_scatter_mm(frames: &[Vec<Option<[f64; 2]>>]) -> Option<f64> {
         }
     }
     (dof > 0).then(|| (ss / dof as f64).sqrt())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn synthetic_ft_readings_are_tared_and_quantised_like_the_simulated_dynpick() {
+        let w = Wrench {
+            force_n: [0.0101, -0.52, 1.0],
+            torque_nm: [0.0004, 0.0, -0.03],
+        };
+        let tare = Wrench {
+            force_n: [0.004, 0.0, -0.006],
+            torque_nm: [0.0; 3],
+        };
+        let r = dynpick_reading(&w, &tare);
+        // One LSB is 1/32.8 N and 1/1638.4 N·m; each channel is the nearest count of
+        // the tared value.
+        let counts = [
+            (r.force_n[0], 0.0061f64 * 32.8, 32.8),
+            (r.force_n[1], -0.52 * 32.8, 32.8),
+            (r.force_n[2], 1.006 * 32.8, 32.8),
+            (r.torque_nm[0], 0.0004 * 1638.4, 1638.4),
+            (r.torque_nm[2], -0.03 * 1638.4, 1638.4),
+        ];
+        for (got, lsb, s) in counts {
+            assert_eq!(got, lsb.round() / s, "{r:?}");
+        }
+        // The same reading through the simulator's own codec path.
+        let s = DEFAULT_SENSITIVITIES;
+        let raw = Record::raw_from_wrench(&r, &s);
+        assert_eq!(Record { counter: 0, raw }.to_wrench(&s), r);
+    }
 }
