@@ -1001,11 +1001,11 @@ impl RawScene {
                     }
                     o => o,
                 };
-                if stage_offset_mm.is_some() && carry_zero_mm.is_some() {
+                if let (Some(o), Some(_)) = (stage_offset_mm, carry_zero_mm) {
                     return Err(invalid(
                         "bench.stage_offset_mm",
-                        &"(given)",
-                        "cannot be combined with stage_carries_sensor (the contact stays at carry_zero_mm)",
+                        &format!("[{}, {}]", o[0], o[1]),
+                        "cannot be combined with stage_carries_sensor = true (the contact stays at carry_zero_mm): remove one of them",
                     ));
                 }
                 BenchEffects {
@@ -1102,5 +1102,89 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("stage_carries_sensor"), "{e}");
+    }
+
+    /// The error of a `[bench]` table, which must name the scene file.
+    fn bench_error(bench: &str) -> String {
+        let e = scene(bench).unwrap_err().to_string();
+        assert!(e.contains("scene.toml"), "{e}");
+        e
+    }
+
+    #[test]
+    fn non_finite_mounting_keys_are_refused_naming_file_key_and_value() {
+        for (text, key, value) in [
+            ("ft_rotation_deg = nan", "bench.ft_rotation_deg", "NaN"),
+            ("ft_rotation_deg = -inf", "bench.ft_rotation_deg", "-inf"),
+            (
+                "stage_offset_mm = [inf, 0.0]",
+                "bench.stage_offset_mm",
+                "[inf, 0]",
+            ),
+            (
+                "stage_offset_mm = [0.4, nan]",
+                "bench.stage_offset_mm",
+                "[0.4, NaN]",
+            ),
+        ] {
+            let e = bench_error(&format!("[bench]\n{text}\n"));
+            assert!(e.contains(&format!("{key} = {value}")), "{text}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_rotation_beyond_half_a_turn_is_refused_in_degrees() {
+        let e = bench_error("[bench]\nft_rotation_deg = -180.5\n");
+        assert!(e.contains("bench.ft_rotation_deg = -180.5"), "{e}");
+        assert!(e.contains("[-180, 180] degrees"), "{e}");
+        assert_eq!(
+            scene("[bench]\nft_rotation_deg = -180.0\n")
+                .unwrap()
+                .bench
+                .ft_rotation_deg,
+            Some(-180.0)
+        );
+    }
+
+    #[test]
+    fn a_stage_offset_of_the_wrong_length_or_type_is_refused_naming_key_and_value() {
+        // Fixed-length arrays are checked by the shared parser (config::exact_opt),
+        // naming the key, the line and how many values were given.
+        for (text, given) in [
+            ("stage_offset_mm = [0.4]", "1 elements given"),
+            ("stage_offset_mm = [0.4, 0.0, 0.1]", "3 elements given"),
+        ] {
+            let e = bench_error(&format!("[bench]\n{text}\n"));
+            assert!(
+                e.contains("bench.stage_offset_mm")
+                    && e.contains("(line 9)")
+                    && e.contains(given)
+                    && e.contains("exactly 2 expected"),
+                "{text}: {e}"
+            );
+        }
+        // A value of the wrong type: the TOML parser quotes the line, key and value.
+        for text in [
+            "stage_offset_mm = 0.4",
+            "stage_offset_mm = [\"0.4\", 0.0]",
+            "ft_rotation_deg = \"7\"",
+        ] {
+            let e = bench_error(&format!("[bench]\n{text}\n"));
+            assert!(
+                e.contains("line 9") && e.contains(text) && e.contains("invalid type"),
+                "{text}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_stage_offset_with_a_carried_sensor_is_refused_naming_both_keys_and_the_offset() {
+        let e = bench_error(
+            "[bench]\nstage_carries_sensor = true\ncarry_zero_mm = [9.0, 6.75]\nstage_offset_mm = [0.4, 0.0]\n",
+        );
+        assert!(
+            e.contains("bench.stage_offset_mm = [0.4, 0]") && e.contains("stage_carries_sensor"),
+            "{e}"
+        );
     }
 }
