@@ -477,7 +477,7 @@ impl Gen<'_> {
         };
         let probe = 1e-4;
         let slope = along(probe) / probe;
-        if !(slope > 0.0) {
+        if slope.is_nan() || slope <= 0.0 {
             return Err(at(format!(
                 "the F/T reading along the tangential target does not grow with lateral travel (slope {slope:.4e} N/mm): a F/T rotation of 90° or more?"
             )));
