@@ -175,6 +175,34 @@ pub struct BenchGeometry {
 }
 
 impl BenchGeometry {
+    /// The geometry as the manifest records it (`bench.geometry`: the keys of the
+    /// bench file's `[geometry]`), so a run's stage coordinates can be read back into
+    /// depths and sensor-frame points (e.g. by `tactbench fit`).
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "sensor_origin_in_stage_mm": self.sensor_origin_in_stage_mm,
+            "surface_z_mm": self.surface_z_mm,
+            "press_direction": self.press_direction,
+            "clearance_mm": self.clearance_mm,
+        })
+    }
+
+    /// The geometry recorded in a manifest's `bench` description (`bench.geometry`,
+    /// see [`BenchGeometry::to_json`]); `None` when it was not recorded (runs made
+    /// before it was) or is incomplete.
+    pub fn from_manifest_bench(bench: &serde_json::Value) -> Option<BenchGeometry> {
+        let g = bench.get("geometry")?;
+        let num = |k: &str| g.get(k).and_then(serde_json::Value::as_f64);
+        let origin = g.get("sensor_origin_in_stage_mm")?.as_array()?;
+        let (x, y) = (origin.first()?.as_f64()?, origin.get(1)?.as_f64()?);
+        Some(BenchGeometry {
+            sensor_origin_in_stage_mm: [x, y],
+            surface_z_mm: num("surface_z_mm")?,
+            press_direction: num("press_direction")?,
+            clearance_mm: num("clearance_mm")?,
+        })
+    }
+
     /// Stage x, y of a sensor-frame point, mm.
     pub fn stage_xy(&self, sensor_xy_mm: [f64; 2]) -> [f64; 2] {
         [

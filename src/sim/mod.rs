@@ -15,6 +15,9 @@
 //!   the frame and truth for any load (the CLI's `sim render` and the future
 //!   simulated camera).
 //! - [`rng`]: the seeded generator of the random effects.
+//! - [`world`] and [`bench`]: the simulated bench (one world behind simulated devices).
+//! - [`synthetic`]: [`synthetic::synthetic_run`], a run directory in the runner's format
+//!   made from a plan and a scene without devices (fast; for `fit`'s coverage tests).
 //!
 //! Typical use:
 //!
@@ -39,4 +42,5 @@ pub mod render;
 pub mod rng;
 pub mod scene;
 pub mod simulate;
+pub mod synthetic;
 pub mod world;

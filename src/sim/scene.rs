@@ -101,6 +101,11 @@
 //!                          # unloading; hysteresis h: unloading from a peak P the
 //!                          # field is that of F + 4h·F·(P − F)/P (loop width h·P at
 //!                          # P/2). Either may be 0 (default); τ is needed with creep
+//! ft_rotation_deg = 7.0    # the F/T sensor mounted rotated by +θ about z (degrees,
+//!                          # [-180, 180]): it reports R(θ)ᵀF and R(θ)ᵀM
+//! stage_offset_mm = [0.4, 0.0]  # the contact happens at the stage's notion of the
+//!                          # contact point + [dx, dy] (mm, sensor frame, each within
+//!                          # ±5); the runner and its journal still believe the stage
 //! ```
 //!
 //! The elastic model the simulation renders with (independent of the sensor file's
@@ -182,7 +187,23 @@ pub struct BenchEffects {
     pub carry_zero_mm: Option<[f64; 2]>,
     /// Creep and hysteresis of the displacement field the camera sees.
     pub viscoelastic: Option<Viscoelastic>,
+    /// The F/T sensor is mounted rotated by +θ (degrees) about z relative to the
+    /// sensor frame: it reports `R(θ)ᵀ F` and `R(θ)ᵀ M` (the convention of
+    /// [`crate::fit::ModelParams`]).
+    pub ft_rotation_deg: Option<f64>,
+    /// The contact happens at the stage's notion of the contact point plus this
+    /// offset `[dx, dy]` (mm, camera's sensor frame); the runner and the journal still
+    /// believe the stage's notion.
+    pub stage_offset_mm: Option<[f64; 2]>,
 }
+
+/// Largest `|ft_rotation_deg|` of the simulated bench, degrees (a mounting error, not a
+/// different axis convention).
+pub const MAX_FT_ROTATION_DEG: f64 = 180.0;
+
+/// Largest `|dx|`, `|dy|` of `stage_offset_mm`, mm (beyond it the bench file's
+/// `sensor_origin_in_stage_mm` is wrong, not the mount).
+pub const MAX_STAGE_OFFSET_MM: f64 = 5.0;
 
 /// An error reading or validating a scene file. Every variant names the file.
 #[derive(Debug, Error)]
@@ -363,6 +384,9 @@ struct RawSceneBench {
     #[serde(default, deserialize_with = "crate::config::exact_opt")]
     carry_zero_mm: Option<[f64; 2]>,
     viscoelastic: Option<RawViscoelastic>,
+    ft_rotation_deg: Option<f64>,
+    #[serde(default, deserialize_with = "crate::config::exact_opt")]
+    stage_offset_mm: Option<[f64; 2]>,
 }
 
 #[derive(Deserialize)]
@@ -953,11 +977,44 @@ impl RawScene {
                         })
                     }
                 };
+                let ft_rotation_deg = match b.ft_rotation_deg {
+                    Some(t) if !(t.is_finite() && t.abs() <= MAX_FT_ROTATION_DEG) => {
+                        return Err(invalid(
+                            "bench.ft_rotation_deg",
+                            &t,
+                            &format!(
+                                "must be in [-{MAX_FT_ROTATION_DEG}, {MAX_FT_ROTATION_DEG}] degrees (the F/T sensor's rotation about z)"
+                            ),
+                        ))
+                    }
+                    t => t,
+                };
+                let stage_offset_mm = match b.stage_offset_mm {
+                    Some(o) if !o.iter().all(|v| v.is_finite() && v.abs() <= MAX_STAGE_OFFSET_MM) => {
+                        return Err(invalid(
+                            "bench.stage_offset_mm",
+                            &format!("[{}, {}]", o[0], o[1]),
+                            &format!(
+                                "each component must be in [-{MAX_STAGE_OFFSET_MM}, {MAX_STAGE_OFFSET_MM}] mm (a larger offset is a wrong [geometry] sensor_origin_in_stage_mm)"
+                            ),
+                        ))
+                    }
+                    o => o,
+                };
+                if let (Some(o), Some(_)) = (stage_offset_mm, carry_zero_mm) {
+                    return Err(invalid(
+                        "bench.stage_offset_mm",
+                        &format!("[{}, {}]", o[0], o[1]),
+                        "cannot be combined with stage_carries_sensor = true (the contact stays at carry_zero_mm): remove one of them",
+                    ));
+                }
                 BenchEffects {
                     ft_noise,
                     force_relaxation,
                     carry_zero_mm,
                     viscoelastic,
+                    ft_rotation_deg,
+                    stage_offset_mm,
                 }
             }
         };
@@ -989,5 +1046,145 @@ impl RawScene {
             frames,
             pipeline,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sensor::paper_sensor;
+
+    fn scene(bench: &str) -> Result<Scene, SceneError> {
+        let text = format!(
+            "sensor = \"s.toml\"\n[indenter]\nkind = \"hemisphere\"\nradius_mm = 2.5\n[load]\nposition_mm = [9.0, 6.75]\nnormal_force_n = 1.0\n{bench}"
+        );
+        Scene::from_toml_str(&text, "scene.toml", paper_sensor())
+    }
+
+    #[test]
+    fn without_mounting_keys_the_bench_is_as_before() {
+        let s = scene("[bench]\nft_noise = { sigma_n = 0.01, seed = 3 }\n").unwrap();
+        assert_eq!(s.bench.ft_rotation_deg, None);
+        assert_eq!(s.bench.stage_offset_mm, None);
+        assert_eq!(scene("").unwrap().bench, BenchEffects::default());
+    }
+
+    #[test]
+    fn mounting_keys_are_read_in_degrees_and_mm() {
+        let s = scene("[bench]\nft_rotation_deg = 7.0\nstage_offset_mm = [0.4, -0.1]\n").unwrap();
+        assert_eq!(s.bench.ft_rotation_deg, Some(7.0));
+        assert_eq!(s.bench.stage_offset_mm, Some([0.4, -0.1]));
+    }
+
+    #[test]
+    fn mounting_keys_out_of_range_are_refused_naming_key_value_and_unit() {
+        let e = scene("[bench]\nft_rotation_deg = 270.0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("bench.ft_rotation_deg = 270") && e.contains("degrees"),
+            "{e}"
+        );
+        let e = scene("[bench]\nstage_offset_mm = [0.4, 12.0]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("bench.stage_offset_mm = [0.4, 12]") && e.contains("mm"),
+            "{e}"
+        );
+        let e = scene("[bench]\nstage_offset_mm = [0.4]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stage_offset_mm"), "{e}");
+        let e = scene(
+            "[bench]\nstage_carries_sensor = true\ncarry_zero_mm = [9.0, 6.75]\nstage_offset_mm = [0.4, 0.0]\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("stage_carries_sensor"), "{e}");
+    }
+
+    /// The error of a `[bench]` table, which must name the scene file.
+    fn bench_error(bench: &str) -> String {
+        let e = scene(bench).unwrap_err().to_string();
+        assert!(e.contains("scene.toml"), "{e}");
+        e
+    }
+
+    #[test]
+    fn non_finite_mounting_keys_are_refused_naming_file_key_and_value() {
+        for (text, key, value) in [
+            ("ft_rotation_deg = nan", "bench.ft_rotation_deg", "NaN"),
+            ("ft_rotation_deg = -inf", "bench.ft_rotation_deg", "-inf"),
+            (
+                "stage_offset_mm = [inf, 0.0]",
+                "bench.stage_offset_mm",
+                "[inf, 0]",
+            ),
+            (
+                "stage_offset_mm = [0.4, nan]",
+                "bench.stage_offset_mm",
+                "[0.4, NaN]",
+            ),
+        ] {
+            let e = bench_error(&format!("[bench]\n{text}\n"));
+            assert!(e.contains(&format!("{key} = {value}")), "{text}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_rotation_beyond_half_a_turn_is_refused_in_degrees() {
+        let e = bench_error("[bench]\nft_rotation_deg = -180.5\n");
+        assert!(e.contains("bench.ft_rotation_deg = -180.5"), "{e}");
+        assert!(e.contains("[-180, 180] degrees"), "{e}");
+        assert_eq!(
+            scene("[bench]\nft_rotation_deg = -180.0\n")
+                .unwrap()
+                .bench
+                .ft_rotation_deg,
+            Some(-180.0)
+        );
+    }
+
+    #[test]
+    fn a_stage_offset_of_the_wrong_length_or_type_is_refused_naming_key_and_value() {
+        // Fixed-length arrays are checked by the shared parser (config::exact_opt),
+        // naming the key, the line and how many values were given.
+        for (text, given) in [
+            ("stage_offset_mm = [0.4]", "1 elements given"),
+            ("stage_offset_mm = [0.4, 0.0, 0.1]", "3 elements given"),
+        ] {
+            let e = bench_error(&format!("[bench]\n{text}\n"));
+            assert!(
+                e.contains("bench.stage_offset_mm")
+                    && e.contains("(line 9)")
+                    && e.contains(given)
+                    && e.contains("exactly 2 expected"),
+                "{text}: {e}"
+            );
+        }
+        // A value of the wrong type: the TOML parser quotes the line, key and value.
+        for text in [
+            "stage_offset_mm = 0.4",
+            "stage_offset_mm = [\"0.4\", 0.0]",
+            "ft_rotation_deg = \"7\"",
+        ] {
+            let e = bench_error(&format!("[bench]\n{text}\n"));
+            assert!(
+                e.contains("line 9") && e.contains(text) && e.contains("invalid type"),
+                "{text}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_stage_offset_with_a_carried_sensor_is_refused_naming_both_keys_and_the_offset() {
+        let e = bench_error(
+            "[bench]\nstage_carries_sensor = true\ncarry_zero_mm = [9.0, 6.75]\nstage_offset_mm = [0.4, 0.0]\n",
+        );
+        assert!(
+            e.contains("bench.stage_offset_mm = [0.4, 0]") && e.contains("stage_carries_sensor"),
+            "{e}"
+        );
     }
 }

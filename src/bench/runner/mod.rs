@@ -415,7 +415,7 @@ pub fn run(
             plan_toml: options.plan_toml.clone(),
             sensor_path: plan.sensor_path.display().to_string(),
             sensor_toml: options.sensor_toml.clone(),
-            bench: options.bench.clone(),
+            bench: with_geometry(options.bench.clone(), geometry),
             devices: options.devices.clone(),
             build_id: options.build_id.clone().or_else(|| plan.build_id.clone()),
             software_version: env!("CARGO_PKG_VERSION").to_string(),
@@ -801,6 +801,20 @@ impl Runner<'_, '_, '_, '_> {
         let reference = self.reference_layout(&name, &frame)?;
         self.tracker = Some(Tracker::new(reference, TrackConfig::default()));
         Ok(())
+    }
+}
+
+/// The bench description for the manifest with the geometry the run used added as
+/// `geometry` ([`BenchGeometry::to_json`]): press direction, surface z and sensor
+/// origin are what turns the journal's stage coordinates into depths and positions.
+pub fn with_geometry(bench: serde_json::Value, geometry: &BenchGeometry) -> serde_json::Value {
+    match bench {
+        serde_json::Value::Object(mut m) => {
+            m.insert("geometry".into(), geometry.to_json());
+            serde_json::Value::Object(m)
+        }
+        serde_json::Value::Null => serde_json::json!({ "geometry": geometry.to_json() }),
+        other => other,
     }
 }
 
