@@ -105,10 +105,6 @@ fn sensor_of(color: &str) -> Sensor {
     Sensor::from_toml_str(&text, "faint.toml").unwrap()
 }
 
-fn sensor() -> Sensor {
-    sensor_of("bright")
-}
-
 /// (true markers, found within 1 px, false detections farther than 2 px from all).
 pub(crate) fn score(truth: &[[f64; 2]], found: &[[f64; 2]]) -> (usize, usize, usize) {
     let near = |a: [f64; 2], set: &[[f64; 2]], d: f64| {
@@ -324,4 +320,68 @@ fn gelslim_like_dots_in_perspective_are_all_found_and_track_ok() {
             tracks.len()
         );
     }
+}
+
+/// OpenCV's SimpleBlobDetector (`tests/opencv_ref/blobs.py`) on the same rendered
+/// frames as ours, scored alike: `TACTBENCH_PYTHON=/path/to/python-with-opencv cargo
+/// test --test integration vision_faint::opencv_blob_detector_on_faint_frames --
+/// --ignored --nocapture`. The frames are written to the system's temporary directory.
+#[test]
+#[ignore = "needs Python with OpenCV (TACTBENCH_PYTHON); prints both detectors' counts"]
+fn opencv_blob_detector_on_faint_frames() {
+    let Ok(python) = std::env::var("TACTBENCH_PYTHON") else {
+        println!("TACTBENCH_PYTHON is not set: skipped (set it to a python with opencv)");
+        return;
+    };
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/opencv_ref/blobs.py");
+    let dir = std::env::temp_dir().join(format!("tactbench_faint_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let opencv = |img: &RgbImage, name: &str, color: &str| -> Vec<[f64; 2]> {
+        let path = dir.join(name);
+        img.save(&path).unwrap();
+        let out = std::process::Command::new(&python)
+            .arg(&script)
+            .arg(&path)
+            .arg(color)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .filter_map(|l| {
+                let (x, y) = l.split_once(',')?;
+                Some([x.trim().parse().ok()?, y.trim().parse().ok()?])
+            })
+            .collect()
+    };
+    let cases = [
+        ("4 % r 3", case(0.04, 3.0, 1.0)),
+        ("5 % r 1", case(0.05, 1.0, 1.0)),
+        ("12 % -> 2.4 % r 2", case(0.12, 2.0, 0.2)),
+        ("12 % -> 2.4 % r 3", case(0.12, 3.0, 0.2)),
+        ("6 % -> 3 % r 3", case(0.06, 3.0, 0.5)),
+    ];
+    for (k, (name, c)) in cases.iter().enumerate() {
+        let img = c.render();
+        let (n, ours, our_fp) = score(&c.truth(), &found_in(&img, "bright"));
+        let (_, cv, cv_fp) = score(
+            &c.truth(),
+            &opencv(&img, &format!("pins_{k}.png"), "bright"),
+        );
+        println!("{name}: ours {ours}/{n} ({our_fp} false), OpenCV {cv}/{n} ({cv_fp} false)");
+    }
+    for shrink in [0.5, 0.58] {
+        let (truth, img) = gelslim_frame_of(shrink);
+        let (n, ours, our_fp) = score(&truth, &found_in(&img, "dark"));
+        let (_, cv, cv_fp) = score(
+            &truth,
+            &opencv(&img, &format!("gelslim_{shrink}.png"), "dark"),
+        );
+        println!("GelSlim-like, shrink {shrink}: ours {ours}/{n} ({our_fp} false), OpenCV {cv}/{n} ({cv_fp} false)");
+    }
+    std::fs::remove_dir_all(&dir).ok();
 }
