@@ -28,6 +28,12 @@
 //! fitted on a ring around each marker, removes the local illumination already (see
 //! `window.rs`); the contrast map serves the reference detection (thresholds, blob
 //! extents) where one threshold must hold over the whole image.
+//!
+//! One threshold cannot serve faint and bright markers at once: [`faint_spots`] is the
+//! reference detection's second pass over what the first left, with the noise and
+//! baseline measured per 32 px tile and each spot judged by its own peak and
+//! half-height area (the floors it gives: docs/real-sensors.md, "Faint and small
+//! markers").
 
 use std::collections::VecDeque;
 

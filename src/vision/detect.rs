@@ -6,7 +6,14 @@
 //! Per layer: colour score map (see `window.rs`); robust statistics (median `b`, noise
 //! `σ = 1.4826·MAD`, peak `p` = 20th largest score, immune to a few hot pixels);
 //! threshold `T = b + max(6σ, 0.2·(p − b))`; 8-connected components above `T`; blobs
-//! smaller than a fifth of the expected marker area dropped as noise. The aperture
+//! smaller than a fifth of the expected marker area dropped as noise. Brightness
+//! layers (`dark`, `bright`) threshold their contrast map instead (`contrast.rs`),
+//! keep blobs of 40 % of a marker's area that are round, and then run a second,
+//! low-threshold pass (`contrast::faint_spots`): local maxima of the smoothed map
+//! outside the first pass's blobs, judged against the local noise by their own peak
+//! and half-height area, so faint markers (a vignetted field's edge) are not lost to
+//! a threshold the brightest markers set; the first pass's blobs alone set the
+//! aperture and spacing, so its markers are measured as before. The aperture
 //! radius is the marker's measured extent (where the score falls to 5 % of the blob's
 //! peak, median over blobs and the four axis directions) plus 1.5 px, so soft edges of
 //! any profile stay inside the aperture; it is capped so the background ring never
