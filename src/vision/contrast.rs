@@ -582,9 +582,9 @@ pub(crate) fn faint_spots(input: &FaintInput<'_>, max_elongation: f64) -> Vec<Fa
             if (v as f64 - base) < FAINT_SIGMA * sigma {
                 continue;
             }
-            let is_max = (y.saturating_sub(1)..(y + 2).min(h))
+            let is_max = !(y.saturating_sub(1)..(y + 2).min(h))
                 .flat_map(|yy| (x.saturating_sub(1)..(x + 2).min(w)).map(move |xx| yy * w + xx))
-                .all(|j| !(smooth_map[j] > v));
+                .any(|j| smooth_map[j] > v);
             if is_max {
                 spots.extend(judge(
                     input,
@@ -616,7 +616,8 @@ fn judge(
     let half = (base + 0.5 * (peak as f64 - base)) as f32;
     let most = (5.0 * disc).max(9.0) as usize;
     // The half-height area, grown from the peak; given up as soon as it reaches a
-    // first-pass blob, a higher peak, or more than a marker's area.
+    // first-pass blob, a higher peak (or an equal one earlier in raster order), or
+    // more than five markers' area.
     let mut pixels = vec![top];
     let mut seen = std::collections::HashSet::from([top]);
     let mut k = 0;
@@ -631,7 +632,9 @@ fn judge(
                 if v.is_nan() || v < half || !seen.insert(j) {
                     continue;
                 }
-                if input.taken[j] || v > peak || pixels.len() >= most {
+                // A tie on a plateau goes to its first pixel in raster order.
+                let higher = v > peak || (v == peak && j < top);
+                if input.taken[j] || higher || pixels.len() >= most {
                     return None;
                 }
                 pixels.push(j);
@@ -729,6 +732,65 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn dilate_matches_a_brute_force_square_maximum() {
+        let (w, h) = (19, 13);
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| (i as u64 * 2_654_435_761) % 23 == 0)
+            .collect();
+        let as_int: Vec<i32> = mask.iter().map(|&m| m as i32).collect();
+        for r in [0, 1, 3, 20] {
+            let brute: Vec<bool> = naive(&as_int, w, h, r, false)
+                .iter()
+                .map(|&v| v > 0)
+                .collect();
+            assert_eq!(dilate(&mask, w, h, r), brute, "r={r}");
+        }
+    }
+
+    /// One faint disc beside a bright one the first pass took: the second pass finds
+    /// the faint one (its centroid within 0.3 px) and nothing of the bright one's flank.
+    #[test]
+    fn faint_spots_finds_a_faint_disc_and_not_the_first_pass_blob() {
+        let (w, h) = (64, 48);
+        let disc = |cx: f64, cy: f64, r: f64, v: i32, m: &mut Vec<i32>| {
+            for y in 0..h {
+                for x in 0..w {
+                    if (x as f64 - cx).hypot(y as f64 - cy) <= r {
+                        m[y * w + x] += v;
+                    }
+                }
+            }
+        };
+        // Deterministic noise of a few levels (the score) and its top-hat-like map.
+        let noise: Vec<i32> = (0..w * h)
+            .map(|i| ((i as u64 * 2_654_435_761) % 7) as i32)
+            .collect();
+        let mut map = noise.clone();
+        disc(16.0, 24.0, 3.0, 200, &mut map);
+        disc(44.3, 24.6, 3.0, 40, &mut map);
+        let score = map.clone();
+        let taken: Vec<bool> = (0..w * h)
+            .map(|i| ((i % w) as f64 - 16.0).hypot((i / w) as f64 - 24.0) <= 3.0)
+            .collect();
+        let input = FaintInput {
+            map: &map,
+            score: &score,
+            illumination: None,
+            width: w,
+            height: h,
+            median: 3,
+            taken: &taken,
+            structure: &taken,
+            radius_px: 3.0,
+            min_contrast: 38,
+        };
+        let spots = faint_spots(&input, 2.2);
+        assert_eq!(spots.len(), 1, "{spots:?}");
+        let c = [spots[0].sx / spots[0].sum, spots[0].sy / spots[0].sum];
+        assert!((c[0] - 44.0).hypot(c[1] - 25.0) < 0.8, "{c:?}");
     }
 
     #[test]
