@@ -738,7 +738,7 @@ mod tests {
     fn dilate_matches_a_brute_force_square_maximum() {
         let (w, h) = (19, 13);
         let mask: Vec<bool> = (0..w * h)
-            .map(|i| (i as u64 * 2_654_435_761) % 23 == 0)
+            .map(|i| (i as u64 * 2_654_435_761).is_multiple_of(23))
             .collect();
         let as_int: Vec<i32> = mask.iter().map(|&m| m as i32).collect();
         for r in [0, 1, 3, 20] {
