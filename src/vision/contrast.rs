@@ -28,6 +28,12 @@
 //! fitted on a ring around each marker, removes the local illumination already (see
 //! `window.rs`); the contrast map serves the reference detection (thresholds, blob
 //! extents) where one threshold must hold over the whole image.
+//!
+//! One threshold cannot serve faint and bright markers at once: [`faint_spots`] is the
+//! reference detection's second pass over what the first left, with the noise and
+//! baseline measured per 32 px tile and each spot judged by its own peak and
+//! half-height area (the floors it gives: docs/real-sensors.md, "Faint and small
+//! markers").
 
 use std::collections::VecDeque;
 
@@ -51,17 +57,27 @@ pub(crate) fn default_element_size(width: usize, height: usize) -> usize {
     (width.min(height) / 8).max(15) | 1
 }
 
+/// A brightness layer's contrast map (see [`contrast_map`]).
+pub(crate) struct ContrastMap {
+    /// The contrast, row-major, map units.
+    pub map: Vec<i32>,
+    /// Map units per score unit at the median illumination (1 for bright; for dark
+    /// `DARK_UNIT / I`), to express the score's pixel noise in map units.
+    pub per_score: f64,
+    /// Dark layers: the illumination `I` per pixel (score units), whose local level
+    /// scales the local noise ([`faint_spots`]); `None` for bright layers.
+    pub illumination: Option<Vec<i32>>,
+}
+
 /// The contrast map of a brightness layer (see the module docs) from its clamped
-/// score `score` (row-major, `width × height`), with a line element of `size` px;
-/// and the map units per score unit at the median illumination (1 for bright; for
-/// dark `DARK_UNIT / I`), to express the score's pixel noise in map units.
+/// score `score` (row-major, `width × height`), with a line element of `size` px.
 pub(crate) fn contrast_map<T: Sample>(
     score: &[i32],
     width: usize,
     height: usize,
     color: MarkerColor,
     size: usize,
-) -> (Vec<i32>, f64) {
+) -> ContrastMap {
     let opening = opening(score, width, height, size / 2);
     match color {
         MarkerColor::Dark => {
@@ -73,19 +89,25 @@ pub(crate) fn contrast_map<T: Sample>(
                 .zip(&opening)
                 .map(|(&s, &o)| ((s - o) as i64 * DARK_UNIT as i64 / illumination(o) as i64) as i32)
                 .collect();
-            let mut lit: Vec<i32> = opening.iter().map(|&o| illumination(o)).collect();
-            let n = lit.len();
+            let lit: Vec<i32> = opening.iter().map(|&o| illumination(o)).collect();
+            let mut tmp = lit.clone();
+            let n = tmp.len();
             let median = if n == 0 {
                 floor
             } else {
-                *lit.select_nth_unstable(n / 2).1
+                *tmp.select_nth_unstable(n / 2).1
             };
-            (map, DARK_UNIT as f64 / median as f64)
+            ContrastMap {
+                map,
+                per_score: DARK_UNIT as f64 / median as f64,
+                illumination: Some(lit),
+            }
         }
-        _ => (
-            score.iter().zip(&opening).map(|(&s, &o)| s - o).collect(),
-            1.0,
-        ),
+        _ => ContrastMap {
+            map: score.iter().zip(&opening).map(|(&s, &o)| s - o).collect(),
+            per_score: 1.0,
+            illumination: None,
+        },
     }
 }
 
@@ -326,6 +348,352 @@ pub(crate) fn score_noise(score: &[i32], width: usize, inside: Option<&[bool]>) 
     1.4826 * med as f64 / std::f64::consts::SQRT_2
 }
 
+/// Side of the square tiles the second pass measures its local noise and baseline in,
+/// px: large enough for a robust median (hundreds of samples between the markers),
+/// small enough to follow the noise as it changes with the illumination.
+const TILE: usize = 32;
+
+/// How far above its tile's baseline the smoothed contrast of a second-pass spot must
+/// peak, in local noise σ of the smoothed score: a Gaussian noise bump reaches ~4.5 σ
+/// once in a 640 × 480 frame's 34 000 independent 3 × 3 boxes.
+const FAINT_SIGMA: f64 = 8.0;
+
+/// The least half-height area of a second-pass spot, in discs of the expected marker
+/// radius `r` (`π r²`), never less than 3 px. A faint marker's half-height area is
+/// its disc (0.85–1 on the rendered pins of `tests/vision_faint.rs`); on the real
+/// striped GelSight frame the specks and stripe crossings that pass every other test
+/// hold at most 0.56 of a dot's disc, and on the FOTS frame the slivers of dots cut by
+/// the image edge 0.18. (So a dot smaller than 0.77 r, the far rows of a sensor seen
+/// in strong perspective, is found only by the first pass: 0.63 r.)
+const LEAST_AREA: f64 = 0.6;
+
+/// What the second, low-threshold pass ([`faint_spots`]) reads.
+pub(crate) struct FaintInput<'a> {
+    /// The layer's contrast map, `i32::MIN` outside the ROI.
+    pub map: &'a [i32],
+    /// The layer's score (same pixels), for the noise.
+    pub score: &'a [i32],
+    /// Dark layers: the illumination per pixel ([`ContrastMap::illumination`]).
+    pub illumination: Option<&'a [i32]>,
+    pub width: usize,
+    pub height: usize,
+    /// The map's median (the first pass's `b`).
+    pub median: i32,
+    /// Pixels of the blobs the first pass kept: a spot reaching one is its flank.
+    pub taken: &'a [bool],
+    /// Pixels above the first pass's threshold (kept or not): markers, left out of the
+    /// local noise and baseline.
+    pub structure: &'a [bool],
+    /// Expected marker radius, px.
+    pub radius_px: f64,
+    /// [`min_contrast`] of the layer.
+    pub min_contrast: i32,
+}
+
+/// A marker found by the second pass: the moments of its half-maximum pixels,
+/// weighted by their smoothed contrast above the local baseline.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct FaintSpot {
+    /// Half-maximum pixels.
+    pub area: usize,
+    /// Σ weights, Σ weight·x, Σ weight·y (map units, px).
+    pub sum: f64,
+    pub sx: f64,
+    pub sy: f64,
+    /// Largest map value of the spot (raw, not smoothed).
+    pub peak: i32,
+}
+
+/// Local statistics of the smoothed map, per [`TILE`]: baseline (median of the
+/// smoothed map) and noise σ of the smoothed score (map units).
+struct Tiles {
+    nx: usize,
+    baseline: Vec<f64>,
+    sigma: Vec<f64>,
+}
+
+impl Tiles {
+    fn at(&self, i: usize, width: usize) -> (f64, f64) {
+        let t = (i / width / TILE) * self.nx + (i % width) / TILE;
+        (self.baseline[t], self.sigma[t])
+    }
+}
+
+/// The 3 × 3 box mean of `v` over the pixels `valid` selects (NaN where none is).
+fn box_mean(v: &[i32], valid: &[bool], width: usize, height: usize) -> Vec<f32> {
+    let mut out = vec![f32::NAN; v.len()];
+    for y in 0..height {
+        for x in 0..width {
+            if !valid[y * width + x] {
+                continue;
+            }
+            let (mut sum, mut n) = (0i64, 0u32);
+            for yy in y.saturating_sub(1)..(y + 2).min(height) {
+                for xx in x.saturating_sub(1)..(x + 2).min(width) {
+                    let j = yy * width + xx;
+                    if valid[j] {
+                        sum += v[j] as i64;
+                        n += 1;
+                    }
+                }
+            }
+            out[y * width + x] = sum as f32 / n as f32;
+        }
+    }
+    out
+}
+
+/// `mask` grown by a square of `2r + 1` px.
+fn dilate(mask: &[bool], width: usize, height: usize, r: usize) -> Vec<bool> {
+    let v: Vec<i32> = mask.iter().map(|&m| m as i32).collect();
+    let mut rows = vec![0i32; v.len()];
+    let mut queue = VecDeque::new();
+    for y in 0..height {
+        let line = y * width..(y + 1) * width;
+        sliding(&v[line.clone()], &mut rows[line], r, false, &mut queue);
+    }
+    let (mut col, mut res) = (vec![0i32; height], vec![0i32; height]);
+    let mut out = vec![false; v.len()];
+    for x in 0..width {
+        for (y, c) in col.iter_mut().enumerate() {
+            *c = rows[y * width + x];
+        }
+        sliding(&col, &mut res, r, false, &mut queue);
+        for (y, &c) in res.iter().enumerate() {
+            out[y * width + x] = c > 0;
+        }
+    }
+    out
+}
+
+/// The median of `v` (reorders it); `None` when empty.
+fn median_f32(v: &mut [f32]) -> Option<f64> {
+    let n = v.len();
+    (n > 0).then(|| *v.select_nth_unstable_by(n / 2, f32::total_cmp).1 as f64)
+}
+
+/// Baseline and noise of the smoothed map per tile, over the pixels `quiet` selects
+/// (away from the first pass's markers, whose edges would dominate a dense lattice's
+/// statistics). The noise is that of the smoothed *score* — `1.4826 · median|B(x+3) −
+/// B(x)| / √2`, lag 3 so the two boxes share no pixel: right for white noise and for
+/// noise correlated between neighbours (demosaicing, compression), which a lag-1
+/// difference underestimates — times the tile's map units per score unit (dark:
+/// `DARK_UNIT / I` at the tile's median illumination, as the first pass scales its
+/// global noise). Tiles with too few quiet samples take the frame's values.
+fn tile_stats(
+    input: &FaintInput<'_>,
+    quiet: &[bool],
+    smooth_map: &[f32],
+    smooth_score: &[f32],
+) -> Tiles {
+    let (w, h) = (input.width, input.height);
+    let (nx, ny) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    let stats = |xs: std::ops::Range<usize>, ys: std::ops::Range<usize>| {
+        let (mut base, mut diff, mut lit) = (Vec::new(), Vec::new(), Vec::new());
+        for y in ys {
+            for x in xs.clone() {
+                let i = y * w + x;
+                if smooth_map[i].is_nan() || !quiet[i] {
+                    continue;
+                }
+                base.push(smooth_map[i]);
+                if let Some(l) = input.illumination {
+                    lit.push(l[i] as f32);
+                }
+                if x + 3 < w && quiet[i + 3] && !smooth_map[i + 3].is_nan() {
+                    diff.push((smooth_score[i + 3] - smooth_score[i]).abs());
+                }
+            }
+        }
+        let scale = match input.illumination {
+            Some(_) => median_f32(&mut lit).map(|l| DARK_UNIT as f64 / l.max(1.0)),
+            None => Some(1.0),
+        };
+        let enough = diff.len() >= 64;
+        let sigma = median_f32(&mut diff)
+            .zip(scale)
+            .map(|(d, k)| (1.4826 * d / std::f64::consts::SQRT_2).max(1.0 / 3.0) * k);
+        (enough, median_f32(&mut base), sigma)
+    };
+    let (_, frame_base, frame_sigma) = stats(0..w, 0..h);
+    let (frame_base, frame_sigma) = (
+        frame_base.unwrap_or(input.median as f64),
+        frame_sigma.unwrap_or(1.0),
+    );
+    let mut tiles = Tiles {
+        nx,
+        baseline: Vec::with_capacity(nx * ny),
+        sigma: Vec::with_capacity(nx * ny),
+    };
+    for ty in 0..ny {
+        for tx in 0..nx {
+            let xs = tx * TILE..((tx + 1) * TILE).min(w);
+            let ys = ty * TILE..((ty + 1) * TILE).min(h);
+            let (b, s) = match stats(xs, ys) {
+                (true, Some(b), Some(s)) => (b, s),
+                _ => (frame_base, frame_sigma),
+            };
+            tiles.baseline.push(b);
+            tiles.sigma.push(s);
+        }
+    }
+    tiles
+}
+
+/// The second, low-threshold pass of the reference detection on a brightness layer:
+/// markers too faint for the first pass's one threshold (set by the frame's noise and
+/// its brightest markers: a pin at the vignetted edge of a field, a small dot in the
+/// far rows of a perspective view). Candidates are the local maxima of the 3 × 3 box
+/// mean of the map outside the first pass's blobs; each is grown to the 8-connected
+/// pixels above half its height over its tile's baseline. A candidate is a marker when
+///
+/// * its smoothed peak rises [`FAINT_SIGMA`] local σ above the baseline (noise does
+///   not: the test `a_noise_only_frame_finds_no_markers`),
+/// * its raw peak rises `min_contrast / 2` above the map's median (the first pass's
+///   per-blob floor: gel texture and dust stay below it),
+/// * its half-height area neither reaches a first-pass blob nor a higher peak, and
+///   holds at least `max(LEAST_AREA · πr², 3)` px (a quarter less on the image's edge) and at
+///   most `5 πr²`, r the expected marker radius: an area relative to the spot's own
+///   contrast, so a faint marker is judged by its whole disc, not by the core that
+///   clears a threshold set by brighter ones,
+/// * and that area is round (elongation ≤ `max_elongation`, 3 on the image's edge):
+///   streaks and edges are not.
+pub(crate) fn faint_spots(input: &FaintInput<'_>, max_elongation: f64) -> Vec<FaintSpot> {
+    let (w, h) = (input.width, input.height);
+    let valid: Vec<bool> = input.map.iter().map(|&v| v != i32::MIN).collect();
+    let smooth_map = box_mean(input.map, &valid, w, h);
+    let smooth_score = box_mean(input.score, &valid, w, h);
+    let reach = input.radius_px.ceil() as usize + 2;
+    let quiet: Vec<bool> = dilate(input.structure, w, h, reach)
+        .into_iter()
+        .map(|m| !m)
+        .collect();
+    let tiles = tile_stats(input, &quiet, &smooth_map, &smooth_score);
+    let disc = std::f64::consts::PI * input.radius_px * input.radius_px;
+    let mut spots = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let v = smooth_map[i];
+            if v.is_nan() || input.taken[i] {
+                continue;
+            }
+            let (base, sigma) = tiles.at(i, w);
+            if (v as f64 - base) < FAINT_SIGMA * sigma {
+                continue;
+            }
+            let is_max = !(y.saturating_sub(1)..(y + 2).min(h))
+                .flat_map(|yy| (x.saturating_sub(1)..(x + 2).min(w)).map(move |xx| yy * w + xx))
+                .any(|j| smooth_map[j] > v);
+            if is_max {
+                spots.extend(judge(
+                    input,
+                    &smooth_map,
+                    i,
+                    (base, sigma),
+                    disc,
+                    max_elongation,
+                ));
+            }
+        }
+    }
+    spots
+}
+
+/// Whether the local maximum `top` of [`faint_spots`] (its tile's baseline and σ in
+/// `local`) is a marker, and its moments if so.
+fn judge(
+    input: &FaintInput<'_>,
+    smooth_map: &[f32],
+    top: usize,
+    local: (f64, f64),
+    disc: f64,
+    max_elongation: f64,
+) -> Option<FaintSpot> {
+    let (w, h) = (input.width, input.height);
+    let (base, _) = local;
+    let peak = smooth_map[top];
+    let half = (base + 0.5 * (peak as f64 - base)) as f32;
+    let most = (5.0 * disc).max(9.0) as usize;
+    // The half-height area, grown from the peak; given up as soon as it reaches a
+    // first-pass blob, a higher peak (or an equal one earlier in raster order), or
+    // more than five markers' area.
+    let mut pixels = vec![top];
+    let mut seen = std::collections::HashSet::from([top]);
+    let mut k = 0;
+    while k < pixels.len() {
+        let i = pixels[k];
+        k += 1;
+        let (x, y) = (i % w, i / w);
+        for ny in y.saturating_sub(1)..(y + 2).min(h) {
+            for nx in x.saturating_sub(1)..(x + 2).min(w) {
+                let j = ny * w + nx;
+                let v = smooth_map[j];
+                if v.is_nan() || v < half || !seen.insert(j) {
+                    continue;
+                }
+                // A tie on a plateau goes to its first pixel in raster order.
+                let higher = v > peak || (v == peak && j < top);
+                if input.taken[j] || higher || pixels.len() >= most {
+                    return None;
+                }
+                pixels.push(j);
+            }
+        }
+    }
+    let raw_peak = pixels.iter().map(|&i| input.map[i]).max()?;
+    if ((raw_peak - input.median) as f64) < 0.5 * input.min_contrast as f64 {
+        return None;
+    }
+    let (mut sum, mut sx, mut sy) = (0.0, 0.0, 0.0);
+    let mut shape = [0.0f64; 5];
+    let mut at_edge = false;
+    for &i in &pixels {
+        let wgt = smooth_map[i] as f64 - base;
+        let (x, y) = ((i % w) as f64, (i / w) as f64);
+        at_edge |= i % w == 0 || i / w == 0 || i % w + 1 == w || i / w + 1 == h;
+        sum += wgt;
+        sx += wgt * x;
+        sy += wgt * y;
+        for (m, d) in shape.iter_mut().zip([x, y, x * x, y * y, x * y]) {
+            *m += d;
+        }
+    }
+    let area = pixels.len();
+    let (least, most_elongated) = if at_edge {
+        (0.75 * LEAST_AREA, 3.0)
+    } else {
+        (LEAST_AREA, max_elongation)
+    };
+    let ok = area as f64 >= (least * disc).max(3.0)
+        && elongation(area, &shape) <= most_elongated
+        && sum > 0.0;
+    ok.then_some(FaintSpot {
+        area,
+        sum,
+        sx,
+        sy,
+        peak: raw_peak,
+    })
+}
+
+/// √(λ₁/λ₂) of the covariance of `n` pixels with moments Σx, Σy, Σx², Σy², Σxy: 1 for
+/// a disc, large for a line.
+pub(crate) fn elongation(n: usize, shape: &[f64; 5]) -> f64 {
+    let n = n as f64;
+    let [x, y, xx, yy, xy] = *shape;
+    let (cxx, cyy, cxy) = (
+        xx / n - (x / n).powi(2),
+        yy / n - (y / n).powi(2),
+        xy / n - x * y / (n * n),
+    );
+    let (m, d) = (
+        0.5 * (cxx + cyy),
+        (0.25 * (cxx - cyy).powi(2) + cxy * cxy).sqrt(),
+    );
+    ((m + d) / (m - d).max(1e-9)).sqrt()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -367,6 +735,65 @@ mod tests {
     }
 
     #[test]
+    fn dilate_matches_a_brute_force_square_maximum() {
+        let (w, h) = (19, 13);
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| (i as u64 * 2_654_435_761).is_multiple_of(23))
+            .collect();
+        let as_int: Vec<i32> = mask.iter().map(|&m| m as i32).collect();
+        for r in [0, 1, 3, 20] {
+            let brute: Vec<bool> = naive(&as_int, w, h, r, false)
+                .iter()
+                .map(|&v| v > 0)
+                .collect();
+            assert_eq!(dilate(&mask, w, h, r), brute, "r={r}");
+        }
+    }
+
+    /// One faint disc beside a bright one the first pass took: the second pass finds
+    /// the faint one (its centroid within 0.3 px) and nothing of the bright one's flank.
+    #[test]
+    fn faint_spots_finds_a_faint_disc_and_not_the_first_pass_blob() {
+        let (w, h) = (64, 48);
+        let disc = |cx: f64, cy: f64, r: f64, v: i32, m: &mut Vec<i32>| {
+            for y in 0..h {
+                for x in 0..w {
+                    if (x as f64 - cx).hypot(y as f64 - cy) <= r {
+                        m[y * w + x] += v;
+                    }
+                }
+            }
+        };
+        // Deterministic noise of a few levels (the score) and its top-hat-like map.
+        let noise: Vec<i32> = (0..w * h)
+            .map(|i| ((i as u64 * 2_654_435_761) % 7) as i32)
+            .collect();
+        let mut map = noise.clone();
+        disc(16.0, 24.0, 3.0, 200, &mut map);
+        disc(44.3, 24.6, 3.0, 40, &mut map);
+        let score = map.clone();
+        let taken: Vec<bool> = (0..w * h)
+            .map(|i| ((i % w) as f64 - 16.0).hypot((i / w) as f64 - 24.0) <= 3.0)
+            .collect();
+        let input = FaintInput {
+            map: &map,
+            score: &score,
+            illumination: None,
+            width: w,
+            height: h,
+            median: 3,
+            taken: &taken,
+            structure: &taken,
+            radius_px: 3.0,
+            min_contrast: 38,
+        };
+        let spots = faint_spots(&input, 2.2);
+        assert_eq!(spots.len(), 1, "{spots:?}");
+        let c = [spots[0].sx / spots[0].sum, spots[0].sy / spots[0].sum];
+        assert!((c[0] - 44.0).hypot(c[1] - 25.0) < 0.8, "{c:?}");
+    }
+
+    #[test]
     fn top_hat_removes_a_gradient_and_keeps_a_narrow_bump() {
         let (w, h) = (60, 40);
         // A ramp of 10 levels per column plus a 5×5 bump of 300 at (30, 20).
@@ -376,8 +803,9 @@ mod tests {
                 v[y * w + x] += 300;
             }
         }
-        let (c, k) = contrast_map::<u8>(&v, w, h, MarkerColor::Bright, element_size(2.5));
-        assert_eq!(k, 1.0);
+        let cm = contrast_map::<u8>(&v, w, h, MarkerColor::Bright, element_size(2.5));
+        let c = cm.map;
+        assert_eq!(cm.per_score, 1.0);
         // On the bump the larger opening is the horizontal one, which on a ramp takes
         // the level of the first column past the bump (3 columns right of its centre):
         // the bump's contrast is measured against its brighter side, 300 - 3 × 10.
@@ -407,7 +835,7 @@ mod tests {
             }
         }
         let score: Vec<i32> = y.iter().map(|&v| bias - v).collect();
-        let (c, _) = contrast_map::<u8>(&score, w, h, MarkerColor::Dark, element_size(2.5));
+        let c = contrast_map::<u8>(&score, w, h, MarkerColor::Dark, element_size(2.5)).map;
         assert_eq!(c[10 * w + 20], DARK_UNIT);
         assert_eq!(c[10 * w + 60], DARK_UNIT);
         assert_eq!(c[2 * w + 5], 0);

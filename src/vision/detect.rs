@@ -6,7 +6,14 @@
 //! Per layer: colour score map (see `window.rs`); robust statistics (median `b`, noise
 //! `σ = 1.4826·MAD`, peak `p` = 20th largest score, immune to a few hot pixels);
 //! threshold `T = b + max(6σ, 0.2·(p − b))`; 8-connected components above `T`; blobs
-//! smaller than a fifth of the expected marker area dropped as noise. The aperture
+//! smaller than a fifth of the expected marker area dropped as noise. Brightness
+//! layers (`dark`, `bright`) threshold their contrast map instead (`contrast.rs`),
+//! keep blobs of 40 % of a marker's area that are round, and then run a second,
+//! low-threshold pass (`contrast::faint_spots`): local maxima of the smoothed map
+//! outside the first pass's blobs, judged against the local noise by their own peak
+//! and half-height area, so faint markers (a vignetted field's edge) are not lost to
+//! a threshold the brightest markers set; the first pass's blobs alone set the
+//! aperture and spacing, so its markers are measured as before. The aperture
 //! radius is the marker's measured extent (where the score falls to 5 % of the blob's
 //! peak, median over blobs and the four axis directions) plus 1.5 px, so soft edges of
 //! any profile stay inside the aperture; it is capped so the background ring never
@@ -534,7 +541,7 @@ fn detect_layer<T: Sample, const C: usize>(
     // The map blobs are found in, its median and the threshold: the colour score itself
     // for colour layers (their score cancels grey illumination), the contrast against
     // the local illumination for brightness layers (their score does not; `contrast.rs`).
-    let (map, median, threshold, map_per_score) = if color.is_brightness() {
+    let (map, median, threshold, map_per_score, illumination) = if color.is_brightness() {
         let noise = contrast::score_noise(&score, w, inside.as_deref());
         let min_contrast = contrast::min_contrast::<T>(color);
         let stats = |m: &[i32], map_per_score: f64| {
@@ -546,20 +553,26 @@ fn detect_layer<T: Sample, const C: usize>(
                 // Marker size unknown (no grid): a first pass with a long element
                 // measures it, the second uses the element that follows from it.
                 let first_size = contrast::default_element_size(w, h);
-                let (first, k) = contrast::contrast_map::<T>(&score, w, h, color, first_size);
-                let r =
-                    stats(&first, k).and_then(|t| contrast::blob_radius(&masked(first), w, h, &t));
+                let first = contrast::contrast_map::<T>(&score, w, h, color, first_size);
+                let r = stats(&first.map, first.per_score)
+                    .and_then(|t| contrast::blob_radius(&masked(first.map), w, h, &t));
                 match r {
                     Some(r) => contrast::element_size(r),
                     None => return empty(1.0),
                 }
             }
         };
-        let (m, k) = contrast::contrast_map::<T>(&score, w, h, color, size);
-        let Some(t) = stats(&m, k) else {
+        let cm = contrast::contrast_map::<T>(&score, w, h, color, size);
+        let Some(t) = stats(&cm.map, cm.per_score) else {
             return empty(expected_radius_px.unwrap_or(1.0));
         };
-        (masked(m), t.median, t.threshold, k)
+        (
+            masked(cm.map),
+            t.median,
+            t.threshold,
+            cm.per_score,
+            cm.illumination,
+        )
     } else {
         let mut tmp = inside_values(&score);
         let n = tmp.len();
@@ -575,7 +588,7 @@ fn detect_layer<T: Sample, const C: usize>(
             return empty(expected_radius_px.unwrap_or(1.0));
         }
         let threshold = (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32;
-        (masked(score.clone()), median, threshold, 1.0)
+        (masked(score.clone()), median, threshold, 1.0, None)
     };
     let map = &map[..];
     let b = median as f64;
@@ -596,29 +609,20 @@ fn detect_layer<T: Sample, const C: usize>(
     impl Comp {
         /// √(λ₁/λ₂) of the pixels' covariance: 1 for a disc, large for a line.
         fn elongation(&self) -> f64 {
-            let n = self.area as f64;
-            let [x, y, xx, yy, xy] = self.shape;
-            let (cxx, cyy, cxy) = (
-                xx / n - (x / n).powi(2),
-                yy / n - (y / n).powi(2),
-                xy / n - x * y / (n * n),
-            );
-            let (m, d) = (
-                0.5 * (cxx + cyy),
-                (0.25 * (cxx - cyy).powi(2) + cxy * cxy).sqrt(),
-            );
-            ((m + d) / (m - d).max(1e-9)).sqrt()
+            contrast::elongation(self.area, &self.shape)
         }
     }
     let n = map.len();
-    let mut label = vec![false; n];
+    // The component of each pixel above the threshold (index + 1; 0: none).
+    let mut label = vec![0u32; n];
     let mut comps = Vec::new();
     let mut stack = Vec::new();
     for start in 0..n {
-        if label[start] || map[start] <= threshold {
+        if label[start] != 0 || map[start] <= threshold {
             continue;
         }
-        label[start] = true;
+        let id = comps.len() as u32 + 1;
+        label[start] = id;
         stack.push(start);
         let mut c = Comp {
             area: 0,
@@ -649,8 +653,8 @@ fn detect_layer<T: Sample, const C: usize>(
                         continue;
                     }
                     let j = ny as usize * w + nx as usize;
-                    if !label[j] && map[j] > threshold {
-                        label[j] = true;
+                    if label[j] == 0 && map[j] > threshold {
+                        label[j] = id;
                         stack.push(j);
                     }
                 }
@@ -703,15 +707,60 @@ fn detect_layer<T: Sample, const C: usize>(
         };
         c.area as f64 >= (area * disc_area).max(3.0) && c.elongation() <= elongation
     };
-    let comps: Vec<Comp> = comps.into_iter().filter(keep).collect();
+    let kept: Vec<bool> = comps.iter().map(keep).collect();
+    let mut comps: Vec<Comp> = comps
+        .into_iter()
+        .zip(&kept)
+        .filter_map(|(c, &k)| k.then_some(c))
+        .collect();
+    // The first pass's blobs set the aperture and spacing below: the second pass adds
+    // markers without moving the first pass's.
+    let first_pass = comps.len();
+    if color.is_brightness() {
+        let taken: Vec<bool> = label
+            .iter()
+            .map(|&l| l > 0 && kept[l as usize - 1])
+            .collect();
+        let structure: Vec<bool> = label.iter().map(|&l| l > 0).collect();
+        let input = contrast::FaintInput {
+            map,
+            score: &score,
+            illumination: illumination.as_deref(),
+            width: w,
+            height: h,
+            median,
+            taken: &taken,
+            structure: &structure,
+            radius_px,
+            min_contrast: contrast::min_contrast::<T>(color),
+        };
+        comps.extend(
+            contrast::faint_spots(&input, MAX_ELONGATION)
+                .into_iter()
+                .map(|f| Comp {
+                    area: f.area,
+                    sum: f.sum,
+                    sx: f.sx,
+                    sy: f.sy,
+                    peak: f.peak,
+                    shape: [0.0; 5],
+                    at_edge: false,
+                }),
+        );
+    }
     if comps.is_empty() {
         return empty(radius_px);
     }
     let seeds: Vec<[f64; 2]> = comps.iter().map(|c| [c.sx / c.sum, c.sy / c.sum]).collect();
+    let basis = if first_pass > 0 {
+        first_pass
+    } else {
+        comps.len()
+    };
 
     // Extent: where the score falls to 5 % of the blob's peak above background.
     let mut extents = Vec::new();
-    for (c, s) in comps.iter().zip(&seeds).take(200) {
+    for (c, s) in comps[..basis].iter().zip(&seeds).take(200) {
         let level = b + 0.05 * (c.peak as f64 - b);
         let (x0, y0) = (s[0].round() as i64, s[1].round() as i64);
         for (dx, dy) in [(1i64, 0i64), (-1, 0), (0, 1), (0, -1)] {
@@ -733,11 +782,11 @@ fn detect_layer<T: Sample, const C: usize>(
     let extent = extents[extents.len() / 2].max(radius_px);
 
     // Nearest-neighbour spacing of the seeds (median), to cap the window.
-    let mut nn: Vec<f64> = seeds
+    let mut nn: Vec<f64> = seeds[..basis]
         .iter()
         .enumerate()
         .map(|(i, a)| {
-            seeds
+            seeds[..basis]
                 .iter()
                 .enumerate()
                 .filter(|(j, _)| *j != i)
@@ -756,7 +805,7 @@ fn detect_layer<T: Sample, const C: usize>(
     let window = Window::new(aperture, weights);
 
     let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
-    for (s, comp) in seeds.iter().zip(&comps) {
+    for (k, (s, comp)) in seeds.iter().zip(&comps).enumerate() {
         // Brightness layers (real frames, markers up to the image's edge): a window
         // cut by the edge is measured on its pixels inside the image when the dot is
         // inside (`window::dot_inside`), as the tracker measures it.
@@ -772,6 +821,16 @@ fn detect_layer<T: Sample, const C: usize>(
         } else {
             window.locate::<T, C>(img, *s, 20, false)
         };
+        // A second-pass spot whose window ran off it was pulled by its neighbours
+        // (an aperture sized for larger markers): not measurable, not a marker.
+        if k >= first_pass {
+            if let Located::Found { centroid_px, .. } = located {
+                let own = (comp.area as f64 / std::f64::consts::PI).sqrt();
+                if (centroid_px[0] - s[0]).hypot(centroid_px[1] - s[1]) > (0.5 * own).max(1.0) {
+                    continue;
+                }
+            }
+        }
         if color.is_brightness() && matches!(located, Located::OutOfImage) {
             // A marker at the image border, its window cut by the edge: found (it is
             // there, and `sensor init` counts it near the border) at its blob's
