@@ -2,6 +2,7 @@
 //! or simulated) into a run directory, drawing progress with indicatif (library:
 //! [`tactbench::bench::runner`]).
 
+use std::fmt::Write as _;
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -239,14 +240,22 @@ fn check_camera_levels(
     Ok(())
 }
 
-pub fn run(a: Args) -> anyhow::Result<ExitCode> {
-    let limit = a.limit.map(|n| usize::try_from(n).unwrap_or(usize::MAX));
-    // One writer per run directory: a resume locks before it reads or writes anything.
-    let mut run_lock = match (&a.resume, a.dry_run) {
-        (Some(dir), false) if dir.is_dir() => Some(RunLock::acquire(dir, "run --resume")?),
-        _ => None,
-    };
-    // Plan: from the command line, or (resume) from the manifest.
+/// What a run starts from: the plan, the sensor file, the camera mapping and the
+/// bench, from the command line or (resume) from the run's manifest.
+struct Inputs {
+    plan: Plan,
+    plan_toml: String,
+    sensor: Sensor,
+    sensor_toml: String,
+    /// The draft sensor file's warning, when --allow-draft let it run.
+    draft: Option<String>,
+    /// The camera calibration: (path, text).
+    camera: Option<(String, String)>,
+    bench: Option<BenchConfig>,
+}
+
+/// The manifest of the run --resume continues (none for a new run).
+fn read_resume_manifest(a: &Args) -> anyhow::Result<Option<Manifest>> {
     let manifest =
         match &a.resume {
             Some(dir) => Some(Manifest::read(dir).with_context(|| {
@@ -257,7 +266,12 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     if let Some(w) = manifest.as_ref().and_then(|m| m.write_failure.as_ref()) {
         eprintln!("note: an earlier session of this run was aborted by a failed write: {w}");
     }
-    let (plan, plan_toml) = match (&a.plan, &manifest) {
+    Ok(manifest)
+}
+
+/// The plan and its text: from the command line, or (resume) from the manifest.
+fn read_plan(a: &Args, manifest: Option<&Manifest>) -> anyhow::Result<(Plan, String)> {
+    Ok(match (&a.plan, manifest) {
         (Some(p), _) => {
             let text = std::fs::read_to_string(p)
                 .with_context(|| format!("cannot read plan {}", p.display()))?;
@@ -270,8 +284,17 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         (None, None) => {
             bail!("give a plan: tactbench run PLAN.toml --sim SCENE.toml --out DIR (see --help)")
         }
-    };
-    let sensor_toml = match &manifest {
+    })
+}
+
+/// The sensor file (the plan's, or the manifest's text on resume), its text, and its
+/// draft warning when --allow-draft lets a draft run (a draft is refused otherwise).
+fn read_sensor(
+    a: &Args,
+    plan: &Plan,
+    manifest: Option<&Manifest>,
+) -> anyhow::Result<(Sensor, String, Option<String>)> {
+    let sensor_toml = match manifest {
         Some(m) => m.sensor_toml.clone(),
         None => std::fs::read_to_string(&plan.sensor_path).with_context(|| {
             format!(
@@ -291,13 +314,21 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             None
         }
     };
-    // The camera calibration: from the command line (checked against the sensor now,
-    // before anything is written), or on resume the one the run started with.
-    let camera = match (&a.camera, &manifest) {
+    Ok((sensor, sensor_toml, draft))
+}
+
+/// The camera calibration: from the command line (checked against the sensor now,
+/// before anything is written), or on resume the one the run started with.
+fn read_camera(
+    a: &Args,
+    manifest: Option<&Manifest>,
+    sensor: &Sensor,
+) -> anyhow::Result<Option<(String, String)>> {
+    Ok(match (&a.camera, manifest) {
         (Some(p), m) => {
             let text = std::fs::read_to_string(p)
                 .with_context(|| format!("cannot read camera calibration {}", p.display()))?;
-            tactbench::vision::CameraCalibration::from_toml_str(&text, p, &sensor)?;
+            tactbench::vision::CameraCalibration::from_toml_str(&text, p, sensor)?;
             if let Some(m) = m {
                 if m.camera_toml.as_deref() != Some(text.as_str()) {
                     bail!(
@@ -315,63 +346,82 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         }
         (None, Some(m)) => m.camera_path.clone().zip(m.camera_toml.clone()),
         (None, None) => None,
-    };
+    })
+}
 
+/// Everything the run reads before it opens a device, in the order the errors are
+/// reported: manifest, plan, sensor (draft), camera calibration, bench, and the
+/// frames the run would write.
+fn read_inputs(a: &Args) -> anyhow::Result<Inputs> {
+    let manifest = read_resume_manifest(a)?;
+    let (plan, plan_toml) = read_plan(a, manifest.as_ref())?;
+    let (sensor, sensor_toml, draft) = read_sensor(a, &plan, manifest.as_ref())?;
+    let camera = read_camera(a, manifest.as_ref(), &sensor)?;
     let bench = match (&a.bench, &a.sim, &manifest) {
         (Some(b), _, _) => Some(BenchConfig::from_path(b)?),
         (None, Some(s), _) => Some(BenchConfig::sim(s)),
         (None, None, Some(m)) => Some(bench_from_manifest(m)?),
         (None, None, None) => None,
     };
-
     // The frames the run writes, now that the sensor gives the image size.
     plan.check_frames_on_disk(&sensor)?;
+    Ok(Inputs {
+        plan,
+        plan_toml,
+        sensor,
+        sensor_toml,
+        draft,
+        camera,
+        bench,
+    })
+}
 
-    if a.dry_run {
-        return dry_run(&a, &plan, &sensor, bench.as_ref(), limit, draft.as_deref());
-    }
-
-    let bench = bench.context("give a bench: --bench bench.toml or --sim SCENE.toml")?;
-    let (dir, resume) = match (&a.out, &a.resume) {
-        (Some(d), None) => (d.clone(), false),
-        (None, Some(d)) => (d.clone(), true),
-        _ => bail!("give --out DIR for a new run or --resume DIR to continue one"),
+/// The live view (--serve) on the run directory, its URL printed on stderr. Bound
+/// before anything is created or opened: a bad address is an error that leaves
+/// nothing behind.
+fn start_live_view(
+    a: &Args,
+    dir: &std::path::Path,
+) -> anyhow::Result<Option<tactbench::live::LiveServer>> {
+    let Some(addr) = &a.serve else {
+        return Ok(None);
     };
-    // The live view binds before anything is created or opened: a bad address is an
-    // error that leaves nothing behind.
-    let live = match &a.serve {
-        Some(addr) => {
-            let (stop, signal) = stop_flags();
-            let server = tactbench::live::LiveServer::start(
-                std::slice::from_ref(&dir),
-                &tactbench::live::ServeOptions {
-                    addr: addr.clone(),
-                    criteria: a.acceptance.clone(),
-                },
-                Some(tactbench::live::StopHandle { stop, signal }),
-            )?;
-            eprintln!(
-                "live view: {}{}",
-                server.url(),
-                if server.url().contains("token=") {
-                    " (not a loopback address: requests need this token)"
-                } else {
-                    ""
-                }
-            );
-            Some(server)
+    let (stop, signal) = stop_flags();
+    let server = tactbench::live::LiveServer::start(
+        std::slice::from_ref(&dir.to_path_buf()),
+        &tactbench::live::ServeOptions {
+            addr: addr.clone(),
+            criteria: a.acceptance.clone(),
+        },
+        Some(tactbench::live::StopHandle { stop, signal }),
+    )?;
+    eprintln!(
+        "live view: {}{}",
+        server.url(),
+        if server.url().contains("token=") {
+            " (not a loopback address: requests need this token)"
+        } else {
+            ""
         }
-        None => None,
-    };
-    let live_events = live.as_ref().and_then(|s| s.sender());
-    // Created here (the simulated bench's links live in it), removed again if the
-    // bench cannot be opened: a failed start leaves nothing behind.
-    let created = !resume && !dir.exists();
+    );
+    Ok(Some(server))
+}
+
+/// A new run's directory: refused when it holds a run already, created, and locked
+/// before anything else is written (the simulated bench's links live in it). On
+/// resume the lock taken at the start is kept. Returns the lock (held until the run
+/// returns, or the process dies).
+fn lock_run_dir(
+    dir: &std::path::Path,
+    resume: bool,
+    run_lock: Option<RunLock>,
+) -> anyhow::Result<RunLock> {
+    let mut run_lock = run_lock;
     if !resume {
         let journal = dir.join(tactbench::bench::journal::JOURNAL_FILE);
         if journal.exists() || dir.join(tactbench::bench::journal::MANIFEST_FILE).exists() {
             // Refused before anything in it is touched (the lock file included).
-            let live = match tactbench::bench::lock::probe(&dir) {
+            let live = match tactbench::bench::lock::probe(dir) {
                 Ok(tactbench::bench::lock::LockState::Held(h)) => {
                     format!(" (in progress: {h})")
                 }
@@ -383,13 +433,91 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 dir.display()
             );
         }
-        std::fs::create_dir_all(&dir)
+        std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create run directory {}", dir.display()))?;
         // Before anything else is written (the simulated bench's links live in DIR).
-        run_lock = Some(RunLock::acquire(&dir, "run")?);
+        run_lock = Some(RunLock::acquire(dir, "run")?);
     }
+    run_lock.context("cannot resume: no such run directory")
+}
+
+/// Opens the bench's devices and checks the camera's levels. A blank or saturated
+/// camera (light off, lens cap, exposure) is refused before anything moves, as
+/// `track`, `calibrate` and `sensor init` refuse such a reference. On failure a run
+/// directory this session `created` is removed again: a failed start leaves nothing
+/// behind.
+fn open_bench(
+    bench: &BenchConfig,
+    plan: &Plan,
+    sensor: &Sensor,
+    dir: &std::path::Path,
+    created: bool,
+    run_lock: &RunLock,
+) -> anyhow::Result<connect::Connected> {
+    let sim_options = SimOptions {
+        links: connect::default_links(dir),
+        start_over_mm: Some(plan.approach_position_mm),
+        ..SimOptions::default()
+    };
+    let mut c = match connect::connect(bench, &sim_options) {
+        Ok(c) => c,
+        Err(e) => {
+            if created {
+                let _ = std::fs::remove_dir(&sim_options.links);
+                let _ = std::fs::remove_file(run_lock.path());
+                let _ = std::fs::remove_dir(dir);
+            }
+            return Err(anyhow::Error::new(e).context("cannot open the bench"));
+        }
+    };
+    for w in &c.warnings {
+        eprintln!("warning: {w}");
+    }
+    if let Err(e) = check_camera_levels(c.camera.as_mut(), sensor) {
+        if created {
+            drop(c);
+            let _ = std::fs::remove_dir_all(&sim_options.links);
+            let _ = std::fs::remove_file(run_lock.path());
+            let _ = std::fs::remove_dir(dir);
+        }
+        return Err(e);
+    }
+    Ok(c)
+}
+
+pub fn run(a: Args) -> anyhow::Result<ExitCode> {
+    let limit = a.limit.map(|n| usize::try_from(n).unwrap_or(usize::MAX));
+    // One writer per run directory: a resume locks before it reads or writes anything.
+    let run_lock = match (&a.resume, a.dry_run) {
+        (Some(dir), false) if dir.is_dir() => Some(RunLock::acquire(dir, "run --resume")?),
+        _ => None,
+    };
+    let Inputs {
+        plan,
+        plan_toml,
+        sensor,
+        sensor_toml,
+        draft,
+        camera,
+        bench,
+    } = read_inputs(&a)?;
+
+    if a.dry_run {
+        return dry_run(&a, &plan, &sensor, bench.as_ref(), limit, draft.as_deref());
+    }
+
+    let bench = bench.context("give a bench: --bench bench.toml or --sim SCENE.toml")?;
+    let (dir, resume) = match (&a.out, &a.resume) {
+        (Some(d), None) => (d.clone(), false),
+        (None, Some(d)) => (d.clone(), true),
+        _ => bail!("give --out DIR for a new run or --resume DIR to continue one"),
+    };
+    let live = start_live_view(&a, &dir)?;
+    // Created here (the simulated bench's links live in it), removed again if the
+    // bench cannot be opened: a failed start leaves nothing behind.
+    let created = !resume && !dir.exists();
     // Held until this function returns (or the process dies).
-    let run_lock = run_lock.context("cannot resume: no such run directory")?;
+    let run_lock = lock_run_dir(&dir, resume, run_lock)?;
 
     let (stop, stop_signal) = install_stop_handlers()?;
     // A real stage's port is claimed as `tactbench stage` claims it, so `stage stop`
@@ -401,37 +529,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         }
         tactbench::bench::config::BenchDevices::Sim(_) => None,
     };
-
-    let sim_options = SimOptions {
-        links: connect::default_links(&dir),
-        start_over_mm: Some(plan.approach_position_mm),
-        ..SimOptions::default()
-    };
-    let mut c = match connect::connect(&bench, &sim_options) {
-        Ok(c) => c,
-        Err(e) => {
-            if created {
-                let _ = std::fs::remove_dir(&sim_options.links);
-                let _ = std::fs::remove_file(run_lock.path());
-                let _ = std::fs::remove_dir(&dir);
-            }
-            return Err(anyhow::Error::new(e).context("cannot open the bench"));
-        }
-    };
-    for w in &c.warnings {
-        eprintln!("warning: {w}");
-    }
-    // A blank or saturated camera (light off, lens cap, exposure) is refused before
-    // anything moves, as `track`, `calibrate` and `sensor init` refuse such a reference.
-    if let Err(e) = check_camera_levels(c.camera.as_mut(), &sensor) {
-        if created {
-            drop(c);
-            let _ = std::fs::remove_dir_all(&sim_options.links);
-            let _ = std::fs::remove_file(run_lock.path());
-            let _ = std::fs::remove_dir(&dir);
-        }
-        return Err(e);
-    }
+    let mut c = open_bench(&bench, &plan, &sensor, &dir, created, &run_lock)?;
     let options = RunOptions {
         dir: dir.clone(),
         resume,
@@ -450,124 +548,13 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
         stop_signal,
     };
 
-    // A progress bar only on a terminal: indicatif hides itself (and the lines printed
-    // through it) when stderr is not one, so nohup, CI and pipes get plain lines.
-    let plain = a.no_progress || !std::io::stderr().is_terminal();
-    let bar = if plain {
-        None
-    } else {
-        let b = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
-        b.set_style(
-            ProgressStyle::with_template(
-                "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} setpoints, ETA {eta} {msg}",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        b.enable_steady_tick(Duration::from_millis(200));
-        Some(b)
+    let progress = Progress {
+        bar: progress_bar(&a),
+        unit: plan.force_unit,
+        run_dir: dir.display().to_string(),
+        live: live.as_ref().and_then(|s| s.sender()),
     };
-    let unit = plan.force_unit;
-    let sym = unit.symbol();
-    let quiet_bar = bar.clone();
-    let log = move |line: String| match &quiet_bar {
-        Some(b) => b.println(line),
-        None => eprintln!("{line}"),
-    };
-    let run_dir = dir.display().to_string();
-    let mut on_event = |e: &RunEvent| {
-        // The live view never makes the run wait: a bounded queue, dropped when full.
-        if let Some(s) = &live_events {
-            s.send(e);
-        }
-        match e {
-            RunEvent::Started {
-                total,
-                done,
-                truncated_bytes,
-            } => {
-                if let Some(b) = &bar {
-                    b.set_length(*total as u64);
-                    b.set_position(*done as u64);
-                    b.reset_eta();
-                }
-                if *done > 0 {
-                    log(format!(
-                        "resuming {run_dir}: {done} of {total} setpoints already measured{}",
-                        if *truncated_bytes > 0 {
-                            format!(" (cut a torn journal line of {truncated_bytes} bytes)")
-                        } else {
-                            String::new()
-                        }
-                    ));
-                } else {
-                    log(format!("run {run_dir}: {total} setpoints"));
-                }
-            }
-            RunEvent::Homing => log("homing the stage".into()),
-            RunEvent::Tared { residual_n } => log(format!(
-                "force sensor tared (|F| = {residual_n:.4} N after)"
-            )),
-            RunEvent::Reference {
-                path,
-                markers,
-                missing,
-            } => log(format!(
-                "reference frame {path}: {markers} markers, {missing} missing"
-            )),
-            RunEvent::SetpointStarted { setpoint, .. } => {
-                if let Some(b) = &bar {
-                    b.set_message(format!(
-                        "#{} target {:.1} {sym}",
-                        setpoint.index,
-                        unit.from_newtons(setpoint.normal_n)
-                    ));
-                }
-            }
-            RunEvent::Contact { .. } => {}
-            RunEvent::Retry {
-                index,
-                attempt,
-                reason,
-            } => log(format!(
-                "retry {attempt}{}: {reason}",
-                index
-                    .map(|i| format!(" at setpoint {i}"))
-                    .unwrap_or_default()
-            )),
-            RunEvent::Warning { index, message } => {
-                log(format!("warning: setpoint {index}: {message}"))
-            }
-            RunEvent::SetpointMeasured {
-                index,
-                done,
-                total,
-                target_n,
-                force_n,
-                fsum_n,
-                settled,
-                elapsed_s,
-                ..
-            } => match &bar {
-                Some(b) => {
-                    b.set_position(*done as u64);
-                    b.set_message(format!(
-                        "last fz {:.1} {sym}",
-                        unit.from_newtons(force_n[2])
-                    ));
-                }
-                None => eprintln!(
-                    "{}",
-                    setpoint_line(
-                        *index, *done, *total, unit, target_n, force_n, fsum_n, *settled,
-                        *elapsed_s
-                    )
-                ),
-            },
-            RunEvent::SafetyTrip { reason, .. } => log(format!("SAFETY STOP: {reason}")),
-            RunEvent::Finished { .. } | RunEvent::Phase { .. } | RunEvent::Reading { .. } => {}
-        }
-    };
-
+    let mut on_event = |e: &RunEvent| progress.event(e);
     let summary = {
         let mut devices = Devices {
             stage: c.stage.as_mut(),
@@ -583,7 +570,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             &mut on_event,
         )?
     };
-    if let Some(b) = &bar {
+    if let Some(b) = &progress.bar {
         b.finish_and_clear();
     }
     if let Some(server) = live {
@@ -599,21 +586,170 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
     let _ = std::fs::remove_dir(connect::default_links(&dir));
 
     if a.timings {
-        let t = summary.timings;
-        let n = t.setpoints.max(1) as f64;
-        eprintln!(
-            "timings over {} setpoints: wall {:.2} s; device waits {:.2} s; tracking {:.3} s; solving {:.3} s (+ {:.3} s one-off solver precompute); file writes {:.3} s; controller overhead {:.3} ms mean, {:.3} ms max per setpoint",
-            t.setpoints,
-            t.wall_s,
-            t.device_s,
-            t.track_s,
-            t.solve_s,
-            t.precompute_s,
-            t.io_s,
-            t.overhead_s / n * 1e3,
-            t.max_overhead_s * 1e3
-        );
+        print_timings(&summary.timings);
     }
+    Ok(report_end(summary, &plan, &dir, draft.as_deref()))
+}
+
+/// A progress bar only on a terminal: indicatif hides itself (and the lines printed
+/// through it) when stderr is not one, so nohup, CI and pipes get plain lines.
+fn progress_bar(a: &Args) -> Option<ProgressBar> {
+    let plain = a.no_progress || !std::io::stderr().is_terminal();
+    if plain {
+        return None;
+    }
+    let b = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
+    b.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} setpoints, ETA {eta} {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    b.enable_steady_tick(Duration::from_millis(200));
+    Some(b)
+}
+
+/// Where the run's events go: the progress bar (or plain lines on stderr) and the
+/// live view.
+struct Progress {
+    bar: Option<ProgressBar>,
+    unit: ForceUnit,
+    run_dir: String,
+    live: Option<tactbench::live::server::EventSender>,
+}
+
+impl Progress {
+    /// A line above the bar, or on stderr without one.
+    fn log(&self, line: String) {
+        match &self.bar {
+            Some(b) => b.println(line),
+            None => eprintln!("{line}"),
+        }
+    }
+
+    fn event(&self, e: &RunEvent) {
+        // The live view never makes the run wait: a bounded queue, dropped when full.
+        if let Some(s) = &self.live {
+            s.send(e);
+        }
+        let (bar, unit, run_dir) = (&self.bar, self.unit, &self.run_dir);
+        let sym = unit.symbol();
+        match e {
+            RunEvent::Started {
+                total,
+                done,
+                truncated_bytes,
+            } => {
+                if let Some(b) = bar {
+                    b.set_length(*total as u64);
+                    b.set_position(*done as u64);
+                    b.reset_eta();
+                }
+                if *done > 0 {
+                    self.log(format!(
+                        "resuming {run_dir}: {done} of {total} setpoints already measured{}",
+                        if *truncated_bytes > 0 {
+                            format!(" (cut a torn journal line of {truncated_bytes} bytes)")
+                        } else {
+                            String::new()
+                        }
+                    ));
+                } else {
+                    self.log(format!("run {run_dir}: {total} setpoints"));
+                }
+            }
+            RunEvent::Homing => self.log("homing the stage".into()),
+            RunEvent::Tared { residual_n } => self.log(format!(
+                "force sensor tared (|F| = {residual_n:.4} N after)"
+            )),
+            RunEvent::Reference {
+                path,
+                markers,
+                missing,
+            } => self.log(format!(
+                "reference frame {path}: {markers} markers, {missing} missing"
+            )),
+            RunEvent::SetpointStarted { setpoint, .. } => {
+                if let Some(b) = bar {
+                    b.set_message(format!(
+                        "#{} target {:.1} {sym}",
+                        setpoint.index,
+                        unit.from_newtons(setpoint.normal_n)
+                    ));
+                }
+            }
+            RunEvent::Contact { .. } => {}
+            RunEvent::Retry {
+                index,
+                attempt,
+                reason,
+            } => self.log(format!(
+                "retry {attempt}{}: {reason}",
+                index
+                    .map(|i| format!(" at setpoint {i}"))
+                    .unwrap_or_default()
+            )),
+            RunEvent::Warning { index, message } => {
+                self.log(format!("warning: setpoint {index}: {message}"))
+            }
+            RunEvent::SetpointMeasured {
+                index,
+                done,
+                total,
+                target_n,
+                force_n,
+                fsum_n,
+                settled,
+                elapsed_s,
+                ..
+            } => match bar {
+                Some(b) => {
+                    b.set_position(*done as u64);
+                    b.set_message(format!(
+                        "last fz {:.1} {sym}",
+                        unit.from_newtons(force_n[2])
+                    ));
+                }
+                None => eprintln!(
+                    "{}",
+                    setpoint_line(
+                        *index, *done, *total, unit, target_n, force_n, fsum_n, *settled,
+                        *elapsed_s
+                    )
+                ),
+            },
+            RunEvent::SafetyTrip { reason, .. } => self.log(format!("SAFETY STOP: {reason}")),
+            RunEvent::Finished { .. } | RunEvent::Phase { .. } | RunEvent::Reading { .. } => {}
+        }
+    }
+}
+
+/// `--timings`: where the session's time went.
+fn print_timings(t: &runner::Timings) {
+    let n = t.setpoints.max(1) as f64;
+    eprintln!(
+        "timings over {} setpoints: wall {:.2} s; device waits {:.2} s; tracking {:.3} s; solving {:.3} s (+ {:.3} s one-off solver precompute); file writes {:.3} s; controller overhead {:.3} ms mean, {:.3} ms max per setpoint",
+        t.setpoints,
+        t.wall_s,
+        t.device_s,
+        t.track_s,
+        t.solve_s,
+        t.precompute_s,
+        t.io_s,
+        t.overhead_s / n * 1e3,
+        t.max_overhead_s * 1e3
+    );
+}
+
+/// The end of the run on stderr (a failed write, an unrecorded end, the draft
+/// warning again, how it ended and how to continue) and its exit status: 0
+/// completed, 4 interrupted, 3 aborted.
+fn report_end(
+    summary: runner::RunSummary,
+    plan: &Plan,
+    dir: &std::path::Path,
+    draft: Option<&str>,
+) -> ExitCode {
     if let Some(w) = &summary.write_failure {
         eprintln!(
             "write failure: {w}{}",
@@ -632,7 +768,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
             dir.display()
         );
     }
-    if let Some(w) = &draft {
+    if let Some(w) = draft {
         eprintln!("warning: {w}");
     }
     match summary.status {
@@ -652,7 +788,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                     dir.display()
                 );
             }
-            Ok(ExitCode::SUCCESS)
+            ExitCode::SUCCESS
         }
         RunStatus::Interrupted => {
             eprintln!(
@@ -662,7 +798,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 dir.display(),
                 summary.reason.unwrap_or_default()
             );
-            Ok(ExitCode::from(4))
+            ExitCode::from(4)
         }
         RunStatus::Aborted | RunStatus::Running => {
             eprintln!(
@@ -671,7 +807,7 @@ pub fn run(a: Args) -> anyhow::Result<ExitCode> {
                 summary.total,
                 summary.reason.unwrap_or_default()
             );
-            Ok(ExitCode::from(3))
+            ExitCode::from(3)
         }
     }
 }
@@ -717,6 +853,13 @@ fn setpoint_line(
 /// Setpoints printed at each end of a long dry-run table.
 const DRY_RUN_ROWS: usize = 20;
 
+/// `writeln!` into the dry run's text (a `String`: cannot fail).
+macro_rules! outln {
+    ($out:expr, $($t:tt)*) => {{
+        let _ = writeln!($out, $($t)*);
+    }};
+}
+
 /// `run --dry-run`: checks every file the run would open (plan, sensor and bench file
 /// are parsed before; here the scene and camera directories), prints the defaults the
 /// plan relies on, the setpoints with their stage coordinates, the limit checks and
@@ -730,15 +873,9 @@ fn dry_run(
     limit: Option<usize>,
     draft: Option<&str>,
 ) -> anyhow::Result<ExitCode> {
-    use std::fmt::Write as _;
     use std::io::Write as _;
     // Printed at once at the end: `--dry-run | head` is not an error.
     let mut out = String::new();
-    macro_rules! outln {
-        ($($t:tt)*) => {{
-            let _ = writeln!(out, $($t)*);
-        }};
-    }
     let n = plan.setpoint_count().min(limit.unwrap_or(usize::MAX));
     let mut input_checks = Vec::new();
     if let Some(b) = bench {
@@ -753,176 +890,30 @@ fn dry_run(
         geometry.as_ref(),
         limits.as_ref().map(|l| &l.0),
     );
-    let u = plan.force_unit;
-    let fu = u.symbol();
-    outln!(
-        "plan {} ({}, {} sweep): {} setpoints{}, {} samples and {} frame(s) each",
-        plan.path.display(),
-        plan.name,
-        runner::sweep_name(plan),
-        report.setpoints.len(),
-        if n < plan.setpoint_count() {
-            format!(" (--limit; the plan has {})", plan.setpoint_count())
-        } else {
-            String::new()
-        },
-        plan.samples,
-        plan.frames
-    );
-    outln!(
-        "caps: {} of {} setpoints, {} of {} frames, an estimated {} of {:.0} h",
-        plan.setpoint_count(),
-        plan::MAX_SETPOINTS,
-        plan.frame_count(),
-        plan::MAX_FRAMES,
-        duration_text(plan.estimate_duration_s(plan::DEFAULT_CLEARANCE_MM, None)),
-        plan::MAX_DURATION_S / 3600.0
-    );
-    for line in plan.sweep_summary() {
-        outln!("{line}");
-    }
-    if plan.defaults.is_empty() {
-        outln!("defaults used: none (every optional key is given)");
-    } else {
-        outln!("defaults used (keys the plan leaves out):");
-        for (key, value) in &plan.defaults {
-            outln!("  {key} = {value}");
-        }
-    }
+    dry_run_plan(&mut out, plan, n, report.setpoints.len());
     if let Some(b) = bench {
-        outln!("bench {}:", b.path.display());
+        outln!(out, "bench {}:", b.path.display());
         for (_, what) in &input_checks {
-            outln!("  {what}");
+            outln!(out, "  {what}");
         }
         match &limits {
-            Some((_, from)) => outln!("  stage travel limits from {from}"),
+            Some((_, from)) => outln!(out, "  stage travel limits from {from}"),
             None => outln!(
+                out,
                 "  stage travel limits: not in the bench file ([stage] travel_min_mm / travel_max_mm); the run reads them from the controller"
             ),
         }
     }
-    let stage = !report.stage.is_empty();
-    // Direction, position and hold time, for the plans that have them ('-' = empty).
-    let repeat = plan.sweep_direction == plan::SweepDirection::UpDown
-        || !plan.positions_mm.is_empty()
-        || matches!(plan.sweep, plan::Sweep::Hold { .. });
-    let header = format!(
-        "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}{}{}",
-        "index",
-        "trial",
-        "x_mm",
-        "y_mm",
-        format!("normal_{fu}"),
-        format!("tx_{fu}"),
-        format!("ty_{fu}"),
-        "swept",
-        if stage {
-            format!(
-                " {:>10} {:>10} {:>11} {:>13}",
-                "stage_x_mm", "stage_y_mm", "stage_z_clr", "stage_z_limit"
-            )
-        } else {
-            String::new()
-        },
-        if repeat {
-            format!(" {:>9} {:>8} {:>9}", "direction", "position", "hold_t_s")
-        } else {
-            String::new()
-        }
-    );
-    let row = |i: usize| {
-        let sp = &report.setpoints[i];
-        let mut line = format!(
-            "{:>6} {:>5} {:>10.4} {:>10.4} {:>12.4} {:>12.4} {:>12.4} {:>10.4}",
-            sp.index,
-            sp.trial,
-            sp.position_mm[0] + sp.shift_mm[0],
-            sp.position_mm[1] + sp.shift_mm[1],
-            u.from_newtons(sp.normal_n),
-            u.from_newtons(sp.tangential_n[0]),
-            u.from_newtons(sp.tangential_n[1]),
-            sp.swept_value
-        );
-        if let Some(t) = report.stage.get(i) {
-            line += &format!(
-                " {:>10.4} {:>10.4} {:>11.4} {:>13.4}",
-                t.xy_mm[0], t.xy_mm[1], t.z_clear_mm, t.z_deepest_mm
-            );
-        }
-        if repeat {
-            let dash = || "-".to_string();
-            line += &format!(
-                " {:>9} {:>8} {:>9}",
-                sp.direction.map_or_else(dash, |d| match d {
-                    Direction::Up => "up".into(),
-                    Direction::Down => "down".into(),
-                }),
-                sp.position.map_or_else(dash, |p| p.to_string()),
-                sp.hold_t_s.map_or_else(dash, |t| format!("{t}"))
-            );
-        }
-        line
-    };
-    if stage {
-        outln!(
-            "stage coordinates (machine mm): x, y over the setpoint; z at the retract height (clearance) and at the deepest indentation the plan allows (safety.travel_max_mm[2])"
-        );
-    }
-    outln!("{header}");
-    let total = report.setpoints.len();
-    if total <= 2 * DRY_RUN_ROWS {
-        for i in 0..total {
-            outln!("{}", row(i));
-        }
-    } else {
-        for i in 0..DRY_RUN_ROWS {
-            outln!("{}", row(i));
-        }
-        outln!(
-            "{:>6} ({} setpoints not shown; --setpoints-csv FILE writes every one)",
-            "...",
-            total - 2 * DRY_RUN_ROWS
-        );
-        for i in total - DRY_RUN_ROWS..total {
-            outln!("{}", row(i));
-        }
-    }
+    let table = SetpointTable::new(plan, &report);
+    table.print(&mut out);
     if let Some(path) = &a.setpoints_csv {
-        let mut text = header.split_whitespace().collect::<Vec<_>>().join(",") + "\n";
-        for i in 0..total {
-            text += &row(i).split_whitespace().collect::<Vec<_>>().join(",");
-            text.push('\n');
-        }
-        std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
-        outln!("every setpoint written to {}", path.display());
+        std::fs::write(path, table.csv())
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        outln!(out, "every setpoint written to {}", path.display());
     }
-    outln!("checks:");
-    let mut ok = true;
-    let area = runner::sensor_area_checks(plan, sensor);
-    // The sensor file's plausibility (ranges, force grid over the markers): checked
-    // when it was loaded (a failure is an error, exit 2); shown here with the values.
-    let sensor_checks: Vec<(bool, String)> = sensor
-        .plausibility_lines()
-        .into_iter()
-        .map(|l| (true, format!("sensor {}: {l}", plan.sensor_path.display())))
-        .collect();
-    for (pass, what) in input_checks
-        .iter()
-        .chain(&sensor_checks)
-        .chain(&area)
-        .chain(&report.checks)
-    {
-        ok &= pass;
-        outln!("  [{}] {what}", if *pass { "ok" } else { "FAIL" });
-    }
-    match draft {
-        Some(w) => outln!("  [DRAFT] {w} (--allow-draft)"),
-        None => outln!(
-            "  [ok] sensor {}: measured (not a draft with placeholders)",
-            plan.sensor_path.display()
-        ),
-    }
+    let ok = dry_run_checks(&mut out, plan, sensor, &input_checks, &report.checks, draft);
     outln!(
+        out,
         "estimated duration: {:.0} s ({:.1} min); nothing moved, no device opened",
         report.estimated_s,
         report.estimated_s / 60.0
@@ -938,6 +929,220 @@ fn dry_run(
     } else {
         ExitCode::from(3)
     })
+}
+
+/// The dry run's head: the plan (`shown` of its setpoints, `n` with --limit), the
+/// caps it is checked against, its sweep and the defaults it relies on.
+fn dry_run_plan(out: &mut String, plan: &Plan, n: usize, shown: usize) {
+    outln!(
+        out,
+        "plan {} ({}, {} sweep): {} setpoints{}, {} samples and {} frame(s) each",
+        plan.path.display(),
+        plan.name,
+        runner::sweep_name(plan),
+        shown,
+        if n < plan.setpoint_count() {
+            format!(" (--limit; the plan has {})", plan.setpoint_count())
+        } else {
+            String::new()
+        },
+        plan.samples,
+        plan.frames
+    );
+    outln!(
+        out,
+        "caps: {} of {} setpoints, {} of {} frames, an estimated {} of {:.0} h",
+        plan.setpoint_count(),
+        plan::MAX_SETPOINTS,
+        plan.frame_count(),
+        plan::MAX_FRAMES,
+        duration_text(plan.estimate_duration_s(plan::DEFAULT_CLEARANCE_MM, None)),
+        plan::MAX_DURATION_S / 3600.0
+    );
+    for line in plan.sweep_summary() {
+        outln!(out, "{line}");
+    }
+    if plan.defaults.is_empty() {
+        outln!(out, "defaults used: none (every optional key is given)");
+    } else {
+        outln!(out, "defaults used (keys the plan leaves out):");
+        for (key, value) in &plan.defaults {
+            outln!(out, "  {key} = {value}");
+        }
+    }
+}
+
+/// The dry run's setpoint table: the setpoints in the plan's force unit, with their
+/// stage coordinates when the bench is known, and direction, position and hold time
+/// for the plans that have them.
+struct SetpointTable<'a> {
+    report: &'a runner::DryRun,
+    unit: ForceUnit,
+    /// The stage coordinates are known (a bench was given).
+    stage: bool,
+    /// Direction, position and hold time columns ('-' = empty).
+    repeat: bool,
+}
+
+impl<'a> SetpointTable<'a> {
+    fn new(plan: &Plan, report: &'a runner::DryRun) -> Self {
+        SetpointTable {
+            report,
+            unit: plan.force_unit,
+            stage: !report.stage.is_empty(),
+            repeat: plan.sweep_direction == plan::SweepDirection::UpDown
+                || !plan.positions_mm.is_empty()
+                || matches!(plan.sweep, plan::Sweep::Hold { .. }),
+        }
+    }
+
+    fn header(&self) -> String {
+        let fu = self.unit.symbol();
+        format!(
+            "{:>6} {:>5} {:>10} {:>10} {:>12} {:>12} {:>12} {:>10}{}{}",
+            "index",
+            "trial",
+            "x_mm",
+            "y_mm",
+            format!("normal_{fu}"),
+            format!("tx_{fu}"),
+            format!("ty_{fu}"),
+            "swept",
+            if self.stage {
+                format!(
+                    " {:>10} {:>10} {:>11} {:>13}",
+                    "stage_x_mm", "stage_y_mm", "stage_z_clr", "stage_z_limit"
+                )
+            } else {
+                String::new()
+            },
+            if self.repeat {
+                format!(" {:>9} {:>8} {:>9}", "direction", "position", "hold_t_s")
+            } else {
+                String::new()
+            }
+        )
+    }
+
+    fn row(&self, i: usize) -> String {
+        let (sp, u) = (&self.report.setpoints[i], self.unit);
+        let mut line = format!(
+            "{:>6} {:>5} {:>10.4} {:>10.4} {:>12.4} {:>12.4} {:>12.4} {:>10.4}",
+            sp.index,
+            sp.trial,
+            sp.position_mm[0] + sp.shift_mm[0],
+            sp.position_mm[1] + sp.shift_mm[1],
+            u.from_newtons(sp.normal_n),
+            u.from_newtons(sp.tangential_n[0]),
+            u.from_newtons(sp.tangential_n[1]),
+            sp.swept_value
+        );
+        if let Some(t) = self.report.stage.get(i) {
+            line += &format!(
+                " {:>10.4} {:>10.4} {:>11.4} {:>13.4}",
+                t.xy_mm[0], t.xy_mm[1], t.z_clear_mm, t.z_deepest_mm
+            );
+        }
+        if self.repeat {
+            let dash = || "-".to_string();
+            line += &format!(
+                " {:>9} {:>8} {:>9}",
+                sp.direction.map_or_else(dash, |d| match d {
+                    Direction::Up => "up".into(),
+                    Direction::Down => "down".into(),
+                }),
+                sp.position.map_or_else(dash, |p| p.to_string()),
+                sp.hold_t_s.map_or_else(dash, |t| format!("{t}"))
+            );
+        }
+        line
+    }
+
+    /// The table, the first and last [`DRY_RUN_ROWS`] rows of a long one.
+    fn print(&self, out: &mut String) {
+        if self.stage {
+            outln!(
+                out,
+                "stage coordinates (machine mm): x, y over the setpoint; z at the retract height (clearance) and at the deepest indentation the plan allows (safety.travel_max_mm[2])"
+            );
+        }
+        outln!(out, "{}", self.header());
+        let total = self.report.setpoints.len();
+        if total <= 2 * DRY_RUN_ROWS {
+            for i in 0..total {
+                outln!(out, "{}", self.row(i));
+            }
+        } else {
+            for i in 0..DRY_RUN_ROWS {
+                outln!(out, "{}", self.row(i));
+            }
+            outln!(
+                out,
+                "{:>6} ({} setpoints not shown; --setpoints-csv FILE writes every one)",
+                "...",
+                total - 2 * DRY_RUN_ROWS
+            );
+            for i in total - DRY_RUN_ROWS..total {
+                outln!(out, "{}", self.row(i));
+            }
+        }
+    }
+
+    /// Every row, comma-separated (--setpoints-csv).
+    fn csv(&self) -> String {
+        let mut text = self
+            .header()
+            .split_whitespace()
+            .collect::<Vec<_>>()
+            .join(",")
+            + "\n";
+        for i in 0..self.report.setpoints.len() {
+            text += &self.row(i).split_whitespace().collect::<Vec<_>>().join(",");
+            text.push('\n');
+        }
+        text
+    }
+}
+
+/// The dry run's checks (bench inputs, the sensor file's plausibility, the sensor
+/// area, the plan's limit checks, draft or measured), each `[ok]` or `[FAIL]`.
+/// Returns whether every check passed.
+fn dry_run_checks(
+    out: &mut String,
+    plan: &Plan,
+    sensor: &Sensor,
+    input_checks: &[(bool, String)],
+    plan_checks: &[(bool, String)],
+    draft: Option<&str>,
+) -> bool {
+    outln!(out, "checks:");
+    let mut ok = true;
+    let area = runner::sensor_area_checks(plan, sensor);
+    // The sensor file's plausibility (ranges, force grid over the markers): checked
+    // when it was loaded (a failure is an error, exit 2); shown here with the values.
+    let sensor_checks: Vec<(bool, String)> = sensor
+        .plausibility_lines()
+        .into_iter()
+        .map(|l| (true, format!("sensor {}: {l}", plan.sensor_path.display())))
+        .collect();
+    for (pass, what) in input_checks
+        .iter()
+        .chain(&sensor_checks)
+        .chain(&area)
+        .chain(plan_checks)
+    {
+        ok &= pass;
+        outln!(out, "  [{}] {what}", if *pass { "ok" } else { "FAIL" });
+    }
+    match draft {
+        Some(w) => outln!(out, "  [DRAFT] {w} (--allow-draft)"),
+        None => outln!(
+            out,
+            "  [ok] sensor {}: measured (not a draft with placeholders)",
+            plan.sensor_path.display()
+        ),
+    }
+    ok
 }
 
 /// A duration for people: seconds, minutes or hours.

@@ -13,7 +13,7 @@ use super::{
 use crate::bench::control::{check_force_limits, ForceController, SettleDetector};
 use crate::bench::journal::{Direction, JournalRow, RowQuality};
 use crate::bench::plan::{OnFail, Setpoint};
-use crate::device::{CameraFrame, ErrorKind, Wrench};
+use crate::device::{CameraFrame, ErrorKind, StagePositionMm, Wrench};
 use crate::formats::{self, DisplacementFrame};
 use crate::solve::{self, Problem};
 use crate::vision::{self, FrameView, MarkerTrack, Reference, ReferenceHealth, StatusCounts};
@@ -28,6 +28,125 @@ pub const HOLD_POLL: Duration = Duration::from_millis(20);
 
 /// One setpoint's frames: `(relative path, tracks)` per frame.
 type Tracked = Vec<(String, Vec<MarkerTrack>)>;
+
+/// How a setpoint's force was reached: settled or not, the time moving and settling,
+/// and (a hold) the sample's time since the hold's force was reached.
+struct Reached {
+    settled: bool,
+    t_move: f64,
+    t_settle: f64,
+    hold_t_s: Option<f64>,
+}
+
+/// A setpoint's F/T acquisition.
+struct Readings {
+    mean: Wrench,
+    sd: [f64; 3],
+    /// The sensor's flags and counts since the previous row.
+    ft_status: Option<String>,
+    stage: StagePositionMm,
+    /// Acquisition time, s (readings, then the frames' grabs added).
+    t_acquire: f64,
+}
+
+/// A setpoint's frames after the last (re-)acquisition.
+struct Frames {
+    /// `None` when tracking failed (`track_error` says why).
+    tracked: Option<Tracked>,
+    t_track: f64,
+    counts: StatusCounts,
+    reacquired: usize,
+    /// Every acquisition had a blank, saturated or markerless frame: the last one's,
+    /// in words.
+    dead: Option<String>,
+    track_error: Option<String>,
+    /// The acquisition time, readings and grabs, s.
+    t_acquire: f64,
+}
+
+/// A setpoint's reconstruction.
+struct Forces {
+    /// The frames' paths relative to the run directory.
+    frames: Vec<String>,
+    fsum: [f64; 3],
+    fsum_sd: Option<[f64; 3]>,
+    t_solve: f64,
+    /// Why the reconstruction failed.
+    error: Option<String>,
+}
+
+/// What the row says of itself: its quality, the force plausibility finding and why
+/// it failed.
+struct Verdict {
+    quality: RowQuality,
+    plausibility: Option<String>,
+    failure: Option<String>,
+}
+
+/// The journal row of a measured setpoint.
+fn journal_row(
+    sp: &Setpoint,
+    reached: &Reached,
+    ft: Readings,
+    frames: &Frames,
+    forces: Forces,
+    verdict: Verdict,
+) -> JournalRow {
+    let (mean, sd, stage, fsum, fsum_sd, counts) = (
+        ft.mean,
+        ft.sd,
+        ft.stage,
+        forces.fsum,
+        forces.fsum_sd,
+        &frames.counts,
+    );
+    JournalRow {
+        index: sp.index,
+        trial: sp.trial,
+        swept_value: sp.swept_value,
+        target_normal_n: sp.normal_n,
+        target_tx_n: sp.tangential_n[0],
+        target_ty_n: sp.tangential_n[1],
+        fx_n: mean.force_n[0],
+        fy_n: mean.force_n[1],
+        fz_n: mean.force_n[2],
+        mx_nm: mean.torque_nm[0],
+        my_nm: mean.torque_nm[1],
+        mz_nm: mean.torque_nm[2],
+        fx_sd_n: sd[0],
+        fy_sd_n: sd[1],
+        fz_sd_n: sd[2],
+        stage_x_mm: stage[0],
+        stage_y_mm: stage[1],
+        stage_z_mm: stage[2],
+        settled: reached.settled,
+        frames: forces.frames.join(";"),
+        fsum_x_n: fsum[0],
+        fsum_y_n: fsum[1],
+        fsum_z_n: fsum[2],
+        t_move_s: reached.t_move,
+        t_settle_s: reached.t_settle,
+        t_acquire_s: frames.t_acquire,
+        t_track_s: frames.t_track,
+        t_solve_s: forces.t_solve,
+        completed_at: String::new(),
+        markers_ok: Some(counts.ok),
+        markers_lost: Some(counts.lost),
+        markers_merged: Some(counts.merged),
+        markers_outlier: Some(counts.outlier),
+        reacquired: Some(frames.reacquired),
+        quality: Some(verdict.quality),
+        fsum_sd_x_n: fsum_sd.map(|v| v[0]),
+        fsum_sd_y_n: fsum_sd.map(|v| v[1]),
+        fsum_sd_z_n: fsum_sd.map(|v| v[2]),
+        direction: sp.direction,
+        position: sp.position,
+        hold_t_s: reached.hold_t_s,
+        ft_status: ft.ft_status,
+        failure: verdict.failure,
+        plausibility: verdict.plausibility,
+    }
+}
 
 impl Runner<'_, '_, '_, '_> {
     pub(super) fn read_retry(&mut self) -> Step<Wrench> {
@@ -206,12 +325,58 @@ impl Runner<'_, '_, '_, '_> {
     pub(super) fn measure(&mut self, sp: &Setpoint, retract: bool) -> Step<JournalRow> {
         self.set_phase(Phase::Approach);
         let t_move0 = Instant::now();
+        let mut lateral = self.position_at(sp, retract)?;
+        let reached = match sp.hold_t_s {
+            Some(t_sched) => self.hold_sample(sp, t_sched, &mut lateral, t_move0)?,
+            None => self.control_and_settle(sp, &mut lateral, t_move0)?,
+        };
+        self.set_phase(Phase::Acquire);
+        let ft = self.acquire_readings()?;
+        let frames = self.acquire_frames(sp, ft.t_acquire)?;
+        let quality = self.frames_quality(sp, &frames)?;
+        let mut forces = self.forces(sp, frames.tracked.as_ref())?;
+        // A failed row: no force, and why (the frames first: a dead camera is the
+        // cause of whatever tracking and the solver then did).
+        let failure = match (&frames.dead, &frames.track_error, &forces.error) {
+            (Some(d), _, _) => Some(format!("camera: {d}")),
+            (None, Some(t), _) => Some(format!("tracking failed: {t}")),
+            (None, None, Some(e)) => Some(format!("reconstruction failed: {e}")),
+            (None, None, None) => None,
+        };
+        if failure.is_some() {
+            forces.fsum = [f64::NAN; 3];
+            forces.fsum_sd = None;
+        }
+        if let Some(f) = &failure {
+            (self.events)(&RunEvent::Warning {
+                index: sp.index,
+                message: format!("{f}: row journalled without force (failed row)"),
+            });
+        }
+        self.count_dead(sp.index, frames.dead.as_deref());
+        let (quality, plausibility) = if failure.is_none() {
+            self.plausibility(sp, &ft.mean.force_n, &ft.sd, &forces.fsum, quality)
+        } else {
+            self.implausible_run.clear();
+            (quality, None)
+        };
+        let verdict = Verdict {
+            quality,
+            plausibility,
+            failure,
+        };
+        Ok(journal_row(sp, &reached, ft, &frames, forces, verdict))
+    }
+
+    /// Checks before any motion (the lateral target at the retract height and the
+    /// deepest allowed indentation there), then, when the contact is to be renewed,
+    /// the lateral move at the clearance height, the approach and (up-down sweeps) the
+    /// preload. Returns the lateral travel so far (tangential control).
+    fn position_at(&mut self, sp: &Setpoint, retract: bool) -> Step<[f64; 2]> {
         let target_xy = [
             sp.position_mm[0] + sp.shift_mm[0],
             sp.position_mm[1] + sp.shift_mm[1],
         ];
-        // Checks before any motion: the lateral target at the retract height and the
-        // deepest allowed indentation there.
         if sp.normal_n > 0.0 {
             let deepest = self
                 .geom
@@ -233,46 +398,63 @@ impl Runner<'_, '_, '_, '_> {
                 self.preload_for_unloading(sp, &mut lateral)?;
             }
         }
+        Ok(lateral)
+    }
+
+    /// A hold's sample at `t_sched` s: the force is controlled once (its first sample,
+    /// or the first one of a resumed hold), then the stage holds its position and each
+    /// sample waits for its time in the schedule; no settling.
+    fn hold_sample(
+        &mut self,
+        sp: &Setpoint,
+        t_sched: f64,
+        lateral: &mut [f64; 2],
+        t_move0: Instant,
+    ) -> Step<Reached> {
+        if self.hold_t0.is_none() {
+            self.control(sp, lateral)?;
+            self.hold_t0 = Some(Instant::now());
+            self.hold_restarted = t_sched > 0.0;
+            if self.hold_restarted {
+                (self.events)(&RunEvent::Warning {
+                    index: sp.index,
+                    message: format!(
+                        "hold of trial {} resumed part-way: its force was re-established now, and this and its remaining samples are taken at their scheduled times after it (hold_t_s counts from the re-established force; rows journalled settled = false)",
+                        sp.trial
+                    ),
+                });
+            }
+        }
+        let t_move = t_move0.elapsed().as_secs_f64();
+        let t0 = self
+            .hold_t0
+            .ok_or_else(|| Halt::Abort("hold: the force was not reached".into()))?;
+        let t_w = Instant::now();
+        self.set_phase(Phase::Settle);
+        self.hold_wait(t0 + Duration::from_secs_f64(t_sched))?;
+        Ok(Reached {
+            settled: !self.hold_restarted,
+            t_move,
+            t_settle: t_w.elapsed().as_secs_f64(),
+            hold_t_s: Some(t0.elapsed().as_secs_f64()),
+        })
+    }
+
+    /// Force control and settling; when the force drifted out of tolerance while
+    /// settling (creep), both again, at most [`SETTLE_RETRIES`] times.
+    fn control_and_settle(
+        &mut self,
+        sp: &Setpoint,
+        lateral: &mut [f64; 2],
+        t_move0: Instant,
+    ) -> Step<Reached> {
         let mut settled = true;
         let mut t_settle = 0.0;
         let mut t_move = 0.0;
-        let mut hold_t_s = None;
-        if let Some(t_sched) = sp.hold_t_s {
-            // A hold: the force is controlled once (its first sample, or the first
-            // one of a resumed hold), then the stage holds its position and each
-            // sample waits for its time in the schedule; no settling.
-            if self.hold_t0.is_none() {
-                self.control(sp, &mut lateral)?;
-                self.hold_t0 = Some(Instant::now());
-                self.hold_restarted = t_sched > 0.0;
-                if self.hold_restarted {
-                    (self.events)(&RunEvent::Warning {
-                        index: sp.index,
-                        message: format!(
-                            "hold of trial {} resumed part-way: its force was re-established now, and this and its remaining samples are taken at their scheduled times after it (hold_t_s counts from the re-established force; rows journalled settled = false)",
-                            sp.trial
-                        ),
-                    });
-                }
-            }
-            t_move = t_move0.elapsed().as_secs_f64();
-            let t0 = self
-                .hold_t0
-                .ok_or_else(|| Halt::Abort("hold: the force was not reached".into()))?;
-            let t_w = Instant::now();
-            self.set_phase(Phase::Settle);
-            self.hold_wait(t0 + Duration::from_secs_f64(t_sched))?;
-            t_settle = t_w.elapsed().as_secs_f64();
-            settled = !self.hold_restarted;
-            hold_t_s = Some(t0.elapsed().as_secs_f64());
-        }
         for attempt in 0..=SETTLE_RETRIES {
-            if hold_t_s.is_some() {
-                break;
-            }
             let t_c = Instant::now();
             if sp.normal_n > 0.0 {
-                self.control(sp, &mut lateral)?;
+                self.control(sp, lateral)?;
             }
             t_move += if attempt == 0 {
                 t_move0.elapsed().as_secs_f64()
@@ -299,9 +481,17 @@ impl Runner<'_, '_, '_, '_> {
                 ),
             });
         }
+        Ok(Reached {
+            settled,
+            t_move,
+            t_settle,
+            hold_t_s: None,
+        })
+    }
 
-        // Acquire.
-        self.set_phase(Phase::Acquire);
+    /// The F/T samples (mean and SD, each checked against the safety limits), the
+    /// sensor's status since the previous row and the stage position.
+    fn acquire_readings(&mut self) -> Step<Readings> {
         let t_acq = Instant::now();
         let n = self.plan.samples;
         let mut samples = Vec::with_capacity(n);
@@ -320,17 +510,26 @@ impl Runner<'_, '_, '_, '_> {
             .dev
             .position()
             .map_err(|e| dev_abort("reading the position", &e))?;
-        let mut t_acquire = t_acq.elapsed().as_secs_f64();
+        Ok(Readings {
+            mean,
+            sd,
+            ft_status,
+            stage,
+            t_acquire: t_acq.elapsed().as_secs_f64(),
+        })
+    }
 
-        // Frames and tracking; below [quality] min_ok_fraction the frames are grabbed
-        // again (at most max_reacquire times), then the row is flagged or the run stops.
+    /// Frames and tracking; below [quality] min_ok_fraction the frames are grabbed
+    /// again (at most max_reacquire times). `t_acquire`: the acquisition time so far,
+    /// to which the grabs are added.
+    fn acquire_frames(&mut self, sp: &Setpoint, t_acquire: f64) -> Step<Frames> {
         let q = self.plan.quality;
+        let mut t_acquire = t_acquire;
         let mut reacquired = 0;
         // `dead`: every acquisition so far had a blank, saturated or markerless frame
         // (the last one's, in words); a dead camera is counted over setpoints.
         let mut dead: Option<String> = None;
-        let mut track_error: Option<String>;
-        let (tracked, t_track, counts) = loop {
+        loop {
             let t_f = Instant::now();
             let mut frames = Vec::with_capacity(self.plan.frames);
             for _ in 0..self.plan.frames {
@@ -338,17 +537,14 @@ impl Runner<'_, '_, '_, '_> {
             }
             t_acquire += t_f.elapsed().as_secs_f64();
             let this_dead = self.dead_frame(sp.index, &frames);
-            let (tracked, t_track, counts) = match self.track_frames(sp.index, &frames)? {
-                Ok((tracked, t_track)) => {
-                    let counts = self.setpoint_counts(&tracked);
-                    track_error = None;
-                    (Some(tracked), t_track, counts)
-                }
-                Err(e) => {
-                    track_error = Some(e);
-                    (None, 0.0, self.all_lost())
-                }
-            };
+            let (tracked, t_track, counts, track_error) =
+                match self.track_frames(sp.index, &frames)? {
+                    Ok((tracked, t_track)) => {
+                        let counts = self.setpoint_counts(&tracked);
+                        (Some(tracked), t_track, counts, None)
+                    }
+                    Err(e) => (None, 0.0, self.all_lost(), Some(e)),
+                };
             let this_dead = this_dead.or_else(|| {
                 (tracked.is_some() && counts.ok + counts.merged + counts.outlier == 0).then(|| {
                     format!(
@@ -366,7 +562,15 @@ impl Runner<'_, '_, '_, '_> {
             if tracked.is_some() && ok_fraction(&counts) >= q.min_ok_fraction
                 || reacquired >= q.max_reacquire
             {
-                break (tracked, t_track, counts);
+                return Ok(Frames {
+                    tracked,
+                    t_track,
+                    counts,
+                    reacquired,
+                    dead,
+                    track_error,
+                    t_acquire,
+                });
             }
             reacquired += 1;
             let what = match &dead {
@@ -382,123 +586,66 @@ impl Runner<'_, '_, '_, '_> {
                     q.max_reacquire
                 ),
             });
-        };
-        let quality = if tracked.is_some() && ok_fraction(&counts) >= q.min_ok_fraction {
-            RowQuality::Ok
-        } else {
-            let what = match &dead {
-                Some(d) => format!("{d} after {reacquired} re-acquisition(s)"),
-                None => format!(
-                    "tracking {} after {reacquired} re-acquisition(s), below [quality] min_ok_fraction {}",
-                    describe(&counts),
-                    q.min_ok_fraction
-                ),
-            };
-            match q.on_fail {
-                OnFail::Flag => {
-                    (self.events)(&RunEvent::Warning {
-                        index: sp.index,
-                        message: format!("{what}: row journalled with quality = flagged"),
-                    });
-                    RowQuality::Flagged
-                }
-                OnFail::Abort => {
-                    return Err(Halt::Abort(format!(
-                        "setpoint {}: {what} ([quality] on_fail = \"abort\"); the row is not journalled (its last frames are frames/{:05}_K.png)",
-                        sp.index,
-                        sp.index
-                    )))
-                }
-            }
-        };
-        let (rel, fsum, fsum_sd, t_solve, solve_error) = match &tracked {
-            Some(tracked) => {
-                let rel: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
-                self.set_phase(Phase::Solve);
-                let (fsum, fsum_sd, t_solve, error) = self.reconstruct(sp.index, tracked)?;
-                (rel, fsum, fsum_sd, t_solve, error)
-            }
-            None => (
-                (0..self.plan.frames)
-                    .map(|k| format!("frames/{:05}_{k}.png", sp.index))
-                    .collect(),
-                [f64::NAN; 3],
-                None,
-                0.0,
-                None,
+        }
+    }
+
+    /// The row's quality after the re-acquisitions: ok, or below [quality]
+    /// min_ok_fraction flagged (a warning) or the run aborted (`on_fail`).
+    fn frames_quality(&mut self, sp: &Setpoint, f: &Frames) -> Step<RowQuality> {
+        let q = self.plan.quality;
+        if f.tracked.is_some() && ok_fraction(&f.counts) >= q.min_ok_fraction {
+            return Ok(RowQuality::Ok);
+        }
+        let reacquired = f.reacquired;
+        let what = match &f.dead {
+            Some(d) => format!("{d} after {reacquired} re-acquisition(s)"),
+            None => format!(
+                "tracking {} after {reacquired} re-acquisition(s), below [quality] min_ok_fraction {}",
+                describe(&f.counts),
+                q.min_ok_fraction
             ),
         };
-        // A failed row: no force, and why (the frames first: a dead camera is the
-        // cause of whatever tracking and the solver then did).
-        let failure = match (&dead, &track_error, &solve_error) {
-            (Some(d), _, _) => Some(format!("camera: {d}")),
-            (None, Some(t), _) => Some(format!("tracking failed: {t}")),
-            (None, None, Some(e)) => Some(format!("reconstruction failed: {e}")),
-            (None, None, None) => None,
-        };
-        let (fsum, fsum_sd) = if failure.is_some() {
-            ([f64::NAN; 3], None)
-        } else {
-            (fsum, fsum_sd)
-        };
-        if let Some(f) = &failure {
-            (self.events)(&RunEvent::Warning {
-                index: sp.index,
-                message: format!("{f}: row journalled without force (failed row)"),
-            });
+        match q.on_fail {
+            OnFail::Flag => {
+                (self.events)(&RunEvent::Warning {
+                    index: sp.index,
+                    message: format!("{what}: row journalled with quality = flagged"),
+                });
+                Ok(RowQuality::Flagged)
+            }
+            OnFail::Abort => Err(Halt::Abort(format!(
+                "setpoint {}: {what} ([quality] on_fail = \"abort\"); the row is not journalled (its last frames are frames/{:05}_K.png)",
+                sp.index,
+                sp.index
+            ))),
         }
-        self.count_dead(sp.index, dead.as_deref());
-        let (quality, plausibility) = if failure.is_none() {
-            self.plausibility(sp, &mean.force_n, &sd, &fsum, quality)
-        } else {
-            self.implausible_run.clear();
-            (quality, None)
-        };
-        Ok(JournalRow {
-            index: sp.index,
-            trial: sp.trial,
-            swept_value: sp.swept_value,
-            target_normal_n: sp.normal_n,
-            target_tx_n: sp.tangential_n[0],
-            target_ty_n: sp.tangential_n[1],
-            fx_n: mean.force_n[0],
-            fy_n: mean.force_n[1],
-            fz_n: mean.force_n[2],
-            mx_nm: mean.torque_nm[0],
-            my_nm: mean.torque_nm[1],
-            mz_nm: mean.torque_nm[2],
-            fx_sd_n: sd[0],
-            fy_sd_n: sd[1],
-            fz_sd_n: sd[2],
-            stage_x_mm: stage[0],
-            stage_y_mm: stage[1],
-            stage_z_mm: stage[2],
-            settled,
-            frames: rel.join(";"),
-            fsum_x_n: fsum[0],
-            fsum_y_n: fsum[1],
-            fsum_z_n: fsum[2],
-            t_move_s: t_move,
-            t_settle_s: t_settle,
-            t_acquire_s: t_acquire,
-            t_track_s: t_track,
-            t_solve_s: t_solve,
-            completed_at: String::new(),
-            markers_ok: Some(counts.ok),
-            markers_lost: Some(counts.lost),
-            markers_merged: Some(counts.merged),
-            markers_outlier: Some(counts.outlier),
-            reacquired: Some(reacquired),
-            quality: Some(quality),
-            fsum_sd_x_n: fsum_sd.map(|v| v[0]),
-            fsum_sd_y_n: fsum_sd.map(|v| v[1]),
-            fsum_sd_z_n: fsum_sd.map(|v| v[2]),
-            direction: sp.direction,
-            position: sp.position,
-            hold_t_s,
-            ft_status,
-            failure,
-            plausibility,
+    }
+
+    /// The setpoint's forces from its tracked frames (none when tracking failed: the
+    /// frames' names, NaN force sums).
+    fn forces(&mut self, sp: &Setpoint, tracked: Option<&Tracked>) -> Step<Forces> {
+        Ok(match tracked {
+            Some(tracked) => {
+                let frames: Vec<String> = tracked.iter().map(|(name, _)| name.clone()).collect();
+                self.set_phase(Phase::Solve);
+                let (fsum, fsum_sd, t_solve, error) = self.reconstruct(sp.index, tracked)?;
+                Forces {
+                    frames,
+                    fsum,
+                    fsum_sd,
+                    t_solve,
+                    error,
+                }
+            }
+            None => Forces {
+                frames: (0..self.plan.frames)
+                    .map(|k| format!("frames/{:05}_{k}.png", sp.index))
+                    .collect(),
+                fsum: [f64::NAN; 3],
+                fsum_sd: None,
+                t_solve: 0.0,
+                error: None,
+            },
         })
     }
 

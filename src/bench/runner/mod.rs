@@ -352,94 +352,9 @@ pub fn run(
     let mut setpoints = plan.setpoints();
     let planned = setpoints.len();
     let (mut journal, mut manifest, truncated_bytes, resume_no) = if options.resume {
-        let manifest = Manifest::read(&dir)?;
-        if manifest.plan_toml != options.plan_toml {
-            return Err(RunError::Setup(format!(
-                "{}: the run was made with another plan (manifest plan {:?}); resume with the plan it was started with",
-                dir.display(),
-                manifest.plan_path
-            )));
-        }
-        if manifest.camera_toml.as_deref() != options.camera.as_ref().map(|(_, t)| t.as_str()) {
-            return Err(RunError::Setup(format!(
-                "{}: the run was tracked with {}; resume with the same camera mapping",
-                dir.display(),
-                match &manifest.camera_path {
-                    Some(p) => format!("the camera calibration {p:?} (recorded in its manifest)"),
-                    None => "the sensor file's [camera] mapping (no --camera)".to_string(),
-                }
-            )));
-        }
-        // A run is complete when its journal holds the whole plan; a run a `--limit`
-        // stopped ("completed" what that session was asked) stays resumable.
-        let planned_of_run = manifest.planned_setpoints.unwrap_or(planned);
-        if manifest.status == RunStatus::Completed && manifest.measured_setpoints >= planned_of_run
-        {
-            return Err(RunError::Setup(format!(
-                "{}: the run is already completed (all {} setpoints of its plan measured)",
-                dir.display(),
-                manifest.measured_setpoints
-            )));
-        }
-        // The record must be as the run wrote it: a resume would otherwise record
-        // digests of an edited journal as the run's own.
-        let check = super::integrity::verify(&dir, &manifest);
-        if check.modified() {
-            return Err(RunError::Setup(format!(
-                "{}: the record was modified after the run ({}); not resuming it",
-                dir.display(),
-                check.lines().join("; ")
-            )));
-        }
-        let r = Journal::open_resume(&dir)?;
-        let mut manifest = manifest;
-        // A session killed before it could record its end (kill -9) measured rows
-        // the manifest does not count: the journal is the authority.
-        manifest.reconcile_sessions(r.rows.len());
-        let resume_no = manifest.resumed_at.len() + 1;
-        (r.journal, manifest, r.truncated_bytes, resume_no)
+        open_resumed(&dir, options, planned)?
     } else {
-        if dir.join(super::journal::JOURNAL_FILE).exists()
-            || dir.join(super::journal::MANIFEST_FILE).exists()
-        {
-            return Err(RunError::Setup(format!(
-                "{} already holds a run: choose another --out, or continue it with --resume {}",
-                dir.display(),
-                dir.display()
-            )));
-        }
-        create_dir(&dir)?;
-        let manifest = Manifest {
-            plan_path: plan.path.display().to_string(),
-            plan_name: plan.name.clone(),
-            plan_toml: options.plan_toml.clone(),
-            sensor_path: plan.sensor_path.display().to_string(),
-            sensor_toml: options.sensor_toml.clone(),
-            bench: with_geometry(options.bench.clone(), geometry),
-            devices: options.devices.clone(),
-            build_id: options.build_id.clone().or_else(|| plan.build_id.clone()),
-            software_version: env!("CARGO_PKG_VERSION").to_string(),
-            started_at: rfc3339_now(),
-            resumed_at: Vec::new(),
-            sessions: Vec::new(),
-            setpoints: planned.min(options.limit.unwrap_or(usize::MAX)),
-            planned_setpoints: Some(planned),
-            limit: options.limit,
-            measured_setpoints: 0,
-            status: RunStatus::Running,
-            end_reason: None,
-            stop_signal: None,
-            incomplete_reason: None,
-            ended_at: None,
-            software_commit: Some(super::journal::GIT_COMMIT.to_string()),
-            camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
-            camera_toml: options.camera.as_ref().map(|(_, t)| t.clone()),
-            simulated: Some(options.simulated),
-            write_failure: None,
-            device_provenance: Vec::new(),
-            record: None,
-        };
-        manifest.write(&dir)?;
+        let manifest = create_run(&dir, plan, options, planned, geometry)?;
         (Journal::create(&dir)?, manifest, 0, 0)
     };
     for sub in ["frames", "displacements", "forces"] {
@@ -452,11 +367,172 @@ pub fn run(
     if let Some(n) = options.limit {
         setpoints.truncate(n);
     }
+    start_session(
+        &mut manifest,
+        options,
+        &journal,
+        before + setpoints.len(),
+        planned,
+    );
+    record_provenance(&mut manifest, options);
+    let evidence = record_session_start(&dir, &mut manifest, &journal, before)?;
+    manifest.write(&dir)?;
+    let mut tally = Tally {
+        total: before + setpoints.len(),
+        done: before,
+        measured: 0,
+        timings: Timings::default(),
+    };
+    events(&RunEvent::Started {
+        total: tally.total,
+        done: tally.done,
+        truncated_bytes,
+    });
+
+    let mut r = Runner::start(plan, sensor, geometry, devices, options, events, evidence)?;
+    let outcome = r.session(options, resume_no, &setpoints, &mut journal, &mut tally);
+    if outcome.is_err() {
+        r.set_phase(Phase::Retract);
+    }
+    let signal = options.stop_signal.load(Ordering::SeqCst);
+    let ended = r.leave(outcome, signal);
+    Ok(r.close(&mut manifest, &journal, tally, ended, signal))
+}
+
+/// This session's progress: setpoints in the run and in the journal, measured by
+/// this session, and where their time went.
+struct Tally {
+    total: usize,
+    done: usize,
+    measured: usize,
+    timings: Timings,
+}
+
+/// The manifest and journal of the run a resume continues, after checking that it
+/// can be continued: the same plan and camera mapping, not complete, its record as
+/// the run wrote it. Returns the journal, the manifest (its sessions reconciled with
+/// the journal), the bytes of a torn journal line cut, and the resume's number.
+fn open_resumed(
+    dir: &Path,
+    options: &RunOptions,
+    planned: usize,
+) -> Result<(Journal, Manifest, u64, usize), RunError> {
+    let manifest = Manifest::read(dir)?;
+    if manifest.plan_toml != options.plan_toml {
+        return Err(RunError::Setup(format!(
+            "{}: the run was made with another plan (manifest plan {:?}); resume with the plan it was started with",
+            dir.display(),
+            manifest.plan_path
+        )));
+    }
+    if manifest.camera_toml.as_deref() != options.camera.as_ref().map(|(_, t)| t.as_str()) {
+        return Err(RunError::Setup(format!(
+            "{}: the run was tracked with {}; resume with the same camera mapping",
+            dir.display(),
+            match &manifest.camera_path {
+                Some(p) => format!("the camera calibration {p:?} (recorded in its manifest)"),
+                None => "the sensor file's [camera] mapping (no --camera)".to_string(),
+            }
+        )));
+    }
+    // A run is complete when its journal holds the whole plan; a run a `--limit`
+    // stopped ("completed" what that session was asked) stays resumable.
+    let planned_of_run = manifest.planned_setpoints.unwrap_or(planned);
+    if manifest.status == RunStatus::Completed && manifest.measured_setpoints >= planned_of_run {
+        return Err(RunError::Setup(format!(
+            "{}: the run is already completed (all {} setpoints of its plan measured)",
+            dir.display(),
+            manifest.measured_setpoints
+        )));
+    }
+    // The record must be as the run wrote it: a resume would otherwise record
+    // digests of an edited journal as the run's own.
+    let check = super::integrity::verify(dir, &manifest);
+    if check.modified() {
+        return Err(RunError::Setup(format!(
+            "{}: the record was modified after the run ({}); not resuming it",
+            dir.display(),
+            check.lines().join("; ")
+        )));
+    }
+    let r = Journal::open_resume(dir)?;
+    let mut manifest = manifest;
+    // A session killed before it could record its end (kill -9) measured rows
+    // the manifest does not count: the journal is the authority.
+    manifest.reconcile_sessions(r.rows.len());
+    let resume_no = manifest.resumed_at.len() + 1;
+    Ok((r.journal, manifest, r.truncated_bytes, resume_no))
+}
+
+/// A new run: its directory (refused when it holds a run already) and its first
+/// manifest, written.
+fn create_run(
+    dir: &Path,
+    plan: &Plan,
+    options: &RunOptions,
+    planned: usize,
+    geometry: &BenchGeometry,
+) -> Result<Manifest, RunError> {
+    if dir.join(super::journal::JOURNAL_FILE).exists()
+        || dir.join(super::journal::MANIFEST_FILE).exists()
+    {
+        return Err(RunError::Setup(format!(
+            "{} already holds a run: choose another --out, or continue it with --resume {}",
+            dir.display(),
+            dir.display()
+        )));
+    }
+    create_dir(dir)?;
+    let manifest = Manifest {
+        plan_path: plan.path.display().to_string(),
+        plan_name: plan.name.clone(),
+        plan_toml: options.plan_toml.clone(),
+        sensor_path: plan.sensor_path.display().to_string(),
+        sensor_toml: options.sensor_toml.clone(),
+        bench: with_geometry(options.bench.clone(), geometry),
+        devices: options.devices.clone(),
+        build_id: options.build_id.clone().or_else(|| plan.build_id.clone()),
+        software_version: env!("CARGO_PKG_VERSION").to_string(),
+        started_at: rfc3339_now(),
+        resumed_at: Vec::new(),
+        sessions: Vec::new(),
+        setpoints: planned.min(options.limit.unwrap_or(usize::MAX)),
+        planned_setpoints: Some(planned),
+        limit: options.limit,
+        measured_setpoints: 0,
+        status: RunStatus::Running,
+        end_reason: None,
+        stop_signal: None,
+        incomplete_reason: None,
+        ended_at: None,
+        software_commit: Some(super::journal::GIT_COMMIT.to_string()),
+        camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
+        camera_toml: options.camera.as_ref().map(|(_, t)| t.clone()),
+        simulated: Some(options.simulated),
+        write_failure: None,
+        device_provenance: Vec::new(),
+        record: None,
+    };
+    manifest.write(dir)?;
+    Ok(manifest)
+}
+
+/// Records this session's start in the manifest: on resume the run is running
+/// again towards `setpoints` (those in the journal and this session's), and a new
+/// entry in `sessions`.
+fn start_session(
+    manifest: &mut Manifest,
+    options: &RunOptions,
+    journal: &Journal,
+    setpoints: usize,
+    planned: usize,
+) {
+    let before = journal.completed().len();
     let session_started = rfc3339_now();
     if options.resume {
         manifest.resumed_at.push(session_started.clone());
         manifest.limit = options.limit;
-        manifest.setpoints = before + setpoints.len();
+        manifest.setpoints = setpoints;
         manifest.status = RunStatus::Running;
         manifest.end_reason = None;
         manifest.ended_at = None;
@@ -480,8 +556,11 @@ pub fn run(
         setpoints_before: before,
         setpoints_after: before,
     });
-    // Every device's provenance (a run is real only when every device is); a run is
-    // simulated when any of its sessions was not all real.
+}
+
+/// Every device's provenance (a run is real only when every device is); a run is
+/// simulated when any of its sessions was not all real.
+fn record_provenance(manifest: &mut Manifest, options: &RunOptions) {
     let provenance = super::provenance::judge(&options.devices, options.simulated);
     let not_real = provenance
         .iter()
@@ -503,220 +582,281 @@ pub fn run(
         }
         manifest.device_provenance = merged;
     }
-    // The journal's digest as this session starts (after a resume cut a torn line or
-    // upgraded an old header): rows appended from here on are covered at the end.
+}
+
+/// The journal's digest as this session starts (after a resume cut a torn line or
+/// upgraded an old header): rows appended from here on are covered at the end.
+/// Returns the evidence digests of the earlier sessions.
+fn record_session_start(
+    dir: &Path,
+    manifest: &mut Manifest,
+    journal: &Journal,
+    before: usize,
+) -> Result<std::collections::BTreeMap<String, String>, RunError> {
     let evidence = manifest
         .record
         .as_ref()
         .map(|r| r.evidence.clone())
         .unwrap_or_default();
     manifest.record = Some(
-        super::integrity::RecordDigests::journal_now(&dir, evidence.clone(), before, rfc3339_now())
+        super::integrity::RecordDigests::journal_now(dir, evidence.clone(), before, rfc3339_now())
             .map_err(|source| RunError::Io {
                 path: journal.path().to_path_buf(),
                 source,
             })?,
     );
-    manifest.write(&dir)?;
-    let total = before + setpoints.len();
-    let mut done = before;
-    events(&RunEvent::Started {
-        total,
-        done,
-        truncated_bytes,
-    });
+    Ok(evidence)
+}
 
-    let mapping = match &options.camera {
-        None => PixelMapping::Linear(sensor.camera),
-        Some((path, text)) => PixelMapping::Calibrated(
-            CameraCalibration::from_toml_str(text, Path::new(path), sensor)
-                .map_err(|e| RunError::Setup(e.to_string()))?,
-        ),
-    };
-    let stage_limits = devices.stage.limits();
-    let mut r = Runner {
-        plan,
-        sensor,
-        geom: *geometry,
-        dir: dir.clone(),
-        dev: Timed::new(devices),
-        events,
-        stop: Arc::clone(&options.stop),
-        stage_limits,
-        commanded: None,
-        in_contact: false,
-        normal_ctl: ForceController::new(
-            INITIAL_STIFFNESS_N_PER_MM,
-            MAX_CONTROL_STEP_MM,
-            plan.safety.max_force_n[2],
-        ),
-        tracker: None,
-        mapping,
-        camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
-        solvers: HashMap::new(),
-        index: None,
-        hold_t0: None,
-        hold_restarted: false,
-        phase: None,
-        last_reading: None,
-        fs: WriteGate::new(options.write_fault, &dir, evidence),
-        dead_run: Vec::new(),
-        implausible_run: Vec::new(),
-        pending_abort: None,
-        track_s: 0.0,
-        solve_s: 0.0,
-        precompute_s: 0.0,
-        io_s: 0.0,
-    };
-    let mut timings = Timings::default();
-    let mut measured = 0;
+impl<'p, 'd, 'a, 'e> Runner<'p, 'd, 'a, 'e> {
+    /// The runner of this session: the pixel mapping (the sensor file's, or the run's
+    /// camera calibration), the stage's limits, every write through a gate that
+    /// continues the earlier sessions' `evidence` digests.
+    fn start(
+        plan: &'p Plan,
+        sensor: &'p Sensor,
+        geometry: &BenchGeometry,
+        devices: &'d mut Devices<'a>,
+        options: &RunOptions,
+        events: &'e mut dyn FnMut(&RunEvent),
+        evidence: std::collections::BTreeMap<String, String>,
+    ) -> Result<Self, RunError> {
+        let dir = options.dir.clone();
+        let mapping = match &options.camera {
+            None => PixelMapping::Linear(sensor.camera),
+            Some((path, text)) => PixelMapping::Calibrated(
+                CameraCalibration::from_toml_str(text, Path::new(path), sensor)
+                    .map_err(|e| RunError::Setup(e.to_string()))?,
+            ),
+        };
+        let stage_limits = devices.stage.limits();
+        Ok(Runner {
+            plan,
+            sensor,
+            geom: *geometry,
+            dir: dir.clone(),
+            dev: Timed::new(devices),
+            events,
+            stop: Arc::clone(&options.stop),
+            stage_limits,
+            commanded: None,
+            in_contact: false,
+            normal_ctl: ForceController::new(
+                INITIAL_STIFFNESS_N_PER_MM,
+                MAX_CONTROL_STEP_MM,
+                plan.safety.max_force_n[2],
+            ),
+            tracker: None,
+            mapping,
+            camera_path: options.camera.as_ref().map(|(p, _)| p.clone()),
+            solvers: HashMap::new(),
+            index: None,
+            hold_t0: None,
+            hold_restarted: false,
+            phase: None,
+            last_reading: None,
+            fs: WriteGate::new(options.write_fault, &dir, evidence),
+            dead_run: Vec::new(),
+            implausible_run: Vec::new(),
+            pending_abort: None,
+            track_s: 0.0,
+            solve_s: 0.0,
+            precompute_s: 0.0,
+            io_s: 0.0,
+        })
+    }
+}
 
-    let outcome: Step<()> = (|| {
-        r.prepare(options, resume_no)?;
+impl Runner<'_, '_, '_, '_> {
+    /// The session: set-up (retract, home, tare, reference), this session's
+    /// setpoints in plan order (each journalled before the next move), and the
+    /// retract at the end.
+    fn session(
+        &mut self,
+        options: &RunOptions,
+        resume_no: usize,
+        setpoints: &[Setpoint],
+        journal: &mut Journal,
+        tally: &mut Tally,
+    ) -> Step<()> {
+        self.prepare(options, resume_no)?;
         let mut prev: Option<Setpoint> = None;
-        for sp in &setpoints {
+        for sp in setpoints {
             if journal.completed().contains(&sp.index) {
                 continue;
             }
-            if r.stop.load(Ordering::SeqCst) {
+            if self.stop.load(Ordering::SeqCst) {
                 return Err(Halt::Interrupted);
             }
             // After a skip (resume) the previous setpoint's contact is gone.
             let fresh = prev.is_some_and(|p| p.index + 1 != sp.index);
             let retract = needs_retract(if fresh { None } else { prev.as_ref() }, sp);
-            (r.events)(&RunEvent::SetpointStarted {
-                setpoint: *sp,
-                done,
-                total,
-            });
-            let t0 = Instant::now();
-            let blocked0 = r.dev.blocked;
-            r.track_s = 0.0;
-            r.solve_s = 0.0;
-            r.precompute_s = 0.0;
-            r.io_s = 0.0;
-            r.index = Some(sp.index);
-            let mut row = r.measure(sp, retract)?;
-            let t_io = Instant::now();
-            row.completed_at = rfc3339_now();
-            r.fs.step(super::journal::JOURNAL_FILE, || journal.append(&row))?;
-            r.io_s += t_io.elapsed().as_secs_f64();
-            done += 1;
-            measured += 1;
-            let elapsed_s = t0.elapsed().as_secs_f64();
-            let device_s = (r.dev.blocked - blocked0).as_secs_f64();
-            let overhead_s =
-                (elapsed_s - device_s - r.track_s - r.solve_s - r.precompute_s - r.io_s).max(0.0);
-            timings.setpoints += 1;
-            timings.wall_s += elapsed_s;
-            timings.device_s += device_s;
-            timings.track_s += r.track_s;
-            timings.solve_s += r.solve_s;
-            timings.precompute_s += r.precompute_s;
-            timings.io_s += r.io_s;
-            timings.overhead_s += overhead_s;
-            timings.max_overhead_s = timings.max_overhead_s.max(overhead_s);
-            (r.events)(&RunEvent::SetpointMeasured {
-                index: sp.index,
-                done,
-                total,
-                target_n: [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n],
-                force_n: [row.fx_n, row.fy_n, row.fz_n],
-                fsum_n: [row.fsum_x_n, row.fsum_y_n, row.fsum_z_n],
-                settled: row.settled,
-                elapsed_s,
-                device_s,
-                overhead_s,
-            });
+            self.setpoint(sp, retract, journal, tally)?;
             prev = Some(*sp);
-            if let Some(reason) = r.pending_abort.take() {
+            if let Some(reason) = self.pending_abort.take() {
                 return Err(Halt::Abort(reason));
             }
         }
-        r.index = None;
-        r.set_phase(Phase::Retract);
-        r.retract()?;
+        self.index = None;
+        self.set_phase(Phase::Retract);
+        self.retract()?;
         Ok(())
-    })();
-    if outcome.is_err() {
-        r.set_phase(Phase::Retract);
     }
 
-    let signal = options.stop_signal.load(Ordering::SeqCst);
-    let (status, reason) = match outcome {
-        Ok(()) => (RunStatus::Completed, None),
-        Err(Halt::Interrupted) => {
-            // Stop motion first, then leave the contact; the journal is already durable.
-            let _ = r.dev.stop();
-            let retract = r.retract_unguarded();
-            let by = super::journal::stop_cause(signal);
-            let reason = match retract {
-                Ok(()) => format!("interrupted by {by}: motion stopped, stage retracted"),
-                Err(e) => format!("interrupted by {by}; retract failed: {e:?}"),
-            };
-            (RunStatus::Interrupted, Some(reason))
-        }
-        Err(Halt::Abort(reason)) => {
-            let _ = r.dev.stop();
-            let reason = match r.retract_unguarded() {
-                Ok(()) => reason,
-                Err(e) => format!("{reason}; retract after abort failed: {e:?}"),
-            };
-            (RunStatus::Aborted, Some(reason))
-        }
-    };
-    manifest.finish(
-        status,
-        reason.clone(),
-        journal.completed().len(),
-        (status == RunStatus::Interrupted && signal != 0).then_some(signal),
-        rfc3339_now(),
-    );
-    // The record's digests as this session leaves it (the journal as a whole, every
-    // evidence file written so far).
-    if let Ok(rec) = super::integrity::RecordDigests::journal_now(
-        &dir,
-        r.fs.evidence().clone(),
-        journal.completed().len(),
-        rfc3339_now(),
-    ) {
-        manifest.record = Some(rec);
+    /// One setpoint: measured, its row appended to the journal (synced), its time
+    /// accounted (device waits, tracking, solving, writes, the rest is overhead).
+    fn setpoint(
+        &mut self,
+        sp: &Setpoint,
+        retract: bool,
+        journal: &mut Journal,
+        tally: &mut Tally,
+    ) -> Step<()> {
+        (self.events)(&RunEvent::SetpointStarted {
+            setpoint: *sp,
+            done: tally.done,
+            total: tally.total,
+        });
+        let t0 = Instant::now();
+        let blocked0 = self.dev.blocked;
+        self.track_s = 0.0;
+        self.solve_s = 0.0;
+        self.precompute_s = 0.0;
+        self.io_s = 0.0;
+        self.index = Some(sp.index);
+        let mut row = self.measure(sp, retract)?;
+        let t_io = Instant::now();
+        row.completed_at = rfc3339_now();
+        self.fs
+            .step(super::journal::JOURNAL_FILE, || journal.append(&row))?;
+        self.io_s += t_io.elapsed().as_secs_f64();
+        tally.done += 1;
+        tally.measured += 1;
+        let elapsed_s = t0.elapsed().as_secs_f64();
+        let device_s = (self.dev.blocked - blocked0).as_secs_f64();
+        let overhead_s =
+            (elapsed_s - device_s - self.track_s - self.solve_s - self.precompute_s - self.io_s)
+                .max(0.0);
+        let timings = &mut tally.timings;
+        timings.setpoints += 1;
+        timings.wall_s += elapsed_s;
+        timings.device_s += device_s;
+        timings.track_s += self.track_s;
+        timings.solve_s += self.solve_s;
+        timings.precompute_s += self.precompute_s;
+        timings.io_s += self.io_s;
+        timings.overhead_s += overhead_s;
+        timings.max_overhead_s = timings.max_overhead_s.max(overhead_s);
+        (self.events)(&RunEvent::SetpointMeasured {
+            index: sp.index,
+            done: tally.done,
+            total: tally.total,
+            target_n: [sp.tangential_n[0], sp.tangential_n[1], sp.normal_n],
+            force_n: [row.fx_n, row.fy_n, row.fz_n],
+            fsum_n: [row.fsum_x_n, row.fsum_y_n, row.fsum_z_n],
+            settled: row.settled,
+            elapsed_s,
+            device_s,
+            overhead_s,
+        });
+        Ok(())
     }
-    let write_failure = r.fs.first_failure().cloned();
-    if manifest.write_failure.is_none() {
-        // The run's first failed write (an earlier session's stays: it was first).
-        manifest.write_failure = write_failure.clone();
+
+    /// How the session ended, and the stage out of contact: after an interruption
+    /// (by `signal`) or an abort, motion is stopped first, then the stage retracts
+    /// (the journal is already durable).
+    fn leave(&mut self, outcome: Step<()>, signal: i32) -> (RunStatus, Option<String>) {
+        match outcome {
+            Ok(()) => (RunStatus::Completed, None),
+            Err(Halt::Interrupted) => {
+                // Stop motion first, then leave the contact; the journal is already durable.
+                let _ = self.dev.stop();
+                let retract = self.retract_unguarded();
+                let by = super::journal::stop_cause(signal);
+                let reason = match retract {
+                    Ok(()) => format!("interrupted by {by}: motion stopped, stage retracted"),
+                    Err(e) => format!("interrupted by {by}; retract failed: {e:?}"),
+                };
+                (RunStatus::Interrupted, Some(reason))
+            }
+            Err(Halt::Abort(reason)) => {
+                let _ = self.dev.stop();
+                let reason = match self.retract_unguarded() {
+                    Ok(()) => reason,
+                    Err(e) => format!("{reason}; retract after abort failed: {e:?}"),
+                };
+                (RunStatus::Aborted, Some(reason))
+            }
+        }
     }
-    // Through the gate too: on a full disk the manifest usually fails as well, and the
-    // run's end is then only on stderr (the caller prints `manifest_error`).
-    let m = &manifest;
-    let manifest_error =
-        r.fs.write(MANIFEST_FILE, || m.write(&dir))
+
+    /// Records the session's end in the manifest (status, the record's digests as
+    /// the session leaves it, the run's first failed write), reports it
+    /// ([`RunEvent::Finished`]) and sums it up. A completed run whose closing manifest
+    /// cannot be written ends `aborted`.
+    fn close(
+        &mut self,
+        manifest: &mut Manifest,
+        journal: &Journal,
+        tally: Tally,
+        (status, reason): (RunStatus, Option<String>),
+        signal: i32,
+    ) -> RunSummary {
+        let dir = self.dir.clone();
+        manifest.finish(
+            status,
+            reason.clone(),
+            journal.completed().len(),
+            (status == RunStatus::Interrupted && signal != 0).then_some(signal),
+            rfc3339_now(),
+        );
+        // The record's digests as this session leaves it (the journal as a whole, every
+        // evidence file written so far).
+        if let Ok(rec) = super::integrity::RecordDigests::journal_now(
+            &dir,
+            self.fs.evidence().clone(),
+            journal.completed().len(),
+            rfc3339_now(),
+        ) {
+            manifest.record = Some(rec);
+        }
+        let write_failure = self.fs.first_failure().cloned();
+        if manifest.write_failure.is_none() {
+            // The run's first failed write (an earlier session's stays: it was first).
+            manifest.write_failure = write_failure.clone();
+        }
+        // Through the gate too: on a full disk the manifest usually fails as well, and the
+        // run's end is then only on stderr (the caller prints `manifest_error`).
+        let m = &*manifest;
+        let manifest_error = self
+            .fs
+            .write(MANIFEST_FILE, || m.write(&dir))
             .err()
             .map(|e| format!("{}: {e}", dir.join(MANIFEST_FILE).display()));
-    let (status, reason) = match (&manifest_error, status) {
-        (Some(e), RunStatus::Completed) => (
-            RunStatus::Aborted,
-            Some(format!(
-                "every setpoint was measured, but the closing manifest could not be written: {e}"
-            )),
-        ),
-        _ => (status, reason),
-    };
-    (r.events)(&RunEvent::Finished {
-        status,
-        reason: reason.clone(),
-    });
-    Ok(RunSummary {
-        status,
-        reason,
-        total,
-        done: journal.completed().len(),
-        measured,
-        timings,
-        write_failure: write_failure.or_else(|| r.fs.first_failure().cloned()),
-        manifest_error,
-    })
+        let (status, reason) = match (&manifest_error, status) {
+            (Some(e), RunStatus::Completed) => (
+                RunStatus::Aborted,
+                Some(format!(
+                    "every setpoint was measured, but the closing manifest could not be written: {e}"
+                )),
+            ),
+            _ => (status, reason),
+        };
+        (self.events)(&RunEvent::Finished {
+            status,
+            reason: reason.clone(),
+        });
+        RunSummary {
+            status,
+            reason,
+            total: tally.total,
+            done: journal.completed().len(),
+            measured: tally.measured,
+            timings: tally.timings,
+            write_failure: write_failure.or_else(|| self.fs.first_failure().cloned()),
+            manifest_error,
+        }
+    }
 }
 
 fn create_dir(p: &Path) -> Result<(), RunError> {
