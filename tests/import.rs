@@ -332,7 +332,10 @@ fn tactip_grey_recording_imports_and_fits_without_a_made_up_number() {
         assert!(par["value"].as_f64().unwrap().is_finite(), "{name}: {par}");
         if par["fitted"] == true {
             let ci = par["ci95"].as_array().unwrap();
-            assert!(ci.iter().all(|v| v.as_f64().unwrap().is_finite()), "{name}: {par}");
+            assert!(
+                ci.iter().all(|v| v.as_f64().unwrap().is_finite()),
+                "{name}: {par}"
+            );
         } else {
             assert!(par["ci95"].is_null(), "{name}: {par}");
             assert!(!par["reason"].as_str().unwrap().is_empty(), "{name}: {par}");

@@ -11,6 +11,7 @@ mod cli;
 mod compare;
 mod docs_figures;
 mod fit;
+mod fit_coverage;
 mod fit_sim;
 mod fourier;
 mod ft;

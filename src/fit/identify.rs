@@ -22,7 +22,7 @@
 //!    (started at the joint solution) and the held-out force-sum error with the
 //!    nominal and the fitted sensor file.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -31,12 +31,10 @@ use serde_json::json;
 use super::crossval::cross_validate;
 use super::displacement::DisplacementRoute;
 use super::doc::{FitDoc, ParamFit, Route, FIT_SCHEMA};
+use super::force_error::ForceError;
 use super::indentation::IndentationRoute;
-use nalgebra::{DMatrix, DVector};
-
 use super::lm::{
-    expected_sd, jacobian, levenberg_marquardt, uncertainty, uncertainty_with, LmFit, LmOptions,
-    Stack, Uncertainty,
+    expected_sd, jacobian, levenberg_marquardt, uncertainty, LmFit, LmOptions, Stack, Uncertainty,
 };
 use super::space::{at_bound, bounds, default_params, parse_list, ParamId};
 use super::{FitError, ModelParams, Residuals};
@@ -233,122 +231,6 @@ struct Joint {
     unc: Uncertainty,
 }
 
-/// The F/T sensor's resolution as the journal shows it: the step of the lattice the
-/// force readings sit on (a DynPick reads in steps of 1/32.8 N), or `None` when the
-/// readings are not on one (averaged noisy samples). At least 90 % of the distinct
-/// readings must be multiples of the step: the smallest difference between them or a
-/// fraction of it down to a tenth.
-pub fn force_resolution_n(forces: &[f64]) -> Option<f64> {
-    let mut v: Vec<f64> = forces
-        .iter()
-        .filter(|f| f.is_finite())
-        .map(|f| f.abs())
-        .collect();
-    v.sort_by(f64::total_cmp);
-    v.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1e-9));
-    if v.len() < 3 {
-        return None;
-    }
-    let min_diff = v
-        .windows(2)
-        .map(|w| w[1] - w[0])
-        .filter(|d| *d > 1e-9)
-        .fold(f64::INFINITY, f64::min);
-    if !min_diff.is_finite() {
-        return None;
-    }
-    // The lattice step divides every difference: try the smallest difference and its
-    // fractions down to a tenth (readings need not fill neighbouring steps).
-    (1..=10).find_map(|k| {
-        let step = min_diff / k as f64;
-        let on = v
-            .iter()
-            .filter(|x| ((*x / step) - (*x / step).round()).abs() < 1e-3)
-            .count();
-        (on as f64 >= 0.9 * v.len() as f64).then_some(step)
-    })
-}
-
-/// The F/T reading's own error per setpoint and axis, N: the SD of its samples over
-/// √samples, and the resolution's `r/√12`, in quadrature.
-fn force_sigma(run: &RunData, resolution: Option<f64>) -> HashMap<usize, [f64; 3]> {
-    let n = (run.plan.samples.max(1) as f64).sqrt();
-    let q = resolution.map_or(0.0, |r| r / 12f64.sqrt());
-    run.rows
-        .iter()
-        .map(|r| {
-            let s = [r.fx_sd_n, r.fy_sd_n, r.fz_sd_n].map(|v| {
-                let v = if v.is_finite() { v.abs() / n } else { 0.0 };
-                v.hypot(q)
-            });
-            (r.index, s)
-        })
-        .collect()
-}
-
-/// Recomputes a fit's intervals with the F/T reading's error propagated through the
-/// displacement route (whose residuals come first in the fit's Jacobian): the route
-/// is driven by the measured force, so an error δF of setpoint s moves its residuals
-/// by `g_s δF` ([`DisplacementRoute::force_sensitivity`]), independently per setpoint.
-fn with_force_error(
-    j: &mut Joint,
-    disp: &DisplacementRoute,
-    groups: &[usize],
-    start: &ModelParams,
-    sigma: &HashMap<usize, [f64; 3]>,
-) -> Result<(), FitError> {
-    let g = disp
-        .force_sensitivity(&j.fit.params)
-        .map_err(FitError::Numerical)?;
-    let np = j.fit.jac.ncols();
-    let mut meat = DMatrix::zeros(np, np);
-    let mut at = 0;
-    for sp in disp.setpoints() {
-        let n = 2 * sp.markers.len();
-        let s = sigma.get(&sp.index).copied().unwrap_or([0.0; 3]);
-        for (a, ga) in g.iter().enumerate() {
-            if s[a] <= 0.0 {
-                continue;
-            }
-            let mut v = DVector::zeros(np);
-            for (i, gi) in ga.iter().enumerate().skip(at).take(n) {
-                v += j.fit.jac.row(i).transpose() * *gi;
-            }
-            meat += &v * v.transpose() * (s[a] * s[a]);
-        }
-        at += n;
-    }
-    j.unc = uncertainty_with(&j.fit, groups, start, Some(&meat));
-    j.unc.method.push_str(
-        "; the F/T reading's error per setpoint (sample SD / sqrt(samples), resolution / sqrt(12)) propagated through the displacement route and added to the classical covariance",
-    );
-    Ok(())
-}
-
-/// Widens E's interval by the F/T resolution: readings on a lattice of step `r` are off
-/// by up to `r/2`, the same at every setpoint of one force level, so that error does not
-/// average out over setpoints. E scales with the force (P ∝ E in the contact law,
-/// u ∝ F/E in the field): a relative force error ε moves E by ε E. Added in
-/// quadrature: `sd_E² += (E (r/√12) / F_rms)²`, F_rms the RMS loaded force.
-fn widen_for_resolution(j: &mut Joint, resolution_n: Option<f64>, f_rms: f64) {
-    let (Some(r), Some(k)) = (
-        resolution_n,
-        j.fit.free.iter().position(|p| *p == ParamId::YoungModulus),
-    ) else {
-        return;
-    };
-    if f_rms.is_nan() || f_rms <= 0.0 {
-        return;
-    }
-    let e = j.fit.params.young_modulus_kpa;
-    let extra = e * (r / 12f64.sqrt()) / f_rms;
-    j.unc.sd[k] = j.unc.sd[k].hypot(extra);
-    j.unc.half_width[k] = j.unc.t * j.unc.sd[k];
-    j.unc.method.push_str(&format!(
-        "; E widened for the F/T resolution {r:.4} N seen in the journal (+{extra:.3} kPa sd in quadrature)"
-    ));
-}
-
 fn fit_joint(
     problem: &dyn Residuals,
     start: &ModelParams,
@@ -477,22 +359,14 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
         }
         joint = fit_joint(&stack, &nominal, &free, kind, progress, "joint fit (refit)")?;
     }
-    let forces: Vec<f64> = run
-        .rows
-        .iter()
-        .flat_map(|r| [r.fx_n, r.fy_n, r.fz_n])
-        .collect();
-    let resolution = force_resolution_n(&forces);
-    let loaded: Vec<f64> = run
-        .rows
-        .iter()
-        .map(|r| r.fz_n)
-        .filter(|f| *f > 0.0)
-        .collect();
-    let f_rms = (loaded.iter().map(|f| f * f).sum::<f64>() / loaded.len().max(1) as f64).sqrt();
-    let sigma_f = force_sigma(&run, resolution);
-    with_force_error(&mut joint, &disp, &stack.groups(), &nominal, &sigma_f)?;
-    widen_for_resolution(&mut joint, resolution, f_rms);
+    let force_error = ForceError::of_run(&run).share(ind.as_ref().map(|r| r.noise_n()));
+    joint.unc = force_error.uncertainty(
+        &joint.fit,
+        &stack.groups(),
+        &nominal,
+        Some(&disp),
+        ind.as_ref(),
+    )?;
     if let Some(route) = ind.as_ref() {
         if route.noise_n() > 0.0 {
             ind_alone = Some(side_fit(route, &joint.fit.params, &free, kind, |p| {
@@ -500,16 +374,15 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
             })?);
         }
     }
+    if let (Some(Some(j)), Some(route)) = (ind_alone.as_mut(), ind.as_ref()) {
+        j.unc = force_error.uncertainty(&j.fit, &route.groups(), &nominal, None, Some(route))?;
+    }
     progress("displacement route alone");
     let mut disp_alone = side_fit(&disp, &joint.fit.params, &free, kind, |p| {
         p.enters().displacement
     })?;
     if let Some(j) = disp_alone.as_mut() {
-        with_force_error(j, &disp, &disp.groups(), &nominal, &sigma_f)?;
-        widen_for_resolution(j, resolution, f_rms);
-    }
-    if let Some(Some(j)) = ind_alone.as_mut() {
-        widen_for_resolution(j, resolution, f_rms);
+        j.unc = force_error.uncertainty(&j.fit, &disp.groups(), &nominal, Some(&disp), None)?;
     }
 
     // 6. Cross-validation.
@@ -567,7 +440,7 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
         disp_alone: &disp_alone,
         cv,
         seconds: t0.elapsed().as_secs_f64(),
-        resolution,
+        resolution: force_error.resolution_n,
     })?;
     Ok(FitOutcome {
         doc,
@@ -830,22 +703,4 @@ fn routes_doc(d: &DocParts) -> Result<serde_json::Value, FitError> {
         "agree": disagreements.is_empty(),
         "disagreements": disagreements,
     }))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn dynpick_readings_show_their_resolution_and_averaged_noise_shows_none() {
-        let lsb = 1.0 / 32.8;
-        let f: Vec<f64> = [16, 33, 66, 98, 0, 20]
-            .iter()
-            .map(|c| *c as f64 * lsb)
-            .collect();
-        let r = force_resolution_n(&f).unwrap();
-        assert!((r - lsb).abs() < 1e-9, "{r}");
-        let noisy = [0.4987, 1.0031, 2.0113, 2.9977, 0.5021];
-        assert_eq!(force_resolution_n(&noisy), None);
-    }
 }

@@ -504,8 +504,15 @@ mod tests {
     fn a_fit_with_every_parameter_held_gives_an_empty_uncertainty_without_panicking() {
         let prob = line(&[0.1, -0.2, 0.3]);
         let start = ModelParams::nominal(&paper_sensor(), 0.0);
-        let fit = levenberg_marquardt(&prob, &start, &[], ModelKind::HalfSpace, LmOptions::default(), &mut |_, _| {})
-            .unwrap();
+        let fit = levenberg_marquardt(
+            &prob,
+            &start,
+            &[],
+            ModelKind::HalfSpace,
+            LmOptions::default(),
+            &mut |_, _| {},
+        )
+        .unwrap();
         let u = uncertainty(&fit, &vec![usize::MAX; prob.len()], &start);
         assert!(u.sd.is_empty() && u.correlation.is_empty());
         assert!(expected_sd(&DMatrix::zeros(3, 0)).is_empty());

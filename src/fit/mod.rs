@@ -9,6 +9,7 @@ pub mod crossval;
 pub mod displacement;
 pub mod doc;
 pub mod fitted_toml;
+pub mod force_error;
 pub mod identify;
 pub mod indentation;
 pub mod lm;

@@ -316,7 +316,12 @@ pub fn check_valid(p: &ModelParams, kind: ModelKind) -> Result<(), String> {
     let mut ids = vec![ParamId::YoungModulus, ParamId::Poisson, ParamId::Thickness];
     ids.extend((0..p.depth_mm.len()).map(ParamId::Depth));
     ids.extend((0..p.mm_per_px.len()).map(ParamId::MmPerPxLayer));
-    ids.extend([ParamId::FtRotation, ParamId::OffsetX, ParamId::OffsetY, ParamId::ContactZ]);
+    ids.extend([
+        ParamId::FtRotation,
+        ParamId::OffsetX,
+        ParamId::OffsetY,
+        ParamId::ContactZ,
+    ]);
     for id in ids {
         let v = id.get(p);
         let (lo, hi) = bounds(id, p);

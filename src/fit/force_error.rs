@@ -1,0 +1,235 @@
+//! The F/T reading's own error in a fit's intervals.
+//!
+//! Both routes are driven by (the displacement route) or compared with (the
+//! indentation route) the F/T reading of each setpoint, so an error δF of that reading
+//! moves the setpoint's residuals by `g δF` (`g` = [`DisplacementRoute::force_sensitivity`]
+//! for the displacements, `−1/σ` for the indentation row's `F_z`). Two parts:
+//!
+//! - **random**, per setpoint and axis: the journal's sample SD over √samples;
+//! - **shared** by every setpoint of one target ([`ForceError::share`]): readings on a
+//!   lattice of step `r` ([`force_resolution_n`]; a DynPick counts 1/32.8 N) are off by
+//!   up to `r/2`, and when the noise is below a count every sample rounds alike, so
+//!   setpoints with the same target read the same offset. σ = the larger of `r/√12`
+//!   and the F/T scatter about the contact law (the indentation route's noise), per
+//!   target and axis, the sensitivities of the target's setpoints summed first
+//!   (coherent); and the same σ once more as an offset common to every setpoint (a
+//!   tare that missed its zero moves every reading alike).
+//!
+//! Each part adds `(JᵀJ)⁻¹ (Σ Jᵀg gᵀJ σ²) (JᵀJ)⁻¹` to the classical covariance
+//! ([`crate::fit::lm::uncertainty_with`]).
+
+use std::collections::HashMap;
+
+use nalgebra::{DMatrix, DVector};
+
+use super::displacement::DisplacementRoute;
+use super::indentation::IndentationRoute;
+use super::lm::{uncertainty_with, LmFit, Uncertainty};
+use super::{FitError, ModelParams};
+use crate::analysis::RunData;
+
+/// The F/T sensor's resolution as the journal shows it, from the readings whose
+/// samples were all equal (sample SD 0: every sample rounded to the same count, so the
+/// mean is one count exactly): the largest step that every such distinct non-zero
+/// reading is a multiple of, tried among the differences between neighbouring readings
+/// and their halves, thirds and quarters; `None` with fewer than 3 such readings or no
+/// common step (a sensor whose noise spans its counts averages them out).
+pub fn force_resolution_n(exact_readings: &[f64]) -> Option<f64> {
+    let mut v: Vec<f64> = exact_readings
+        .iter()
+        .filter(|f| f.is_finite() && f.abs() > 1e-12)
+        .map(|f| f.abs())
+        .collect();
+    v.sort_by(f64::total_cmp);
+    v.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1e-9));
+    if v.len() < 3 {
+        return None;
+    }
+    let mut steps: Vec<f64> = v
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|d| *d > 1e-9)
+        .flat_map(|d| (1..=4).map(move |k| d / k as f64))
+        .collect();
+    steps.sort_by(|a, b| b.total_cmp(a));
+    steps.into_iter().find(|step| {
+        v.iter()
+            .all(|x| ((*x / step) - (*x / step).round()).abs() < 1e-3)
+    })
+}
+
+/// The F/T error model of a run.
+#[derive(Debug, Clone)]
+pub struct ForceError {
+    /// Random σ per setpoint index and axis, N.
+    random: HashMap<usize, [f64; 3]>,
+    /// Target of each setpoint index (normal, tx, ty as bits), for the shared part.
+    target: HashMap<usize, [u64; 3]>,
+    /// Lattice step, N.
+    pub resolution_n: Option<f64>,
+    /// σ of the error shared by the setpoints of one target, N (see
+    /// [`ForceError::share`]).
+    pub shared_n: Option<f64>,
+}
+
+impl ForceError {
+    /// From the run's journal.
+    pub fn of_run(run: &RunData) -> ForceError {
+        let exact: Vec<f64> = run
+            .rows
+            .iter()
+            .flat_map(|r| {
+                [
+                    (r.fx_n, r.fx_sd_n),
+                    (r.fy_n, r.fy_sd_n),
+                    (r.fz_n, r.fz_sd_n),
+                ]
+                .into_iter()
+                .filter(|(_, sd)| *sd == 0.0)
+                .map(|(f, _)| f)
+            })
+            .collect();
+        let n = (run.plan.samples.max(1) as f64).sqrt();
+        ForceError {
+            random: run
+                .rows
+                .iter()
+                .map(|r| {
+                    let s = [r.fx_sd_n, r.fy_sd_n, r.fz_sd_n].map(|v| {
+                        if v.is_finite() {
+                            v.abs() / n
+                        } else {
+                            0.0
+                        }
+                    });
+                    (r.index, s)
+                })
+                .collect(),
+            target: run
+                .rows
+                .iter()
+                .map(|r| {
+                    (
+                        r.index,
+                        [r.target_normal_n, r.target_tx_n, r.target_ty_n].map(f64::to_bits),
+                    )
+                })
+                .collect(),
+            resolution_n: force_resolution_n(&exact),
+            shared_n: None,
+        }
+        .share(None)
+    }
+
+    /// Sets the σ shared by the setpoints of one target: the larger of the resolution's
+    /// `r/√12` and the F/T's scatter about the contact law (the indentation route's
+    /// noise, when there is one): what a count's rounding, a dead band or the control
+    /// loop's stopping point leave alike at equal loads does not average out over
+    /// setpoints, and the indentation route's scatter is the data's own measure of it.
+    pub fn share(mut self, indentation_noise_n: Option<f64>) -> ForceError {
+        let q = self.resolution_n.map(|r| r / 12f64.sqrt());
+        self.shared_n = match (q, indentation_noise_n) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (a, b) => a.or(b),
+        };
+        self
+    }
+
+    /// The covariance of `fit` with the F/T error added (module docs). The fit's
+    /// residuals are the displacement route's, then (when `ind` is given) the
+    /// indentation route's.
+    pub fn uncertainty(
+        &self,
+        fit: &LmFit,
+        groups: &[usize],
+        start: &ModelParams,
+        disp: Option<&DisplacementRoute>,
+        ind: Option<&IndentationRoute>,
+    ) -> Result<Uncertainty, FitError> {
+        let np = fit.jac.ncols();
+        // Σ over each setpoint's residuals of J_i g_i, per axis.
+        let mut per_sp: HashMap<usize, [DVector<f64>; 3]> = HashMap::new();
+        let zero = || [DVector::zeros(np), DVector::zeros(np), DVector::zeros(np)];
+        let mut at = 0;
+        if let Some(d) = disp {
+            let g = d
+                .force_sensitivity(&fit.params)
+                .map_err(FitError::Numerical)?;
+            for sp in d.setpoints() {
+                let n = 2 * sp.markers.len();
+                let e = per_sp.entry(sp.index).or_insert_with(zero);
+                for (a, ga) in g.iter().enumerate() {
+                    for (i, gi) in ga.iter().enumerate().skip(at).take(n) {
+                        e[a] += fit.jac.row(i).transpose() * *gi;
+                    }
+                }
+                at += n;
+            }
+        }
+        if let Some(r) = ind {
+            for row in r.rows() {
+                let e = per_sp.entry(row.index).or_insert_with(zero);
+                e[2] -= fit.jac.row(at).transpose() / r.noise_n();
+                at += 1;
+            }
+        }
+        let mut meat = DMatrix::zeros(np, np);
+        let mut shared: HashMap<[u64; 3], [DVector<f64>; 3]> = HashMap::new();
+        for (index, v) in &per_sp {
+            let s = self.random.get(index).copied().unwrap_or([0.0; 3]);
+            for a in 0..3 {
+                meat += &v[a] * v[a].transpose() * (s[a] * s[a]);
+            }
+            if self.shared_n.is_some() {
+                let key = self
+                    .target
+                    .get(index)
+                    .copied()
+                    .unwrap_or([*index as u64; 3]);
+                let e = shared.entry(key).or_insert_with(zero);
+                for a in 0..3 {
+                    e[a] += &v[a];
+                }
+            }
+        }
+        if let Some(q) = self.shared_n {
+            for v in shared.values() {
+                for va in v {
+                    meat += va * va.transpose() * (q * q);
+                }
+            }
+            // And an offset common to every setpoint (a tare that missed its zero).
+            for a in 0..3 {
+                let mut all = DVector::zeros(np);
+                for v in per_sp.values() {
+                    all += &v[a];
+                }
+                meat += &all * all.transpose() * (q * q);
+            }
+        }
+        let mut u = uncertainty_with(fit, groups, start, Some(&meat));
+        u.method.push_str(&match self.shared_n {
+            Some(q) => format!("; the F/T reading's error added: sample SD / sqrt(samples) per setpoint, and {q:.4} N shared by the setpoints of one target and again by all (the larger of the resolution / sqrt(12) and the F/T scatter about the contact law)"),
+            None => "; the F/T reading's error added: sample SD / sqrt(samples) per setpoint".into(),
+        });
+        Ok(u)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dynpick_counts_show_their_resolution_and_readings_off_any_lattice_show_none() {
+        let lsb = 1.0 / 32.8;
+        let f: Vec<f64> = [16, 33, 66, 98, 0, 20]
+            .iter()
+            .map(|c| *c as f64 * lsb)
+            .collect();
+        let r = force_resolution_n(&f).unwrap();
+        assert!((r - lsb).abs() < 1e-9, "{r}");
+        let noisy = [0.4987, 1.0031, 2.0113, 2.9977, 0.5021];
+        assert_eq!(force_resolution_n(&noisy), None);
+    }
+}

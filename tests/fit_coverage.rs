@@ -1,0 +1,205 @@
+//! Coverage of `tactbench fit`'s intervals on simulated mis-built elastomers (issue 30,
+//! "Done when"): each case's truth (the scene's sensor and bench) against the fit of
+//! `experiments/calibrate_elastomer.toml` (or `calibrate_bonded.toml`) made by
+//! `sim::synthetic_run` over independent seeds, with the camera noise of
+//! `fig7_hemisphere_camera_noise.toml`, 5 mN of F/T noise and DynPick counts.
+//!
+//! The full study (20 seeds × 6 cases, about 10 min in the dev profile) is ignored:
+//! `cargo test --test integration fit_coverage -- --ignored --nocapture` prints the
+//! table the note and docs/fit.md quote (`TACTBENCH_COVERAGE_SEEDS=N` for another
+//! count). The quick test runs one seed of the two cases a lab meets most (a soft gel,
+//! a thin gel) and asks what one seed can show: the fitted file cuts the held-out
+//! force-sum error to at most a third, and E (h) lands within its interval's reach.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use tactbench::bench::plan::Plan;
+use tactbench::fit::identify::{fit_run, FitOptions};
+use tactbench::fit::FitDoc;
+use tactbench::sim::scene::Scene;
+use tactbench::sim::synthetic::{synthetic_run, SyntheticOptions};
+
+use crate::util::root;
+
+/// One mis-built case: scene, plan, and the truths that differ from nominal.
+struct Case {
+    name: &'static str,
+    scene: &'static str,
+    plan: &'static str,
+    truth: &'static [(&'static str, f64)],
+}
+
+const CASES: &[Case] = &[
+    Case {
+        name: "E -30 %",
+        scene: "e_minus30.toml",
+        plan: "experiments/calibrate_elastomer.toml",
+        truth: &[("young_modulus_kpa", 700.0)],
+    },
+    Case {
+        name: "E +50 %",
+        scene: "e_plus50.toml",
+        plan: "experiments/calibrate_elastomer.toml",
+        truth: &[("young_modulus_kpa", 1500.0)],
+    },
+    Case {
+        name: "red layer +0.5 mm",
+        scene: "layer_deeper.toml",
+        plan: "experiments/calibrate_elastomer.toml",
+        truth: &[("depth_mm.red", 6.5)],
+    },
+    Case {
+        name: "6 mm layer declared 10 mm",
+        scene: "bonded_6mm.toml",
+        plan: "experiments/scenes/misbuilt/calibrate_bonded.toml",
+        truth: &[("thickness_mm", 6.0)],
+    },
+    Case {
+        name: "F/T rotated 7 deg",
+        scene: "ft_rotated_7deg.toml",
+        plan: "experiments/calibrate_elastomer.toml",
+        truth: &[("ft_rotation_deg", 7.0)],
+    },
+    Case {
+        name: "stage offset 0.4 mm",
+        scene: "stage_offset_0p4.toml",
+        plan: "experiments/calibrate_elastomer.toml",
+        truth: &[("contact_offset_x_mm", 0.4)],
+    },
+];
+
+/// The truth of a parameter in a case: the case's own, else the nominal value (the
+/// scenes differ from the nominal sensor and bench only where the case says).
+fn truth_of(case: &Case, name: &str, doc: &FitDoc) -> f64 {
+    case.truth
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, v)| *v)
+        .unwrap_or(doc.parameters[name].nominal)
+}
+
+/// Generates and fits one seed of a case.
+fn fit_case(case: &Case, seed: u64, dir: &Path) -> FitDoc {
+    let plan_path = root(case.plan);
+    let text = std::fs::read_to_string(&plan_path).unwrap();
+    let plan = Plan::from_toml_str(&text, &plan_path).unwrap();
+    let scene = Scene::from_path(root("experiments/scenes/misbuilt").join(case.scene)).unwrap();
+    let out = dir.join(format!("{}_{seed}", case.scene));
+    let options = SyntheticOptions {
+        seed: Some(seed),
+        geometry: None,
+        skip_frames: true,
+    };
+    synthetic_run(&plan, &text, &scene, &out, &options).unwrap();
+    let opts = FitOptions {
+        run_dir: out,
+        sensor: None,
+        params: None,
+        folds: 4,
+    };
+    fit_run(&opts, &mut |_| {}).unwrap().doc
+}
+
+/// Per case and parameter: (covered, fitted, largest half-width).
+type Table = BTreeMap<(String, String), (usize, usize, f64)>;
+
+fn tally(case: &Case, doc: &FitDoc, table: &mut Table, ratios: &mut Vec<(String, f64)>) {
+    for (name, p) in &doc.parameters {
+        if !p.fitted {
+            continue;
+        }
+        let [lo, hi] = p.ci95.unwrap();
+        let t = truth_of(case, name, doc);
+        let e = table
+            .entry((case.name.to_string(), name.clone()))
+            .or_insert((0, 0, 0.0));
+        e.0 += usize::from(lo <= t && t <= hi);
+        e.1 += 1;
+        e.2 = e.2.max((hi - lo) / 2.0);
+    }
+    if let Some(r) = doc.cross_validation["ratio"].as_f64() {
+        ratios.push((case.name.to_string(), r));
+    }
+}
+
+#[test]
+#[ignore = "the coverage study: 20 seeds x 6 cases, ~10 min (see the module docs)"]
+fn fit_intervals_cover_the_truth_of_mis_built_elastomers_in_18_of_20_seeds() {
+    let seeds: u64 = std::env::var("TACTBENCH_COVERAGE_SEEDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20);
+    let tmp = tempfile::tempdir().unwrap();
+    let mut table = Table::new();
+    let mut ratios = Vec::new();
+    for case in CASES {
+        for seed in 0..seeds {
+            let doc = fit_case(case, 1000 + seed, tmp.path());
+            tally(case, &doc, &mut table, &mut ratios);
+            // A case's own truths must be determined, every seed.
+            for (name, _) in case.truth {
+                assert!(
+                    doc.parameters[*name].fitted,
+                    "{}: {name} held: {:?}",
+                    case.name, doc.parameters[*name].reason
+                );
+            }
+            std::fs::remove_dir_all(tmp.path().join(format!("{}_{}", case.scene, 1000 + seed)))
+                .ok();
+        }
+    }
+    println!("| case | parameter | truth in 95 % CI | largest half-width |");
+    println!("|---|---|---|---|");
+    let mut worst = Vec::new();
+    for ((case, name), (cov, n, hw)) in &table {
+        println!("| {case} | {name} | {cov}/{n} | {hw:.4} |");
+        if (*cov as f64) < 0.9 * *n as f64 {
+            worst.push(format!("{case} {name}: {cov}/{n}"));
+        }
+    }
+    for case in CASES {
+        let r: Vec<f64> = ratios
+            .iter()
+            .filter(|(c, _)| c == case.name)
+            .map(|(_, r)| *r)
+            .collect();
+        let max = r.iter().cloned().fold(0.0, f64::max);
+        println!(
+            "held-out force-sum error, fitted / nominal, {}: max {max:.3} over {} seeds",
+            case.name,
+            r.len()
+        );
+    }
+    assert!(worst.is_empty(), "coverage below 18/20: {worst:?}");
+    for (c, r) in &ratios {
+        if ["E -30 %", "E +50 %", "6 mm layer declared 10 mm"].contains(&c.as_str()) {
+            assert!(*r <= 1.0 / 3.0, "{c}: held-out error ratio {r}");
+        }
+    }
+}
+
+#[test]
+fn one_seed_of_a_soft_gel_and_a_thin_gel_is_measured_not_guessed() {
+    let tmp = tempfile::tempdir().unwrap();
+    for case in [&CASES[0], &CASES[3]] {
+        let doc = fit_case(case, 7, tmp.path());
+        let (name, truth) = case.truth[0];
+        let p = &doc.parameters[name];
+        assert!(p.fitted && p.identifiable, "{}: {p:?}", case.name);
+        let [lo, hi] = p.ci95.unwrap();
+        let half = (hi - lo) / 2.0;
+        assert!(
+            (p.value - truth).abs() <= 2.0 * half,
+            "{}: {name} = {} [{lo}, {hi}], truth {truth}",
+            case.name,
+            p.value
+        );
+        let ratio = doc.cross_validation["ratio"].as_f64().unwrap();
+        assert!(
+            ratio <= 1.0 / 3.0,
+            "{}: held-out force-sum error ratio {ratio}",
+            case.name
+        );
+    }
+}
