@@ -9,8 +9,9 @@
 //! - **shared** by every setpoint of one target ([`ForceError::share`]): readings on a
 //!   lattice of step `r` ([`force_resolution_n`]; a DynPick counts 1/32.8 N) are off by
 //!   up to `r/2`, and when the noise is below a count every sample rounds alike, so
-//!   setpoints with the same target read the same offset. σ = the larger of `r/√12`
-//!   and the F/T scatter about the contact law (the indentation route's noise), per
+//!   setpoints with the same target read the same offset. σ = the largest of `r/√12`,
+//!   one sample's σ (the median non-zero sample SD: the tare is one sample) and the
+//!   F/T scatter about the contact law (the indentation route's noise), per
 //!   target and axis, the sensitivities of the target's setpoints summed first
 //!   (coherent); and the same σ once more as an offset common to every setpoint (a
 //!   tare that missed its zero moves every reading alike).
@@ -67,12 +68,39 @@ pub struct ForceError {
     target: HashMap<usize, [u64; 3]>,
     /// Lattice step, N.
     pub resolution_n: Option<f64>,
+    /// One F/T sample's σ: the median of the journal's non-zero sample SDs, N.
+    pub sample_sd_n: Option<f64>,
     /// σ of the error shared by the setpoints of one target, N (see
     /// [`ForceError::share`]).
     pub shared_n: Option<f64>,
 }
 
 impl ForceError {
+    /// The declared F/T noise of a plan (for `fit --predict`): every loaded setpoint's
+    /// mean off by `random_n` on its own, and `shared_n` shared by the setpoints of one
+    /// target and by all (a tare of one sample).
+    pub fn declared(
+        setpoints: &[crate::bench::plan::Setpoint],
+        random_n: f64,
+        shared_n: f64,
+    ) -> ForceError {
+        ForceError {
+            random: setpoints.iter().map(|s| (s.index, [random_n; 3])).collect(),
+            target: setpoints
+                .iter()
+                .map(|s| {
+                    (
+                        s.index,
+                        [s.normal_n, s.tangential_n[0], s.tangential_n[1]].map(f64::to_bits),
+                    )
+                })
+                .collect(),
+            resolution_n: None,
+            sample_sd_n: Some(shared_n),
+            shared_n: Some(shared_n),
+        }
+    }
+
     /// From the run's journal.
     pub fn of_run(run: &RunData) -> ForceError {
         let exact: Vec<f64> = run
@@ -116,22 +144,29 @@ impl ForceError {
                 })
                 .collect(),
             resolution_n: force_resolution_n(&exact),
+            sample_sd_n: median_nonzero(
+                run.rows
+                    .iter()
+                    .flat_map(|r| [r.fx_sd_n, r.fy_sd_n, r.fz_sd_n])
+                    .filter(|v| v.is_finite() && *v > 0.0)
+                    .collect(),
+            ),
             shared_n: None,
         }
         .share(None)
     }
 
-    /// Sets the σ shared by the setpoints of one target: the larger of the resolution's
-    /// `r/√12` and the F/T's scatter about the contact law (the indentation route's
-    /// noise, when there is one): what a count's rounding, a dead band or the control
-    /// loop's stopping point leave alike at equal loads does not average out over
-    /// setpoints, and the indentation route's scatter is the data's own measure of it.
+    /// Sets the σ shared by the setpoints of one target and by all: the largest of
+    /// the resolution's `r/√12`, one sample's σ (the tare is taken from one sample)
+    /// and the F/T's scatter about the contact law (the indentation route's noise,
+    /// when there is one): what a tare, a count's rounding or the control loop's
+    /// stopping point leave alike at equal loads does not average out over setpoints.
     pub fn share(mut self, indentation_noise_n: Option<f64>) -> ForceError {
         let q = self.resolution_n.map(|r| r / 12f64.sqrt());
-        self.shared_n = match (q, indentation_noise_n) {
-            (Some(a), Some(b)) => Some(a.max(b)),
-            (a, b) => a.or(b),
-        };
+        self.shared_n = [q, self.sample_sd_n, indentation_noise_n]
+            .into_iter()
+            .flatten()
+            .reduce(f64::max);
         self
     }
 
@@ -209,11 +244,19 @@ impl ForceError {
         }
         let mut u = uncertainty_with(fit, groups, start, Some(&meat));
         u.method.push_str(&match self.shared_n {
-            Some(q) => format!("; the F/T reading's error added: sample SD / sqrt(samples) per setpoint, and {q:.4} N shared by the setpoints of one target and again by all (the larger of the resolution / sqrt(12) and the F/T scatter about the contact law)"),
+            Some(q) => format!("; the F/T reading's error added: sample SD / sqrt(samples) per setpoint, and {q:.4} N shared by the setpoints of one target and again by all (the largest of the resolution / sqrt(12), one sample's SD and the F/T scatter about the contact law)"),
             None => "; the F/T reading's error added: sample SD / sqrt(samples) per setpoint".into(),
         });
         Ok(u)
     }
+}
+
+fn median_nonzero(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(v[v.len() / 2])
 }
 
 #[cfg(test)]

@@ -5,7 +5,10 @@
 //! every grid marker, the setpoint's target wrench; [`IndentationRoute::from_plan`],
 //! the depth the nominal law needs for each target normal force), the declared noise
 //! (tracking σ per frame / √frames; F/T σ per sample / √samples), and the Jacobian at
-//! the nominal values: `1.96 × sqrt(diag (JᵀJ)⁻¹)`. The same identifiability rule as
+//! the nominal values: `1.96 × sqrt(diag (JᵀJ)⁻¹)`, with the F/T error added as the fit
+//! adds it ([`ForceError`]: the mean's σ per setpoint, one sample's σ shared by the
+//! setpoints of one target and by all). Model error (a fit's χ²/(n − p) above 1) is
+//! not in a prediction: obtained intervals are wider by about its square root. The same identifiability rule as
 //! the fit holds parameters the plan cannot determine. Beside the intervals: the
 //! plan's setpoint count and its estimated bench time (`Plan::estimate_duration_s`),
 //! so what calibration accuracy costs in bench time is on one screen.
@@ -13,8 +16,9 @@
 use serde_json::json;
 
 use super::displacement::DisplacementRoute;
+use super::force_error::ForceError;
 use super::indentation::IndentationRoute;
-use super::lm::{expected_sd, jacobian, Stack};
+use super::lm::{expected_sd, jacobian, LmFit, Stack};
 use super::space::{default_params, parse_list, ParamId};
 use super::{FitError, ModelParams, Residuals};
 use crate::bench::plan::Plan;
@@ -123,12 +127,40 @@ pub fn predict(
     let mut r0 = vec![0.0; stack.len()];
     stack.eval(&p0, &mut r0).map_err(FitError::Numerical)?;
     let j = jacobian(&stack, &p0, &free, &scales, &r0, kind)?;
+    // The F/T error as the fit counts it (force_error), with the declared noise: the
+    // mean's σ per setpoint, one sample's σ shared (the tare is one sample).
+    let force_error = ForceError::declared(&plan.setpoints(), ft, noise.ft_n);
     // Hold the worst-determined parameter while one exceeds its limit, as the fit does.
     let mut cols: Vec<usize> = (0..free.len()).collect();
     let mut held: Vec<(usize, f64)> = Vec::new();
+    let groups = stack.groups();
     let half = loop {
         let sub = j.select_columns(cols.iter());
-        let hw: Vec<f64> = expected_sd(&sub)
+        let sub_free: Vec<ParamId> = cols.iter().map(|c| free[*c]).collect();
+        let at_nominal = LmFit {
+            params: p0.clone(),
+            free: sub_free,
+            chi2: (stack.len().saturating_sub(cols.len())).max(1) as f64,
+            n: stack.len(),
+            iterations: 0,
+            converged: true,
+            jac: sub,
+            resid: vec![0.0; stack.len()],
+        };
+        let sd: Vec<f64> = if cols.is_empty() {
+            Vec::new()
+        } else {
+            let u =
+                force_error.uncertainty(&at_nominal, &groups, &p0, Some(&disp), ind.as_ref())?;
+            // u.sd is in parameter units; expected_sd (declared noise alone) in scaled ones.
+            let base = expected_sd(&at_nominal.jac);
+            u.sd.iter()
+                .zip(&base)
+                .zip(&cols)
+                .map(|((s, b), c)| s.max(b * scales[*c]) / scales[*c])
+                .collect()
+        };
+        let hw: Vec<f64> = sd
             .iter()
             .zip(&cols)
             .map(|(s, &c)| 1.96 * s * scales[c])
