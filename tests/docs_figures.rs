@@ -329,3 +329,33 @@ fn a_figure_that_moved_is_caught() {
     let (v, _) = metric(&rows[0].run, &rows[0].metric);
     assert!(!shows(&rows[0].value, v));
 }
+
+/// A merge once committed its conflict markers into ARCHITECTURE.md: no text file of
+/// the repository may hold a line that starts with one.
+#[test]
+fn no_file_holds_merge_conflict_markers() {
+    let markers = [format!("{} ", "<".repeat(7)), format!("{} ", ">".repeat(7))];
+    let mut found = Vec::new();
+    let mut stack = vec![crate::util::root("")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            let name = p.file_name().unwrap().to_string_lossy().to_string();
+            if p.is_dir() {
+                if !name.starts_with('.') && name != "target" && name != "runs" {
+                    stack.push(p);
+                }
+                continue;
+            }
+            let Ok(text) = std::fs::read_to_string(&p) else {
+                continue; // binary files
+            };
+            for (i, line) in text.lines().enumerate() {
+                if markers.iter().any(|m| line.starts_with(m.as_str())) {
+                    found.push(format!("{}:{}", p.display(), i + 1));
+                }
+            }
+        }
+    }
+    assert!(found.is_empty(), "conflict markers: {found:?}");
+}

@@ -203,3 +203,48 @@ fn one_seed_of_a_soft_gel_and_a_thin_gel_is_measured_not_guessed() {
         );
     }
 }
+
+/// The fit's time on a 160-setpoint run (the calibration plan's 32 setpoints five
+/// times over, `e_minus30.toml`; `bonded_6mm.toml` with `calibrate_bonded.toml` when
+/// `TACTBENCH_FIT_BONDED=1`). Prints the time in this profile; with
+/// `TACTBENCH_FIT_BENCH_DIR=DIR` the run is kept there, for timing the release binary:
+/// `time target/release/tactbench fit DIR/run --out /tmp/fitted.toml`.
+#[test]
+#[ignore = "a timing, not a test: see docs/fit.md"]
+fn fit_time_on_a_160_setpoint_run() {
+    let bonded = std::env::var("TACTBENCH_FIT_BONDED").is_ok_and(|v| v == "1");
+    let case = if bonded { &CASES[3] } else { &CASES[0] };
+    let plan_path = root(case.plan);
+    let text = std::fs::read_to_string(&plan_path).unwrap();
+    let (head, points) = text.split_at(text.find("\n[[sweep.points]]").unwrap());
+    let text160 = format!("{head}{}", points.repeat(5));
+    let plan = Plan::from_toml_str(&text160, &plan_path).unwrap();
+    assert_eq!(plan.setpoints().len(), 160);
+    let scene = Scene::from_path(root("experiments/scenes/misbuilt").join(case.scene)).unwrap();
+    let keep = std::env::var("TACTBENCH_FIT_BENCH_DIR").ok();
+    let tmp = tempfile::tempdir().unwrap();
+    let base = keep
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| tmp.path().to_path_buf());
+    let out = base.join("run");
+    let options = SyntheticOptions {
+        seed: Some(1),
+        geometry: None,
+        skip_frames: true,
+    };
+    synthetic_run(&plan, &text160, &scene, &out, &options).unwrap();
+    let opts = FitOptions {
+        run_dir: out,
+        sensor: None,
+        params: None,
+        folds: 4,
+    };
+    let t = std::time::Instant::now();
+    let doc = fit_run(&opts, &mut |_| {}).unwrap().doc;
+    println!(
+        "fit of 160 setpoints ({}): {:.2} s, E = {:.1} kPa",
+        case.name,
+        t.elapsed().as_secs_f64(),
+        doc.parameters["young_modulus_kpa"].value
+    );
+}
