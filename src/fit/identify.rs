@@ -251,74 +251,65 @@ fn fit_joint(
     Ok(Joint { fit, unc })
 }
 
-/// Runs the identification (module docs). `progress` receives one line per step.
-pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitOutcome, FitError> {
-    let t0 = Instant::now();
-    let dir = &opts.run_dir;
+/// Reads and checks the run directory.
+fn load_run(dir: &Path) -> Result<RunData, FitError> {
     if !dir.join("manifest.json").is_file() {
         return Err(FitError::Input {
-            path: dir.clone(),
+            path: dir.to_path_buf(),
             message: "not a run directory (no manifest.json): give a directory `tactbench run` or `tactbench import` wrote".into(),
         });
     }
     let run = RunData::load(dir).map_err(|e| FitError::Input {
-        path: dir.clone(),
+        path: dir.to_path_buf(),
         message: e.to_string(),
     })?;
     check_run(&run, dir)?;
-    let (sensor, text, sensor_label) = nominal_sensor(opts, &run)?;
-    let kind = sensor.elastomer.model;
-    let layers: Vec<String> = sensor.layers.iter().map(|l| l.name.clone()).collect();
-    progress("reading the run's displacements");
-    let disp = DisplacementRoute::from_run(dir, &sensor)?;
-    let (mut ind, ind_why) = match IndentationRoute::from_run(&run, &sensor) {
-        Ok(r) => (Some(r), String::new()),
-        Err(why) => (None, why),
-    };
-    let (free, mut held) = candidates(opts, &sensor, ind.as_ref(), &ind_why)?;
-    let nominal = nominal_params(&sensor, ind.as_ref());
+    Ok(run)
+}
 
-    // 2. The indentation route alone sets its own noise.
-    let mut ind_alone = None;
-    if let Some(route) = ind.as_mut() {
-        let sees: Vec<ParamId> = free
-            .iter()
-            .copied()
-            .filter(|p| p.enters().indentation && *p != ParamId::Poisson)
-            .collect();
-        if !sees.is_empty() {
-            progress("indentation route");
-            let f = levenberg_marquardt(
-                &*route,
-                &nominal,
-                &sees,
-                kind,
-                LmOptions::default(),
-                &mut |_, _| {},
-            )?;
-            let dof = f.n.saturating_sub(sees.len()).max(1);
-            route.set_noise((f.chi2 / dof as f64).sqrt() * route.noise_n());
-        }
+/// Fits the indentation route alone on what it sees and makes its RMS residual its
+/// noise σ, so its residuals stack with the displacement route's.
+fn set_indentation_noise(
+    route: &mut IndentationRoute,
+    nominal: &ModelParams,
+    free: &[ParamId],
+    kind: ModelKind,
+    progress: &mut dyn FnMut(&str),
+) -> Result<(), FitError> {
+    let sees: Vec<ParamId> = free
+        .iter()
+        .copied()
+        .filter(|p| p.enters().indentation && *p != ParamId::Poisson)
+        .collect();
+    if sees.is_empty() {
+        return Ok(());
     }
-
-    // 3. Identifiability at nominal on the joint problem.
-    let stack: Stack = match ind.as_ref() {
-        Some(r) => Stack::new(vec![&disp, r]),
-        None => Stack::new(vec![&disp]),
-    };
-    progress("identifiability at the nominal parameters");
-    let free = prune(
-        |f| expected_half_widths(&stack, &nominal, f, kind),
-        free,
-        &nominal,
-        &layers,
-        &mut held,
-        "expected",
+    progress("indentation route");
+    let f = levenberg_marquardt(
+        &*route,
+        nominal,
+        &sees,
+        kind,
+        LmOptions::default(),
+        &mut |_, _| {},
     )?;
+    let dof = f.n.saturating_sub(sees.len()).max(1);
+    route.set_noise((f.chi2 / dof as f64).sqrt() * route.noise_n());
+    Ok(())
+}
 
-    // 4. Joint fit; hold what the data still do not determine, and refit.
-    let mut free = free;
-    let mut joint = fit_joint(&stack, &nominal, &free, kind, progress, "joint fit")?;
+/// The joint fit; then, while the obtained intervals or the plausible ranges say a
+/// parameter is not determined, holds it (with why) and refits.
+fn hold_and_refit(
+    stack: &Stack,
+    nominal: &ModelParams,
+    mut free: Vec<ParamId>,
+    held: &mut Vec<Held>,
+    layers: &[String],
+    kind: ModelKind,
+    progress: &mut dyn FnMut(&str),
+) -> Result<(Joint, Vec<ParamId>), FitError> {
+    let mut joint = fit_joint(stack, nominal, &free, kind, progress, "joint fit")?;
     for _ in 0..4 {
         let before = free.len();
         let hw = joint.unc.half_width.clone();
@@ -330,15 +321,15 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
                     .collect())
             },
             free,
-            &nominal,
-            &layers,
-            &mut held,
+            nominal,
+            layers,
+            held,
             "obtained",
         )?;
         let edge: Vec<ParamId> = free
             .iter()
             .copied()
-            .filter(|id| at_bound(*id, &joint.fit.params, &nominal))
+            .filter(|id| at_bound(*id, &joint.fit.params, nominal))
             .collect();
         for id in edge {
             free.retain(|x| *x != id);
@@ -357,8 +348,107 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
         if free.len() == before {
             break;
         }
-        joint = fit_joint(&stack, &nominal, &free, kind, progress, "joint fit (refit)")?;
+        joint = fit_joint(stack, nominal, &free, kind, progress, "joint fit (refit)")?;
     }
+    Ok((joint, free))
+}
+
+/// Cross-validation (`--folds`): refits on the training folds from the joint solution
+/// (at most 5 iterations: a fold differs from the whole by a quarter of its data, and
+/// from the joint solution the engine converges in two to four).
+#[allow(clippy::too_many_arguments)]
+fn cross_validation(
+    opts: &FitOptions,
+    run: &RunData,
+    sensor: &Sensor,
+    nominal: &ModelParams,
+    disp: &DisplacementRoute,
+    ind: Option<&IndentationRoute>,
+    joint: &Joint,
+    free: &[ParamId],
+    kind: ModelKind,
+    progress: &mut dyn FnMut(&str),
+) -> serde_json::Value {
+    if opts.folds >= 2 {
+        progress("cross-validation");
+        let start = joint.fit.params.clone();
+        let free_cv = free.to_vec();
+        let ind_ref = ind;
+        let res = cross_validate(
+            disp,
+            sensor,
+            nominal,
+            &run.plan.solver,
+            opts.folds,
+            |train| {
+                let d = disp.subset(|i| train.contains(&i));
+                let i = ind_ref.map(|r| r.subset(|k| train.contains(&k)));
+                let parts: Vec<&dyn Residuals> = match i.as_ref() {
+                    Some(r) if !r.is_empty() => vec![&d, r],
+                    _ => vec![&d],
+                };
+                let st = Stack::new(parts);
+                let f = levenberg_marquardt(
+                    &st,
+                    &start,
+                    &free_cv,
+                    kind,
+                    LmOptions { max_iter: 5 },
+                    &mut |_, _| {},
+                )?;
+                Ok(f.params)
+            },
+        );
+        match res {
+            Ok(v) => v,
+            Err(e) => json!({"available": false, "reason": e.to_string()}),
+        }
+    } else {
+        json!({"available": false, "reason": "not asked (--folds 0)"})
+    }
+}
+
+/// Runs the identification (module docs). `progress` receives one line per step.
+pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitOutcome, FitError> {
+    let t0 = Instant::now();
+    let dir = &opts.run_dir;
+    let run = load_run(dir)?;
+    let (sensor, text, sensor_label) = nominal_sensor(opts, &run)?;
+    let kind = sensor.elastomer.model;
+    let layers: Vec<String> = sensor.layers.iter().map(|l| l.name.clone()).collect();
+    progress("reading the run's displacements");
+    let disp = DisplacementRoute::from_run(dir, &sensor)?;
+    let (mut ind, ind_why) = match IndentationRoute::from_run(&run, &sensor) {
+        Ok(r) => (Some(r), String::new()),
+        Err(why) => (None, why),
+    };
+    let (free, mut held) = candidates(opts, &sensor, ind.as_ref(), &ind_why)?;
+    let nominal = nominal_params(&sensor, ind.as_ref());
+
+    // 2. The indentation route alone sets its own noise.
+    let mut ind_alone = None;
+    if let Some(route) = ind.as_mut() {
+        set_indentation_noise(route, &nominal, &free, kind, progress)?;
+    }
+
+    // 3. Identifiability at nominal on the joint problem.
+    let stack: Stack = match ind.as_ref() {
+        Some(r) => Stack::new(vec![&disp, r]),
+        None => Stack::new(vec![&disp]),
+    };
+    progress("identifiability at the nominal parameters");
+    let free = prune(
+        |f| expected_half_widths(&stack, &nominal, f, kind),
+        free,
+        &nominal,
+        &layers,
+        &mut held,
+        "expected",
+    )?;
+
+    // 4. Joint fit; hold what the data still do not determine, and refit.
+    let (joint, free) = hold_and_refit(&stack, &nominal, free, &mut held, &layers, kind, progress)?;
+    let mut joint = joint;
     let force_error = ForceError::of_run(&run).share(ind.as_ref().map(|r| r.noise_n()));
     joint.unc = force_error.uncertainty(
         &joint.fit,
@@ -386,43 +476,18 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
     }
 
     // 6. Cross-validation.
-    let cv = if opts.folds >= 2 {
-        progress("cross-validation");
-        let start = joint.fit.params.clone();
-        let free_cv = free.clone();
-        let ind_ref = ind.as_ref();
-        let res = cross_validate(
-            &disp,
-            &sensor,
-            &nominal,
-            &run.plan.solver,
-            opts.folds,
-            |train| {
-                let d = disp.subset(|i| train.contains(&i));
-                let i = ind_ref.map(|r| r.subset(|k| train.contains(&k)));
-                let parts: Vec<&dyn Residuals> = match i.as_ref() {
-                    Some(r) if !r.is_empty() => vec![&d, r],
-                    _ => vec![&d],
-                };
-                let st = Stack::new(parts);
-                let f = levenberg_marquardt(
-                    &st,
-                    &start,
-                    &free_cv,
-                    kind,
-                    LmOptions { max_iter: 15 },
-                    &mut |_, _| {},
-                )?;
-                Ok(f.params)
-            },
-        );
-        match res {
-            Ok(v) => v,
-            Err(e) => json!({"available": false, "reason": e.to_string()}),
-        }
-    } else {
-        json!({"available": false, "reason": "not asked (--folds 0)"})
-    };
+    let cv = cross_validation(
+        opts,
+        &run,
+        &sensor,
+        &nominal,
+        &disp,
+        ind.as_ref(),
+        &joint,
+        &free,
+        kind,
+        progress,
+    );
 
     let doc = build_doc(DocParts {
         opts,
