@@ -21,7 +21,11 @@ use tactbench::sim::scene::Scene;
 use crate::util;
 
 /// Each plan in `experiments/` and the scene its simulated run uses.
-const PLANS: [(&str, &str); 7] = [
+const PLANS: [(&str, &str); 8] = [
+    (
+        "experiments/calibrate_elastomer.toml",
+        "experiments/scenes/misbuilt/nominal.toml",
+    ),
     (
         "experiments/fig7_magnitude.toml",
         "experiments/scenes/fig7_hemisphere_ramp.toml",
