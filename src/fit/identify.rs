@@ -34,7 +34,8 @@ use super::doc::{FitDoc, ParamFit, Route, FIT_SCHEMA};
 use super::force_error::ForceError;
 use super::indentation::IndentationRoute;
 use super::lm::{
-    expected_sd, jacobian, levenberg_marquardt, uncertainty, LmFit, LmOptions, Stack, Uncertainty,
+    expected_sd, jacobian, levenberg_marquardt, params_at, uncertainty, LmFit, LmOptions, Stack,
+    Uncertainty,
 };
 use super::space::{at_bound, bounds, default_params, parse_list, ParamId};
 use super::{FitError, ModelParams, Residuals};
@@ -353,9 +354,10 @@ fn hold_and_refit(
     Ok((joint, free))
 }
 
-/// Cross-validation (`--folds`): refits on the training folds from the joint solution
-/// (at most 5 iterations: a fold differs from the whole by a quarter of its data, and
-/// from the joint solution the engine converges in two to four).
+/// Cross-validation (`--folds`): each fold's parameters are one Gauss–Newton step from
+/// the joint solution on the fold's training setpoints (the joint Jacobian and
+/// residuals restricted to them), and its held-out force sums are reconstructed with
+/// them and with the nominal ones.
 #[allow(clippy::too_many_arguments)]
 fn cross_validation(
     opts: &FitOptions,
@@ -363,17 +365,17 @@ fn cross_validation(
     sensor: &Sensor,
     nominal: &ModelParams,
     disp: &DisplacementRoute,
-    ind: Option<&IndentationRoute>,
     joint: &Joint,
     free: &[ParamId],
-    kind: ModelKind,
+    groups: &[usize],
     progress: &mut dyn FnMut(&str),
 ) -> serde_json::Value {
     if opts.folds >= 2 {
         progress("cross-validation");
-        let start = joint.fit.params.clone();
-        let free_cv = free.to_vec();
-        let ind_ref = ind;
+        // One Gauss–Newton step from the joint solution on the fold's training rows:
+        // the joint fit's Jacobian and residuals restricted to them (no new model
+        // evaluation; the fold's optimum lies a small step from the whole run's).
+        let scales: Vec<f64> = free.iter().map(|f| f.scale(nominal)).collect();
         let res = cross_validate(
             disp,
             sensor,
@@ -381,22 +383,23 @@ fn cross_validation(
             &run.plan.solver,
             opts.folds,
             |train| {
-                let d = disp.subset(|i| train.contains(&i));
-                let i = ind_ref.map(|r| r.subset(|k| train.contains(&k)));
-                let parts: Vec<&dyn Residuals> = match i.as_ref() {
-                    Some(r) if !r.is_empty() => vec![&d, r],
-                    _ => vec![&d],
-                };
-                let st = Stack::new(parts);
-                let f = levenberg_marquardt(
-                    &st,
-                    &start,
-                    &free_cv,
-                    kind,
-                    LmOptions { max_iter: 5 },
-                    &mut |_, _| {},
-                )?;
-                Ok(f.params)
+                let train: std::collections::HashSet<usize> = train.iter().copied().collect();
+                let np = free.len();
+                let mut a = nalgebra::DMatrix::zeros(np, np);
+                let mut g = nalgebra::DVector::zeros(np);
+                for (i, grp) in groups.iter().enumerate().take(joint.fit.n) {
+                    if train.contains(grp) {
+                        let row = joint.fit.jac.row(i).transpose();
+                        a += &row * row.transpose();
+                        g += row * joint.fit.resid[i];
+                    }
+                }
+                let step = a.cholesky().map(|c| c.solve(&(-g))).ok_or_else(|| {
+                    FitError::Numerical(
+                        "cross-validation: a fold's normal equations are singular".into(),
+                    )
+                })?;
+                Ok(params_at(&joint.fit.params, free, &scales, step.as_slice()))
             },
         );
         match res {
@@ -482,10 +485,9 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
         &sensor,
         &nominal,
         &disp,
-        ind.as_ref(),
         &joint,
         &free,
-        kind,
+        &stack.groups(),
         progress,
     );
 
