@@ -904,6 +904,18 @@ impl Residuals for DisplacementRoute {
             .collect()
     }
 
+    fn marker_groups(&self) -> Vec<usize> {
+        self.setpoints
+            .iter()
+            .flat_map(|sp| {
+                sp.markers.iter().flat_map(|m| {
+                    let key = (m.layer << 40) | (m.marker as usize & ((1 << 40) - 1));
+                    [key, key]
+                })
+            })
+            .collect()
+    }
+
     fn eval(&self, p: &ModelParams, out: &mut [f64]) -> Result<(), String> {
         if out.len() != self.len {
             return Err(format!(

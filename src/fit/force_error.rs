@@ -25,7 +25,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::displacement::DisplacementRoute;
 use super::indentation::IndentationRoute;
-use super::lm::{uncertainty_with, LmFit, Uncertainty};
+use super::lm::{uncertainty_two_way, LmFit, Uncertainty};
 use super::{FitError, ModelParams};
 use crate::analysis::RunData;
 
@@ -177,6 +177,7 @@ impl ForceError {
         &self,
         fit: &LmFit,
         groups: &[usize],
+        groups2: Option<&[usize]>,
         start: &ModelParams,
         disp: Option<&DisplacementRoute>,
         ind: Option<&IndentationRoute>,
@@ -242,7 +243,7 @@ impl ForceError {
                 meat += &all * all.transpose() * (q * q);
             }
         }
-        let mut u = uncertainty_with(fit, groups, start, Some(&meat));
+        let mut u = uncertainty_two_way(fit, groups, groups2, start, Some(&meat));
         u.method.push_str(&match self.shared_n {
             Some(q) => format!("; the F/T reading's error added: sample SD / sqrt(samples) per setpoint, and {q:.4} N shared by the setpoints of one target and again by all (the largest of the resolution / sqrt(12), one sample's SD and the F/T scatter about the contact law)"),
             None => "; the F/T reading's error added: sample SD / sqrt(samples) per setpoint".into(),

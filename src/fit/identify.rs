@@ -456,6 +456,7 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
     joint.unc = force_error.uncertainty(
         &joint.fit,
         &stack.groups(),
+        Some(&stack.marker_groups()),
         &nominal,
         Some(&disp),
         ind.as_ref(),
@@ -468,14 +469,22 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
         }
     }
     if let (Some(Some(j)), Some(route)) = (ind_alone.as_mut(), ind.as_ref()) {
-        j.unc = force_error.uncertainty(&j.fit, &route.groups(), &nominal, None, Some(route))?;
+        j.unc =
+            force_error.uncertainty(&j.fit, &route.groups(), None, &nominal, None, Some(route))?;
     }
     progress("displacement route alone");
     let mut disp_alone = side_fit(&disp, &joint.fit.params, &free, kind, |p| {
         p.enters().displacement
     })?;
     if let Some(j) = disp_alone.as_mut() {
-        j.unc = force_error.uncertainty(&j.fit, &disp.groups(), &nominal, Some(&disp), None)?;
+        j.unc = force_error.uncertainty(
+            &j.fit,
+            &disp.groups(),
+            Some(&disp.marker_groups()),
+            &nominal,
+            Some(&disp),
+            None,
+        )?;
     }
 
     // 6. Cross-validation.

@@ -11,8 +11,8 @@
 //!   step that lowers χ², ×10 otherwise; a step into an invalid model (E ≤ 0, a
 //!   depth below the surface or through a bonded layer) counts as a failed step.
 //!   Stops when χ² falls by less than 10⁻¹⁰ of itself, or λ passes 10¹⁰.
-//! - **Covariance** ("from the residuals and the Jacobian", two ways, the larger
-//!   kept per parameter): the classical `s² (JᵀJ)⁻¹` with `s² = χ²/(n − p)`, and the
+//! - **Covariance** ("from the residuals and the Jacobian"; the largest kept per
+//!   parameter; a third, two-way by setpoint and marker, in [`uncertainty_two_way`]): the classical `s² (JᵀJ)⁻¹` with `s² = χ²/(n − p)`, and the
 //!   cluster-robust sandwich `(JᵀJ)⁻¹ (Σ_g J_gᵀ r_g r_gᵀ J_g) (JᵀJ)⁻¹ · G/(G−1)` with
 //!   one cluster per setpoint, which stays honest when a setpoint's residuals are
 //!   correlated (one contact mis-modelled moves every marker of that setpoint). The
@@ -62,6 +62,10 @@ impl Residuals for Stack<'_> {
 
     fn groups(&self) -> Vec<usize> {
         self.parts.iter().flat_map(|p| p.groups()).collect()
+    }
+
+    fn marker_groups(&self) -> Vec<usize> {
+        self.parts.iter().flat_map(|p| p.marker_groups()).collect()
     }
 }
 
@@ -346,6 +350,20 @@ pub fn uncertainty_with(
     start: &ModelParams,
     extra_meat: Option<&DMatrix<f64>>,
 ) -> Uncertainty {
+    uncertainty_two_way(fit, groups, None, start, extra_meat)
+}
+
+/// [`uncertainty_with`] clustered two ways (Cameron, Gelbach & Miller 2011): by
+/// setpoint (`groups`) and by a second key (`groups2`, the marker: a marker's
+/// centroid bias, or the contact model's error at its place, repeats at every
+/// setpoint). The two-way variance `V_1 + V_2 − V_each-residual` joins the larger-of.
+pub fn uncertainty_two_way(
+    fit: &LmFit,
+    groups: &[usize],
+    groups2: Option<&[usize]>,
+    start: &ModelParams,
+    extra_meat: Option<&DMatrix<f64>>,
+) -> Uncertainty {
     let np = fit.free.len();
     let scales: Vec<f64> = fit.free.iter().map(|f| f.scale(start)).collect();
     let dof_res = fit.n.saturating_sub(np).max(1);
@@ -369,9 +387,30 @@ pub fn uncertainty_with(
     }
     let finite = |m: &DMatrix<f64>| m.iter().all(|v| v.is_finite());
     let robust = if g_count >= 2 && finite(&ainv) {
-        Some(&ainv * meat * &ainv * (g_count as f64 / (g_count as f64 - 1.0)))
+        Some(&ainv * &meat * &ainv * (g_count as f64 / (g_count as f64 - 1.0)))
     } else {
         None
+    };
+    let two_way = match groups2 {
+        Some(g2) if finite(&ainv) => {
+            let mut by: HashMap<usize, DVector<f64>> = HashMap::new();
+            let mut each = DMatrix::zeros(np, np);
+            let mut m2 = DMatrix::zeros(np, np);
+            for (i, g) in g2.iter().enumerate().take(fit.n) {
+                let row = fit.jac.row(i).transpose() * fit.resid[i];
+                each += &row * row.transpose();
+                if *g == usize::MAX {
+                    m2 += &row * row.transpose();
+                } else {
+                    *by.entry(*g).or_insert_with(|| DVector::zeros(np)) += row;
+                }
+            }
+            for v in by.values() {
+                m2 += v * v.transpose();
+            }
+            Some(&ainv * (&meat + m2 - each) * &ainv)
+        }
+        _ => None,
     };
     let mut classic = &ainv * s2;
     if let (Some(m), true) = (extra_meat, finite(&ainv)) {
@@ -381,7 +420,8 @@ pub fn uncertainty_with(
     for i in 0..np {
         let c = classic[(i, i)];
         let r = robust.as_ref().map_or(0.0, |m| m[(i, i)]);
-        sd.push(c.max(r).sqrt() * scales[i]);
+        let w = two_way.as_ref().map_or(0.0, |m| m[(i, i)]);
+        sd.push(c.max(r).max(w).sqrt() * scales[i]);
     }
     let dof = dof_res.min(g_count.saturating_sub(1).max(1));
     let t = StudentsT::new(0.0, 1.0, dof as f64)
@@ -412,7 +452,7 @@ pub fn uncertainty_with(
         reduced_chi2: s2,
         clusters: g_count,
         method: format!(
-            "jacobian: the larger of s^2 (J^T J)^-1 (s^2 = chi^2/(n-p) = {s2:.3}) and the cluster-robust sandwich over {g_count} setpoints, per parameter; 95 % = +/- t({dof}) sd"
+            "jacobian: the largest of s^2 (J^T J)^-1 (s^2 = chi^2/(n-p) = {s2:.3}), the cluster-robust sandwich over {g_count} setpoints{}, per parameter; 95 % = +/- t({dof}) sd", if two_way.is_some() { " and the two-way one (setpoints and markers)" } else { "" }
         ),
     }
 }

@@ -100,6 +100,11 @@ pub trait Residuals: Sync {
     fn groups(&self) -> Vec<usize> {
         vec![usize::MAX; self.len()]
     }
+    /// The second cluster key of each residual (the marker it belongs to), or
+    /// `usize::MAX` for none.
+    fn marker_groups(&self) -> Vec<usize> {
+        vec![usize::MAX; self.len()]
+    }
 }
 
 #[cfg(test)]

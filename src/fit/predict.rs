@@ -150,8 +150,14 @@ pub fn predict(
         let sd: Vec<f64> = if cols.is_empty() {
             Vec::new()
         } else {
-            let u =
-                force_error.uncertainty(&at_nominal, &groups, &p0, Some(&disp), ind.as_ref())?;
+            let u = force_error.uncertainty(
+                &at_nominal,
+                &groups,
+                None,
+                &p0,
+                Some(&disp),
+                ind.as_ref(),
+            )?;
             // u.sd is in parameter units; expected_sd (declared noise alone) in scaled ones.
             let base = expected_sd(&at_nominal.jac);
             u.sd.iter()
