@@ -60,7 +60,7 @@ use crate::bench::journal::{
     RunStatus, Session, GIT_COMMIT,
 };
 use crate::bench::plan::{Plan, Setpoint, Sweep};
-use crate::bench::runner::{rfc3339_now, with_geometry};
+use crate::bench::runner::{mean_over_frames, rfc3339_now, with_geometry};
 use crate::device::dynpick::codec::Record;
 use crate::device::dynpick::sim::DEFAULT_SENSITIVITIES;
 use crate::device::Wrench;
@@ -675,32 +675,10 @@ impl Gen<'_> {
             self.evidence.insert(rel, d);
         }
         // Mean displacement over the frames; a marker lost in any frame is lost.
-        let mut records = Vec::new();
-        let mut per_frame = Vec::with_capacity(tracked.len());
-        for (k, (_, tracks)) in tracked.iter().enumerate() {
-            let r = self
-                .tracker
-                .displacement_records_mapped(tracks, &self.mapping);
-            per_frame.push(r.iter().map(|x| x.u_mm).collect::<Vec<_>>());
-            if k == 0 {
-                records = r;
-            } else {
-                for (acc, x) in records.iter_mut().zip(r) {
-                    acc.u_mm = match (acc.u_mm, x.u_mm) {
-                        (Some(a), Some(b)) => Some([a[0] + b[0], a[1] + b[1]]),
-                        _ => None,
-                    };
-                }
-            }
-        }
-        let nf = tracked.len().max(1) as f64;
-        for r in &mut records {
-            if let Some(u) = r.u_mm.as_mut() {
-                u[0] /= nf;
-                u[1] /= nf;
-            }
-        }
-        let sigma_mean_mm = frame_scatter_mm(&per_frame).map(|s| s / nf.sqrt());
+        let (records, sigma_mean_mm) = mean_over_frames(tracked.iter().map(|(_, tracks)| {
+            self.tracker
+                .displacement_records_mapped(tracks, &self.mapping)
+        }));
         let frame = DisplacementFrame {
             frame: String::new(),
             records,
@@ -799,29 +777,6 @@ fn mean_sd(samples: &[Wrench]) -> (Wrench, [f64; 3]) {
         }
     }
     (m, sd)
-}
-
-/// The pooled frame-to-frame scatter of one displacement component (mm) over the
-/// markers found in every frame; `None` with fewer than two frames (the runner's
-/// estimate of the tracking noise).
-fn frame_scatter_mm(frames: &[Vec<Option<[f64; 2]>>]) -> Option<f64> {
-    let nf = frames.len();
-    let first = frames.first()?;
-    if nf < 2 {
-        return None;
-    }
-    let (mut ss, mut dof) = (0.0f64, 0usize);
-    for i in 0..first.len() {
-        let us: Option<Vec<[f64; 2]>> =
-            frames.iter().map(|f| f.get(i).copied().flatten()).collect();
-        let Some(us) = us else { continue };
-        for ax in 0..2 {
-            let mean = us.iter().map(|u| u[ax]).sum::<f64>() / nf as f64;
-            ss += us.iter().map(|u| (u[ax] - mean).powi(2)).sum::<f64>();
-            dof += nf - 1;
-        }
-    }
-    (dof > 0).then(|| (ss / dof as f64).sqrt())
 }
 
 #[cfg(test)]

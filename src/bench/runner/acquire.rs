@@ -974,31 +974,11 @@ impl Runner<'_, '_, '_, '_> {
 
         // Mean displacement over the frames; a marker lost in any frame is lost.
         let t0 = Instant::now();
-        let mut records = Vec::new();
-        let mut per_frame = Vec::with_capacity(tracked.len());
-        for (k, (_, tracks)) in tracked.iter().enumerate() {
-            let r = tracker.displacement_records_mapped(tracks, &self.mapping);
-            per_frame.push(r.iter().map(|x| x.u_mm).collect::<Vec<_>>());
-            if k == 0 {
-                records = r;
-            } else {
-                for (acc, x) in records.iter_mut().zip(r) {
-                    acc.u_mm = match (acc.u_mm, x.u_mm) {
-                        (Some(a), Some(b)) => Some([a[0] + b[0], a[1] + b[1]]),
-                        _ => None,
-                    };
-                }
-            }
-        }
-        let nf = tracked.len().max(1) as f64;
-        for r in &mut records {
-            if let Some(u) = r.u_mm.as_mut() {
-                u[0] /= nf;
-                u[1] /= nf;
-            }
-        }
-        // The noise of the mean displacement: the frames' scatter / √frames.
-        let sigma_mean_mm = frame_scatter_mm(&per_frame).map(|s| s / nf.sqrt());
+        let (records, sigma_mean_mm) = mean_over_frames(
+            tracked
+                .iter()
+                .map(|(_, tracks)| tracker.displacement_records_mapped(tracks, &self.mapping)),
+        );
         let frame = DisplacementFrame {
             frame: String::new(),
             records,
@@ -1075,10 +1055,41 @@ impl Runner<'_, '_, '_, '_> {
     }
 }
 
+/// A setpoint's displacement records averaged over its frames (a marker lost in any
+/// frame is lost), and the noise of that mean: the frames' scatter
+/// ([`frame_scatter_mm`]) / √frames. Shared by the runner and `sim::synthetic_run`.
+pub fn mean_over_frames(
+    frames: impl Iterator<Item = Vec<formats::DisplacementRecord>>,
+) -> (Vec<formats::DisplacementRecord>, Option<f64>) {
+    let mut records: Vec<formats::DisplacementRecord> = Vec::new();
+    let mut per_frame = Vec::new();
+    for (k, r) in frames.enumerate() {
+        per_frame.push(r.iter().map(|x| x.u_mm).collect::<Vec<_>>());
+        if k == 0 {
+            records = r;
+        } else {
+            for (acc, x) in records.iter_mut().zip(r) {
+                acc.u_mm = match (acc.u_mm, x.u_mm) {
+                    (Some(a), Some(b)) => Some([a[0] + b[0], a[1] + b[1]]),
+                    _ => None,
+                };
+            }
+        }
+    }
+    let nf = per_frame.len().max(1) as f64;
+    for r in &mut records {
+        if let Some(u) = r.u_mm.as_mut() {
+            u[0] /= nf;
+            u[1] /= nf;
+        }
+    }
+    (records, frame_scatter_mm(&per_frame).map(|s| s / nf.sqrt()))
+}
+
 /// The tracking noise of one displacement component, mm: the pooled frame-to-frame
 /// scatter `sqrt(Σ (u_k − ū)² / (n_markers · 2 · (frames − 1)))` over the markers found
 /// in every frame of a setpoint. `None` with fewer than two frames or no such marker.
-pub(super) fn frame_scatter_mm(frames: &[Vec<Option<[f64; 2]>>]) -> Option<f64> {
+pub fn frame_scatter_mm(frames: &[Vec<Option<[f64; 2]>>]) -> Option<f64> {
     let nf = frames.len();
     let first = frames.first()?;
     if nf < 2 {
