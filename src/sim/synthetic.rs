@@ -20,7 +20,9 @@
 //!   sensor reads it along the target direction* (the runner's control loop stops on
 //!   the same reading: with a rotated F/T sensor the true tangential force is then
 //!   `target / cos θ`). The runner stops anywhere within `control.force_tolerance`;
-//!   here the F/T mean misses the target only by its noise, tare and quantisation.
+//!   here the F/T mean misses the target only by its noise, tare and quantisation,
+//!   unless [`SyntheticOptions::stop_spread_seed`] asks for the runner's spread (a
+//!   seeded uniform miss within the tolerance).
 //!   Every setpoint starts from a fresh contact (the runner keeps the contact along a
 //!   normal ramp; the elastic world has no memory of it);
 //! - F/T readings are `acquire.samples` draws of [`World::wrench`] (noise, rotation
@@ -50,6 +52,7 @@ use thiserror::Error;
 
 use super::effects::{Effect, Pipeline};
 use super::render::to_rgb8;
+use super::rng::Rng;
 use super::scene::Scene;
 use super::simulate::Simulation;
 use super::world::{World, WorldGeometry};
@@ -111,6 +114,15 @@ pub struct SyntheticOptions {
     /// Do not write `frames/*.png` (they are evidence: readers say they are missing;
     /// the journal still names them). Saves the PNG encoding time.
     pub skip_frames: bool,
+    /// Where the controller stops. `None`: exactly at each setpoint's target (the
+    /// true normal force, and the tangential force as the F/T sensor reads it).
+    /// `Some(seed)`: anywhere within `control.force_tolerance` of it, as the runner's
+    /// loop stops at its first reading inside the band: a miss drawn uniformly in
+    /// `[−tol, tol]` per setpoint and axis (stream = setpoint index). With exact
+    /// stops every seed of a study puts the same force on the same count of the F/T
+    /// sensor's lattice, so its rounding error is one draw repeated, not a random
+    /// error; a coverage study over seeds needs the spread.
+    pub stop_spread_seed: Option<u64>,
 }
 
 /// What was generated.
@@ -203,6 +215,7 @@ struct Gen<'a> {
     tare: Wrench,
     dir: &'a Path,
     skip_frames: bool,
+    stop_spread_seed: Option<u64>,
     tracker: Tracker,
     mapping: PixelMapping,
     solvers: BTreeMap<Vec<bool>, Box<dyn FrameSolver>>,
@@ -299,6 +312,7 @@ pub fn synthetic_run(
         tare,
         dir: out,
         skip_frames: options.skip_frames,
+        stop_spread_seed: options.stop_spread_seed,
         tracker: Tracker::new(layout, TrackConfig::default()),
         mapping,
         solvers: BTreeMap::new(),
@@ -429,6 +443,20 @@ fn manifest(
 
 impl Gen<'_> {
     /// Puts the stage where the runner's control would leave it for `sp`.
+    /// The controller's miss of the normal and tangential targets at `sp`, N
+    /// ([`SyntheticOptions::stop_spread_seed`]).
+    fn stop_miss(&self, sp: &Setpoint) -> [f64; 2] {
+        let Some(seed) = self.stop_spread_seed else {
+            return [0.0, 0.0];
+        };
+        let mut rng = Rng::stream(seed, sp.index as u64);
+        let tol = self.plan.force_tolerance_n;
+        [
+            (2.0 * rng.uniform() - 1.0) * tol,
+            (2.0 * rng.uniform() - 1.0) * tol,
+        ]
+    }
+
     fn reach(&self, sp: &Setpoint) -> Result<(), SyntheticError> {
         let at = |message: String| SyntheticError::Setpoint {
             index: sp.index,
@@ -444,10 +472,13 @@ impl Gen<'_> {
         if sp.normal_n <= 0.0 {
             return Ok(());
         }
+        let [miss_n, miss_t] = self.stop_miss(sp);
+        // A miss never reverses a load (tolerances are far below the loads).
+        let normal_n = (sp.normal_n + miss_n).max(0.5 * sp.normal_n);
         let depth = self
             .world
-            .indentation_for_normal_force(sp.normal_n)
-            .ok_or_else(|| at(format!("no indentation reaches fz = {} N", sp.normal_n)))?;
+            .indentation_for_normal_force(normal_n)
+            .ok_or_else(|| at(format!("no indentation reaches fz = {normal_n} N")))?;
         let max_depth = self.plan.safety.travel_max_mm[2];
         if depth > max_depth {
             return Err(at(format!(
@@ -459,11 +490,12 @@ impl Gen<'_> {
         self.world.set_stage_mm(self.geom.stage_point(xy, 0.0));
         self.world.set_stage_mm(self.geom.stage_point(xy, depth));
         let t = sp.tangential_n;
-        let t_mag = t[0].hypot(t[1]);
-        if t_mag == 0.0 {
+        let t_target = t[0].hypot(t[1]);
+        if t_target == 0.0 {
             return Ok(());
         }
-        let dir = [t[0] / t_mag, t[1] / t_mag];
+        let dir = [t[0] / t_target, t[1] / t_target];
+        let t_mag = (t_target + miss_t).max(0.5 * t_target);
         // The runner's loop travels along `dir` until the F/T reading along `dir` is
         // the target. While stuck the reading is linear in the travel: one probe step
         // gives its slope.
