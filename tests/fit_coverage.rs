@@ -284,3 +284,65 @@ fn fit_time_on_a_160_setpoint_run() {
         doc.parameters["young_modulus_kpa"].value
     );
 }
+
+/// Regression: on a run without shear setpoints the F/T sensor's `fx`, `fy` are a
+/// count's noise, and an in-plane rotation of them looked determined by the intervals
+/// the identifiability check judged (without the F/T error) while the reported ones
+/// (with it) were ±500°: `ft_rotation_deg` came out "identifiable" at 137°. The check
+/// now judges the intervals it reports.
+#[test]
+fn a_run_without_shear_holds_the_ft_rotation_that_only_ft_noise_seems_to_determine() {
+    let plan_path = root("experiments/calibrate_elastomer.toml");
+    let text = std::fs::read_to_string(&plan_path).unwrap();
+    let mut parts = text.split("[[sweep.points]]");
+    let mut normal_only = parts.next().unwrap().to_string();
+    for p in parts.filter(|p| !p.contains("tangential")) {
+        normal_only += "[[sweep.points]]";
+        normal_only += p;
+    }
+    let plan = Plan::from_toml_str(&normal_only, &plan_path).unwrap();
+    assert_eq!(plan.setpoints().len(), 20, "the plan's normal setpoints");
+    // The E +50 % gel without camera noise: the displacements then determine the
+    // rest so tightly that the rotation's noise-made Jacobian passed the check.
+    let tmp = tempfile::tempdir().unwrap();
+    let misbuilt = root("experiments/scenes/misbuilt");
+    let scene_text = std::fs::read_to_string(misbuilt.join("e_plus50.toml"))
+        .unwrap()
+        .replace(
+            "sensor = \"truth_e_plus50.toml\"",
+            &format!("sensor = {:?}", misbuilt.join("truth_e_plus50.toml")),
+        );
+    let effects = scene_text.find("[[effects]]").unwrap();
+    let bench = scene_text.find("[bench]").unwrap();
+    let clean = format!("{}{}", &scene_text[..effects], &scene_text[bench..]);
+    let scene_path = tmp.path().join("e_plus50_clean.toml");
+    std::fs::write(&scene_path, clean).unwrap();
+    let scene = Scene::from_path(&scene_path).unwrap();
+    let out = tmp.path().join("run");
+    let options = SyntheticOptions {
+        seed: Some(1000),
+        skip_frames: true,
+        ..SyntheticOptions::default()
+    };
+    synthetic_run(&plan, &normal_only, &scene, &out, &options).unwrap();
+    let opts = FitOptions {
+        run_dir: out,
+        sensor: None,
+        params: None,
+        folds: 4,
+    };
+    let doc = fit_run(&opts, &mut |_| {}).unwrap().doc;
+    let rot = &doc.parameters["ft_rotation_deg"];
+    assert!(!rot.fitted && !rot.identifiable, "{rot:?}");
+    assert!(
+        rot.reason
+            .as_deref()
+            .unwrap_or("")
+            .contains("shear setpoints"),
+        "{rot:?}"
+    );
+    // What the run does determine is still fitted, inside its interval.
+    let e = &doc.parameters["young_modulus_kpa"];
+    let [lo, hi] = e.ci95.unwrap();
+    assert!(e.fitted && lo <= 1500.0 && 1500.0 <= hi, "{e:?}");
+}

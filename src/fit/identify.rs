@@ -232,6 +232,9 @@ struct Joint {
     unc: Uncertainty,
 }
 
+/// The uncertainty of a fit of the joint problem (the F/T error included).
+type UncOf<'a> = dyn Fn(&LmFit) -> Result<Uncertainty, FitError> + 'a;
+
 fn fit_joint(
     problem: &dyn Residuals,
     start: &ModelParams,
@@ -239,6 +242,7 @@ fn fit_joint(
     kind: ModelKind,
     progress: &mut dyn FnMut(&str),
     label: &str,
+    unc_of: &UncOf<'_>,
 ) -> Result<Joint, FitError> {
     let fit = levenberg_marquardt(
         problem,
@@ -248,7 +252,7 @@ fn fit_joint(
         LmOptions::default(),
         &mut |it, c| progress(&format!("{label}: iteration {it}, chi^2 {c:.6e}")),
     )?;
-    let unc = uncertainty(&fit, &problem.groups(), start);
+    let unc = unc_of(&fit)?;
     Ok(Joint { fit, unc })
 }
 
@@ -299,8 +303,12 @@ fn set_indentation_noise(
     Ok(())
 }
 
-/// The joint fit; then, while the obtained intervals or the plausible ranges say a
-/// parameter is not determined, holds it (with why) and refits.
+/// The joint fit; then, while the obtained intervals (with the F/T reading's error:
+/// `unc_of`) or the plausible ranges say a parameter is not determined, holds it (with
+/// why) and refits. The intervals judged are the ones reported: a parameter that only
+/// the F/T sensor's noise seems to determine (an in-plane rotation fitted to the
+/// few-count noise of `fx`, `fy` on a run without shear) is held, not reported.
+#[allow(clippy::too_many_arguments)]
 fn hold_and_refit(
     stack: &Stack,
     nominal: &ModelParams,
@@ -309,8 +317,9 @@ fn hold_and_refit(
     layers: &[String],
     kind: ModelKind,
     progress: &mut dyn FnMut(&str),
+    unc_of: &UncOf<'_>,
 ) -> Result<(Joint, Vec<ParamId>), FitError> {
-    let mut joint = fit_joint(stack, nominal, &free, kind, progress, "joint fit")?;
+    let mut joint = fit_joint(stack, nominal, &free, kind, progress, "joint fit", unc_of)?;
     for _ in 0..4 {
         let before = free.len();
         let hw = joint.unc.half_width.clone();
@@ -349,7 +358,15 @@ fn hold_and_refit(
         if free.len() == before {
             break;
         }
-        joint = fit_joint(stack, nominal, &free, kind, progress, "joint fit (refit)")?;
+        joint = fit_joint(
+            stack,
+            nominal,
+            &free,
+            kind,
+            progress,
+            "joint fit (refit)",
+            unc_of,
+        )?;
     }
     Ok((joint, free))
 }
@@ -450,16 +467,20 @@ pub fn fit_run(opts: &FitOptions, progress: &mut dyn FnMut(&str)) -> Result<FitO
     )?;
 
     // 4. Joint fit; hold what the data still do not determine, and refit.
-    let (joint, free) = hold_and_refit(&stack, &nominal, free, &mut held, &layers, kind, progress)?;
-    let mut joint = joint;
     let force_error = ForceError::of_run(&run).share(ind.as_ref().map(|r| r.noise_n()));
-    joint.unc = force_error.uncertainty(
-        &joint.fit,
-        &stack.groups(),
-        Some(&stack.marker_groups()),
-        &nominal,
-        Some(&disp),
-        ind.as_ref(),
+    let (groups, marker_groups) = (stack.groups(), stack.marker_groups());
+    let unc_of = |fit: &LmFit| {
+        force_error.uncertainty(
+            fit,
+            &groups,
+            Some(&marker_groups),
+            &nominal,
+            Some(&disp),
+            ind.as_ref(),
+        )
+    };
+    let (joint, free) = hold_and_refit(
+        &stack, &nominal, free, &mut held, &layers, kind, progress, &unc_of,
     )?;
     if let Some(route) = ind.as_ref() {
         if route.noise_n() > 0.0 {
