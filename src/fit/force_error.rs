@@ -29,14 +29,19 @@ use super::lm::{uncertainty_two_way, LmFit, Uncertainty};
 use super::{FitError, ModelParams};
 use crate::analysis::RunData;
 
-/// The F/T sensor's resolution as the journal shows it, from the readings whose
-/// samples were all equal (sample SD 0: every sample rounded to the same count, so the
-/// mean is one count exactly): the largest step that every such distinct non-zero
-/// reading is a multiple of, tried among the differences between neighbouring readings
-/// and their halves, thirds and quarters; `None` with fewer than 3 such readings or no
-/// common step (a sensor whose noise spans its counts averages them out).
-pub fn force_resolution_n(exact_readings: &[f64]) -> Option<f64> {
-    let mut v: Vec<f64> = exact_readings
+/// The F/T sensor's resolution as the journal shows it. A reading that is the mean of
+/// `n` samples on a lattice of step `r` is `Σk·r / n`, so `n × reading` lies on the
+/// lattice whatever the noise: `lattice_values` are those products (every reading,
+/// not only the ones whose samples all rounded alike: readings at round loads, 1, 2 and
+/// 3 N on a DynPick, are all multiples of 33 counts, and their largest common step is
+/// 1 N). The result is the largest step every distinct non-zero value is a multiple
+/// of, tried among the differences between neighbouring values and their halves,
+/// thirds and quarters; `None` with fewer than 3 distinct values, no common step (a
+/// sensor reporting floating-point values: Net F/T, Bota), or a step coarser than a
+/// twentieth of `largest_reading_n` (no sensor is used at a handful of counts; such a
+/// "step" is a common factor of the loads).
+pub fn force_resolution_n(lattice_values: &[f64], largest_reading_n: f64) -> Option<f64> {
+    let mut v: Vec<f64> = lattice_values
         .iter()
         .filter(|f| f.is_finite() && f.abs() > 1e-12)
         .map(|f| f.abs())
@@ -53,10 +58,13 @@ pub fn force_resolution_n(exact_readings: &[f64]) -> Option<f64> {
         .flat_map(|d| (1..=4).map(move |k| d / k as f64))
         .collect();
     steps.sort_by(|a, b| b.total_cmp(a));
-    steps.into_iter().find(|step| {
-        v.iter()
-            .all(|x| ((*x / step) - (*x / step).round()).abs() < 1e-3)
-    })
+    steps
+        .into_iter()
+        .find(|step| {
+            v.iter()
+                .all(|x| ((*x / step) - (*x / step).round()).abs() < 1e-3)
+        })
+        .filter(|step| *step <= largest_reading_n.abs() / 20.0)
 }
 
 /// The F/T error model of a run.
@@ -103,20 +111,15 @@ impl ForceError {
 
     /// From the run's journal.
     pub fn of_run(run: &RunData) -> ForceError {
-        let exact: Vec<f64> = run
-            .rows
-            .iter()
-            .flat_map(|r| {
-                [
-                    (r.fx_n, r.fx_sd_n),
-                    (r.fy_n, r.fy_sd_n),
-                    (r.fz_n, r.fz_sd_n),
-                ]
-                .into_iter()
-                .filter(|(_, sd)| *sd == 0.0)
-                .map(|(f, _)| f)
-            })
-            .collect();
+        let samples = run.plan.samples.max(1) as f64;
+        let readings = || {
+            run.rows
+                .iter()
+                .flat_map(|r| [r.fx_n, r.fy_n, r.fz_n])
+                .filter(|f| f.is_finite())
+        };
+        let lattice: Vec<f64> = readings().map(|f| f * samples).collect();
+        let largest = readings().fold(0.0f64, |m, f| m.max(f.abs()));
         let n = (run.plan.samples.max(1) as f64).sqrt();
         ForceError {
             random: run
@@ -143,7 +146,7 @@ impl ForceError {
                     )
                 })
                 .collect(),
-            resolution_n: force_resolution_n(&exact),
+            resolution_n: force_resolution_n(&lattice, largest),
             sample_sd_n: median_nonzero(
                 run.rows
                     .iter()
@@ -271,9 +274,28 @@ mod tests {
             .iter()
             .map(|c| *c as f64 * lsb)
             .collect();
-        let r = force_resolution_n(&f).unwrap();
+        let r = force_resolution_n(&f, 3.0).unwrap();
         assert!((r - lsb).abs() < 1e-9, "{r}");
         let noisy = [0.4987, 1.0031, 2.0113, 2.9977, 0.5021];
-        assert_eq!(force_resolution_n(&noisy), None);
+        assert_eq!(force_resolution_n(&noisy, 3.0), None);
+    }
+
+    /// Regression (a seed of the coverage study): the readings whose samples all
+    /// rounded alike were at 1, 2 and 3 N, 33, 66 and 99 counts, so the resolution
+    /// came out as 33 counts (1.006 N) and every interval ±20×. The means of 20
+    /// samples carry the lattice too (20 × mean is a whole number of counts).
+    #[test]
+    fn readings_at_round_loads_do_not_make_a_one_newton_resolution() {
+        let lsb = 1.0 / 32.8;
+        let exact_only: Vec<f64> = [33, 66, 99, 33, 66]
+            .iter()
+            .map(|c| *c as f64 * lsb)
+            .collect();
+        assert_eq!(force_resolution_n(&exact_only, 99.0 * lsb), None);
+        // Means of 20 samples (sums of counts / 20), times 20: the lattice again.
+        let sums = [331, 338, 661, 659, 987, 994, 164, 170, 20 * 33];
+        let lattice: Vec<f64> = sums.iter().map(|s| *s as f64 * lsb).collect();
+        let r = force_resolution_n(&lattice, 994.0 / 20.0 * lsb).unwrap();
+        assert!((r - lsb).abs() < 1e-9, "{r}");
     }
 }
