@@ -215,24 +215,225 @@ pub fn hertz_radius_mm(m: &HalfSpace, radius_mm: f64, force_n: f64) -> f64 {
     (3.0 * force_n * radius_mm / (4.0 * reduced_modulus(m))).cbrt()
 }
 
+/// `v` when it is a finite number ≥ 0 (`what`: its unit, for the message).
+fn nonneg(key: &'static str, v: f64, what: &str) -> Result<f64, ContactError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(v)
+    } else {
+        Err(ContactError::Invalid {
+            key,
+            value: v,
+            allowed: format!("must be a finite number >= 0 {what}"),
+        })
+    }
+}
+
+/// The normal part of a solved contact.
+struct NormalContact {
+    /// Total normal force P, N.
+    p: f64,
+    /// Contact radius a, mm (0 for a point load).
+    a: f64,
+    /// Indentation depth δ, mm (`None` for a point load).
+    delta: Option<f64>,
+    /// Pressure profile (`None` for a point load).
+    profile: Option<Profile>,
+}
+
+/// The normal contact of `indenter` under `normal` (the laws in the module docs).
+fn normal_contact(
+    model: &HalfSpace,
+    indenter: Indenter,
+    normal: Normal,
+) -> Result<NormalContact, ContactError> {
+    match (indenter, normal) {
+        (Indenter::Flat { diameter_mm }, n) => flat_contact(reduced_modulus(model), diameter_mm, n),
+        (Indenter::Hemisphere { radius_mm }, n) => hertz_contact(model, radius_mm, n),
+        (Indenter::Point, Normal::ForceN(f)) => Ok(NormalContact {
+            p: nonneg("normal force", f, "N")?,
+            a: 0.0,
+            delta: None,
+            profile: None,
+        }),
+        (Indenter::Point, Normal::DepthMm(_)) => Err(ContactError::PointDepth),
+    }
+}
+
+/// Flat punch of diameter `2a` on `E*` = `es`: `P = 2 a E* δ`.
+fn flat_contact(es: f64, diameter_mm: f64, n: Normal) -> Result<NormalContact, ContactError> {
+    let a = 0.5 * diameter_mm;
+    if !(a.is_finite() && a > 0.0) {
+        return Err(ContactError::Invalid {
+            key: "diameter_mm",
+            value: diameter_mm,
+            allowed: "must be > 0 mm".into(),
+        });
+    }
+    let (p, delta) = match n {
+        Normal::ForceN(f) => {
+            let f = nonneg("normal force", f, "N")?;
+            (f, f / (2.0 * a * es))
+        }
+        Normal::DepthMm(d) => {
+            let d = nonneg("depth_mm", d, "mm")?;
+            (2.0 * a * es * d, d)
+        }
+    };
+    Ok(NormalContact {
+        p,
+        a,
+        delta: Some(delta),
+        profile: Some(Profile::Flat),
+    })
+}
+
+/// Hertz contact of a hemisphere of radius `R`: from a load `a = (3PR/(4E*))^{1/3}`,
+/// `δ = a²/R`; from a depth `a = √(Rδ)`, `P = 4/3 E* √R δ^{3/2}`; refused when `a > R`.
+fn hertz_contact(
+    model: &HalfSpace,
+    radius_mm: f64,
+    n: Normal,
+) -> Result<NormalContact, ContactError> {
+    if !(radius_mm.is_finite() && radius_mm > 0.0) {
+        return Err(ContactError::Invalid {
+            key: "radius_mm",
+            value: radius_mm,
+            allowed: "must be > 0 mm".into(),
+        });
+    }
+    let (p, a, d) = match n {
+        Normal::ForceN(f) => {
+            let f = nonneg("normal force", f, "N")?;
+            let a = hertz_radius_mm(model, radius_mm, f);
+            (f, a, a * a / radius_mm)
+        }
+        Normal::DepthMm(d) => {
+            let d = nonneg("depth_mm", d, "mm")?;
+            (
+                hertz_force_n(model, radius_mm, d),
+                (radius_mm * d).sqrt(),
+                d,
+            )
+        }
+    };
+    if a > radius_mm {
+        return Err(ContactError::HertzOutOfRange {
+            radius_mm,
+            contact_radius_mm: a,
+        });
+    }
+    Ok(NormalContact {
+        p,
+        a,
+        delta: Some(d),
+        profile: Some(Profile::Hertz),
+    })
+}
+
+/// The tangential force requested, `[Qx, Qy]` N, before the friction limit: as given,
+/// or `|Q| = P tan θ` along the azimuth of an inclined load.
+fn requested_tangential(tangential: Tangential, p: f64) -> Result<[f64; 2], ContactError> {
+    match tangential {
+        Tangential::ForceN(q) => {
+            for (key, v) in [("tangential force x", q[0]), ("tangential force y", q[1])] {
+                if !v.is_finite() {
+                    return Err(ContactError::Invalid {
+                        key,
+                        value: v,
+                        allowed: "must be finite (N)".into(),
+                    });
+                }
+            }
+            Ok(q)
+        }
+        Tangential::Angle {
+            angle_deg,
+            direction_deg,
+        } => {
+            if !(angle_deg.is_finite() && (0.0..90.0).contains(&angle_deg)) {
+                return Err(ContactError::Invalid {
+                    key: "angle_deg",
+                    value: angle_deg,
+                    allowed: "must be in [0, 90) degrees from the normal".into(),
+                });
+            }
+            if !direction_deg.is_finite() {
+                return Err(ContactError::Invalid {
+                    key: "direction_deg",
+                    value: direction_deg,
+                    allowed: "must be finite (degrees)".into(),
+                });
+            }
+            let qm = p * angle_deg.to_radians().tan();
+            let d = direction_deg.to_radians();
+            Ok([qm * d.cos(), qm * d.sin()])
+        }
+    }
+}
+
+/// Coulomb's limit `|Q| ≤ μP`: a larger request is scaled down to `μP` in its
+/// direction; the requested `|Q|` is returned when it was.
+fn friction_limit(q_wanted: [f64; 2], mu: f64, p: f64) -> ([f64; 2], Option<f64>) {
+    let q_req = q_wanted[0].hypot(q_wanted[1]);
+    if q_req > mu * p {
+        let s = if q_req > 0.0 { mu * p / q_req } else { 0.0 };
+        ([q_wanted[0] * s, q_wanted[1] * s], Some(q_req))
+    } else {
+        (q_wanted, None)
+    }
+}
+
+/// The cell forces of the force `total` = `[Qx, Qy, P]` centred at `c` (see
+/// "Discretisation" in the module docs): one load at `c` for a point load or when
+/// there is nothing to spread, else each ring's exact share of the load over its
+/// sectors, at the sectors' centres of load.
+fn cell_loads(profile: Option<Profile>, a: f64, c: [f64; 2], total: [f64; 3]) -> Vec<PointLoad> {
+    let (p, q) = (total[2], [total[0], total[1]]);
+    let profile = match profile {
+        Some(profile) if !(a == 0.0 || p == 0.0 && q == [0.0, 0.0]) => profile,
+        _ => {
+            return vec![PointLoad {
+                position_mm: c,
+                force_n: total,
+            }]
+        }
+    };
+    let mut loads = Vec::new();
+    let n_rings = (a / CELL_MM).ceil().max(1.0) as usize;
+    for k in 0..n_rings {
+        let rho0 = a * k as f64 / n_rings as f64;
+        let rho1 = a * (k + 1) as f64 / n_rings as f64;
+        let phi0 = (rho0 / a).clamp(0.0, 1.0).asin();
+        let phi1 = (rho1 / a).clamp(0.0, 1.0).asin();
+        let frac = profile.cumulative(phi1) - profile.cumulative(phi0);
+        if frac <= 0.0 {
+            continue;
+        }
+        let rho_mean = a * profile.first_moment(phi0, phi1) / frac;
+        let circumference = 2.0 * std::f64::consts::PI * 0.5 * (rho0 + rho1);
+        let n_sec = (circumference / CELL_MM).ceil().max(3.0) as usize;
+        let dth = 2.0 * std::f64::consts::PI / n_sec as f64;
+        let r_c = rho_mean * (0.5 * dth).sin() / (0.5 * dth);
+        let share = frac / n_sec as f64;
+        for s in 0..n_sec {
+            let th = (s as f64 + 0.5) * dth;
+            loads.push(PointLoad {
+                position_mm: [c[0] + r_c * th.cos(), c[1] + r_c * th.sin()],
+                force_n: [total[0] * share, total[1] * share, total[2] * share],
+            });
+        }
+    }
+    loads
+}
+
 impl Contact {
-    /// Solves a load case for an indenter on the half-space `model`.
+    /// Solves a load case for an indenter on the half-space `model`: the normal
+    /// contact, the tangential force requested and clamped to `μP`, the cell forces.
     pub fn solve(
         model: &HalfSpace,
         indenter: Indenter,
         load: &LoadCase,
     ) -> Result<Contact, ContactError> {
-        let nonneg = |key, v: f64, what: &str| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(v)
-            } else {
-                Err(ContactError::Invalid {
-                    key,
-                    value: v,
-                    allowed: format!("must be a finite number >= 0 {what}"),
-                })
-            }
-        };
         for (key, v) in [
             ("position_mm[0]", load.position_mm[0]),
             ("position_mm[1]", load.position_mm[1]),
@@ -246,149 +447,15 @@ impl Contact {
             }
         }
         let mu = nonneg("friction_coefficient", load.friction, "")?;
-        let es = reduced_modulus(model);
-        let (p, a, delta, profile) = match (indenter, load.normal) {
-            (Indenter::Flat { diameter_mm }, n) => {
-                let a = 0.5 * diameter_mm;
-                if !(a.is_finite() && a > 0.0) {
-                    return Err(ContactError::Invalid {
-                        key: "diameter_mm",
-                        value: diameter_mm,
-                        allowed: "must be > 0 mm".into(),
-                    });
-                }
-                match n {
-                    Normal::ForceN(f) => {
-                        let f = nonneg("normal force", f, "N")?;
-                        (f, a, Some(f / (2.0 * a * es)), Some(Profile::Flat))
-                    }
-                    Normal::DepthMm(d) => {
-                        let d = nonneg("depth_mm", d, "mm")?;
-                        (2.0 * a * es * d, a, Some(d), Some(Profile::Flat))
-                    }
-                }
-            }
-            (Indenter::Hemisphere { radius_mm }, n) => {
-                if !(radius_mm.is_finite() && radius_mm > 0.0) {
-                    return Err(ContactError::Invalid {
-                        key: "radius_mm",
-                        value: radius_mm,
-                        allowed: "must be > 0 mm".into(),
-                    });
-                }
-                let (f, a, d) = match n {
-                    Normal::ForceN(f) => {
-                        let f = nonneg("normal force", f, "N")?;
-                        let a = hertz_radius_mm(model, radius_mm, f);
-                        (f, a, a * a / radius_mm)
-                    }
-                    Normal::DepthMm(d) => {
-                        let d = nonneg("depth_mm", d, "mm")?;
-                        (
-                            hertz_force_n(model, radius_mm, d),
-                            (radius_mm * d).sqrt(),
-                            d,
-                        )
-                    }
-                };
-                if a > radius_mm {
-                    return Err(ContactError::HertzOutOfRange {
-                        radius_mm,
-                        contact_radius_mm: a,
-                    });
-                }
-                (f, a, Some(d), Some(Profile::Hertz))
-            }
-            (Indenter::Point, Normal::ForceN(f)) => {
-                (nonneg("normal force", f, "N")?, 0.0, None, None)
-            }
-            (Indenter::Point, Normal::DepthMm(_)) => return Err(ContactError::PointDepth),
-        };
-
-        let q_wanted = match load.tangential {
-            Tangential::ForceN(q) => {
-                for (key, v) in [("tangential force x", q[0]), ("tangential force y", q[1])] {
-                    if !v.is_finite() {
-                        return Err(ContactError::Invalid {
-                            key,
-                            value: v,
-                            allowed: "must be finite (N)".into(),
-                        });
-                    }
-                }
-                q
-            }
-            Tangential::Angle {
-                angle_deg,
-                direction_deg,
-            } => {
-                if !(angle_deg.is_finite() && (0.0..90.0).contains(&angle_deg)) {
-                    return Err(ContactError::Invalid {
-                        key: "angle_deg",
-                        value: angle_deg,
-                        allowed: "must be in [0, 90) degrees from the normal".into(),
-                    });
-                }
-                if !direction_deg.is_finite() {
-                    return Err(ContactError::Invalid {
-                        key: "direction_deg",
-                        value: direction_deg,
-                        allowed: "must be finite (degrees)".into(),
-                    });
-                }
-                let qm = p * angle_deg.to_radians().tan();
-                let d = direction_deg.to_radians();
-                [qm * d.cos(), qm * d.sin()]
-            }
-        };
-        // Friction limit.
-        let q_req = q_wanted[0].hypot(q_wanted[1]);
-        let (q, clamped) = if q_req > mu * p {
-            let s = if q_req > 0.0 { mu * p / q_req } else { 0.0 };
-            ([q_wanted[0] * s, q_wanted[1] * s], Some(q_req))
-        } else {
-            (q_wanted, None)
-        };
-
-        let total = [q[0], q[1], p];
-        let c = load.position_mm;
-        let mut loads = Vec::new();
-        match profile {
-            None => loads.push(PointLoad {
-                position_mm: c,
-                force_n: total,
-            }),
-            Some(_) if a == 0.0 || p == 0.0 && q == [0.0, 0.0] => loads.push(PointLoad {
-                position_mm: c,
-                force_n: total,
-            }),
-            Some(profile) => {
-                let n_rings = (a / CELL_MM).ceil().max(1.0) as usize;
-                for k in 0..n_rings {
-                    let rho0 = a * k as f64 / n_rings as f64;
-                    let rho1 = a * (k + 1) as f64 / n_rings as f64;
-                    let phi0 = (rho0 / a).clamp(0.0, 1.0).asin();
-                    let phi1 = (rho1 / a).clamp(0.0, 1.0).asin();
-                    let frac = profile.cumulative(phi1) - profile.cumulative(phi0);
-                    if frac <= 0.0 {
-                        continue;
-                    }
-                    let rho_mean = a * profile.first_moment(phi0, phi1) / frac;
-                    let circumference = 2.0 * std::f64::consts::PI * 0.5 * (rho0 + rho1);
-                    let n_sec = (circumference / CELL_MM).ceil().max(3.0) as usize;
-                    let dth = 2.0 * std::f64::consts::PI / n_sec as f64;
-                    let r_c = rho_mean * (0.5 * dth).sin() / (0.5 * dth);
-                    let share = frac / n_sec as f64;
-                    for s in 0..n_sec {
-                        let th = (s as f64 + 0.5) * dth;
-                        loads.push(PointLoad {
-                            position_mm: [c[0] + r_c * th.cos(), c[1] + r_c * th.sin()],
-                            force_n: [total[0] * share, total[1] * share, total[2] * share],
-                        });
-                    }
-                }
-            }
-        }
+        let NormalContact {
+            p,
+            a,
+            delta,
+            profile,
+        } = normal_contact(model, indenter, load.normal)?;
+        let q_wanted = requested_tangential(load.tangential, p)?;
+        let (q, clamped) = friction_limit(q_wanted, mu, p);
+        let loads = cell_loads(profile, a, load.position_mm, [q[0], q[1], p]);
         Ok(Contact {
             loads,
             normal_force_n: p,

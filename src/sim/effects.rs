@@ -260,39 +260,16 @@ impl Effect {
         }
     }
 
+    /// Checks the effect's own parameters (`index`: its place in the list, for the
+    /// message); what depends on the other effects is [`Pipeline::new`]'s.
     fn check(&self, index: usize) -> Result<(), EffectError> {
-        let bad = |key: &'static str, value: String, allowed: &str| EffectError::Invalid {
+        let ck = Check {
             index,
             kind: self.kind(),
-            key,
-            value,
-            allowed: allowed.to_string(),
-        };
-        let nonneg = |key, v: f64, unit: &str| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(bad(
-                    key,
-                    v.to_string(),
-                    &format!("must be a finite number >= 0 {unit}"),
-                ))
-            }
-        };
-        let finite2 = |key, v: [f64; 2], unit: &str| {
-            if v[0].is_finite() && v[1].is_finite() {
-                Ok(())
-            } else {
-                Err(bad(
-                    key,
-                    format!("{v:?}"),
-                    &format!("must be two finite numbers ({unit})"),
-                ))
-            }
         };
         match self {
             Effect::PixelNoise { sigma_8bit, .. } => {
-                nonneg("sigma_8bit", *sigma_8bit, "(8-bit levels)")
+                ck.nonneg("sigma_8bit", *sigma_8bit, "(8-bit levels)")
             }
             Effect::ShotNoise {
                 full_scale_photons, ..
@@ -300,7 +277,7 @@ impl Effect {
                 if full_scale_photons.is_finite() && *full_scale_photons > 0.0 {
                     Ok(())
                 } else {
-                    Err(bad(
+                    Err(ck.bad(
                         "full_scale_photons",
                         full_scale_photons.to_string(),
                         "must be a finite number > 0 (photons at full scale)",
@@ -310,161 +287,48 @@ impl Effect {
             Effect::Quantize8 => Ok(()),
             Effect::Blur { sigma_px } => {
                 for &s in sigma_px {
-                    nonneg("sigma_px", s, "px")?;
+                    ck.nonneg("sigma_px", s, "px")?;
                 }
                 Ok(())
             }
-            Effect::Illumination { gradient } => {
-                finite2(
-                    "gradient",
-                    *gradient,
-                    "relative gain change across the image",
-                )?;
-                if gradient[0].abs() + gradient[1].abs() <= 2.0 {
-                    Ok(())
-                } else {
-                    Err(bad(
-                        "gradient",
-                        format!("{gradient:?}"),
-                        "needs |g_x| + |g_y| <= 2 (gain >= 0)",
-                    ))
-                }
-            }
+            Effect::Illumination { gradient } => check_illumination(&ck, *gradient),
             Effect::Vignetting {
                 strength,
                 center_px,
-            } => {
-                if !(strength.is_finite() && (0.0..=1.0).contains(strength)) {
-                    return Err(bad(
-                        "strength",
-                        strength.to_string(),
-                        "must be in [0, 1] (relative loss at the corner)",
-                    ));
-                }
-                match center_px {
-                    Some(c) => finite2("center_px", *c, "px"),
-                    None => Ok(()),
-                }
-            }
+            } => check_vignetting(&ck, *strength, *center_px),
             Effect::Glare {
                 center_px,
                 sigma_px,
                 amplitude,
-            } => {
-                finite2("center_px", *center_px, "px")?;
-                if !(sigma_px.is_finite() && *sigma_px > 0.0) {
-                    return Err(bad(
-                        "sigma_px",
-                        format!("{sigma_px} px"),
-                        "must be a finite number > 0 px (Gaussian σ of the spot)",
-                    ));
-                }
-                if !(amplitude.is_finite() && (0.0..=1.0).contains(amplitude)) {
-                    return Err(bad(
-                        "amplitude",
-                        amplitude.to_string(),
-                        "must be in [0, 1] (added level at the centre, 1 = full scale)",
-                    ));
-                }
-                Ok(())
-            }
+            } => check_glare(&ck, *center_px, *sigma_px, *amplitude),
             Effect::SizeJitter { sigma_mm, .. } | Effect::PlacementJitter { sigma_mm, .. } => {
-                nonneg("sigma_mm", *sigma_mm, "mm")
+                ck.nonneg("sigma_mm", *sigma_mm, "mm")
             }
-            Effect::Shift { shift_px } => finite2("shift_px", *shift_px, "px"),
+            Effect::Shift { shift_px } => ck.finite2("shift_px", *shift_px, "px"),
             Effect::Drift {
                 px_per_frame,
                 random_walk_px,
                 ..
             } => {
-                finite2("px_per_frame", *px_per_frame, "px per frame")?;
-                nonneg("random_walk_px", *random_walk_px, "px")
+                ck.finite2("px_per_frame", *px_per_frame, "px per frame")?;
+                ck.nonneg("random_walk_px", *random_walk_px, "px")
             }
             Effect::Occlusion {
                 rect_px,
                 level,
                 first_frame,
                 last_frame,
-            } => {
-                if !(rect_px.iter().all(|v| v.is_finite())
-                    && rect_px[0] < rect_px[2]
-                    && rect_px[1] < rect_px[3])
-                {
-                    return Err(bad(
-                        "rect_px",
-                        format!("{rect_px:?}"),
-                        "must be [x0, y0, x1, y1] px with x0 < x1 and y0 < y1",
-                    ));
-                }
-                if !(level.is_finite() && (0.0..=1.0).contains(level)) {
-                    return Err(bad(
-                        "level",
-                        level.to_string(),
-                        "must be a grey level in [0, 1]",
-                    ));
-                }
-                match last_frame {
-                    Some(l) if l < first_frame => Err(bad(
-                        "frames",
-                        format!("[{first_frame}, {l}]"),
-                        "must be [first, last] with first <= last (frame indices, 0 = reference)",
-                    )),
-                    _ => Ok(()),
-                }
-            }
+            } => check_occlusion(&ck, *rect_px, *level, *first_frame, *last_frame),
             Effect::Perspective {
                 distance_mm,
                 focal,
                 principal_point_px,
-            } => {
-                if !(distance_mm.is_finite() && *distance_mm > 0.0) {
-                    return Err(bad(
-                        "distance_mm",
-                        format!("{distance_mm} mm"),
-                        "must be a finite number > 0 mm (pinhole below the plate-elastomer interface)",
-                    ));
-                }
-                match focal {
-                    Focal::Px(f) if !(f.is_finite() && *f > 0.0) => {
-                        return Err(bad(
-                            "focal_px",
-                            format!("{f} px"),
-                            "must be a finite number > 0 px (focal length / pixel pitch)",
-                        ))
-                    }
-                    Focal::ReferenceDepthMm(d) if !(d.is_finite() && *d >= 0.0) => {
-                        return Err(bad(
-                            "reference_depth_mm",
-                            format!("{d} mm"),
-                            "must be a finite depth >= 0 mm",
-                        ))
-                    }
-                    _ => {}
-                }
-                match principal_point_px {
-                    Some(c) => finite2("principal_point_px", *c, "px"),
-                    None => Ok(()),
-                }
-            }
+            } => check_perspective(&ck, *distance_mm, *focal, *principal_point_px),
             Effect::Refraction {
                 plate_index,
                 plate_thickness_mm,
                 elastomer_index,
-            } => {
-                for (key, n) in [
-                    ("plate_index", plate_index),
-                    ("elastomer_index", elastomer_index),
-                ] {
-                    if !(n.is_finite() && *n >= 1.0 && *n <= 4.0) {
-                        return Err(bad(
-                            key,
-                            n.to_string(),
-                            "must be a refractive index in [1, 4] (acrylic 1.49, silicone 1.41)",
-                        ));
-                    }
-                }
-                nonneg("plate_thickness_mm", *plate_thickness_mm, "mm")
-            }
+            } => check_refraction(&ck, *plate_index, *plate_thickness_mm, *elastomer_index),
             Effect::LensDistortion {
                 k1,
                 k2,
@@ -473,25 +337,245 @@ impl Effect {
                 p2,
                 center_px,
                 norm_px,
-            } => {
-                for (key, v) in [("k1", k1), ("k2", k2), ("k3", k3), ("p1", p1), ("p2", p2)] {
-                    if !v.is_finite() {
-                        return Err(bad(key, v.to_string(), "must be finite"));
-                    }
-                }
-                if let Some(c) = center_px {
-                    finite2("center_px", *c, "px")?;
-                }
-                match norm_px {
-                    Some(n) if !(n.is_finite() && *n > 0.0) => Err(bad(
-                        "norm_px",
-                        format!("{n} px"),
-                        "must be a finite number > 0 px",
-                    )),
-                    _ => Ok(()),
-                }
-            }
+            } => check_lens_distortion(
+                &ck,
+                [
+                    ("k1", *k1),
+                    ("k2", *k2),
+                    ("k3", *k3),
+                    ("p1", *p1),
+                    ("p2", *p2),
+                ],
+                *center_px,
+                *norm_px,
+            ),
         }
+    }
+}
+
+/// Builds the `EffectError::Invalid` of one effect and checks the common ranges.
+struct Check {
+    /// Position in the effect list.
+    index: usize,
+    /// Effect kind.
+    kind: &'static str,
+}
+
+impl Check {
+    fn bad(&self, key: &'static str, value: String, allowed: &str) -> EffectError {
+        EffectError::Invalid {
+            index: self.index,
+            kind: self.kind,
+            key,
+            value,
+            allowed: allowed.to_string(),
+        }
+    }
+
+    fn nonneg(&self, key: &'static str, v: f64, unit: &str) -> Result<(), EffectError> {
+        if v.is_finite() && v >= 0.0 {
+            Ok(())
+        } else {
+            Err(self.bad(
+                key,
+                v.to_string(),
+                &format!("must be a finite number >= 0 {unit}"),
+            ))
+        }
+    }
+
+    fn finite2(&self, key: &'static str, v: [f64; 2], unit: &str) -> Result<(), EffectError> {
+        if v[0].is_finite() && v[1].is_finite() {
+            Ok(())
+        } else {
+            Err(self.bad(
+                key,
+                format!("{v:?}"),
+                &format!("must be two finite numbers ({unit})"),
+            ))
+        }
+    }
+}
+
+/// `illumination`: finite, and `|g_x| + |g_y| ≤ 2` so the gain stays ≥ 0 everywhere.
+fn check_illumination(ck: &Check, gradient: [f64; 2]) -> Result<(), EffectError> {
+    ck.finite2(
+        "gradient",
+        gradient,
+        "relative gain change across the image",
+    )?;
+    if gradient[0].abs() + gradient[1].abs() <= 2.0 {
+        Ok(())
+    } else {
+        Err(ck.bad(
+            "gradient",
+            format!("{gradient:?}"),
+            "needs |g_x| + |g_y| <= 2 (gain >= 0)",
+        ))
+    }
+}
+
+/// `vignetting`: a relative loss in `[0, 1]`, a finite centre.
+fn check_vignetting(
+    ck: &Check,
+    strength: f64,
+    center_px: Option<[f64; 2]>,
+) -> Result<(), EffectError> {
+    if !(strength.is_finite() && (0.0..=1.0).contains(&strength)) {
+        return Err(ck.bad(
+            "strength",
+            strength.to_string(),
+            "must be in [0, 1] (relative loss at the corner)",
+        ));
+    }
+    match center_px {
+        Some(c) => ck.finite2("center_px", c, "px"),
+        None => Ok(()),
+    }
+}
+
+/// `glare`: a finite centre, σ > 0 px, an added level in `[0, 1]`.
+fn check_glare(
+    ck: &Check,
+    center_px: [f64; 2],
+    sigma_px: f64,
+    amplitude: f64,
+) -> Result<(), EffectError> {
+    ck.finite2("center_px", center_px, "px")?;
+    if !(sigma_px.is_finite() && sigma_px > 0.0) {
+        return Err(ck.bad(
+            "sigma_px",
+            format!("{sigma_px} px"),
+            "must be a finite number > 0 px (Gaussian σ of the spot)",
+        ));
+    }
+    if !(amplitude.is_finite() && (0.0..=1.0).contains(&amplitude)) {
+        return Err(ck.bad(
+            "amplitude",
+            amplitude.to_string(),
+            "must be in [0, 1] (added level at the centre, 1 = full scale)",
+        ));
+    }
+    Ok(())
+}
+
+/// `occlusion`: a non-empty finite rectangle, a grey level in `[0, 1]`, and
+/// `first <= last` frames.
+fn check_occlusion(
+    ck: &Check,
+    rect_px: [f64; 4],
+    level: f64,
+    first_frame: u64,
+    last_frame: Option<u64>,
+) -> Result<(), EffectError> {
+    if !(rect_px.iter().all(|v| v.is_finite())
+        && rect_px[0] < rect_px[2]
+        && rect_px[1] < rect_px[3])
+    {
+        return Err(ck.bad(
+            "rect_px",
+            format!("{rect_px:?}"),
+            "must be [x0, y0, x1, y1] px with x0 < x1 and y0 < y1",
+        ));
+    }
+    if !(level.is_finite() && (0.0..=1.0).contains(&level)) {
+        return Err(ck.bad("level", level.to_string(), "must be a grey level in [0, 1]"));
+    }
+    match last_frame {
+        Some(l) if l < first_frame => Err(ck.bad(
+            "frames",
+            format!("[{first_frame}, {l}]"),
+            "must be [first, last] with first <= last (frame indices, 0 = reference)",
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// `perspective`: the pinhole's distance > 0 mm, a focal length > 0 px or a reference
+/// depth >= 0 mm, a finite principal point.
+fn check_perspective(
+    ck: &Check,
+    distance_mm: f64,
+    focal: Focal,
+    principal_point_px: Option<[f64; 2]>,
+) -> Result<(), EffectError> {
+    if !(distance_mm.is_finite() && distance_mm > 0.0) {
+        return Err(ck.bad(
+            "distance_mm",
+            format!("{distance_mm} mm"),
+            "must be a finite number > 0 mm (pinhole below the plate-elastomer interface)",
+        ));
+    }
+    match focal {
+        Focal::Px(f) if !(f.is_finite() && f > 0.0) => {
+            return Err(ck.bad(
+                "focal_px",
+                format!("{f} px"),
+                "must be a finite number > 0 px (focal length / pixel pitch)",
+            ))
+        }
+        Focal::ReferenceDepthMm(d) if !(d.is_finite() && d >= 0.0) => {
+            return Err(ck.bad(
+                "reference_depth_mm",
+                format!("{d} mm"),
+                "must be a finite depth >= 0 mm",
+            ))
+        }
+        _ => {}
+    }
+    match principal_point_px {
+        Some(c) => ck.finite2("principal_point_px", c, "px"),
+        None => Ok(()),
+    }
+}
+
+/// `refraction`: both indices in `[1, 4]`, a plate thickness >= 0 mm (that it is less
+/// than the perspective's distance is [`Pipeline::new`]'s check).
+fn check_refraction(
+    ck: &Check,
+    plate_index: f64,
+    plate_thickness_mm: f64,
+    elastomer_index: f64,
+) -> Result<(), EffectError> {
+    for (key, n) in [
+        ("plate_index", plate_index),
+        ("elastomer_index", elastomer_index),
+    ] {
+        if !(n.is_finite() && (1.0..=4.0).contains(&n)) {
+            return Err(ck.bad(
+                key,
+                n.to_string(),
+                "must be a refractive index in [1, 4] (acrylic 1.49, silicone 1.41)",
+            ));
+        }
+    }
+    ck.nonneg("plate_thickness_mm", plate_thickness_mm, "mm")
+}
+
+/// `lens_distortion`: finite coefficients `k1, k2, k3, p1, p2` (by name), a finite
+/// centre, a normalisation radius > 0 px (whether they may or must be given is
+/// [`Pipeline::new`]'s check).
+fn check_lens_distortion(
+    ck: &Check,
+    coefficients: [(&'static str, f64); 5],
+    center_px: Option<[f64; 2]>,
+    norm_px: Option<f64>,
+) -> Result<(), EffectError> {
+    for (key, v) in coefficients {
+        if !v.is_finite() {
+            return Err(ck.bad(key, v.to_string(), "must be finite"));
+        }
+    }
+    if let Some(c) = center_px {
+        ck.finite2("center_px", c, "px")?;
+    }
+    match norm_px {
+        Some(n) if !(n.is_finite() && n > 0.0) => Err(ck.bad(
+            "norm_px",
+            format!("{n} px"),
+            "must be a finite number > 0 px",
+        )),
+        _ => Ok(()),
     }
 }
 
