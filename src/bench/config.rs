@@ -992,4 +992,68 @@ press_direction = -1
             .to_string();
         assert!(e.contains("stage.travel_max_mm[1] = -300 mm"), "{e}");
     }
+
+    /// Every error `validate` reports, whole, for one bench a branch (and which error
+    /// wins where a file has two), so splitting `validate` keeps each text and order.
+    #[test]
+    fn every_validate_error_keeps_its_text_and_precedence() {
+        let zaber = HW.replace("\"grbl\"", "\"zaber\"");
+        let marlin = HW.replace("\"grbl\"", "\"marlin\"");
+        let sim = "[sim]\nscene = \"s.toml\"\n".to_string();
+        let cases: Vec<(String, &str)> = vec![
+            (HW.replace("[-100.0, -100.0]", "[-100.0, nan]"), "geometry.sensor_origin_in_stage_mm[1] = NaN mm is invalid: must be a finite number (mm)"),
+            (HW.replace("surface_z_mm = -30.0", "surface_z_mm = inf"), "geometry.surface_z_mm = inf mm is invalid: must be a finite number (mm)"),
+            (HW.replace("press_direction = -1", "press_direction = -1\nclearance_mm = 0.0"), "geometry.clearance_mm = 0 mm is invalid: must be a finite number > 0 mm"),
+            (format!("{HW}\n[safety]\nmax_force_n = [3.0, -1.0, 10.0]\n"), "safety.max_force_n[1] = -1 N is invalid: must be a finite number > 0 N"),
+            // [geometry] is checked before [sim] and the hardware sections.
+            (format!("{}\n[sim]\nscene = \"s.toml\"\n", HW.replace("press_direction = -1", "press_direction = 2")), "geometry.press_direction = 2 is invalid: must be 1 (increasing z presses) or -1 (decreasing z presses)"),
+            (format!("{HW}\n[sim]\nscene = \"s.toml\"\n"), "stage = (given) is invalid: a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]"),
+            (HW.replace("[stage]\nprotocol = \"grbl\"\nport = \"/dev/ttyUSB0\"\n", "") + &sim, "force_sensor = (given) is invalid: a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]"),
+            (format!("{sim}stage = \"cnc\"\n"), "sim.stage = \"cnc\" is invalid: unknown stage protocol: expected grbl, zaber or marlin"),
+            (format!("{sim}force_sensor = \"onrobot-hex\"\n"), "sim.force_sensor = \"onrobot-hex\" is invalid: the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)"),
+            (format!("{sim}force_sensor = \"ati\"\n"), "sim.force_sensor = \"ati\" is invalid: unknown force-sensor protocol: expected dynpick, ft300, bota, netft or onrobot-hex"),
+            (format!("{sim}friction = -0.5\n"), "sim.friction = -0.5 is invalid: must be a finite number >= 0 "),
+            // [safety] is checked before the missing sections.
+            ("[safety]\nmax_force_n = [0.0, 1.0, 1.0]\n".to_string(), "safety.max_force_n[0] = 0 N is invalid: must be a finite number > 0 N"),
+            (String::new(), "stage = (missing) is invalid: a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)"),
+            (HW.replace("[stage]\nprotocol = \"grbl\"\nport = \"/dev/ttyUSB0\"\n", ""), "stage = (missing) is invalid: a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)"),
+            (HW.replace("[force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"\n", ""), "force_sensor = (missing) is invalid: a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)"),
+            (HW.replace("[geometry]\nsensor_origin_in_stage_mm = [-100.0, -100.0]\nsurface_z_mm = -30.0\npress_direction = -1\n", ""), "geometry = (missing) is invalid: a hardware bench needs [geometry]: sensor_origin_in_stage_mm, surface_z_mm, press_direction"),
+            (zaber.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ndevices = [1, 100, 3]"), "stage.devices[1] = 100 is invalid: must be a Zaber device address in [1, 99]"),
+            (zaber.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmm_per_step = 0.0"), "stage.mm_per_step = 0 mm is invalid: must be a finite number > 0 mm"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ndevices = [1, 2, 3]"), "stage.devices = (given) is invalid: devices and mm_per_step apply to zaber stages only"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmm_per_step = 0.001"), "stage.devices = (given) is invalid: devices and mm_per_step apply to zaber stages only"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmax_feed_mm_min = [1.0, 1.0, 1.0]"), "stage.max_feed_mm_min = (given) is invalid: max_feed_mm_min applies to marlin stages only"),
+            (marlin.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmax_feed_mm_min = [1.0, 0.0, 1.0]"), "stage.max_feed_mm_min[1] = 0 mm/min is invalid: must be a finite number > 0 mm/min"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_max_mm = [0.0, 0.0, 0.0]"), "stage.travel_min_mm = (missing) is invalid: give both stage.travel_min_mm and stage.travel_max_mm, or neither"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [0.0, 0.0, 0.0]"), "stage.travel_max_mm = (missing) is invalid: give both stage.travel_min_mm and stage.travel_max_mm, or neither"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [0.0, 0.0, 0.0]\ntravel_max_mm = [1.0, 0.0, 1.0]"), "stage.travel_max_mm[1] = 0 mm is invalid: must exceed stage.travel_min_mm[1] = 0 mm"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [nan, 0.0, 0.0]\ntravel_max_mm = [1.0, 1.0, 1.0]"), "stage.travel_min_mm[0] = NaN mm is invalid: must be a finite number (mm)"),
+            // The travel box is checked before the port and the baud rate.
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"\"\nbaud = 7\ntravel_max_mm = [0.0, 0.0, 0.0]"), "stage.travel_min_mm = (missing) is invalid: give both stage.travel_min_mm and stage.travel_max_mm, or neither"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \" \"\nbaud = 7"), "stage.port = \"\" is invalid: must name a serial port, e.g. /dev/ttyUSB0"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nbaud = 7"), "stage.baud = 7 is invalid: must be a baud rate in [50, 4000000]"),
+            // The stage is checked before the force sensor, the force sensor before the camera.
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nbaud = 7").replace("protocol = \"dynpick\"", "protocol = \"x\"").replace("device = 0", "device = 1.5"), "stage.baud = 7 is invalid: must be a baud rate in [50, 4000000]"),
+            (HW.replace("protocol = \"dynpick\"", "protocol = \"x\"").replace("device = 0", "device = 1.5"), "force_sensor.protocol = \"x\" is invalid: unknown force-sensor protocol: expected dynpick, ft300, bota, netft or onrobot-hex"),
+            (HW.replace("device = 0", "device = 1.5"), "camera.device = 1.5 is invalid: expected a V4L2 index (0, 1, ...), \"dir:PATH\" or \"sim:PATH\""),
+            (HW.replace("device = 0", "device = \"dir:\""), "camera.device = \"dir:\" is invalid: `dir:` needs a directory path, e.g. dir:frames/"),
+        ];
+        for (text, expected) in &cases {
+            let e = parse(text).unwrap_err().to_string();
+            assert_eq!(
+                e,
+                format!("experiments/bench.toml: {expected}"),
+                "bench:\n{text}"
+            );
+        }
+        // What validate decides beside the errors: homing by default on the stages that
+        // lose their reference, never on a simulated bench unless asked.
+        let home = |t: &str| parse(t).unwrap().home;
+        assert!(!home(HW) && home(&zaber) && home(&marlin) && !home(&sim));
+        assert!(!home(&marlin.replace(
+            "press_direction = -1",
+            "press_direction = -1\nhome = false"
+        )));
+    }
 }
