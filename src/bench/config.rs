@@ -442,89 +442,25 @@ fn baud(c: &Checker<'_>, key: &str, v: Option<i64>, default: u32) -> Result<u32,
 }
 
 impl RawBench {
+    /// Checks the sections in the order their errors are reported — `[geometry]`,
+    /// `[safety]`, then the simulated bench or the three hardware devices — and builds
+    /// the bench.
     fn validate(self, path: &Path) -> Result<BenchConfig, ConfigError> {
         let c = Checker { path };
-        let geometry = match &self.geometry {
-            None => None,
-            Some(g) => {
-                for i in 0..2 {
-                    c.finite(
-                        &format!("geometry.sensor_origin_in_stage_mm[{i}]"),
-                        g.sensor_origin_in_stage_mm[i],
-                        "mm",
-                    )?;
-                }
-                c.finite("geometry.surface_z_mm", g.surface_z_mm, "mm")?;
-                if g.press_direction != 1 && g.press_direction != -1 {
-                    return Err(c.invalid(
-                        "geometry.press_direction",
-                        g.press_direction,
-                        "must be 1 (increasing z presses) or -1 (decreasing z presses)",
-                    ));
-                }
-                Some(BenchGeometry {
-                    sensor_origin_in_stage_mm: g.sensor_origin_in_stage_mm,
-                    surface_z_mm: g.surface_z_mm,
-                    press_direction: g.press_direction as f64,
-                    clearance_mm: c.positive("geometry.clearance_mm", g.clearance_mm, "mm")?,
-                })
-            }
-        };
+        let geometry = self.geometry.as_ref().map(|g| g.validate(&c)).transpose()?;
         let tare = self.geometry.as_ref().is_none_or(|g| g.tare);
-        let max_force_n = match &self.safety {
-            None => None,
-            Some(sf) => {
-                let mut v = [0.0; 3];
-                for (i, f) in sf.max_force_n.iter().enumerate() {
-                    v[i] = c.positive(&format!("safety.max_force_n[{i}]"), *f, "N")?;
-                }
-                Some(v)
-            }
-        };
+        let max_force_n = self.safety.as_ref().map(|sf| sf.validate(&c)).transpose()?;
         let home_given = self.geometry.as_ref().and_then(|g| g.home);
 
         if let Some(s) = self.sim {
-            for (key, present) in [
+            let hardware_given = [
                 ("stage", self.stage.is_some()),
                 ("force_sensor", self.force_sensor.is_some()),
                 ("camera", self.camera.is_some()),
-            ] {
-                if present {
-                    return Err(c.invalid(
-                        key,
-                        "(given)",
-                        "a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]",
-                    ));
-                }
-            }
-            let stage = match &s.stage {
-                None => StageKind::Grbl,
-                Some(v) => stage_kind(&c, "sim.stage", v)?,
-            };
-            let force_sensor = match &s.force_sensor {
-                None => FtKind::DynPick,
-                Some(v) => ft_kind(&c, "sim.force_sensor", v)?,
-            };
-            if force_sensor == FtKind::OnRobotHex {
-                return Err(c.invalid(
-                    "sim.force_sensor",
-                    "\"onrobot-hex\"",
-                    "the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)",
-                ));
-            }
-            let friction = match s.friction {
-                None => None,
-                Some(v) => Some(c.non_negative("sim.friction", v, "")?),
-            };
-            let dir = path.parent().unwrap_or(Path::new("."));
+            ];
             return Ok(BenchConfig {
                 path: path.to_path_buf(),
-                devices: BenchDevices::Sim(SimConfig {
-                    scene: dir.join(&s.scene),
-                    stage,
-                    force_sensor,
-                    friction,
-                }),
+                devices: BenchDevices::Sim(s.validate(&c, hardware_given)?),
                 geometry,
                 home: home_given.unwrap_or(false),
                 tare,
@@ -549,10 +485,145 @@ impl RawBench {
                 "a hardware bench needs [geometry]: sensor_origin_in_stage_mm, surface_z_mm, press_direction",
             )
         })?;
+        let stage = s.validate(&c)?;
+        let force_sensor = ft_config(&c, f)?;
+        let camera = cam.validate(&c)?;
+        // Zaber stages lose their reference at power-up, and so does a Marlin
+        // machine (which resets when the port opens): home by default.
+        let home_by_default = matches!(stage.protocol, StageKind::Zaber | StageKind::Marlin);
+        Ok(BenchConfig {
+            path: path.to_path_buf(),
+            devices: BenchDevices::Hardware {
+                stage,
+                force_sensor,
+                camera,
+            },
+            geometry: Some(geometry),
+            home: home_given.unwrap_or(home_by_default),
+            tare,
+            max_force_n,
+        })
+    }
+}
 
-        let protocol = stage_kind(&c, "stage.protocol", &s.protocol)?;
+impl RawGeometry {
+    /// `[geometry]`: finite coordinates, a press direction of ±1, a positive clearance.
+    fn validate(&self, c: &Checker<'_>) -> Result<BenchGeometry, ConfigError> {
+        for i in 0..2 {
+            c.finite(
+                &format!("geometry.sensor_origin_in_stage_mm[{i}]"),
+                self.sensor_origin_in_stage_mm[i],
+                "mm",
+            )?;
+        }
+        c.finite("geometry.surface_z_mm", self.surface_z_mm, "mm")?;
+        if self.press_direction != 1 && self.press_direction != -1 {
+            return Err(c.invalid(
+                "geometry.press_direction",
+                self.press_direction,
+                "must be 1 (increasing z presses) or -1 (decreasing z presses)",
+            ));
+        }
+        Ok(BenchGeometry {
+            sensor_origin_in_stage_mm: self.sensor_origin_in_stage_mm,
+            surface_z_mm: self.surface_z_mm,
+            press_direction: self.press_direction as f64,
+            clearance_mm: c.positive("geometry.clearance_mm", self.clearance_mm, "mm")?,
+        })
+    }
+}
+
+impl RawSafety {
+    /// `[safety] max_force_n`: three positive limits, N.
+    fn validate(&self, c: &Checker<'_>) -> Result<[f64; 3], ConfigError> {
+        let mut v = [0.0; 3];
+        for (i, f) in self.max_force_n.iter().enumerate() {
+            v[i] = c.positive(&format!("safety.max_force_n[{i}]"), *f, "N")?;
+        }
+        Ok(v)
+    }
+}
+
+impl RawSim {
+    /// `[sim]`: no hardware section beside it (`hardware_given`: each section's key and
+    /// whether the file has it), simulated protocols only, the scene resolved against
+    /// the bench file's folder.
+    fn validate(
+        self,
+        c: &Checker<'_>,
+        hardware_given: [(&str, bool); 3],
+    ) -> Result<SimConfig, ConfigError> {
+        for (key, present) in hardware_given {
+            if present {
+                return Err(c.invalid(
+                    key,
+                    "(given)",
+                    "a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]",
+                ));
+            }
+        }
+        let stage = match &self.stage {
+            None => StageKind::Grbl,
+            Some(v) => stage_kind(c, "sim.stage", v)?,
+        };
+        let force_sensor = match &self.force_sensor {
+            None => FtKind::DynPick,
+            Some(v) => ft_kind(c, "sim.force_sensor", v)?,
+        };
+        if force_sensor == FtKind::OnRobotHex {
+            return Err(c.invalid(
+                "sim.force_sensor",
+                "\"onrobot-hex\"",
+                "the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)",
+            ));
+        }
+        let friction = match self.friction {
+            None => None,
+            Some(v) => Some(c.non_negative("sim.friction", v, "")?),
+        };
+        let dir = c.path.parent().unwrap_or(Path::new("."));
+        Ok(SimConfig {
+            scene: dir.join(&self.scene),
+            stage,
+            force_sensor,
+            friction,
+        })
+    }
+}
+
+impl RawStage {
+    /// `[stage]`: the protocol, the keys that only one protocol takes, the travel box,
+    /// the port and the baud rate (checked in that order).
+    fn validate(self, c: &Checker<'_>) -> Result<StageConfig, ConfigError> {
+        let protocol = stage_kind(c, "stage.protocol", &self.protocol)?;
+        let (zaber_devices, zaber_mm_per_step) = self.zaber_keys(c, protocol)?;
+        let marlin_max_feed_mm_min = self.marlin_max_feed(c, protocol)?;
+        let travel = self.travel(c)?;
+        let default_baud = match protocol {
+            StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
+            StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
+            StageKind::Marlin => crate::device::marlin::DEFAULT_BAUD,
+        };
+        Ok(StageConfig {
+            protocol,
+            port: non_empty(c, "stage.port", self.port)?,
+            baud: baud(c, "stage.baud", self.baud, default_baud)?,
+            zaber_devices,
+            zaber_mm_per_step,
+            marlin_max_feed_mm_min,
+            travel,
+        })
+    }
+
+    /// Zaber's `devices` (addresses in [1, 99], default 1, 2, 3) and `mm_per_step`
+    /// (positive, default the driver's); refused on other protocols.
+    fn zaber_keys(
+        &self,
+        c: &Checker<'_>,
+        protocol: StageKind,
+    ) -> Result<([u8; 3], f64), ConfigError> {
         let mut zaber_devices = [1u8, 2, 3];
-        if let Some(d) = s.devices {
+        if let Some(d) = self.devices {
             for (i, v) in d.iter().enumerate() {
                 if !(1..=99).contains(v) {
                     return Err(c.invalid(
@@ -566,41 +637,48 @@ impl RawBench {
         }
         let zaber_mm_per_step = c.positive(
             "stage.mm_per_step",
-            s.mm_per_step
+            self.mm_per_step
                 .unwrap_or(crate::device::zaber::DEFAULT_MM_PER_STEP),
             "mm",
         )?;
-        if protocol != StageKind::Zaber && (s.devices.is_some() || s.mm_per_step.is_some()) {
+        if protocol != StageKind::Zaber && (self.devices.is_some() || self.mm_per_step.is_some()) {
             return Err(c.invalid(
                 "stage.devices",
                 "(given)",
                 "devices and mm_per_step apply to zaber stages only",
             ));
         }
-        let marlin_max_feed_mm_min = match s.max_feed_mm_min {
-            None => None,
-            Some(_) if protocol != StageKind::Marlin => {
-                return Err(c.invalid(
-                    "stage.max_feed_mm_min",
-                    "(given)",
-                    "max_feed_mm_min applies to marlin stages only",
-                ))
-            }
+        Ok((zaber_devices, zaber_mm_per_step))
+    }
+
+    /// Marlin's `max_feed_mm_min` (three positive feeds); refused on other protocols.
+    fn marlin_max_feed(
+        &self,
+        c: &Checker<'_>,
+        protocol: StageKind,
+    ) -> Result<Option<[f64; 3]>, ConfigError> {
+        match self.max_feed_mm_min {
+            None => Ok(None),
+            Some(_) if protocol != StageKind::Marlin => Err(c.invalid(
+                "stage.max_feed_mm_min",
+                "(given)",
+                "max_feed_mm_min applies to marlin stages only",
+            )),
             Some(v) => {
                 let mut out = [0.0; 3];
                 for i in 0..3 {
                     out[i] = c.positive(&format!("stage.max_feed_mm_min[{i}]"), v[i], "mm/min")?;
                 }
-                Some(out)
+                Ok(Some(out))
             }
-        };
-        let stage_default_baud = match protocol {
-            StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
-            StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
-            StageKind::Marlin => crate::device::marlin::DEFAULT_BAUD,
-        };
-        let travel = match (s.travel_min_mm, s.travel_max_mm) {
-            (None, None) => None,
+        }
+    }
+
+    /// The travel box: `travel_min_mm` and `travel_max_mm` both or neither, finite,
+    /// each axis's maximum above its minimum.
+    fn travel(&self, c: &Checker<'_>) -> Result<Option<TravelLimits>, ConfigError> {
+        match (self.travel_min_mm, self.travel_max_mm) {
+            (None, None) => Ok(None),
             (Some(lo), Some(hi)) => {
                 let mut axes_mm = [[0.0; 2]; 3];
                 for i in 0..3 {
@@ -615,32 +693,28 @@ impl RawBench {
                     }
                     axes_mm[i] = [lo, hi];
                 }
-                Some(TravelLimits { axes_mm })
+                Ok(Some(TravelLimits { axes_mm }))
             }
             (Some(_), None) | (None, Some(_)) => {
-                let key = if s.travel_min_mm.is_none() {
+                let key = if self.travel_min_mm.is_none() {
                     "stage.travel_min_mm"
                 } else {
                     "stage.travel_max_mm"
                 };
-                return Err(c.invalid(
+                Err(c.invalid(
                     key,
                     "(missing)",
                     "give both stage.travel_min_mm and stage.travel_max_mm, or neither",
-                ));
+                ))
             }
-        };
-        let stage = StageConfig {
-            protocol,
-            port: non_empty(&c, "stage.port", s.port)?,
-            baud: baud(&c, "stage.baud", s.baud, stage_default_baud)?,
-            zaber_devices,
-            zaber_mm_per_step,
-            marlin_max_feed_mm_min,
-            travel,
-        };
-        let force_sensor = ft_config(&c, f)?;
-        let spec_text = match &cam.device {
+        }
+    }
+}
+
+impl RawCamera {
+    /// `[camera] device`: a V4L2 index (number or string), `"dir:PATH"` or `"sim:PATH"`.
+    fn validate(&self, c: &Checker<'_>) -> Result<CameraSpec, ConfigError> {
+        let spec_text = match &self.device {
             toml::Value::String(s) => s.clone(),
             toml::Value::Integer(i) => i.to_string(),
             other => {
@@ -651,22 +725,8 @@ impl RawBench {
                 ))
             }
         };
-        let camera = CameraSpec::parse(&spec_text)
-            .map_err(|e| c.invalid("camera.device", format!("{spec_text:?}"), e.message))?;
-        Ok(BenchConfig {
-            path: path.to_path_buf(),
-            devices: BenchDevices::Hardware {
-                stage,
-                force_sensor,
-                camera,
-            },
-            geometry: Some(geometry),
-            // Zaber stages lose their reference at power-up, and so does a Marlin
-            // machine (which resets when the port opens): home by default.
-            home: home_given.unwrap_or(matches!(protocol, StageKind::Zaber | StageKind::Marlin)),
-            tare,
-            max_force_n,
-        })
+        CameraSpec::parse(&spec_text)
+            .map_err(|e| c.invalid("camera.device", format!("{spec_text:?}"), e.message))
     }
 }
 
