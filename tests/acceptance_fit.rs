@@ -8,12 +8,12 @@
 //! The fit.json files are written here as JSON (the contract of `fit::doc`), not
 //! through the library's types.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde_json::{json, Value};
 
 use super::report::{report, verdict_json, write_displacements, write_forces, write_run};
-use crate::util::{run, stderr, stdout};
+use crate::util::{run, stderr, stdout, write};
 
 const MAGNITUDE: &str =
     "[sweep]\nkind = \"magnitude\"\nfrom = 0.0\nto = 300.0\nstep = 100.0\ntrials = 3\n";
@@ -55,12 +55,6 @@ fn fit_json(e: f64, e_ci: [f64; 2], depth: f64, depth_ci: [f64; 2]) -> String {
         "ci_method": "jacobian"
     })
     .to_string()
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
 }
 
 const CRITERIA: &str = "[[criterion]]\nmetric = \"magnitude.r2\"\nmin = 0.9\n\

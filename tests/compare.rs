@@ -14,7 +14,7 @@ use base64::Engine;
 
 use tactbench::report::compare::{CSV_HEADER, Z95};
 
-use crate::util::{self, run, stderr, stdout};
+use crate::util::{self, run, stderr, stdout, write};
 
 /// The runs shared by every test here: `ideal`, `noisy` (complete, 8 setpoints each)
 /// and `partial` (the ideal scene, `--limit 4`).
@@ -112,12 +112,6 @@ fn row<'a>(rows: &'a [Row], metric: &str, run_dir: &str) -> &'a Row {
 fn num(s: &str) -> f64 {
     s.parse()
         .unwrap_or_else(|e| panic!("{s:?} is not a number: {e}"))
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
 }
 
 #[test]

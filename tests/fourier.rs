@@ -13,6 +13,8 @@ use tactbench::sensor::{grid_sensor, paper_sensor, Sensor};
 use tactbench::solve::fourier::FourierSolver;
 use tactbench::solve::{self, FrameSolver, Lambda, Method, Problem, SolveError, SolverConfig};
 
+use crate::util::interior;
+
 fn config(lambda: Lambda) -> SolverConfig {
     SolverConfig {
         method: Method::Fourier,
@@ -55,20 +57,6 @@ fn norm(v: &[f64]) -> f64 {
 fn rel_err(got: &[f64], want: &[f64]) -> f64 {
     let d: Vec<f64> = got.iter().zip(want).map(|(a, b)| a - b).collect();
     norm(&d) / norm(want)
-}
-
-/// Force components of the nodes at least `margin_mm` from every edge of the force grid.
-fn interior(sensor: &Sensor, f: &[f64], margin_mm: f64) -> Vec<f64> {
-    let g = sensor.force_grid;
-    let m = (margin_mm / g.pitch_mm).ceil() as usize;
-    let mut out = Vec::new();
-    for iy in m..g.ny.saturating_sub(m) {
-        for ix in m..g.nx.saturating_sub(m) {
-            let k = iy * g.nx + ix;
-            out.extend_from_slice(&f[3 * k..3 * k + 3]);
-        }
-    }
-    out
 }
 
 /// Dense Tikhonov reference `V diag(σ/(σ²+λ²)) Uᵀ u` from nalgebra's SVD of `H`; also

@@ -6,15 +6,11 @@
 
 use std::path::{Path, PathBuf};
 
-use image::{GrayImage, ImageBuffer, Luma};
+use image::{ImageBuffer, Luma};
 
-use crate::util;
+use crate::util::{self, arg as p};
 
 type Gray16Image = ImageBuffer<Luma<u16>, Vec<u16>>;
-
-fn p(path: &Path) -> &str {
-    util::arg(path)
-}
 
 /// Grey copies (`round((R + G + B) / 3)`, `bits` 8 or 16) of TacTip taps 1..=5 as
 /// `DIR/rec/tap_K.png`, and a draft sensor file from `sensor init` on tap 1 (bright
@@ -31,38 +27,30 @@ fn recording(dir: &Path, bits: u32) -> Option<(PathBuf, PathBuf)> {
         let img = image::open(real.join(format!("image_{k}.png")))
             .unwrap()
             .to_rgb8();
-        let g = |x, y| {
-            let q = img.get_pixel(x, y).0;
-            (q[0] as u32 + q[1] as u32 + q[2] as u32 + 1) / 3
-        };
+        let g = util::gray8_of(&img);
         let out = rec.join(format!("tap_{k}.png"));
         if bits == 8 {
-            GrayImage::from_fn(img.width(), img.height(), |x, y| Luma([g(x, y) as u8]))
-                .save(&out)
-                .unwrap();
+            g.save(&out).unwrap();
         } else {
-            Gray16Image::from_fn(img.width(), img.height(), |x, y| {
-                Luma([(g(x, y) * 257) as u16])
+            Gray16Image::from_fn(g.width(), g.height(), |x, y| {
+                Luma([g.get_pixel(x, y).0[0] as u16 * 257])
             })
             .save(&out)
             .unwrap();
         }
     }
     let sensor = dir.join("draft.toml");
-    let o = util::run(&[
+    let tap_1 = rec.join("tap_1.png");
+    let mut args = vec![
         "sensor",
         "init",
         "--reference",
-        p(&rec.join("tap_1.png")),
+        p(&tap_1),
         "--out",
         p(&sensor),
-        "--color",
-        "bright",
-        "--roi",
-        "circle:304,250,182",
-        "--mm-per-px",
-        "0.05",
-    ]);
+    ];
+    args.extend_from_slice(&util::TACTIP_INIT);
+    let o = util::run(&args);
     assert!(o.status.success(), "{}", util::stderr(&o));
     Some((rec, sensor))
 }

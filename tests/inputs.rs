@@ -9,13 +9,9 @@ use tactbench::sensor::{mark_measured, paper_sensor, Sensor};
 
 use crate::util;
 
-fn paper_text() -> String {
-    std::fs::read_to_string(util::root("experiments/paper_sensor.toml")).unwrap()
-}
-
 /// The paper sensor file with `edits` (text substitutions), written into `dir`.
 fn sensor_file(dir: &Path, name: &str, prefix: &str, edits: &[(&str, &str)]) -> PathBuf {
-    let mut text = paper_text();
+    let mut text = util::paper_sensor_text();
     for (from, to) in edits {
         assert!(text.contains(from), "{from}");
         text = text.replace(from, to);
@@ -179,7 +175,7 @@ fn dry_run(plan: &Path, extra: &[&str]) -> std::process::Output {
 #[test]
 fn case2_dry_run_shows_the_sensor_checks_and_refuses_the_metres_file() {
     let dir = tempfile::tempdir().unwrap();
-    let plan = plan_with_sensor(dir.path(), &paper_text());
+    let plan = plan_with_sensor(dir.path(), &util::paper_sensor_text());
     let o = dry_run(&plan, &[]);
     let out = util::stdout(&o);
     assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
@@ -192,7 +188,7 @@ fn case2_dry_run_shows_the_sensor_checks_and_refuses_the_metres_file() {
     ] {
         assert!(out.contains(want), "{want}: {out}");
     }
-    let mut metres = paper_text();
+    let mut metres = util::paper_sensor_text();
     for (from, to) in METRES {
         metres = metres.replace(from, to);
     }
@@ -232,7 +228,7 @@ fn case3_a_draft_is_refused_by_reconstruct_run_and_report_unless_allow_draft() {
         "before and after: {e}"
     );
     // run (its dry run too) refuses it, with the placeholders.
-    let plan = plan_with_sensor(dir.path(), &format!("{DRAFT}{}", paper_text()));
+    let plan = plan_with_sensor(dir.path(), &format!("{DRAFT}{}", util::paper_sensor_text()));
     refused(&dry_run(&plan, &[]), &["is a draft", "layers[0].depth_mm"]);
     let o = dry_run(&plan, &["--allow-draft"]);
     assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
@@ -258,7 +254,7 @@ fn case3_a_draft_is_refused_by_reconstruct_run_and_report_unless_allow_draft() {
 
 #[test]
 fn case3_draft_keys_are_checked_and_cleared_by_mark_measured() {
-    let text = format!("{DRAFT}{}", paper_text());
+    let text = format!("{DRAFT}{}", util::paper_sensor_text());
     let p = Path::new("d.toml");
     let s = Sensor::from_toml_str(&text, p).unwrap();
     assert_eq!(
@@ -348,7 +344,7 @@ fn case4_forces_past_the_elastomer_bound_are_flagged_not_written() {
 fn case8_sensor_init_refuses_to_overwrite_without_force() {
     let dir = tempfile::tempdir().unwrap();
     let existing = dir.path().join("my_sensor.toml");
-    std::fs::write(&existing, paper_text()).unwrap();
+    std::fs::write(&existing, util::paper_sensor_text()).unwrap();
     let frame = dir.path().join("ref.png");
     let img = tactbench::sim::render::render_sensor(&paper_sensor(), None).unwrap();
     tactbench::sim::render::to_rgb8(&img).save(&frame).unwrap();
@@ -369,7 +365,10 @@ fn case8_sensor_init_refuses_to_overwrite_without_force() {
         util::run(&a)
     };
     refused(&init(&[]), &["my_sensor.toml exists", "--force"]);
-    assert_eq!(std::fs::read_to_string(&existing).unwrap(), paper_text());
+    assert_eq!(
+        std::fs::read_to_string(&existing).unwrap(),
+        util::paper_sensor_text()
+    );
     let o = init(&["--force"]);
     assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
     let s = Sensor::from_path(&existing).unwrap();

@@ -9,6 +9,8 @@ use tactbench::model::{self, layer::scalar_kernels, ElasticModel, ForwardModel, 
 use tactbench::sensor::{grid_sensor, paper_sensor, ModelKind, Sensor};
 use tactbench::solve::{self, FrameSolver, Lambda, Method, Problem, Rank, SolverConfig};
 
+use crate::util::interior;
+
 /// Compares one line `h z nu k ll tt lz zl zz` of `tests/numpy_ref/layer_check.py`.
 fn check_reference_line(line: &str, tol: f64) {
     let v: Vec<f64> = line
@@ -335,20 +337,6 @@ fn sums(f: &[f64]) -> [f64; 3] {
         s[i % 3] += v;
     }
     s
-}
-
-/// Force components of the nodes at least `margin_mm` from every edge of the grid.
-fn interior(sensor: &Sensor, f: &[f64], margin_mm: f64) -> Vec<f64> {
-    let g = sensor.force_grid;
-    let m = (margin_mm / g.pitch_mm).ceil() as usize;
-    let mut out = Vec::new();
-    for iy in m..g.ny.saturating_sub(m) {
-        for ix in m..g.nx.saturating_sub(m) {
-            let k = iy * g.nx + ix;
-            out.extend_from_slice(&f[3 * k..3 * k + 3]);
-        }
-    }
-    out
 }
 
 /// Dense Tikhonov `V diag(σ/(σ²+λ²)) Uᵀ` at λ = `rel`·σ₁ on the sensor's own model

@@ -15,7 +15,7 @@ use crate::util;
 /// The paper sensor file with the elastomer and depths changed (text substitution on
 /// experiments/paper_sensor.toml), written into `dir`.
 fn sensor_file(dir: &Path, name: &str, edits: &[(&str, &str)]) -> PathBuf {
-    let mut text = std::fs::read_to_string(util::root("experiments/paper_sensor.toml")).unwrap();
+    let mut text = util::paper_sensor_text();
     for (from, to) in edits {
         assert!(text.contains(from), "{from}");
         text = text.replace(from, to);

@@ -11,14 +11,14 @@ use std::time::{Duration, Instant};
 
 use tactbench::bench::config::BenchConfig;
 use tactbench::bench::connect::{self, SimOptions};
-use tactbench::bench::journal::{self, JournalRow, Manifest, RowQuality, RunStatus};
+use tactbench::bench::journal::{JournalRow, Manifest, RowQuality, RunStatus};
 use tactbench::bench::plan::Plan;
 use tactbench::bench::runner::{self, Devices, RunEvent, RunOptions, RunSummary, WriteFault};
 use tactbench::device::fault::{FaultConfig, FaultKind, FaultTarget};
 use tactbench::sensor::Sensor;
 use tactbench::sim::scene::Scene;
 
-use crate::util;
+use crate::util::{self, rows, write};
 
 /// Each plan in `experiments/` and the scene its simulated run uses.
 const PLANS: [(&str, &str); 8] = [
@@ -55,10 +55,6 @@ const PLANS: [(&str, &str); 8] = [
         "experiments/scenes/fig7_hemisphere_ramp.toml",
     ),
 ];
-
-fn rows(dir: &Path) -> Vec<JournalRow> {
-    journal::read_rows(dir).unwrap()
-}
 
 /// Checks the run-directory contract for every journal row.
 fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
@@ -105,10 +101,6 @@ fn check_run_dir(dir: &Path, plan: &Plan) -> Vec<JournalRow> {
     rows
 }
 
-fn run_cli(args: &[&str]) -> std::process::Output {
-    util::run(args)
-}
-
 #[test]
 fn every_plan_in_experiments_runs_end_to_end_on_the_simulated_bench() {
     // Every plan file in experiments/ must be listed above (so it is exercised here).
@@ -131,7 +123,7 @@ fn every_plan_in_experiments_runs_end_to_end_on_the_simulated_bench() {
         // Short variants: the first few setpoints (fig7: 0, 50, 100 gf).
         let limit = 3.min(plan.setpoints().len());
         let out = tmp.path().join(Path::new(plan_path).file_stem().unwrap());
-        let o = run_cli(&[
+        let o = util::run(&[
             "run",
             plan_path,
             "--sim",
@@ -388,20 +380,13 @@ fn run_in_process_with(
     (summary, events, stage, fz)
 }
 
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
 #[test]
 fn an_overly_stiff_contact_trips_the_force_limit_and_the_stage_stops() {
     let tmp = tempfile::tempdir().unwrap();
     // 20x the paper's elastomer stiffness (the top of the sensor file's plausible
     // range): the first force-control step (planned with the runner's 4 N/mm initial
     // stiffness, up to 0.5 mm) would reach tens of newtons, past the 9.8 N limit.
-    let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
-        .unwrap()
+    let sensor = util::paper_sensor_text()
         .replace("young_modulus_kpa = 1000.0", "young_modulus_kpa = 20000.0");
     write(tmp.path(), "stiff_sensor.toml", &sensor);
     let scene = write(
@@ -545,7 +530,7 @@ fn malformed_plans_and_bench_files_are_rejected_with_clear_errors() {
         "bad.toml",
         &plan.replace("step = 50.0", "step = 0.0"),
     );
-    let o = run_cli(&["run", bad.to_str().unwrap(), "--dry-run"]);
+    let o = util::run(&["run", bad.to_str().unwrap(), "--dry-run"]);
     assert_eq!(o.status.code(), Some(2));
     let e = util::stderr(&o);
     assert!(
@@ -558,7 +543,7 @@ fn malformed_plans_and_bench_files_are_rejected_with_clear_errors() {
         "far.toml",
         &plan.replace("position_mm = [9.0, 6.75]", "position_mm = [30.0, 6.75]"),
     );
-    let e = util::stderr(&run_cli(&["run", far.to_str().unwrap(), "--dry-run"]));
+    let e = util::stderr(&util::run(&["run", far.to_str().unwrap(), "--dry-run"]));
     assert!(e.contains("x = 30 mm") && e.contains("travel box"), "{e}");
 
     let bench = write(
@@ -566,7 +551,7 @@ fn malformed_plans_and_bench_files_are_rejected_with_clear_errors() {
         "bench.toml",
         "[stage]\nprotocol = \"smoothie\"\nport = \"/dev/ttyUSB0\"\n[force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"\n[camera]\ndevice = 0\n[geometry]\nsensor_origin_in_stage_mm = [0.0, 0.0]\nsurface_z_mm = 10.0\npress_direction = 1\n",
     );
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         "experiments/fig7_magnitude.toml",
         "--bench",
@@ -580,12 +565,12 @@ fn malformed_plans_and_bench_files_are_rejected_with_clear_errors() {
         "{e}"
     );
 
-    let o = run_cli(&["run", "experiments/fig7_magnitude.toml", "--out", "/tmp/x"]);
+    let o = util::run(&["run", "experiments/fig7_magnitude.toml", "--out", "/tmp/x"]);
     assert!(util::stderr(&o).contains("--bench"), "{}", util::stderr(&o));
 
     // A bench that cannot be opened: a clear error, and no run directory left behind.
     let out = tmp.path().join("never");
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         "experiments/fig7_magnitude.toml",
         "--sim",
@@ -607,7 +592,7 @@ fn dry_run_prints_setpoints_duration_and_checks_and_opens_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     // The example bench names /dev/ttyUSB0..1 and camera 0: none exists here, so any
     // attempt to open them would fail the command.
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         "experiments/fig7_magnitude.toml",
         "--bench",
@@ -626,7 +611,7 @@ fn dry_run_prints_setpoints_duration_and_checks_and_opens_nothing() {
         "[ok] largest target |fz| 750.0000 gf within safety.max_force[2] = 1000.0000 gf"
     ));
     let out = tmp.path().join("never");
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         "experiments/fig8_angle.toml",
         "--sim",
@@ -740,7 +725,7 @@ fn ctrl_c_stops_retracts_and_marks_the_run_interrupted() {
             pass.to_str().unwrap(),
         ];
         args.extend_from_slice(extra);
-        run_cli(&args)
+        util::run(&args)
     };
     let o = report(&[]);
     assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
@@ -841,7 +826,7 @@ fn a_second_writer_is_refused_while_a_run_is_live_and_the_journal_stays_intact()
     );
     assert!(e.contains("in use by another tactbench process"), "{e}");
     // A new run into the live directory: refused too.
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         "experiments/fig7_magnitude.toml",
         "--sim",
@@ -852,7 +837,7 @@ fn a_second_writer_is_refused_while_a_run_is_live_and_the_journal_stays_intact()
     ]);
     assert_eq!(o.status.code(), Some(2), "{}", util::stderr(&o));
     // `report` only reads, and says the run is still in progress.
-    let o = run_cli(&["report", out.to_str().unwrap()]);
+    let o = util::run(&["report", out.to_str().unwrap()]);
     let live = child.try_wait().unwrap().is_none();
     if live {
         assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
@@ -882,10 +867,10 @@ fn a_second_writer_is_refused_while_a_run_is_live_and_the_journal_stays_intact()
     assert_eq!((m.planned(), m.measured_setpoints), (160, n));
     let why = m.incomplete_reason.unwrap();
     assert!(why.contains("--limit 8"), "{why}");
-    let o = run_cli(&["report", out.to_str().unwrap()]);
+    let o = util::run(&["report", out.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(5), "{}", util::stderr(&o));
     assert!(util::stdout(&o).contains("limited by --limit 8"));
-    let o = run_cli(&["report", out.to_str().unwrap(), "--allow-partial"]);
+    let o = util::run(&["report", out.to_str().unwrap(), "--allow-partial"]);
     assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
 }
 
@@ -908,7 +893,7 @@ fn a_bench_file_with_a_zaber_stage_and_an_ft300_runs_the_same_plan() {
         ),
     );
     let out = tmp.path().join("run");
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         "experiments/fig7_magnitude.toml",
         "--bench",
@@ -974,16 +959,14 @@ fn a_scale_mismatched_sensor_file_stops_the_run_before_any_setpoint() {
     // rendered at 0.05 found 104 markers, the run went on, recorded F_sum z -1470 gf
     // for a 49.7 gf load and exited 0.
     let tmp = tempfile::tempdir().unwrap();
-    let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
-        .unwrap()
-        .replace("mm_per_px = 0.05", "mm_per_px = 0.045");
+    let sensor = util::paper_sensor_text().replace("mm_per_px = 0.05", "mm_per_px = 0.045");
     let sensor_path = write(tmp.path(), "sensor_0045.toml", &sensor);
     let plan = short_fig7_plan(tmp.path(), sensor_path.to_str().unwrap(), "");
     let scene = util::root("experiments/scenes/fig7_hemisphere_ramp.toml");
 
     // The binary: aborted (exit 3) with the diagnosis and the measured numbers.
     let out = tmp.path().join("cli");
-    let o = run_cli(&[
+    let o = util::run(&[
         "run",
         plan.path.to_str().unwrap(),
         "--sim",
@@ -1073,7 +1056,7 @@ fn a_blank_or_saturated_camera_reference_is_refused_before_the_run_moves() {
             ),
         );
         let out = tmp.path().join(name);
-        let o = run_cli(&[
+        let o = util::run(&[
             "run",
             plan.path.to_str().unwrap(),
             "--sim",
@@ -1168,7 +1151,7 @@ fn occluded_frames_are_reacquired_then_flagged_and_acceptance_sees_it() {
         "criteria.toml",
         "[[criterion]]\nmetric = \"tracking.min_ok_fraction\"\nmin = 0.9\n\n[[criterion]]\nmetric = \"tracking.flagged_rows\"\nmax = 0\n\n[[criterion]]\nmetric = \"tracking.reacquired_rows\"\nmax = 2\n",
     );
-    let o = run_cli(&[
+    let o = util::run(&[
         "report",
         out.to_str().unwrap(),
         "--acceptance",
@@ -1554,7 +1537,7 @@ fn a_fully_occluded_setpoint_is_a_failed_row_and_the_run_still_reports() {
         "criteria.toml",
         "[[criterion]]\nmetric = \"run.rows\"\nmin = 1\n",
     );
-    let o = run_cli(&[
+    let o = util::run(&[
         "report",
         out.to_str().unwrap(),
         "--acceptance",
@@ -1587,7 +1570,7 @@ fn a_fully_occluded_setpoint_is_a_failed_row_and_the_run_still_reports() {
     assert_eq!(metric("run.rows"), 3.0);
     // archive: as readable.
     let arch = tmp.path().join("arch");
-    let o = run_cli(&[
+    let o = util::run(&[
         "archive",
         out.to_str().unwrap(),
         "--out",
@@ -1648,7 +1631,7 @@ fn a_dead_camera_stops_the_run_incomplete_naming_the_blank_frame() {
     );
     let m = Manifest::read(&out).unwrap();
     assert!(m.end_reason.unwrap().contains("the camera is dead"));
-    let o = run_cli(&["report", out.to_str().unwrap()]);
+    let o = util::run(&["report", out.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(5), "INCOMPLETE: {}", util::stdout(&o));
 }
 
@@ -1660,9 +1643,8 @@ fn a_dead_camera_stops_the_run_incomplete_naming_the_blank_frame() {
 #[test]
 fn implausible_force_sums_are_flagged_and_persistent_ones_stop_the_run() {
     let tmp = tempfile::tempdir().unwrap();
-    let sensor = std::fs::read_to_string(util::root("experiments/paper_sensor.toml"))
-        .unwrap()
-        .replace("young_modulus_kpa = 1000.0", "young_modulus_kpa = 40.0");
+    let sensor =
+        util::paper_sensor_text().replace("young_modulus_kpa = 1000.0", "young_modulus_kpa = 40.0");
     let sensor_path = write(tmp.path(), "sensor_unfitted.toml", &sensor);
     let plan = short_fig7_plan(
         tmp.path(),
@@ -1696,7 +1678,7 @@ fn implausible_force_sums_are_flagged_and_persistent_ones_stop_the_run() {
         );
     }
     assert_eq!(fz, 0.0, "retracted");
-    let o = run_cli(&["report", out.to_str().unwrap(), "--allow-partial"]);
+    let o = util::run(&["report", out.to_str().unwrap(), "--allow-partial"]);
     assert_eq!(o.status.code(), Some(0), "{}", util::stderr(&o));
     assert!(util::stderr(&o).contains("2 row(s) journalled quality = implausible"));
 }
@@ -1727,7 +1709,7 @@ fn after_kill_9_the_sessions_say_what_the_killed_session_measured() {
         "what the killed session left"
     );
     let rep = tmp.path().join("rep");
-    let o = run_cli(&[
+    let o = util::run(&[
         "report",
         out.to_str().unwrap(),
         "--out",
@@ -1756,7 +1738,7 @@ fn after_kill_9_the_sessions_say_what_the_killed_session_measured() {
     assert_eq!(m.sessions[1].setpoints_before, before);
     assert_eq!(m.sessions[1].setpoints_after, before + 1);
     // The closing digest covers the whole journal: nothing to say.
-    let o = run_cli(&[
+    let o = util::run(&[
         "report",
         out.to_str().unwrap(),
         "--out",

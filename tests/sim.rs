@@ -707,7 +707,7 @@ fn angled_scene_force_grid_truth_sums_to_the_applied_force() {
 }
 
 fn run_cli(scene: &Path, out: &Path) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
+    crate::util::command()
         .args(["sim", "render", "--scene"])
         .arg(scene)
         .arg("--out")

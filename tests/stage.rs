@@ -590,12 +590,9 @@ fn zaber_fault_disconnect_is_reported_as_disconnected() {
 
 mod cli {
     use std::path::Path;
-    use std::process::Command;
     use std::time::Duration;
 
-    use crate::util::{stderr, stdout, ServedStage};
-
-    const BIN: &str = env!("CARGO_BIN_EXE_tactbench");
+    use crate::util::{command, stderr, stdout, ServedStage};
 
     #[test]
     fn cli_grbl_status_home_move_jog_and_exact_position_json() {
@@ -736,14 +733,14 @@ mod cli {
 
     #[test]
     fn cli_missing_port_and_bad_options_are_clear_errors() {
-        let o = Command::new(BIN)
+        let o = command()
             .args(["stage", "--protocol", "grbl", "status"])
             .output()
             .unwrap();
         assert_eq!(o.status.code(), Some(2));
         assert!(stderr(&o).contains("missing --port"), "{}", stderr(&o));
         let missing = Path::new("/nonexistent/tty");
-        let o = Command::new(BIN)
+        let o = command()
             .args(["stage", "--protocol", "zaber", "--port"])
             .arg(missing)
             .args(["--zaber-mm-per-step", "0,1", "position"])
@@ -754,7 +751,7 @@ mod cli {
             "{}",
             stderr(&o)
         );
-        let o = Command::new(BIN)
+        let o = command()
             .args(["stage", "--port"])
             .arg(missing)
             .args(["--protocol", "grbl", "status"])
@@ -769,7 +766,7 @@ mod cli {
 
     #[test]
     fn cli_ports_lists_or_says_none() {
-        let o = Command::new(BIN).arg("ports").output().unwrap();
+        let o = command().arg("ports").output().unwrap();
         assert!(o.status.success());
         let out = stdout(&o);
         assert!(

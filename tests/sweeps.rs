@@ -8,14 +8,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use tactbench::bench::journal::{self, Direction, JournalRow, Manifest, RunStatus};
+use tactbench::bench::journal::{Direction, JournalRow, Manifest, RunStatus};
 use tactbench::bench::plan::Plan;
 
-use crate::util;
-
-fn rows(dir: &Path) -> Vec<JournalRow> {
-    journal::read_rows(dir).unwrap()
-}
+use crate::util::{self, rows};
 
 /// Runs `tactbench run PLAN --sim SCENE --out OUT` and asserts it completed.
 fn run_sim(plan: &Path, scene: &Path, out: &Path) -> Vec<JournalRow> {
@@ -40,9 +36,7 @@ fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
         dir.join("paper_sensor.toml"),
     )
     .unwrap();
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
+    util::write(dir, name, text)
 }
 
 /// An example plan with `edit` applied, written into `dir`.

@@ -1,6 +1,8 @@
 //! Helpers shared by the integration tests: running the `tactbench` binary and its
-//! served simulators, the simulated Fig. 7 run, run-directory files, F/T wrenches and
-//! faults, a small seeded random generator.
+//! served simulators, the simulated Fig. 7 run, writing input files and reading
+//! run-directory files, the paper sensor and the TacTip draft options, grey copies of
+//! frames, interior force nodes, F/T wrenches and faults, a small seeded random
+//! generator.
 
 #![allow(dead_code)]
 
@@ -9,8 +11,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use image::{GrayImage, Luma, RgbImage};
+use tactbench::bench::journal::{self, JournalRow};
 use tactbench::device::ft_common::{no_faults, FaultConfig, FaultKind};
 use tactbench::device::Wrench;
+use tactbench::sensor::Sensor;
 
 /// Path of the built `tactbench` binary.
 pub fn bin() -> PathBuf {
@@ -49,6 +54,58 @@ pub fn stdout(o: &Output) -> String {
 /// A path inside the crate root.
 pub fn root(rel: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+}
+
+/// Writes `text` as `dir/name` and returns the path.
+pub fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+/// The rows of `dir/journal.csv` (the panic names the file and the line).
+pub fn rows(dir: &Path) -> Vec<JournalRow> {
+    journal::read_rows(dir).unwrap()
+}
+
+/// The text of the paper's sensor file, `experiments/paper_sensor.toml`.
+pub fn paper_sensor_text() -> String {
+    std::fs::read_to_string(root("experiments/paper_sensor.toml")).unwrap()
+}
+
+/// The `sensor init` options that draft a sensor file from the real TacTip frames
+/// (bright pins, the ROI circle, the image scale).
+pub const TACTIP_INIT: [&str; 6] = [
+    "--color",
+    "bright",
+    "--roi",
+    "circle:304,250,182",
+    "--mm-per-px",
+    "0.05",
+];
+
+/// `round((R + G + B) / 3)` per pixel: the grey level whose widened pixel `(g, g, g)`
+/// the brightness score reads as `3g`, nearest to the RGB pixel's `R + G + B`.
+pub fn gray8_of(img: &RgbImage) -> GrayImage {
+    GrayImage::from_fn(img.width(), img.height(), |x, y| {
+        let p = img.get_pixel(x, y).0;
+        Luma([((p[0] as u32 + p[1] as u32 + p[2] as u32 + 1) / 3) as u8])
+    })
+}
+
+/// Force components (`f`: fx, fy, fz per node) of the nodes at least `margin_mm`
+/// from every edge of the sensor's force grid.
+pub fn interior(sensor: &Sensor, f: &[f64], margin_mm: f64) -> Vec<f64> {
+    let g = sensor.force_grid;
+    let m = (margin_mm / g.pitch_mm).ceil() as usize;
+    let mut out = Vec::new();
+    for iy in m..g.ny.saturating_sub(m) {
+        for ix in m..g.nx.saturating_sub(m) {
+            let k = iy * g.nx + ix;
+            out.extend_from_slice(&f[3 * k..3 * k + 3]);
+        }
+    }
+    out
 }
 
 /// `../shared/real_frames` beside the clone (the real camera frames, never copied

@@ -864,7 +864,7 @@ fn track_command_writes_displacement_csv_readable_by_reconstruct() {
         .save(&jpeg)
         .unwrap();
     let out = dir.path().join("d.csv");
-    let run = std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
+    let run = crate::util::command()
         .arg("track")
         .arg("--sensor")
         .arg(&sensor_path)
@@ -922,7 +922,7 @@ fn track_command_rejects_a_grayscale_frame_naming_it_and_the_coloured_layer() {
         .unwrap();
     let gray = dir.path().join("gray-frame.png");
     image::GrayImage::new(430, 340).save(&gray).unwrap();
-    let run = std::process::Command::new(env!("CARGO_BIN_EXE_tactbench"))
+    let run = crate::util::command()
         .args(["track", "--sensor"])
         .arg(&sensor_path)
         .arg("--reference")

@@ -21,7 +21,7 @@ use tactbench::vision::{
     Tracker, VisionError,
 };
 
-use crate::util;
+use crate::util::{self, arg as p, gray8_of};
 
 type Gray16Image = ImageBuffer<Luma<u16>, Vec<u16>>;
 
@@ -65,15 +65,6 @@ fn rendered(color: &str, shift_px: [f64; 2]) -> [image::Rgb32FImage; 2] {
     sim.render_load(&scene.frame_load(1), 1, &mut frame)
         .unwrap();
     [reference, frame]
-}
-
-/// `round((R + G + B) / 3)` per pixel: the grey level whose widened pixel `(g, g, g)`
-/// the brightness score reads as `3g`, nearest to the RGB pixel's `R + G + B`.
-fn gray8_of(img: &RgbImage) -> GrayImage {
-    GrayImage::from_fn(img.width(), img.height(), |x, y| {
-        let p = img.get_pixel(x, y).0;
-        Luma([((p[0] as u32 + p[1] as u32 + p[2] as u32 + 1) / 3) as u8])
-    })
 }
 
 fn gray16_of(img: &Rgb16Image) -> Gray16Image {
@@ -280,10 +271,6 @@ fn load_frame_reads_gray8_gray16_and_gray_alpha_pngs() {
 }
 
 // ---- the commands ---------------------------------------------------------------------
-
-fn p(path: &Path) -> &str {
-    path.to_str().unwrap()
-}
 
 /// Writes the `color` sensor file and the rendered reference and shifted frame as
 /// greyscale PNGs of `bits` bits and as their widened RGB copies; returns (sensor,
@@ -547,14 +534,7 @@ fn tactip_gray_copies_init_and_track_like_the_rgb_frames() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let (rgb1, rgb2) = (real.join("image_1.png"), real.join("image_2.png"));
-    let args = [
-        "--color",
-        "bright",
-        "--roi",
-        "circle:304,250,182",
-        "--mm-per-px",
-        "0.05",
-    ];
+    let args = util::TACTIP_INIT;
     let init = |frame: &Path, out: &Path| {
         let mut all = vec!["sensor", "init", "--reference", p(frame), "--out", p(out)];
         all.extend_from_slice(&args);
@@ -777,7 +757,7 @@ fn run_with_a_dir_camera_of_gray_frames_tracks_bright_layers_and_refuses_coloure
             assert_eq!(l.split(',').nth(ok), Some("130"), "{bits}-bit: {l}");
         }
         // The paper sensor: blue and red layers.
-        let paper = std::fs::read_to_string(util::root("experiments/paper_sensor.toml")).unwrap();
+        let paper = util::paper_sensor_text();
         let out = d.join(format!("paper{bits}"));
         let summary =
             run_with_dir_camera(&out, &tactbench::sensor::paper_sensor(), &paper, &frames);

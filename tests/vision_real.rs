@@ -19,7 +19,7 @@ use tactbench::sensor::{MarkerColor, Roi, Sensor};
 use tactbench::vision::onboard::{sensor_draft, DraftError, DraftOptions, Scale};
 use tactbench::vision::{detect, DetectConfig, Frame, Reference};
 
-use crate::util;
+use crate::util::{self, arg as p};
 
 /// `../shared/real_frames`, or `None` (with a message) when it is absent.
 fn real_frames() -> Option<PathBuf> {
@@ -413,14 +413,7 @@ fn sensor_init_drafts_load_unedited_and_track_the_next_frame() {
         (
             "tactip/image_1.png",
             "tactip/image_2.png",
-            &[
-                "--color",
-                "bright",
-                "--roi",
-                "circle:304,250,182",
-                "--mm-per-px",
-                "0.05",
-            ],
+            &util::TACTIP_INIT,
             "bright",
             true,
             None,
@@ -491,10 +484,6 @@ fn grid_case(dir: &Path, color: &str, roi: &str, drawn: &str) -> (PathBuf, PathB
     let img = tactbench::sim::render::render_sensor(&drawn, None).unwrap();
     tactbench::sim::render::to_rgb8(&img).save(&frame).unwrap();
     (sensor, frame)
-}
-
-fn p(path: &Path) -> &str {
-    path.to_str().unwrap()
 }
 
 /// `tactbench track` with `sensor` from `reference` to `reference` (per window).

@@ -442,89 +442,25 @@ fn baud(c: &Checker<'_>, key: &str, v: Option<i64>, default: u32) -> Result<u32,
 }
 
 impl RawBench {
+    /// Checks the sections in the order their errors are reported — `[geometry]`,
+    /// `[safety]`, then the simulated bench or the three hardware devices — and builds
+    /// the bench.
     fn validate(self, path: &Path) -> Result<BenchConfig, ConfigError> {
         let c = Checker { path };
-        let geometry = match &self.geometry {
-            None => None,
-            Some(g) => {
-                for i in 0..2 {
-                    c.finite(
-                        &format!("geometry.sensor_origin_in_stage_mm[{i}]"),
-                        g.sensor_origin_in_stage_mm[i],
-                        "mm",
-                    )?;
-                }
-                c.finite("geometry.surface_z_mm", g.surface_z_mm, "mm")?;
-                if g.press_direction != 1 && g.press_direction != -1 {
-                    return Err(c.invalid(
-                        "geometry.press_direction",
-                        g.press_direction,
-                        "must be 1 (increasing z presses) or -1 (decreasing z presses)",
-                    ));
-                }
-                Some(BenchGeometry {
-                    sensor_origin_in_stage_mm: g.sensor_origin_in_stage_mm,
-                    surface_z_mm: g.surface_z_mm,
-                    press_direction: g.press_direction as f64,
-                    clearance_mm: c.positive("geometry.clearance_mm", g.clearance_mm, "mm")?,
-                })
-            }
-        };
+        let geometry = self.geometry.as_ref().map(|g| g.validate(&c)).transpose()?;
         let tare = self.geometry.as_ref().is_none_or(|g| g.tare);
-        let max_force_n = match &self.safety {
-            None => None,
-            Some(sf) => {
-                let mut v = [0.0; 3];
-                for (i, f) in sf.max_force_n.iter().enumerate() {
-                    v[i] = c.positive(&format!("safety.max_force_n[{i}]"), *f, "N")?;
-                }
-                Some(v)
-            }
-        };
+        let max_force_n = self.safety.as_ref().map(|sf| sf.validate(&c)).transpose()?;
         let home_given = self.geometry.as_ref().and_then(|g| g.home);
 
         if let Some(s) = self.sim {
-            for (key, present) in [
+            let hardware_given = [
                 ("stage", self.stage.is_some()),
                 ("force_sensor", self.force_sensor.is_some()),
                 ("camera", self.camera.is_some()),
-            ] {
-                if present {
-                    return Err(c.invalid(
-                        key,
-                        "(given)",
-                        "a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]",
-                    ));
-                }
-            }
-            let stage = match &s.stage {
-                None => StageKind::Grbl,
-                Some(v) => stage_kind(&c, "sim.stage", v)?,
-            };
-            let force_sensor = match &s.force_sensor {
-                None => FtKind::DynPick,
-                Some(v) => ft_kind(&c, "sim.force_sensor", v)?,
-            };
-            if force_sensor == FtKind::OnRobotHex {
-                return Err(c.invalid(
-                    "sim.force_sensor",
-                    "\"onrobot-hex\"",
-                    "the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)",
-                ));
-            }
-            let friction = match s.friction {
-                None => None,
-                Some(v) => Some(c.non_negative("sim.friction", v, "")?),
-            };
-            let dir = path.parent().unwrap_or(Path::new("."));
+            ];
             return Ok(BenchConfig {
                 path: path.to_path_buf(),
-                devices: BenchDevices::Sim(SimConfig {
-                    scene: dir.join(&s.scene),
-                    stage,
-                    force_sensor,
-                    friction,
-                }),
+                devices: BenchDevices::Sim(s.validate(&c, hardware_given)?),
                 geometry,
                 home: home_given.unwrap_or(false),
                 tare,
@@ -549,10 +485,145 @@ impl RawBench {
                 "a hardware bench needs [geometry]: sensor_origin_in_stage_mm, surface_z_mm, press_direction",
             )
         })?;
+        let stage = s.validate(&c)?;
+        let force_sensor = ft_config(&c, f)?;
+        let camera = cam.validate(&c)?;
+        // Zaber stages lose their reference at power-up, and so does a Marlin
+        // machine (which resets when the port opens): home by default.
+        let home_by_default = matches!(stage.protocol, StageKind::Zaber | StageKind::Marlin);
+        Ok(BenchConfig {
+            path: path.to_path_buf(),
+            devices: BenchDevices::Hardware {
+                stage,
+                force_sensor,
+                camera,
+            },
+            geometry: Some(geometry),
+            home: home_given.unwrap_or(home_by_default),
+            tare,
+            max_force_n,
+        })
+    }
+}
 
-        let protocol = stage_kind(&c, "stage.protocol", &s.protocol)?;
+impl RawGeometry {
+    /// `[geometry]`: finite coordinates, a press direction of ±1, a positive clearance.
+    fn validate(&self, c: &Checker<'_>) -> Result<BenchGeometry, ConfigError> {
+        for i in 0..2 {
+            c.finite(
+                &format!("geometry.sensor_origin_in_stage_mm[{i}]"),
+                self.sensor_origin_in_stage_mm[i],
+                "mm",
+            )?;
+        }
+        c.finite("geometry.surface_z_mm", self.surface_z_mm, "mm")?;
+        if self.press_direction != 1 && self.press_direction != -1 {
+            return Err(c.invalid(
+                "geometry.press_direction",
+                self.press_direction,
+                "must be 1 (increasing z presses) or -1 (decreasing z presses)",
+            ));
+        }
+        Ok(BenchGeometry {
+            sensor_origin_in_stage_mm: self.sensor_origin_in_stage_mm,
+            surface_z_mm: self.surface_z_mm,
+            press_direction: self.press_direction as f64,
+            clearance_mm: c.positive("geometry.clearance_mm", self.clearance_mm, "mm")?,
+        })
+    }
+}
+
+impl RawSafety {
+    /// `[safety] max_force_n`: three positive limits, N.
+    fn validate(&self, c: &Checker<'_>) -> Result<[f64; 3], ConfigError> {
+        let mut v = [0.0; 3];
+        for (i, f) in self.max_force_n.iter().enumerate() {
+            v[i] = c.positive(&format!("safety.max_force_n[{i}]"), *f, "N")?;
+        }
+        Ok(v)
+    }
+}
+
+impl RawSim {
+    /// `[sim]`: no hardware section beside it (`hardware_given`: each section's key and
+    /// whether the file has it), simulated protocols only, the scene resolved against
+    /// the bench file's folder.
+    fn validate(
+        self,
+        c: &Checker<'_>,
+        hardware_given: [(&str, bool); 3],
+    ) -> Result<SimConfig, ConfigError> {
+        for (key, present) in hardware_given {
+            if present {
+                return Err(c.invalid(
+                    key,
+                    "(given)",
+                    "a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]",
+                ));
+            }
+        }
+        let stage = match &self.stage {
+            None => StageKind::Grbl,
+            Some(v) => stage_kind(c, "sim.stage", v)?,
+        };
+        let force_sensor = match &self.force_sensor {
+            None => FtKind::DynPick,
+            Some(v) => ft_kind(c, "sim.force_sensor", v)?,
+        };
+        if force_sensor == FtKind::OnRobotHex {
+            return Err(c.invalid(
+                "sim.force_sensor",
+                "\"onrobot-hex\"",
+                "the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)",
+            ));
+        }
+        let friction = match self.friction {
+            None => None,
+            Some(v) => Some(c.non_negative("sim.friction", v, "")?),
+        };
+        let dir = c.path.parent().unwrap_or(Path::new("."));
+        Ok(SimConfig {
+            scene: dir.join(&self.scene),
+            stage,
+            force_sensor,
+            friction,
+        })
+    }
+}
+
+impl RawStage {
+    /// `[stage]`: the protocol, the keys that only one protocol takes, the travel box,
+    /// the port and the baud rate (checked in that order).
+    fn validate(self, c: &Checker<'_>) -> Result<StageConfig, ConfigError> {
+        let protocol = stage_kind(c, "stage.protocol", &self.protocol)?;
+        let (zaber_devices, zaber_mm_per_step) = self.zaber_keys(c, protocol)?;
+        let marlin_max_feed_mm_min = self.marlin_max_feed(c, protocol)?;
+        let travel = self.travel(c)?;
+        let default_baud = match protocol {
+            StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
+            StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
+            StageKind::Marlin => crate::device::marlin::DEFAULT_BAUD,
+        };
+        Ok(StageConfig {
+            protocol,
+            port: non_empty(c, "stage.port", self.port)?,
+            baud: baud(c, "stage.baud", self.baud, default_baud)?,
+            zaber_devices,
+            zaber_mm_per_step,
+            marlin_max_feed_mm_min,
+            travel,
+        })
+    }
+
+    /// Zaber's `devices` (addresses in [1, 99], default 1, 2, 3) and `mm_per_step`
+    /// (positive, default the driver's); refused on other protocols.
+    fn zaber_keys(
+        &self,
+        c: &Checker<'_>,
+        protocol: StageKind,
+    ) -> Result<([u8; 3], f64), ConfigError> {
         let mut zaber_devices = [1u8, 2, 3];
-        if let Some(d) = s.devices {
+        if let Some(d) = self.devices {
             for (i, v) in d.iter().enumerate() {
                 if !(1..=99).contains(v) {
                     return Err(c.invalid(
@@ -566,41 +637,48 @@ impl RawBench {
         }
         let zaber_mm_per_step = c.positive(
             "stage.mm_per_step",
-            s.mm_per_step
+            self.mm_per_step
                 .unwrap_or(crate::device::zaber::DEFAULT_MM_PER_STEP),
             "mm",
         )?;
-        if protocol != StageKind::Zaber && (s.devices.is_some() || s.mm_per_step.is_some()) {
+        if protocol != StageKind::Zaber && (self.devices.is_some() || self.mm_per_step.is_some()) {
             return Err(c.invalid(
                 "stage.devices",
                 "(given)",
                 "devices and mm_per_step apply to zaber stages only",
             ));
         }
-        let marlin_max_feed_mm_min = match s.max_feed_mm_min {
-            None => None,
-            Some(_) if protocol != StageKind::Marlin => {
-                return Err(c.invalid(
-                    "stage.max_feed_mm_min",
-                    "(given)",
-                    "max_feed_mm_min applies to marlin stages only",
-                ))
-            }
+        Ok((zaber_devices, zaber_mm_per_step))
+    }
+
+    /// Marlin's `max_feed_mm_min` (three positive feeds); refused on other protocols.
+    fn marlin_max_feed(
+        &self,
+        c: &Checker<'_>,
+        protocol: StageKind,
+    ) -> Result<Option<[f64; 3]>, ConfigError> {
+        match self.max_feed_mm_min {
+            None => Ok(None),
+            Some(_) if protocol != StageKind::Marlin => Err(c.invalid(
+                "stage.max_feed_mm_min",
+                "(given)",
+                "max_feed_mm_min applies to marlin stages only",
+            )),
             Some(v) => {
                 let mut out = [0.0; 3];
                 for i in 0..3 {
                     out[i] = c.positive(&format!("stage.max_feed_mm_min[{i}]"), v[i], "mm/min")?;
                 }
-                Some(out)
+                Ok(Some(out))
             }
-        };
-        let stage_default_baud = match protocol {
-            StageKind::Grbl => crate::device::grbl::DEFAULT_BAUD,
-            StageKind::Zaber => crate::device::zaber::DEFAULT_BAUD,
-            StageKind::Marlin => crate::device::marlin::DEFAULT_BAUD,
-        };
-        let travel = match (s.travel_min_mm, s.travel_max_mm) {
-            (None, None) => None,
+        }
+    }
+
+    /// The travel box: `travel_min_mm` and `travel_max_mm` both or neither, finite,
+    /// each axis's maximum above its minimum.
+    fn travel(&self, c: &Checker<'_>) -> Result<Option<TravelLimits>, ConfigError> {
+        match (self.travel_min_mm, self.travel_max_mm) {
+            (None, None) => Ok(None),
             (Some(lo), Some(hi)) => {
                 let mut axes_mm = [[0.0; 2]; 3];
                 for i in 0..3 {
@@ -615,32 +693,28 @@ impl RawBench {
                     }
                     axes_mm[i] = [lo, hi];
                 }
-                Some(TravelLimits { axes_mm })
+                Ok(Some(TravelLimits { axes_mm }))
             }
             (Some(_), None) | (None, Some(_)) => {
-                let key = if s.travel_min_mm.is_none() {
+                let key = if self.travel_min_mm.is_none() {
                     "stage.travel_min_mm"
                 } else {
                     "stage.travel_max_mm"
                 };
-                return Err(c.invalid(
+                Err(c.invalid(
                     key,
                     "(missing)",
                     "give both stage.travel_min_mm and stage.travel_max_mm, or neither",
-                ));
+                ))
             }
-        };
-        let stage = StageConfig {
-            protocol,
-            port: non_empty(&c, "stage.port", s.port)?,
-            baud: baud(&c, "stage.baud", s.baud, stage_default_baud)?,
-            zaber_devices,
-            zaber_mm_per_step,
-            marlin_max_feed_mm_min,
-            travel,
-        };
-        let force_sensor = ft_config(&c, f)?;
-        let spec_text = match &cam.device {
+        }
+    }
+}
+
+impl RawCamera {
+    /// `[camera] device`: a V4L2 index (number or string), `"dir:PATH"` or `"sim:PATH"`.
+    fn validate(&self, c: &Checker<'_>) -> Result<CameraSpec, ConfigError> {
+        let spec_text = match &self.device {
             toml::Value::String(s) => s.clone(),
             toml::Value::Integer(i) => i.to_string(),
             other => {
@@ -651,22 +725,8 @@ impl RawBench {
                 ))
             }
         };
-        let camera = CameraSpec::parse(&spec_text)
-            .map_err(|e| c.invalid("camera.device", format!("{spec_text:?}"), e.message))?;
-        Ok(BenchConfig {
-            path: path.to_path_buf(),
-            devices: BenchDevices::Hardware {
-                stage,
-                force_sensor,
-                camera,
-            },
-            geometry: Some(geometry),
-            // Zaber stages lose their reference at power-up, and so does a Marlin
-            // machine (which resets when the port opens): home by default.
-            home: home_given.unwrap_or(matches!(protocol, StageKind::Zaber | StageKind::Marlin)),
-            tare,
-            max_force_n,
-        })
+        CameraSpec::parse(&spec_text)
+            .map_err(|e| c.invalid("camera.device", format!("{spec_text:?}"), e.message))
     }
 }
 
@@ -991,5 +1051,69 @@ press_direction = -1
             .unwrap_err()
             .to_string();
         assert!(e.contains("stage.travel_max_mm[1] = -300 mm"), "{e}");
+    }
+
+    /// Every error `validate` reports, whole, for one bench a branch (and which error
+    /// wins where a file has two), so splitting `validate` keeps each text and order.
+    #[test]
+    fn every_validate_error_keeps_its_text_and_precedence() {
+        let zaber = HW.replace("\"grbl\"", "\"zaber\"");
+        let marlin = HW.replace("\"grbl\"", "\"marlin\"");
+        let sim = "[sim]\nscene = \"s.toml\"\n".to_string();
+        let cases: Vec<(String, &str)> = vec![
+            (HW.replace("[-100.0, -100.0]", "[-100.0, nan]"), "geometry.sensor_origin_in_stage_mm[1] = NaN mm is invalid: must be a finite number (mm)"),
+            (HW.replace("surface_z_mm = -30.0", "surface_z_mm = inf"), "geometry.surface_z_mm = inf mm is invalid: must be a finite number (mm)"),
+            (HW.replace("press_direction = -1", "press_direction = -1\nclearance_mm = 0.0"), "geometry.clearance_mm = 0 mm is invalid: must be a finite number > 0 mm"),
+            (format!("{HW}\n[safety]\nmax_force_n = [3.0, -1.0, 10.0]\n"), "safety.max_force_n[1] = -1 N is invalid: must be a finite number > 0 N"),
+            // [geometry] is checked before [sim] and the hardware sections.
+            (format!("{}\n[sim]\nscene = \"s.toml\"\n", HW.replace("press_direction = -1", "press_direction = 2")), "geometry.press_direction = 2 is invalid: must be 1 (increasing z presses) or -1 (decreasing z presses)"),
+            (format!("{HW}\n[sim]\nscene = \"s.toml\"\n"), "stage = (given) is invalid: a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]"),
+            (HW.replace("[stage]\nprotocol = \"grbl\"\nport = \"/dev/ttyUSB0\"\n", "") + &sim, "force_sensor = (given) is invalid: a [sim] bench simulates its devices: remove [stage], [force_sensor] and [camera], or remove [sim]"),
+            (format!("{sim}stage = \"cnc\"\n"), "sim.stage = \"cnc\" is invalid: unknown stage protocol: expected grbl, zaber or marlin"),
+            (format!("{sim}force_sensor = \"onrobot-hex\"\n"), "sim.force_sensor = \"onrobot-hex\" is invalid: the simulated bench serves dynpick, ft300, netft or bota (the HEX shares the netft simulator: use netft)"),
+            (format!("{sim}force_sensor = \"ati\"\n"), "sim.force_sensor = \"ati\" is invalid: unknown force-sensor protocol: expected dynpick, ft300, bota, netft or onrobot-hex"),
+            (format!("{sim}friction = -0.5\n"), "sim.friction = -0.5 is invalid: must be a finite number >= 0 "),
+            // [safety] is checked before the missing sections.
+            ("[safety]\nmax_force_n = [0.0, 1.0, 1.0]\n".to_string(), "safety.max_force_n[0] = 0 N is invalid: must be a finite number > 0 N"),
+            (String::new(), "stage = (missing) is invalid: a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)"),
+            (HW.replace("[stage]\nprotocol = \"grbl\"\nport = \"/dev/ttyUSB0\"\n", ""), "stage = (missing) is invalid: a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)"),
+            (HW.replace("[force_sensor]\nprotocol = \"dynpick\"\nport = \"/dev/ttyUSB1\"\n", ""), "force_sensor = (missing) is invalid: a bench needs [stage], [force_sensor] and [camera] (or [sim] with a scene)"),
+            (HW.replace("[geometry]\nsensor_origin_in_stage_mm = [-100.0, -100.0]\nsurface_z_mm = -30.0\npress_direction = -1\n", ""), "geometry = (missing) is invalid: a hardware bench needs [geometry]: sensor_origin_in_stage_mm, surface_z_mm, press_direction"),
+            (zaber.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ndevices = [1, 100, 3]"), "stage.devices[1] = 100 is invalid: must be a Zaber device address in [1, 99]"),
+            (zaber.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmm_per_step = 0.0"), "stage.mm_per_step = 0 mm is invalid: must be a finite number > 0 mm"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ndevices = [1, 2, 3]"), "stage.devices = (given) is invalid: devices and mm_per_step apply to zaber stages only"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmm_per_step = 0.001"), "stage.devices = (given) is invalid: devices and mm_per_step apply to zaber stages only"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmax_feed_mm_min = [1.0, 1.0, 1.0]"), "stage.max_feed_mm_min = (given) is invalid: max_feed_mm_min applies to marlin stages only"),
+            (marlin.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nmax_feed_mm_min = [1.0, 0.0, 1.0]"), "stage.max_feed_mm_min[1] = 0 mm/min is invalid: must be a finite number > 0 mm/min"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_max_mm = [0.0, 0.0, 0.0]"), "stage.travel_min_mm = (missing) is invalid: give both stage.travel_min_mm and stage.travel_max_mm, or neither"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [0.0, 0.0, 0.0]"), "stage.travel_max_mm = (missing) is invalid: give both stage.travel_min_mm and stage.travel_max_mm, or neither"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [0.0, 0.0, 0.0]\ntravel_max_mm = [1.0, 0.0, 1.0]"), "stage.travel_max_mm[1] = 0 mm is invalid: must exceed stage.travel_min_mm[1] = 0 mm"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\ntravel_min_mm = [nan, 0.0, 0.0]\ntravel_max_mm = [1.0, 1.0, 1.0]"), "stage.travel_min_mm[0] = NaN mm is invalid: must be a finite number (mm)"),
+            // The travel box is checked before the port and the baud rate.
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"\"\nbaud = 7\ntravel_max_mm = [0.0, 0.0, 0.0]"), "stage.travel_min_mm = (missing) is invalid: give both stage.travel_min_mm and stage.travel_max_mm, or neither"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \" \"\nbaud = 7"), "stage.port = \"\" is invalid: must name a serial port, e.g. /dev/ttyUSB0"),
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nbaud = 7"), "stage.baud = 7 is invalid: must be a baud rate in [50, 4000000]"),
+            // The stage is checked before the force sensor, the force sensor before the camera.
+            (HW.replace("port = \"/dev/ttyUSB0\"", "port = \"/dev/ttyUSB0\"\nbaud = 7").replace("protocol = \"dynpick\"", "protocol = \"x\"").replace("device = 0", "device = 1.5"), "stage.baud = 7 is invalid: must be a baud rate in [50, 4000000]"),
+            (HW.replace("protocol = \"dynpick\"", "protocol = \"x\"").replace("device = 0", "device = 1.5"), "force_sensor.protocol = \"x\" is invalid: unknown force-sensor protocol: expected dynpick, ft300, bota, netft or onrobot-hex"),
+            (HW.replace("device = 0", "device = 1.5"), "camera.device = 1.5 is invalid: expected a V4L2 index (0, 1, ...), \"dir:PATH\" or \"sim:PATH\""),
+            (HW.replace("device = 0", "device = \"dir:\""), "camera.device = \"dir:\" is invalid: `dir:` needs a directory path, e.g. dir:frames/"),
+        ];
+        for (text, expected) in &cases {
+            let e = parse(text).unwrap_err().to_string();
+            assert_eq!(
+                e,
+                format!("experiments/bench.toml: {expected}"),
+                "bench:\n{text}"
+            );
+        }
+        // What validate decides beside the errors: homing by default on the stages that
+        // lose their reference, never on a simulated bench unless asked.
+        let home = |t: &str| parse(t).unwrap().home;
+        assert!(!home(HW) && home(&zaber) && home(&marlin) && !home(&sim));
+        assert!(!home(&marlin.replace(
+            "press_direction = -1",
+            "press_direction = -1\nhome = false"
+        )));
     }
 }

@@ -26,9 +26,10 @@ use thiserror::Error;
 use crate::bench::integrity::{file_sha256, RecordDigests};
 use crate::bench::journal::{
     self, DeviceProvenance, Journal, JournalError, JournalRow, Manifest, Provenance, RowQuality,
-    RunStatus, Session,
+    RunStatus, Session, StepTimes,
 };
 use crate::bench::plan::{Plan, Setpoint};
+use crate::device::Wrench;
 use crate::formats::DisplacementFrame;
 use crate::sensor::Sensor;
 use crate::solve::{self, Problem};
@@ -610,47 +611,35 @@ impl Importer<'_> {
         let ok = total > 0 && counts.ok as f64 >= self.plan.quality.min_ok_fraction * total as f64;
         let t1 = std::time::Instant::now();
         let (fsum, failure) = self.forces(i, &tracked[0].1)?;
+        let t_solve = if self.not_reconstructed.is_none() {
+            t1.elapsed().as_secs_f64()
+        } else {
+            0.0
+        };
+        let quality = if ok {
+            RowQuality::Ok
+        } else {
+            RowQuality::Flagged
+        };
+        let wrench = Wrench {
+            force_n: r.force_n,
+            torque_nm: r.torque_nm,
+        };
+        // No sweep placement and no F/T SDs: the CSV has one wrench a frame.
         Ok(JournalRow {
-            index: i,
-            trial: sp.trial,
-            swept_value: sp.swept_value,
-            target_normal_n: sp.normal_n,
-            target_tx_n: sp.tangential_n[0],
-            target_ty_n: sp.tangential_n[1],
-            fx_n: r.force_n[0],
-            fy_n: r.force_n[1],
-            fz_n: r.force_n[2],
-            mx_nm: r.torque_nm[0],
-            my_nm: r.torque_nm[1],
-            mz_nm: r.torque_nm[2],
-            stage_x_mm: position[0],
-            stage_y_mm: position[1],
-            stage_z_mm: r.depth_mm.unwrap_or(0.0),
-            settled: true,
-            frames: name,
-            fsum_x_n: fsum[0],
-            fsum_y_n: fsum[1],
-            fsum_z_n: fsum[2],
-            t_track_s: t_track,
-            t_solve_s: if self.not_reconstructed.is_none() {
-                t1.elapsed().as_secs_f64()
-            } else {
-                0.0
-            },
             completed_at: self.now.clone(),
-            markers_ok: Some(counts.ok),
-            markers_lost: Some(counts.lost),
-            markers_merged: Some(counts.merged),
-            markers_outlier: Some(counts.outlier),
-            reacquired: Some(0),
-            quality: Some(if ok {
-                RowQuality::Ok
-            } else {
-                RowQuality::Flagged
-            }),
             ft_status: Some(format!("imported: {} line {}", r.frame, r.line)),
-            failure,
-            ..JournalRow::default()
+            ..JournalRow::setpoint(i, sp.trial, sp.swept_value, sp.normal_n, sp.tangential_n)
+                .with_wrench(&wrench, [0.0; 3])
+                .at_stage([position[0], position[1], r.depth_mm.unwrap_or(0.0)], true)
+                .with_frames(&[name], &counts, 0)
+                .with_force_sum(fsum, None)
+                .with_verdict(quality, failure, None)
+                .timed(StepTimes {
+                    track_s: t_track,
+                    solve_s: t_solve,
+                    ..StepTimes::default()
+                })
         })
     }
 

@@ -16,6 +16,9 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::device::Wrench;
+use crate::vision::StatusCounts;
+
 pub use super::integrity::RecordDigests;
 
 /// File name of the journal inside a run directory.
@@ -274,6 +277,156 @@ impl JournalRow {
         columns.iter().find(|(_, v)| !v.is_finite()).map(|(c, v)| {
             format!("`{c}` is {v} (a failed reconstruction, journalled by an older version)")
         })
+    }
+}
+
+/// The times a row's steps took, s (the journal's `t_*_s` columns); `Default`: zero,
+/// for the steps a writer does not have (an import neither moves nor settles).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepTimes {
+    /// Moving and force-controlling.
+    pub move_s: f64,
+    /// Settling.
+    pub settle_s: f64,
+    /// Reading the F/T sensor and grabbing frames.
+    pub acquire_s: f64,
+    /// Tracking markers.
+    pub track_s: f64,
+    /// Reconstructing forces.
+    pub solve_s: f64,
+}
+
+/// The one way a measured setpoint's row is built (the runner, `sim::synthetic_run`
+/// and `import` all go through it): each step maps one group of what was measured
+/// onto its columns, so a new column is added here, once.
+impl JournalRow {
+    /// A setpoint's row before its measurement: its key (`index`, `trial`), the swept
+    /// value and the targets (normal N; tangential x, y N); settled, every measured
+    /// column zero or empty until a step below sets it.
+    pub fn setpoint(
+        index: usize,
+        trial: usize,
+        swept_value: f64,
+        target_normal_n: f64,
+        target_tangential_n: [f64; 2],
+    ) -> JournalRow {
+        JournalRow {
+            index,
+            trial,
+            swept_value,
+            target_normal_n,
+            target_tx_n: target_tangential_n[0],
+            target_ty_n: target_tangential_n[1],
+            settled: true,
+            ..JournalRow::default()
+        }
+    }
+
+    /// Where the row stands in its sweep: up or down, the contact position's index,
+    /// the hold sample's time (s).
+    pub fn in_sweep(
+        self,
+        direction: Option<Direction>,
+        position: Option<usize>,
+        hold_t_s: Option<f64>,
+    ) -> JournalRow {
+        JournalRow {
+            direction,
+            position,
+            hold_t_s,
+            ..self
+        }
+    }
+
+    /// The F/T sensor's mean wrench (N, N·m) and the SDs of its force (N).
+    pub fn with_wrench(self, mean: &Wrench, force_sd_n: [f64; 3]) -> JournalRow {
+        let (f, m) = (mean.force_n, mean.torque_nm);
+        JournalRow {
+            fx_n: f[0],
+            fy_n: f[1],
+            fz_n: f[2],
+            mx_nm: m[0],
+            my_nm: m[1],
+            mz_nm: m[2],
+            fx_sd_n: force_sd_n[0],
+            fy_sd_n: force_sd_n[1],
+            fz_sd_n: force_sd_n[2],
+            ..self
+        }
+    }
+
+    /// The stage position at acquisition (x, y, z mm) and whether the settle
+    /// criterion was met.
+    pub fn at_stage(self, stage_mm: [f64; 3], settled: bool) -> JournalRow {
+        JournalRow {
+            stage_x_mm: stage_mm[0],
+            stage_y_mm: stage_mm[1],
+            stage_z_mm: stage_mm[2],
+            settled,
+            ..self
+        }
+    }
+
+    /// The frames (paths relative to the run directory) and their markers: the
+    /// counts of each status over the frames and the re-acquisitions it took.
+    pub fn with_frames<S: AsRef<str>>(
+        self,
+        frames: &[S],
+        counts: &StatusCounts,
+        reacquired: usize,
+    ) -> JournalRow {
+        let frames: Vec<&str> = frames.iter().map(AsRef::as_ref).collect();
+        JournalRow {
+            frames: frames.join(";"),
+            markers_ok: Some(counts.ok),
+            markers_lost: Some(counts.lost),
+            markers_merged: Some(counts.merged),
+            markers_outlier: Some(counts.outlier),
+            reacquired: Some(reacquired),
+            ..self
+        }
+    }
+
+    /// The reconstructed force sums (N; NaN in a failed row) and their SDs (N) when
+    /// the noise was estimated.
+    pub fn with_force_sum(self, fsum_n: [f64; 3], fsum_sd_n: Option<[f64; 3]>) -> JournalRow {
+        JournalRow {
+            fsum_x_n: fsum_n[0],
+            fsum_y_n: fsum_n[1],
+            fsum_z_n: fsum_n[2],
+            fsum_sd_x_n: fsum_sd_n.map(|v| v[0]),
+            fsum_sd_y_n: fsum_sd_n.map(|v| v[1]),
+            fsum_sd_z_n: fsum_sd_n.map(|v| v[2]),
+            ..self
+        }
+    }
+
+    /// What the row says of itself: its quality, why it failed (a failed row) and the
+    /// plausibility finding that made it `implausible`.
+    pub fn with_verdict(
+        self,
+        quality: RowQuality,
+        failure: Option<String>,
+        plausibility: Option<String>,
+    ) -> JournalRow {
+        JournalRow {
+            quality: Some(quality),
+            failure,
+            plausibility,
+            ..self
+        }
+    }
+
+    /// The times the row's steps took.
+    pub fn timed(self, t: StepTimes) -> JournalRow {
+        JournalRow {
+            t_move_s: t.move_s,
+            t_settle_s: t.settle_s,
+            t_acquire_s: t.acquire_s,
+            t_track_s: t.track_s,
+            t_solve_s: t.solve_s,
+            ..self
+        }
     }
 }
 
@@ -656,39 +809,24 @@ impl Journal {
         let mut bytes = Vec::new();
         file.read_to_end(&mut bytes).map_err(io)?;
         // Everything after the last newline is a torn write: drop it.
-        let keep = bytes
-            .iter()
-            .rposition(|&b| b == b'\n')
-            .map(|i| i + 1)
-            .unwrap_or(0);
+        let keep = complete_len(&bytes);
         let truncated_bytes = (bytes.len() - keep) as u64;
         if truncated_bytes > 0 {
             file.set_len(keep as u64).map_err(io)?;
             file.sync_all().map_err(io)?;
         }
-        let mut rdr = csv::Reader::from_reader(&bytes[..keep]);
-        let headers = rdr
-            .headers()
-            .map_err(|e| corrupt(&path, 1, e.to_string()))?
-            .clone();
-        let found: Vec<&str> = headers.iter().collect();
-        let legacy = check_header(&path, &found)?;
-        let mut rows = Vec::new();
         let mut done = BTreeSet::new();
-        for rec in rdr.deserialize::<JournalRow>() {
-            let row = rec.map_err(|e| {
-                let line = e.position().map(|p| p.line()).unwrap_or(0);
-                corrupt(&path, line, e.to_string())
-            })?;
-            if !done.insert(row.index) {
-                return Err(corrupt(
+        let (rows, legacy) = parse_complete(&path, &bytes[..keep], |before, row| {
+            if done.insert(row.index) {
+                Ok(())
+            } else {
+                Err(corrupt(
                     &path,
-                    rows.len() as u64 + 2,
+                    before as u64 + 2,
                     format!("setpoint {} appears twice", row.index),
-                ));
+                ))
             }
-            rows.push(row);
-        }
+        })?;
         if let Some(width) = legacy {
             // A journal from before some of today's columns: rewrite it with the
             // current header and those columns empty in the old rows (atomically:
@@ -839,31 +977,53 @@ pub fn read_journal(dir: &Path) -> Result<JournalContents, JournalError> {
         path: path.clone(),
         source,
     })?;
-    let keep = bytes
-        .iter()
-        .rposition(|&b| b == b'\n')
-        .map(|i| i + 1)
-        .unwrap_or(0);
+    let keep = complete_len(&bytes);
     let torn = (keep < bytes.len()).then(|| TornLine {
         line: bytes[..keep].iter().filter(|&&b| b == b'\n').count() as u64 + 1,
         bytes: (bytes.len() - keep) as u64,
     });
     let mut rows = Vec::new();
     if keep > 0 {
-        let mut rdr = csv::Reader::from_reader(&bytes[..keep]);
-        let headers = rdr
-            .headers()
-            .map_err(|e| corrupt(&path, 1, e.to_string()))?
-            .clone();
-        check_header(&path, &headers.iter().collect::<Vec<_>>())?;
-        for rec in rdr.deserialize::<JournalRow>() {
-            rows.push(rec.map_err(|e| {
-                let line = e.position().map(|p| p.line()).unwrap_or(0);
-                corrupt(&path, line, e.to_string())
-            })?);
-        }
+        rows = parse_complete(&path, &bytes[..keep], |_, _| Ok(()))?.0;
     }
     Ok(JournalContents { rows, torn })
+}
+
+/// The length of a journal's text up to and including its last line end: what follows
+/// is a torn write (a crash or kill mid-append), never a row.
+fn complete_len(bytes: &[u8]) -> usize {
+    bytes
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .map(|i| i + 1)
+        .unwrap_or(0)
+}
+
+/// Parses a journal's complete lines (`text`, the file `path`): the header checked
+/// ([`check_header`]: `Some(width)` for an earlier, narrower journal), then the rows
+/// in file order, each handed to `accept` with the number of rows before it (which may
+/// refuse it) before the next is parsed. A malformed row is an error naming its line.
+fn parse_complete(
+    path: &Path,
+    text: &[u8],
+    mut accept: impl FnMut(usize, &JournalRow) -> Result<(), JournalError>,
+) -> Result<(Vec<JournalRow>, Option<usize>), JournalError> {
+    let mut rdr = csv::Reader::from_reader(text);
+    let headers = rdr
+        .headers()
+        .map_err(|e| corrupt(path, 1, e.to_string()))?
+        .clone();
+    let legacy = check_header(path, &headers.iter().collect::<Vec<_>>())?;
+    let mut rows = Vec::new();
+    for rec in rdr.deserialize::<JournalRow>() {
+        let row = rec.map_err(|e| {
+            let line = e.position().map(|p| p.line()).unwrap_or(0);
+            corrupt(path, line, e.to_string())
+        })?;
+        accept(rows.len(), &row)?;
+        rows.push(row);
+    }
+    Ok((rows, legacy))
 }
 
 /// Checks a journal's header against the one this version writes: the current header,
@@ -1046,6 +1206,106 @@ mod tests {
             completed_at: "2026-11-22T00:00:00Z".into(),
             ..JournalRow::default()
         }
+    }
+
+    /// The steps a measured row is built with put each value in its own column: every
+    /// input distinct, the journal line they make spelled out column by column.
+    #[test]
+    fn measured_row_steps_fill_each_column_from_its_own_input() {
+        let counts = StatusCounts {
+            ok: 41,
+            lost: 42,
+            merged: 43,
+            outlier: 44,
+        };
+        let mean = Wrench {
+            force_n: [0.1, 0.2, 0.3],
+            torque_nm: [0.4, 0.5, 0.6],
+        };
+        let row = JournalRow {
+            completed_at: "2026-11-28T00:00:00Z".into(),
+            ft_status: Some("flags 0x1".into()),
+            ..JournalRow::setpoint(7, 2, 150.0, 1.5, [0.25, -0.75])
+                .in_sweep(Some(Direction::Down), Some(3), Some(12.5))
+                .with_wrench(&mean, [0.01, 0.02, 0.03])
+                .at_stage([-91.0, -93.25, -30.5], false)
+                .with_frames(&["frames/00007_0.png", "frames/00007_1.png"], &counts, 5)
+                .with_force_sum([1.1, 1.2, 1.3], Some([0.11, 0.12, 0.13]))
+                .with_verdict(
+                    RowQuality::Implausible,
+                    Some("why not".into()),
+                    Some("ratio 9".into()),
+                )
+                .timed(StepTimes {
+                    move_s: 0.61,
+                    settle_s: 0.62,
+                    acquire_s: 0.63,
+                    track_s: 0.64,
+                    solve_s: 0.65,
+                })
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let mut j = Journal::create(dir.path()).unwrap();
+        j.append(&row).unwrap();
+        let text = std::fs::read_to_string(dir.path().join(JOURNAL_FILE)).unwrap();
+        let line = text.lines().nth(1).unwrap();
+        let expected = [
+            "7",
+            "2",
+            "150",
+            "1.5",
+            "0.25",
+            "-0.75", // index .. target_ty_n
+            "0.1",
+            "0.2",
+            "0.3",
+            "0.4",
+            "0.5",
+            "0.6", // fx_n .. mz_nm
+            "0.01",
+            "0.02",
+            "0.03", // fx_sd_n .. fz_sd_n
+            "-91",
+            "-93.25",
+            "-30.5",
+            "false", // stage, settled
+            "frames/00007_0.png;frames/00007_1.png",
+            "1.1",
+            "1.2",
+            "1.3", // fsum
+            "0.61",
+            "0.62",
+            "0.63",
+            "0.64",
+            "0.65", // t_*_s
+            "2026-11-28T00:00:00Z",
+            "41",
+            "42",
+            "43",
+            "44",
+            "5",
+            "implausible", // markers, reacquired, quality
+            "0.11",
+            "0.12",
+            "0.13", // fsum_sd
+            "down",
+            "3",
+            "12.5",
+            "flags 0x1",
+            "why not",
+            "ratio 9",
+        ];
+        assert_eq!(expected.len(), header().len());
+        assert_eq!(line, expected.join(","));
+        // An import's row: no sweep placement, no SDs, one frame; settled, and the
+        // steps it does not take leave their columns zero or empty.
+        let plain = JournalRow::setpoint(0, 0, 0.0, 0.0, [0.0; 2]).with_frames(
+            &["frames/00000_0.png"],
+            &counts,
+            0,
+        );
+        assert!(plain.settled && plain.direction.is_none() && plain.fsum_sd_x_n.is_none());
+        assert_eq!(plain.frames, "frames/00000_0.png");
     }
 
     #[test]

@@ -60,7 +60,7 @@ use crate::bench::config::BenchGeometry;
 use crate::bench::integrity::{file_sha256, RecordDigests};
 use crate::bench::journal::{
     DeviceProvenance, Journal, JournalError, JournalRow, Manifest, Provenance, RowQuality,
-    RunStatus, Session, GIT_COMMIT,
+    RunStatus, Session, StepTimes, GIT_COMMIT,
 };
 use crate::bench::plan::{Plan, Setpoint, Sweep};
 use crate::bench::runner::{mean_over_frames, rfc3339_now, with_geometry};
@@ -619,48 +619,24 @@ impl Gen<'_> {
         let frames: Vec<String> = (0..self.plan.frames)
             .map(|k| format!("frames/{:05}_{k}.png", sp.index))
             .collect();
-        Ok(JournalRow {
-            index: sp.index,
-            trial: sp.trial,
-            swept_value: sp.swept_value,
-            target_normal_n: sp.normal_n,
-            target_tx_n: sp.tangential_n[0],
-            target_ty_n: sp.tangential_n[1],
-            fx_n: mean.force_n[0],
-            fy_n: mean.force_n[1],
-            fz_n: mean.force_n[2],
-            mx_nm: mean.torque_nm[0],
-            my_nm: mean.torque_nm[1],
-            mz_nm: mean.torque_nm[2],
-            fx_sd_n: sd[0],
-            fy_sd_n: sd[1],
-            fz_sd_n: sd[2],
-            stage_x_mm: stage[0],
-            stage_y_mm: stage[1],
-            stage_z_mm: stage[2],
-            settled: true,
-            frames: frames.join(";"),
-            fsum_x_n: fsum[0],
-            fsum_y_n: fsum[1],
-            fsum_z_n: fsum[2],
-            t_track_s: t_track,
-            t_solve_s: t_solve,
-            markers_ok: Some(counts.ok),
-            markers_lost: Some(counts.lost),
-            markers_merged: Some(counts.merged),
-            markers_outlier: Some(counts.outlier),
-            reacquired: Some(0),
-            quality: Some(quality),
-            fsum_sd_x_n: fsum_sd.map(|v| v[0]),
-            fsum_sd_y_n: fsum_sd.map(|v| v[1]),
-            fsum_sd_z_n: fsum_sd.map(|v| v[2]),
-            direction: sp.direction,
-            position: sp.position,
-            hold_t_s: sp.hold_t_s,
-            failure,
-            plausibility,
-            ..JournalRow::default()
-        })
+        Ok(JournalRow::setpoint(
+            sp.index,
+            sp.trial,
+            sp.swept_value,
+            sp.normal_n,
+            sp.tangential_n,
+        )
+        .in_sweep(sp.direction, sp.position, sp.hold_t_s)
+        .with_wrench(&mean, sd)
+        .at_stage(stage, true)
+        .with_frames(&frames, &counts, 0)
+        .with_force_sum(fsum, fsum_sd)
+        .with_verdict(quality, failure, plausibility)
+        .timed(StepTimes {
+            track_s: t_track,
+            solve_s: t_solve,
+            ..StepTimes::default()
+        }))
     }
 
     /// The runner's force plausibility finding for a row, if it fails it.

@@ -11,7 +11,7 @@ use super::{
     MAX_CONTROL_STEP_MM, READ_RETRIES, SETTLE_RETRIES,
 };
 use crate::bench::control::{check_force_limits, ForceController, SettleDetector};
-use crate::bench::journal::{Direction, JournalRow, RowQuality};
+use crate::bench::journal::{Direction, JournalRow, RowQuality, StepTimes};
 use crate::bench::plan::{OnFail, Setpoint};
 use crate::device::{CameraFrame, ErrorKind, StagePositionMm, Wrench};
 use crate::formats::{self, DisplacementFrame};
@@ -92,59 +92,28 @@ fn journal_row(
     forces: Forces,
     verdict: Verdict,
 ) -> JournalRow {
-    let (mean, sd, stage, fsum, fsum_sd, counts) = (
-        ft.mean,
-        ft.sd,
-        ft.stage,
-        forces.fsum,
-        forces.fsum_sd,
-        &frames.counts,
-    );
     JournalRow {
-        index: sp.index,
-        trial: sp.trial,
-        swept_value: sp.swept_value,
-        target_normal_n: sp.normal_n,
-        target_tx_n: sp.tangential_n[0],
-        target_ty_n: sp.tangential_n[1],
-        fx_n: mean.force_n[0],
-        fy_n: mean.force_n[1],
-        fz_n: mean.force_n[2],
-        mx_nm: mean.torque_nm[0],
-        my_nm: mean.torque_nm[1],
-        mz_nm: mean.torque_nm[2],
-        fx_sd_n: sd[0],
-        fy_sd_n: sd[1],
-        fz_sd_n: sd[2],
-        stage_x_mm: stage[0],
-        stage_y_mm: stage[1],
-        stage_z_mm: stage[2],
-        settled: reached.settled,
-        frames: forces.frames.join(";"),
-        fsum_x_n: fsum[0],
-        fsum_y_n: fsum[1],
-        fsum_z_n: fsum[2],
-        t_move_s: reached.t_move,
-        t_settle_s: reached.t_settle,
-        t_acquire_s: frames.t_acquire,
-        t_track_s: frames.t_track,
-        t_solve_s: forces.t_solve,
-        completed_at: String::new(),
-        markers_ok: Some(counts.ok),
-        markers_lost: Some(counts.lost),
-        markers_merged: Some(counts.merged),
-        markers_outlier: Some(counts.outlier),
-        reacquired: Some(frames.reacquired),
-        quality: Some(verdict.quality),
-        fsum_sd_x_n: fsum_sd.map(|v| v[0]),
-        fsum_sd_y_n: fsum_sd.map(|v| v[1]),
-        fsum_sd_z_n: fsum_sd.map(|v| v[2]),
-        direction: sp.direction,
-        position: sp.position,
-        hold_t_s: reached.hold_t_s,
         ft_status: ft.ft_status,
-        failure: verdict.failure,
-        plausibility: verdict.plausibility,
+        ..JournalRow::setpoint(
+            sp.index,
+            sp.trial,
+            sp.swept_value,
+            sp.normal_n,
+            sp.tangential_n,
+        )
+        .in_sweep(sp.direction, sp.position, reached.hold_t_s)
+        .with_wrench(&ft.mean, ft.sd)
+        .at_stage(ft.stage, reached.settled)
+        .with_frames(&forces.frames, &frames.counts, frames.reacquired)
+        .with_force_sum(forces.fsum, forces.fsum_sd)
+        .with_verdict(verdict.quality, verdict.failure, verdict.plausibility)
+        .timed(StepTimes {
+            move_s: reached.t_move,
+            settle_s: reached.t_settle,
+            acquire_s: frames.t_acquire,
+            track_s: frames.t_track,
+            solve_s: forces.t_solve,
+        })
     }
 }
 
