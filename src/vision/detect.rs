@@ -8,12 +8,15 @@
 //! threshold `T = b + max(6σ, 0.2·(p − b))`; 8-connected components above `T`; blobs
 //! smaller than a fifth of the expected marker area dropped as noise. Brightness
 //! layers (`dark`, `bright`) threshold their contrast map instead (`contrast.rs`),
-//! keep blobs of 40 % of a marker's area that are round, and then run a second,
-//! low-threshold pass (`contrast::faint_spots`): local maxima of the smoothed map
+//! keep blobs of 40 % of a marker's area that are round. A blob too small for the
+//! layer's marker size but otherwise a marker is judged against its neighbours'
+//! size instead (`keep_markers`: the far rows of a sensor seen in strong perspective);
+//! its window must stay on it, or it is left to the second pass. Brightness layers
+//! then run a second, low-threshold pass (`contrast::faint_spots`): local maxima of the smoothed map
 //! outside the first pass's blobs, judged against the local noise by their own peak
 //! and half-height area, so faint markers (a vignetted field's edge) are not lost to
-//! a threshold the brightest markers set; the first pass's blobs alone set the
-//! aperture and spacing, so its markers are measured as before. The aperture
+//! a threshold the brightest markers set; the blobs the layer's size keeps alone set
+//! the aperture and spacing, so their markers are measured as before. The aperture
 //! radius is the marker's measured extent (where the score falls to 5 % of the blob's
 //! peak, median over blobs and the four axis directions) plus 1.5 px, so soft edges of
 //! any profile stay inside the aperture; it is capped so the background ring never
@@ -230,6 +233,19 @@ struct LayerBlobs {
     aperture_radius_px: f64,
     spacing_px: f64,
     background_score: f64,
+}
+
+impl LayerBlobs {
+    /// A layer without markers.
+    fn none(marker_radius_px: f64, aperture_radius_px: f64, background_score: f64) -> Self {
+        LayerBlobs {
+            blobs: Vec::new(),
+            marker_radius_px,
+            aperture_radius_px,
+            spacing_px: f64::INFINITY,
+            background_score,
+        }
+    }
 }
 
 /// Finds the markers of every layer in an unloaded frame and matches them to the
@@ -582,6 +598,7 @@ fn colour_map<T: Sample, const C: usize>(f: &LayerFrame<'_, T, C>) -> Option<Lay
 }
 
 /// An 8-connected component of the map above the threshold.
+#[derive(Clone, Copy)]
 struct Comp {
     area: usize,
     sum: f64,
@@ -710,6 +727,91 @@ fn is_marker(c: &Comp, color: MarkerColor, radius_px: f64) -> bool {
     c.area as f64 >= (area * disc_area).max(3.0) && c.elongation() <= elongation
 }
 
+/// Whether [`keep_markers`] keeps a blob, and by which size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kept {
+    No,
+    /// Large enough for the layer's marker radius.
+    ByLayer,
+    /// Large enough for its neighbours' size only.
+    ByNeighbours,
+}
+
+/// How many nearest markers set a blob's local expected size ([`keep_markers`]).
+const LOCAL_NEIGHBOURS: usize = 6;
+
+/// Which components are markers. First by the layer's radius ([`is_marker`]); then a
+/// blob that fails only for its size is judged against its neighbours instead: the
+/// layer's radius scaled by the median size (√(area/π)) of its [`LOCAL_NEIGHBOURS`]
+/// nearest markers over the median size of all of them (never above 1). The far rows
+/// of a sensor seen in strong perspective hold dots well below the layer's median
+/// (GelSlim-like, 5 → 2.1 px) but close to their neighbours', while a speck among big
+/// markers is still judged against those. Repeated while it finds more, so a smooth
+/// gradient is followed row by row; each round judges against the same markers, so
+/// the result does not depend on the blobs' order.
+fn keep_markers(comps: &[Comp], color: MarkerColor, radius_px: f64) -> Vec<Kept> {
+    let mut kept: Vec<Kept> = comps
+        .iter()
+        .map(|c| {
+            if is_marker(c, color, radius_px) {
+                Kept::ByLayer
+            } else {
+                Kept::No
+            }
+        })
+        .collect();
+    let size = |c: &Comp| (c.area as f64 / std::f64::consts::PI).sqrt();
+    let mut markers: Vec<([f64; 2], f64)> = comps
+        .iter()
+        .zip(&kept)
+        .filter(|(_, k)| **k == Kept::ByLayer)
+        .map(|(c, _)| (c.seed(), size(c)))
+        .collect();
+    if markers.len() < LOCAL_NEIGHBOURS {
+        return kept;
+    }
+    let mut sizes: Vec<f64> = markers.iter().map(|m| m.1).collect();
+    sizes.sort_by(f64::total_cmp);
+    let typical = sizes[sizes.len() / 2];
+    // Blobs that pass every check but the size (a radius of 0 leaves the 3 px floor).
+    let mut candidates: Vec<usize> = (0..comps.len())
+        .filter(|&i| kept[i] == Kept::No && is_marker(&comps[i], color, 0.0))
+        .collect();
+    loop {
+        let added: Vec<usize> = candidates
+            .iter()
+            .copied()
+            .filter(|&i| {
+                let local = local_size(comps[i].seed(), &markers);
+                is_marker(&comps[i], color, radius_px * (local / typical).min(1.0))
+            })
+            .collect();
+        if added.is_empty() {
+            return kept;
+        }
+        for &i in &added {
+            kept[i] = Kept::ByNeighbours;
+            markers.push((comps[i].seed(), size(&comps[i])));
+        }
+        candidates.retain(|&i| kept[i] == Kept::No);
+    }
+}
+
+/// The median size of the [`LOCAL_NEIGHBOURS`] markers (centre, size) nearest `p`.
+fn local_size(p: [f64; 2], markers: &[([f64; 2], f64)]) -> f64 {
+    let mut by_distance: Vec<(f64, f64)> = markers
+        .iter()
+        .map(|(c, s)| ((c[0] - p[0]).hypot(c[1] - p[1]), *s))
+        .collect();
+    let k = LOCAL_NEIGHBOURS.min(by_distance.len());
+    if k < by_distance.len() {
+        by_distance.select_nth_unstable_by(k, |a, b| a.0.total_cmp(&b.0));
+    }
+    let mut near: Vec<f64> = by_distance[..k].iter().map(|n| n.1).collect();
+    near.sort_by(f64::total_cmp);
+    near[k / 2]
+}
+
 /// A brightness layer's second pass (`contrast::faint_spots`): faint markers outside
 /// the kept first-pass blobs (`kept[component]`), as components without shape.
 fn faint_second_pass<T: Sample, const C: usize>(
@@ -808,6 +910,20 @@ fn aperture_radius(config: &DetectConfig, extent: f64, spacing: f64, radius_px: 
     })
 }
 
+/// The aperture radius and the median spacing, px, from the blobs in `basis`.
+fn layer_aperture(
+    config: &DetectConfig,
+    m: &LayerMap,
+    (w, h): (usize, usize),
+    basis: &[Comp],
+    radius_px: f64,
+) -> (f64, f64) {
+    let extent = marker_extent(m, w, h, basis, radius_px);
+    let seeds: Vec<[f64; 2]> = basis.iter().map(Comp::seed).collect();
+    let spacing = median_spacing(&seeds);
+    (aperture_radius(config, extent, spacing, radius_px), spacing)
+}
+
 /// The window's measurement from `seed`. Brightness layers (real frames, markers up to
 /// the image's edge): a window cut by the edge is measured on its pixels inside the
 /// image when the dot is inside (`window::dot_inside`), as the tracker measures it.
@@ -876,27 +992,30 @@ fn border_blob<T: Sample, const C: usize>(
     })
 }
 
-/// Refines every component by the iterated window centroid (see the module docs).
-/// Components from `first_pass` on are the second pass's spots; one whose window ran
-/// off it was pulled by its neighbours (an aperture sized for larger markers): not
-/// measurable, not a marker.
+/// Refines every component by the iterated window centroid (see the module docs), and
+/// lists the components whose window ran off them. From `check_from` on, components
+/// are not the first pass's blobs (second-pass spots, or blobs kept for their
+/// neighbours' size); one whose window ran off it was pulled by its neighbours (an
+/// aperture sized for larger markers): not measurable, not a marker.
 fn refine_blobs<T: Sample, const C: usize>(
     f: &LayerFrame<'_, T, C>,
     m: &LayerMap,
     window: &Window,
     comps: &[Comp],
-    first_pass: usize,
+    check_from: usize,
     radius_px: f64,
     score_median: f64,
-) -> Vec<Blob> {
+) -> (Vec<Blob>, Vec<usize>) {
     let mut blobs: Vec<Blob> = Vec::with_capacity(comps.len());
+    let mut ran_off = Vec::new();
     for (k, comp) in comps.iter().enumerate() {
         let s = comp.seed();
         let located = locate_seed(f, window, s, radius_px);
-        if k >= first_pass {
+        if k >= check_from {
             if let Located::Found { centroid_px, .. } = located {
                 let own = (comp.area as f64 / std::f64::consts::PI).sqrt();
                 if (centroid_px[0] - s[0]).hypot(centroid_px[1] - s[1]) > (0.5 * own).max(1.0) {
+                    ran_off.push(k);
                     continue;
                 }
             }
@@ -935,7 +1054,7 @@ fn refine_blobs<T: Sample, const C: usize>(
             });
         }
     }
-    blobs
+    (blobs, ran_off)
 }
 
 /// Fragments of one marker converge to the same centroid (within `radius_px`): keeps
@@ -985,22 +1104,14 @@ fn detect_layer<T: Sample, const C: usize>(
     };
     let mut score_values = f.inside_values(&f.score);
     if score_values.is_empty() {
-        return LayerBlobs {
-            blobs: Vec::new(),
-            marker_radius_px: expected_radius_px.unwrap_or(1.0),
-            aperture_radius_px: config.aperture_radius_px.unwrap_or(1.0),
-            spacing_px: f64::INFINITY,
-            background_score: 0.0,
-        };
+        let aperture = config.aperture_radius_px.unwrap_or(1.0);
+        return LayerBlobs::none(expected_radius_px.unwrap_or(1.0), aperture, 0.0);
     }
     let half = score_values.len() / 2;
     let score_median = kth(&mut score_values, half) as f64;
-    let empty = |r: f64| LayerBlobs {
-        blobs: Vec::new(),
-        marker_radius_px: r,
-        aperture_radius_px: config.aperture_radius_px.unwrap_or(r + 1.5),
-        spacing_px: f64::INFINITY,
-        background_score: score_median,
+    let empty = |r: f64| {
+        let aperture = config.aperture_radius_px.unwrap_or(r + 1.5);
+        LayerBlobs::none(r, aperture, score_median)
     };
     let map = if color.is_brightness() {
         brightness_map(&f, expected_radius_px)
@@ -1012,43 +1123,47 @@ fn detect_layer<T: Sample, const C: usize>(
     };
     let (comps, label) = components(&map, w, h);
     let radius_px = expected_radius_px.unwrap_or_else(|| measured_radius(&comps, color));
-    let kept: Vec<bool> = comps
-        .iter()
-        .map(|c| is_marker(c, color, radius_px))
-        .collect();
-    let mut comps: Vec<Comp> = comps
-        .into_iter()
-        .zip(&kept)
-        .filter_map(|(c, &k)| k.then_some(c))
-        .collect();
-    // The first pass's blobs set the aperture and spacing below: the second pass adds
-    // markers without moving the first pass's.
-    let first_pass = comps.len();
-    if color.is_brightness() {
-        comps.extend(faint_second_pass(&f, &map, &label, &kept, radius_px));
+    let keep = keep_markers(&comps, color, radius_px);
+    let mut kept: Vec<bool> = keep.iter().map(|k| *k != Kept::No).collect();
+    let pick = |which: Kept| -> (Vec<usize>, Vec<Comp>) {
+        (0..comps.len())
+            .filter(|&i| keep[i] == which)
+            .map(|i| (i, comps[i]))
+            .unzip()
+    };
+    let (_, mut first) = pick(Kept::ByLayer);
+    // The blobs the layer's radius keeps set the aperture and spacing: those kept for
+    // their neighbours' size, and the second pass's, add markers without moving
+    // theirs. One of the former whose window runs off it is left to the second pass.
+    let first_pass = first.len();
+    let sized = (first_pass > 0).then(|| layer_aperture(config, &map, (w, h), &first, radius_px));
+    let mut blobs = Vec::new();
+    if let Some((aperture, _)) = sized {
+        let (index, local) = pick(Kept::ByNeighbours);
+        let window = Window::new(aperture, weights);
+        let (found, ran_off) = refine_blobs(&f, &map, &window, &local, 0, radius_px, score_median);
+        blobs = found;
+        ran_off.into_iter().for_each(|k| kept[index[k]] = false);
     }
-    if comps.is_empty() {
+    if color.is_brightness() {
+        first.extend(faint_second_pass(&f, &map, &label, &kept, radius_px));
+    }
+    if first.is_empty() {
         return empty(radius_px);
     }
-    let basis = if first_pass > 0 {
-        first_pass
-    } else {
-        comps.len()
-    };
-    let extent = marker_extent(&map, w, h, &comps[..basis], radius_px);
-    let seeds: Vec<[f64; 2]> = comps[..basis].iter().map(Comp::seed).collect();
-    let spacing = median_spacing(&seeds);
-    let aperture = aperture_radius(config, extent, spacing, radius_px);
+    let (aperture, spacing) =
+        sized.unwrap_or_else(|| layer_aperture(config, &map, (w, h), &first, radius_px));
     let window = Window::new(aperture, weights);
-    let blobs = refine_blobs(
+    let (found, _) = refine_blobs(
         &f,
         &map,
         &window,
-        &comps,
+        &first,
         first_pass,
         radius_px,
         score_median,
     );
+    blobs.extend(found);
     LayerBlobs {
         blobs: merge_fragments(blobs, radius_px),
         marker_radius_px: radius_px,
