@@ -8,12 +8,15 @@
 //! threshold `T = b + max(6σ, 0.2·(p − b))`; 8-connected components above `T`; blobs
 //! smaller than a fifth of the expected marker area dropped as noise. Brightness
 //! layers (`dark`, `bright`) threshold their contrast map instead (`contrast.rs`),
-//! keep blobs of 40 % of a marker's area that are round, and then run a second,
-//! low-threshold pass (`contrast::faint_spots`): local maxima of the smoothed map
+//! keep blobs of 40 % of a marker's area that are round. A blob too small for the
+//! layer's marker size but otherwise a marker is judged against its neighbours'
+//! size instead (`keep_markers`: the far rows of a sensor seen in strong perspective);
+//! its window must stay on it, or it is left to the second pass. Brightness layers
+//! then run a second, low-threshold pass (`contrast::faint_spots`): local maxima of the smoothed map
 //! outside the first pass's blobs, judged against the local noise by their own peak
 //! and half-height area, so faint markers (a vignetted field's edge) are not lost to
-//! a threshold the brightest markers set; the first pass's blobs alone set the
-//! aperture and spacing, so its markers are measured as before. The aperture
+//! a threshold the brightest markers set; the blobs the layer's size keeps alone set
+//! the aperture and spacing, so their markers are measured as before. The aperture
 //! radius is the marker's measured extent (where the score falls to 5 % of the blob's
 //! peak, median over blobs and the four axis directions) plus 1.5 px, so soft edges of
 //! any profile stay inside the aperture; it is capped so the background ring never
@@ -230,6 +233,19 @@ struct LayerBlobs {
     aperture_radius_px: f64,
     spacing_px: f64,
     background_score: f64,
+}
+
+impl LayerBlobs {
+    /// A layer without markers.
+    fn none(marker_radius_px: f64, aperture_radius_px: f64, background_score: f64) -> Self {
+        LayerBlobs {
+            blobs: Vec::new(),
+            marker_radius_px,
+            aperture_radius_px,
+            spacing_px: f64::INFINITY,
+            background_score,
+        }
+    }
 }
 
 /// Finds the markers of every layer in an unloaded frame and matches them to the
@@ -467,39 +483,22 @@ fn kth(v: &mut [i32], k: usize) -> i32 {
     *v.select_nth_unstable(k).1
 }
 
-fn detect_layer<T: Sample, const C: usize>(
-    img: Raw<'_, T, C>,
+/// The layer's view of the frame, shared by the steps of [`detect_layer`].
+struct LayerFrame<'a, T: Sample, const C: usize> {
+    img: Raw<'a, T, C>,
     color: MarkerColor,
     weights: [i32; 3],
-    expected_radius_px: Option<f64>,
-    roi: Option<&Roi>,
-    config: &DetectConfig,
-) -> LayerBlobs {
-    let (w, h) = (img.width, img.height);
-    // Pixels whose centre lies inside the ROI (all without one).
-    let inside: Option<Vec<bool>> = roi.map(|r| {
-        (0..w * h)
-            .map(|i| r.contains([(i % w) as f64, (i / w) as f64]))
-            .collect()
-    });
-    let score: Vec<i32> = img
-        .data
-        .chunks_exact(C)
-        .map(|px| score::<T, C>(px, &weights))
-        .collect();
-    if score.is_empty() {
-        return LayerBlobs {
-            blobs: Vec::new(),
-            marker_radius_px: expected_radius_px.unwrap_or(1.0),
-            aperture_radius_px: config.aperture_radius_px.unwrap_or(1.0),
-            spacing_px: f64::INFINITY,
-            background_score: 0.0,
-        };
-    }
-    // The values the statistics see (inside the ROI), and the map the blobs are found
-    // in, with every pixel outside the ROI below any threshold.
-    let inside_values = |m: &[i32]| -> Vec<i32> {
-        match &inside {
+    roi: Option<&'a Roi>,
+    /// The colour score of every pixel (`window::score`).
+    score: Vec<i32>,
+    /// Pixels whose centre lies inside the ROI (`None`: all, no ROI).
+    inside: Option<Vec<bool>>,
+}
+
+impl<T: Sample, const C: usize> LayerFrame<'_, T, C> {
+    /// The values of `m` the statistics see: those inside the ROI.
+    fn inside_values(&self, m: &[i32]) -> Vec<i32> {
+        match &self.inside {
             Some(mask) => m
                 .iter()
                 .zip(mask)
@@ -508,9 +507,12 @@ fn detect_layer<T: Sample, const C: usize>(
                 .collect(),
             None => m.to_vec(),
         }
-    };
-    let masked = |m: Vec<i32>| -> Vec<i32> {
-        match &inside {
+    }
+
+    /// `m` with every pixel outside the ROI below any threshold: the map blobs are
+    /// found in.
+    fn masked(&self, m: Vec<i32>) -> Vec<i32> {
+        match &self.inside {
             Some(mask) => m
                 .into_iter()
                 .zip(mask)
@@ -518,102 +520,115 @@ fn detect_layer<T: Sample, const C: usize>(
                 .collect(),
             None => m,
         }
-    };
-    let mut score_values = inside_values(&score);
-    if score_values.is_empty() {
-        return LayerBlobs {
-            blobs: Vec::new(),
-            marker_radius_px: expected_radius_px.unwrap_or(1.0),
-            aperture_radius_px: config.aperture_radius_px.unwrap_or(1.0),
-            spacing_px: f64::INFINITY,
-            background_score: 0.0,
-        };
     }
-    let half = score_values.len() / 2;
-    let score_median = kth(&mut score_values, half) as f64;
-    let empty = |r: f64| LayerBlobs {
-        blobs: Vec::new(),
-        marker_radius_px: r,
-        aperture_radius_px: config.aperture_radius_px.unwrap_or(r + 1.5),
-        spacing_px: f64::INFINITY,
-        background_score: score_median,
-    };
-    // The map blobs are found in, its median and the threshold: the colour score itself
-    // for colour layers (their score cancels grey illumination), the contrast against
-    // the local illumination for brightness layers (their score does not; `contrast.rs`).
-    let (map, median, threshold, map_per_score, illumination) = if color.is_brightness() {
-        let noise = contrast::score_noise(&score, w, inside.as_deref());
-        let min_contrast = contrast::min_contrast::<T>(color);
-        let stats = |m: &[i32], map_per_score: f64| {
-            contrast::threshold(&inside_values(m), noise * map_per_score, min_contrast)
-        };
-        let size = match expected_radius_px {
-            Some(r) => contrast::element_size(r),
-            None => {
-                // Marker size unknown (no grid): a first pass with a long element
-                // measures it, the second uses the element that follows from it.
-                let first_size = contrast::default_element_size(w, h);
-                let first = contrast::contrast_map::<T>(&score, w, h, color, first_size);
-                let r = stats(&first.map, first.per_score)
-                    .and_then(|t| contrast::blob_radius(&masked(first.map), w, h, &t));
-                match r {
-                    Some(r) => contrast::element_size(r),
-                    None => return empty(1.0),
-                }
-            }
-        };
-        let cm = contrast::contrast_map::<T>(&score, w, h, color, size);
-        let Some(t) = stats(&cm.map, cm.per_score) else {
-            return empty(expected_radius_px.unwrap_or(1.0));
-        };
-        (
-            masked(cm.map),
-            t.median,
-            t.threshold,
-            cm.per_score,
-            cm.illumination,
-        )
-    } else {
-        let mut tmp = inside_values(&score);
-        let n = tmp.len();
-        let median = kth(&mut tmp, n / 2);
-        let peak = kth(&mut tmp, n.saturating_sub(20));
-        for v in tmp.iter_mut() {
-            *v = (*v - median).abs();
-        }
-        let mad = kth(&mut tmp, n / 2);
-        let noise = (1.4826 * mad as f64).max(1.0);
-        let (b, p) = (median as f64, peak as f64);
-        if p - b <= 8.0 * noise {
-            return empty(expected_radius_px.unwrap_or(1.0));
-        }
-        let threshold = (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32;
-        (masked(score.clone()), median, threshold, 1.0, None)
-    };
-    let map = &map[..];
-    let b = median as f64;
+}
 
-    // 8-connected components above the threshold (flood fill with an explicit stack).
-    struct Comp {
-        area: usize,
-        sum: f64,
-        sx: f64,
-        sy: f64,
-        peak: i32,
-        /// Unweighted pixel moments Σx, Σy, Σx², Σy², Σxy (shape).
-        shape: [f64; 5],
-        /// A pixel on the image's outermost rows or columns: the blob may be a marker
-        /// cut by the edge.
-        at_edge: bool,
-    }
-    impl Comp {
-        /// √(λ₁/λ₂) of the pixels' covariance: 1 for a disc, large for a line.
-        fn elongation(&self) -> f64 {
-            contrast::elongation(self.area, &self.shape)
+/// The map one layer's blobs are found in and its statistics: the colour score itself
+/// for colour layers (their score cancels grey illumination), the contrast against the
+/// local illumination for brightness layers (their score does not; `contrast.rs`).
+struct LayerMap {
+    /// The map, every pixel outside the ROI at `i32::MIN`.
+    map: Vec<i32>,
+    /// The map's median inside the ROI (its background).
+    median: i32,
+    /// Pixels above this form the blobs.
+    threshold: i32,
+    /// Map units per score unit (1 for colour layers).
+    map_per_score: f64,
+    /// A brightness layer's illumination estimate (`contrast::ContrastMap`).
+    illumination: Option<Vec<i32>>,
+}
+
+/// A brightness layer's contrast map and threshold, or `None` when nothing stands out
+/// of the noise. Without an expected marker size (no grid), a first pass with a long
+/// element measures it, and the map is made with the element that follows from it.
+fn brightness_map<T: Sample, const C: usize>(
+    f: &LayerFrame<'_, T, C>,
+    expected_radius_px: Option<f64>,
+) -> Option<LayerMap> {
+    let (w, h) = (f.img.width, f.img.height);
+    let noise = contrast::score_noise(&f.score, w, f.inside.as_deref());
+    let min_contrast = contrast::min_contrast::<T>(f.color);
+    let stats = |m: &[i32], map_per_score: f64| {
+        contrast::threshold(&f.inside_values(m), noise * map_per_score, min_contrast)
+    };
+    let size = match expected_radius_px {
+        Some(r) => contrast::element_size(r),
+        None => {
+            let first_size = contrast::default_element_size(w, h);
+            let first = contrast::contrast_map::<T>(&f.score, w, h, f.color, first_size);
+            let t = stats(&first.map, first.per_score)?;
+            contrast::element_size(contrast::blob_radius(&f.masked(first.map), w, h, &t)?)
         }
+    };
+    let cm = contrast::contrast_map::<T>(&f.score, w, h, f.color, size);
+    let t = stats(&cm.map, cm.per_score)?;
+    Some(LayerMap {
+        map: f.masked(cm.map),
+        median: t.median,
+        threshold: t.threshold,
+        map_per_score: cm.per_score,
+        illumination: cm.illumination,
+    })
+}
+
+/// A colour layer's score map and threshold `T = b + max(6σ, 0.2·(p − b))` (see the
+/// module docs), or `None` when the peak is within 8σ of the background.
+fn colour_map<T: Sample, const C: usize>(f: &LayerFrame<'_, T, C>) -> Option<LayerMap> {
+    let mut tmp = f.inside_values(&f.score);
+    let n = tmp.len();
+    let median = kth(&mut tmp, n / 2);
+    let peak = kth(&mut tmp, n.saturating_sub(20));
+    for v in tmp.iter_mut() {
+        *v = (*v - median).abs();
     }
+    let mad = kth(&mut tmp, n / 2);
+    let noise = (1.4826 * mad as f64).max(1.0);
+    let (b, p) = (median as f64, peak as f64);
+    if p - b <= 8.0 * noise {
+        return None;
+    }
+    Some(LayerMap {
+        map: f.masked(f.score.clone()),
+        median,
+        threshold: (b + (6.0 * noise).max(0.2 * (p - b))).ceil() as i32,
+        map_per_score: 1.0,
+        illumination: None,
+    })
+}
+
+/// An 8-connected component of the map above the threshold.
+#[derive(Clone, Copy)]
+struct Comp {
+    area: usize,
+    sum: f64,
+    sx: f64,
+    sy: f64,
+    peak: i32,
+    /// Unweighted pixel moments Σx, Σy, Σx², Σy², Σxy (shape).
+    shape: [f64; 5],
+    /// A pixel on the image's outermost rows or columns: the blob may be a marker
+    /// cut by the edge.
+    at_edge: bool,
+}
+
+impl Comp {
+    /// √(λ₁/λ₂) of the pixels' covariance: 1 for a disc, large for a line.
+    fn elongation(&self) -> f64 {
+        contrast::elongation(self.area, &self.shape)
+    }
+
+    /// The signal-weighted centroid, px.
+    fn seed(&self) -> [f64; 2] {
+        [self.sx / self.sum, self.sy / self.sum]
+    }
+}
+
+/// The 8-connected components of `m.map` above its threshold (flood fill with an
+/// explicit stack), and each pixel's component (index + 1; 0: none).
+fn components(m: &LayerMap, w: usize, h: usize) -> (Vec<Comp>, Vec<u32>) {
+    let (map, threshold) = (&m.map[..], m.threshold);
     let n = map.len();
-    // The component of each pixel above the threshold (index + 1; 0: none).
     let mut label = vec![0u32; n];
     let mut comps = Vec::new();
     let mut stack = Vec::new();
@@ -635,7 +650,7 @@ fn detect_layer<T: Sample, const C: usize>(
         };
         while let Some(i) = stack.pop() {
             let (x, y) = (i % w, i / w);
-            let s = (map[i] - median) as f64;
+            let s = (map[i] - m.median) as f64;
             c.area += 1;
             c.sum += s;
             c.sx += s * x as f64;
@@ -662,105 +677,189 @@ fn detect_layer<T: Sample, const C: usize>(
         }
         comps.push(c);
     }
+    (comps, label)
+}
+
+/// The marker radius measured from the blobs' areas, px (a layer without a grid).
+fn measured_radius(comps: &[Comp], color: MarkerColor) -> f64 {
     let mut areas: Vec<usize> = comps.iter().map(|c| c.area).collect();
     areas.sort_unstable();
-    let radius_px = expected_radius_px.unwrap_or_else(|| {
-        if color.is_brightness() {
-            // The area of the blob holding the median pixel above the threshold: noise
-            // specks and dust, however many, hold few pixels.
-            let total: usize = areas.iter().sum();
-            let mut acc = 0;
-            areas
-                .iter()
-                .find(|&&a| {
-                    acc += a;
-                    2 * acc >= total
-                })
-                .map(|&a| (a as f64 / std::f64::consts::PI).sqrt())
-                .unwrap_or(1.0)
-        } else {
-            // Median blob size, ignoring the smallest half (noise specks).
-            let big = &areas[areas.len() / 2..];
-            big.get(big.len() / 2)
-                .map(|&a| (a as f64 / std::f64::consts::PI).sqrt())
-                .unwrap_or(1.0)
-        }
-    });
-    let disc_area = std::f64::consts::PI * radius_px * radius_px;
-    // Brightness layers see more than markers (dust, scratches, reflections of similar
-    // contrast on real gels): a blob must hold 40 % of a marker's area and be round
-    // (elongation ≤ MAX_ELONGATION; a disc seen obliquely stays below it). A blob at
-    // the image's edge may be a marker cut by it: 25 % of the area and an elongation
-    // of 3 suffice there (a disc cut through its centre has 1.9). Colour layers keep
-    // the plain size check.
-    let keep = |c: &Comp| {
-        if c.sum <= 0.0 {
-            return false;
-        }
-        if !color.is_brightness() {
-            return c.area as f64 >= (0.2 * disc_area).max(3.0);
-        }
-        let (area, elongation) = if c.at_edge {
-            (0.25, 3.0)
-        } else {
-            (0.4, MAX_ELONGATION)
-        };
-        c.area as f64 >= (area * disc_area).max(3.0) && c.elongation() <= elongation
-    };
-    let kept: Vec<bool> = comps.iter().map(keep).collect();
-    let mut comps: Vec<Comp> = comps
-        .into_iter()
-        .zip(&kept)
-        .filter_map(|(c, &k)| k.then_some(c))
-        .collect();
-    // The first pass's blobs set the aperture and spacing below: the second pass adds
-    // markers without moving the first pass's.
-    let first_pass = comps.len();
+    let radius = |a: usize| (a as f64 / std::f64::consts::PI).sqrt();
     if color.is_brightness() {
-        let taken: Vec<bool> = label
+        // The area of the blob holding the median pixel above the threshold: noise
+        // specks and dust, however many, hold few pixels.
+        let total: usize = areas.iter().sum();
+        let mut acc = 0;
+        areas
             .iter()
-            .map(|&l| l > 0 && kept[l as usize - 1])
-            .collect();
-        let structure: Vec<bool> = label.iter().map(|&l| l > 0).collect();
-        let input = contrast::FaintInput {
-            map,
-            score: &score,
-            illumination: illumination.as_deref(),
-            width: w,
-            height: h,
-            median,
-            taken: &taken,
-            structure: &structure,
-            radius_px,
-            min_contrast: contrast::min_contrast::<T>(color),
-        };
-        comps.extend(
-            contrast::faint_spots(&input, MAX_ELONGATION)
-                .into_iter()
-                .map(|f| Comp {
-                    area: f.area,
-                    sum: f.sum,
-                    sx: f.sx,
-                    sy: f.sy,
-                    peak: f.peak,
-                    shape: [0.0; 5],
-                    at_edge: false,
-                }),
-        );
-    }
-    if comps.is_empty() {
-        return empty(radius_px);
-    }
-    let seeds: Vec<[f64; 2]> = comps.iter().map(|c| [c.sx / c.sum, c.sy / c.sum]).collect();
-    let basis = if first_pass > 0 {
-        first_pass
+            .find(|&&a| {
+                acc += a;
+                2 * acc >= total
+            })
+            .map_or(1.0, |&a| radius(a))
     } else {
-        comps.len()
-    };
+        // Median blob size, ignoring the smallest half (noise specks).
+        let big = &areas[areas.len() / 2..];
+        big.get(big.len() / 2).map_or(1.0, |&a| radius(a))
+    }
+}
 
-    // Extent: where the score falls to 5 % of the blob's peak above background.
+/// Whether a first-pass blob is a marker of radius `radius_px`. Brightness layers see
+/// more than markers (dust, scratches, reflections of similar contrast on real gels):
+/// a blob must hold 40 % of a marker's area and be round (elongation ≤
+/// MAX_ELONGATION; a disc seen obliquely stays below it). A blob at the image's edge
+/// may be a marker cut by it: 25 % of the area and an elongation of 3 suffice there (a
+/// disc cut through its centre has 1.9). Colour layers keep the plain size check (a
+/// fifth of the area).
+fn is_marker(c: &Comp, color: MarkerColor, radius_px: f64) -> bool {
+    if c.sum <= 0.0 {
+        return false;
+    }
+    let disc_area = std::f64::consts::PI * radius_px * radius_px;
+    if !color.is_brightness() {
+        return c.area as f64 >= (0.2 * disc_area).max(3.0);
+    }
+    let (area, elongation) = if c.at_edge {
+        (0.25, 3.0)
+    } else {
+        (0.4, MAX_ELONGATION)
+    };
+    c.area as f64 >= (area * disc_area).max(3.0) && c.elongation() <= elongation
+}
+
+/// Whether [`keep_markers`] keeps a blob, and by which size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kept {
+    No,
+    /// Large enough for the layer's marker radius.
+    ByLayer,
+    /// Large enough for its neighbours' size only.
+    ByNeighbours,
+}
+
+/// How many nearest markers set a blob's local expected size ([`keep_markers`]).
+const LOCAL_NEIGHBOURS: usize = 6;
+
+/// Which components are markers. First by the layer's radius ([`is_marker`]); then a
+/// blob that fails only for its size is judged against its neighbours instead: the
+/// layer's radius scaled by the median size (√(area/π)) of its [`LOCAL_NEIGHBOURS`]
+/// nearest markers over the median size of all of them (never above 1). The far rows
+/// of a sensor seen in strong perspective hold dots well below the layer's median
+/// (GelSlim-like, 5 → 2.1 px) but close to their neighbours', while a speck among big
+/// markers is still judged against those. Repeated while it finds more, so a smooth
+/// gradient is followed row by row; each round judges against the same markers, so
+/// the result does not depend on the blobs' order.
+fn keep_markers(comps: &[Comp], color: MarkerColor, radius_px: f64) -> Vec<Kept> {
+    let mut kept: Vec<Kept> = comps
+        .iter()
+        .map(|c| {
+            if is_marker(c, color, radius_px) {
+                Kept::ByLayer
+            } else {
+                Kept::No
+            }
+        })
+        .collect();
+    let size = |c: &Comp| (c.area as f64 / std::f64::consts::PI).sqrt();
+    let mut markers: Vec<([f64; 2], f64)> = comps
+        .iter()
+        .zip(&kept)
+        .filter(|(_, k)| **k == Kept::ByLayer)
+        .map(|(c, _)| (c.seed(), size(c)))
+        .collect();
+    if markers.len() < LOCAL_NEIGHBOURS {
+        return kept;
+    }
+    let mut sizes: Vec<f64> = markers.iter().map(|m| m.1).collect();
+    sizes.sort_by(f64::total_cmp);
+    let typical = sizes[sizes.len() / 2];
+    // Blobs that pass every check but the size (a radius of 0 leaves the 3 px floor).
+    let mut candidates: Vec<usize> = (0..comps.len())
+        .filter(|&i| kept[i] == Kept::No && is_marker(&comps[i], color, 0.0))
+        .collect();
+    loop {
+        let added: Vec<usize> = candidates
+            .iter()
+            .copied()
+            .filter(|&i| {
+                let local = local_size(comps[i].seed(), &markers);
+                is_marker(&comps[i], color, radius_px * (local / typical).min(1.0))
+            })
+            .collect();
+        if added.is_empty() {
+            return kept;
+        }
+        for &i in &added {
+            kept[i] = Kept::ByNeighbours;
+            markers.push((comps[i].seed(), size(&comps[i])));
+        }
+        candidates.retain(|&i| kept[i] == Kept::No);
+    }
+}
+
+/// The median size of the [`LOCAL_NEIGHBOURS`] markers (centre, size) nearest `p`.
+fn local_size(p: [f64; 2], markers: &[([f64; 2], f64)]) -> f64 {
+    let mut by_distance: Vec<(f64, f64)> = markers
+        .iter()
+        .map(|(c, s)| ((c[0] - p[0]).hypot(c[1] - p[1]), *s))
+        .collect();
+    let k = LOCAL_NEIGHBOURS.min(by_distance.len());
+    if k < by_distance.len() {
+        by_distance.select_nth_unstable_by(k, |a, b| a.0.total_cmp(&b.0));
+    }
+    let mut near: Vec<f64> = by_distance[..k].iter().map(|n| n.1).collect();
+    near.sort_by(f64::total_cmp);
+    near[k / 2]
+}
+
+/// A brightness layer's second pass (`contrast::faint_spots`): faint markers outside
+/// the kept first-pass blobs (`kept[component]`), as components without shape.
+fn faint_second_pass<T: Sample, const C: usize>(
+    f: &LayerFrame<'_, T, C>,
+    m: &LayerMap,
+    label: &[u32],
+    kept: &[bool],
+    radius_px: f64,
+) -> Vec<Comp> {
+    let taken: Vec<bool> = label
+        .iter()
+        .map(|&l| l > 0 && kept[l as usize - 1])
+        .collect();
+    let structure: Vec<bool> = label.iter().map(|&l| l > 0).collect();
+    let input = contrast::FaintInput {
+        map: &m.map,
+        score: &f.score,
+        illumination: m.illumination.as_deref(),
+        width: f.img.width,
+        height: f.img.height,
+        median: m.median,
+        taken: &taken,
+        structure: &structure,
+        radius_px,
+        min_contrast: contrast::min_contrast::<T>(f.color),
+    };
+    contrast::faint_spots(&input, MAX_ELONGATION)
+        .into_iter()
+        .map(|s| Comp {
+            area: s.area,
+            sum: s.sum,
+            sx: s.sx,
+            sy: s.sy,
+            peak: s.peak,
+            shape: [0.0; 5],
+            at_edge: false,
+        })
+        .collect()
+}
+
+/// The markers' measured extent, px: where the score falls to 5 % of the blob's peak
+/// above background, the median over (up to 200) blobs and the four axis directions,
+/// at least `radius_px`.
+fn marker_extent(m: &LayerMap, w: usize, h: usize, comps: &[Comp], radius_px: f64) -> f64 {
+    let b = m.median as f64;
     let mut extents = Vec::new();
-    for (c, s) in comps[..basis].iter().zip(&seeds).take(200) {
+    for c in comps.iter().take(200) {
+        let s = c.seed();
         let level = b + 0.05 * (c.peak as f64 - b);
         let (x0, y0) = (s[0].round() as i64, s[1].round() as i64);
         for (dx, dy) in [(1i64, 0i64), (-1, 0), (0, 1), (0, -1)] {
@@ -770,7 +869,7 @@ fn detect_layer<T: Sample, const C: usize>(
                 if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 || r > 200 {
                     break;
                 }
-                if (map[y as usize * w + x as usize] as f64) <= level {
+                if (m.map[y as usize * w + x as usize] as f64) <= level {
                     break;
                 }
                 r += 1;
@@ -779,14 +878,16 @@ fn detect_layer<T: Sample, const C: usize>(
         }
     }
     extents.sort_by(f64::total_cmp);
-    let extent = extents[extents.len() / 2].max(radius_px);
+    extents[extents.len() / 2].max(radius_px)
+}
 
-    // Nearest-neighbour spacing of the seeds (median), to cap the window.
-    let mut nn: Vec<f64> = seeds[..basis]
+/// The median distance from each seed to its nearest neighbour, px (infinite for one).
+fn median_spacing(seeds: &[[f64; 2]]) -> f64 {
+    let mut nn: Vec<f64> = seeds
         .iter()
         .enumerate()
         .map(|(i, a)| {
-            seeds[..basis]
+            seeds
                 .iter()
                 .enumerate()
                 .filter(|(j, _)| *j != i)
@@ -795,79 +896,132 @@ fn detect_layer<T: Sample, const C: usize>(
         })
         .collect();
     nn.sort_by(f64::total_cmp);
-    let spacing = nn[nn.len() / 2];
-    let aperture = config.aperture_radius_px.unwrap_or_else(|| {
+    nn[nn.len() / 2]
+}
+
+/// The window's aperture radius, px: the extent plus 1.5 px, capped so the background
+/// ring (aperture + 3 px) stays clear of the neighbour's extent, at least the marker's
+/// radius and 2 px (or the configured radius).
+fn aperture_radius(config: &DetectConfig, extent: f64, spacing: f64, radius_px: f64) -> f64 {
+    config.aperture_radius_px.unwrap_or_else(|| {
         let want = extent + 1.5;
-        // Background ring (aperture + 3 px) must stay clear of the neighbour's extent.
         let cap = spacing - extent - 4.0;
         want.min(cap).max(radius_px.max(2.0))
-    });
-    let window = Window::new(aperture, weights);
+    })
+}
 
-    let mut blobs: Vec<Blob> = Vec::with_capacity(seeds.len());
-    for (k, (s, comp)) in seeds.iter().zip(&comps).enumerate() {
-        // Brightness layers (real frames, markers up to the image's edge): a window
-        // cut by the edge is measured on its pixels inside the image when the dot is
-        // inside (`window::dot_inside`), as the tracker measures it.
-        let located = if color.is_brightness() {
-            match window.locate_clipped::<T, C>(img, *s, 20, false) {
-                Located::Found {
-                    centroid_px,
-                    clipped: true,
-                    ..
-                } if !dot_inside(centroid_px, radius_px, w, h) => Located::OutOfImage,
-                other => other,
-            }
-        } else {
-            window.locate::<T, C>(img, *s, 20, false)
-        };
-        // A second-pass spot whose window ran off it was pulled by its neighbours
-        // (an aperture sized for larger markers): not measurable, not a marker.
-        if k >= first_pass {
+/// The aperture radius and the median spacing, px, from the blobs in `basis`.
+fn layer_aperture(
+    config: &DetectConfig,
+    m: &LayerMap,
+    (w, h): (usize, usize),
+    basis: &[Comp],
+    radius_px: f64,
+) -> (f64, f64) {
+    let extent = marker_extent(m, w, h, basis, radius_px);
+    let seeds: Vec<[f64; 2]> = basis.iter().map(Comp::seed).collect();
+    let spacing = median_spacing(&seeds);
+    (aperture_radius(config, extent, spacing, radius_px), spacing)
+}
+
+/// The window's measurement from `seed`. Brightness layers (real frames, markers up to
+/// the image's edge): a window cut by the edge is measured on its pixels inside the
+/// image when the dot is inside (`window::dot_inside`), as the tracker measures it.
+fn locate_seed<T: Sample, const C: usize>(
+    f: &LayerFrame<'_, T, C>,
+    window: &Window,
+    seed: [f64; 2],
+    radius_px: f64,
+) -> Located {
+    if !f.color.is_brightness() {
+        return window.locate::<T, C>(f.img, seed, 20, false);
+    }
+    match window.locate_clipped::<T, C>(f.img, seed, 20, false) {
+        Located::Found {
+            centroid_px,
+            clipped: true,
+            ..
+        } if !dot_inside(centroid_px, radius_px, f.img.width, f.img.height) => Located::OutOfImage,
+        other => other,
+    }
+}
+
+/// A brightness marker at the image border, its window cut by the edge: found (it is
+/// there, and `sensor init` counts it near the border) at its blob's centroid, but
+/// never measured — the tracker reports it lost while its window does not fit. Its
+/// reference signal is the blob's contrast in score units (the above-threshold core
+/// only: an underestimate of a window's signal, used only if it moves inside); its
+/// background the median linear score on the window's ring, where the ring lies in
+/// the image. `None` outside the ROI.
+fn border_blob<T: Sample, const C: usize>(
+    f: &LayerFrame<'_, T, C>,
+    m: &LayerMap,
+    window: &Window,
+    comp: &Comp,
+    score_median: f64,
+) -> Option<Blob> {
+    let s = comp.seed();
+    if f.roi.is_some_and(|r| !r.contains(s)) {
+        return None;
+    }
+    let (w, h) = (f.img.width, f.img.height);
+    let ring = window.ring_radius_px();
+    let mut level: Vec<i32> = (0..64)
+        .filter_map(|k| {
+            let a = k as f64 * std::f64::consts::TAU / 64.0;
+            let (x, y) = (
+                (s[0] + ring * a.cos()).round(),
+                (s[1] + ring * a.sin()).round(),
+            );
+            (x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64)
+                .then(|| f.score[y as usize * w + x as usize])
+        })
+        .collect();
+    let background = if level.is_empty() {
+        score_median
+    } else {
+        let half = level.len() / 2;
+        kth(&mut level, half) as f64
+    } - score_bias::<T>(&f.weights) as f64;
+    Some(Blob {
+        centroid_px: s,
+        signal: comp.sum / m.map_per_score,
+        peak: (comp.peak - m.median) as f64 / m.map_per_score,
+        background,
+        slope: [0.0; 2],
+    })
+}
+
+/// Refines every component by the iterated window centroid (see the module docs), and
+/// lists the components whose window ran off them. From `check_from` on, components
+/// are not the first pass's blobs (second-pass spots, or blobs kept for their
+/// neighbours' size); one whose window ran off it was pulled by its neighbours (an
+/// aperture sized for larger markers): not measurable, not a marker.
+fn refine_blobs<T: Sample, const C: usize>(
+    f: &LayerFrame<'_, T, C>,
+    m: &LayerMap,
+    window: &Window,
+    comps: &[Comp],
+    check_from: usize,
+    radius_px: f64,
+    score_median: f64,
+) -> (Vec<Blob>, Vec<usize>) {
+    let mut blobs: Vec<Blob> = Vec::with_capacity(comps.len());
+    let mut ran_off = Vec::new();
+    for (k, comp) in comps.iter().enumerate() {
+        let s = comp.seed();
+        let located = locate_seed(f, window, s, radius_px);
+        if k >= check_from {
             if let Located::Found { centroid_px, .. } = located {
                 let own = (comp.area as f64 / std::f64::consts::PI).sqrt();
                 if (centroid_px[0] - s[0]).hypot(centroid_px[1] - s[1]) > (0.5 * own).max(1.0) {
+                    ran_off.push(k);
                     continue;
                 }
             }
         }
-        if color.is_brightness() && matches!(located, Located::OutOfImage) {
-            // A marker at the image border, its window cut by the edge: found (it is
-            // there, and `sensor init` counts it near the border) at its blob's
-            // centroid, but never measured — the tracker reports it lost while its
-            // window does not fit. Its reference signal is the blob's contrast in
-            // score units (the above-threshold core only: an underestimate of a
-            // window's signal, used only if it moves inside).
-            if roi.is_some_and(|r| !r.contains(*s)) {
-                continue;
-            }
-            // Its background: the median linear score on the window's ring, where the
-            // ring lies in the image.
-            let ring = window.ring_radius_px();
-            let mut level: Vec<i32> = (0..64)
-                .filter_map(|k| {
-                    let a = k as f64 * std::f64::consts::TAU / 64.0;
-                    let (x, y) = (
-                        (s[0] + ring * a.cos()).round(),
-                        (s[1] + ring * a.sin()).round(),
-                    );
-                    (x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64)
-                        .then(|| score[y as usize * w + x as usize])
-                })
-                .collect();
-            let background = if level.is_empty() {
-                score_median
-            } else {
-                let half = level.len() / 2;
-                kth(&mut level, half) as f64
-            } - score_bias::<T>(&weights) as f64;
-            blobs.push(Blob {
-                centroid_px: *s,
-                signal: comp.sum / map_per_score,
-                peak: (comp.peak - median) as f64 / map_per_score,
-                background,
-                slope: [0.0; 2],
-            });
+        if f.color.is_brightness() && matches!(located, Located::OutOfImage) {
+            blobs.extend(border_blob(f, m, window, comp, score_median));
             continue;
         }
         if let Located::Found {
@@ -878,18 +1032,18 @@ fn detect_layer<T: Sample, const C: usize>(
             ..
         } = located
         {
-            if roi.is_some_and(|r| !r.contains(centroid_px)) {
+            if f.roi.is_some_and(|r| !r.contains(centroid_px)) {
                 continue;
             }
             let c = [centroid_px[0].round() as i32, centroid_px[1].round() as i32];
-            let pk = window.peak::<T, C>(img, c[0], c[1]).unwrap_or(0);
+            let pk = window.peak::<T, C>(f.img, c[0], c[1]).unwrap_or(0);
             // Above the layer's background: the image's median score for colour
             // layers, the window's own ring level for brightness layers (whose
             // background varies over the image).
-            let base = if color.is_brightness() {
-                background + score_bias::<T>(&weights) as f64
+            let base = if f.color.is_brightness() {
+                background + score_bias::<T>(&f.weights) as f64
             } else {
-                median as f64
+                m.median as f64
             };
             blobs.push(Blob {
                 centroid_px,
@@ -900,7 +1054,12 @@ fn detect_layer<T: Sample, const C: usize>(
             });
         }
     }
-    // Fragments of one marker converge to the same centroid: keep the strongest.
+    (blobs, ran_off)
+}
+
+/// Fragments of one marker converge to the same centroid (within `radius_px`): keeps
+/// the strongest.
+fn merge_fragments(mut blobs: Vec<Blob>, radius_px: f64) -> Vec<Blob> {
     blobs.sort_by(|a, b| b.signal.total_cmp(&a.signal));
     let mut kept: Vec<Blob> = Vec::with_capacity(blobs.len());
     for b in blobs {
@@ -912,8 +1071,101 @@ fn detect_layer<T: Sample, const C: usize>(
             kept.push(b);
         }
     }
+    kept
+}
+
+/// One layer's markers (see the module docs): the map and threshold, the blobs above
+/// it kept as markers, a brightness layer's faint second pass, the aperture from the
+/// first pass's blobs, and the window centroid of each.
+fn detect_layer<T: Sample, const C: usize>(
+    img: Raw<'_, T, C>,
+    color: MarkerColor,
+    weights: [i32; 3],
+    expected_radius_px: Option<f64>,
+    roi: Option<&Roi>,
+    config: &DetectConfig,
+) -> LayerBlobs {
+    let (w, h) = (img.width, img.height);
+    let f = LayerFrame {
+        img,
+        color,
+        weights,
+        roi,
+        score: img
+            .data
+            .chunks_exact(C)
+            .map(|px| score::<T, C>(px, &weights))
+            .collect(),
+        inside: roi.map(|r| {
+            (0..w * h)
+                .map(|i| r.contains([(i % w) as f64, (i / w) as f64]))
+                .collect()
+        }),
+    };
+    let mut score_values = f.inside_values(&f.score);
+    if score_values.is_empty() {
+        let aperture = config.aperture_radius_px.unwrap_or(1.0);
+        return LayerBlobs::none(expected_radius_px.unwrap_or(1.0), aperture, 0.0);
+    }
+    let half = score_values.len() / 2;
+    let score_median = kth(&mut score_values, half) as f64;
+    let empty = |r: f64| {
+        let aperture = config.aperture_radius_px.unwrap_or(r + 1.5);
+        LayerBlobs::none(r, aperture, score_median)
+    };
+    let map = if color.is_brightness() {
+        brightness_map(&f, expected_radius_px)
+    } else {
+        colour_map(&f)
+    };
+    let Some(map) = map else {
+        return empty(expected_radius_px.unwrap_or(1.0));
+    };
+    let (comps, label) = components(&map, w, h);
+    let radius_px = expected_radius_px.unwrap_or_else(|| measured_radius(&comps, color));
+    let keep = keep_markers(&comps, color, radius_px);
+    let mut kept: Vec<bool> = keep.iter().map(|k| *k != Kept::No).collect();
+    let pick = |which: Kept| -> (Vec<usize>, Vec<Comp>) {
+        (0..comps.len())
+            .filter(|&i| keep[i] == which)
+            .map(|i| (i, comps[i]))
+            .unzip()
+    };
+    let (_, mut first) = pick(Kept::ByLayer);
+    // The blobs the layer's radius keeps set the aperture and spacing: those kept for
+    // their neighbours' size, and the second pass's, add markers without moving
+    // theirs. One of the former whose window runs off it is left to the second pass.
+    let first_pass = first.len();
+    let sized = (first_pass > 0).then(|| layer_aperture(config, &map, (w, h), &first, radius_px));
+    let mut blobs = Vec::new();
+    if let Some((aperture, _)) = sized {
+        let (index, local) = pick(Kept::ByNeighbours);
+        let window = Window::new(aperture, weights);
+        let (found, ran_off) = refine_blobs(&f, &map, &window, &local, 0, radius_px, score_median);
+        blobs = found;
+        ran_off.into_iter().for_each(|k| kept[index[k]] = false);
+    }
+    if color.is_brightness() {
+        first.extend(faint_second_pass(&f, &map, &label, &kept, radius_px));
+    }
+    if first.is_empty() {
+        return empty(radius_px);
+    }
+    let (aperture, spacing) =
+        sized.unwrap_or_else(|| layer_aperture(config, &map, (w, h), &first, radius_px));
+    let window = Window::new(aperture, weights);
+    let (found, _) = refine_blobs(
+        &f,
+        &map,
+        &window,
+        &first,
+        first_pass,
+        radius_px,
+        score_median,
+    );
+    blobs.extend(found);
     LayerBlobs {
-        blobs: kept,
+        blobs: merge_fragments(blobs, radius_px),
         marker_radius_px: radius_px,
         aperture_radius_px: aperture,
         spacing_px: spacing,
