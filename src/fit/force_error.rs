@@ -16,6 +16,12 @@
 //!   (coherent); and the same σ once more as an offset common to every setpoint (a
 //!   tare that missed its zero moves every reading alike).
 //!
+//! The tracker's displacement gain is added the same way: a tracked displacement is
+//! `(1 + g)` times the true one, `g` common to a layer's markers at every setpoint
+//! (a centroid's systematic error under a moving blob: no clustering sees it), with
+//! σ = [`TRACKING_GAIN_SD`] per layer and `∂r/∂g = −u_pred/σ_px`
+//! ([`DisplacementRoute::gain_sensitivity`]).
+//!
 //! Each part adds `(JᵀJ)⁻¹ (Σ Jᵀg gᵀJ σ²) (JᵀJ)⁻¹` to the classical covariance
 //! ([`crate::fit::lm::uncertainty_with`]).
 
@@ -23,7 +29,7 @@ use std::collections::HashMap;
 
 use nalgebra::{DMatrix, DVector};
 
-use super::displacement::DisplacementRoute;
+use super::displacement::{DisplacementRoute, TRACKING_GAIN_SD};
 use super::indentation::IndentationRoute;
 use super::lm::{uncertainty_two_way, LmFit, Uncertainty};
 use super::{FitError, ModelParams};
@@ -246,11 +252,31 @@ impl ForceError {
                 meat += &all * all.transpose() * (q * q);
             }
         }
+        if let Some(d) = disp {
+            let sg = TRACKING_GAIN_SD;
+            let g = d
+                .gain_sensitivity(&fit.params)
+                .map_err(FitError::Numerical)?;
+            let nl = g.iter().map(|(l, _)| l + 1).max().unwrap_or(0);
+            let mut per_layer = vec![DVector::zeros(np); nl];
+            for (i, (l, gi)) in g.iter().enumerate() {
+                per_layer[*l] += fit.jac.row(i).transpose() * *gi;
+            }
+            for v in &per_layer {
+                meat += v * v.transpose() * (sg * sg);
+            }
+        }
         let mut u = uncertainty_two_way(fit, groups, groups2, start, Some(&meat));
         u.method.push_str(&match self.shared_n {
             Some(q) => format!("; the F/T reading's error added: sample SD / sqrt(samples) per setpoint, and {q:.4} N shared by the setpoints of one target and again by all (the largest of the resolution / sqrt(12), one sample's SD and the F/T scatter about the contact law)"),
             None => "; the F/T reading's error added: sample SD / sqrt(samples) per setpoint".into(),
         });
+        if disp.is_some() {
+            u.method.push_str(&format!(
+                "; the tracker's displacement gain added: {:.1} % per layer",
+                100.0 * TRACKING_GAIN_SD
+            ));
+        }
         Ok(u)
     }
 }
