@@ -1,7 +1,7 @@
 //! Coverage of `tactbench fit`'s intervals on simulated mis-built elastomers (issue 30,
 //! "Done when"): each case's truth (the scene's sensor and bench) against the fit of
 //! `experiments/calibrate_elastomer.toml` (or `calibrate_bonded.toml`) made by
-//! `sim::synthetic_run` over independent seeds, with the camera noise of
+//! `bench::synthetic_run` over independent seeds, with the camera noise of
 //! `fig7_hemisphere_camera_noise.toml`, 5 mN of F/T noise and DynPick counts.
 //!
 //! The full study (20 seeds × 6 cases, about 10 min in the dev profile) is ignored:
@@ -18,7 +18,7 @@ use tactbench::bench::plan::Plan;
 use tactbench::fit::identify::{fit_run, FitOptions};
 use tactbench::fit::FitDoc;
 use tactbench::sim::scene::Scene;
-use tactbench::sim::synthetic::{synthetic_run, SyntheticOptions};
+use tactbench::bench::synthetic::{synthetic_run, SyntheticOptions};
 
 use crate::util::root;
 

@@ -1,7 +1,7 @@
 //! The ground truth `tactbench fit` is tested on: a scene's sensor that differs from
 //! the plan's (the truth the camera and the force law see against the nominal one the
 //! run reconstructs with) through `run --sim` and `run --bench` with a `[sim]` bench
-//! file, and `sim::synthetic_run` against `run --sim` on the same plan.
+//! file, and `bench::synthetic_run` against `run --sim` on the same plan.
 
 use std::path::Path;
 
@@ -10,7 +10,7 @@ use tactbench::bench::plan::Plan;
 use tactbench::formats::read_displacements;
 use tactbench::sensor::Sensor;
 use tactbench::sim::scene::Scene;
-use tactbench::sim::synthetic::{synthetic_run, SyntheticOptions};
+use tactbench::bench::synthetic::{synthetic_run, SyntheticOptions};
 
 use crate::util::{root, run, stderr};
 

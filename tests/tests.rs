@@ -16,6 +16,7 @@ mod fit_sim;
 mod fourier;
 mod ft;
 mod ft_net_bota;
+mod house;
 mod import;
 mod inputs;
 mod layer;

@@ -21,26 +21,11 @@ use std::fmt;
 use std::io::Read;
 use std::path::Path;
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use sha2::{Digest, Sha256};
 
+pub use super::journal::RecordDigests;
 use super::journal::{Manifest, JOURNAL_FILE};
-
-/// The digests of a run's record (`manifest.json` `record`).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct RecordDigests {
-    /// SHA-256 (lowercase hex) of the journal's first `journal_bytes` bytes.
-    pub journal_sha256: String,
-    /// Length of the journal when its digest was taken, bytes.
-    pub journal_bytes: u64,
-    /// Rows in the journal then.
-    pub journal_rows: usize,
-    /// When the digest was taken, RFC 3339 UTC.
-    pub at: String,
-    /// Evidence file (relative to the run directory) -> SHA-256 as the runner wrote it.
-    #[serde(default)]
-    pub evidence: BTreeMap<String, String>,
-}
 
 /// SHA-256 of `data` as 64 lowercase hex digits.
 pub fn sha256_hex(data: &[u8]) -> String {

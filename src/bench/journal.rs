@@ -7,7 +7,7 @@
 //! at most one torn last line, which [`Journal::open_resume`] cuts off (and reports).
 //! The runner then continues with the first setpoint index not in the journal.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -19,7 +19,6 @@ use thiserror::Error;
 use crate::device::Wrench;
 use crate::vision::StatusCounts;
 
-pub use super::integrity::RecordDigests;
 
 /// File name of the journal inside a run directory.
 pub const JOURNAL_FILE: &str = "journal.csv";
@@ -296,7 +295,7 @@ pub struct StepTimes {
     pub solve_s: f64,
 }
 
-/// The one way a measured setpoint's row is built (the runner, `sim::synthetic_run`
+/// The one way a measured setpoint's row is built (the runner, `bench::synthetic_run`
 /// and `import` all go through it): each step maps one group of what was measured
 /// onto its columns, so a new column is added here, once.
 impl JournalRow {
@@ -442,6 +441,23 @@ pub enum RunStatus {
     Aborted,
     /// Every setpoint measured.
     Completed,
+}
+
+/// The digests of a run's record (`manifest.json` `record`); taken and checked by
+/// [`super::integrity`] (`RecordDigests::journal_now`, `verify`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RecordDigests {
+    /// SHA-256 (lowercase hex) of the journal's first `journal_bytes` bytes.
+    pub journal_sha256: String,
+    /// Length of the journal when its digest was taken, bytes.
+    pub journal_bytes: u64,
+    /// Rows in the journal then.
+    pub journal_rows: usize,
+    /// When the digest was taken, RFC 3339 UTC.
+    pub at: String,
+    /// Evidence file (relative to the run directory) -> SHA-256 as the runner wrote it.
+    #[serde(default)]
+    pub evidence: BTreeMap<String, String>,
 }
 
 /// `manifest.json`: provenance of a run.

@@ -4,7 +4,10 @@
 //! signal and the force limits ([`guard`]), the runner itself ([`runner`]: setpoints, safety
 //! watchdog, resume), the crash-safe run directory ([`journal`]) and its one-writer
 //! lock ([`lock`]); a recording made elsewhere turned into a run directory
-//! ([`import`]); `live.json`, the runner's current activity for watchers
+//! ([`import`]); a run directory made from a plan and a simulated scene without
+//! devices, in the runner's format ([`synthetic`]: fast, for `fit`'s coverage tests;
+//! it lives here, not in `sim`, because it writes the runner's record: `sim` depends
+//! on nothing in `bench`); `live.json`, the runner's current activity for watchers
 //! ([`live`]). Nothing here prints or draws: the runner emits
 //! [`runner::RunEvent`]s.
 
@@ -21,3 +24,4 @@ pub mod lock;
 pub mod plan;
 pub mod provenance;
 pub mod runner;
+pub mod synthetic;

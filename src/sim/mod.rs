@@ -16,8 +16,6 @@
 //!   simulated camera).
 //! - [`rng`]: the seeded generator of the random effects.
 //! - [`world`] and [`bench`]: the simulated bench (one world behind simulated devices).
-//! - [`synthetic`]: [`synthetic::synthetic_run`], a run directory in the runner's format
-//!   made from a plan and a scene without devices (fast; for `fit`'s coverage tests).
 //!
 //! Typical use:
 //!
@@ -42,5 +40,4 @@ pub mod render;
 pub mod rng;
 pub mod scene;
 pub mod simulate;
-pub mod synthetic;
 pub mod world;

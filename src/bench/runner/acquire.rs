@@ -1026,7 +1026,7 @@ impl Runner<'_, '_, '_, '_> {
 
 /// A setpoint's displacement records averaged over its frames (a marker lost in any
 /// frame is lost), and the noise of that mean: the frames' scatter
-/// ([`frame_scatter_mm`]) / √frames. Shared by the runner and `sim::synthetic_run`.
+/// ([`frame_scatter_mm`]) / √frames. Shared by the runner and `bench::synthetic_run`.
 pub fn mean_over_frames(
     frames: impl Iterator<Item = Vec<formats::DisplacementRecord>>,
 ) -> (Vec<formats::DisplacementRecord>, Option<f64>) {

@@ -50,12 +50,12 @@ use image::RgbImage;
 use serde_json::json;
 use thiserror::Error;
 
-use super::effects::{Effect, Pipeline};
-use super::render::to_rgb8;
-use super::rng::Rng;
-use super::scene::Scene;
-use super::simulate::Simulation;
-use super::world::{World, WorldGeometry};
+use crate::sim::effects::{Effect, Pipeline};
+use crate::sim::render::to_rgb8;
+use crate::sim::rng::Rng;
+use crate::sim::scene::Scene;
+use crate::sim::simulate::Simulation;
+use crate::sim::world::{World, WorldGeometry};
 use crate::bench::config::BenchGeometry;
 use crate::bench::integrity::{file_sha256, RecordDigests};
 use crate::bench::journal::{
@@ -196,7 +196,7 @@ fn check_scene(scene: &Scene) -> Result<(), SyntheticError> {
 
 /// The GRBL simulated bench's geometry (`tactbench run --sim`), clearance 1 mm.
 pub fn default_geometry() -> BenchGeometry {
-    let (w, _) = super::bench::StageProtocol::Grbl.default_geometry();
+    let (w, _) = crate::sim::bench::StageProtocol::Grbl.default_geometry();
     BenchGeometry {
         sensor_origin_in_stage_mm: w.sensor_origin_in_stage_mm,
         surface_z_mm: w.surface_z_mm,
@@ -394,7 +394,7 @@ fn manifest(
         "file": scene.path.display().to_string(),
         "cwd": std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default(),
     });
-    let why = "a synthetic run (sim::synthetic_run: the simulated bench's world without devices)";
+    let why = "a synthetic run (bench::synthetic_run: the simulated bench's world without devices)";
     let devices = ["stage", "force_sensor", "camera"];
     Manifest {
         plan_path: plan.path.display().to_string(),
