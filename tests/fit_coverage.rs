@@ -15,10 +15,10 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use tactbench::bench::plan::Plan;
+use tactbench::bench::synthetic::{synthetic_run, SyntheticOptions};
 use tactbench::fit::identify::{fit_run, FitOptions};
 use tactbench::fit::FitDoc;
 use tactbench::sim::scene::Scene;
-use tactbench::bench::synthetic::{synthetic_run, SyntheticOptions};
 
 use crate::util::root;
 

@@ -7,10 +7,10 @@ use std::path::Path;
 
 use tactbench::bench::journal::{read_rows, JournalRow, Manifest};
 use tactbench::bench::plan::Plan;
+use tactbench::bench::synthetic::{synthetic_run, SyntheticOptions};
 use tactbench::formats::read_displacements;
 use tactbench::sensor::Sensor;
 use tactbench::sim::scene::Scene;
-use tactbench::bench::synthetic::{synthetic_run, SyntheticOptions};
 
 use crate::util::{root, run, stderr};
 

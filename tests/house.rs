@@ -60,7 +60,11 @@ fn graph(level: usize) -> BTreeMap<Vec<String>, BTreeSet<Vec<String>>> {
     let mut src = BTreeMap::new();
     sources(&root("src"), &[], &mut src);
     let cut = |p: &[String]| p[..p.len().min(level)].to_vec();
-    let known: BTreeSet<Vec<String>> = src.keys().filter(|k| !k.is_empty()).map(|k| cut(k)).collect();
+    let known: BTreeSet<Vec<String>> = src
+        .keys()
+        .filter(|k| !k.is_empty())
+        .map(|k| cut(k))
+        .collect();
     let mut g: BTreeMap<Vec<String>, BTreeSet<Vec<String>>> = BTreeMap::new();
     for (module, code) in &src {
         if module.is_empty() {
@@ -91,7 +95,10 @@ fn graph(level: usize) -> BTreeMap<Vec<String>, BTreeSet<Vec<String>>> {
 }
 
 /// A circle through `start` in `g`, if any (depth-first search).
-fn circle(g: &BTreeMap<Vec<String>, BTreeSet<Vec<String>>>, start: &Vec<String>) -> Option<Vec<String>> {
+fn circle(
+    g: &BTreeMap<Vec<String>, BTreeSet<Vec<String>>>,
+    start: &Vec<String>,
+) -> Option<Vec<String>> {
     let mut stack = vec![(start.clone(), vec![start.join("::")])];
     let mut seen = BTreeSet::new();
     while let Some((node, trail)) = stack.pop() {
@@ -115,12 +122,19 @@ fn circle(g: &BTreeMap<Vec<String>, BTreeSet<Vec<String>>>, start: &Vec<String>)
 fn no_module_imports_one_that_imports_it_back() {
     for level in [1, 2] {
         let g = graph(level);
-        assert!(g.len() > 10, "the source tree was read: {} modules", g.len());
+        assert!(
+            g.len() > 10,
+            "the source tree was read: {} modules",
+            g.len()
+        );
         let circles: Vec<String> = g
             .keys()
             .filter_map(|m| circle(&g, m))
             .map(|c| c.join(" -> "))
             .collect();
-        assert!(circles.is_empty(), "import circles at depth {level}: {circles:#?}");
+        assert!(
+            circles.is_empty(),
+            "import circles at depth {level}: {circles:#?}"
+        );
     }
 }

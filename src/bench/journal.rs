@@ -19,7 +19,6 @@ use thiserror::Error;
 use crate::device::Wrench;
 use crate::vision::StatusCounts;
 
-
 /// File name of the journal inside a run directory.
 pub const JOURNAL_FILE: &str = "journal.csv";
 /// File name of the manifest inside a run directory.

@@ -50,12 +50,6 @@ use image::RgbImage;
 use serde_json::json;
 use thiserror::Error;
 
-use crate::sim::effects::{Effect, Pipeline};
-use crate::sim::render::to_rgb8;
-use crate::sim::rng::Rng;
-use crate::sim::scene::Scene;
-use crate::sim::simulate::Simulation;
-use crate::sim::world::{World, WorldGeometry};
 use crate::bench::config::BenchGeometry;
 use crate::bench::integrity::{file_sha256, RecordDigests};
 use crate::bench::journal::{
@@ -69,6 +63,12 @@ use crate::device::dynpick::sim::DEFAULT_SENSITIVITIES;
 use crate::device::Wrench;
 use crate::formats::{self, DisplacementFrame};
 use crate::sensor::Sensor;
+use crate::sim::effects::{Effect, Pipeline};
+use crate::sim::render::to_rgb8;
+use crate::sim::rng::Rng;
+use crate::sim::scene::Scene;
+use crate::sim::simulate::Simulation;
+use crate::sim::world::{World, WorldGeometry};
 use crate::solve::{self, FrameSolver, Problem};
 use crate::vision::{
     self, DetectConfig, FrameView, MarkerTrack, PixelMapping, StatusCounts, TrackConfig, Tracker,
