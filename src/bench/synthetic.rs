@@ -42,7 +42,7 @@
 //! [`SyntheticOptions::seed`] reseeds every seeded camera effect and the F/T noise of
 //! the scene (each seed mixed with it), so one scene gives independent runs.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -57,7 +57,9 @@ use crate::bench::journal::{
     RunStatus, Session, StepTimes, GIT_COMMIT,
 };
 use crate::bench::plan::{Plan, Setpoint, Sweep};
-use crate::bench::runner::{mean_over_frames, rfc3339_now, with_geometry};
+use crate::bench::runner::{
+    mean_over_frames, rfc3339_now, solve_setpoint, with_geometry, SolvedSetpoint,
+};
 use crate::device::dynpick::codec::Record;
 use crate::device::dynpick::sim::DEFAULT_SENSITIVITIES;
 use crate::device::Wrench;
@@ -69,7 +71,7 @@ use crate::sim::rng::Rng;
 use crate::sim::scene::Scene;
 use crate::sim::simulate::Simulation;
 use crate::sim::world::{World, WorldGeometry};
-use crate::solve::{self, FrameSolver, Problem};
+use crate::solve::FrameSolver;
 use crate::vision::{
     self, DetectConfig, FrameView, MarkerTrack, PixelMapping, StatusCounts, TrackConfig, Tracker,
 };
@@ -218,7 +220,7 @@ struct Gen<'a> {
     stop_spread_seed: Option<u64>,
     tracker: Tracker,
     mapping: PixelMapping,
-    solvers: BTreeMap<Vec<bool>, Box<dyn FrameSolver>>,
+    solvers: HashMap<Vec<bool>, Box<dyn FrameSolver>>,
     evidence: BTreeMap<String, String>,
 }
 
@@ -315,7 +317,7 @@ pub fn synthetic_run(
         stop_spread_seed: options.stop_spread_seed,
         tracker: Tracker::new(layout, TrackConfig::default()),
         mapping,
-        solvers: BTreeMap::new(),
+        solvers: HashMap::new(),
         evidence,
     };
     let (mut failed, mut flagged, mut rows) = (0, 0, 0);
@@ -691,53 +693,24 @@ impl Gen<'_> {
             frame: String::new(),
             records,
         };
-        let sites = frame.sites(sensor);
-        let u = frame.u_mm();
-        let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
-        let n_out = 3 * sensor.force_grid.len();
-        let mut f = vec![0.0; n_out];
-        let mut fsum_sd = None;
-        // Per-node σ of the forces, recorded beside them as the runner does (issue 32).
-        let mut node_sd: Option<Vec<f64>> = None;
-        let mut precompute_s = 0.0;
-        let solved: Result<(), String> = if !u.is_empty() && u.iter().all(|v| *v == 0.0) {
-            // An exactly unmoved frame is zero force (as the runner: no λ chosen on it).
-            if sigma_mean_mm == Some(0.0) {
-                fsum_sd = Some([0.0; 3]);
-                node_sd = Some(vec![0.0; n_out]);
-            }
-            Ok(())
-        } else {
-            (|| {
-                if !self.solvers.contains_key(&key) {
-                    let tp = Instant::now();
-                    let problem = Problem::new(sensor, &sites);
-                    let s = solve::precompute(&problem, &self.plan.solver, Some(&u))
-                        .map_err(|e| e.to_string())?;
-                    self.solvers.insert(key.clone(), s);
-                    precompute_s = tp.elapsed().as_secs_f64();
-                }
-                let s = self
-                    .solvers
-                    .get_mut(&key)
-                    .ok_or_else(|| "solver cache".to_string())?;
-                s.apply(&u, &mut f).map_err(|e| e.to_string())?;
-                if let Some(sigma) = sigma_mean_mm {
-                    fsum_sd = Some(solve::force_sum_sd(&**s, sigma).map_err(|e| e.to_string())?);
-                    let mut sd = vec![0.0; n_out];
-                    node_sd = s.force_sd(sigma, &mut sd).ok().map(|()| sd);
-                }
-                Ok(())
-            })()
-        };
-        if solved.is_err() {
-            fsum_sd = None;
-            node_sd = None;
-            f.iter_mut().for_each(|v| *v = f64::NAN);
-        }
+        let solved = solve_setpoint(
+            &mut self.solvers,
+            sensor,
+            &self.plan.solver,
+            &frame,
+            sigma_mean_mm,
+        );
+        let SolvedSetpoint {
+            f,
+            fsum,
+            fsum_sd,
+            node_sd,
+            precompute_s,
+            error,
+        } = solved;
         let rel = format!("forces/{index:05}.csv");
         let path = self.dir.join(&rel);
-        let frames = [(String::new(), f.clone())];
+        let frames = [(String::new(), f)];
         match node_sd {
             Some(sd) => formats::write_forces_sd(&path, &sensor.force_grid, &frames, &[sd]),
             None => formats::write_forces(&path, &sensor.force_grid, &frames),
@@ -746,11 +719,10 @@ impl Gen<'_> {
         if let Some(d) = file_sha256(&path) {
             self.evidence.insert(rel, d);
         }
-        let mut fsum = [0.0; 3];
-        for (j, v) in f.iter().enumerate() {
-            fsum[j % 3] += v;
-        }
-        Ok(solved.map(|()| (fsum, fsum_sd, precompute_s)))
+        Ok(match error {
+            None => Ok((fsum, fsum_sd, precompute_s)),
+            Some(e) => Err(e),
+        })
     }
 }
 

@@ -3,6 +3,7 @@
 //! of the plan's `[quality]`: the reference frame against the sensor file, and per
 //! setpoint the markers ok (re-acquire the frames, then flag the row or abort).
 
+use std::collections::HashMap;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -15,7 +16,8 @@ use crate::bench::journal::{Direction, JournalRow, RowQuality, StepTimes};
 use crate::bench::plan::{OnFail, Setpoint};
 use crate::device::{CameraFrame, ErrorKind, StagePositionMm, Wrench};
 use crate::formats::{self, DisplacementFrame};
-use crate::solve::{self, Problem};
+use crate::sensor::Sensor;
+use crate::solve::{self, FrameSolver, Problem, SolverConfig};
 use crate::vision::{self, FrameView, MarkerTrack, Reference, ReferenceHealth, StatusCounts};
 
 /// Fraction of the force controller's step taken towards the target on the rows of
@@ -952,63 +954,24 @@ impl Runner<'_, '_, '_, '_> {
             frame: String::new(),
             records,
         };
-        let sites = frame.sites(sensor);
-        let u = frame.u_mm();
-        let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
-        let n_out = 3 * sensor.force_grid.len();
-        let mut f = vec![f64::NAN; n_out];
-        let mut precompute_s = 0.0;
-        let mut fsum_sd = None;
-        // Per-node σ of the forces, recorded beside them for the report (which draws it
-        // without rebuilding the solver): the same noise as `fsum_sd`, per component.
-        let mut node_sd: Option<Vec<f64>> = None;
-        let solved: Result<(), String> = (|| {
-            // An exactly unmoved frame (an ideal unloaded setpoint) is zero force for
-            // every linear solver; solving it would let automatic λ / rank be chosen
-            // (and cached for the run) on a frame with no signal, which fails.
-            if !u.is_empty() && u.iter().all(|v| *v == 0.0) {
-                f.iter_mut().for_each(|v| *v = 0.0);
-                // Frames that agree exactly carry no noise, whatever the solver.
-                if sigma_mean_mm == Some(0.0) {
-                    fsum_sd = Some([0.0; 3]);
-                    node_sd = Some(vec![0.0; n_out]);
-                }
-                return Ok(());
-            }
-            if !self.solvers.contains_key(&key) {
-                let tp = Instant::now();
-                let problem = Problem::new(sensor, &sites);
-                let s = solve::precompute(&problem, &self.plan.solver, Some(&u))
-                    .map_err(|e| e.to_string())?;
-                self.solvers.insert(key.clone(), s);
-                precompute_s = tp.elapsed().as_secs_f64();
-            }
-            let s = self
-                .solvers
-                .get_mut(&key)
-                .ok_or_else(|| "solver cache".to_string())?;
-            s.apply(&u, &mut f).map_err(|e| e.to_string())?;
-            if let Some(sigma) = sigma_mean_mm {
-                fsum_sd = Some(solve::force_sum_sd(&**s, sigma).map_err(|e| e.to_string())?);
-                // A solver that cannot give per-node σ still solved: the file then
-                // carries no σ columns and the report says the run did not record it.
-                let mut sd = vec![0.0; n_out];
-                node_sd = s.force_sd(sigma, &mut sd).ok().map(|()| sd);
-            }
-            Ok(())
-        })();
-        let error = solved.err();
-        if error.is_some() {
-            fsum_sd = None;
-            node_sd = None;
-            f.iter_mut().for_each(|v| *v = f64::NAN);
-        }
+        let solved = solve_setpoint(
+            &mut self.solvers,
+            sensor,
+            &self.plan.solver,
+            &frame,
+            sigma_mean_mm,
+        );
+        let precompute_s = solved.precompute_s;
         let t_solve = (t0.elapsed().as_secs_f64() - precompute_s).max(0.0);
         self.precompute_s += precompute_s;
-        let mut fsum = [0.0; 3];
-        for (j, v) in f.iter().enumerate() {
-            fsum[j % 3] += v;
-        }
+        let SolvedSetpoint {
+            f,
+            fsum,
+            fsum_sd,
+            node_sd,
+            error,
+            ..
+        } = solved;
         let t_io = Instant::now();
         let fpath = format!("forces/{index:05}.csv");
         let path = self.dir.join(&fpath);
@@ -1021,6 +984,92 @@ impl Runner<'_, '_, '_, '_> {
         self.io_s += t_io.elapsed().as_secs_f64();
         self.solve_s += t_solve;
         Ok((fsum, fsum_sd, t_solve, error))
+    }
+}
+
+/// A setpoint's forces from its mean displacements (`frame`) and the noise of that
+/// mean: what the runner and `bench::synthetic_run` record.
+pub struct SolvedSetpoint {
+    /// Node forces (interleaved `fx, fy, fz`, N); NaN when the solve failed.
+    pub f: Vec<f64>,
+    /// Their sum, N.
+    pub fsum: [f64; 3],
+    /// σ of the sum from the frames' scatter (`None` without an estimate or on failure).
+    pub fsum_sd: Option<[f64; 3]>,
+    /// Per-node σ of the same noise, per component, when the solver gives it.
+    pub node_sd: Option<Vec<f64>>,
+    /// Seconds spent building a solver for a new set of markers (0 when cached).
+    pub precompute_s: f64,
+    /// Why the solve failed.
+    pub error: Option<String>,
+}
+
+/// Solves a setpoint with the plan's solver, one cached per set of markers found
+/// (`solvers`, keyed by which markers carry a displacement). An exactly unmoved frame
+/// (an ideal unloaded setpoint) is zero force for every linear solver; solving it would
+/// let automatic λ / rank be chosen (and cached for the run) on a frame with no signal,
+/// which fails. Frames that agree exactly (`sigma_mean_mm == Some(0)`) carry no noise,
+/// whatever the solver. A solver that cannot give per-node σ still solves: the forces
+/// file then carries no σ columns and the report says the run did not record it.
+pub fn solve_setpoint(
+    solvers: &mut HashMap<Vec<bool>, Box<dyn FrameSolver>>,
+    sensor: &Sensor,
+    config: &SolverConfig,
+    frame: &DisplacementFrame,
+    sigma_mean_mm: Option<f64>,
+) -> SolvedSetpoint {
+    let sites = frame.sites(sensor);
+    let u = frame.u_mm();
+    let key: Vec<bool> = frame.records.iter().map(|r| r.u_mm.is_some()).collect();
+    let n_out = 3 * sensor.force_grid.len();
+    let mut f = vec![f64::NAN; n_out];
+    let mut precompute_s = 0.0;
+    let mut fsum_sd = None;
+    let mut node_sd: Option<Vec<f64>> = None;
+    let solved: Result<(), String> = (|| {
+        if !u.is_empty() && u.iter().all(|v| *v == 0.0) {
+            f.iter_mut().for_each(|v| *v = 0.0);
+            if sigma_mean_mm == Some(0.0) {
+                fsum_sd = Some([0.0; 3]);
+                node_sd = Some(vec![0.0; n_out]);
+            }
+            return Ok(());
+        }
+        if !solvers.contains_key(&key) {
+            let tp = Instant::now();
+            let problem = Problem::new(sensor, &sites);
+            let s = solve::precompute(&problem, config, Some(&u)).map_err(|e| e.to_string())?;
+            solvers.insert(key.clone(), s);
+            precompute_s = tp.elapsed().as_secs_f64();
+        }
+        let s = solvers
+            .get_mut(&key)
+            .ok_or_else(|| "solver cache".to_string())?;
+        s.apply(&u, &mut f).map_err(|e| e.to_string())?;
+        if let Some(sigma) = sigma_mean_mm {
+            fsum_sd = Some(solve::force_sum_sd(&**s, sigma).map_err(|e| e.to_string())?);
+            let mut sd = vec![0.0; n_out];
+            node_sd = s.force_sd(sigma, &mut sd).ok().map(|()| sd);
+        }
+        Ok(())
+    })();
+    let error = solved.err();
+    if error.is_some() {
+        fsum_sd = None;
+        node_sd = None;
+        f.iter_mut().for_each(|v| *v = f64::NAN);
+    }
+    let mut fsum = [0.0; 3];
+    for (j, v) in f.iter().enumerate() {
+        fsum[j % 3] += v;
+    }
+    SolvedSetpoint {
+        f,
+        fsum,
+        fsum_sd,
+        node_sd,
+        precompute_s,
+        error,
     }
 }
 

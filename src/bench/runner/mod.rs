@@ -134,7 +134,7 @@ pub const POSITION_TOLERANCE_MM: f64 = 0.005;
 pub const MOVE_GRACE: Duration = Duration::from_secs(5);
 
 mod acquire;
-pub use acquire::mean_over_frames;
+pub use acquire::{mean_over_frames, solve_setpoint, SolvedSetpoint};
 mod dry_run;
 mod motion;
 mod record;
